@@ -1,0 +1,177 @@
+"""The ``vfm`` command line: one entry point, one subcommand per job.
+
+Errors the VFM raises on purpose (:class:`vfm_core.errors.VFMError`) print one sentence
+and exit with status 2; Ctrl-C exits with 130 and leaves no half-written output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from vfm_core.errors import VFMError
+
+__all__ = ["main", "build_parser"]
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _split_list(values: Sequence[str] | None) -> list[str]:
+    out: list[str] = []
+    for v in values or []:
+        out.extend(x.strip() for x in v.split(",") if x.strip())
+    return out
+
+
+# --- simulate -----------------------------------------------------------------------------
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from vfm_core.simulate import parse_hidden, simulate_field, write_field
+
+    hidden = parse_hidden(args.hidden or ["none"])
+    started = time.perf_counter()
+    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=hidden,
+                           start=args.start, progress=not args.quiet)
+    paths = write_field(field, args.out)
+    elapsed = time.perf_counter() - started
+    print(field.summary())
+    print(f"Wrote {', '.join(str(p) for p in paths)} in {elapsed:.1f} s.")
+    return 0
+
+
+# --- import-volve -------------------------------------------------------------------------
+def _cmd_import_volve(args: argparse.Namespace) -> int:
+    from vfm_core.volve import import_volve
+
+    report = import_volve(args.src, args.out)
+    print(report.summary())
+    return 0
+
+
+# --- evaluate -----------------------------------------------------------------------------
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from vfm_core.evaluate import DEFAULT_METHODS, format_summary, run_study, write_study
+    from vfm_core.models import MODELS
+    from vfm_core.observations import load_observations
+
+    loaded = load_observations(args.data)
+    print(loaded.summary())
+    models = _split_list(args.models) or list(MODELS)
+    methods = _split_list(args.methods) or list(DEFAULT_METHODS)
+    targets = _split_list(args.targets) or ["all"]
+    for case in targets:
+        result = run_study(
+            loaded.frame, models=models, methods=methods, targets=case, split=args.split,
+            seed=args.seed, progress=not args.quiet, data_path=str(args.data),
+            track_parameters=args.track_parameters,
+        )
+        out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
+        written = write_study(result, out, report=not args.no_report)
+        print(format_summary(result))
+        print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
+    return 0
+
+
+# --- demo ---------------------------------------------------------------------------------
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from vfm_core.evaluate import format_summary, run_study, write_study
+    from vfm_core.observations import load_observations
+    from vfm_core.simulate import simulate_field, write_field
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = out / "field.parquet"
+    print(f"1/3 Simulating a field of {args.wells} wells over {args.years:g} years (seed {args.seed}) ...")
+    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed)
+    write_field(field, data)
+    print(field.summary())
+    loaded = load_observations(data)
+    print("2/3 Evaluating the mechanistic and hybrid models with online and periodic learning ...")
+    result = run_study(loaded.frame, models=args.models, methods=["ol", "pbl:14d", "pbl:182d"],
+                       targets="all", progress=not args.quiet, data_path=str(data))
+    written = write_study(result, out / "study")
+    print("3/3 Results")
+    print(format_summary(result))
+    report = next(p for p in written if p.name == "report.html")
+    print(f"\nOpen {report.resolve()} in a browser for the plots; the data are in {data}.")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vfm",
+        description="Streaming virtual flow meter: choke models that keep learning from MPFM "
+        "readings and well tests. Units: bar absolute, degC, Sm3/h.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("simulate", help="simulate a well field with a known truth")
+    p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
+    p.add_argument("--wells", type=int, default=10, help="number of wells (default 10)")
+    p.add_argument("--years", type=float, default=5.0, help="length of history in years (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
+    p.add_argument("--start", default="2016-01-01", help="first day of the field (default 2016-01-01)")
+    p.add_argument("--hidden", action="append", metavar="EFFECT",
+                   help="hidden effect(s), e.g. erosion, valve:family=sigmoid, real_gas, slip, "
+                   "mpfm_bias, critical_ratio, or none; repeat or comma-separate")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_simulate)
+
+    p = sub.add_parser("import-volve", help="convert Equinor's Volve daily production CSV")
+    p.add_argument("src", help="volve_daily_production.csv")
+    p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
+    p.set_defaults(handler=_cmd_import_volve)
+
+    p = sub.add_parser("evaluate", help="run the study: models x learning methods, prequentially")
+    p.add_argument("data", help="observation file (.parquet or .csv)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--models", action="append", help="comma-separated models (default: all)")
+    p.add_argument("--methods", action="append",
+                   help="comma-separated methods: ol, pbl:<period>[:window=<span>] "
+                   "(default: ol,pbl:14d,pbl:182d)")
+    p.add_argument("--targets", action="append",
+                   help="all (MPFM and well tests) or well_test; both: all,well_test (default all)")
+    p.add_argument("--split", default=None,
+                   help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--track-parameters", action="store_true",
+                   help="also write parameters.parquet (physical parameters after each update)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_evaluate)
+
+    p = sub.add_parser("demo", help="the main job on an embedded default: simulate, learn, report")
+    p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    p.add_argument("--wells", type=int, default=10)
+    p.add_argument("--years", type=float, default=5.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--models", nargs="+", default=["last", "mm", "ham"])
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=_cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except VFMError as exc:
+        print(f"vfm {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"vfm {args.command}: interrupted; no partial output was kept.", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,346 @@
+"""Training and the passive learners: MAP batch fits, online learning, periodic batch learning.
+
+- :func:`fit_batch`: MAP training on a batch (squared scaled error plus the prior penalty
+  weighted by sigma_eps^2 / N, paper eq. objective-function), Adam or SGD, with early
+  stopping on the latest slice of each well's data: a first pass on all but that slice
+  finds the best number of iterations per well, a second pass from the same start on all
+  the data runs exactly that many (so the newest data are learned from, not only used
+  to stop).
+- :class:`OnlineLearner` (``ol``): for each new measurement, E gradient steps with rate
+  gamma from the current parameters on that observation alone (paper eq. MAP-OL); the
+  prior pull stays on for physical parameters only. Optimiser state carries over.
+- :class:`PeriodicSchedule` (``pbl:<period>[:window=<span>]``): retrain every period on
+  all data seen so far (or the last window), warm-started from the current parameters.
+
+Method strings are parsed by :func:`parse_method`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import pandas as pd
+import torch
+
+from vfm_core.data import DTYPE, Batch
+from vfm_core.errors import ConfigError
+from vfm_core.models import ChokeModel
+
+__all__ = [
+    "TrainSettings",
+    "OnlineSettings",
+    "Method",
+    "parse_method",
+    "fit_batch",
+    "OnlineLearner",
+    "scaled_errors",
+    "DEFAULT_TRAIN",
+    "DEFAULT_ONLINE",
+]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Batch (MAP) training: optimiser, learning rate, early stopping."""
+
+    optimizer: str = "adam"
+    lr: float = 1e-2
+    max_iter: int = 400
+    patience: int = 40
+    val_fraction: float = 0.2
+    #: iterations used for a well whose data are too few to hold out a slice
+    default_iter: int = 100
+    #: learning-rate schedule gamma_k = gamma_0 / k^power (0 = constant)
+    schedule_power: float = 0.0
+    #: relative measurement noise sigma_eps (weights the prior against the data)
+    noise: float = 0.05
+    #: a periodic retrain (warm start) runs the initial fit's early-stopped iteration
+    #: count per well, at most this many
+    retrain_max_iter: int = 150
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """Online learning: E steps of rate gamma per new measurement."""
+
+    optimizer: str = "adam"
+    lr: float = 1e-2
+    steps: int = 10
+    schedule_power: float = 0.0
+    noise: float = 0.05
+    #: per-well cap on the gradient norm of one step, so a single odd measurement
+    #: (or an input far outside the training range) cannot throw the model away
+    max_grad_norm: float = 1.0
+
+
+#: Defaults per model, a starting point taken from the paper's Tables B.1-B.2 and adapted
+#: to this implementation's parameter scaling (physical parameters in prior standard
+#: deviations, rates scaled by the well's median). ``vfm tune`` improves on them.
+DEFAULT_TRAIN: dict[str, TrainSettings] = {
+    "last": TrainSettings(),
+    "lr": TrainSettings(optimizer="sgd", lr=0.05, schedule_power=0.3),
+    "nn": TrainSettings(lr=3e-3),
+    "mtl": TrainSettings(lr=3e-3),
+    "mm": TrainSettings(lr=3e-2),
+    "hem": TrainSettings(lr=1e-2),
+    "ham": TrainSettings(lr=1e-2),
+}
+DEFAULT_ONLINE: dict[str, OnlineSettings] = {
+    "last": OnlineSettings(),
+    "lr": OnlineSettings(optimizer="sgd", lr=0.02, steps=10),
+    "nn": OnlineSettings(lr=1e-3, steps=10),
+    "mtl": OnlineSettings(lr=3e-4, steps=10),
+    "mm": OnlineSettings(lr=2e-2, steps=10),
+    "hem": OnlineSettings(lr=5e-3, steps=10),
+    "ham": OnlineSettings(lr=5e-3, steps=10),
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A parsed learning method: ``ol`` or ``pbl`` with a period and optional window."""
+
+    kind: str
+    period: pd.Timedelta | None = None
+    window: pd.Timedelta | None = None
+    text: str = ""
+
+    def __str__(self) -> str:
+        return self.text
+
+
+_PBL = re.compile(r"^pbl:(?P<period>[^:]+)(?::window=(?P<window>.+))?$")
+
+
+def _parse_span(text: str, what: str, method: str) -> pd.Timedelta:
+    try:
+        span = pd.Timedelta(text)
+    except ValueError:
+        span = None
+    if span is None or span <= pd.Timedelta(0):
+        raise ConfigError(
+            f"Method '{method}': the {what} '{text}' is not a positive time span; "
+            "write it like 14d, 182d or 12h."
+        )
+    return span
+
+
+def parse_method(text: str) -> Method:
+    """Parse ``ol``, ``pbl:14d`` or ``pbl:182d:window=365d``."""
+    text = text.strip()
+    if text == "ol":
+        return Method("ol", text=text)
+    m = _PBL.match(text)
+    if not m:
+        raise ConfigError(
+            f"Unknown learning method '{text}'; use 'ol' or 'pbl:<period>[:window=<span>]', "
+            "e.g. pbl:14d or pbl:182d:window=365d."
+        )
+    period = _parse_span(m["period"], "period", text)
+    window = _parse_span(m["window"], "window", text) if m["window"] else None
+    return Method("pbl", period=period, window=window, text=text)
+
+
+def _optimizer(params: list[torch.nn.Parameter], kind: str, lr: float, power: float) -> tuple[
+    torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler | None
+]:
+    if kind == "adam":
+        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
+    elif kind == "sgd":
+        opt = torch.optim.SGD(params, lr=lr)
+    else:
+        raise ConfigError(f"Unknown optimizer '{kind}'; choose 'adam' or 'sgd'.")
+    sched = None
+    if power > 0:
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 1.0 / (k + 1) ** power)
+    return opt, sched
+
+
+def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
+    """(prediction - measurement) / rate scale per sample [W, N], zero where padded."""
+    q = model(batch.x)
+    e = (q - batch.y) / model.y_scale.unsqueeze(1)
+    return torch.where(batch.mask, e, torch.zeros_like(e))
+
+
+def _per_well_loss(model: ChokeModel, batch: Batch, noise: float, physical_only: bool) -> torch.Tensor:
+    """MAP objective per well [W]: mean squared scaled error + sigma^2/N prior penalty."""
+    n = batch.count().to(DTYPE)
+    e = scaled_errors(model, batch)
+    mse = (e**2).sum(1) / n.clamp(min=1.0)
+    prior = model.prior_penalty(physical_only=physical_only) * noise**2 / n.clamp(min=1.0)
+    return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
+
+
+def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
+    """Hold out the latest ``fraction`` of each well's samples (by time) for early stopping."""
+    counts = batch.count()
+    n_val = torch.floor(counts.to(DTYPE) * fraction).to(torch.int64)
+    n_val = torch.where(counts >= 5, n_val.clamp(min=1), torch.zeros_like(n_val))
+    rank = torch.cumsum(batch.mask.to(torch.int64), dim=1) - 1
+    is_val = batch.mask & (rank >= (counts - n_val).unsqueeze(1))
+    return batch.select(batch.mask & ~is_val), batch.select(is_val), n_val > 0
+
+
+def _snapshot(params: list[torch.nn.Parameter]) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in params]
+
+
+def clip_per_well_(model: ChokeModel, max_norm: float) -> None:
+    """Scale each well's gradient down to norm ``max_norm`` (wells stay independent)."""
+    grads = [p.grad for p in model.per_well_parameters() if p.grad is not None]
+    if not grads:
+        return
+    sq = sum((g.reshape(g.shape[0], -1) ** 2).sum(1) for g in grads)
+    scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
+    shared = [p for p in model.parameters() if p.grad is not None and all(p is not q for q in model.per_well_parameters())]
+    if shared:
+        torch.nn.utils.clip_grad_norm_(shared, max_norm)
+
+
+def fit_batch(
+    model: ChokeModel,
+    batch: Batch,
+    settings: TrainSettings,
+    iterations: torch.Tensor | None = None,
+) -> dict[str, Any]:
+    """MAP-train ``model`` on ``batch`` from its current parameters (a warm start).
+
+    With ``iterations`` [W] given (a periodic retrain), early stopping is skipped and each
+    well runs that many iterations (capped by ``retrain_max_iter``). Returns a summary
+    with ``iterations``, the count per well, for later retrains.
+    """
+    model.setup(batch)
+    if model.gradient_free:
+        model.observe(batch)
+        return {"iterations": torch.zeros(batch.n_wells, dtype=torch.int64)}
+    if int(batch.count().sum()) == 0:
+        return {"iterations": torch.zeros(batch.n_wells, dtype=torch.int64)}
+    params = [p for p in model.parameters() if p.requires_grad]
+    start = _snapshot(params)
+    train, val, has_val = _split_latest(batch, settings.val_fraction)
+    n_w = batch.n_wells
+    best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
+
+    if iterations is not None:
+        fallback = torch.full_like(iterations, settings.default_iter)
+        best_iter = torch.where(iterations > 0, iterations, fallback).clamp(max=settings.retrain_max_iter)
+        has_val = torch.zeros_like(has_val)
+    # pass 1: find the best iteration count on the held-out latest slice
+    if bool(has_val.any()):
+        opt, sched = _optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
+        best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
+        since = torch.zeros(n_w, dtype=torch.int64)
+        for k in range(1, settings.max_iter + 1):
+            opt.zero_grad()
+            loss = _per_well_loss(model, train, settings.noise, physical_only=False).sum()
+            loss.backward()
+            opt.step()
+            if sched is not None:
+                sched.step()
+            model.project_()
+            with torch.no_grad():
+                v = (scaled_errors(model, val) ** 2).sum(1) / val.count().clamp(min=1)
+                if model.shared:  # one early-stopping decision for shared parameters
+                    total = torch.where(has_val, v, torch.zeros_like(v)).sum()
+                    v = torch.full_like(v, float(total))
+            improved = has_val & (v < best_loss - 1e-12)
+            best_loss = torch.where(improved, v, best_loss)
+            best_iter = torch.where(improved, torch.full_like(best_iter, k), best_iter)
+            since = torch.where(improved, torch.zeros_like(since), since + 1)
+            if bool((since[has_val] >= settings.patience).all()):
+                break
+        best_iter = torch.where(has_val, best_iter, torch.full_like(best_iter, settings.default_iter))
+        for p, s in zip(params, start, strict=True):
+            p.data.copy_(s)
+
+    # pass 2: from the same start, on all data, each well for its chosen iteration count
+    if model.shared:
+        best_iter = torch.full_like(best_iter, int(best_iter.max()))
+    per_well = set(map(id, model.per_well_parameters()))
+    opt, sched = _optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
+    final = _snapshot(params)
+    total_iter = int(best_iter.max())
+    for k in range(1, total_iter + 1):
+        opt.zero_grad()
+        loss = _per_well_loss(model, batch, settings.noise, physical_only=False).sum()
+        loss.backward()
+        opt.step()
+        if sched is not None:
+            sched.step()
+        model.project_()
+        done = best_iter == k
+        if bool(done.any()):
+            for p, f in zip(params, final, strict=True):
+                if id(p) in per_well:
+                    f[done] = p.detach()[done]
+    for p, f in zip(params, final, strict=True):
+        if id(p) in per_well:
+            # wells that stopped early keep their snapshot; the rest end at total_iter
+            keep = best_iter < total_iter
+            p.data[keep] = f[keep]
+    return {"iterations": best_iter}
+
+
+@dataclass
+class OnlineLearner:
+    """Online learning on a model: ``learn(batch)`` takes E steps on the new observations.
+
+    ``batch`` normally holds one new measurement per well (wells without one are masked
+    out and do not move); the prior pull is on physical parameters only.
+    """
+
+    model: ChokeModel
+    settings: OnlineSettings
+    _opt: torch.optim.Optimizer | None = field(default=None, init=False, repr=False)
+    _sched: Any = field(default=None, init=False, repr=False)
+    updates: int = field(default=0, init=False)
+
+    def learn(self, batch: Batch) -> None:
+        self.model.setup(batch)
+        if self.model.gradient_free:
+            self.model.observe(batch)
+            self.updates += 1
+            return
+        if self._opt is None:
+            params = [p for p in self.model.parameters() if p.requires_grad]
+            self._opt, self._sched = _optimizer(
+                params, self.settings.optimizer, self.settings.lr, self.settings.schedule_power
+            )
+        ready = self.model.ready & (batch.count() > 0)
+        if not bool(ready.any()):
+            return
+        batch = batch.select(batch.mask & ready.unsqueeze(1))
+        # Adam's momentum would move wells that have no new measurement: hold them still.
+        idle = ~ready
+        held = [(p, p.detach()[idle].clone()) for p in self.model.per_well_parameters()]
+        for _ in range(self.settings.steps):
+            self._opt.zero_grad()
+            loss = _per_well_loss(self.model, batch, self.settings.noise, physical_only=True).sum()
+            loss.backward()
+            clip_per_well_(self.model, self.settings.max_grad_norm)
+            self._opt.step()
+            self.model.project_()
+            if bool(idle.any()):
+                for p, before in held:
+                    p.data[idle] = before
+        if self._sched is not None:
+            self._sched.step()
+        self.updates += 1
+
+
+def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
+    """Apply JSON overrides to a settings dataclass, with a clear error for unknown keys."""
+    valid = set(asdict(base))
+    unknown = set(overrides) - valid
+    if unknown:
+        raise ConfigError(f"Unknown settings {sorted(unknown)}; valid ones are {sorted(valid)}.")
+    return replace(base, **overrides)
+
+
+ProgressFn = Callable[[int], None]

@@ -1,0 +1,325 @@
+"""Convert Equinor's Volve daily production report into the observation format.
+
+The Volve file (``volve_daily_production.csv``, Equinor Open Data Licence, credit "Equinor
+and the Volve licence partners") holds one row per well per day. Under its licence terms
+the project keeps it out of this repository, so this module only *reads* it from where the
+user keeps it and writes the converted observations wherever the user asks (never commit
+them either).
+
+Which rows are kept: producers only (``WELL_TYPE == "OP"`` and ``FLOW_KIND ==
+"production"``) on full producing days (``ON_STREAM_HRS >= 23.9``; up to 25 h on the day
+the clocks go back), with choke, wellhead pressure, choke pressure drop and wellhead
+temperature present and positive (a non-positive pressure drop is counted as ``p_down >=
+p_up``), and non-negative produced volumes that are not all zero.
+Every removed row is counted under the first reason in :data:`REMOVAL_REASONS` that
+applies; nothing is dropped silently.
+
+Mapping of one kept row (pressures in the file are gauge, the observation format wants
+absolute):
+
+============  ===============================================================  =============
+column        from the Volve columns                                           unit
+============  ===============================================================  =============
+time          ``DATEPRD`` (``07-Apr-14``) at 12:00 UTC, the middle of the day  ISO 8601 UTC
+              the daily averages describe
+well          ``NPD_WELL_BORE_NAME``                                           string
+choke         ``AVG_CHOKE_SIZE_P / 100`` (rows outside 0..1 removed, no clip)  fraction 0..1
+p_up          ``AVG_WHP_P + ATM_BAR``                                          bar absolute
+p_down        ``AVG_WHP_P - DP_CHOKE_SIZE + ATM_BAR``                          bar absolute
+t_up          ``AVG_WHT_P``                                                    degC
+eta_gas       ``BORE_GAS_VOL * RHO_GAS_SC / m_total``                          mass fraction
+eta_oil       ``BORE_OIL_VOL * RHO_OIL / m_total``                             mass fraction
+q_oil         ``BORE_OIL_VOL / ON_STREAM_HRS``                                 Sm3/h
+q_gas         ``BORE_GAS_VOL / ON_STREAM_HRS``                                 Sm3/h
+q_water       ``BORE_WAT_VOL / ON_STREAM_HRS``                                 Sm3/h
+q_total       ``q_oil + q_gas + q_water``                                      Sm3/h
+source        ``mpfm``                                                         -
+============  ===============================================================  =============
+
+with the day's mass ``m_total = BORE_OIL_VOL*RHO_OIL + BORE_GAS_VOL*RHO_GAS_SC +
+BORE_WAT_VOL*RHO_WAT`` (kg per day; only the ratios matter). The densities are assumptions,
+not data from the file (see the constants). The daily volumes are allocated from facility
+totals and well tests rather than metered per well; they are labelled ``mpfm`` because they
+play the part of a multiphase-meter target, with an error of their own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from vfm_core import physics, schema, units
+from vfm_core.errors import DataError
+from vfm_core.observations import save_observations
+
+__all__ = [
+    "RHO_OIL",
+    "RHO_WAT",
+    "M_GAS",
+    "RHO_GAS_SC",
+    "MIN_ON_STREAM_HOURS",
+    "MAX_ON_STREAM_HOURS",
+    "NEEDED_COLUMNS",
+    "REMOVAL_REASONS",
+    "ImportReport",
+    "read_volve_csv",
+    "convert_volve",
+    "import_volve",
+]
+
+#: Assumed stock-tank oil density, kg/m3: a light North Sea crude like Volve's. An
+#: assumption (the file carries no densities); it sets only the mass fractions.
+RHO_OIL = 860.0
+#: Assumed produced-water density, kg/m3 (saline formation water / seawater).
+RHO_WAT = 1025.0
+#: Assumed gas molar mass, kg/mol: the mean of the project's prior.
+M_GAS = physics.PRIORS["m_gas"].mean
+#: Gas density at standard conditions (101325 Pa, 288.15 K) for :data:`M_GAS`, kg/m3.
+RHO_GAS_SC = float(physics.gas_density_standard(M_GAS))
+#: A day counts as a full producing day from this many hours on stream, h.
+MIN_ON_STREAM_HOURS = 23.9
+#: No day is longer than this (25 h on the day the clocks go back in October), h.
+MAX_ON_STREAM_HOURS = 25.0
+
+_DATE = "DATEPRD"
+_WELL = "NPD_WELL_BORE_NAME"
+_HOURS = "ON_STREAM_HRS"
+_CHOKE = "AVG_CHOKE_SIZE_P"
+_WHP = "AVG_WHP_P"
+_DP = "DP_CHOKE_SIZE"
+_WHT = "AVG_WHT_P"
+_OIL = "BORE_OIL_VOL"
+_GAS = "BORE_GAS_VOL"
+_WAT = "BORE_WAT_VOL"
+_FLOW_KIND = "FLOW_KIND"
+_WELL_TYPE = "WELL_TYPE"
+_DATE_FORMAT = "%d-%b-%y"
+
+_INPUTS = (_CHOKE, _WHP, _DP, _WHT)
+_VOLUMES = (_OIL, _GAS, _WAT)
+_NUMERIC = (_HOURS, *_INPUTS, *_VOLUMES)
+#: The raw columns the conversion reads; any others are ignored.
+NEEDED_COLUMNS: tuple[str, ...] = (_DATE, _WELL, _WELL_TYPE, _FLOW_KIND, *_NUMERIC)
+
+_NOT_PRODUCER = "not a producer (WELL_TYPE is not OP or FLOW_KIND is not production)"
+_NO_ID = "no usable date or well (DATEPRD not like 07-Apr-14, or NPD_WELL_BORE_NAME empty)"
+_PART_DAY = f"not a full producing day (ON_STREAM_HRS < {MIN_ON_STREAM_HOURS:g})"
+_LONG_DAY = f"ON_STREAM_HRS above {MAX_ON_STREAM_HOURS:g} (longer than any day)"
+_MISSING_INPUT = "missing choke/pressure/temperature"
+_NONPOSITIVE_INPUT = "choke, wellhead pressure or wellhead temperature not positive"
+_CHOKE_RANGE = "choke outside 0..1 (AVG_CHOKE_SIZE_P above 100 %)"
+_MISSING_VOLUME = "missing produced volume (BORE_OIL_VOL, BORE_GAS_VOL or BORE_WAT_VOL empty)"
+_NEGATIVE_VOLUME = "negative produced volume"
+_NO_VOLUME = "no produced volume"
+_P_DOWN_NONPOSITIVE = "p_down <= 0 (DP_CHOKE_SIZE exceeds the absolute wellhead pressure)"
+_P_DOWN_NOT_BELOW = "p_down >= p_up (DP_CHOKE_SIZE not positive)"
+_DUPLICATE = "duplicate well and day (the first is kept)"
+
+#: Why rows are removed, in the order they are tested; a row counts under the first that applies.
+REMOVAL_REASONS: tuple[str, ...] = (
+    _NOT_PRODUCER,
+    _NO_ID,
+    _PART_DAY,
+    _LONG_DAY,
+    _MISSING_INPUT,
+    _NONPOSITIVE_INPUT,
+    _CHOKE_RANGE,
+    _MISSING_VOLUME,
+    _NEGATIVE_VOLUME,
+    _NO_VOLUME,
+    _P_DOWN_NONPOSITIVE,
+    _P_DOWN_NOT_BELOW,
+    _DUPLICATE,
+)
+
+
+def _require_columns(frame: pd.DataFrame, where: str) -> None:
+    missing = [c for c in NEEDED_COLUMNS if c not in frame.columns]
+    if missing:
+        raise DataError(
+            f"{where} lacks the column(s) {', '.join(missing)} that the Volve conversion "
+            "needs; give the daily production report (volve_daily_production.csv) with its "
+            "original header."
+        )
+
+
+def _numeric_columns(frame: pd.DataFrame, where: str) -> pd.DataFrame:
+    """The numeric Volve columns as float64; a cell that is not a number raises DataError."""
+    out = {}
+    for column in _NUMERIC:
+        values = frame[column]
+        if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
+            out[column] = values.astype("float64")
+            continue
+        # Strings may still carry thousands separators ("1,166") when built by hand.
+        text = values.astype("string").str.replace(",", "", regex=False).str.strip()
+        number = pd.to_numeric(text.replace("", pd.NA), errors="coerce")
+        bad = number.isna() & text.replace("", pd.NA).notna()
+        if bad.any():
+            position = int(np.flatnonzero(bad.to_numpy())[0])
+            raise DataError(
+                f"{where}: column {column} holds {values.iloc[position]!r} on row "
+                f"{position + 2} (header = row 1), which is not a number; fix or empty that cell."
+            )
+        out[column] = number.astype("float64")
+    return pd.DataFrame(out, index=frame.index)
+
+
+def read_volve_csv(path: str | Path) -> pd.DataFrame:
+    """Read Volve's daily production CSV as it is, with numbers as float64 (NaN where empty).
+
+    Quoted thousands separators (``"1,166"``) are parsed as numbers. Raises
+    :class:`DataError` naming the file when it is missing or unreadable, or when a column
+    the conversion needs (:data:`NEEDED_COLUMNS`) is absent or holds text.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(
+            f"Volve file {path} not found; give the path of volve_daily_production.csv "
+            "(it is licensed and kept outside the repository, e.g. ../shared/data/volve/)."
+        )
+    text_columns = {_DATE: "string", _WELL: "string", _WELL_TYPE: "string", _FLOW_KIND: "string"}
+    try:
+        raw = pd.read_csv(
+            path,
+            thousands=",",
+            dtype=text_columns,
+            keep_default_na=False,
+            na_values=[""],
+            encoding="utf-8",
+        )
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError) as exc:
+        raise DataError(f"Volve file {path} cannot be read as CSV: {exc}.") from exc
+    where = f"Volve file {path}"
+    _require_columns(raw, where)
+    raw[list(_NUMERIC)] = _numeric_columns(raw, where)
+    return raw
+
+
+def convert_volve(raw: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, int]]:
+    """Turn raw Volve rows into observations (see the module table for the mapping).
+
+    Returns the observation frame (sorted by time, then well, with the optional ``q_gas``,
+    ``q_oil`` and ``q_water`` columns) and, for every reason in :data:`REMOVAL_REASONS`,
+    how many rows were removed for it (zero included), so that ``len(raw) ==
+    len(frame) + sum(removed.values())``. ``raw`` is not modified.
+    """
+    _require_columns(raw, "The Volve frame")
+    num = _numeric_columns(raw, "The Volve frame")
+    well = raw[_WELL].astype("string").str.strip()
+    day = pd.to_datetime(
+        raw[_DATE].astype("string").str.strip(), format=_DATE_FORMAT, errors="coerce"
+    )
+    time = day.dt.tz_localize("UTC") + pd.Timedelta(hours=12)
+
+    hours = num[_HOURS]
+    inputs = num[list(_INPUTS)]
+    volumes = num[list(_VOLUMES)]
+    choke = num[_CHOKE] / 100.0
+    p_up = num[_WHP] + units.ATM_BAR
+    p_down = num[_WHP] - num[_DP] + units.ATM_BAR
+
+    is_producer = (raw[_WELL_TYPE].astype("string").str.strip() == "OP") & (
+        raw[_FLOW_KIND].astype("string").str.strip() == "production"
+    )
+    failures: dict[str, pd.Series] = {
+        _NOT_PRODUCER: ~is_producer.fillna(False).astype(bool),
+        _NO_ID: time.isna() | well.isna() | (well == ""),
+        # NaN compares False, so a missing ON_STREAM_HRS is not a full producing day either.
+        _PART_DAY: ~(hours >= MIN_ON_STREAM_HOURS),
+        _LONG_DAY: hours > MAX_ON_STREAM_HOURS,
+        _MISSING_INPUT: ~np.isfinite(inputs).all(axis=1),
+        # A non-positive DP_CHOKE_SIZE is caught below, as p_down >= p_up.
+        _NONPOSITIVE_INPUT: (num[[_CHOKE, _WHP, _WHT]] <= 0).any(axis=1),
+        _CHOKE_RANGE: (choke < 0) | (choke > 1),
+        _MISSING_VOLUME: ~np.isfinite(volumes).all(axis=1),
+        _NEGATIVE_VOLUME: (volumes < 0).any(axis=1),
+        _NO_VOLUME: volumes.sum(axis=1) <= 0,
+        _P_DOWN_NONPOSITIVE: p_down <= 0,
+        _P_DOWN_NOT_BELOW: p_down >= p_up,
+    }
+    keep = pd.Series(True, index=raw.index)
+    removed: dict[str, int] = {}
+    for reason, failed in failures.items():
+        hit = keep & failed.fillna(False).astype(bool)
+        removed[reason] = int(hit.sum())
+        keep &= ~hit
+    duplicate = keep & pd.DataFrame({"t": time, "w": well})[keep].duplicated().reindex(
+        raw.index, fill_value=False
+    )
+    removed[_DUPLICATE] = int(duplicate.sum())
+    keep &= ~duplicate
+
+    kept_hours = hours[keep]
+    oil, gas, wat = (volumes.loc[keep, c] for c in _VOLUMES)
+    mass_oil = oil * RHO_OIL
+    mass_gas = gas * RHO_GAS_SC
+    mass_total = mass_oil + mass_gas + wat * RHO_WAT
+    q_oil = oil / kept_hours
+    q_gas = gas / kept_hours
+    q_water = wat / kept_hours
+    frame = pd.DataFrame(
+        {
+            schema.TIME: time[keep],
+            schema.WELL: well[keep].astype(str),
+            "choke": choke[keep],
+            "p_up": p_up[keep],
+            "p_down": p_down[keep],
+            "t_up": num.loc[keep, _WHT],
+            "eta_gas": mass_gas / mass_total,
+            "eta_oil": mass_oil / mass_total,
+            schema.TARGET: q_oil + q_gas + q_water,
+            schema.SOURCE: schema.MPFM,
+            "q_gas": q_gas,
+            "q_oil": q_oil,
+            "q_water": q_water,
+        }
+    )
+    frame = frame.sort_values([schema.TIME, schema.WELL], kind="stable").reset_index(drop=True)
+    return frame, removed
+
+
+@dataclass(frozen=True)
+class ImportReport:
+    """What :func:`import_volve` did: rows read and written, removals by reason, rows per well."""
+
+    n_read: int
+    n_written: int
+    removed: dict[str, int]
+    wells: dict[str, int]
+    out: Path
+
+    def summary(self) -> str:
+        """A short human-readable account, one fact per line."""
+        lines = [
+            f"Read {self.n_read:,} Volve rows; wrote {self.n_written:,} observations "
+            f"of {len(self.wells)} wells to {self.out}.",
+            f"Removed {sum(self.removed.values()):,} rows:",
+        ]
+        lines += [f"  {n:>7,}  {reason}" for reason, n in self.removed.items() if n]
+        lines.append("Rows per well:")
+        lines += [f"  {n:>7,}  {name}" for name, n in self.wells.items()]
+        return "\n".join(lines)
+
+
+def import_volve(src: str | Path, out: str | Path) -> ImportReport:
+    """Read the Volve CSV at ``src``, convert it and write observations to ``out``.
+
+    ``out`` ends in ``.csv`` or ``.parquet``. The output is derived from licensed data:
+    keep it outside the repository (or ignored by git). Raises :class:`DataError` when the
+    source cannot be used.
+    """
+    raw = read_volve_csv(src)
+    frame, removed = convert_volve(raw)
+    written = save_observations(frame, out)
+    per_well = frame[schema.WELL].value_counts().sort_index()
+    return ImportReport(
+        n_read=len(raw),
+        n_written=len(frame),
+        removed=removed,
+        wells={str(name): int(n) for name, n in per_well.items()},
+        out=Path(written),
+    )
