@@ -23,7 +23,9 @@ demo: $(STAMP)
 	$(VENV)/bin/vfm demo
 
 test: $(STAMP)
-	$(PY) -m pytest
+	@# pytest exits 5 when it collects no test: that is a broken suite, say so.
+	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no test" >&2; fi; exit $$rc
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check vfm_core service replay tests benchmarks

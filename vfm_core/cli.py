@@ -152,7 +152,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", nargs="+", default=["last", "mm", "ham"])
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=_cmd_demo)
+    _register_plugins(sub)
     return parser
+
+
+def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add subcommands registered under the ``vfm.commands`` entry-point group.
+
+    Each entry point is a ``register(subparsers)`` function that adds its parser(s) and
+    sets ``handler``. A plugin may replace a built-in command of the same name (the
+    service package brings the streaming ``demo``). A plugin that fails to import is
+    reported, not fatal, so the offline commands keep working.
+    """
+    from importlib.metadata import entry_points
+
+    for ep in sorted(entry_points(group="vfm.commands"), key=lambda e: e.name):
+        try:
+            register = ep.load()
+        except Exception as exc:  # a broken optional part must not take the CLI down
+            logging.getLogger("vfm.cli").warning("Command '%s' is unavailable: %s", ep.name, exc)
+            continue
+        if ep.name in sub.choices:
+            del sub.choices[ep.name]
+            sub._choices_actions = [a for a in sub._choices_actions if a.dest != ep.name]
+        register(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

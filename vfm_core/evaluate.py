@@ -123,6 +123,7 @@ def run_study(
     predictions = []
     parameters = []
     updates: dict[str, list[pd.Timestamp]] = {}
+    initial_fits: dict[Any, Any] = {}
     try:
         for model, meth in combos:
             bar.set_postfix_str(f"{model} {meth}")
@@ -133,7 +134,7 @@ def run_study(
 
             result = run_prequential(
                 frame, model, meth, targets=targets, split=split_ts, seed=seed, progress=report,
-                track_parameters=track_parameters, **(run_kwargs or {}),
+                track_parameters=track_parameters, initial_fits=initial_fits, **(run_kwargs or {}),
             )
             bar.update(base + n_test - bar.n)
             predictions.append(result.predictions)

@@ -25,8 +25,11 @@ keeps a small vector beta_j per well.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
@@ -49,6 +52,8 @@ __all__ = [
     "HybridError",
     "HybridArea",
     "make_model",
+    "save_model",
+    "load_model",
 ]
 
 #: The mechanistic parameters theta_MM, in this order (see :data:`vfm_core.physics.PRIORS`).
@@ -475,3 +480,40 @@ def make_model(name: str, wells: Sequence[str], **hyper: Any) -> ChokeModel:
         return cls(wells, **hyper)
     except TypeError as exc:
         raise ConfigError(f"Invalid settings {hyper} for model '{name}': {exc}.") from None
+
+
+def save_model(model: ChokeModel, path: str | Path) -> Path:
+    """Save a model's tensors and hyperparameters to one file, without pickle.
+
+    The file holds only a dict of strings, lists and tensors and is read back with
+    ``torch.load(weights_only=True)``, which refuses anything that could run code.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": "vfm-model/1",
+        "name": model.name,
+        "wells": list(model.wells),
+        "hyper": json.dumps(model.hyper),
+        "state": {k: v.detach().clone() for k, v in model.state_dict().items()},
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_model(path: str | Path) -> ChokeModel:
+    """Load a model written by :func:`save_model` (tensors only, never pickle)."""
+    try:
+        payload = torch.load(Path(path), weights_only=True)
+    except FileNotFoundError:
+        raise ConfigError(f"No model file at {path}.") from None
+    except Exception as exc:  # a corrupt file or one that is not a vfm model
+        raise ConfigError(f"{path} is not a readable VFM model file: {exc}") from None
+    if not isinstance(payload, dict) or payload.get("format") != "vfm-model/1":
+        raise ConfigError(f"{path} is not a VFM model file (format vfm-model/1).")
+    hyper = json.loads(payload["hyper"])
+    model = make_model(payload["name"], payload["wells"], **hyper)
+    model.load_state_dict(payload["state"])
+    return model

@@ -1,0 +1,107 @@
+"""Benchmark: wall time and peak memory of the full study, and the cost of one online update.
+
+Prints figures; asserts nothing (these machines are shared and noisy: compare ratios
+within one run). Usage:
+
+    .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
+
+River (a benchmark-only extra: ``pip install -e '.[bench]'``) gives a reference: its
+``LinearRegression.learn_one`` on the same stream.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import numpy as np
+import torch
+
+from vfm_core.data import make_batch, target_mask
+from vfm_core.evaluate import format_summary, run_study
+from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, OnlineLearner, fit_batch
+from vfm_core.models import MODELS, make_model
+from vfm_core.observations import validate_frame
+from vfm_core.schema import INPUT_COLUMNS
+from vfm_core.simulate import simulate_field
+from vfm_core.study import wells_of
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def ol_update_cost(frame, name: str, n: int = 200) -> float:
+    """Microseconds per online update of one well (one observation, E steps)."""
+    wells = wells_of(frame)[:1]
+    rows = np.flatnonzero(target_mask(frame, "all") & (frame["well"] == wells[0]).to_numpy())
+    batch = make_batch(frame, wells, rows)
+    model = make_model(name, wells)
+    fit_batch(model, batch.select(torch.cumsum(batch.mask.long(), 1) <= 200), DEFAULT_TRAIN[name])
+    learner = OnlineLearner(model, DEFAULT_ONLINE[name])
+    cols = [batch.select(torch.cumsum(batch.mask.long(), 1) == k + 201) for k in range(n)]
+    started = time.perf_counter()
+    for col in cols:
+        learner.learn(col)
+    return (time.perf_counter() - started) / n * 1e6
+
+
+def river_cost(frame, n: int = 2000) -> float | None:
+    try:
+        from river import linear_model, preprocessing
+    except ImportError:
+        return None
+    well = wells_of(frame)[0]
+    sub = frame[(frame["well"] == well) & frame["q_total"].notna()].head(n)
+    model = preprocessing.StandardScaler() | linear_model.LinearRegression()
+    xs = [dict(zip(INPUT_COLUMNS, row, strict=True)) for row in sub[list(INPUT_COLUMNS)].to_numpy()]
+    ys = sub["q_total"].to_numpy()
+    started = time.perf_counter()
+    for x, y in zip(xs, ys, strict=True):
+        model.predict_one(x)
+        model.learn_one(x, y)
+    return (time.perf_counter() - started) / len(xs) * 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--wells", type=int, default=10)
+    parser.add_argument("--years", type=float, default=5.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--models", default=",".join(MODELS))
+    parser.add_argument("--methods", default="ol,pbl:14d,pbl:182d")
+    parser.add_argument("--cases", default="all,well_test")
+    parser.add_argument("--skip-study", action="store_true")
+    args = parser.parse_args()
+    models = args.models.split(",")
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
+    started = time.perf_counter()
+    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed)
+    frame = validate_frame(field.observations).frame
+    print(f"simulate: {len(frame):,} rows in {time.perf_counter() - started:.2f} s")
+
+    print("\none online update (one well, one observation, E steps), microseconds:")
+    for name in models:
+        print(f"  {name:5s} {ol_update_cost(frame, name):10.0f} us  (E={DEFAULT_ONLINE[name].steps})")
+    ref = river_cost(frame)
+    if ref is None:
+        print("  river: not installed (pip install -e '.[bench]')")
+    else:
+        print(f"  river LinearRegression.learn_one (+predict_one, scaled): {ref:8.0f} us")
+
+    if args.skip_study:
+        return
+    total = 0.0
+    for case in args.cases.split(","):
+        result = run_study(frame, models=models, methods=args.methods.split(","), targets=case, progress=False)
+        total += result.runtime_s
+        print()
+        print(format_summary(result))
+        per = result.predictions.groupby(["model", "method"]).size()
+        print(f"case {case}: {result.runtime_s:.1f} s for {len(per)} model x method runs")
+    print(f"\nfull study: {total:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

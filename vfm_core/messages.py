@@ -1,0 +1,168 @@
+"""Message schemas of the streaming interface (JSON over Zenoh and HTTP), validated with pydantic.
+
+Key expressions, under a prefix (default ``vfm``; a site uses e.g. ``vfm/<field>``):
+
+=====================================  ====  =======================================================
+key                                    dir   payload
+=====================================  ====  =======================================================
+``<prefix>/<well>/sensors``            in    :class:`SensorSample` {time, choke, p_up, p_down, t_up, eta_gas, eta_oil}
+``<prefix>/<well>/measurements/<src>``  in    :class:`Measurement` {time, q_total}; src = ``mpfm`` | ``well_test``
+``<prefix>/<well>/prediction``         out   :class:`Prediction` {time, q_total, q_gas, q_oil, q_water, model, version}
+=====================================  ====  =======================================================
+
+Units as in the observation format: choke fraction 0..1, pressures bar absolute,
+temperature degC, mass fractions 0..1, rates Sm3/h; times ISO 8601 (UTC if naive).
+Both the service and the replay tool use these classes, so the two cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import UTC, datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from vfm_core.errors import ConfigError
+
+__all__ = [
+    "SensorSample",
+    "Measurement",
+    "Prediction",
+    "sensors_key",
+    "measurement_key",
+    "prediction_key",
+    "parse_key",
+    "validate_prefix",
+]
+
+
+def _utc(value: datetime) -> datetime:
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+def _finite(value: float, name: str) -> float:
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value}")
+    return value
+
+
+class SensorSample(BaseModel):
+    """One steady-state sample of a well's sensors (units: fraction, bar a, bar a, degC, -, -)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    time: datetime
+    choke: float = Field(ge=0.0, le=1.0, description="choke opening, fraction 0..1")
+    p_up: float = Field(gt=0.0, description="upstream pressure, bar absolute")
+    p_down: float = Field(gt=0.0, description="downstream pressure, bar absolute")
+    t_up: float = Field(description="upstream temperature, degC")
+    eta_gas: float = Field(ge=0.0, le=1.0, description="gas mass fraction")
+    eta_oil: float = Field(ge=0.0, le=1.0, description="oil mass fraction")
+
+    @field_validator("time")
+    @classmethod
+    def _time_utc(cls, v: datetime) -> datetime:
+        return _utc(v)
+
+    @field_validator("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil", mode="before")
+    @classmethod
+    def _no_nan(cls, v: object, info: object) -> object:
+        if isinstance(v, float):
+            _finite(v, getattr(info, "field_name", "value"))
+        return v
+
+    @model_validator(mode="after")
+    def _physical(self) -> SensorSample:
+        if self.p_down >= self.p_up:
+            raise ValueError(
+                f"p_down ({self.p_down} bar) must be below p_up ({self.p_up} bar): flow goes downstream"
+            )
+        if self.eta_gas + self.eta_oil > 1.0 + 1e-9:
+            raise ValueError(
+                f"eta_gas + eta_oil = {self.eta_gas + self.eta_oil:.4f} exceeds 1 (water = 1 - both)"
+            )
+        if self.t_up <= -273.15:
+            raise ValueError(f"t_up = {self.t_up} degC is below absolute zero")
+        return self
+
+    def inputs(self) -> list[float]:
+        """The six model inputs in :data:`vfm_core.schema.INPUT_COLUMNS` order."""
+        return [self.choke, self.p_up, self.p_down, self.t_up, self.eta_gas, self.eta_oil]
+
+
+class Measurement(BaseModel):
+    """A measured total rate, Sm3/h at standard conditions."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    time: datetime
+    q_total: float = Field(ge=0.0, description="measured total rate, Sm3/h")
+
+    @field_validator("time")
+    @classmethod
+    def _time_utc(cls, v: datetime) -> datetime:
+        return _utc(v)
+
+    @field_validator("q_total", mode="before")
+    @classmethod
+    def _no_nan(cls, v: object) -> object:
+        if isinstance(v, float):
+            _finite(v, "q_total")
+        return v
+
+
+class Prediction(BaseModel):
+    """The service's answer to a sensor sample: predicted rates in Sm3/h."""
+
+    time: datetime
+    q_total: float
+    q_gas: float | None = None
+    q_oil: float | None = None
+    q_water: float | None = None
+    model: str
+    version: int
+
+
+Source = Literal["mpfm", "well_test"]
+
+
+def validate_prefix(prefix: str) -> str:
+    """A key-expression prefix: non-empty chunks, no wildcards, no leading/trailing '/'."""
+    chunks = prefix.split("/")
+    if not prefix or any(not c or any(ch in c for ch in "*$?#") for c in chunks):
+        raise ConfigError(
+            f"The key prefix '{prefix}' is invalid: use chunks separated by single '/', "
+            "without wildcards or a leading/trailing '/', e.g. vfm or vfm/field-a."
+        )
+    return prefix
+
+
+def _well_chunk(well: str) -> str:
+    if not well or any(ch in well for ch in "/*$?#"):
+        raise ConfigError(f"The well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#').")
+    return well
+
+
+def sensors_key(prefix: str, well: str) -> str:
+    return f"{prefix}/{_well_chunk(well)}/sensors"
+
+
+def measurement_key(prefix: str, well: str, source: str) -> str:
+    return f"{prefix}/{_well_chunk(well)}/measurements/{source}"
+
+
+def prediction_key(prefix: str, well: str) -> str:
+    return f"{prefix}/{_well_chunk(well)}/prediction"
+
+
+def parse_key(prefix: str, key: str) -> tuple[str, str, str | None] | None:
+    """Split ``<prefix>/<well>/sensors`` or ``.../measurements/<source>`` into (well, kind, source)."""
+    if not key.startswith(prefix + "/"):
+        return None
+    parts = key[len(prefix) + 1 :].split("/")
+    if len(parts) == 2 and parts[1] in ("sensors", "prediction"):
+        return parts[0], parts[1], None
+    if len(parts) == 3 and parts[1] == "measurements":
+        return parts[0], "measurements", parts[2]
+    return None
