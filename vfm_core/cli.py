@@ -152,8 +152,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", nargs="+", default=["last", "mm", "ham"])
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=_cmd_demo)
+    for module in _INTERNAL_COMMANDS:
+        import importlib
+
+        importlib.import_module(module).register(sub)
     _register_plugins(sub)
     return parser
+
+
+#: vfm_core modules that bring their own subcommands (each has ``register(subparsers)``).
+_INTERNAL_COMMANDS: tuple[str, ...] = ()
 
 
 def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -49,7 +49,10 @@ class Batch:
     ``y``: measured total rate [W, N] in Sm3/h (0 where padded);
     ``mask``: [W, N] True where a real sample sits;
     ``time_ns``: [W, N] int64 epoch nanoseconds (padded with int64 max);
-    ``row``: [W, N] int64 index of the sample in the source frame (-1 where padded).
+    ``row``: [W, N] int64 index of the sample in the source frame (-1 where padded);
+    ``well_test``: [W, N] True where the measurement is a well test (else MPFM or none);
+    ``extra``: [W, N, k] further per-sample features named by ``extra_names`` (e.g. the
+    ones a diagnosis effect needs, such as cumulative throughput), empty by default.
     """
 
     wells: list[str]
@@ -58,6 +61,22 @@ class Batch:
     mask: torch.Tensor
     time_ns: torch.Tensor
     row: torch.Tensor
+    well_test: torch.Tensor | None = None
+    extra: torch.Tensor | None = None
+    extra_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.well_test is None:
+            self.well_test = torch.zeros_like(self.mask)
+        if self.extra is None:
+            self.extra = torch.zeros(*self.mask.shape, 0, dtype=DTYPE)
+
+    def column(self, k: int) -> Batch:
+        """The k-th sample of every well, as a batch of one sample per well."""
+        sl = slice(k, k + 1)
+        assert self.well_test is not None and self.extra is not None
+        return Batch(self.wells, self.x[:, sl], self.y[:, sl], self.mask[:, sl], self.time_ns[:, sl],
+                     self.row[:, sl], self.well_test[:, sl], self.extra[:, sl], self.extra_names)
 
     @property
     def n_wells(self) -> int:
@@ -74,10 +93,13 @@ class Batch:
         n = int(counts.max()) if counts.numel() else 0
         order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :n]
         new_mask = torch.gather(keep, 1, order)
+        assert self.well_test is not None and self.extra is not None
         x = torch.gather(self.x, 1, order.unsqueeze(-1).expand(-1, -1, self.x.shape[-1]))
         y = torch.gather(self.y, 1, order)
         t = torch.gather(self.time_ns, 1, order)
         r = torch.gather(self.row, 1, order)
+        wt = torch.gather(self.well_test, 1, order)
+        ex = torch.gather(self.extra, 1, order.unsqueeze(-1).expand(-1, -1, self.extra.shape[-1]))
         return Batch(
             self.wells,
             torch.where(new_mask.unsqueeze(-1), x, self.x[:, :1].expand_as(x)),
@@ -85,10 +107,18 @@ class Batch:
             new_mask,
             torch.where(new_mask, t, torch.full_like(t, torch.iinfo(torch.int64).max)),
             torch.where(new_mask, r, torch.full_like(r, -1)),
+            wt & new_mask,
+            torch.where(new_mask.unsqueeze(-1), ex, self.extra[:, :1].expand_as(ex)),
+            self.extra_names,
         )
 
 
-def make_batch(frame: pd.DataFrame, wells: Sequence[str], rows: np.ndarray | None = None) -> Batch:
+def make_batch(
+    frame: pd.DataFrame,
+    wells: Sequence[str],
+    rows: np.ndarray | None = None,
+    extra_columns: Sequence[str] = (),
+) -> Batch:
     """Pack rows of an observation frame into a padded per-well :class:`Batch`.
 
     ``rows`` (positional indices into ``frame``) selects which rows to pack; default all.
@@ -112,7 +142,12 @@ def make_batch(frame: pd.DataFrame, wells: Sequence[str], rows: np.ndarray | Non
     ranks = np.empty_like(codes_np)
     ranks[order] = np.arange(len(codes_np)) - np.repeat(starts, counts)
 
+    missing = [c for c in extra_columns if c not in sub.columns]
+    if missing:
+        raise DataError(f"The frame lacks the feature column(s) {missing} that this model needs.")
     xs = sub[list(INPUT_COLUMNS)].to_numpy(dtype=np.float64)
+    exs = sub[list(extra_columns)].to_numpy(dtype=np.float64).reshape(len(sub), len(extra_columns))
+    wts = (sub[SOURCE] == WELL_TEST).to_numpy()
     ys = sub[TARGET].to_numpy(dtype=np.float64)
     ts = pd.DatetimeIndex(sub[TIME]).as_unit("ns").asi8
 
@@ -121,6 +156,10 @@ def make_batch(frame: pd.DataFrame, wells: Sequence[str], rows: np.ndarray | Non
     mask = np.zeros((n_w, n), dtype=bool)
     t = np.full((n_w, n), np.iinfo(np.int64).max, dtype=np.int64)
     r = np.full((n_w, n), -1, dtype=np.int64)
+    ex = np.zeros((n_w, n, len(extra_columns)))
+    wt = np.zeros((n_w, n), dtype=bool)
+    ex[codes_np, ranks] = exs
+    wt[codes_np, ranks] = wts
     x[codes_np, ranks] = xs
     y[codes_np, ranks] = np.nan_to_num(ys, nan=0.0)
     mask[codes_np, ranks] = True
@@ -130,6 +169,7 @@ def make_batch(frame: pd.DataFrame, wells: Sequence[str], rows: np.ndarray | Non
     default = np.array([0.5, 100.0, 30.0, 60.0, 0.1, 0.6])
     first = np.where(counts[:, None] > 0, x[:, 0, :], default)
     x = np.where(mask[..., None], x, first[:, None, :])
+    ex = np.where(mask[..., None], ex, ex[:, :1, :])
     return Batch(
         list(wells),
         torch.from_numpy(x).to(DTYPE),
@@ -137,4 +177,7 @@ def make_batch(frame: pd.DataFrame, wells: Sequence[str], rows: np.ndarray | Non
         torch.from_numpy(mask),
         torch.from_numpy(t),
         torch.from_numpy(r),
+        torch.from_numpy(wt),
+        torch.from_numpy(ex).to(DTYPE),
+        tuple(extra_columns),
     )

@@ -63,6 +63,10 @@ class TrainSettings:
     #: per-well cap on the gradient norm: inputs that drifted far from the training
     #: statistics must not blow a step up
     max_grad_norm: float = 10.0
+    #: samples per well in each step's mini-batch, drawn at random from the well's data
+    #: (0 = full batch); the cost of a step then stays flat as history grows
+    batch_size: int = 256
+    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -100,19 +104,24 @@ DEFAULT_ONLINE: dict[str, OnlineSettings] = {
     # measurement noise averages out instead of driving a random walk (Adam's steps
     # have a fixed size whatever the error).
     "mm": OnlineSettings(optimizer="sgd", lr=0.3, steps=10),
-    "hem": OnlineSettings(optimizer="sgd", lr=0.1, steps=10),
-    "ham": OnlineSettings(optimizer="sgd", lr=0.1, steps=10),
+    "hem": OnlineSettings(optimizer="sgd", lr=1e-3, steps=10),
+    "ham": OnlineSettings(optimizer="sgd", lr=1e-3, steps=10),
 }
 
 
 @dataclass(frozen=True)
 class Method:
-    """A parsed learning method: ``ol`` or ``pbl`` with a period and optional window."""
+    """A parsed learning method: ``ol``, ``pbl`` with a period and optional window, or
+    ``auto`` (``pbl:auto``: retrain a well when the Hotelling drift test confirms a shift
+    in its inputs; ``alpha``, ``confirm`` and ``reference`` set the detector)."""
 
     kind: str
     period: pd.Timedelta | None = None
     window: pd.Timedelta | None = None
     text: str = ""
+    alpha: float = 0.01
+    confirm: int = 5
+    reference: int = 200
 
     def __str__(self) -> str:
         return self.text
@@ -139,6 +148,24 @@ def parse_method(text: str) -> Method:
     text = text.strip()
     if text == "ol":
         return Method("ol", text=text)
+    if text == "pbl:auto" or text.startswith("pbl:auto:"):
+        options: dict[str, Any] = {}
+        for part in text.split(":")[2:]:
+            key, _, value = part.partition("=")
+            caster = {"alpha": float, "confirm": int, "reference": int, "window": str}.get(key)
+            if caster is None or not value:
+                raise ConfigError(
+                    f"Method '{text}': unknown option '{part}'; pbl:auto takes alpha=, confirm=, "
+                    "reference= and window=, e.g. pbl:auto:alpha=0.01:confirm=5."
+                )
+            try:
+                options[key] = caster(value)
+            except ValueError:
+                raise ConfigError(f"Method '{text}': '{value}' is not a valid {key}.") from None
+        window = options.pop("window", None)
+        return Method(
+            "auto", window=_parse_span(window, "window", text) if window else None, text=text, **options
+        )
     m = _PBL.match(text)
     if not m:
         raise ConfigError(
@@ -167,7 +194,7 @@ def _optimizer(params: list[torch.nn.Parameter], kind: str, lr: float, power: fl
 
 def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
     """(prediction - measurement) / rate scale per sample [W, N], zero where padded."""
-    q = model(batch.x)
+    q = model.forward_batch(batch)
     e = (q - batch.y) / model.y_scale.unsqueeze(1)
     return torch.where(batch.mask, e, torch.zeros_like(e))
 
@@ -179,6 +206,36 @@ def _per_well_loss(model: ChokeModel, batch: Batch, noise: float, physical_only:
     mse = (e**2).sum(1) / n.clamp(min=1.0)
     prior = model.prior_penalty(physical_only=physical_only) * noise**2 / n.clamp(min=1.0)
     return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
+
+
+def _minibatch(batch: Batch, size: int, gen: torch.Generator) -> tuple[Batch, torch.Tensor]:
+    """A random mini-batch of ``size`` samples per well (with replacement), and the full counts.
+
+    Samples of a batch are left-aligned per well, so a uniform index below the well's
+    count picks one of its samples.
+    """
+    counts = batch.count()
+    if size <= 0 or int(counts.max()) <= size:
+        return batch, counts
+    u = torch.rand(batch.n_wells, size, generator=gen, dtype=DTYPE)
+    idx = torch.floor(u * counts.clamp(min=1).unsqueeze(1).to(DTYPE)).to(torch.int64)
+    has = (counts > 0).unsqueeze(1).expand(-1, size)
+    x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
+    assert batch.well_test is not None and batch.extra is not None
+    ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
+    return Batch(batch.wells, x, torch.gather(batch.y, 1, idx), has.clone(),
+                 torch.gather(batch.time_ns, 1, idx), torch.gather(batch.row, 1, idx),
+                 torch.gather(batch.well_test, 1, idx), ex, batch.extra_names), counts
+
+
+def _map_loss(model: ChokeModel, batch: Batch, settings: TrainSettings, gen: torch.Generator) -> torch.Tensor:
+    """Summed per-well MAP objective on a mini-batch; the prior is weighted by the full count."""
+    mb, counts = _minibatch(batch, settings.batch_size, gen)
+    n = counts.to(DTYPE)
+    e = scaled_errors(model, mb)
+    mse = (e**2).sum(1) / mb.count().clamp(min=1).to(DTYPE)
+    prior = model.prior_penalty(physical_only=False) * settings.noise**2 / n.clamp(min=1.0)
+    return torch.where(n > 0, mse + prior, torch.zeros_like(mse)).sum()
 
 
 def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
@@ -214,12 +271,14 @@ def fit_batch(
     batch: Batch,
     settings: TrainSettings,
     iterations: torch.Tensor | None = None,
+    wells: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """MAP-train ``model`` on ``batch`` from its current parameters (a warm start).
 
     With ``iterations`` [W] given (a periodic retrain), early stopping is skipped and each
-    well runs that many iterations (capped by ``retrain_max_iter``). Returns a summary
-    with ``iterations``, the count per well, for later retrains.
+    well runs that many iterations (capped by ``retrain_max_iter``). ``wells`` [W] (bool)
+    retrains only those wells (the others keep their parameters; shared parameters always
+    train). Returns a summary with ``iterations``, the count per well, for later retrains.
     """
     model.setup(batch)
     if model.gradient_free:
@@ -229,6 +288,9 @@ def fit_batch(
         return {"iterations": torch.zeros(batch.n_wells, dtype=torch.int64)}
     params = [p for p in model.parameters() if p.requires_grad]
     start = _snapshot(params)
+    gen = torch.Generator().manual_seed(settings.seed)
+    if wells is not None and not model.shared:
+        batch = batch.select(batch.mask & wells.unsqueeze(1))
     train, val, has_val = _split_latest(batch, settings.val_fraction)
     n_w = batch.n_wells
     best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
@@ -244,7 +306,7 @@ def fit_batch(
         since = torch.zeros(n_w, dtype=torch.int64)
         for k in range(1, settings.max_iter + 1):
             opt.zero_grad()
-            loss = _per_well_loss(model, train, settings.noise, physical_only=False).sum()
+            loss = _map_loss(model, train, settings, gen)
             loss.backward()
             clip_per_well_(model, settings.max_grad_norm)
             opt.step()
@@ -275,7 +337,7 @@ def fit_batch(
     total_iter = int(best_iter.max())
     for k in range(1, total_iter + 1):
         opt.zero_grad()
-        loss = _per_well_loss(model, batch, settings.noise, physical_only=False).sum()
+        loss = _map_loss(model, batch, settings, gen)
         loss.backward()
         clip_per_well_(model, settings.max_grad_norm)
         opt.step()

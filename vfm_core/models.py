@@ -118,6 +118,20 @@ class ChokeModel(nn.Module):
             q = self.forward(x)
         return torch.where(self.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
 
+    #: extra per-sample feature columns the model needs (see :class:`vfm_core.data.Batch`)
+    extra_columns: tuple[str, ...] = ()
+
+    def forward_batch(self, batch: Batch) -> torch.Tensor:
+        """Rates for a whole batch. Models that need more than the six inputs (time, the
+        measurement source, extra features) override this; the learners call it."""
+        return self.forward(batch.x)
+
+    def predict_batch(self, batch: Batch) -> torch.Tensor:
+        """:meth:`predict` for a batch (see :meth:`forward_batch`)."""
+        with torch.no_grad():
+            q = self.forward_batch(batch)
+        return torch.where(self.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
+
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         """Sum of squared standardised deviations from the prior means, per well [W]."""
         return torch.zeros(len(self.wells), dtype=DTYPE)

@@ -85,11 +85,6 @@ def _param_rows(model: ChokeModel, when: pd.Timestamp | Sequence[pd.Timestamp], 
     return rows
 
 
-def _column(batch: Batch, k: int) -> Batch:
-    sl = slice(k, k + 1)
-    return Batch(batch.wells, batch.x[:, sl], batch.y[:, sl], batch.mask[:, sl], batch.time_ns[:, sl], batch.row[:, sl])
-
-
 def run_prequential(
     frame: pd.DataFrame,
     model_name: str,
@@ -148,13 +143,13 @@ def run_prequential(
         # the initial fit is the same for every method with the same window: reuse it
         model, iterations = (copy.deepcopy(v) for v in initial_fits[cache_key])
     else:
-        initial = fit_batch(model, make_batch(frame, wells, rows_until(split_ts)), train_settings)
+        initial = fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(split_ts)), train_settings)
         iterations = initial["iterations"]
         if initial_fits is not None and model_factory is None:
             initial_fits[cache_key] = (copy.deepcopy(model), iterations.clone())
     param_rows = _param_rows(model, split_ts, model.ready) if track_parameters else []
     predicted = np.full(len(frame), np.nan)
-    test = make_batch(frame, wells, test_rows)
+    test = make_batch(frame, wells, extra_columns=model.extra_columns, rows=test_rows)
     total = len(test_rows)
     done = 0
     updates: list[pd.Timestamp] = []
@@ -171,9 +166,9 @@ def run_prequential(
             days = torch.unique(day[test.mask])
             rounds = [test.select(day == d) for d in days]
         else:
-            rounds = [_column(test, k) for k in range(test.x.shape[1])]
+            rounds = [test.column(k) for k in range(test.x.shape[1])]
         for rb in rounds:
-            q = model.predict(rb.x)
+            q = model.predict_batch(rb)
             predicted[rb.row[rb.mask].numpy()] = q[rb.mask].numpy()
             learner.learn(rb)
             if track_parameters:
@@ -182,6 +177,13 @@ def run_prequential(
             done += int(rb.mask.sum())
             if progress is not None:
                 progress(done, total)
+    elif meth.kind == "auto":
+        updates = _run_auto(frame, model, meth, test, wells, is_target, times, predicted,
+                            lambda end, mask: fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)),
+                                                        train_settings, iterations, wells=mask))
+        done = total
+        if progress is not None:
+            progress(done, total)
     else:
         assert meth.period is not None
         t_last = times.iloc[test_rows].max()
@@ -190,13 +192,13 @@ def run_prequential(
             end = start + meth.period
             in_period = (test.time_ns >= start.value) & (test.time_ns < end.value) & test.mask
             if bool(in_period.any()):
-                q = model.predict(test.x)
+                q = model.predict_batch(test)
                 predicted[test.row[in_period].numpy()] = q[in_period].numpy()
                 done += int(in_period.sum())
                 if progress is not None:
                     progress(done, total)
             if end <= t_last:
-                fit_batch(model, make_batch(frame, wells, rows_until(end)), train_settings, iterations)
+                fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)), train_settings, iterations)
                 updates.append(end)
                 if track_parameters:
                     param_rows += _param_rows(model, end, model.ready)
@@ -224,6 +226,65 @@ def run_prequential(
         final_model=model,
         runtime_s=_time.perf_counter() - started,
     )
+
+
+def _run_auto(
+    frame: pd.DataFrame,
+    model: ChokeModel,
+    meth: Method,
+    test: Batch,
+    wells: list[str],
+    is_target: np.ndarray,
+    times: pd.Series,
+    predicted: np.ndarray,
+    retrain: Callable[[pd.Timestamp, torch.Tensor], Any],
+) -> list[pd.Timestamp]:
+    """``pbl:auto``: retrain a well when a streaming Hotelling test confirms a shift in its inputs.
+
+    Each well's detector starts with its latest ``reference`` training inputs; after a
+    confirmed shift at time t the well is retrained on data before t and the detector
+    restarts from the latest ``reference`` inputs up to t. Detection needs only the
+    inputs, so the retrain times are found first, then the model runs through them.
+    """
+    from vfm_core.drift import StreamingHotelling
+    from vfm_core.schema import INPUT_COLUMNS
+
+    x_all = frame[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    events: dict[int, list[int]] = {}
+    for j, well in enumerate(wells):
+        own = np.flatnonzero(is_target & (frame[WELL].astype(str) == well).to_numpy())
+        test_pos = test.row[j][test.mask[j]].numpy()
+        history = own[own < (test_pos[0] if len(test_pos) else len(frame))]
+        history = history[times.iloc[history].to_numpy() < times.iloc[test_pos[0]]] if len(test_pos) else history
+        det = StreamingHotelling(meth.reference, meth.alpha, meth.confirm)
+        seen = list(x_all[history[-meth.reference:]]) if len(history) else []
+        det.reset(np.asarray(seen) if len(seen) >= meth.reference else None)
+        recent = seen[-meth.reference:]
+        for k, pos in enumerate(test_pos):
+            det.update(x_all[pos])
+            recent = (recent + [x_all[pos]])[-meth.reference:]
+            if det.drift_detected and k + 1 < len(test_pos):
+                t_ns = int(test.time_ns[j][k + 1])  # retrain before the next observation
+                events.setdefault(t_ns, []).append(j)
+                det.reset(np.asarray(recent) if len(recent) >= meth.reference else None)
+    updates: list[pd.Timestamp] = []
+    done_mask = torch.zeros_like(test.mask)
+    for t_ns in sorted(events):
+        due = test.mask & ~done_mask & (test.time_ns < t_ns)
+        if bool(due.any()):
+            q = model.predict_batch(test)
+            predicted[test.row[due].numpy()] = q[due].numpy()
+            done_mask |= due
+        mask = torch.zeros(len(wells), dtype=torch.bool)
+        mask[events[t_ns]] = True
+        when = pd.Timestamp(t_ns, tz="UTC")
+        retrain(when, mask)
+        updates.append(when)
+    rest = test.mask & ~done_mask
+    if bool(rest.any()):
+        q = model.predict_batch(test)
+        predicted[test.row[rest].numpy()] = q[rest].numpy()
+    return updates
 
 
 def mape(predicted: np.ndarray | pd.Series, measured: np.ndarray | pd.Series) -> float:

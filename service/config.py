@@ -1,0 +1,361 @@
+"""The service's settings: one validated tree, loaded once at start-up.
+
+Sources, highest priority first: keyword overrides (tests), ``VFM_`` environment
+variables with ``__`` between levels (``VFM_HTTP__PORT=8001``,
+``VFM_MODEL__NAME=ham``, lists and tables as JSON: ``VFM_ZENOH__CONNECT='["tcp/router:7447"]'``),
+the config file (``--config FILE``, TOML or JSON), then the defaults below.
+
+A bad value stops the program with :class:`vfm_core.errors.ConfigError`, one sentence
+per problem that names the setting, the value and the valid choices.
+
+Security defaults: the HTTP API and the Zenoh listener bind to loopback only; a
+non-loopback address is refused unless ``http.allow_remote`` / ``zenoh.allow_remote``
+is set. Mutating HTTP endpoints need ``http.token``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import tomllib
+from contextvars import ContextVar
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from vfm_core.errors import ConfigError
+from vfm_core.messages import validate_prefix
+
+__all__ = [
+    "Settings",
+    "ModelSettings",
+    "ZenohSettings",
+    "HttpSettings",
+    "StoreSettings",
+    "InputSettings",
+    "QueueSettings",
+    "DriftSettings",
+    "load_settings",
+    "is_loopback_host",
+    "endpoint_host",
+]
+
+_CONFIG_FILE: ContextVar[Path | None] = ContextVar("vfm_config_file", default=None)
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ModelSettings(_Section):
+    """The per-well model and its learning method (see ``vfm evaluate``)."""
+
+    name: str = Field("mm", description="model: lr, nn, mm, hem, ham or last (mtl is field-wide)")
+    method: str = Field("ol", description="ol or pbl:<period>[:window=<span>]")
+    seed: int = Field(0, ge=0)
+    model_kwargs: dict[str, Any] = Field(default_factory=dict, description="model hyperparameters")
+    train: dict[str, Any] = Field(default_factory=dict, description="overrides of TrainSettings")
+    online: dict[str, Any] = Field(default_factory=dict, description="overrides of OnlineSettings")
+    history: Path | None = Field(None, description="observation file for the initial fit")
+    history_until: datetime | None = Field(
+        None, description="only history rows before this time (UTC) are used"
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _known_model(cls, v: str) -> str:
+        from vfm_core.models import MODELS
+
+        if v not in MODELS:
+            raise ValueError(f"unknown model '{v}'; choose one of {', '.join(MODELS)}")
+        if MODELS[v].shared:
+            per_well = [m for m, c in MODELS.items() if not c.shared]
+            raise ValueError(
+                f"model '{v}' shares parameters across the field and cannot run per well; "
+                f"choose one of {', '.join(per_well)}"
+            )
+        return v
+
+    @field_validator("method")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        from vfm_core.learners import parse_method
+
+        try:
+            parse_method(v)
+        except ConfigError as exc:
+            raise ValueError(str(exc).rstrip(".")) from None
+        return v.strip()
+
+    @field_validator("history_until")
+    @classmethod
+    def _utc(cls, v: datetime | None) -> datetime | None:
+        if v is None:
+            return v
+        return v.replace(tzinfo=UTC) if v.tzinfo is None else v.astimezone(UTC)
+
+    @model_validator(mode="after")
+    def _settings_exist(self) -> ModelSettings:
+        from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, settings_from_dict
+
+        for what, base, given in (
+            ("train", DEFAULT_TRAIN[self.name], self.train),
+            ("online", DEFAULT_ONLINE[self.name], self.online),
+        ):
+            try:
+                settings_from_dict(base, given)
+            except (ConfigError, TypeError) as exc:
+                raise ValueError(f"model.{what}: {exc}".rstrip(".")) from None
+        return self
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``."""
+    host = host.strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def endpoint_host(endpoint: str) -> str | None:
+    """The host of a Zenoh endpoint ``proto/host:port[#...]``; None for local-only transports."""
+    proto, _, rest = endpoint.partition("/")
+    if proto.startswith("unixsock") or proto in ("unixpipe", "vsock"):
+        return None
+    rest = rest.split("#", 1)[0].split("?", 1)[0]
+    if rest.startswith("["):
+        return rest[1 : rest.find("]")]
+    return rest.rsplit(":", 1)[0]
+
+
+class ZenohSettings(_Section):
+    """How the service joins the Zenoh network."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+    #: a BLOCK put that has waited this long closes the link (zenoh's default is 5 s)
+    block_wait_before_close_ms: int = Field(60_000, ge=1)
+    allow_remote: bool = Field(False, description="allow listen endpoints outside loopback")
+
+    @model_validator(mode="after")
+    def _loopback(self) -> ZenohSettings:
+        if self.mode == "client" and not self.connect:
+            raise ValueError(
+                "zenoh.mode = 'client' needs at least one zenoh.connect endpoint (the router), "
+                "e.g. ['tcp/127.0.0.1:7447']"
+            )
+        for ep in self.listen:
+            if "/" not in ep:
+                raise ValueError(f"zenoh.listen endpoint '{ep}' is not of the form tcp/HOST:PORT")
+            host = endpoint_host(ep)
+            if host is not None and not is_loopback_host(host) and not self.allow_remote:
+                raise ValueError(
+                    f"zenoh.listen endpoint '{ep}' is not on loopback; listening on other "
+                    "interfaces exposes the service: set zenoh.allow_remote = true to allow it, "
+                    "or use tcp/127.0.0.1:PORT"
+                )
+        for ep in self.connect:
+            if "/" not in ep:
+                raise ValueError(f"zenoh.connect endpoint '{ep}' is not of the form tcp/HOST:PORT")
+        return self
+
+
+class HttpSettings(_Section):
+    """The HTTP API (FastAPI on uvicorn)."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535, description="0 picks a free port")
+    allow_remote: bool = Field(False, description="allow binding outside loopback")
+    token: SecretStr | None = Field(None, description="bearer token for mutating endpoints")
+
+    @model_validator(mode="after")
+    def _loopback(self) -> HttpSettings:
+        if not is_loopback_host(self.host) and not self.allow_remote:
+            raise ValueError(
+                f"http.host = '{self.host}' is not a loopback address; serving the API on other "
+                "interfaces exposes it: set http.allow_remote = true (and http.token) to allow "
+                "it, or use 127.0.0.1"
+            )
+        if self.token is not None and len(self.token.get_secret_value()) < 16:
+            raise ValueError("http.token must be at least 16 characters long; generate one with "
+                             "`python -c 'import secrets; print(secrets.token_urlsafe(32))'`")
+        return self
+
+
+class StoreSettings(_Section):
+    """The durable store (SQLite, WAL)."""
+
+    path: Path = Path("vfm-store.sqlite")
+    #: full: every commit is fsync'ed (survives power loss); normal: survives a killed process
+    synchronous: Literal["full", "normal"] = "full"
+    checkpoint_every: int = Field(1, ge=1, description="checkpoint after this many model updates")
+    keep_checkpoints: int = Field(3, ge=1, description="checkpoints kept per well")
+
+
+class InputSettings(_Section):
+    """What is accepted and how measurements are paired with samples."""
+
+    wells: list[str] = Field(default_factory=list, description="wells known from the start")
+    unknown_wells: Literal["create", "reject"] = "create"
+    max_future_s: float = Field(86_400.0, gt=0, description="reject times further ahead than this")
+    pair_tolerance_s: float = Field(300.0, ge=0, description="measurement-to-sample time tolerance")
+    pending_max: int = Field(100, ge=1, description="measurements waiting for their sample, per well")
+    pending_timeout_s: float = Field(60.0, gt=0, description="wall-clock wait for a sample")
+
+    @field_validator("wells")
+    @classmethod
+    def _well_ids(cls, v: list[str]) -> list[str]:
+        for well in v:
+            if not well or any(ch in well for ch in "/*$?#"):
+                raise ValueError(f"well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')")
+        return v
+
+
+class QueueSettings(_Section):
+    """Receive path: Zenoh FifoChannel -> receiver thread -> bounded per-worker queues."""
+
+    receive_capacity: int = Field(4096, ge=16)
+    worker_capacity: int = Field(10_000, ge=16)
+    workers: int = Field(1, ge=1, le=64)
+    #: how long the receiver waits on a full worker queue (back-pressure through Zenoh's
+    #: BLOCK congestion control) before it drops the message and counts an overflow
+    block_s: float = Field(10.0, ge=0)
+    batch_max: int = Field(256, ge=1, description="messages handled per store commit")
+
+
+class DriftSettings(_Section):
+    """The per-well streaming Hotelling drift test on the inputs of paired measurements."""
+
+    enabled: bool = True
+    reference_size: int = Field(200, ge=3)
+    alpha: float = Field(0.01, gt=0, lt=1)
+    confirm: int = Field(5, ge=1)
+    on_drift: Literal["record", "retrain"] = "record"
+
+
+class Settings(BaseSettings):
+    """Everything ``vfm serve`` can be told; see the module docstring for the sources."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="VFM_", env_nested_delimiter="__", extra="forbid", validate_default=True
+    )
+
+    prefix: str = Field("vfm", description="key-expression prefix")
+    model: ModelSettings = Field(default_factory=ModelSettings)
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    http: HttpSettings = Field(default_factory=HttpSettings)
+    store: StoreSettings = Field(default_factory=StoreSettings)
+    inputs: InputSettings = Field(default_factory=InputSettings)
+    queues: QueueSettings = Field(default_factory=QueueSettings)
+    drift: DriftSettings = Field(default_factory=DriftSettings)
+    rolling_window: int = Field(50, ge=1, description="paired measurements in the rolling MAPE")
+    torch_threads: int = Field(1, ge=1, le=64, description="torch intra-op threads (tiny tensors: 1)")
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix(cls, v: str) -> str:
+        try:
+            return validate_prefix(v)
+        except ConfigError as exc:
+            raise ValueError(str(exc).rstrip(".")) from None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Settings:
+        if self.drift.on_drift == "retrain":
+            from vfm_core.learners import parse_method
+
+            if parse_method(self.model.method).kind != "pbl":
+                raise ValueError(
+                    f"drift.on_drift = 'retrain' needs a periodic method (pbl:<period>), but "
+                    f"model.method is '{self.model.method}'; use on_drift = 'record' or a pbl method"
+                )
+        return self
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings, env_settings, _FileSource(settings_cls, _CONFIG_FILE.get()))
+
+    def public_dict(self) -> dict[str, Any]:
+        """The settings as JSON-safe values, the token masked."""
+        data = self.model_dump(mode="json")
+        data["http"]["token"] = "***" if self.http.token is not None else None
+        return data
+
+
+class _FileSource(PydanticBaseSettingsSource):
+    """A TOML or JSON config file (by suffix)."""
+
+    def __init__(self, settings_cls: type[BaseSettings], path: Path | None) -> None:
+        super().__init__(settings_cls)
+        self.path = path
+        self.data = _read_config_file(path) if path is not None else {}
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return self.data.get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return dict(self.data)
+
+
+def _read_config_file(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ConfigError(f"The config file {path} does not exist; give the path of a .toml or .json file.")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".toml":
+            with path.open("rb") as handle:
+                data = tomllib.load(handle)
+        elif suffix == ".json":
+            data = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            raise ConfigError(f"The config file {path} must end in .toml or .json, not '{suffix}'.")
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"The config file {path} cannot be read: {exc}.") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"The config file {path} must hold a table of settings at the top level.")
+    # relative paths in the file are relative to the file, not to the working directory
+    base = path.resolve().parent
+    for section, key in (("store", "path"), ("model", "history")):
+        value = data.get(section, {}).get(key) if isinstance(data.get(section), dict) else None
+        if isinstance(value, str) and value and not Path(value).is_absolute():
+            data[section][key] = str(base / value)
+    return data
+
+
+def _describe(error: dict[str, Any]) -> str:
+    where = ".".join(str(p) for p in error.get("loc", ()) if p != "__root__")
+    msg = str(error.get("msg", "invalid")).removeprefix("Value error, ")
+    if error.get("type") == "extra_forbidden":
+        return f"The setting '{where}' is unknown; check its spelling against the documented settings."
+    value = error.get("input")
+    shown = "" if isinstance(value, dict) or where == "" else f" = {value!r}"
+    head = f"The setting '{where}'{shown}" if where else "The settings"
+    return f"{head} is invalid: {msg}."
+
+
+def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Settings:
+    """Load and validate the settings; raise :class:`ConfigError` with every problem found."""
+    token = _CONFIG_FILE.set(Path(config_file) if config_file is not None else None)
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        problems = [_describe(e) for e in exc.errors(include_url=False)]  # type: ignore[arg-type]
+        raise ConfigError(" ".join(problems)) from None
+    finally:
+        _CONFIG_FILE.reset(token)

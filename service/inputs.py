@@ -1,0 +1,231 @@
+"""Checking what arrives: key expressions and JSON payloads, with a reason for every rejection.
+
+The same functions check Zenoh payloads and HTTP bodies, so a bad value gets the same
+reason and sentence on both paths. :class:`Rejected` carries a short stable ``reason``
+(the key of the counters in ``GET /health``) and a sentence for people.
+:class:`Counters` counts accepted inputs and rejections by reason and logs each reason
+once, then at most once a minute with the count since.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable
+from typing import Any
+
+from pydantic import ValidationError
+
+from vfm_core.messages import Measurement, SensorSample, parse_key
+
+__all__ = [
+    "REASONS",
+    "Rejected",
+    "Counters",
+    "parse_sensor",
+    "parse_measurement",
+    "classify_errors",
+    "route_key",
+    "SOURCES",
+]
+
+logger = logging.getLogger("vfm.service.inputs")
+
+SOURCES: tuple[str, ...] = ("mpfm", "well_test")
+
+#: Every reason an input can be rejected for, with what it means.
+REASONS: dict[str, str] = {
+    "malformed JSON": "the payload is not valid JSON",
+    "not a JSON object": "the payload is JSON but not an object {...}",
+    "missing field": "a required field is absent",
+    "wrong type": "a field has the wrong type (text or true/false where a number belongs, a bad time)",
+    "not finite": "a number is NaN or infinite",
+    "negative or zero pressure": "p_up or p_down is not above 0 bar a",
+    "p_down >= p_up": "the downstream pressure is not below the upstream one",
+    "choke outside 0..1": "the choke opening is not a fraction 0..1",
+    "fraction outside 0..1": "eta_gas or eta_oil is not within 0..1",
+    "fractions sum above 1": "eta_gas + eta_oil exceeds 1",
+    "temperature below absolute zero": "t_up is at or below -273.15 degC",
+    "negative rate": "q_total is below 0",
+    "time in the future": "the time lies further ahead than inputs.max_future_s",
+    "time going backwards": "a sensor sample is older than the well's previous one",
+    "duplicate": "the same sample or measurement arrived before",
+    "unknown well": "the well is not known and inputs.unknown_wells = 'reject'",
+    "unparseable key": "the key expression is not <prefix>/<well>/sensors or .../measurements/<source>",
+    "unknown source": "the measurement source is not mpfm or well_test",
+    "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
+    "too many pending measurements": "more than inputs.pending_max measurements wait for samples",
+    "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
+}
+
+_NUMERIC_SENSOR = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
+
+
+class Rejected(Exception):
+    """An input that cannot be used: ``reason`` (a key of :data:`REASONS`) and a sentence."""
+
+    def __init__(self, reason: str, message: str, status: int = 422) -> None:
+        super().__init__(message)
+        assert reason in REASONS, reason
+        self.reason = reason
+        self.message = message
+        self.status = status
+
+
+def _loads(payload: bytes | str) -> dict[str, Any]:
+    try:
+        data = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise Rejected("malformed JSON", f"The payload is not valid JSON ({exc}).") from None
+    if not isinstance(data, dict):
+        raise Rejected(
+            "not a JSON object", f"The payload must be a JSON object {{...}}, not {type(data).__name__}."
+        )
+    return data
+
+
+def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
+    for name in fields:
+        if name not in data:
+            continue  # reported as a missing field by the schema
+        value = data[name]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise Rejected(
+                "wrong type", f"{name} must be a number, got {json.dumps(value)[:40]} ({type(value).__name__})."
+            )
+        if not math.isfinite(value):
+            raise Rejected("not finite", f"{name} must be a finite number, got {value}.")
+
+
+def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
+    """A reason and a sentence for pydantic validation errors (the first error decides)."""
+    e = errors[0]
+    kind = str(e.get("type", ""))
+    loc = [str(p) for p in e.get("loc", ()) if p not in ("body",)]
+    field = loc[-1] if loc else ""
+    msg = str(e.get("msg", "")).removeprefix("Value error, ")
+    value = e.get("input")
+    if kind == "json_invalid":
+        return "malformed JSON", f"The payload is not valid JSON ({msg})."
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        return "not a JSON object", "The payload must be a JSON object {...}."
+    if kind == "missing":
+        missing = [str(x["loc"][-1]) for x in errors if x.get("type") == "missing" and x.get("loc")]
+        return "missing field", f"Required field(s) missing: {', '.join(missing)}."
+    if isinstance(value, float | int) and not isinstance(value, bool) and not math.isfinite(value):
+        return "not finite", f"{field} must be a finite number, got {value}."
+    if isinstance(value, str) and value.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"):
+        return "not finite", f"{field} must be a finite number, got {value!r}."
+    if "finite" in msg:
+        return "not finite", msg[0].upper() + msg[1:] + "."
+    if field in ("p_up", "p_down") and kind in ("greater_than", "greater_than_equal"):
+        return "negative or zero pressure", f"{field} = {value} bar a; pressures must be above 0 bar absolute."
+    if field == "choke" and kind in ("greater_than_equal", "less_than_equal"):
+        return "choke outside 0..1", f"choke = {value}; the opening must be a fraction from 0 to 1."
+    if field in ("eta_gas", "eta_oil") and kind in ("greater_than_equal", "less_than_equal"):
+        return "fraction outside 0..1", f"{field} = {value}; mass fractions lie from 0 to 1."
+    if field == "q_total" and kind in ("greater_than", "greater_than_equal"):
+        return "negative rate", f"q_total = {value} Sm3/h; a measured rate cannot be negative."
+    if "p_down" in msg and "p_up" in msg:
+        return "p_down >= p_up", msg[0].upper() + msg[1:] + "."
+    if "exceeds 1" in msg:
+        return "fractions sum above 1", msg[0].upper() + msg[1:] + "."
+    if "absolute zero" in msg:
+        return "temperature below absolute zero", msg[0].upper() + msg[1:] + "."
+    if field == "time":
+        return "wrong type", f"time {json.dumps(value, default=str)[:40]} is not an ISO 8601 time ({msg})."
+    return "wrong type", f"{field or 'The payload'}: {msg}."
+
+
+def parse_sensor(payload: bytes | str | dict[str, Any]) -> SensorSample:
+    """A checked :class:`SensorSample` from JSON (or an already decoded object)."""
+    data = payload if isinstance(payload, dict) else _loads(payload)
+    _check_numbers(data, _NUMERIC_SENSOR)
+    try:
+        return SensorSample.model_validate(data)
+    except ValidationError as exc:
+        reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
+        raise Rejected(reason, sentence) from None
+
+
+def parse_measurement(payload: bytes | str | dict[str, Any]) -> Measurement:
+    """A checked :class:`Measurement` from JSON (or an already decoded object)."""
+    data = payload if isinstance(payload, dict) else _loads(payload)
+    _check_numbers(data, ("q_total",))
+    try:
+        return Measurement.model_validate(data)
+    except ValidationError as exc:
+        reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
+        raise Rejected(reason, sentence) from None
+
+
+def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:
+    """(well, kind, source) of an inbound key, or :class:`Rejected`; kind is sensors|measurements|prediction."""
+    parsed = parse_key(prefix, key)
+    if parsed is None:
+        raise Rejected(
+            "unparseable key",
+            f"The key '{key}' is not {prefix}/<well>/sensors or {prefix}/<well>/measurements/<source>.",
+        )
+    well, kind, source = parsed
+    if kind == "measurements" and source not in SOURCES:
+        raise Rejected(
+            "unknown source", f"The measurement source '{source}' in '{key}' is not one of {', '.join(SOURCES)}."
+        )
+    return well, kind, source
+
+
+class Counters:
+    """Thread-safe counts of accepted inputs, rejections by reason and other events."""
+
+    LOG_EVERY_S = 60.0
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.accepted: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self.events: Counter[str] = Counter()
+        self._last_log: dict[str, float] = {}
+        self._since_log: Counter[str] = Counter()
+
+    def accept(self, kind: str, n: int = 1) -> None:
+        with self._lock:
+            self.accepted[kind] += n
+
+    def event(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.events[name] += n
+
+    def reject(self, reason: str, message: str, where: str = "") -> None:
+        """Count a rejection; log the first of each reason, then at most once a minute."""
+        now = time.monotonic()
+        with self._lock:
+            self.rejected[reason] += 1
+            self._since_log[reason] += 1
+            last = self._last_log.get(reason)
+            if last is not None and now - last < self.LOG_EVERY_S:
+                return
+            count = self._since_log.pop(reason)
+            self._last_log[reason] = now
+        where = f" ({where})" if where else ""
+        if last is None:
+            logger.warning("Rejected input: %s%s: %s", reason, where, message)
+        else:
+            logger.warning("Rejected %d input(s) for '%s' in the last minute%s; latest: %s",
+                           count, reason, where, message)
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        with self._lock:
+            return {
+                "accepted": dict(self.accepted),
+                "rejected": dict(self.rejected),
+                "events": dict(self.events),
+            }
+
+
+def now_ns() -> int:
+    return time.time_ns()

@@ -1,0 +1,135 @@
+"""Building the per-well learners from config and history.
+
+:func:`fit_history` fits all wells of a history file in one batched MAP fit (every model
+but ``mtl`` keeps its own parameters per well, so this is the same as fitting each well
+alone, only faster), exactly as :func:`vfm_core.study.run_prequential` fits before its
+split; that is what lets a replay through the service reproduce ``vfm evaluate``. Each
+well's slice of the fitted model is then loaded into its :class:`WellLearner`.
+"""
+
+from __future__ import annotations
+
+import logging
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from vfm_core.data import make_batch, target_mask
+from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
+from vfm_core.models import make_model
+from vfm_core.observations import load_observations
+from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL
+from vfm_core.streaming import WellLearner
+
+from service.config import ModelSettings
+
+__all__ = ["new_learner", "load_history", "fit_history"]
+
+logger = logging.getLogger("vfm.service.learning")
+
+
+def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
+    """A learner for ``well`` with the configured model, method and settings (priors only)."""
+    return WellLearner(
+        well,
+        cfg.name,
+        cfg.method,
+        train=settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train),
+        online=settings_from_dict(DEFAULT_ONLINE[cfg.name], cfg.online),
+        model_kwargs=cfg.model_kwargs,
+        seed=cfg.seed,
+    )
+
+
+def load_history(cfg: ModelSettings) -> pd.DataFrame:
+    """The measured rows (MPFM and well tests) of the history file before ``history_until``."""
+    if cfg.history is None:
+        return pd.DataFrame()
+    loaded = load_observations(cfg.history)
+    frame = loaded.frame
+    keep = target_mask(frame, "all")
+    if cfg.history_until is not None:
+        keep &= (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
+    logger.info("History %s: %d measured rows before %s.", cfg.history, int(keep.sum()),
+                cfg.history_until.isoformat() if cfg.history_until else "its end")
+    return frame.loc[keep].reset_index(drop=True)
+
+
+def _slice_state(full: dict[str, torch.Tensor], single: dict[str, torch.Tensor], j: int, n: int) -> dict[str, torch.Tensor]:
+    """Well j's part of a multi-well state dict, shaped like a one-well model's."""
+    out: dict[str, torch.Tensor] = {}
+    for key, mine in single.items():
+        value = full[key]
+        if value.shape == mine.shape:
+            out[key] = value.clone()
+        elif value.dim() >= 1 and value.shape[0] == n and value.shape[1:] == mine.shape[1:]:
+            out[key] = value[j : j + 1].clone()
+        else:  # pragma: no cover - a model whose state is not stacked by well
+            raise ValueError(f"state '{key}' {tuple(value.shape)} does not split into wells")
+    return out
+
+
+def fit_history(learners: dict[str, WellLearner], history: pd.DataFrame, cfg: ModelSettings) -> list[str]:
+    """Fit the learners of the wells in ``history`` (one batched fit); returns the wells fitted."""
+    if history.empty:
+        return []
+    wells = [w for w in dict.fromkeys(history[WELL].astype(str)) if w in learners]
+    if not wells:
+        return []
+    frame = history[history[WELL].isin(wells)].reset_index(drop=True)
+    train = settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
+    batch = make_batch(frame, wells)
+    try:
+        model = make_model(cfg.name, wells, seed=cfg.seed, **cfg.model_kwargs)
+        summary = fit_batch(model, batch, train)
+        full = model.state_dict()
+        for j, well in enumerate(wells):
+            learner = learners[well]
+            learner.model.load_state_dict(_slice_state(full, learner.model.state_dict(), j, len(wells)))
+            _adopt_fit(learner, frame[frame[WELL] == well], summary["iterations"][j : j + 1])
+    except (ValueError, RuntimeError) as exc:
+        # WellLearner's private layout changed: fall back to one fit per well (slower)
+        logger.warning("Batched history fit unavailable (%s); fitting well by well.", exc)
+        for well in wells:
+            own = frame[frame[WELL] == well]
+            fresh = new_learner(well, cfg)
+            fresh.fit_history(*_tensors(own))
+            learners[well] = fresh
+    return wells
+
+
+def _tensors(rows: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    x = torch.as_tensor(rows[list(INPUT_COLUMNS)].to_numpy(dtype=np.float64))
+    y = torch.as_tensor(rows[TARGET].to_numpy(dtype=np.float64))
+    t = torch.as_tensor(pd.DatetimeIndex(rows[TIME]).as_unit("ns").asi8.copy())
+    return x, y, t
+
+
+def _adopt_fit(learner: WellLearner, rows: pd.DataFrame, iterations: torch.Tensor) -> None:
+    """What WellLearner.fit_history does after its fit, for a model fitted elsewhere."""
+    # TODO(vfm_core): a public WellLearner.fit_many / adopt API would replace these privates.
+    x, y, t = _tensors(rows)
+    learner.iterations = iterations.clone()
+    learner._remember(x, y, t)
+    last = pd.Timestamp(int(t.max()), tz="UTC")
+    learner._bump(last.to_pydatetime())
+    period = getattr(learner.method, "period", None)
+    if learner.method.kind == "pbl" and period is not None:
+        learner.next_retrain = last + period
+
+
+def describe(learner: WellLearner) -> dict[str, Any]:
+    """The learner's public state, for the API."""
+    last: datetime | None = learner.last_update
+    return {
+        "model": learner.model_name,
+        "method": learner.method.text,
+        "ready": learner.ready,
+        "version": learner.version,
+        "n_updates": learner.n_updates,
+        "last_update": last.isoformat() if last else None,
+        "parameters": learner.physical_parameters() if learner.ready else {},
+    }
