@@ -52,7 +52,7 @@ def load_history(cfg: ModelSettings) -> pd.DataFrame:
     frame = loaded.frame
     keep = target_mask(frame, "all")
     if cfg.history_until is not None:
-        keep &= (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
+        keep = keep & (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
     logger.info("History %s: %d measured rows before %s.", cfg.history, int(keep.sum()),
                 cfg.history_until.isoformat() if cfg.history_until else "its end")
     return frame.loc[keep].reset_index(drop=True)

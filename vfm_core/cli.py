@@ -62,11 +62,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     models = _split_list(args.models) or list(MODELS)
     methods = _split_list(args.methods) or list(DEFAULT_METHODS)
     targets = _split_list(args.targets) or ["all"]
+    params = None
+    if args.params:
+        from vfm_core.tune import load_params
+
+        params = load_params(args.params)
     for case in targets:
         result = run_study(
             loaded.frame, models=models, methods=methods, targets=case, split=args.split,
             seed=args.seed, progress=not args.quiet, data_path=str(args.data),
-            track_parameters=args.track_parameters,
+            track_parameters=args.track_parameters, params=params,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -139,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--params", default=None,
+                   help="settings chosen by `vfm tune` (params.json); default: built-in defaults")
     p.add_argument("--track-parameters", action="store_true",
                    help="also write parameters.parquet (physical parameters after each update)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -161,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: vfm_core modules that bring their own subcommands (each has ``register(subparsers)``).
-_INTERNAL_COMMANDS: tuple[str, ...] = ()
+_INTERNAL_COMMANDS: tuple[str, ...] = ("vfm_core.tune", "vfm_core.drift_report")
 
 
 def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

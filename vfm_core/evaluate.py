@@ -108,8 +108,13 @@ def run_study(
     track_parameters: bool = False,
     data_path: str = "",
     run_kwargs: dict[str, Any] | None = None,
+    params: dict[str, Any] | None = None,
 ) -> StudyResult:
-    """Run every model with every method prequentially on one target case."""
+    """Run every model with every method prequentially on one target case.
+
+    ``params`` (from ``vfm tune``'s params.json) overrides the default settings per model
+    and method.
+    """
     _check_names(models, methods)
     split_ts = resolve_split(targets, split)
     started = time.perf_counter()
@@ -132,9 +137,12 @@ def run_study(
             def report(done: int, total: int, base: int = base) -> None:
                 bar.update(base + done - bar.n)
 
+            from vfm_core.tune import settings_for
+
             result = run_prequential(
                 frame, model, meth, targets=targets, split=split_ts, seed=seed, progress=report,
-                track_parameters=track_parameters, initial_fits=initial_fits, **(run_kwargs or {}),
+                track_parameters=track_parameters, initial_fits=initial_fits,
+                **settings_for(params, model, meth), **(run_kwargs or {}),
             )
             bar.update(base + n_test - bar.n)
             predictions.append(result.predictions)

@@ -131,8 +131,10 @@ _PBL = re.compile(r"^pbl:(?P<period>[^:]+)(?::window=(?P<window>.+))?$")
 
 
 def _parse_span(text: str, what: str, method: str) -> pd.Timedelta:
+    # pandas deprecates the lower-case day unit; accept "14d" as users write it
+    normalised = re.sub(r"(?<=\d)d\b", "D", text.strip())
     try:
-        span = pd.Timedelta(text)
+        span = pd.Timedelta(normalised)
     except ValueError:
         span = None
     if span is None or span <= pd.Timedelta(0):

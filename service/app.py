@@ -1,0 +1,216 @@
+"""The running service: store + engine + Zenoh transport + HTTP API, started and stopped in order.
+
+:class:`Service` owns the parts; :func:`serve` runs it with uvicorn in the foreground
+(``vfm serve``); :func:`running` runs it on background threads for tests and the demo::
+
+    with running(settings) as svc:
+        print(svc.http_url, svc.locators)
+
+Start order: store, Zenoh session, engine (restore or fit), workers, subscriber, HTTP.
+Stop order is the reverse, and every Zenoh session is closed in ``finally``.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from vfm_core.errors import ConfigError
+
+from service.config import Settings
+from service.engine import Engine
+from service.inputs import Counters
+from service.store import Store
+from service.transport import Transport, ZenohTransport
+
+__all__ = ["Service", "serve", "running", "bind_socket"]
+
+logger = logging.getLogger("vfm.service")
+
+
+class Service:
+    """All parts of one service instance; see the module docstring."""
+
+    def __init__(self, settings: Settings, transport: Transport | None = None) -> None:
+        self.settings = settings
+        self.counters = Counters()
+        self._transport = transport
+        self.store: Store | None = None
+        self.engine: Engine | None = None
+        self.transport: Transport | None = None
+        self.locators: list[str] = []
+        self.http_url: str | None = None
+        self.started_at = time.time()
+        self.ready = False
+
+    def start(self) -> None:
+        import torch
+
+        torch.set_num_threads(self.settings.torch_threads)
+        s = self.settings
+        self.store = Store(s.store.path, s.store.synchronous)
+        try:
+            if self._transport is None:
+                zt = ZenohTransport(s.zenoh, s.prefix, s.queues.receive_capacity)
+                zt.open()
+                self._transport = zt
+            self.transport = self._transport
+            self.engine = Engine(s, self.store, self.counters, self.transport.publish)
+            self.engine.load()
+            self.engine.start()
+            self.transport.start(self.engine.on_message)
+            self.locators = self.transport.locators()
+        except BaseException:
+            self.stop()
+            raise
+        self.ready = True
+        logger.info("Serving %d well(s) with %s/%s on Zenoh %s under '%s/**'; store %s.",
+                    len(self.engine.wells), s.model.name, s.model.method,
+                    ", ".join(self.locators) or ", ".join(s.zenoh.connect), s.prefix, s.store.path)
+
+    def stop(self) -> None:
+        self.ready = False
+        try:
+            if self.transport is not None:
+                self.transport.stop_receiving()
+            if self.engine is not None:
+                self.engine.stop()
+        finally:
+            try:
+                if self.transport is not None:
+                    self.transport.close()
+            finally:
+                self.transport = None
+                if self.store is not None:
+                    self.store.close()
+                    self.store = None
+
+    # -- what the API shows ---------------------------------------------------------------
+    def health(self) -> dict[str, Any]:
+        snap = self.counters.snapshot()
+        engine = self.engine
+        depths = engine.queue_depths() if engine is not None else []
+        pending = sum(len(st.pending) for st in engine.wells.values()) if engine is not None else 0
+        return {
+            "status": "ok" if self.ready else "starting",
+            "uptime_s": round(time.time() - self.started_at, 3),
+            "wells": len(engine.wells) if engine is not None else 0,
+            "accepted": snap["accepted"],
+            "rejected": snap["rejected"],
+            "rejected_total": sum(snap["rejected"].values()),
+            "not_ready": snap["events"].get("model not ready", 0),
+            "predictions_published": snap["events"].get("predictions published", 0),
+            "learned": snap["events"].get("learned", 0),
+            "overflow": snap["events"].get("overflow", 0),
+            "queue_depths": depths,
+            "queue_capacity": self.settings.queues.worker_capacity,
+            "pending_measurements": pending,
+            "events": snap["events"],
+            "zenoh": {"mode": self.settings.zenoh.mode, "locators": self.locators,
+                      "connect": self.settings.zenoh.connect, "prefix": self.settings.prefix},
+            "store": str(self.settings.store.path),
+        }
+
+
+def bind_socket(host: str, port: int) -> socket.socket:
+    """A listening TCP socket (port 0 = a free one), so the real port is known before serving."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise ConfigError(
+            f"The HTTP API cannot listen on {host}:{port} ({exc.strerror}); choose another http.port "
+            "(0 picks a free one)."
+        ) from None
+    sock.listen(128)
+    sock.set_inheritable(True)
+    return sock
+
+
+def _uvicorn_server(app: Any, settings: Settings) -> Any:
+    import uvicorn
+
+    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
+    return uvicorn.Server(config)
+
+
+def _url(sock: socket.socket) -> str:
+    host, port = sock.getsockname()[:2]
+    host = f"[{host}]" if ":" in host else host
+    return f"http://{host}:{port}"
+
+
+def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None) -> int:
+    """Run the service in the foreground until SIGINT/SIGTERM (uvicorn handles the signals)."""
+    from service.api import create_app
+
+    sock = bind_socket(settings.http.host, settings.http.port)
+    service = Service(settings)
+    try:
+        service.start()
+        service.http_url = _url(sock)
+        server = _uvicorn_server(create_app(service), settings)
+        if on_ready is not None:
+            on_ready(service)
+        server.run(sockets=[sock])
+    finally:
+        service.stop()
+        sock.close()
+    return 0
+
+
+class _Running:
+    def __init__(self, service: Service, server: Any, thread: threading.Thread) -> None:
+        self.service = service
+        self.server = server
+        self.thread = thread
+
+    @property
+    def http_url(self) -> str:
+        assert self.service.http_url is not None
+        return self.service.http_url
+
+    @property
+    def locators(self) -> list[str]:
+        return self.service.locators
+
+    @property
+    def engine(self) -> Engine:
+        assert self.service.engine is not None
+        return self.service.engine
+
+
+@contextmanager
+def running(settings: Settings, transport: Transport | None = None) -> Iterator[_Running]:
+    """The service with its HTTP API on background threads; stopped (and Zenoh closed) on exit."""
+    from service.api import create_app
+
+    sock = bind_socket(settings.http.host, settings.http.port)
+    service = Service(settings, transport)
+    server = None
+    thread = None
+    try:
+        service.start()
+        service.http_url = _url(sock)
+        server = _uvicorn_server(create_app(service), settings)
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="vfm-http", daemon=True)
+        thread.start()
+        deadline = time.monotonic() + 10
+        while not server.started and thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        yield _Running(service, server, thread)
+    finally:
+        if server is not None:
+            server.should_exit = True
+        if thread is not None:
+            thread.join(10)
+        service.stop()
+        sock.close()

@@ -1,0 +1,54 @@
+"""``vfm serve [--config FILE]``: the streaming service in the foreground."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any
+
+__all__ = ["register"]
+
+READY_LINE = "vfm serve: ready"
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from service.app import Service, serve
+    from service.config import load_settings
+
+    settings = load_settings(args.config)
+    logging.getLogger("vfm").setLevel(settings.log_level.upper())
+    if not logging.getLogger().handlers:  # pragma: no cover - vfm_core.cli configures logging
+        logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
+
+    def ready(service: Service) -> None:
+        engine = service.engine
+        assert engine is not None
+        # One line that scripts (the demo, tests) wait for; keep its format stable.
+        print(
+            f"{READY_LINE}: http={service.http_url} zenoh={','.join(service.locators) or '-'} "
+            f"prefix={settings.prefix} wells={len(engine.wells)} store={settings.store.path}",
+            flush=True,
+        )
+        print(f"API docs at {service.http_url}/docs; stop with Ctrl-C.", flush=True)
+
+    return serve(settings, on_ready=ready)
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "serve",
+        help="run the streaming service: Zenoh in, predictions out, HTTP API",
+        description="Answer every sensor sample on <prefix>/<well>/sensors with a prediction on "
+        "<prefix>/<well>/prediction, learn from <prefix>/<well>/measurements/<source>, and serve the "
+        "HTTP API (docs at /docs). Settings: --config FILE (TOML or JSON) and VFM_* environment "
+        "variables (VFM_HTTP__PORT=8001).",
+    )
+    p.add_argument("--config", default=None, help="settings file (.toml or .json)")
+    p.set_defaults(handler=_cmd_serve)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from vfm_core.cli import main
+
+    sys.exit(main(["serve", *sys.argv[1:]]))

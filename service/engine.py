@@ -1,0 +1,715 @@
+"""The service's core, free of Zenoh and HTTP: per-well state, workers, pairing, learning.
+
+Data flow::
+
+    transport receiver thread            worker thread(s), one owner per well
+    ------------------------            ------------------------------------------------
+    key + JSON -> checks -> item  --->  bounded queue -> batch -> predict / pair / learn
+    (Rejected: counted by reason)        -> one store commit -> publish predictions
+                                         -> answer HTTP callers
+
+Receiving never waits for learning: the receiver only checks and queues. A well always
+goes to the same worker, so its messages are handled in arrival order (a sample is
+predicted before the measurement at its time is learned from, as in
+:func:`vfm_core.study.run_prequential`). When a worker queue is full the receiver waits
+up to ``queues.block_s`` (back-pressure: Zenoh's BLOCK congestion control then slows the
+publisher), then drops the message and counts a ``queue overflow``.
+
+Every accepted sample, measurement and prediction is written to the store and committed
+before its prediction is published or its HTTP caller answered; checkpoints go into the
+same transactions, so the store never holds a model that is ahead of its data. On start
+the engine restores each well from its latest checkpoint and re-learns the measurements
+learned after it, in the same order, which gives back the same model.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+import zlib
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import numpy as np
+
+from vfm_core.errors import VFMError
+from vfm_core.messages import Measurement, Prediction, SensorSample
+from vfm_core.streaming import WellLearner
+
+from service.config import Settings
+from service.inputs import Counters, Rejected, parse_measurement, parse_sensor, route_key
+from service.learning import describe, fit_history, load_history, new_learner
+from service.store import Op, Store
+
+try:  # the lead's streaming Hotelling detector; the service runs without it
+    from vfm_core.drift import StreamingHotelling
+except ImportError:  # pragma: no cover - depends on the vfm_core version
+    StreamingHotelling = None  # type: ignore[assignment,misc]
+
+__all__ = ["Engine", "SensorItem", "MeasurementItem", "WellTestResult", "to_ns", "from_ns"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+_RECENT_SAMPLES = 512  # per well, in memory, for pairing; older ones are looked up in the store
+_SEEN_MEASUREMENTS = 1024  # per well, recent measurement keys for the duplicate check
+
+
+def to_ns(when: datetime) -> int:
+    """Epoch nanoseconds of an aware datetime (microsecond precision, exact integer arithmetic)."""
+    return ((when - _EPOCH) // timedelta(microseconds=1)) * 1000
+
+
+def from_ns(ns: int) -> datetime:
+    return _EPOCH + timedelta(microseconds=ns // 1000)
+
+
+def _iso(ns: int | None) -> str | None:
+    return None if ns is None else from_ns(ns).isoformat().replace("+00:00", "Z")
+
+
+@dataclass(slots=True)
+class SensorItem:
+    well: str
+    sample: SensorSample
+    received_ns: int
+
+
+@dataclass(slots=True)
+class MeasurementItem:
+    well: str
+    measurement: Measurement
+    source: str
+    received_ns: int
+    via: str = "zenoh"
+    future: Future[WellTestResult] | None = None
+
+
+@dataclass(slots=True)
+class _Sample:
+    time_ns: int
+    inputs: tuple[float, ...]
+    predicted: float | None
+
+
+@dataclass(slots=True)
+class _Pending:
+    time_ns: int
+    source: str
+    q_total: float
+    via: str
+    since: float  # time.monotonic() when it started waiting
+    future: Future[WellTestResult] | None = None
+
+
+@dataclass
+class WellTestResult:
+    """What a well test did: stored (always), learned or still waiting for its sample."""
+
+    well: str
+    time: str
+    q_total: float
+    status: str  # learned | pending
+    message: str
+    paired_sample_time: str | None = None
+    before: dict[str, float | None] = field(default_factory=dict)
+    after: dict[str, float | None] = field(default_factory=dict)
+    version_before: int = 0
+    version_after: int = 0
+    model_changed: bool = False
+
+
+class _Batch:
+    """What one worker batch writes, publishes and answers (after one commit)."""
+
+    __slots__ = ("ops", "outbox", "answers")
+
+    def __init__(self) -> None:
+        self.ops: list[Op] = []
+        self.outbox: list[tuple[str, bytes]] = []
+        self.answers: list[tuple[Future[WellTestResult], WellTestResult | BaseException]] = []
+
+
+class WellState:
+    """One well: its learner and what the service needs to feed it (owned by one worker)."""
+
+    def __init__(self, well: str, learner: WellLearner, settings: Settings, worker: int) -> None:
+        self.well = well
+        self.learner = learner
+        self.worker = worker
+        self.recent: deque[_Sample] = deque(maxlen=_RECENT_SAMPLES)
+        self.last_time_ns: int | None = None
+        self.last_inputs: tuple[float, ...] | None = None
+        self.pending: list[_Pending] = []
+        self.seen: OrderedDict[tuple[str, int], None] = OrderedDict()
+        self.learn_seq = 0
+        self.updates_since_checkpoint = 0
+        self.errors: deque[float] = deque(maxlen=settings.rolling_window)
+        self.learned_inputs: deque[tuple[float, ...]] = deque(maxlen=settings.drift.reference_size)
+        self.detector: Any = None
+        self.drift_events: deque[dict[str, Any]] = deque(maxlen=20)
+        self.samples = 0
+        self.measurements = 0
+        self.snapshot: dict[str, Any] = {}
+        if settings.drift.enabled and StreamingHotelling is not None:
+            d = settings.drift
+            self.detector = StreamingHotelling(reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm)
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Rebuild the snapshot the HTTP API reads (replaced whole, so readers never see half)."""
+        snap = describe(self.learner)
+        snap["well"] = self.well
+        self.snapshot = snap
+
+    def remember_measurement(self, source: str, time_ns: int) -> None:
+        self.seen[(source, time_ns)] = None
+        if len(self.seen) > _SEEN_MEASUREMENTS:
+            self.seen.popitem(last=False)
+
+    def drift_state(self) -> dict[str, Any]:
+        det = self.detector
+        if det is None:
+            return {"enabled": False, "detected": False,
+                    "note": "vfm_core.drift is not available" if StreamingHotelling is None else "disabled"}
+        stat = float(getattr(det, "statistic", float("nan")))
+        pval = float(getattr(det, "p_value", float("nan")))
+        return {
+            "enabled": True,
+            "detected": bool(det.drift_detected) or bool(self.drift_events),
+            "active": bool(det.drift_detected),
+            "statistic": stat if math.isfinite(stat) else None,
+            "p_value": pval if math.isfinite(pval) else None,
+            "n_seen": int(getattr(det, "n_seen", 0)),
+            "events": list(self.drift_events),
+        }
+
+    def rolling_mape(self) -> dict[str, Any]:
+        n = len(self.errors)
+        value = float(np.mean(self.errors) * 100.0) if n else None
+        return {"value": value, "n": n, "window": self.errors.maxlen, "unit": "%"}
+
+
+class Engine:
+    """Per-well learners behind bounded worker queues; see the module docstring."""
+
+    def __init__(self, settings: Settings, store: Store, counters: Counters,
+                 publish: Callable[[str, bytes], None]) -> None:
+        self.settings = settings
+        self.store = store
+        self.counters = counters
+        self.publish = publish
+        self.wells: dict[str, WellState] = {}
+        self._wells_lock = threading.Lock()
+        n = settings.queues.workers
+        self._queues: list[queue.Queue[Any]] = [queue.Queue(settings.queues.worker_capacity) for _ in range(n)]
+        self._threads: list[threading.Thread] = []
+        self._stop = object()
+        self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
+        self._future_ns = int(settings.inputs.max_future_s * 1e9)
+        self.started_at = time.time()
+
+    # -- start-up -------------------------------------------------------------------------
+    def _worker_of(self, well: str) -> int:
+        return zlib.crc32(well.encode()) % len(self._queues)
+
+    def load(self) -> None:
+        """Restore every known well from the store, or fit it on the history; re-learn the rest."""
+        cfg = self.settings
+        history = load_history(cfg.model) if cfg.model.history is not None else None
+        names = list(dict.fromkeys(
+            [*cfg.inputs.wells, *self.store.wells(),
+             *([] if history is None or history.empty else history["well"].astype(str).tolist())]
+        ))
+        learners: dict[str, WellLearner] = {}
+        checkpoints: dict[str, Any] = {}
+        method = cfg.model.method
+        for well in names:
+            row = self.store.latest_checkpoint(well)
+            if row is not None and (row.model, row.method) == (cfg.model.name, method):
+                try:
+                    learners[well] = WellLearner.restore(row.blob)
+                    checkpoints[well] = row
+                    continue
+                except VFMError as exc:
+                    logger.warning("Checkpoint of %s unusable (%s); rebuilding it from the store.", well, exc)
+            elif row is not None:
+                logger.warning(
+                    "The store holds a %s/%s model for %s but the config asks for %s/%s; building a new "
+                    "model from the history and every stored measurement.", row.model, row.method, well,
+                    cfg.model.name, method)
+            learners[well] = new_learner(well, cfg.model)
+        fresh = [w for w in names if w not in checkpoints]
+        fitted: list[str] = []
+        if history is not None and fresh:
+            started = time.perf_counter()
+            fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
+            if fitted:
+                logger.info("Fitted %d well(s) on the history in %.1f s.", len(fitted), time.perf_counter() - started)
+        ops: list[Op] = []
+        now = time.time_ns()
+        for well in names:
+            ops.append(("well", (well, now, "history" if well in fitted else "config/store")))
+            st = WellState(well, learners[well], cfg, self._worker_of(well))
+            row = checkpoints.get(well)
+            if row is not None:
+                st.learn_seq = row.learn_seq
+                self._restore_extra(st, row.extra)
+            elif well in fitted and st.detector is not None and history is not None:
+                own = history[history["well"] == well]
+                ref = own[["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]].to_numpy(dtype=float)
+                ref = ref[-cfg.drift.reference_size:]
+                st.learned_inputs.extend(tuple(map(float, r)) for r in ref)
+                if len(ref) >= cfg.drift.reference_size:
+                    st.detector.reset(ref)
+            relearned = self._relearn(st, ops)
+            if well in fitted or (row is None and relearned):
+                ops.extend(self._checkpoint_ops(st))
+            self._load_recent(st)
+            st.refresh()
+            self.wells[well] = st
+            if row is not None or relearned:
+                logger.info("Restored %s: version %d, %d update(s) re-learned after its checkpoint.",
+                            well, st.learner.version, relearned)
+        self.store.write(ops)
+
+    def _restore_extra(self, st: WellState, extra: str) -> None:
+        import json
+
+        try:
+            data = json.loads(extra)
+        except ValueError:
+            return
+        if st.detector is not None and data.get("drift"):
+            try:
+                st.detector.load_state_dict(data["drift"])
+            except (KeyError, TypeError, ValueError, VFMError) as exc:
+                logger.warning("Drift state of %s not restored (%s); the detector starts over.", st.well, exc)
+        st.learned_inputs.extend(tuple(x) for x in data.get("learned_inputs", []))
+        st.drift_events.extend(data.get("drift_events", []))
+
+    def _relearn(self, st: WellState, ops: list[Op]) -> int:
+        rows = self.store.learned_after(st.well, st.learn_seq)
+        for seq, time_ns, source, q_total, sample_ns, *rest in rows:
+            inputs, predicted = tuple(rest[:6]), rest[6]
+            self._apply_learning(st, _Sample(sample_ns, inputs, predicted), q_total, time_ns, ops)
+            st.learn_seq = seq
+        for predicted, measured in self.store.recent_errors(st.well, self.settings.rolling_window):
+            if predicted is not None and measured:
+                st.errors.append(abs(predicted - measured) / abs(measured))
+        return len(rows)
+
+    def _load_recent(self, st: WellState) -> None:
+        for time_ns, *rest in self.store.recent_samples(st.well, _RECENT_SAMPLES):
+            st.recent.append(_Sample(time_ns, tuple(rest[:6]), rest[6]))
+        if st.recent:
+            st.last_time_ns = st.recent[-1].time_ns
+            st.last_inputs = st.recent[-1].inputs
+        now = time.monotonic()
+        for time_ns, source, q_total, via in self.store.pending(st.well):
+            st.pending.append(_Pending(time_ns, source, q_total, via, now))
+
+    def start(self) -> None:
+        for i, q in enumerate(self._queues):
+            t = threading.Thread(target=self._run, args=(i, q), name=f"vfm-worker-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Let the workers finish what is queued, checkpoint, and stop."""
+        deadline = time.monotonic() + timeout
+        for q in self._queues:
+            while True:
+                try:
+                    q.put(self._stop, timeout=0.5)
+                    break
+                except queue.Full:
+                    if time.monotonic() > deadline:
+                        break
+        for t in self._threads:
+            t.join(max(0.1, deadline - time.monotonic()))
+        self._threads.clear()
+        ops: list[Op] = []
+        for st in self.wells.values():
+            if st.updates_since_checkpoint:
+                ops.extend(self._checkpoint_ops(st))
+        try:
+            self.store.write(ops)
+        except Exception as exc:  # pragma: no cover - disk full at shutdown
+            logger.error("Final checkpoints not written: %s", exc)
+
+    # -- receiving (transport thread) -----------------------------------------------------
+    def well_state(self, well: str, *, create: bool = True) -> WellState:
+        """The well's state; unknown wells are created or rejected as configured."""
+        st = self.wells.get(well)
+        if st is not None:
+            return st
+        if not create or self.settings.inputs.unknown_wells == "reject":
+            raise Rejected(
+                "unknown well",
+                f"The well '{well}' is not known to this service; add it to inputs.wells or set "
+                "inputs.unknown_wells = 'create'.",
+                status=404,
+            )
+        if not well or any(ch in well for ch in "/*$?#"):
+            raise Rejected("unparseable key", f"The well id '{well}' cannot be used in a key expression.")
+        with self._wells_lock:
+            st = self.wells.get(well)
+            if st is None:
+                st = WellState(well, new_learner(well, self.settings.model), self.settings, self._worker_of(well))
+                self.store.write([("well", (well, time.time_ns(), "first sight"))])
+                self.wells[well] = st
+                logger.info("New well %s (first sight); it gets predictions once it has a measurement.", well)
+        return st
+
+    def check_time(self, when: datetime, what: str) -> None:
+        ahead = to_ns(when) - time.time_ns()
+        if ahead > self._future_ns:
+            raise Rejected(
+                "time in the future",
+                f"The {what} time {when.isoformat()} lies {ahead / 3.6e12:.1f} h in the future; "
+                f"at most {self.settings.inputs.max_future_s / 3600:g} h ahead is accepted (inputs.max_future_s).",
+            )
+
+    def on_message(self, key: str, payload: bytes, received_ns: int) -> None:
+        """One inbound Zenoh message: check, then queue for the well's worker (never learns)."""
+        try:
+            well, kind, source = route_key(self.settings.prefix, key)
+            if kind == "prediction":
+                return  # outputs, e.g. of another service instance: not ours to take in
+            item: SensorItem | MeasurementItem
+            if kind == "sensors":
+                sample = parse_sensor(payload)
+                self.check_time(sample.time, "sample")
+                item = SensorItem(well, sample, received_ns)
+            else:
+                measurement = parse_measurement(payload)
+                self.check_time(measurement.time, "measurement")
+                item = MeasurementItem(well, measurement, str(source), received_ns)
+            st = self.well_state(well)
+        except Rejected as r:
+            self.counters.reject(r.reason, r.message, where=key)
+            return
+        self._enqueue(st.worker, item, key)
+
+    def _enqueue(self, worker: int, item: Any, where: str) -> None:
+        q = self._queues[worker]
+        try:
+            q.put_nowait(item)
+            return
+        except queue.Full:
+            self.counters.event("backpressure waits")
+        try:
+            q.put(item, timeout=self.settings.queues.block_s)
+        except queue.Full:
+            self.counters.event("overflow")
+            self.counters.reject(
+                "queue overflow",
+                f"The worker queue stayed full for {self.settings.queues.block_s:g} s; the message was dropped. "
+                "The service cannot keep up: add workers (queues.workers) or slow the sender.",
+                where=where,
+            )
+
+    def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:
+        """Queue a well test posted over HTTP; the future answers after it is stored (and learned)."""
+        self.check_time(measurement.time, "well test")
+        st = self.well_state(well)
+        fut: Future[WellTestResult] = Future()
+        item = MeasurementItem(well, measurement, "well_test", time.time_ns(), via="http", future=fut)
+        try:
+            self._queues[st.worker].put(item, timeout=2.0)
+        except queue.Full:
+            raise Rejected(
+                "queue overflow", "The service is busy (its queue is full); retry in a few seconds.", status=503
+            ) from None
+        return fut
+
+    def queue_depths(self) -> list[int]:
+        return [q.qsize() for q in self._queues]
+
+    # -- the worker -----------------------------------------------------------------------
+    def _run(self, index: int, q: queue.Queue[Any]) -> None:
+        batch_max = self.settings.queues.batch_max
+        last_expiry = time.monotonic()
+        stopping = False
+        while not stopping:
+            try:
+                first = q.get(timeout=0.5)
+            except queue.Empty:
+                first = None
+            items = [] if first is None else [first]
+            while items and len(items) < batch_max:
+                try:
+                    items.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            if self._stop in items:
+                stopping = True
+                items = [i for i in items if i is not self._stop]
+            b = _Batch()
+            for item in items:
+                try:
+                    if isinstance(item, SensorItem):
+                        self._on_sample(item, b)
+                    else:
+                        self._on_measurement(item, b)
+                except Exception as exc:  # one bad message must not stop the worker
+                    logger.exception("Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc)
+                    self.counters.event("internal errors")
+                    fut = getattr(item, "future", None)
+                    if fut is not None:
+                        b.answers.append((fut, exc))
+            now = time.monotonic()
+            if now - last_expiry > 0.5:
+                last_expiry = now
+                for st in list(self.wells.values()):
+                    if st.worker == index and st.pending:
+                        self._expire_pending(st, b, now)
+            self._flush(b)
+
+    def _flush(self, b: _Batch) -> None:
+        try:
+            self.store.write(b.ops)
+        except Exception as exc:
+            logger.exception("The store could not commit %d write(s): %s", len(b.ops), exc)
+            self.counters.event("store errors")
+            for fut, _ in b.answers:
+                fut.set_exception(exc)
+            return  # nothing unstored is published or acknowledged
+        for well, payload in b.outbox:
+            try:
+                self.publish(well, payload)
+                self.counters.event("predictions published")
+            except Exception as exc:  # pragma: no cover - session closed under us
+                self.counters.event("publish errors")
+                logger.warning("Publishing the prediction of %s failed: %s", well, exc)
+        for fut, result in b.answers:
+            if fut.done():
+                continue
+            if isinstance(result, BaseException):
+                fut.set_exception(result)
+            else:
+                fut.set_result(result)
+
+    def _reject(self, item: Any, r: Rejected, b: _Batch) -> None:
+        self.counters.reject(r.reason, r.message, where=f"{item.well}")
+        fut = getattr(item, "future", None)
+        if fut is not None:
+            b.answers.append((fut, r))
+
+    # -- samples --------------------------------------------------------------------------
+    def _on_sample(self, item: SensorItem, b: _Batch) -> None:
+        st = self.wells[item.well]
+        sample = item.sample
+        t = to_ns(sample.time)
+        inputs = tuple(sample.inputs())
+        if st.last_time_ns is not None and t <= st.last_time_ns:
+            if t == st.last_time_ns and inputs == st.last_inputs:
+                r = Rejected("duplicate", f"The sample of {item.well} at {_iso(t)} arrived before.", status=409)
+            else:
+                r = Rejected(
+                    "time going backwards",
+                    f"The sample of {item.well} at {_iso(t)} is not after the well's previous sample at "
+                    f"{_iso(st.last_time_ns)}; samples of a well must arrive in time order.",
+                )
+            self._reject(item, r, b)
+            return
+        learner = st.learner
+        rates = learner.predict(list(inputs)) if learner.ready else None
+        q_total = rates["q_total"] if rates else None
+        if q_total is not None and not math.isfinite(q_total):
+            rates, q_total = None, None
+        st.recent.append(_Sample(t, inputs, q_total))
+        st.last_time_ns, st.last_inputs = t, inputs
+        st.samples += 1
+        self.counters.accept("sensors")
+        b.ops.append(("sample", (item.well, t, *inputs, item.received_ns,
+                                 q_total, *(rates[k] if rates else None for k in ("q_gas", "q_oil", "q_water")),
+                                 learner.version if rates else None)))
+        if rates is None:
+            self.counters.event("model not ready")
+        else:
+            pred = Prediction(time=sample.time, q_total=q_total, q_gas=rates["q_gas"], q_oil=rates["q_oil"],
+                              q_water=rates["q_water"], model=learner.model_name, version=learner.version)
+            b.outbox.append((item.well, pred.model_dump_json().encode()))
+        if st.pending:
+            self._resolve_pending(st, b, upto=t)
+
+    # -- measurements ---------------------------------------------------------------------
+    def _nearest(self, st: WellState, time_ns: int) -> _Sample | None:
+        if st.recent and time_ns >= st.recent[0].time_ns:
+            best = _bisect(st.recent, time_ns)
+            return best if abs(best.time_ns - time_ns) <= self._tol_ns else None
+        row = self.store.nearest_sample(st.well, time_ns, self._tol_ns)
+        return None if row is None else _Sample(row[0], tuple(row[1:7]), row[7])
+
+    def _on_measurement(self, item: MeasurementItem, b: _Batch) -> None:
+        st = self.wells[item.well]
+        m = item.measurement
+        t = to_ns(m.time)
+        key = (item.source, t)
+        if key in st.seen or self.store.measurement_exists(item.well, item.source, t):
+            self._reject(item, Rejected(
+                "duplicate", f"The {item.source} measurement of {item.well} at {_iso(t)} arrived before; "
+                "it is stored once.", status=409), b)
+            return
+        sample: _Sample | None = None
+        if st.last_time_ns is not None and t <= st.last_time_ns:
+            sample = self._nearest(st, t)
+            if sample is None:
+                self._reject(item, Rejected(
+                    "no sensor sample within tolerance",
+                    f"No sensor sample of {item.well} lies within {self.settings.inputs.pair_tolerance_s:g} s of "
+                    f"the measurement at {_iso(t)}, so it cannot be paired with inputs; it was not stored.",
+                ), b)
+                return
+        b.ops.append(("measurement", (item.well, t, item.source, m.q_total, item.received_ns, item.via)))
+        st.remember_measurement(item.source, t)
+        st.measurements += 1
+        self.counters.accept("well_tests" if item.via == "http" else "measurements")
+        if item.via == "http":
+            # stored durably first, then learned from
+            self.store.write(b.ops)
+            b.ops.clear()
+        p = _Pending(t, item.source, m.q_total, item.via, time.monotonic(), item.future)
+        if sample is not None:
+            self._learn(st, p, sample, b)
+            return
+        if len(st.pending) >= self.settings.inputs.pending_max:
+            oldest = st.pending.pop(0)
+            self.counters.event("pending forced")
+            self._settle(st, oldest, b, force=True)
+        st.pending.append(p)
+        if p.future is not None:
+            b.answers.append((p.future, WellTestResult(
+                st.well, _iso(t) or "", m.q_total, "pending",
+                f"Stored. No sensor sample of {st.well} at or after {_iso(t)} has arrived yet; the well test "
+                "is learned from when it does.", version_before=st.learner.version,
+                version_after=st.learner.version)))
+            p.future = None
+
+    def _resolve_pending(self, st: WellState, b: _Batch, upto: int) -> None:
+        due = [p for p in st.pending if p.time_ns <= upto]
+        if not due:
+            return
+        st.pending = [p for p in st.pending if p.time_ns > upto]
+        for p in due:
+            self._settle(st, p, b)
+
+    def _expire_pending(self, st: WellState, b: _Batch, now: float) -> None:
+        wait = self.settings.inputs.pending_timeout_s
+        due = [p for p in st.pending if now - p.since > wait]
+        if due:
+            st.pending = [p for p in st.pending if now - p.since <= wait]
+            for p in due:
+                self._settle(st, p, b, force=True)
+
+    def _settle(self, st: WellState, p: _Pending, b: _Batch, force: bool = False) -> None:
+        sample = self._nearest(st, p.time_ns)
+        if sample is None:
+            b.ops.append(("unpaired", (st.well, p.source, p.time_ns)))
+            r = Rejected(
+                "no sensor sample within tolerance",
+                f"No sensor sample of {st.well} arrived within {self.settings.inputs.pair_tolerance_s:g} s of the "
+                f"{p.source} measurement at {_iso(p.time_ns)}" + (" before the wait ran out" if force else "")
+                + "; it is stored but not learned from.",
+            )
+            self.counters.reject(r.reason, r.message, where=st.well)
+            if p.future is not None:
+                b.answers.append((p.future, r))
+            return
+        self._learn(st, p, sample, b)
+
+    def _learn(self, st: WellState, p: _Pending, sample: _Sample, b: _Batch) -> None:
+        learner = st.learner
+        version_before = learner.version
+        before = learner.predict(list(sample.inputs)) if p.future is not None else {}
+        self._apply_learning(st, sample, p.q_total, p.time_ns, b.ops)
+        st.learn_seq += 1
+        b.ops.append(("learned", (st.learn_seq, sample.time_ns, *sample.inputs, sample.predicted,
+                                  learner.version, st.well, p.source, p.time_ns)))
+        self.counters.event("learned")
+        if st.updates_since_checkpoint >= self.settings.store.checkpoint_every:
+            b.ops.extend(self._checkpoint_ops(st))
+        st.refresh()
+        if p.future is not None:
+            after = learner.predict(list(sample.inputs))
+            changed = learner.version != version_before
+            b.answers.append((p.future, WellTestResult(
+                st.well, _iso(p.time_ns) or "", p.q_total, "learned",
+                "Stored and learned from: the model was updated." if changed else
+                "Stored; the model keeps it for its next periodic retrain (method "
+                f"{learner.method.text}).",
+                paired_sample_time=_iso(sample.time_ns), before=before, after=after,
+                version_before=version_before, version_after=learner.version, model_changed=changed)))
+
+    def _apply_learning(self, st: WellState, sample: _Sample, q_total: float, time_ns: int, ops: list[Op]) -> None:
+        """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
+        learner = st.learner
+        changed = learner.learn(list(sample.inputs), q_total, from_ns(time_ns))
+        if changed:
+            st.updates_since_checkpoint += 1
+        if sample.predicted is not None and q_total:
+            st.errors.append(abs(sample.predicted - q_total) / abs(q_total))
+        st.learned_inputs.append(sample.inputs)
+        det = st.detector
+        if det is None:
+            return
+        was = bool(det.drift_detected)
+        det.update(list(sample.inputs))
+        if det.drift_detected and not was:
+            action = "recorded"
+            if self.settings.drift.on_drift == "retrain" and learner.method.kind == "pbl":
+                import pandas as pd
+
+                learner.retrain(pd.Timestamp(time_ns, tz="UTC"))
+                st.updates_since_checkpoint += 1
+                action = "retrained"
+            event = {"time": _iso(time_ns), "statistic": float(det.statistic), "p_value": float(det.p_value),
+                     "action": action}
+            st.drift_events.append(event)
+            ops.append(("drift", (st.well, time_ns, event["statistic"], event["p_value"], action)))
+            logger.warning("Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.", st.well, event["time"],
+                           event["statistic"], event["p_value"], action)
+            self.counters.event("drifts")
+            ref = np.asarray(st.learned_inputs, dtype=float)
+            det.reset(ref if len(ref) >= self.settings.drift.reference_size else None)
+
+    def _checkpoint_ops(self, st: WellState) -> list[Op]:
+        import json
+
+        extra = {
+            "drift": st.detector.state_dict() if st.detector is not None else None,
+            "learned_inputs": [list(x) for x in st.learned_inputs],
+            "drift_events": list(st.drift_events),
+        }
+        st.updates_since_checkpoint = 0
+        learner = st.learner
+        keep = self.settings.store.keep_checkpoints
+        return [
+            ("checkpoint", (st.well, time.time_ns(), learner.version, st.learn_seq, learner.model_name,
+                            learner.method.text, learner.checkpoint(), json.dumps(extra))),
+            ("prune_checkpoints", (st.well, st.well, keep)),
+        ]
+
+
+def _bisect(recent: deque[_Sample], time_ns: int) -> _Sample:
+    """The sample nearest in time (recent is in time order)."""
+    lo, hi = 0, len(recent) - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if recent[mid].time_ns < time_ns:
+            lo = mid + 1
+        else:
+            hi = mid
+    best = recent[lo]
+    if lo > 0 and abs(recent[lo - 1].time_ns - time_ns) <= abs(best.time_ns - time_ns):
+        best = recent[lo - 1]
+    return best

@@ -1,0 +1,185 @@
+"""The service's link to Zenoh, behind a small interface the engine does not know about.
+
+:class:`ZenohTransport` subscribes to ``<prefix>/**`` with a FifoChannel (never a
+callback: a slow callback would stall every subscriber of the session) and hands each
+message to ``deliver(key, payload, received_ns)`` on its own receiver thread. Predictions
+go out on ``<prefix>/<well>/prediction`` with BLOCK congestion control (DROP would lose
+them under load), never back to this session's own subscriber.
+
+Zenoh facts this relies on are in ``/work/shared/notes/zenoh.md``: never the default
+config (it joins multicast and listens everywhere), close every session (an open one
+hangs the interpreter at exit), never fork after ``zenoh.open``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+import zenoh
+
+from vfm_core.errors import ConfigError
+from vfm_core.messages import prediction_key
+
+from service.config import ZenohSettings
+
+__all__ = ["Transport", "ZenohTransport", "zenoh_config", "session_locators"]
+
+logger = logging.getLogger("vfm.service.transport")
+
+Deliver = Callable[[str, bytes, int], None]
+
+
+class Transport(Protocol):
+    """What the service needs from a message bus."""
+
+    def start(self, deliver: Deliver) -> None: ...
+
+    def publish(self, well: str, payload: bytes) -> None: ...
+
+    def locators(self) -> list[str]: ...
+
+    def stop_receiving(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def zenoh_config(zs: ZenohSettings, *, admin: bool = True) -> zenoh.Config:
+    """A zenoh.Config from the settings (never the default one, which joins multicast)."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(zs.mode))
+    cfg.insert_json5("scouting/multicast/enabled", json.dumps(zs.multicast_scouting))
+    cfg.insert_json5("listen/endpoints", json.dumps([] if zs.mode == "client" else zs.listen))
+    cfg.insert_json5("connect/endpoints", json.dumps(zs.connect))
+    cfg.insert_json5(
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        json.dumps(zs.block_wait_before_close_ms * 1000),  # microseconds
+    )
+    if admin:
+        cfg.insert_json5("adminspace/enabled", "true")
+    return cfg
+
+
+def session_locators(session: zenoh.Session, timeout: float = 2.0) -> list[str]:
+    """The endpoints the session actually listens on (port 0 resolved), from its admin space."""
+    zid = str(session.zid())
+    found: list[str] = []
+    for mode in ("peer", "router", "client"):
+        try:
+            for reply in session.get(f"@/{zid}/{mode}", timeout=timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    info = json.loads(reply.ok.payload.to_bytes())
+                except ValueError:
+                    continue
+                if isinstance(info, dict):
+                    found.extend(str(x) for x in info.get("locators", []))
+        except zenoh.ZError:  # pragma: no cover - admin space off
+            continue
+        if found:
+            break
+    return found
+
+
+class ZenohTransport:
+    """Zenoh subscriber + receiver thread in, one BLOCK publisher per well out."""
+
+    def __init__(self, settings: ZenohSettings, prefix: str, capacity: int = 4096) -> None:
+        self.settings = settings
+        self.prefix = prefix
+        self.capacity = capacity
+        self._session: zenoh.Session | None = None
+        self._subscriber: zenoh.Subscriber | None = None
+        self._thread: threading.Thread | None = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._pub_lock = threading.Lock()
+        self._stop_token = secrets.token_bytes(16)
+        self._control_key = f"{prefix}/_vfm-control/stop"
+        self.received = 0
+
+    def open(self) -> None:
+        try:
+            self._session = zenoh.open(zenoh_config(self.settings))
+        except zenoh.ZError as exc:
+            where = ", ".join(self.settings.connect or self.settings.listen)
+            raise ConfigError(
+                f"Zenoh could not start in {self.settings.mode} mode on {where}: {exc}. Check that the "
+                "listen port is free (zenoh.listen) and, for a client, that the router runs (zenoh.connect)."
+            ) from None
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RuntimeError("ZenohTransport.open() was not called")
+        return self._session
+
+    def start(self, deliver: Deliver) -> None:
+        sub = self.session.declare_subscriber(f"{self.prefix}/**", zenoh.handlers.FifoChannel(self.capacity))
+        self._subscriber = sub
+        stop_key, token = self._control_key, self._stop_token
+
+        def receive() -> None:
+            for sample in sub:
+                key = str(sample.key_expr)
+                if key == stop_key:
+                    att = sample.attachment
+                    if att is not None and secrets.compare_digest(att.to_bytes(), token):
+                        return
+                    continue
+                self.received += 1
+                try:
+                    deliver(key, sample.payload.to_bytes(), time.time_ns())
+                except Exception:  # a bug in one message must not end reception
+                    logger.exception("Delivering %s failed", key)
+
+        self._thread = threading.Thread(target=receive, name="vfm-zenoh-receiver", daemon=True)
+        self._thread.start()
+
+    def publish(self, well: str, payload: bytes) -> None:
+        pub = self._publishers.get(well)
+        if pub is None:
+            with self._pub_lock:
+                pub = self._publishers.get(well)
+                if pub is None:
+                    pub = self.session.declare_publisher(
+                        prediction_key(self.prefix, well),
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                        allowed_destination=zenoh.Locality.REMOTE,
+                    )
+                    self._publishers[well] = pub
+        pub.put(payload)
+
+    def locators(self) -> list[str]:
+        return session_locators(self.session)
+
+    def stop_receiving(self, timeout: float = 10.0) -> None:
+        """End the receiver thread (a local control message: recv cannot be interrupted)."""
+        if self._thread is None or self._session is None:
+            return
+        self._session.put(self._control_key, b"", attachment=self._stop_token,
+                          allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        self._thread.join(timeout)
+        if self._thread.is_alive():  # pragma: no cover - receiver stuck in deliver
+            logger.warning("The Zenoh receiver thread did not stop within %.0f s.", timeout)
+        self._thread = None
+
+    def close(self) -> None:
+        try:
+            self.stop_receiving()
+            if self._subscriber is not None:
+                self._subscriber.undeclare()
+                self._subscriber = None
+            for pub in self._publishers.values():
+                pub.undeclare()
+            self._publishers.clear()
+        finally:
+            if self._session is not None:
+                self._session.close()
+                self._session = None
