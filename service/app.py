@@ -13,6 +13,7 @@ Stop order is the reverse, and every Zenoh session is closed in ``finally``.
 from __future__ import annotations
 
 import logging
+import signal
 import socket
 import threading
 import time
@@ -148,10 +149,20 @@ def _url(sock: socket.socket) -> str:
     return f"http://{host}:{port}"
 
 
+class _StopServing(Exception):
+    """SIGINT or SIGTERM: stop cleanly (uvicorn re-raises the signal after its own shutdown)."""
+
+
+def _raise_stop(signum: int, frame: Any) -> None:
+    raise _StopServing(signal.Signals(signum).name)
+
+
 def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None) -> int:
-    """Run the service in the foreground until SIGINT/SIGTERM (uvicorn handles the signals)."""
+    """Run the service in the foreground until SIGINT/SIGTERM, then stop it cleanly."""
     from service.api import create_app
 
+    main = threading.current_thread() is threading.main_thread()
+    previous = {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
     sock = bind_socket(settings.http.host, settings.http.port)
     service = Service(settings)
     try:
@@ -161,9 +172,16 @@ def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None)
         if on_ready is not None:
             on_ready(service)
         server.run(sockets=[sock])
+    except _StopServing as stop:
+        logger.info("%s received: stopping.", stop)
     finally:
-        service.stop()
-        sock.close()
+        try:
+            service.stop()
+            sock.close()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+    logger.info("Stopped; the store %s is consistent.", settings.store.path)
     return 0
 
 

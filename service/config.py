@@ -196,7 +196,9 @@ class StoreSettings(_Section):
     path: Path = Path("vfm-store.sqlite")
     #: full: every commit is fsync'ed (survives power loss); normal: survives a killed process
     synchronous: Literal["full", "normal"] = "full"
-    checkpoint_every: int = Field(1, ge=1, description="checkpoint after this many model updates")
+    checkpoint_every: int = Field(
+        10, ge=1, description="checkpoint after this many model updates (a restart re-learns the rest)"
+    )
     keep_checkpoints: int = Field(3, ge=1, description="checkpoints kept per well")
 
 

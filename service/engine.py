@@ -676,7 +676,7 @@ class Engine:
                      "action": action}
             st.drift_events.append(event)
             ops.append(("drift", (st.well, time_ns, event["statistic"], event["p_value"], action)))
-            logger.warning("Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.", st.well, event["time"],
+            logger.info("Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.", st.well, event["time"],
                            event["statistic"], event["p_value"], action)
             self.counters.event("drifts")
             ref = np.asarray(st.learned_inputs, dtype=float)

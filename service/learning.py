@@ -102,9 +102,9 @@ def fit_history(learners: dict[str, WellLearner], history: pd.DataFrame, cfg: Mo
 
 
 def _tensors(rows: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    x = torch.as_tensor(rows[list(INPUT_COLUMNS)].to_numpy(dtype=np.float64))
-    y = torch.as_tensor(rows[TARGET].to_numpy(dtype=np.float64))
-    t = torch.as_tensor(pd.DatetimeIndex(rows[TIME]).as_unit("ns").asi8.copy())
+    x = torch.tensor(rows[list(INPUT_COLUMNS)].to_numpy(dtype=np.float64))
+    y = torch.tensor(rows[TARGET].to_numpy(dtype=np.float64))
+    t = torch.tensor(pd.DatetimeIndex(rows[TIME]).as_unit("ns").asi8)
     return x, y, t
 
 

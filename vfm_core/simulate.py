@@ -881,7 +881,8 @@ class _Well:
         t_test = t_test[:n]
         # A test planned during downtime is done shortly after the well is back.
         hit, index = _inside(t_test, self.no_rows)
-        t_test = np.where(hit, self.no_rows[index, 1] + after_downtime[: len(t_test)], t_test)
+        if len(self.no_rows):
+            t_test = np.where(hit, self.no_rows[index, 1] + after_downtime[: len(t_test)], t_test)
         t_test = np.unique(t_test[t_test < self.t1])
         t_test = t_test[~_inside(t_test, self.no_rows)[0]]
         if len(t_test) > 1:  # at least 6 h between tests after the moves
