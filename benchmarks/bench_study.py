@@ -73,6 +73,7 @@ def main() -> None:
     parser.add_argument("--methods", default="ol,pbl:14d,pbl:182d")
     parser.add_argument("--cases", default="all,well_test")
     parser.add_argument("--skip-study", action="store_true")
+    parser.add_argument("--out", default=None, help="also write each case's outputs (report) here")
     args = parser.parse_args()
     models = args.models.split(",")
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
@@ -83,7 +84,9 @@ def main() -> None:
 
     print("\none online update (one well, one observation, E steps), microseconds:")
     for name in models:
-        print(f"  {name:5s} {ol_update_cost(frame, name):10.0f} us  (E={DEFAULT_ONLINE[name].steps})")
+        print(
+            f"  {name:5s} {ol_update_cost(frame, name):10.0f} us  (E={DEFAULT_ONLINE[name].steps})"
+        )
     ref = river_cost(frame)
     if ref is None:
         print("  river: not installed (pip install -e '.[bench]')")
@@ -94,8 +97,14 @@ def main() -> None:
         return
     total = 0.0
     for case in args.cases.split(","):
-        result = run_study(frame, models=models, methods=args.methods.split(","), targets=case, progress=False)
+        result = run_study(
+            frame, models=models, methods=args.methods.split(","), targets=case, progress=False
+        )
         total += result.runtime_s
+        if args.out:
+            from vfm_core.evaluate import write_study
+
+            write_study(result, f"{args.out}/{case}")
         print()
         print(format_summary(result))
         per = result.predictions.groupby(["model", "method"]).size()

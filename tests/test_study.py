@@ -15,7 +15,9 @@ from vfm_core.study import mape, metrics_records, run_prequential
 
 def test_mape_hand_computed() -> None:
     # |110-100|/100 = 10 %, |45-50|/50 = 10 %, |200-200|/200 = 0 %, NaN prediction skipped
-    assert mape([110.0, 45.0, 200.0, np.nan], [100.0, 50.0, 200.0, 80.0]) == pytest.approx(20.0 / 3.0)
+    assert mape([110.0, 45.0, 200.0, np.nan], [100.0, 50.0, 200.0, 80.0]) == pytest.approx(
+        20.0 / 3.0
+    )
 
 
 def test_metrics_records_and_summary_by_hand() -> None:
@@ -70,8 +72,14 @@ def test_online_learning_tracks_erosion_and_beats_pbl_182d(eroding_field) -> Non
 
 def test_evaluate_outputs_follow_the_contract(tmp_path) -> None:
     frame = simulate_field(wells=2, years=1.2, seed=5, start="2018-06-01").observations
-    result = run_study(frame, models=["last", "mm"], methods=["ol", "pbl:60d"], targets="all",
-                       progress=False, data_path="synthetic")
+    result = run_study(
+        frame,
+        models=["last", "mm"],
+        methods=["ol", "pbl:60d"],
+        targets="all",
+        progress=False,
+        data_path="synthetic",
+    )
     written = {p.name for p in write_study(result, tmp_path, report=False)}
     assert {"metrics.json", "predictions.parquet"} <= written
     metrics = json.loads((tmp_path / "metrics.json").read_text())

@@ -33,8 +33,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     hidden = parse_hidden(args.hidden or ["none"])
     started = time.perf_counter()
-    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=hidden,
-                           start=args.start, progress=not args.quiet)
+    field = simulate_field(
+        wells=args.wells,
+        years=args.years,
+        seed=args.seed,
+        hidden=hidden,
+        start=args.start,
+        progress=not args.quiet,
+    )
     paths = write_field(field, args.out)
     elapsed = time.perf_counter() - started
     print(field.summary())
@@ -69,9 +75,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         params = load_params(args.params)
     for case in targets:
         result = run_study(
-            loaded.frame, models=models, methods=methods, targets=case, split=args.split,
-            seed=args.seed, progress=not args.quiet, data_path=str(args.data),
-            track_parameters=args.track_parameters, params=params,
+            loaded.frame,
+            models=models,
+            methods=methods,
+            targets=case,
+            split=args.split,
+            seed=args.seed,
+            progress=not args.quiet,
+            data_path=str(args.data),
+            track_parameters=args.track_parameters,
+            params=params,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -89,14 +102,22 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data = out / "field.parquet"
-    print(f"1/3 Simulating a field of {args.wells} wells over {args.years:g} years (seed {args.seed}) ...")
+    print(
+        f"1/3 Simulating a field of {args.wells} wells over {args.years:g} years (seed {args.seed}) ..."
+    )
     field = simulate_field(wells=args.wells, years=args.years, seed=args.seed)
     write_field(field, data)
     print(field.summary())
     loaded = load_observations(data)
     print("2/3 Evaluating the mechanistic and hybrid models with online and periodic learning ...")
-    result = run_study(loaded.frame, models=args.models, methods=["ol", "pbl:14d", "pbl:182d"],
-                       targets="all", progress=not args.quiet, data_path=str(data))
+    result = run_study(
+        loaded.frame,
+        models=args.models,
+        methods=["ol", "pbl:14d", "pbl:182d"],
+        targets="all",
+        progress=not args.quiet,
+        data_path=str(data),
+    )
     written = write_study(result, out / "study")
     print("3/3 Results")
     print(format_summary(result))
@@ -117,12 +138,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate a well field with a known truth")
     p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
     p.add_argument("--wells", type=int, default=10, help="number of wells (default 10)")
-    p.add_argument("--years", type=float, default=5.0, help="length of history in years (default 5)")
+    p.add_argument(
+        "--years", type=float, default=5.0, help="length of history in years (default 5)"
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
-    p.add_argument("--start", default="2016-01-01", help="first day of the field (default 2016-01-01)")
-    p.add_argument("--hidden", action="append", metavar="EFFECT",
-                   help="hidden effect(s), e.g. erosion, valve:family=sigmoid, real_gas, slip, "
-                   "mpfm_bias, critical_ratio, or none; repeat or comma-separate")
+    p.add_argument(
+        "--start", default="2016-01-01", help="first day of the field (default 2016-01-01)"
+    )
+    p.add_argument(
+        "--hidden",
+        action="append",
+        metavar="EFFECT",
+        help="hidden effect(s), e.g. erosion, valve:family=sigmoid, real_gas, slip, "
+        "mpfm_bias, critical_ratio, or none; repeat or comma-separate",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_simulate)
 
@@ -135,19 +164,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", help="observation file (.parquet or .csv)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--models", action="append", help="comma-separated models (default: all)")
-    p.add_argument("--methods", action="append",
-                   help="comma-separated methods: ol, pbl:<period>[:window=<span>] "
-                   "(default: ol,pbl:14d,pbl:182d)")
-    p.add_argument("--targets", action="append",
-                   help="all (MPFM and well tests) or well_test; both: all,well_test (default all)")
-    p.add_argument("--split", default=None,
-                   help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test)")
+    p.add_argument(
+        "--methods",
+        action="append",
+        help="comma-separated methods: ol, pbl:<period>[:window=<span>] "
+        "(default: ol,pbl:14d,pbl:182d)",
+    )
+    p.add_argument(
+        "--targets",
+        action="append",
+        help="all (MPFM and well tests) or well_test; both: all,well_test (default all)",
+    )
+    p.add_argument(
+        "--split",
+        default=None,
+        help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
-    p.add_argument("--params", default=None,
-                   help="settings chosen by `vfm tune` (params.json); default: built-in defaults")
-    p.add_argument("--track-parameters", action="store_true",
-                   help="also write parameters.parquet (physical parameters after each update)")
+    p.add_argument(
+        "--params",
+        default=None,
+        help="settings chosen by `vfm tune` (params.json); default: built-in defaults",
+    )
+    p.add_argument(
+        "--track-parameters",
+        action="store_true",
+        help="also write parameters.parquet (physical parameters after each update)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_evaluate)
 

@@ -75,8 +75,17 @@ class Batch:
         """The k-th sample of every well, as a batch of one sample per well."""
         sl = slice(k, k + 1)
         assert self.well_test is not None and self.extra is not None
-        return Batch(self.wells, self.x[:, sl], self.y[:, sl], self.mask[:, sl], self.time_ns[:, sl],
-                     self.row[:, sl], self.well_test[:, sl], self.extra[:, sl], self.extra_names)
+        return Batch(
+            self.wells,
+            self.x[:, sl],
+            self.y[:, sl],
+            self.mask[:, sl],
+            self.time_ns[:, sl],
+            self.row[:, sl],
+            self.well_test[:, sl],
+            self.extra[:, sl],
+            self.extra_names,
+        )
 
     @property
     def n_wells(self) -> int:

@@ -53,7 +53,7 @@ from vfm_core.effects import (
     standard_features,
 )
 from vfm_core.learners import OnlineSettings, TrainSettings
-from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL, WELL_TEST
+from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL
 from vfm_core.study import RunResult, mape, resolve_split, run_prequential
 
 __all__ = [

@@ -32,7 +32,13 @@ from scipy import stats
 
 from vfm_core.errors import ConfigError, DataError
 
-__all__ = ["HotellingResult", "hotelling_two_sample", "estimate_update_period", "StreamingHotelling", "UpdatePeriod"]
+__all__ = [
+    "HotellingResult",
+    "hotelling_two_sample",
+    "estimate_update_period",
+    "StreamingHotelling",
+    "UpdatePeriod",
+]
 
 _REL_TOL = 1e-10
 
@@ -96,7 +102,9 @@ def hotelling_two_sample(
     if w.max() <= 0 or w.min() <= _REL_TOL * w.max():
         labels = list(names) if names is not None else [f"input {i}" for i in range(d)]
         flat = [labels[i] for i in range(d) if s[i, i] <= _REL_TOL * max(np.trace(s), 1e-300)]
-        what = f"inputs {flat} do not vary" if flat else "some inputs are exact combinations of others"
+        what = (
+            f"inputs {flat} do not vary" if flat else "some inputs are exact combinations of others"
+        )
         raise DataError(
             f"The pooled covariance is singular: {what} in these samples. Drop those inputs, "
             "or use StreamingHotelling, which tests in the subspace that varies."
@@ -239,9 +247,13 @@ class StreamingHotelling:
     def state_dict(self) -> dict[str, object]:
         """Plain values and lists (JSON-safe) to resume the detector."""
         return {
-            "reference_size": self.reference_size, "alpha": self.alpha, "confirm": self.confirm,
-            "reference": [list(map(float, r)) for r in self._ref], "drift_detected": self.drift_detected,
-            "run": self.run, "n_seen": self.n_seen,
+            "reference_size": self.reference_size,
+            "alpha": self.alpha,
+            "confirm": self.confirm,
+            "reference": [list(map(float, r)) for r in self._ref],
+            "drift_detected": self.drift_detected,
+            "run": self.run,
+            "n_seen": self.n_seen,
         }
 
     def load_state_dict(self, state: dict[str, object]) -> None:

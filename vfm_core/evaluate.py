@@ -122,8 +122,12 @@ def run_study(
     n_test = int((is_target & (frame[TIME] >= split_ts).to_numpy()).sum())
     combos = [(m, meth) for m in models for meth in methods]
     bar = tqdm(
-        total=n_test * len(combos), disable=not progress, unit="obs", desc=f"evaluate [{targets}]",
-        dynamic_ncols=True, mininterval=0.5,
+        total=n_test * len(combos),
+        disable=not progress,
+        unit="obs",
+        desc=f"evaluate [{targets}]",
+        dynamic_ncols=True,
+        mininterval=0.5,
     )
     predictions = []
     parameters = []
@@ -140,9 +144,17 @@ def run_study(
             from vfm_core.tune import settings_for
 
             result = run_prequential(
-                frame, model, meth, targets=targets, split=split_ts, seed=seed, progress=report,
-                track_parameters=track_parameters, initial_fits=initial_fits,
-                **settings_for(params, model, meth), **(run_kwargs or {}),
+                frame,
+                model,
+                meth,
+                targets=targets,
+                split=split_ts,
+                seed=seed,
+                progress=report,
+                track_parameters=track_parameters,
+                initial_fits=initial_fits,
+                **settings_for(params, model, meth),
+                **(run_kwargs or {}),
             )
             bar.update(base + n_test - bar.n)
             predictions.append(result.predictions)
@@ -190,7 +202,9 @@ def _clean(obj: Any) -> Any:
     return obj
 
 
-def write_study(result: StudyResult, out_dir: str | os.PathLike[str], *, report: bool = True) -> list[Path]:
+def write_study(
+    result: StudyResult, out_dir: str | os.PathLike[str], *, report: bool = True
+) -> list[Path]:
     """Write metrics.json, predictions.parquet and report.html into ``out_dir``.
 
     Files are first written into a staging folder beside ``out_dir`` and moved in at the
@@ -224,7 +238,9 @@ def format_summary(result: StudyResult) -> str:
     if df.empty:
         return "(no scored observations)"
     table = df.pivot(index="method", columns="model", values="mean_mape")
-    table = table.reindex(index=list(dict.fromkeys(df["method"])), columns=list(dict.fromkeys(df["model"])))
+    table = table.reindex(
+        index=list(dict.fromkeys(df["method"])), columns=list(dict.fromkeys(df["model"]))
+    )
     table["All"] = table.drop(columns=["last"], errors="ignore").mean(axis=1)
     lines = [f"Mean MAPE across wells (%), targets={result.targets}, split={result.split.date()}"]
     lines.append(table.to_string(float_format=lambda v: f"{v:6.1f}"))

@@ -18,6 +18,7 @@ Method strings are parsed by :func:`parse_method`.
 from __future__ import annotations
 
 import re
+import zlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -165,7 +166,10 @@ def parse_method(text: str) -> Method:
                 raise ConfigError(f"Method '{text}': '{value}' is not a valid {key}.") from None
         window = options.pop("window", None)
         return Method(
-            "auto", window=_parse_span(window, "window", text) if window else None, text=text, **options
+            "auto",
+            window=_parse_span(window, "window", text) if window else None,
+            text=text,
+            **options,
         )
     m = _PBL.match(text)
     if not m:
@@ -178,9 +182,9 @@ def parse_method(text: str) -> Method:
     return Method("pbl", period=period, window=window, text=text)
 
 
-def _optimizer(params: list[torch.nn.Parameter], kind: str, lr: float, power: float) -> tuple[
-    torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler | None
-]:
+def _optimizer(
+    params: list[torch.nn.Parameter], kind: str, lr: float, power: float
+) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler | None]:
     if kind == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
     elif kind == "sgd":
@@ -200,7 +204,9 @@ def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
     return torch.where(batch.mask, e, torch.zeros_like(e))
 
 
-def _per_well_loss(model: ChokeModel, batch: Batch, noise: float, physical_only: bool) -> torch.Tensor:
+def _per_well_loss(
+    model: ChokeModel, batch: Batch, noise: float, physical_only: bool
+) -> torch.Tensor:
     """MAP objective per well [W]: mean squared scaled error + sigma^2/N prior penalty."""
     n = batch.count().to(DTYPE)
     e = scaled_errors(model, batch)
@@ -209,29 +215,52 @@ def _per_well_loss(model: ChokeModel, batch: Batch, noise: float, physical_only:
     return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
 
 
-def _minibatch(batch: Batch, size: int, gen: torch.Generator) -> tuple[Batch, torch.Tensor]:
+def well_generators(wells: list[str], seed: int) -> list[torch.Generator]:
+    """One random stream per well, keyed by its name: a well's mini-batches are the same
+    whether it is trained alone (the service) or with the whole field (the study)."""
+    return [torch.Generator().manual_seed(zlib.crc32(w.encode()) ^ seed) for w in wells]
+
+
+def _minibatch(batch: Batch, size: int, gens: list[torch.Generator]) -> tuple[Batch, torch.Tensor]:
     """A random mini-batch of ``size`` samples per well (with replacement), and the full counts.
 
     Samples of a batch are left-aligned per well, so a uniform index below the well's
-    count picks one of its samples.
+    count picks one of its samples. A well with at most ``size`` samples uses all of them.
     """
     counts = batch.count()
     if size <= 0 or int(counts.max()) <= size:
         return batch, counts
-    u = torch.rand(batch.n_wells, size, generator=gen, dtype=DTYPE)
-    idx = torch.floor(u * counts.clamp(min=1).unsqueeze(1).to(DTYPE)).to(torch.int64)
-    has = (counts > 0).unsqueeze(1).expand(-1, size)
+    rows = []
+    for j, gen in enumerate(gens):
+        if int(counts[j]) > size:
+            u = torch.rand(size, generator=gen, dtype=DTYPE)
+            rows.append(torch.floor(u * float(counts[j])).to(torch.int64))
+        else:
+            rows.append(torch.arange(size, dtype=torch.int64))
+    idx = torch.stack(rows)
+    has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
+    idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
     x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
     assert batch.well_test is not None and batch.extra is not None
     ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
-    return Batch(batch.wells, x, torch.gather(batch.y, 1, idx), has.clone(),
-                 torch.gather(batch.time_ns, 1, idx), torch.gather(batch.row, 1, idx),
-                 torch.gather(batch.well_test, 1, idx), ex, batch.extra_names), counts
+    return Batch(
+        batch.wells,
+        x,
+        torch.gather(batch.y, 1, idx),
+        has.clone(),
+        torch.gather(batch.time_ns, 1, idx),
+        torch.gather(batch.row, 1, idx),
+        torch.gather(batch.well_test, 1, idx),
+        ex,
+        batch.extra_names,
+    ), counts
 
 
-def _map_loss(model: ChokeModel, batch: Batch, settings: TrainSettings, gen: torch.Generator) -> torch.Tensor:
+def _map_loss(
+    model: ChokeModel, batch: Batch, settings: TrainSettings, gens: list[torch.Generator]
+) -> torch.Tensor:
     """Summed per-well MAP objective on a mini-batch; the prior is weighted by the full count."""
-    mb, counts = _minibatch(batch, settings.batch_size, gen)
+    mb, counts = _minibatch(batch, settings.batch_size, gens)
     n = counts.to(DTYPE)
     e = scaled_errors(model, mb)
     mse = (e**2).sum(1) / mb.count().clamp(min=1).to(DTYPE)
@@ -262,7 +291,11 @@ def clip_per_well_(model: ChokeModel, max_norm: float) -> None:
     scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
     for g in grads:
         g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
-    shared = [p for p in model.parameters() if p.grad is not None and all(p is not q for q in model.per_well_parameters())]
+    shared = [
+        p
+        for p in model.parameters()
+        if p.grad is not None and all(p is not q for q in model.per_well_parameters())
+    ]
     if shared:
         torch.nn.utils.clip_grad_norm_(shared, max_norm)
 
@@ -289,7 +322,7 @@ def fit_batch(
         return {"iterations": torch.zeros(batch.n_wells, dtype=torch.int64)}
     params = [p for p in model.parameters() if p.requires_grad]
     start = _snapshot(params)
-    gen = torch.Generator().manual_seed(settings.seed)
+    gens = well_generators(batch.wells, settings.seed)
     if wells is not None and not model.shared:
         batch = batch.select(batch.mask & wells.unsqueeze(1))
     train, val, has_val = _split_latest(batch, settings.val_fraction)
@@ -298,7 +331,9 @@ def fit_batch(
 
     if iterations is not None:
         fallback = torch.full_like(iterations, settings.default_iter)
-        best_iter = torch.where(iterations > 0, iterations, fallback).clamp(max=settings.retrain_max_iter)
+        best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
+            max=settings.retrain_max_iter
+        )
         has_val = torch.zeros_like(has_val)
     # pass 1: find the best iteration count on the held-out latest slice
     if bool(has_val.any()):
@@ -307,7 +342,7 @@ def fit_batch(
         since = torch.zeros(n_w, dtype=torch.int64)
         for k in range(1, settings.max_iter + 1):
             opt.zero_grad()
-            loss = _map_loss(model, train, settings, gen)
+            loss = _map_loss(model, train, settings, gens)
             loss.backward()
             clip_per_well_(model, settings.max_grad_norm)
             opt.step()
@@ -325,7 +360,9 @@ def fit_batch(
             since = torch.where(improved, torch.zeros_like(since), since + 1)
             if bool((since[has_val] >= settings.patience).all()):
                 break
-        best_iter = torch.where(has_val, best_iter, torch.full_like(best_iter, settings.default_iter))
+        best_iter = torch.where(
+            has_val, best_iter, torch.full_like(best_iter, settings.default_iter)
+        )
         for p, s in zip(params, start, strict=True):
             p.data.copy_(s)
 
@@ -338,7 +375,7 @@ def fit_batch(
     total_iter = int(best_iter.max())
     for k in range(1, total_iter + 1):
         opt.zero_grad()
-        loss = _map_loss(model, batch, settings, gen)
+        loss = _map_loss(model, batch, settings, gens)
         loss.backward()
         clip_per_well_(model, settings.max_grad_norm)
         opt.step()

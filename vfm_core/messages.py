@@ -140,7 +140,9 @@ def validate_prefix(prefix: str) -> str:
 
 def _well_chunk(well: str) -> str:
     if not well or any(ch in well for ch in "/*$?#"):
-        raise ConfigError(f"The well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#').")
+        raise ConfigError(
+            f"The well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')."
+        )
     return well
 
 

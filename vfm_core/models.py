@@ -199,8 +199,12 @@ class PhysicalParameters(nn.Module):
         priors = [ph.PRIORS[n] for n in self.names]
         self.register_buffer("mu", torch.tensor([p.mean for p in priors], dtype=DTYPE))
         self.register_buffer("sigma", torch.tensor([p.std for p in priors], dtype=DTYPE))
-        self.register_buffer("z_low", torch.tensor([(p.low - p.mean) / p.std for p in priors], dtype=DTYPE))
-        self.register_buffer("z_high", torch.tensor([(p.high - p.mean) / p.std for p in priors], dtype=DTYPE))
+        self.register_buffer(
+            "z_low", torch.tensor([(p.low - p.mean) / p.std for p in priors], dtype=DTYPE)
+        )
+        self.register_buffer(
+            "z_high", torch.tensor([(p.high - p.mean) / p.std for p in priors], dtype=DTYPE)
+        )
         self.z = nn.Parameter(torch.zeros(n_wells, len(self.names), dtype=DTYPE))
 
     def values(self) -> dict[str, torch.Tensor]:
@@ -300,7 +304,9 @@ class NeuralNet(ChokeModel):
 
     name = "nn"
 
-    def __init__(self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (32, 32)) -> None:
+    def __init__(
+        self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (32, 32)
+    ) -> None:
         super().__init__(wells, seed=seed)
         self.hyper["hidden"] = list(hidden)
         self.net = WellMLP(len(self.wells), [6, *hidden, 1], self._gen)
@@ -324,22 +330,34 @@ class MultiTask(ChokeModel):
     shared = True
 
     def __init__(
-        self, wells: Sequence[str], *, seed: int = 0, width: int = 32, blocks: int = 2, task_dim: int = 4
+        self,
+        wells: Sequence[str],
+        *,
+        seed: int = 0,
+        width: int = 32,
+        blocks: int = 2,
+        task_dim: int = 4,
     ) -> None:
         super().__init__(wells, seed=seed)
         self.hyper.update(width=width, blocks=blocks, task_dim=task_dim)
         g = self._gen
 
         def he(fan_in: int, fan_out: int) -> nn.Parameter:
-            return nn.Parameter(torch.randn(fan_in, fan_out, generator=g, dtype=DTYPE) * math.sqrt(2.0 / fan_in))
+            return nn.Parameter(
+                torch.randn(fan_in, fan_out, generator=g, dtype=DTYPE) * math.sqrt(2.0 / fan_in)
+            )
 
         self.beta = nn.Parameter(torch.zeros(len(self.wells), task_dim, dtype=DTYPE))
         self.w_in = he(6 + task_dim, width)
         self.b_in = nn.Parameter(torch.zeros(width, dtype=DTYPE))
         self.w1 = nn.ParameterList([he(width, width) for _ in range(blocks)])
-        self.b1 = nn.ParameterList([nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)])
+        self.b1 = nn.ParameterList(
+            [nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)]
+        )
         self.w2 = nn.ParameterList([he(width, width) for _ in range(blocks)])
-        self.b2 = nn.ParameterList([nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)])
+        self.b2 = nn.ParameterList(
+            [nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)]
+        )
         self.w_out = nn.Parameter(torch.zeros(width, 1, dtype=DTYPE))
         self.b_out = nn.Parameter(torch.zeros(1, dtype=DTYPE))
 
@@ -406,9 +424,13 @@ class Mechanistic(ChokeModel):
     def _setup_new(self, batch: Batch, new: torch.Tensor) -> None:
         theta = self._prior_theta()
         unit = mechanistic_rate(batch.x, theta, theta["c_d"].unsqueeze(1) * batch.x[..., 0])
-        ratio = torch.where(batch.mask & (unit > 0), batch.y / unit, torch.full_like(unit, float("nan")))
+        ratio = torch.where(
+            batch.mask & (unit > 0), batch.y / unit, torch.full_like(unit, float("nan"))
+        )
         a_max = torch.nanmedian(ratio, dim=1).values
-        self.a_max[new] = torch.where(torch.isfinite(a_max[new]), a_max[new], torch.ones_like(a_max[new]))
+        self.a_max[new] = torch.where(
+            torch.isfinite(a_max[new]), a_max[new], torch.ones_like(a_max[new])
+        )
 
     def theta(self) -> dict[str, torch.Tensor]:
         values = self._prior_theta()
@@ -441,7 +463,9 @@ class HybridError(Mechanistic):
 
     name = "hem"
 
-    def __init__(self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (16,)) -> None:
+    def __init__(
+        self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (16,)
+    ) -> None:
         super().__init__(wells, seed=seed)
         self.hyper["hidden"] = list(hidden)
         self.net = WellMLP(len(self.wells), [6, *hidden, 1], self._gen)
@@ -464,7 +488,9 @@ class HybridArea(Mechanistic):
     name = "ham"
     physical_names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr")
 
-    def __init__(self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (16,)) -> None:
+    def __init__(
+        self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (16,)
+    ) -> None:
         super().__init__(wells, seed=seed)
         self.hyper["hidden"] = list(hidden)
         self.net = WellMLP(len(self.wells), [6, *hidden, 1], self._gen)
@@ -480,7 +506,15 @@ class HybridArea(Mechanistic):
 
 MODELS: dict[str, type[ChokeModel]] = {
     cls.name: cls
-    for cls in (LastValue, LinearRegression, NeuralNet, MultiTask, Mechanistic, HybridError, HybridArea)
+    for cls in (
+        LastValue,
+        LinearRegression,
+        NeuralNet,
+        MultiTask,
+        Mechanistic,
+        HybridError,
+        HybridArea,
+    )
 }
 
 

@@ -109,7 +109,9 @@ class ChokeParameters:
     c_d: float = PRIORS["c_d"].mean
 
 
-def gas_density(p_pa: Tensorish, t_k: Tensorish, m_gas: Tensorish, z: Tensorish = 1.0) -> torch.Tensor:
+def gas_density(
+    p_pa: Tensorish, t_k: Tensorish, m_gas: Tensorish, z: Tensorish = 1.0
+) -> torch.Tensor:
     """Gas density rho = p M / (Z R T), kg/m3."""
     return _t(p_pa) * _t(m_gas) / (_t(z) * R_GAS * _t(t_k))
 
@@ -193,7 +195,12 @@ def choke_mass_flow(area: Tensorish, *args: Tensorish, **kwargs: Tensorish | boo
 
 
 def standard_volume_per_mass(
-    eta_gas: Tensorish, eta_oil: Tensorish, *, rho_oil: Tensorish, rho_wat: Tensorish, m_gas: Tensorish
+    eta_gas: Tensorish,
+    eta_oil: Tensorish,
+    *,
+    rho_oil: Tensorish,
+    rho_wat: Tensorish,
+    m_gas: Tensorish,
 ) -> torch.Tensor:
     """Total volume at standard conditions per kg of mixture, Sm3/kg.
 

@@ -44,7 +44,9 @@ PARAMETER_UNITS: dict[str, str] = {name: p.unit for name, p in ph.PRIORS.items()
 _INT64_MAX = torch.iinfo(torch.int64).max
 
 
-def phase_split(q_total: torch.Tensor, x: torch.Tensor, theta: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+def phase_split(
+    q_total: torch.Tensor, x: torch.Tensor, theta: dict[str, torch.Tensor] | None = None
+) -> dict[str, torch.Tensor]:
     """Split total rates (Sm3/h) into gas, oil and water by the inputs' mass fractions.
 
     Q = mdot (eta_g/rho_g,sc + eta_o/rho_o + eta_w/rho_w), so each phase's share of Q is
@@ -62,14 +64,29 @@ def phase_split(q_total: torch.Tensor, x: torch.Tensor, theta: dict[str, torch.T
     oil = eta_oil / get("rho_oil")
     wat = (1.0 - eta_gas - eta_oil) / get("rho_wat")
     total = gas + oil + wat
-    return {"q_gas": q_total * gas / total, "q_oil": q_total * oil / total, "q_water": q_total * wat / total}
+    return {
+        "q_gas": q_total * gas / total,
+        "q_oil": q_total * oil / total,
+        "q_water": q_total * wat / total,
+    }
 
 
-def _single(x: list[float] | torch.Tensor, y: float = 0.0, t_ns: int = 0, valid: bool = True) -> Batch:
+def _utc(when: datetime | pd.Timestamp) -> pd.Timestamp:
+    ts = pd.Timestamp(when)
+    return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+
+
+def _single(
+    x: list[float] | torch.Tensor, y: float = 0.0, t_ns: int = 0, valid: bool = True
+) -> Batch:
     xt = torch.as_tensor(x, dtype=DTYPE).reshape(1, 1, 6)
     return Batch(
-        ["well"], xt, torch.tensor([[y]], dtype=DTYPE), torch.tensor([[valid]]),
-        torch.tensor([[t_ns]], dtype=torch.int64), torch.tensor([[0]], dtype=torch.int64),
+        ["well"],
+        xt,
+        torch.tensor([[y]], dtype=DTYPE),
+        torch.tensor([[valid]]),
+        torch.tensor([[t_ns]], dtype=torch.int64),
+        torch.tensor([[0]], dtype=torch.int64),
     )
 
 
@@ -119,8 +136,14 @@ class WellLearner:
         n = int(x.shape[0])
         if n == 0:
             return
-        batch = Batch(["well"], x.reshape(1, n, 6).to(DTYPE), y.reshape(1, n).to(DTYPE),
-                      torch.ones(1, n, dtype=torch.bool), time_ns.reshape(1, n), torch.arange(n).reshape(1, n))
+        batch = Batch(
+            [self.well],
+            x.reshape(1, n, 6).to(DTYPE),
+            y.reshape(1, n).to(DTYPE),
+            torch.ones(1, n, dtype=torch.bool),
+            time_ns.reshape(1, n),
+            torch.arange(n).reshape(1, n),
+        )
         summary = fit_batch(self.model, batch, self.train)
         self.iterations = summary["iterations"]
         self._remember(x, y, time_ns)
@@ -146,8 +169,17 @@ class WellLearner:
         """True once the model has seen enough data to predict (priors alone give no scale)."""
         return bool(self.model.ready[0])
 
-    def predict(self, inputs: list[float] | torch.Tensor) -> dict[str, float | None]:
-        """Rates (Sm3/h) for one sample's inputs; all None until the model is ready."""
+    def predict(
+        self, inputs: list[float] | torch.Tensor, when: datetime | None = None
+    ) -> dict[str, float | None]:
+        """Rates (Sm3/h) for one sample's inputs; all None until the model is ready.
+
+        With ``pbl``, a sample time ``when`` past the next retrain time retrains first
+        (on everything learned before that time), so the calendar of retrains matches
+        ``vfm evaluate``.
+        """
+        if when is not None:
+            self._retrain_due(_utc(when))
         if not self.ready:
             return {"q_total": None, "q_gas": None, "q_oil": None, "q_water": None}
         x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 1, 6)
@@ -164,11 +196,11 @@ class WellLearner:
     def learn(self, inputs: list[float] | torch.Tensor, q_total: float, when: datetime) -> bool:
         """Learn from one measured rate (Sm3/h) paired with the inputs at its time.
 
-        ``ol`` updates now; ``pbl`` stores it and retrains once the period has passed.
-        Returns True when the model changed (its version went up).
+        ``ol`` updates now; ``pbl`` stores it for the next periodic retrain (retraining
+        first if a retrain time has passed). Returns True when the model changed.
         """
-        ts = pd.Timestamp(when)
-        ts = ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+        ts = _utc(when)
+        changed = self._retrain_due(ts)
         x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 6)
         y = torch.tensor([float(q_total)], dtype=DTYPE)
         t = torch.tensor([ts.value], dtype=torch.int64)
@@ -178,31 +210,56 @@ class WellLearner:
             self._bump(ts.to_pydatetime())
             return True
         assert self.method.period is not None
+        if not self.ready:  # priors only: fit on the first data so predictions can start
+            self._retrain(ts + pd.Timedelta(1, "ns"))
+            self.next_retrain = ts + self.method.period
+            return True
         if self.next_retrain is None:
             self.next_retrain = ts + self.method.period
-        if not self.ready or ts >= self.next_retrain:
-            self.retrain(ts)
-            return True
-        return False
+        return changed
 
-    def retrain(self, now: pd.Timestamp) -> None:
-        """Periodic batch retrain on everything learned so far (or the window), warm start."""
-        keep = torch.ones_like(self._t, dtype=torch.bool)
+    def retrain(self, now: datetime | pd.Timestamp) -> None:
+        """Retrain now on everything learned up to ``now`` (e.g. after a confirmed drift)."""
+        ts = _utc(now)
+        self._retrain(ts + pd.Timedelta(1, "ns"))
+        if self.method.kind == "pbl" and self.method.period is not None:
+            self.next_retrain = ts + self.method.period
+
+    def _retrain_due(self, now: pd.Timestamp) -> bool:
+        """Run every periodic retrain whose time has come (pbl only)."""
+        changed = False
+        if self.method.kind != "pbl" or self.next_retrain is None or not self.ready:
+            return changed
+        assert self.method.period is not None
+        while self.next_retrain <= now:
+            self._retrain(self.next_retrain)
+            self.next_retrain += self.method.period
+            changed = True
+        return changed
+
+    def _retrain(self, until: pd.Timestamp) -> None:
+        """Batch retrain on everything learned before ``until`` (or the window), warm start."""
+        keep = self._t < until.value
         if self.method.window is not None:
-            keep = self._t >= (now - self.method.window).value
+            keep &= self._t >= (until - self.method.window).value
         x, y, t = self._x[keep], self._y[keep], self._t[keep]
         n = int(x.shape[0])
-        batch = Batch(["well"], x.reshape(1, n, 6), y.reshape(1, n), torch.ones(1, n, dtype=torch.bool),
-                      t.reshape(1, n), torch.arange(n).reshape(1, n))
+        if n == 0:
+            return
+        batch = Batch(
+            [self.well],
+            x.reshape(1, n, 6),
+            y.reshape(1, n),
+            torch.ones(1, n, dtype=torch.bool),
+            t.reshape(1, n),
+            torch.arange(n).reshape(1, n),
+        )
         if not self.ready:
             summary = fit_batch(self.model, batch, self.train)
             self.iterations = summary["iterations"]
         else:
             fit_batch(self.model, batch, self.train, self.iterations)
-        assert self.method.period is not None
-        while self.next_retrain is not None and self.next_retrain <= now:
-            self.next_retrain += self.method.period
-        self._bump(now.to_pydatetime())
+        self._bump(until.to_pydatetime())
 
     # -- state ----------------------------------------------------------------------------
     def physical_parameters(self) -> dict[str, dict[str, float | str]]:
@@ -230,7 +287,9 @@ class WellLearner:
             "last_update": self.last_update.isoformat() if self.last_update else "",
             "next_retrain": self.next_retrain.isoformat() if self.next_retrain is not None else "",
             "iterations": self.iterations,
-            "x": self._x, "y": self._y, "t": self._t,
+            "x": self._x,
+            "y": self._y,
+            "t": self._t,
         }
         buf = io.BytesIO()
         torch.save(payload, buf)
@@ -244,12 +303,17 @@ class WellLearner:
         except Exception as exc:
             raise ConfigError(f"The checkpoint cannot be read: {exc}") from None
         if not isinstance(p, dict) or p.get("format") != "vfm-well-learner/1":
-            raise ConfigError("The checkpoint is not a VFM well-learner checkpoint (vfm-well-learner/1).")
+            raise ConfigError(
+                "The checkpoint is not a VFM well-learner checkpoint (vfm-well-learner/1)."
+            )
         learner = cls(
-            p["well"], p["model"], p["method"],
+            p["well"],
+            p["model"],
+            p["method"],
             train=replace(TrainSettings(), **json.loads(p["train"])),
             online=replace(OnlineSettings(), **json.loads(p["online"])),
-            model_kwargs=json.loads(p["model_kwargs"]), seed=int(p["seed"]),
+            model_kwargs=json.loads(p["model_kwargs"]),
+            seed=int(p["seed"]),
         )
         learner.model.load_state_dict(p["state"])
         if p["optimizer"]:

@@ -71,7 +71,9 @@ def resolve_split(targets: str, split: str | pd.Timestamp | None) -> pd.Timestam
     return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
 
 
-def _param_rows(model: ChokeModel, when: pd.Timestamp | Sequence[pd.Timestamp], active: torch.Tensor) -> list[dict[str, Any]]:
+def _param_rows(
+    model: ChokeModel, when: pd.Timestamp | Sequence[pd.Timestamp], active: torch.Tensor
+) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     params = model.physical_parameters()
     if not params:
@@ -117,7 +119,6 @@ def run_prequential(
     is_target = target_mask(frame, targets)
     times = frame[TIME]
     before = (times < split_ts).to_numpy()
-    train_rows = np.flatnonzero(is_target & before)
     test_rows = np.flatnonzero(is_target & ~before)
     if len(test_rows) == 0:
         raise DataError(
@@ -126,7 +127,8 @@ def run_prequential(
         )
     wells = wells_of(frame.iloc[np.flatnonzero(is_target)])
     model = (
-        model_factory(wells) if model_factory is not None
+        model_factory(wells)
+        if model_factory is not None
         else make_model(model_name, wells, seed=seed, **(model_kwargs or {}))
     )
     train_settings = train or DEFAULT_TRAIN.get(model_name, TrainSettings())
@@ -138,12 +140,24 @@ def run_prequential(
             keep &= (times >= t_end - meth.window).to_numpy()
         return np.flatnonzero(keep)
 
-    cache_key = (model_name, targets, split_ts, meth.window, seed, repr(train_settings), repr(model_kwargs))
+    cache_key = (
+        model_name,
+        targets,
+        split_ts,
+        meth.window,
+        seed,
+        repr(train_settings),
+        repr(model_kwargs),
+    )
     if initial_fits is not None and cache_key in initial_fits:
         # the initial fit is the same for every method with the same window: reuse it
         model, iterations = (copy.deepcopy(v) for v in initial_fits[cache_key])
     else:
-        initial = fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(split_ts)), train_settings)
+        initial = fit_batch(
+            model,
+            make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(split_ts)),
+            train_settings,
+        )
         iterations = initial["iterations"]
         if initial_fits is not None and model_factory is None:
             initial_fits[cache_key] = (copy.deepcopy(model), iterations.clone())
@@ -172,15 +186,35 @@ def run_prequential(
             predicted[rb.row[rb.mask].numpy()] = q[rb.mask].numpy()
             learner.learn(rb)
             if track_parameters:
-                last_t = [pd.Timestamp(int(t), tz="UTC") for t in rb.time_ns.min(dim=1).values.tolist()]
-                param_rows += _param_rows(model, [t if rb.mask[j].any() else split_ts for j, t in enumerate(last_t)], rb.mask.any(1))
+                last_t = [
+                    pd.Timestamp(int(t), tz="UTC") for t in rb.time_ns.min(dim=1).values.tolist()
+                ]
+                param_rows += _param_rows(
+                    model,
+                    [t if rb.mask[j].any() else split_ts for j, t in enumerate(last_t)],
+                    rb.mask.any(1),
+                )
             done += int(rb.mask.sum())
             if progress is not None:
                 progress(done, total)
     elif meth.kind == "auto":
-        updates = _run_auto(frame, model, meth, test, wells, is_target, times, predicted,
-                            lambda end, mask: fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)),
-                                                        train_settings, iterations, wells=mask))
+        updates = _run_auto(
+            frame,
+            model,
+            meth,
+            test,
+            wells,
+            is_target,
+            times,
+            predicted,
+            lambda end, mask: fit_batch(
+                model,
+                make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)),
+                train_settings,
+                iterations,
+                wells=mask,
+            ),
+        )
         done = total
         if progress is not None:
             progress(done, total)
@@ -198,7 +232,14 @@ def run_prequential(
                 if progress is not None:
                     progress(done, total)
             if end <= t_last:
-                fit_batch(model, make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)), train_settings, iterations)
+                fit_batch(
+                    model,
+                    make_batch(
+                        frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)
+                    ),
+                    train_settings,
+                    iterations,
+                )
                 updates.append(end)
                 if track_parameters:
                     param_rows += _param_rows(model, end, model.ready)
@@ -255,14 +296,18 @@ def _run_auto(
         own = np.flatnonzero(is_target & (frame[WELL].astype(str) == well).to_numpy())
         test_pos = test.row[j][test.mask[j]].numpy()
         history = own[own < (test_pos[0] if len(test_pos) else len(frame))]
-        history = history[times.iloc[history].to_numpy() < times.iloc[test_pos[0]]] if len(test_pos) else history
+        history = (
+            history[times.iloc[history].to_numpy() < times.iloc[test_pos[0]]]
+            if len(test_pos)
+            else history
+        )
         det = StreamingHotelling(meth.reference, meth.alpha, meth.confirm)
-        seen = list(x_all[history[-meth.reference:]]) if len(history) else []
+        seen = list(x_all[history[-meth.reference :]]) if len(history) else []
         det.reset(np.asarray(seen) if len(seen) >= meth.reference else None)
-        recent = seen[-meth.reference:]
+        recent = seen[-meth.reference :]
         for k, pos in enumerate(test_pos):
             det.update(x_all[pos])
-            recent = (recent + [x_all[pos]])[-meth.reference:]
+            recent = (recent + [x_all[pos]])[-meth.reference :]
             if det.drift_detected and k + 1 < len(test_pos):
                 t_ns = int(test.time_ns[j][k + 1])  # retrain before the next observation
                 events.setdefault(t_ns, []).append(j)

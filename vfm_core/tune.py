@@ -75,7 +75,9 @@ def trial_grid(models: Sequence[str], methods: Sequence[str], grid: str) -> list
             for lr in g["pbl_lr"]:
                 trials.append({"model": model, "method": method, "train": {"lr": lr}})
     for t in trials:
-        t["key"] = json.dumps({k: t.get(k) for k in ("model", "method", "online", "train")}, sort_keys=True)
+        t["key"] = json.dumps(
+            {k: t.get(k) for k in ("model", "method", "online", "train")}, sort_keys=True
+        )
     return trials
 
 
@@ -92,8 +94,15 @@ def _run_trial(args: tuple[str, dict[str, Any], str, str, str]) -> dict[str, Any
     train = replace(DEFAULT_TRAIN[model], **trial.get("train", {}))
     online = replace(DEFAULT_ONLINE[model], **trial.get("online", {}))
     try:
-        result = run_prequential(frame, model, trial["method"], targets=targets, split=inner_split,
-                                 train=train, online=online)
+        result = run_prequential(
+            frame,
+            model,
+            trial["method"],
+            targets=targets,
+            split=inner_split,
+            train=train,
+            online=online,
+        )
         mapes = [r["mape"] for r in metrics_records(result.predictions)]
         score = float(np.nanmean(mapes)) if mapes else float("nan")
     except Exception as exc:  # a setting that fails (diverges, no data) scores as failed
@@ -141,12 +150,20 @@ def run_tuning(
                 done[rec["key"]] = rec
     trials = [t for t in trial_grid(models, methods, grid) if t["key"] not in done]
     jobs = [(str(data), t, targets, inner_ts.isoformat(), split_ts.isoformat()) for t in trials]
-    bar = tqdm(total=len(jobs) + len(done), initial=len(done), disable=not progress, desc="tune", unit="trial")
+    bar = tqdm(
+        total=len(jobs) + len(done),
+        initial=len(done),
+        disable=not progress,
+        desc="tune",
+        unit="trial",
+    )
     try:
         if jobs:
             import multiprocessing as mp
 
-            with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(
+                max_workers=max(1, workers), mp_context=mp.get_context("spawn")
+            ) as pool:
                 for rec in pool.map(_run_trial, jobs):
                     with log.open("a") as fh:  # one line per finished trial: resumable
                         fh.write(json.dumps(rec) + "\n")
@@ -156,7 +173,11 @@ def run_tuning(
         bar.close()
     chosen: dict[str, dict[str, Any]] = {}
     for rec in done.values():
-        if rec.get("mean_mape") is None or rec["model"] not in models or rec["method"] not in methods:
+        if (
+            rec.get("mean_mape") is None
+            or rec["model"] not in models
+            or rec["method"] not in methods
+        ):
             continue
         slot = chosen.setdefault(rec["model"], {}).get(rec["method"])
         if slot is None or rec["mean_mape"] < slot["inner_mean_mape"]:
@@ -211,12 +232,29 @@ def settings_for(params: dict[str, Any] | None, model: str, method: str) -> dict
 def _cmd_tune(args: argparse.Namespace) -> int:
     from vfm_core.models import MODELS
 
-    models = [m for v in (args.models or []) for m in v.split(",") if m] or [m for m in MODELS if m != "last"]
-    methods = [m for v in (args.methods or []) for m in v.split(",") if m] or ["ol", "pbl:14d", "pbl:182d"]
-    params = run_tuning(args.data, args.out, models=models, methods=methods, targets=args.targets,
-                        split=args.split, inner_split=args.inner_split, grid=args.grid,
-                        workers=args.workers, progress=not args.quiet)
-    print(f"Inner validation {params['inner_split'][:10]} .. {params['split'][:10]} (targets {args.targets}):")
+    models = [m for v in (args.models or []) for m in v.split(",") if m] or [
+        m for m in MODELS if m != "last"
+    ]
+    methods = [m for v in (args.methods or []) for m in v.split(",") if m] or [
+        "ol",
+        "pbl:14d",
+        "pbl:182d",
+    ]
+    params = run_tuning(
+        args.data,
+        args.out,
+        models=models,
+        methods=methods,
+        targets=args.targets,
+        split=args.split,
+        inner_split=args.inner_split,
+        grid=args.grid,
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+    print(
+        f"Inner validation {params['inner_split'][:10]} .. {params['split'][:10]} (targets {args.targets}):"
+    )
     for model, per in params["models"].items():
         for method, entry in per.items():
             setting = entry.get("online") or entry.get("train")
@@ -229,14 +267,20 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("tune", help="hyperparameter search on data before the split (resumable)")
     p.add_argument("data", help="observation file")
     p.add_argument("--out", required=True, help="output folder (trials.jsonl, params.json)")
-    p.add_argument("--models", action="append", help="comma-separated models (default: all but last)")
-    p.add_argument("--methods", action="append", help="comma-separated methods (default ol,pbl:14d,pbl:182d)")
+    p.add_argument(
+        "--models", action="append", help="comma-separated models (default: all but last)"
+    )
+    p.add_argument(
+        "--methods", action="append", help="comma-separated methods (default ol,pbl:14d,pbl:182d)"
+    )
     p.add_argument("--targets", default="all", help="all or well_test (default all)")
     p.add_argument("--split", default=None, help="the study's split; only data before it are used")
-    p.add_argument("--inner-split", default=None, help="start of the inner validation period "
-                   "(default: two thirds into the pre-split data)")
+    p.add_argument(
+        "--inner-split",
+        default=None,
+        help="start of the inner validation period (default: two thirds into the pre-split data)",
+    )
     p.add_argument("--grid", default="small", choices=sorted(GRIDS))
     p.add_argument("--workers", type=int, default=2, help="parallel worker processes (default 2)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=_cmd_tune)
-
