@@ -9,9 +9,8 @@ __all__ = ["register"]
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from vfm_core.observations import load_observations
-
     from replay.replayer import replay_frame
+    from vfm_core.observations import load_observations
 
     loaded = load_observations(args.data)
     print(loaded.summary())
@@ -32,7 +31,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        result.scored.to_parquet(out, index=False) if out.suffix != ".csv" else result.scored.to_csv(out, index=False)
+        result.scored.to_parquet(
+            out, index=False
+        ) if out.suffix != ".csv" else result.scored.to_csv(out, index=False)
         print(f"Wrote the scored predictions to {out}.")
     return 0
 
@@ -48,17 +49,37 @@ def register(subparsers: Any) -> None:
     p.add_argument("data", help="observation file (.parquet or .csv)")
     pace = p.add_mutually_exclusive_group()
     pace.add_argument("--speed", type=float, default=None, help="N times real time")
-    pace.add_argument("--max", action="store_true", help="as fast as the service takes it (the default)")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help="Zenoh endpoint of the service or router (default tcp/127.0.0.1:7447); repeatable")
-    p.add_argument("--mode", choices=["peer", "client"], default="peer",
-                   help="Zenoh mode (client when connecting to a router; default peer)")
+    pace.add_argument(
+        "--max", action="store_true", help="as fast as the service takes it (the default)"
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the service or router (default tcp/127.0.0.1:7447); repeatable",
+    )
+    p.add_argument(
+        "--mode",
+        choices=["peer", "client"],
+        default="peer",
+        help="Zenoh mode (client when connecting to a router; default peer)",
+    )
     p.add_argument("--prefix", default="vfm", help="key-expression prefix (default vfm)")
     p.add_argument("--start", default=None, help="replay rows from this date on (default: all)")
-    p.add_argument("--match-timeout", type=float, default=30.0,
-                   help="seconds to wait for the service's subscriber (default 30)")
-    p.add_argument("--idle-timeout", type=float, default=3.0,
-                   help="at the end, stop waiting once no prediction came for this long (default 3 s)")
-    p.add_argument("--out", default=None, help="also write the scored predictions (.parquet or .csv)")
+    p.add_argument(
+        "--match-timeout",
+        type=float,
+        default=30.0,
+        help="seconds to wait for the service's subscriber (default 30)",
+    )
+    p.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=3.0,
+        help="at the end, stop waiting once no prediction came for this long (default 3 s)",
+    )
+    p.add_argument(
+        "--out", default=None, help="also write the scored predictions (.parquet or .csv)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_replay)

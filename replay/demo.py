@@ -13,21 +13,12 @@
 from __future__ import annotations
 
 import argparse
-import os
-import queue
-import re
 import secrets
-import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 __all__ = ["register", "run_demo"]
-
-READY = re.compile(r"vfm serve: ready: http=(?P<http>\S+) zenoh=(?P<zenoh>\S+)")
 
 
 def _config_text(out: Path, data: Path, split: str, model: str, method: str, token: str) -> str:
@@ -50,70 +41,29 @@ port = 0                        # a free port
 token = "{token}"
 
 [store]
-path = "{(out / 'store.sqlite').resolve()}"
+path = "{(out / "store.sqlite").resolve()}"
 synchronous = "normal"          # survives a killed process; "full" also survives power loss
 """
-
-
-def _pump(stream: IO[str], lines: queue.Queue[str], log: IO[str]) -> None:
-    for line in stream:
-        log.write(line)
-        log.flush()
-        lines.put(line)
-
-
-def _start_service(config: Path, log_path: Path, timeout: float) -> tuple[subprocess.Popen[str], str, str]:
-    cmd = [sys.executable, "-m", "vfm_core.cli", "serve", "--config", str(config)]
-    log = log_path.open("w", encoding="utf-8")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, bufsize=1,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    lines: queue.Queue[str] = queue.Queue()
-    assert proc.stdout is not None
-    threading.Thread(target=_pump, args=(proc.stdout, lines, log), daemon=True).start()
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            line = lines.get(timeout=0.2)
-        except queue.Empty:
-            if proc.poll() is not None:
-                break
-            continue
-        m = READY.search(line)
-        if m:
-            return proc, m["http"], m["zenoh"].split(",")[0]
-    _stop_service(proc)
-    from vfm_core.errors import VFMError
-
-    raise VFMError(f"The service did not start within {timeout:.0f} s; see {log_path}.")
-
-
-def _stop_service(proc: subprocess.Popen[str], timeout: float = 30.0) -> None:
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(10)
 
 
 def run_demo(args: argparse.Namespace) -> int:
     import httpx
 
+    from replay.replayer import replay_frame
     from vfm_core.observations import load_observations
     from vfm_core.simulate import simulate_field, write_field
     from vfm_core.study import mape, metrics_records, run_prequential
-
-    from replay.replayer import replay_frame
 
     started = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data = out / "field.parquet"
     split = f"{2016 + args.history_years}-01-01"
-    print(f"1/4 Simulating {args.wells} wells over {args.years:g} years from 2016-01-01 (seed {args.seed}, "
-          "hidden choke erosion) ...", flush=True)
+    print(
+        f"1/4 Simulating {args.wells} wells over {args.years:g} years from 2016-01-01 (seed {args.seed}, "
+        "hidden choke erosion) ...",
+        flush=True,
+    )
     field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=["erosion"])
     write_field(field, data)
     print("    " + field.summary())
@@ -123,15 +73,29 @@ def run_demo(args: argparse.Namespace) -> int:
         stale.unlink()
     token = secrets.token_urlsafe(24)
     config = out / "service.toml"
-    config.write_text(_config_text(out, data, split, args.model, args.method, token), encoding="utf-8")
-    print(f"2/4 Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
-          flush=True)
-    proc, http_url, zenoh_ep = _start_service(config, out / "serve.log", timeout=300)
+    config.write_text(
+        _config_text(out, data, split, args.model, args.method, token), encoding="utf-8"
+    )
+    print(
+        f"2/4 Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
+        flush=True,
+    )
+    from service.testing import (
+        ServeProcess,  # the demo is the one replay module that starts a service
+    )
+
+    (out / "serve.log").unlink(missing_ok=True)
+    proc = ServeProcess(config, out / "serve.log").start(timeout=300)
+    http_url, zenoh_ep = proc.http_url, proc.zenoh
     try:
         print(f"    Service ready: HTTP {http_url}, Zenoh {zenoh_ep}.", flush=True)
-        print(f"3/4 Replaying the rows from {split} on over Zenoh, as fast as the service takes them ...",
-              flush=True)
-        result = replay_frame(frame, connect=[zenoh_ep], start=split, speed=None, progress=not args.quiet)
+        print(
+            f"3/4 Replaying the rows from {split} on over Zenoh, as fast as the service takes them ...",
+            flush=True,
+        )
+        result = replay_frame(
+            frame, connect=[zenoh_ep], start=split, speed=None, progress=not args.quiet
+        )
         health = httpx.get(f"{http_url}/health", timeout=10).json()
         wells = httpx.get(f"{http_url}/wells", timeout=10).json()
 
@@ -140,38 +104,55 @@ def run_demo(args: argparse.Namespace) -> int:
         last_by_well = {r["well"]: r["mape"] for r in metrics_records(last.predictions)}
         last_all = mape(last.predictions["predicted"], last.predictions["measured"])
         print(result.summary().split("MAPE of the")[0].rstrip())
-        print(f"\n  MAPE %, {len(result.scored):,} measurements after {split} (predicted before learning from them)")
-        print(f"  {'well':<8} {args.model + '+' + args.method + ' (service)':>20} {'last (benchmark)':>17} {'n':>7}")
+        print(
+            f"\n  MAPE %, {len(result.scored):,} measurements after {split} (predicted before learning from them)"
+        )
+        print(
+            f"  {'well':<8} {args.model + '+' + args.method + ' (service)':>20} {'last (benchmark)':>17} {'n':>7}"
+        )
         for r in result.per_well.itertuples():
-            print(f"  {r.well:<8} {r.mape:>20.2f} {last_by_well.get(r.well, float('nan')):>17.2f} {r.n:>7,}")
-        print(f"  {'all':<8} {result.overall_mape:>20.2f} {last_all:>17.2f} {int(result.per_well['n'].sum()):>7,}")
+            print(
+                f"  {r.well:<8} {r.mape:>20.2f} {last_by_well.get(r.well, float('nan')):>17.2f} {r.n:>7,}"
+            )
+        print(
+            f"  {'all':<8} {result.overall_mape:>20.2f} {last_all:>17.2f} {int(result.per_well['n'].sum()):>7,}"
+        )
         rejected = health.get("rejected_total", 0)
-        print(f"\n  The service took {health['accepted'].get('sensors', 0):,} samples and "
-              f"{health['accepted'].get('measurements', 0):,} measurements, rejected {rejected}, "
-              f"dropped {health['overflow']}; model versions now "
-              + ", ".join(f"{w['well']}: {w['version']}" for w in wells) + ".")
+        print(
+            f"\n  The service took {health['accepted'].get('sensors', 0):,} samples and "
+            f"{health['accepted'].get('measurements', 0):,} measurements, rejected {rejected}, "
+            f"dropped {health['overflow']}; model versions now "
+            + ", ".join(f"{w['well']}: {w['version']}" for w in wells)
+            + "."
+        )
         elapsed = time.perf_counter() - started
         print(f"\nDone in {elapsed:.0f} s. Where to look next:")
         print(f"  data       {data}  (truth beside it: field.truth.json)")
-        print(f"  store      {(out / 'store.sqlite').resolve()}  (SQLite: samples, predictions, measurements, "
-              "checkpoints)")
+        print(
+            f"  store      {(out / 'store.sqlite').resolve()}  (SQLite: samples, predictions, measurements, "
+            "checkpoints)"
+        )
         print(f"  settings   {config}  (service log: {out / 'serve.log'})")
-        print(f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,ham "
-              f"--methods ol,pbl:14d --split {split}")
+        print(
+            f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,ham "
+            f"--methods ol,pbl:14d --split {split}"
+        )
         if args.keep_serving:
             print(f"  API        {http_url}/docs  (e.g. curl {http_url}/wells/W01)")
             print(f"             POST well tests with: -H 'Authorization: Bearer {token}'")
             print(f"  Zenoh      {zenoh_ep}  (vfm replay DATA --connect {zenoh_ep})")
             print("The service keeps running; press Ctrl-C to stop it.", flush=True)
             try:
-                while proc.poll() is None:
+                while proc.proc is not None and proc.proc.poll() is None:
                     time.sleep(0.5)
             except KeyboardInterrupt:
                 print("\nStopping the service ...")
         else:
-            print("  API        run `vfm demo --keep-serving` to keep the service and its API running")
+            print(
+                "  API        run `vfm demo --keep-serving` to keep the service and its API running"
+            )
     finally:
-        _stop_service(proc)
+        proc.stop()
     return 0
 
 
@@ -186,10 +167,17 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     p.add_argument("--wells", type=int, default=5, help="wells (default 5)")
     p.add_argument("--years", type=float, default=3.0, help="years simulated (default 3)")
-    p.add_argument("--history-years", type=int, default=1, help="years of history before the replay (default 1)")
+    p.add_argument(
+        "--history-years",
+        type=int,
+        default=1,
+        help="years of history before the replay (default 1)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--model", default="ham", help="model of the service (default ham)")
     p.add_argument("--method", default="ol", help="learning method (default ol)")
-    p.add_argument("--keep-serving", action="store_true", help="leave the service running until Ctrl-C")
+    p.add_argument(
+        "--keep-serving", action="store_true", help="leave the service running until Ctrl-C"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run_demo)

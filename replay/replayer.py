@@ -29,7 +29,13 @@ from pydantic import ValidationError
 from tqdm import tqdm
 
 from vfm_core.errors import ConfigError, DataError, VFMError
-from vfm_core.messages import Measurement, SensorSample, measurement_key, sensors_key, validate_prefix
+from vfm_core.messages import (
+    Measurement,
+    SensorSample,
+    measurement_key,
+    sensors_key,
+    validate_prefix,
+)
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, SOURCES, TARGET, TIME, WELL
 from vfm_core.study import mape
 
@@ -74,15 +80,19 @@ class ReplayResult:
             "(a well without a model yet gets no prediction until its first measurement; the rest were lost).",
         ]
         if self.skipped:
-            lines.append(f"{self.skipped:,} row(s) were not sent: their values fail the message schema.")
+            lines.append(
+                f"{self.skipped:,} row(s) were not sent: their values fail the message schema."
+            )
         if not self.per_well.empty:
             lines.append("MAPE of the received predictions against the file's measurements:")
             lines.append(f"  {'well':<10} {'MAPE %':>8} {'n':>7}")
             for r in self.per_well.itertuples():
                 lines.append(f"  {r.well:<10} {r.mape:>8.2f} {r.n:>7,}")
             n_all = int(self.per_well["n"].sum())
-            lines.append(f"  {'all':<10} {self.overall_mape:>8.2f} {n_all:>7,}   "
-                         f"(pooled; mean over wells {self.mean_mape:.2f})")
+            lines.append(
+                f"  {'all':<10} {self.overall_mape:>8.2f} {n_all:>7,}   "
+                f"(pooled; mean over wells {self.mean_mape:.2f})"
+            )
         else:
             lines.append("No measurement after the start could be scored.")
         return "\n".join(lines)
@@ -120,9 +130,13 @@ class _Collector:
         self._session = session
         self._token = secrets.token_bytes(16)
         self._stop_key = f"{prefix}/_vfm-replay-control/prediction"
-        self._sub = session.declare_subscriber(f"{prefix}/*/prediction", zenoh.handlers.FifoChannel(65536))
+        self._sub = session.declare_subscriber(
+            f"{prefix}/*/prediction", zenoh.handlers.FifoChannel(65536)
+        )
         n_prefix = len(prefix) + 1
-        self._thread = threading.Thread(target=self._run, args=(n_prefix,), name="vfm-replay-rx", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, args=(n_prefix,), name="vfm-replay-rx", daemon=True
+        )
         self._thread.start()
 
     def _run(self, n_prefix: int) -> None:
@@ -148,8 +162,12 @@ class _Collector:
                 self.last_at = time.monotonic()
 
     def close(self) -> None:
-        self._session.put(self._stop_key, b"", attachment=self._token,
-                          allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        self._session.put(
+            self._stop_key,
+            b"",
+            attachment=self._token,
+            allowed_destination=zenoh.Locality.SESSION_LOCAL,
+        )
         self._thread.join(5)
         self._sub.undeclare()
 
@@ -194,14 +212,24 @@ def replay_frame(
         try:
             start_ts = pd.Timestamp(start)
         except (ValueError, TypeError):
-            raise ConfigError(f"--start '{start}' is not a date; write it like 2019-01-01.") from None
-        start_ts = start_ts.tz_localize("UTC") if start_ts.tzinfo is None else start_ts.tz_convert("UTC")
+            raise ConfigError(
+                f"--start '{start}' is not a date; write it like 2019-01-01."
+            ) from None
+        start_ts = (
+            start_ts.tz_localize("UTC") if start_ts.tzinfo is None else start_ts.tz_convert("UTC")
+        )
         rows = frame[frame[TIME] >= start_ts]
     if rows.empty:
-        raise DataError("No rows to replay" + (f" on or after {start_ts.date()}" if start_ts is not None else "") + ".")
+        raise DataError(
+            "No rows to replay"
+            + (f" on or after {start_ts.date()}" if start_ts is not None else "")
+            + "."
+        )
     rows = rows.reset_index(drop=True)
 
-    session = zenoh.open(replay_config(connect, mode=mode, block_wait_before_close_ms=block_wait_before_close_ms))
+    session = zenoh.open(
+        replay_config(connect, mode=mode, block_wait_before_close_ms=block_wait_before_close_ms)
+    )
     collector: _Collector | None = None
     publishers: dict[str, zenoh.Publisher] = {}
     sent_samples: list[tuple[str, int]] = []
@@ -214,8 +242,11 @@ def replay_frame(
         def publisher(key: str) -> zenoh.Publisher:
             pub = publishers.get(key)
             if pub is None:
-                pub = session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON,
-                                                congestion_control=zenoh.CongestionControl.BLOCK)
+                pub = session.declare_publisher(
+                    key,
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
                 _wait_matching(pub, key, match_timeout)
                 publishers[key] = pub
             return pub
@@ -234,8 +265,14 @@ def replay_frame(
         q = rows[TARGET].to_numpy(dtype=float)
         src = rows[SOURCE].astype(str).to_numpy()
         py_times = [t.to_pydatetime() for t in times]
-        for i in tqdm(range(len(rows)), total=len(rows), unit="row", desc="replay", disable=not progress,
-                      mininterval=0.5):
+        for i in tqdm(
+            range(len(rows)),
+            total=len(rows),
+            unit="row",
+            desc="replay",
+            disable=not progress,
+            mininterval=0.5,
+        ):
             well = wells[i]
             when = py_times[i]
             if speed is not None:
@@ -244,10 +281,19 @@ def replay_frame(
                 if wait > 0:
                     time.sleep(wait)
             t_ns = _ns(when)
-            if last_sent.get(well) != t_ns:  # a second row at the same time carries only its measurement
+            if (
+                last_sent.get(well) != t_ns
+            ):  # a second row at the same time carries only its measurement
                 try:
-                    payload = SensorSample(time=when, choke=x[i, 0], p_up=x[i, 1], p_down=x[i, 2], t_up=x[i, 3],
-                                           eta_gas=x[i, 4], eta_oil=x[i, 5]).model_dump_json()
+                    payload = SensorSample(
+                        time=when,
+                        choke=x[i, 0],
+                        p_up=x[i, 1],
+                        p_down=x[i, 2],
+                        t_up=x[i, 3],
+                        eta_gas=x[i, 4],
+                        eta_oil=x[i, 5],
+                    ).model_dump_json()
                 except ValidationError:
                     skipped += 1
                     continue
@@ -264,7 +310,11 @@ def replay_frame(
         expected = set(sent_samples)
         while time.monotonic() < deadline:
             with collector._lock:
-                got = sum(1 for k in expected if k in collector.predictions) if collector.count >= len(expected) else -1
+                got = (
+                    sum(1 for k in expected if k in collector.predictions)
+                    if collector.count >= len(expected)
+                    else -1
+                )
                 idle = time.monotonic() - collector.last_at
             if got == len(expected):
                 break
@@ -283,27 +333,64 @@ def replay_frame(
 
     predictions = dict(collector.predictions)
     missing = sum(1 for k in sent_samples if k not in predictions)
-    return _score(rows, predictions, start_ts, sent=len(sent_samples), measurements=measurements_sent,
-                  received=collector.count, missing=missing, elapsed=elapsed, skipped=skipped)
+    return _score(
+        rows,
+        predictions,
+        start_ts,
+        sent=len(sent_samples),
+        measurements=measurements_sent,
+        received=collector.count,
+        missing=missing,
+        elapsed=elapsed,
+        skipped=skipped,
+    )
 
 
-def _score(rows: pd.DataFrame, predictions: dict[tuple[str, int], float], start: pd.Timestamp | None, *,
-           sent: int, measurements: int, received: int, missing: int, elapsed: float, skipped: int) -> ReplayResult:
+def _score(
+    rows: pd.DataFrame,
+    predictions: dict[tuple[str, int], float],
+    start: pd.Timestamp | None,
+    *,
+    sent: int,
+    measurements: int,
+    received: int,
+    missing: int,
+    elapsed: float,
+    skipped: int,
+) -> ReplayResult:
     measured = rows[rows[SOURCE].isin(SOURCES) & rows[TARGET].notna()]
     t_ns = pd.DatetimeIndex(measured[TIME]).as_unit("ns").asi8
     keys = zip(measured[WELL].astype(str), (int(t) // 1000 * 1000 for t in t_ns), strict=True)
     predicted = np.array([predictions.get(k, np.nan) for k in keys], dtype=float)
-    scored = pd.DataFrame({
-        "time": measured[TIME].to_numpy(), "well": measured[WELL].astype(str).to_numpy(),
-        "source": measured[SOURCE].to_numpy(), "measured": measured[TARGET].to_numpy(dtype=float),
-        "predicted": predicted,
-    })
+    scored = pd.DataFrame(
+        {
+            "time": measured[TIME].to_numpy(),
+            "well": measured[WELL].astype(str).to_numpy(),
+            "source": measured[SOURCE].to_numpy(),
+            "measured": measured[TARGET].to_numpy(dtype=float),
+            "predicted": predicted,
+        }
+    )
     records = []
     for well, g in scored.groupby("well", sort=True):
         ok = np.isfinite(g["predicted"].to_numpy())
-        records.append({"well": well, "mape": mape(g["predicted"], g["measured"]), "n": int(ok.sum())})
+        records.append(
+            {"well": well, "mape": mape(g["predicted"], g["measured"]), "n": int(ok.sum())}
+        )
     per_well = pd.DataFrame(records, columns=["well", "mape", "n"])
     overall = mape(scored["predicted"], scored["measured"]) if len(scored) else float("nan")
     mean = float(per_well["mape"].mean()) if len(per_well) else float("nan")
-    return ReplayResult(start, len(rows), sent, measurements, received, missing, elapsed, scored,
-                        per_well, overall, mean, skipped)
+    return ReplayResult(
+        start,
+        len(rows),
+        sent,
+        measurements,
+        received,
+        missing,
+        elapsed,
+        scored,
+        per_well,
+        overall,
+        mean,
+        skipped,
+    )

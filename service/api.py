@@ -31,11 +31,10 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 
-from vfm_core.messages import Measurement
-
 from service.app import Service
 from service.engine import WellState, from_ns, to_ns
 from service.inputs import REASONS, Rejected, classify_errors, parse_measurement
+from vfm_core.messages import Measurement
 
 __all__ = ["create_app", "get_service", "require_token"]
 
@@ -45,8 +44,13 @@ WELL_TEST_WAIT_S = 10.0
 class ApiError(Exception):
     """An HTTP error with a sentence and a counter reason."""
 
-    def __init__(self, status: int, detail: str, reason: str | None = None,
-                 headers: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        reason: str | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
         super().__init__(detail)
         self.status = status
         self.detail = detail
@@ -64,10 +68,14 @@ class HealthOut(BaseModel):
     status: str
     uptime_s: float
     wells: int
-    accepted: dict[str, int] = Field(description="accepted inputs: sensors, measurements, well_tests")
+    accepted: dict[str, int] = Field(
+        description="accepted inputs: sensors, measurements, well_tests"
+    )
     rejected: dict[str, int] = Field(description="rejected inputs by reason")
     rejected_total: int
-    not_ready: int = Field(description="samples not answered because the well's model had no data yet")
+    not_ready: int = Field(
+        description="samples not answered because the well's model had no data yet"
+    )
     predictions_published: int
     learned: int
     overflow: int = Field(description="messages dropped because a worker queue stayed full")
@@ -139,7 +147,9 @@ class MeasurementOut(BaseModel):
     via: str
     status: str = Field(description="pending | learned | unpaired")
     paired_sample_time: str | None
-    predicted: float | None = Field(description="the prediction at the paired sample, before learning")
+    predicted: float | None = Field(
+        description="the prediction at the paired sample, before learning"
+    )
     version_after: int | None
 
 
@@ -158,11 +168,17 @@ class WellTestOut(BaseModel):
     time: str
     q_total: float
     stored: bool = True
-    status: str = Field(description="learned, or pending (waiting for the sensor sample at its time)")
+    status: str = Field(
+        description="learned, or pending (waiting for the sensor sample at its time)"
+    )
     message: str
     paired_sample_time: str | None
-    before: dict[str, float | None] = Field(description="prediction at the paired sample before learning, Sm3/h")
-    after: dict[str, float | None] = Field(description="prediction at the same inputs after learning, Sm3/h")
+    before: dict[str, float | None] = Field(
+        description="prediction at the paired sample before learning, Sm3/h"
+    )
+    after: dict[str, float | None] = Field(
+        description="prediction at the same inputs after learning, Sm3/h"
+    )
     version_before: int
     version_after: int
     model_changed: bool
@@ -192,8 +208,12 @@ def require_token(
     if credentials is None or not secrets.compare_digest(
         credentials.credentials.encode(), token.get_secret_value().encode()
     ):
-        raise ApiError(401, "A valid bearer token is required: send 'Authorization: Bearer <token>' "
-                            "with the service's http.token.", headers={"WWW-Authenticate": "Bearer"})
+        raise ApiError(
+            401,
+            "A valid bearer token is required: send 'Authorization: Bearer <token>' "
+            "with the service's http.token.",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
 
 
 TokenDep = Annotated[None, Depends(require_token)]
@@ -204,8 +224,11 @@ def _state(service: Service, well: str) -> WellState:
     engine = service.engine
     st = engine.wells.get(well) if engine is not None else None
     if st is None:
-        raise ApiError(404, f"The well '{well}' is not known to this service; GET /wells lists the wells.",
-                       reason=None)
+        raise ApiError(
+            404,
+            f"The well '{well}' is not known to this service; GET /wells lists the wells.",
+            reason=None,
+        )
     return st
 
 
@@ -231,8 +254,12 @@ def list_wells(service: ServiceDep) -> list[dict[str, Any]]:
     return [dict(st.snapshot) for st in list(engine.wells.values())]
 
 
-@wells_router.get("/{well}", response_model=WellOut, summary="One well's model state",
-                  responses={404: {"model": ErrorOut}})
+@wells_router.get(
+    "/{well}",
+    response_model=WellOut,
+    summary="One well's model state",
+    responses={404: {"model": ErrorOut}},
+)
 def well_state(well: WellPath, service: ServiceDep) -> dict[str, Any]:
     st = _state(service, well)
     out = dict(st.snapshot)
@@ -253,53 +280,112 @@ def _parse_time(value: str | None, name: str, default: datetime) -> datetime:
     try:
         t = datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError:
-        raise ApiError(422, f"{name}='{value}' is not an ISO 8601 time; write it like 2019-03-01T06:00:00Z.",
-                       reason="wrong type") from None
+        raise ApiError(
+            422,
+            f"{name}='{value}' is not an ISO 8601 time; write it like 2019-03-01T06:00:00Z.",
+            reason="wrong type",
+        ) from None
     return t.replace(tzinfo=UTC) if t.tzinfo is None else t.astimezone(UTC)
 
 
-@wells_router.get("/{well}/history", response_model=HistoryOut, summary="Samples, predictions, measurements",
-                  responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}})
+@wells_router.get(
+    "/{well}/history",
+    response_model=HistoryOut,
+    summary="Samples, predictions, measurements",
+    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
 def well_history(
     well: WellPath,
     service: ServiceDep,
-    start: Annotated[str | None, Query(description="ISO 8601, inclusive (default: the beginning)")] = None,
+    start: Annotated[
+        str | None, Query(description="ISO 8601, inclusive (default: the beginning)")
+    ] = None,
     end: Annotated[str | None, Query(description="ISO 8601, exclusive (default: no end)")] = None,
-    limit: Annotated[int, Query(ge=1, le=100_000, description="at most this many rows per list")] = 10_000,
+    limit: Annotated[
+        int, Query(ge=1, le=100_000, description="at most this many rows per list")
+    ] = 10_000,
 ) -> dict[str, Any]:
     _state(service, well)
     t0 = _parse_time(start, "start", datetime(1677, 9, 22, tzinfo=UTC))
     t1 = _parse_time(end, "end", datetime(2262, 4, 11, tzinfo=UTC))
     if t1 <= t0:
-        raise ApiError(422, f"end ({t1.isoformat()}) must be after start ({t0.isoformat()}).", reason="wrong type")
+        raise ApiError(
+            422,
+            f"end ({t1.isoformat()}) must be after start ({t0.isoformat()}).",
+            reason="wrong type",
+        )
     assert service.store is not None
     samples, measurements = service.store.history(well, to_ns(t0), to_ns(t1), limit)
     s_out, p_out = [], []
     for t, choke, p_up, p_down, t_up, eg, eo, rec, q, qg, qo, qw, version in samples:
-        s_out.append({"time": _iso(t), "choke": choke, "p_up": p_up, "p_down": p_down, "t_up": t_up,
-                      "eta_gas": eg, "eta_oil": eo, "received": _iso(rec)})
+        s_out.append(
+            {
+                "time": _iso(t),
+                "choke": choke,
+                "p_up": p_up,
+                "p_down": p_down,
+                "t_up": t_up,
+                "eta_gas": eg,
+                "eta_oil": eo,
+                "received": _iso(rec),
+            }
+        )
         if q is not None:
-            p_out.append({"time": _iso(t), "q_total": q, "q_gas": qg, "q_oil": qo, "q_water": qw,
-                          "version": version})
+            p_out.append(
+                {
+                    "time": _iso(t),
+                    "q_total": q,
+                    "q_gas": qg,
+                    "q_oil": qo,
+                    "q_water": qw,
+                    "version": version,
+                }
+            )
     m_out = [
-        {"time": _iso(t), "source": src, "q_total": q, "received": _iso(rec), "via": via, "status": status,
-         "paired_sample_time": _iso(st_ns), "predicted": pred, "version_after": ver}
+        {
+            "time": _iso(t),
+            "source": src,
+            "q_total": q,
+            "received": _iso(rec),
+            "via": via,
+            "status": status,
+            "paired_sample_time": _iso(st_ns),
+            "predicted": pred,
+            "version_after": ver,
+        }
         for t, src, q, rec, via, status, st_ns, pred, ver in measurements
     ]
-    return {"well": well, "start": t0.isoformat(), "end": t1.isoformat(), "samples": s_out,
-            "predictions": p_out, "measurements": m_out,
-            "truncated": len(samples) >= limit or len(measurements) >= limit}
+    return {
+        "well": well,
+        "start": t0.isoformat(),
+        "end": t1.isoformat(),
+        "samples": s_out,
+        "predictions": p_out,
+        "measurements": m_out,
+        "truncated": len(samples) >= limit or len(measurements) >= limit,
+    }
 
 
 @wells_router.post(
     "/{well}/well-tests",
     response_model=WellTestOut,
     summary="Post a well-test result: stored durably, then learned from",
-    responses={202: {"model": WellTestOut, "description": "stored; waiting for the sensor sample at its time"},
-               401: {"model": ErrorOut}, 403: {"model": ErrorOut}, 404: {"model": ErrorOut},
-               409: {"model": ErrorOut}, 422: {"model": ErrorOut}, 503: {"model": ErrorOut}},
+    responses={
+        202: {
+            "model": WellTestOut,
+            "description": "stored; waiting for the sensor sample at its time",
+        },
+        401: {"model": ErrorOut},
+        403: {"model": ErrorOut},
+        404: {"model": ErrorOut},
+        409: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+        503: {"model": ErrorOut},
+    },
 )
-async def post_well_test(well: WellPath, test: Measurement, service: ServiceDep, _: TokenDep) -> Any:
+async def post_well_test(
+    well: WellPath, test: Measurement, service: ServiceDep, _: TokenDep
+) -> Any:
     engine = service.engine
     if engine is None:
         raise ApiError(503, "The service is starting; retry in a few seconds.")
@@ -312,9 +398,11 @@ async def post_well_test(well: WellPath, test: Measurement, service: ServiceDep,
             service.counters.reject(r.reason, r.message, where=f"POST /wells/{well}/well-tests")
         raise ApiError(r.status, r.message, reason=r.reason) from None
     except TimeoutError:
-        raise ApiError(503, f"The well test was queued but not handled within {WELL_TEST_WAIT_S:g} s; the "
-                            "service is overloaded. It will still be stored; check GET /wells/{well}/history."
-                       ) from None
+        raise ApiError(
+            503,
+            f"The well test was queued but not handled within {WELL_TEST_WAIT_S:g} s; the "
+            "service is overloaded. It will still be stored; check GET /wells/{well}/history.",
+        ) from None
     body = WellTestOut(**result.__dict__).model_dump()
     return JSONResponse(body, status_code=200 if result.status == "learned" else 202)
 
@@ -334,8 +422,11 @@ def create_app(service: Service) -> FastAPI:
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return JSONResponse({"detail": exc.detail, "reason": exc.reason}, status_code=exc.status,
-                            headers=exc.headers)
+        return JSONResponse(
+            {"detail": exc.detail, "reason": exc.reason},
+            status_code=exc.status,
+            headers=exc.headers,
+        )
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -21,13 +21,12 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from vfm_core.errors import ConfigError
-
 from service.config import Settings
 from service.engine import Engine
 from service.inputs import Counters
 from service.store import Store
 from service.transport import Transport, ZenohTransport
+from vfm_core.errors import ConfigError
 
 __all__ = ["Service", "serve", "running", "bind_socket"]
 
@@ -70,9 +69,15 @@ class Service:
             self.stop()
             raise
         self.ready = True
-        logger.info("Serving %d well(s) with %s/%s on Zenoh %s under '%s/**'; store %s.",
-                    len(self.engine.wells), s.model.name, s.model.method,
-                    ", ".join(self.locators) or ", ".join(s.zenoh.connect), s.prefix, s.store.path)
+        logger.info(
+            "Serving %d well(s) with %s/%s on Zenoh %s under '%s/**'; store %s.",
+            len(self.engine.wells),
+            s.model.name,
+            s.model.method,
+            ", ".join(self.locators) or ", ".join(s.zenoh.connect),
+            s.prefix,
+            s.store.path,
+        )
 
     def stop(self) -> None:
         self.ready = False
@@ -112,8 +117,12 @@ class Service:
             "queue_capacity": self.settings.queues.worker_capacity,
             "pending_measurements": pending,
             "events": snap["events"],
-            "zenoh": {"mode": self.settings.zenoh.mode, "locators": self.locators,
-                      "connect": self.settings.zenoh.connect, "prefix": self.settings.prefix},
+            "zenoh": {
+                "mode": self.settings.zenoh.mode,
+                "locators": self.locators,
+                "connect": self.settings.zenoh.connect,
+                "prefix": self.settings.prefix,
+            },
             "store": str(self.settings.store.path),
         }
 
@@ -162,7 +171,11 @@ def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None)
     from service.api import create_app
 
     main = threading.current_thread() is threading.main_thread()
-    previous = {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    previous = (
+        {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+        if main
+        else {}
+    )
     sock = bind_socket(settings.http.host, settings.http.port)
     service = Service(settings)
     try:
@@ -219,7 +232,9 @@ def running(settings: Settings, transport: Transport | None = None) -> Iterator[
         service.start()
         service.http_url = _url(sock)
         server = _uvicorn_server(create_app(service), settings)
-        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="vfm-http", daemon=True)
+        thread = threading.Thread(
+            target=server.run, kwargs={"sockets": [sock]}, name="vfm-http", daemon=True
+        )
         thread.start()
         deadline = time.monotonic() + 10
         while not server.started and thread.is_alive() and time.monotonic() < deadline:

@@ -23,7 +23,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from vfm_core.errors import ConfigError
@@ -185,8 +193,10 @@ class HttpSettings(_Section):
                 "it, or use 127.0.0.1"
             )
         if self.token is not None and len(self.token.get_secret_value()) < 16:
-            raise ValueError("http.token must be at least 16 characters long; generate one with "
-                             "`python -c 'import secrets; print(secrets.token_urlsafe(32))'`")
+            raise ValueError(
+                "http.token must be at least 16 characters long; generate one with "
+                "`python -c 'import secrets; print(secrets.token_urlsafe(32))'`"
+            )
         return self
 
 
@@ -197,7 +207,9 @@ class StoreSettings(_Section):
     #: full: every commit is fsync'ed (survives power loss); normal: survives a killed process
     synchronous: Literal["full", "normal"] = "full"
     checkpoint_every: int = Field(
-        10, ge=1, description="checkpoint after this many model updates (a restart re-learns the rest)"
+        10,
+        ge=1,
+        description="checkpoint after this many model updates (a restart re-learns the rest)",
     )
     keep_checkpoints: int = Field(3, ge=1, description="checkpoints kept per well")
 
@@ -209,7 +221,9 @@ class InputSettings(_Section):
     unknown_wells: Literal["create", "reject"] = "create"
     max_future_s: float = Field(86_400.0, gt=0, description="reject times further ahead than this")
     pair_tolerance_s: float = Field(300.0, ge=0, description="measurement-to-sample time tolerance")
-    pending_max: int = Field(100, ge=1, description="measurements waiting for their sample, per well")
+    pending_max: int = Field(
+        100, ge=1, description="measurements waiting for their sample, per well"
+    )
     pending_timeout_s: float = Field(60.0, gt=0, description="wall-clock wait for a sample")
 
     @field_validator("wells")
@@ -217,7 +231,9 @@ class InputSettings(_Section):
     def _well_ids(cls, v: list[str]) -> list[str]:
         for well in v:
             if not well or any(ch in well for ch in "/*$?#"):
-                raise ValueError(f"well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')")
+                raise ValueError(
+                    f"well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')"
+                )
         return v
 
 
@@ -259,7 +275,9 @@ class Settings(BaseSettings):
     queues: QueueSettings = Field(default_factory=QueueSettings)
     drift: DriftSettings = Field(default_factory=DriftSettings)
     rolling_window: int = Field(50, ge=1, description="paired measurements in the rolling MAPE")
-    torch_threads: int = Field(1, ge=1, le=64, description="torch intra-op threads (tiny tensors: 1)")
+    torch_threads: int = Field(
+        1, ge=1, le=64, description="torch intra-op threads (tiny tensors: 1)"
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("prefix")
@@ -317,7 +335,9 @@ class _FileSource(PydanticBaseSettingsSource):
 
 def _read_config_file(path: Path) -> dict[str, Any]:
     if not path.is_file():
-        raise ConfigError(f"The config file {path} does not exist; give the path of a .toml or .json file.")
+        raise ConfigError(
+            f"The config file {path} does not exist; give the path of a .toml or .json file."
+        )
     suffix = path.suffix.lower()
     try:
         if suffix == ".toml":
@@ -344,7 +364,9 @@ def _describe(error: dict[str, Any]) -> str:
     where = ".".join(str(p) for p in error.get("loc", ()) if p != "__root__")
     msg = str(error.get("msg", "invalid")).removeprefix("Value error, ")
     if error.get("type") == "extra_forbidden":
-        return f"The setting '{where}' is unknown; check its spelling against the documented settings."
+        return (
+            f"The setting '{where}' is unknown; check its spelling against the documented settings."
+        )
     value = error.get("input")
     shown = "" if isinstance(value, dict) or where == "" else f" = {value!r}"
     head = f"The setting '{where}'{shown}" if where else "The settings"

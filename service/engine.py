@@ -39,14 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from vfm_core.errors import VFMError
-from vfm_core.messages import Measurement, Prediction, SensorSample
-from vfm_core.streaming import WellLearner
-
 from service.config import Settings
 from service.inputs import Counters, Rejected, parse_measurement, parse_sensor, route_key
 from service.learning import describe, fit_history, load_history, new_learner
 from service.store import Op, Store
+from vfm_core.errors import VFMError
+from vfm_core.messages import Measurement, Prediction, SensorSample
+from vfm_core.streaming import WellLearner
 
 try:  # the lead's streaming Hotelling detector; the service runs without it
     from vfm_core.drift import StreamingHotelling
@@ -160,7 +159,9 @@ class WellState:
         self.snapshot: dict[str, Any] = {}
         if settings.drift.enabled and StreamingHotelling is not None:
             d = settings.drift
-            self.detector = StreamingHotelling(reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm)
+            self.detector = StreamingHotelling(
+                reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm
+            )
         self.refresh()
 
     def refresh(self) -> None:
@@ -177,8 +178,13 @@ class WellState:
     def drift_state(self) -> dict[str, Any]:
         det = self.detector
         if det is None:
-            return {"enabled": False, "detected": False,
-                    "note": "vfm_core.drift is not available" if StreamingHotelling is None else "disabled"}
+            return {
+                "enabled": False,
+                "detected": False,
+                "note": "vfm_core.drift is not available"
+                if StreamingHotelling is None
+                else "disabled",
+            }
         stat = float(getattr(det, "statistic", float("nan")))
         pval = float(getattr(det, "p_value", float("nan")))
         return {
@@ -200,8 +206,13 @@ class WellState:
 class Engine:
     """Per-well learners behind bounded worker queues; see the module docstring."""
 
-    def __init__(self, settings: Settings, store: Store, counters: Counters,
-                 publish: Callable[[str, bytes], None]) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        store: Store,
+        counters: Counters,
+        publish: Callable[[str, bytes], None],
+    ) -> None:
         self.settings = settings
         self.store = store
         self.counters = counters
@@ -209,7 +220,9 @@ class Engine:
         self.wells: dict[str, WellState] = {}
         self._wells_lock = threading.Lock()
         n = settings.queues.workers
-        self._queues: list[queue.Queue[Any]] = [queue.Queue(settings.queues.worker_capacity) for _ in range(n)]
+        self._queues: list[queue.Queue[Any]] = [
+            queue.Queue(settings.queues.worker_capacity) for _ in range(n)
+        ]
         self._threads: list[threading.Thread] = []
         self._stop = object()
         self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
@@ -224,10 +237,19 @@ class Engine:
         """Restore every known well from the store, or fit it on the history; re-learn the rest."""
         cfg = self.settings
         history = load_history(cfg.model) if cfg.model.history is not None else None
-        names = list(dict.fromkeys(
-            [*cfg.inputs.wells, *self.store.wells(),
-             *([] if history is None or history.empty else history["well"].astype(str).tolist())]
-        ))
+        names = list(
+            dict.fromkeys(
+                [
+                    *cfg.inputs.wells,
+                    *self.store.wells(),
+                    *(
+                        []
+                        if history is None or history.empty
+                        else history["well"].astype(str).tolist()
+                    ),
+                ]
+            )
+        )
         learners: dict[str, WellLearner] = {}
         checkpoints: dict[str, Any] = {}
         method = cfg.model.method
@@ -239,12 +261,19 @@ class Engine:
                     checkpoints[well] = row
                     continue
                 except VFMError as exc:
-                    logger.warning("Checkpoint of %s unusable (%s); rebuilding it from the store.", well, exc)
+                    logger.warning(
+                        "Checkpoint of %s unusable (%s); rebuilding it from the store.", well, exc
+                    )
             elif row is not None:
                 logger.warning(
                     "The store holds a %s/%s model for %s but the config asks for %s/%s; building a new "
-                    "model from the history and every stored measurement.", row.model, row.method, well,
-                    cfg.model.name, method)
+                    "model from the history and every stored measurement.",
+                    row.model,
+                    row.method,
+                    well,
+                    cfg.model.name,
+                    method,
+                )
             learners[well] = new_learner(well, cfg.model)
         fresh = [w for w in names if w not in checkpoints]
         fitted: list[str] = []
@@ -252,7 +281,11 @@ class Engine:
             started = time.perf_counter()
             fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
             if fitted:
-                logger.info("Fitted %d well(s) on the history in %.1f s.", len(fitted), time.perf_counter() - started)
+                logger.info(
+                    "Fitted %d well(s) on the history in %.1f s.",
+                    len(fitted),
+                    time.perf_counter() - started,
+                )
         ops: list[Op] = []
         now = time.time_ns()
         for well in names:
@@ -264,8 +297,10 @@ class Engine:
                 self._restore_extra(st, row.extra)
             elif well in fitted and st.detector is not None and history is not None:
                 own = history[history["well"] == well]
-                ref = own[["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]].to_numpy(dtype=float)
-                ref = ref[-cfg.drift.reference_size:]
+                ref = own[["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]].to_numpy(
+                    dtype=float
+                )
+                ref = ref[-cfg.drift.reference_size :]
                 st.learned_inputs.extend(tuple(map(float, r)) for r in ref)
                 if len(ref) >= cfg.drift.reference_size:
                     st.detector.reset(ref)
@@ -276,8 +311,12 @@ class Engine:
             st.refresh()
             self.wells[well] = st
             if row is not None or relearned:
-                logger.info("Restored %s: version %d, %d update(s) re-learned after its checkpoint.",
-                            well, st.learner.version, relearned)
+                logger.info(
+                    "Restored %s: version %d, %d update(s) re-learned after its checkpoint.",
+                    well,
+                    st.learner.version,
+                    relearned,
+                )
         self.store.write(ops)
 
     def _restore_extra(self, st: WellState, extra: str) -> None:
@@ -291,13 +330,15 @@ class Engine:
             try:
                 st.detector.load_state_dict(data["drift"])
             except (KeyError, TypeError, ValueError, VFMError) as exc:
-                logger.warning("Drift state of %s not restored (%s); the detector starts over.", st.well, exc)
+                logger.warning(
+                    "Drift state of %s not restored (%s); the detector starts over.", st.well, exc
+                )
         st.learned_inputs.extend(tuple(x) for x in data.get("learned_inputs", []))
         st.drift_events.extend(data.get("drift_events", []))
 
     def _relearn(self, st: WellState, ops: list[Op]) -> int:
         rows = self.store.learned_after(st.well, st.learn_seq)
-        for seq, time_ns, source, q_total, sample_ns, *rest in rows:
+        for seq, time_ns, _source, q_total, sample_ns, *rest in rows:
             inputs, predicted = tuple(rest[:6]), rest[6]
             self._apply_learning(st, _Sample(sample_ns, inputs, predicted), q_total, time_ns, ops)
             st.learn_seq = seq
@@ -359,14 +400,24 @@ class Engine:
                 status=404,
             )
         if not well or any(ch in well for ch in "/*$?#"):
-            raise Rejected("unparseable key", f"The well id '{well}' cannot be used in a key expression.")
+            raise Rejected(
+                "unparseable key", f"The well id '{well}' cannot be used in a key expression."
+            )
         with self._wells_lock:
             st = self.wells.get(well)
             if st is None:
-                st = WellState(well, new_learner(well, self.settings.model), self.settings, self._worker_of(well))
+                st = WellState(
+                    well,
+                    new_learner(well, self.settings.model),
+                    self.settings,
+                    self._worker_of(well),
+                )
                 self.store.write([("well", (well, time.time_ns(), "first sight"))])
                 self.wells[well] = st
-                logger.info("New well %s (first sight); it gets predictions once it has a measurement.", well)
+                logger.info(
+                    "New well %s (first sight); it gets predictions once it has a measurement.",
+                    well,
+                )
         return st
 
     def check_time(self, when: datetime, what: str) -> None:
@@ -422,12 +473,16 @@ class Engine:
         self.check_time(measurement.time, "well test")
         st = self.well_state(well)
         fut: Future[WellTestResult] = Future()
-        item = MeasurementItem(well, measurement, "well_test", time.time_ns(), via="http", future=fut)
+        item = MeasurementItem(
+            well, measurement, "well_test", time.time_ns(), via="http", future=fut
+        )
         try:
             self._queues[st.worker].put(item, timeout=2.0)
         except queue.Full:
             raise Rejected(
-                "queue overflow", "The service is busy (its queue is full); retry in a few seconds.", status=503
+                "queue overflow",
+                "The service is busy (its queue is full); retry in a few seconds.",
+                status=503,
             ) from None
         return fut
 
@@ -461,7 +516,9 @@ class Engine:
                     else:
                         self._on_measurement(item, b)
                 except Exception as exc:  # one bad message must not stop the worker
-                    logger.exception("Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc)
+                    logger.exception(
+                        "Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc
+                    )
                     self.counters.event("internal errors")
                     fut = getattr(item, "future", None)
                     if fut is not None:
@@ -512,7 +569,11 @@ class Engine:
         inputs = tuple(sample.inputs())
         if st.last_time_ns is not None and t <= st.last_time_ns:
             if t == st.last_time_ns and inputs == st.last_inputs:
-                r = Rejected("duplicate", f"The sample of {item.well} at {_iso(t)} arrived before.", status=409)
+                r = Rejected(
+                    "duplicate",
+                    f"The sample of {item.well} at {_iso(t)} arrived before.",
+                    status=409,
+                )
             else:
                 r = Rejected(
                     "time going backwards",
@@ -530,14 +591,32 @@ class Engine:
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
         self.counters.accept("sensors")
-        b.ops.append(("sample", (item.well, t, *inputs, item.received_ns,
-                                 q_total, *(rates[k] if rates else None for k in ("q_gas", "q_oil", "q_water")),
-                                 learner.version if rates else None)))
+        b.ops.append(
+            (
+                "sample",
+                (
+                    item.well,
+                    t,
+                    *inputs,
+                    item.received_ns,
+                    q_total,
+                    *(rates[k] if rates else None for k in ("q_gas", "q_oil", "q_water")),
+                    learner.version if rates else None,
+                ),
+            )
+        )
         if rates is None:
             self.counters.event("model not ready")
         else:
-            pred = Prediction(time=sample.time, q_total=q_total, q_gas=rates["q_gas"], q_oil=rates["q_oil"],
-                              q_water=rates["q_water"], model=learner.model_name, version=learner.version)
+            pred = Prediction(
+                time=sample.time,
+                q_total=q_total,
+                q_gas=rates["q_gas"],
+                q_oil=rates["q_oil"],
+                q_water=rates["q_water"],
+                model=learner.model_name,
+                version=learner.version,
+            )
             b.outbox.append((item.well, pred.model_dump_json().encode()))
         if st.pending:
             self._resolve_pending(st, b, upto=t)
@@ -556,21 +635,34 @@ class Engine:
         t = to_ns(m.time)
         key = (item.source, t)
         if key in st.seen or self.store.measurement_exists(item.well, item.source, t):
-            self._reject(item, Rejected(
-                "duplicate", f"The {item.source} measurement of {item.well} at {_iso(t)} arrived before; "
-                "it is stored once.", status=409), b)
+            self._reject(
+                item,
+                Rejected(
+                    "duplicate",
+                    f"The {item.source} measurement of {item.well} at {_iso(t)} arrived before; "
+                    "it is stored once.",
+                    status=409,
+                ),
+                b,
+            )
             return
         sample: _Sample | None = None
         if st.last_time_ns is not None and t <= st.last_time_ns:
             sample = self._nearest(st, t)
             if sample is None:
-                self._reject(item, Rejected(
-                    "no sensor sample within tolerance",
-                    f"No sensor sample of {item.well} lies within {self.settings.inputs.pair_tolerance_s:g} s of "
-                    f"the measurement at {_iso(t)}, so it cannot be paired with inputs; it was not stored.",
-                ), b)
+                self._reject(
+                    item,
+                    Rejected(
+                        "no sensor sample within tolerance",
+                        f"No sensor sample of {item.well} lies within {self.settings.inputs.pair_tolerance_s:g} s of "
+                        f"the measurement at {_iso(t)}, so it cannot be paired with inputs; it was not stored.",
+                    ),
+                    b,
+                )
                 return
-        b.ops.append(("measurement", (item.well, t, item.source, m.q_total, item.received_ns, item.via)))
+        b.ops.append(
+            ("measurement", (item.well, t, item.source, m.q_total, item.received_ns, item.via))
+        )
         st.remember_measurement(item.source, t)
         st.measurements += 1
         self.counters.accept("well_tests" if item.via == "http" else "measurements")
@@ -588,11 +680,21 @@ class Engine:
             self._settle(st, oldest, b, force=True)
         st.pending.append(p)
         if p.future is not None:
-            b.answers.append((p.future, WellTestResult(
-                st.well, _iso(t) or "", m.q_total, "pending",
-                f"Stored. No sensor sample of {st.well} at or after {_iso(t)} has arrived yet; the well test "
-                "is learned from when it does.", version_before=st.learner.version,
-                version_after=st.learner.version)))
+            b.answers.append(
+                (
+                    p.future,
+                    WellTestResult(
+                        st.well,
+                        _iso(t) or "",
+                        m.q_total,
+                        "pending",
+                        f"Stored. No sensor sample of {st.well} at or after {_iso(t)} has arrived yet; the well test "
+                        "is learned from when it does.",
+                        version_before=st.learner.version,
+                        version_after=st.learner.version,
+                    ),
+                )
+            )
             p.future = None
 
     def _resolve_pending(self, st: WellState, b: _Batch, upto: int) -> None:
@@ -618,7 +720,8 @@ class Engine:
             r = Rejected(
                 "no sensor sample within tolerance",
                 f"No sensor sample of {st.well} arrived within {self.settings.inputs.pair_tolerance_s:g} s of the "
-                f"{p.source} measurement at {_iso(p.time_ns)}" + (" before the wait ran out" if force else "")
+                f"{p.source} measurement at {_iso(p.time_ns)}"
+                + (" before the wait ran out" if force else "")
                 + "; it is stored but not learned from.",
             )
             self.counters.reject(r.reason, r.message, where=st.well)
@@ -633,8 +736,21 @@ class Engine:
         before = learner.predict(list(sample.inputs)) if p.future is not None else {}
         self._apply_learning(st, sample, p.q_total, p.time_ns, b.ops)
         st.learn_seq += 1
-        b.ops.append(("learned", (st.learn_seq, sample.time_ns, *sample.inputs, sample.predicted,
-                                  learner.version, st.well, p.source, p.time_ns)))
+        b.ops.append(
+            (
+                "learned",
+                (
+                    st.learn_seq,
+                    sample.time_ns,
+                    *sample.inputs,
+                    sample.predicted,
+                    learner.version,
+                    st.well,
+                    p.source,
+                    p.time_ns,
+                ),
+            )
+        )
         self.counters.event("learned")
         if st.updates_since_checkpoint >= self.settings.store.checkpoint_every:
             b.ops.extend(self._checkpoint_ops(st))
@@ -642,15 +758,31 @@ class Engine:
         if p.future is not None:
             after = learner.predict(list(sample.inputs))
             changed = learner.version != version_before
-            b.answers.append((p.future, WellTestResult(
-                st.well, _iso(p.time_ns) or "", p.q_total, "learned",
-                "Stored and learned from: the model was updated." if changed else
-                "Stored; the model keeps it for its next periodic retrain (method "
-                f"{learner.method.text}).",
-                paired_sample_time=_iso(sample.time_ns), before=before, after=after,
-                version_before=version_before, version_after=learner.version, model_changed=changed)))
+            b.answers.append(
+                (
+                    p.future,
+                    WellTestResult(
+                        st.well,
+                        _iso(p.time_ns) or "",
+                        p.q_total,
+                        "learned",
+                        "Stored and learned from: the model was updated."
+                        if changed
+                        else "Stored; the model keeps it for its next periodic retrain (method "
+                        f"{learner.method.text}).",
+                        paired_sample_time=_iso(sample.time_ns),
+                        before=before,
+                        after=after,
+                        version_before=version_before,
+                        version_after=learner.version,
+                        model_changed=changed,
+                    ),
+                )
+            )
 
-    def _apply_learning(self, st: WellState, sample: _Sample, q_total: float, time_ns: int, ops: list[Op]) -> None:
+    def _apply_learning(
+        self, st: WellState, sample: _Sample, q_total: float, time_ns: int, ops: list[Op]
+    ) -> None:
         """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
         learner = st.learner
         changed = learner.learn(list(sample.inputs), q_total, from_ns(time_ns))
@@ -672,12 +804,22 @@ class Engine:
                 learner.retrain(pd.Timestamp(time_ns, tz="UTC"))
                 st.updates_since_checkpoint += 1
                 action = "retrained"
-            event = {"time": _iso(time_ns), "statistic": float(det.statistic), "p_value": float(det.p_value),
-                     "action": action}
+            event = {
+                "time": _iso(time_ns),
+                "statistic": float(det.statistic),
+                "p_value": float(det.p_value),
+                "action": action,
+            }
             st.drift_events.append(event)
             ops.append(("drift", (st.well, time_ns, event["statistic"], event["p_value"], action)))
-            logger.info("Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.", st.well, event["time"],
-                           event["statistic"], event["p_value"], action)
+            logger.info(
+                "Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.",
+                st.well,
+                event["time"],
+                event["statistic"],
+                event["p_value"],
+                action,
+            )
             self.counters.event("drifts")
             ref = np.asarray(st.learned_inputs, dtype=float)
             det.reset(ref if len(ref) >= self.settings.drift.reference_size else None)
@@ -694,8 +836,19 @@ class Engine:
         learner = st.learner
         keep = self.settings.store.keep_checkpoints
         return [
-            ("checkpoint", (st.well, time.time_ns(), learner.version, st.learn_seq, learner.model_name,
-                            learner.method.text, learner.checkpoint(), json.dumps(extra))),
+            (
+                "checkpoint",
+                (
+                    st.well,
+                    time.time_ns(),
+                    learner.version,
+                    st.learn_seq,
+                    learner.model_name,
+                    learner.method.text,
+                    learner.checkpoint(),
+                    json.dumps(extra),
+                ),
+            ),
             ("prune_checkpoints", (st.well, st.well, keep)),
         ]
 

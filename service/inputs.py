@@ -83,7 +83,8 @@ def _loads(payload: bytes | str) -> dict[str, Any]:
         raise Rejected("malformed JSON", f"The payload is not valid JSON ({exc}).") from None
     if not isinstance(data, dict):
         raise Rejected(
-            "not a JSON object", f"The payload must be a JSON object {{...}}, not {type(data).__name__}."
+            "not a JSON object",
+            f"The payload must be a JSON object {{...}}, not {type(data).__name__}.",
         )
     return data
 
@@ -95,7 +96,8 @@ def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
         value = data[name]
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise Rejected(
-                "wrong type", f"{name} must be a number, got {json.dumps(value)[:40]} ({type(value).__name__})."
+                "wrong type",
+                f"{name} must be a number, got {json.dumps(value)[:40]} ({type(value).__name__}).",
             )
         if not math.isfinite(value):
             raise Rejected("not finite", f"{name} must be a finite number, got {value}.")
@@ -123,7 +125,10 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     if "finite" in msg:
         return "not finite", msg[0].upper() + msg[1:] + "."
     if field in ("p_up", "p_down") and kind in ("greater_than", "greater_than_equal"):
-        return "negative or zero pressure", f"{field} = {value} bar a; pressures must be above 0 bar absolute."
+        return (
+            "negative or zero pressure",
+            f"{field} = {value} bar a; pressures must be above 0 bar absolute.",
+        )
     if field == "choke" and kind in ("greater_than_equal", "less_than_equal"):
         return "choke outside 0..1", f"choke = {value}; the opening must be a fraction from 0 to 1."
     if field in ("eta_gas", "eta_oil") and kind in ("greater_than_equal", "less_than_equal"):
@@ -137,7 +142,10 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     if "absolute zero" in msg:
         return "temperature below absolute zero", msg[0].upper() + msg[1:] + "."
     if field == "time":
-        return "wrong type", f"time {json.dumps(value, default=str)[:40]} is not an ISO 8601 time ({msg})."
+        return (
+            "wrong type",
+            f"time {json.dumps(value, default=str)[:40]} is not an ISO 8601 time ({msg}).",
+        )
     return "wrong type", f"{field or 'The payload'}: {msg}."
 
 
@@ -174,7 +182,8 @@ def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:
     well, kind, source = parsed
     if kind == "measurements" and source not in SOURCES:
         raise Rejected(
-            "unknown source", f"The measurement source '{source}' in '{key}' is not one of {', '.join(SOURCES)}."
+            "unknown source",
+            f"The measurement source '{source}' in '{key}' is not one of {', '.join(SOURCES)}.",
         )
     return well, kind, source
 
@@ -215,8 +224,13 @@ class Counters:
         if last is None:
             logger.warning("Rejected input: %s%s: %s", reason, where, message)
         else:
-            logger.warning("Rejected %d input(s) for '%s' in the last minute%s; latest: %s",
-                           count, reason, where, message)
+            logger.warning(
+                "Rejected %d input(s) for '%s' in the last minute%s; latest: %s",
+                count,
+                reason,
+                where,
+                message,
+            )
 
     def snapshot(self) -> dict[str, dict[str, int]]:
         with self._lock:

@@ -17,14 +17,13 @@ import numpy as np
 import pandas as pd
 import torch
 
+from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
 from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL
 from vfm_core.streaming import WellLearner
-
-from service.config import ModelSettings
 
 __all__ = ["new_learner", "load_history", "fit_history"]
 
@@ -53,12 +52,18 @@ def load_history(cfg: ModelSettings) -> pd.DataFrame:
     keep = target_mask(frame, "all")
     if cfg.history_until is not None:
         keep = keep & (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
-    logger.info("History %s: %d measured rows before %s.", cfg.history, int(keep.sum()),
-                cfg.history_until.isoformat() if cfg.history_until else "its end")
+    logger.info(
+        "History %s: %d measured rows before %s.",
+        cfg.history,
+        int(keep.sum()),
+        cfg.history_until.isoformat() if cfg.history_until else "its end",
+    )
     return frame.loc[keep].reset_index(drop=True)
 
 
-def _slice_state(full: dict[str, torch.Tensor], single: dict[str, torch.Tensor], j: int, n: int) -> dict[str, torch.Tensor]:
+def _slice_state(
+    full: dict[str, torch.Tensor], single: dict[str, torch.Tensor], j: int, n: int
+) -> dict[str, torch.Tensor]:
     """Well j's part of a multi-well state dict, shaped like a one-well model's."""
     out: dict[str, torch.Tensor] = {}
     for key, mine in single.items():
@@ -72,7 +77,9 @@ def _slice_state(full: dict[str, torch.Tensor], single: dict[str, torch.Tensor],
     return out
 
 
-def fit_history(learners: dict[str, WellLearner], history: pd.DataFrame, cfg: ModelSettings) -> list[str]:
+def fit_history(
+    learners: dict[str, WellLearner], history: pd.DataFrame, cfg: ModelSettings
+) -> list[str]:
     """Fit the learners of the wells in ``history`` (one batched fit); returns the wells fitted."""
     if history.empty:
         return []
@@ -88,7 +95,9 @@ def fit_history(learners: dict[str, WellLearner], history: pd.DataFrame, cfg: Mo
         full = model.state_dict()
         for j, well in enumerate(wells):
             learner = learners[well]
-            learner.model.load_state_dict(_slice_state(full, learner.model.state_dict(), j, len(wells)))
+            learner.model.load_state_dict(
+                _slice_state(full, learner.model.state_dict(), j, len(wells))
+            )
             _adopt_fit(learner, frame[frame[WELL] == well], summary["iterations"][j : j + 1])
     except (ValueError, RuntimeError) as exc:
         # WellLearner's private layout changed: fall back to one fit per well (slower)

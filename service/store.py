@@ -144,7 +144,9 @@ class Store:
                 "point store.path at a new file or at a store this service wrote."
             ) from None
         if row is None:
-            self._writer.execute("INSERT INTO meta (key, value) VALUES ('schema', ?)", (SCHEMA_VERSION,))
+            self._writer.execute(
+                "INSERT INTO meta (key, value) VALUES ('schema', ?)", (SCHEMA_VERSION,)
+            )
         elif row[0] != SCHEMA_VERSION:
             raise ConfigError(
                 f"The store {self.path} has schema version {row[0]}, this service writes "
@@ -153,7 +155,9 @@ class Store:
         self._readers: list[sqlite3.Connection] = []
 
     def _connect(self) -> sqlite3.Connection:
-        con = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        con = sqlite3.connect(
+            self.path, isolation_level=None, check_same_thread=False, timeout=30.0
+        )
         con.execute("PRAGMA journal_mode=WAL")
         con.execute(f"PRAGMA synchronous={self.synchronous.upper()}")
         con.execute("PRAGMA busy_timeout=30000")
@@ -268,10 +272,13 @@ class Store:
 
     def measurement_exists(self, well: str, source: str, time_ns: int) -> bool:
         with self.reader() as con:
-            return con.execute(
-                "SELECT 1 FROM measurements WHERE well = ? AND source = ? AND time_ns = ?",
-                (well, source, time_ns),
-            ).fetchone() is not None
+            return (
+                con.execute(
+                    "SELECT 1 FROM measurements WHERE well = ? AND source = ? AND time_ns = ?",
+                    (well, source, time_ns),
+                ).fetchone()
+                is not None
+            )
 
     def drift_events(self, well: str, limit: int = 20) -> list[tuple[int, float, float, str]]:
         with self.reader() as con:

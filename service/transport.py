@@ -23,10 +23,9 @@ from typing import Protocol
 
 import zenoh
 
+from service.config import ZenohSettings
 from vfm_core.errors import ConfigError
 from vfm_core.messages import prediction_key
-
-from service.config import ZenohSettings
 
 __all__ = ["Transport", "ZenohTransport", "zenoh_config", "session_locators"]
 
@@ -120,7 +119,9 @@ class ZenohTransport:
         return self._session
 
     def start(self, deliver: Deliver) -> None:
-        sub = self.session.declare_subscriber(f"{self.prefix}/**", zenoh.handlers.FifoChannel(self.capacity))
+        sub = self.session.declare_subscriber(
+            f"{self.prefix}/**", zenoh.handlers.FifoChannel(self.capacity)
+        )
         self._subscriber = sub
         stop_key, token = self._control_key, self._stop_token
 
@@ -163,8 +164,12 @@ class ZenohTransport:
         """End the receiver thread (a local control message: recv cannot be interrupted)."""
         if self._thread is None or self._session is None:
             return
-        self._session.put(self._control_key, b"", attachment=self._stop_token,
-                          allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        self._session.put(
+            self._control_key,
+            b"",
+            attachment=self._stop_token,
+            allowed_destination=zenoh.Locality.SESSION_LOCAL,
+        )
         self._thread.join(timeout)
         if self._thread.is_alive():  # pragma: no cover - receiver stuck in deliver
             logger.warning("The Zenoh receiver thread did not stop within %.0f s.", timeout)

@@ -118,6 +118,9 @@ def test_algorithm_a1_finds_the_shift() -> None:
     times = np.datetime64("2019-01-01") + np.arange(400) * np.timedelta64(1, "D")
     res = estimate_update_period(x, times, reference=200, alpha=0.05, confirm=3)
     assert 300 <= res.index <= 305
-    assert res.period == np.timedelta64(res.index - 199, "D") and res.period / np.timedelta64(1, "D") >= 100
+    assert (
+        res.period == np.timedelta64(res.index - 199, "D")
+        and res.period / np.timedelta64(1, "D") >= 100
+    )
     with pytest.raises(ConfigError):
         estimate_update_period(x, reference=1)

@@ -69,7 +69,9 @@ def test_save_load_keeps_predictions(name: str, train_batch, tmp_path) -> None:
     # the file is a plain tensor archive: torch refuses pickled objects with weights_only
     torch.load(path, weights_only=True)
     loaded = load_model(path)
-    torch.testing.assert_close(loaded.predict(train_batch.x), model.predict(train_batch.x), rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(
+        loaded.predict(train_batch.x), model.predict(train_batch.x), rtol=0, atol=0, equal_nan=True
+    )
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -146,7 +148,9 @@ def test_physical_parameters_stay_in_bounds(train_batch) -> None:
     fit_batch(model, wrong, replace(DEFAULT_TRAIN["mm"], lr=5.0, max_iter=50, patience=50))
     for name, values in model.physical_parameters().items():
         if name in PRIORS:
-            assert (values >= PRIORS[name].low - 1e-9).all() and (values <= PRIORS[name].high + 1e-9).all(), name
+            assert (values >= PRIORS[name].low - 1e-9).all() and (
+                values <= PRIORS[name].high + 1e-9
+            ).all(), name
 
 
 def test_unknown_names_list_the_valid_ones() -> None:

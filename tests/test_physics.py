@@ -48,8 +48,9 @@ def test_phase_rates_sum_to_total() -> None:
 def test_pure_liquid_limit_is_bernoulli() -> None:
     # eta_gas -> 0: G = rho_L sqrt(2 (p1 - p2) / rho_L) = sqrt(2 rho_L dp), p_cr irrelevant
     # for the liquid term only when the throat sees p2, so put p2 above p_cr * p1.
-    g = ph.choke_mass_flux(1e7, 7e6, 330.0, 0.0, 1.0, rho_oil=850.0, rho_wat=1025.0, kappa=1.3,
-                           m_gas=0.02, p_cr=0.55)
+    g = ph.choke_mass_flux(
+        1e7, 7e6, 330.0, 0.0, 1.0, rho_oil=850.0, rho_wat=1025.0, kappa=1.3, m_gas=0.02, p_cr=0.55
+    )
     assert float(g) == pytest.approx(math.sqrt(2 * 850.0 * 3e6), rel=1e-12)
 
 
@@ -59,8 +60,9 @@ def test_pure_gas_limit_is_isentropic_nozzle() -> None:
     rho1 = p1 * m / (ph.R_GAS * t1)
     rho2 = rho1 * r ** (1 / k)
     expected = rho2 * math.sqrt(2 * k / (k - 1) * p1 / rho1 * (1 - r ** ((k - 1) / k)))
-    g = ph.choke_mass_flux(p1, r * p1, t1, 1.0, 0.0, rho_oil=850.0, rho_wat=1025.0, kappa=k,
-                           m_gas=m, p_cr=0.5)
+    g = ph.choke_mass_flux(
+        p1, r * p1, t1, 1.0, 0.0, rho_oil=850.0, rho_wat=1025.0, kappa=k, m_gas=m, p_cr=0.5
+    )
     assert float(g) == pytest.approx(expected, rel=1e-12)
 
 
@@ -122,9 +124,10 @@ def test_unknown_area_family_lists_choices() -> None:
 
 
 def test_gradients_flow_to_every_parameter() -> None:
-    params = {k: torch.tensor(v, dtype=torch.float64, requires_grad=True)
-              for k, v in dict(rho_oil=850.0, rho_wat=1025.0, kappa=1.3, m_gas=0.02,
-                               p_cr=0.55).items()}
+    params = {
+        k: torch.tensor(v, dtype=torch.float64, requires_grad=True)
+        for k, v in dict(rho_oil=850.0, rho_wat=1025.0, kappa=1.3, m_gas=0.02, p_cr=0.55).items()
+    }
     g = ph.choke_mass_flux(1e7, 3e6, 343.15, 0.1, 0.6, **params)
     g.backward()
     for name, p in params.items():

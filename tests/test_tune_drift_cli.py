@@ -15,19 +15,54 @@ from vfm_core.tune import load_params, run_tuning, settings_for, trial_grid
 @pytest.fixture(scope="module")
 def small_field(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("field") / "field.parquet"
-    assert main(["simulate", "--out", str(out), "--wells", "2", "--years", "1.5",
-                 "--start", "2017-09-01", "--seed", "4", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(out),
+                "--wells",
+                "2",
+                "--years",
+                "1.5",
+                "--start",
+                "2017-09-01",
+                "--seed",
+                "4",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return out
 
 
-def test_simulate_then_evaluate_writes_the_contract(small_field: Path, tmp_path: Path, capsys) -> None:
+def test_simulate_then_evaluate_writes_the_contract(
+    small_field: Path, tmp_path: Path, capsys
+) -> None:
     out = tmp_path / "eval"
-    rc = main(["evaluate", str(small_field), "--out", str(out), "--models", "last,mm",
-               "--methods", "ol,pbl:30d", "--quiet", "--no-report"])
+    rc = main(
+        [
+            "evaluate",
+            str(small_field),
+            "--out",
+            str(out),
+            "--models",
+            "last,mm",
+            "--methods",
+            "ol,pbl:30d",
+            "--quiet",
+            "--no-report",
+        ]
+    )
     assert rc == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert {(s["model"], s["method"]) for s in metrics["summary"]} == {
-        ("last", "ol"), ("last", "pbl:30d"), ("mm", "ol"), ("mm", "pbl:30d")}
+        ("last", "ol"),
+        ("last", "pbl:30d"),
+        ("mm", "ol"),
+        ("mm", "pbl:30d"),
+    }
     assert "Mean MAPE across wells" in capsys.readouterr().out
 
 
@@ -44,14 +79,23 @@ def test_bad_input_gives_one_sentence_and_status_2(tmp_path: Path, capsys) -> No
 
 def test_tune_is_resumable_and_chooses_from_the_grid(small_field: Path, tmp_path: Path) -> None:
     out = tmp_path / "tune"
-    kw = dict(models=["mm"], methods=["pbl:60d"], targets="all", split="2019-01-01", grid="small",
-              workers=1, progress=False)
+    kw = dict(
+        models=["mm"],
+        methods=["pbl:60d"],
+        targets="all",
+        split="2019-01-01",
+        grid="small",
+        workers=1,
+        progress=False,
+    )
     params = run_tuning(small_field, out, **kw)
     trials = (out / "trials.jsonl").read_text().splitlines()
     assert len(trials) == len(trial_grid(["mm"], ["pbl:60d"], "small")) == 3
     chosen = params["models"]["mm"]["pbl:60d"]
     scores = {json.loads(t)["train"]["lr"]: json.loads(t)["mean_mape"] for t in trials}
-    assert chosen["train"]["lr"] == min(scores, key=lambda k: scores[k] if scores[k] is not None else 1e9)
+    assert chosen["train"]["lr"] == min(
+        scores, key=lambda k: scores[k] if scores[k] is not None else 1e9
+    )
     # the inner validation period lies strictly before the split: no peeking
     assert pd.Timestamp(params["inner_split"]) < pd.Timestamp(params["split"])
     # a second run finds every trial done and only rewrites params.json

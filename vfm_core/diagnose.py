@@ -252,13 +252,26 @@ def rank_drivers(
     return sorted(out, key=lambda d: -d["score"])
 
 
-def bic(residuals: np.ndarray, k: int) -> float:
-    """BIC of relative residuals under Gaussian errors: n log(mean r^2) + k log n."""
-    r = np.clip(residuals[np.isfinite(residuals)], -_CLIP, _CLIP)
+def bic(residuals: np.ndarray, k: int, groups: np.ndarray | None = None) -> float:
+    """BIC of relative residuals under Gaussian errors with one variance per group.
+
+    sum over groups g of n_g log(mean r_g^2) + k log n. The groups are the measurement
+    sources: MPFM readings (2-5 % noise) and well tests (about 1 %) carry different
+    noise, so a term that fits only the many MPFM rows and not the precise well tests
+    gains less than one that fits both.
+    """
+    r = np.asarray(residuals, dtype=float)
+    g = np.zeros(len(r), dtype=int) if groups is None else pd.factorize(np.asarray(groups))[0]
+    ok = np.isfinite(r)
+    r, g = np.clip(r[ok], -_CLIP, _CLIP), g[ok]
     n = len(r)
     if n == 0:
         return float("nan")
-    return float(n * math.log(max(float(np.mean(r**2)), 1e-300)) + k * math.log(n))
+    total = 0.0
+    for code in np.unique(g):
+        rg = r[g == code]
+        total += len(rg) * math.log(max(float(np.mean(rg**2)), 1e-300))
+    return float(total + k * math.log(n))
 
 
 def _regions(res: pd.DataFrame) -> dict[str, list[dict[str, Any]]]:
@@ -330,7 +343,7 @@ def _score(
     r = ((p["measured"] - p["predicted"]) / p["measured"]).to_numpy(dtype=float)
     params, meaning, k = _parameter_summary(run, effects)
     m = mape(p["predicted"], p["measured"])
-    b = bic(r, k)
+    b = bic(r, k, p["source"].to_numpy())
     delta_mape, delta_bic = m - base_mape, b - base_bic
     material = bool(
         delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape) and delta_bic < -MATERIAL_BIC
@@ -384,7 +397,7 @@ def run_diagnosis(
     p_cr = ({w: float(v) for w, v in zip(base.final_model.wells, phys["p_cr"], strict=True)}
             if "p_cr" in phys else None)
     res = residual_frame(frame, base_p, targets=targets, split=split_ts, p_cr=p_cr)
-    base_bic = bic(res["r"].to_numpy(), 0)
+    base_bic = bic(res["r"].to_numpy(), 0, res["source"].to_numpy())
     drivers = rank_drivers(res)
     regions = _regions(res)
     findings = _findings(res, regions, base_mape)

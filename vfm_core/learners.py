@@ -104,8 +104,8 @@ DEFAULT_ONLINE: dict[str, OnlineSettings] = {
     "nn": OnlineSettings(optimizer="sgd", lr=1e-4, steps=10),
     "mtl": OnlineSettings(lr=1e-4, steps=10),
     "mm": OnlineSettings(lr=1e-3, steps=10),
-    "hem": OnlineSettings(optimizer="sgd", lr=1e-3, steps=10),
-    "ham": OnlineSettings(optimizer="sgd", lr=1e-3, steps=10),
+    "hem": OnlineSettings(lr=1e-4, steps=1),
+    "ham": OnlineSettings(lr=1e-4, steps=1),
 }
 
 
