@@ -392,16 +392,18 @@ async def post_well_test(
     try:
         checked = parse_measurement(test.model_dump(mode="json"))
         future = engine.submit_well_test(well, checked)
+    except Rejected as r:  # refused before reaching the worker: count it here
+        service.counters.reject(r.reason, r.message, where=f"POST /wells/{well}/well-tests")
+        raise ApiError(r.status, r.message, reason=r.reason) from None
+    try:
         result = await asyncio.wait_for(asyncio.wrap_future(future), WELL_TEST_WAIT_S)
-    except Rejected as r:
-        if r.reason not in ("unknown well",) or service.settings.inputs.unknown_wells == "reject":
-            service.counters.reject(r.reason, r.message, where=f"POST /wells/{well}/well-tests")
+    except Rejected as r:  # refused by the worker, which counted it
         raise ApiError(r.status, r.message, reason=r.reason) from None
     except TimeoutError:
         raise ApiError(
             503,
             f"The well test was queued but not handled within {WELL_TEST_WAIT_S:g} s; the "
-            "service is overloaded. It will still be stored; check GET /wells/{well}/history.",
+            f"service is overloaded. It is still stored once handled; check GET /wells/{well}/history.",
         ) from None
     body = WellTestOut(**result.__dict__).model_dump()
     return JSONResponse(body, status_code=200 if result.status == "learned" else 202)

@@ -246,7 +246,10 @@ class QueueSettings(_Section):
     #: how long the receiver waits on a full worker queue (back-pressure through Zenoh's
     #: BLOCK congestion control) before it drops the message and counts an overflow
     block_s: float = Field(10.0, ge=0)
-    batch_max: int = Field(256, ge=1, description="messages handled per store commit")
+    batch_max: int = Field(256, ge=1, description="at most this many messages per store commit")
+    batch_ms: float = Field(
+        20.0, gt=0, description="commit and publish at least this often while busy, ms"
+    )
 
 
 class DriftSettings(_Section):

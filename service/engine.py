@@ -491,38 +491,33 @@ class Engine:
 
     # -- the worker -----------------------------------------------------------------------
     def _run(self, index: int, q: queue.Queue[Any]) -> None:
+        """Take items in arrival order; commit and publish when the queue runs dry, the batch
+        is full, or it has run for ``queues.batch_ms`` (so a slow learning step does not hold
+        back the predictions already made)."""
         batch_max = self.settings.queues.batch_max
+        batch_s = self.settings.queues.batch_ms / 1000.0
         last_expiry = time.monotonic()
         stopping = False
         while not stopping:
+            b = _Batch()
             try:
-                first = q.get(timeout=0.5)
+                item = q.get(timeout=0.5)
             except queue.Empty:
-                first = None
-            items = [] if first is None else [first]
-            while items and len(items) < batch_max:
+                item = None
+            began = time.monotonic()
+            n = 0
+            while item is not None:
+                if item is self._stop:
+                    stopping = True
+                    break
+                self._handle(item, b)
+                n += 1
+                if n >= batch_max or time.monotonic() - began > batch_s:
+                    break
                 try:
-                    items.append(q.get_nowait())
+                    item = q.get_nowait()
                 except queue.Empty:
                     break
-            if self._stop in items:
-                stopping = True
-                items = [i for i in items if i is not self._stop]
-            b = _Batch()
-            for item in items:
-                try:
-                    if isinstance(item, SensorItem):
-                        self._on_sample(item, b)
-                    else:
-                        self._on_measurement(item, b)
-                except Exception as exc:  # one bad message must not stop the worker
-                    logger.exception(
-                        "Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc
-                    )
-                    self.counters.event("internal errors")
-                    fut = getattr(item, "future", None)
-                    if fut is not None:
-                        b.answers.append((fut, exc))
             now = time.monotonic()
             if now - last_expiry > 0.5:
                 last_expiry = now
@@ -530,6 +525,21 @@ class Engine:
                     if st.worker == index and st.pending:
                         self._expire_pending(st, b, now)
             self._flush(b)
+
+    def _handle(self, item: Any, b: _Batch) -> None:
+        try:
+            if isinstance(item, SensorItem):
+                self._on_sample(item, b)
+            else:
+                self._on_measurement(item, b)
+        except Exception as exc:  # one bad message must not stop the worker
+            logger.exception(
+                "Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc
+            )
+            self.counters.event("internal errors")
+            fut = getattr(item, "future", None)
+            if fut is not None:
+                b.answers.append((fut, exc))
 
     def _flush(self, b: _Batch) -> None:
         try:
