@@ -6,7 +6,9 @@
    SQLite store, Zenoh and HTTP on free loopback ports, the hybrid ``ham`` model with
    online learning (``ol``), fitted on the first year.
 3. Replay the remaining two years through it over Zenoh as fast as it takes them.
-4. Print the MAPE per well and overall, the ``last`` benchmark's for reference, and
+4. Run the offline study of the same file (``vfm evaluate``: last, mm and the service's
+   model; ol and pbl:182d) and write its report (skip with --no-report).
+5. Print the MAPE per well and overall, the ``last`` benchmark's for reference, and
    where to look next. The service stops at the end (or on Ctrl-C with --keep-serving).
 """
 
@@ -50,6 +52,7 @@ def run_demo(args: argparse.Namespace) -> int:
     import httpx
 
     from replay.replayer import replay_frame
+    from vfm_core.evaluate import run_study, write_study
     from vfm_core.observations import load_observations
     from vfm_core.simulate import simulate_field, write_field
     from vfm_core.study import mape, metrics_records, run_prequential
@@ -59,8 +62,9 @@ def run_demo(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     data = out / "field.parquet"
     split = f"{2016 + args.history_years}-01-01"
+    n_steps = 4 if args.no_report else 5
     print(
-        f"1/4 Simulating {args.wells} wells over {args.years:g} years from 2016-01-01 (seed {args.seed}, "
+        f"1/{n_steps} Simulating {args.wells} wells over {args.years:g} years from 2016-01-01 (seed {args.seed}, "
         "hidden choke erosion) ...",
         flush=True,
     )
@@ -77,7 +81,7 @@ def run_demo(args: argparse.Namespace) -> int:
         _config_text(out, data, split, args.model, args.method, token), encoding="utf-8"
     )
     print(
-        f"2/4 Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
+        f"2/{n_steps} Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
         flush=True,
     )
     from service.testing import (
@@ -90,7 +94,7 @@ def run_demo(args: argparse.Namespace) -> int:
     try:
         print(f"    Service ready: HTTP {http_url}, Zenoh {zenoh_ep}.", flush=True)
         print(
-            f"3/4 Replaying the rows from {split} on over Zenoh, as fast as the service takes them ...",
+            f"3/{n_steps} Replaying the rows from {split} on over Zenoh, as fast as the service takes them ...",
             flush=True,
         )
         result = replay_frame(
@@ -99,44 +103,84 @@ def run_demo(args: argparse.Namespace) -> int:
         health = httpx.get(f"{http_url}/health", timeout=10).json()
         wells = httpx.get(f"{http_url}/wells", timeout=10).json()
 
-        print("4/4 Results")
-        last = run_prequential(frame, "last", "ol", split=split)
-        last_by_well = {r["well"]: r["mape"] for r in metrics_records(last.predictions)}
-        last_all = mape(last.predictions["predicted"], last.predictions["measured"])
+        report_path = None
+        if args.no_report:
+            last = run_prequential(frame, "last", "ol", split=split).predictions
+            offline: dict[tuple[str, str], float] = {}
+        else:
+            print(
+                f"4/{n_steps} The offline study of the same file (vfm evaluate: last, mm, {args.model}; "
+                "ol and pbl:182d) for the report ...",
+                flush=True,
+            )
+            models = list(dict.fromkeys(["last", "mm", args.model]))
+            methods = list(dict.fromkeys([args.method, "pbl:182d"]))
+            study = run_study(
+                frame,
+                models=models,
+                methods=methods,
+                split=split,
+                progress=not args.quiet,
+                data_path=str(data),
+            )
+            written = write_study(study, out / "study")
+            report_path = next((p for p in written if p.name == "report.html"), None)
+            preds = study.predictions
+            last = preds[(preds["model"] == "last") & (preds["method"] == preds["method"].iloc[0])]
+            offline = {
+                (str(m), str(meth)): mape(g["predicted"], g["measured"])
+                for (m, meth), g in preds.groupby(["model", "method"], sort=False)
+            }
+        last_by_well = {r["well"]: r["mape"] for r in metrics_records(last)}
+        last_all = mape(last["predicted"], last["measured"])
+
+        print(f"{n_steps}/{n_steps} Results")
         print(result.summary().split("MAPE of the")[0].rstrip())
+        label = f"{args.model}+{args.method} (service)"
         print(
-            f"\n  MAPE %, {len(result.scored):,} measurements after {split} (predicted before learning from them)"
+            f"\n  MAPE %, {len(result.scored):,} measurements after {split} (each predicted before learning from it)"
         )
-        print(
-            f"  {'well':<8} {args.model + '+' + args.method + ' (service)':>20} {'last (benchmark)':>17} {'n':>7}"
-        )
+        print(f"  {'well':<8} {label:>22} {'last (benchmark)':>17} {'n':>7}")
         for r in result.per_well.itertuples():
             print(
-                f"  {r.well:<8} {r.mape:>20.2f} {last_by_well.get(r.well, float('nan')):>17.2f} {r.n:>7,}"
+                f"  {r.well:<8} {r.mape:>22.2f} {last_by_well.get(r.well, float('nan')):>17.2f} {r.n:>7,}"
             )
-        print(
-            f"  {'all':<8} {result.overall_mape:>20.2f} {last_all:>17.2f} {int(result.per_well['n'].sum()):>7,}"
-        )
+        n_all = int(result.per_well["n"].sum())
+        print(f"  {'all':<8} {result.overall_mape:>22.2f} {last_all:>17.2f} {n_all:>7,}")
+        if offline:
+            same = offline.get((args.model, args.method))
+            others = ", ".join(f"{m}+{meth} {v:.2f}" for (m, meth), v in offline.items())
+            print(f"\n  Offline (vfm evaluate, pooled MAPE %): {others}.")
+            if same is not None:
+                print(
+                    f"  The service through Zenoh gave {result.overall_mape:.2f} for {args.model}+{args.method}; "
+                    f"the offline prequential run {same:.2f}."
+                )
         rejected = health.get("rejected_total", 0)
         print(
             f"\n  The service took {health['accepted'].get('sensors', 0):,} samples and "
             f"{health['accepted'].get('measurements', 0):,} measurements, rejected {rejected}, "
             f"dropped {health['overflow']}; model versions now "
-            + ", ".join(f"{w['well']}: {w['version']}" for w in wells)
+            + ", ".join(
+                f"{w['well']}: {w['version']}" for w in sorted(wells, key=lambda w: w["well"])
+            )
             + "."
         )
         elapsed = time.perf_counter() - started
         print(f"\nDone in {elapsed:.0f} s. Where to look next:")
-        print(f"  data       {data}  (truth beside it: field.truth.json)")
+        print(f"  data       {data}  (the truth beside it: field.truth.json)")
         print(
-            f"  store      {(out / 'store.sqlite').resolve()}  (SQLite: samples, predictions, measurements, "
-            "checkpoints)"
+            f"  store      {(out / 'store.sqlite').resolve()}  (SQLite: samples with predictions, "
+            "measurements, checkpoints)"
         )
         print(f"  settings   {config}  (service log: {out / 'serve.log'})")
-        print(
-            f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,ham "
-            f"--methods ol,pbl:14d --split {split}"
-        )
+        if report_path is not None:
+            print(f"  report     {report_path.resolve()}  (open in a browser)")
+        else:
+            print(
+                f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,{args.model} "
+                f"--methods {args.method},pbl:182d --split {split}"
+            )
         if args.keep_serving:
             print(f"  API        {http_url}/docs  (e.g. curl {http_url}/wells/W01)")
             print(f"             POST well tests with: -H 'Authorization: Bearer {token}'")
@@ -179,5 +223,6 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--keep-serving", action="store_true", help="leave the service running until Ctrl-C"
     )
+    p.add_argument("--no-report", action="store_true", help="skip the offline study and its report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run_demo)

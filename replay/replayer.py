@@ -174,7 +174,8 @@ class _Collector:
 
 def _wait_matching(pub: zenoh.Publisher, key: str, timeout: float) -> None:
     deadline = time.monotonic() + timeout
-    while not pub.matching_status.matching:
+    # the stubs say bool, zenoh 1.10 returns a MatchingStatus (always truthy): read .matching
+    while not getattr(pub.matching_status, "matching", False):
         if time.monotonic() > deadline:
             raise ReplayError(
                 f"No service subscribes to {key} after {timeout:g} s. Start `vfm serve` first, and check "

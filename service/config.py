@@ -61,15 +61,17 @@ class _Section(BaseModel):
 class ModelSettings(_Section):
     """The per-well model and its learning method (see ``vfm evaluate``)."""
 
-    name: str = Field("mm", description="model: lr, nn, mm, hem, ham or last (mtl is field-wide)")
-    method: str = Field("ol", description="ol or pbl:<period>[:window=<span>]")
-    seed: int = Field(0, ge=0)
+    name: str = Field(
+        default="mm", description="model: lr, nn, mm, hem, ham or last (mtl is field-wide)"
+    )
+    method: str = Field(default="ol", description="ol or pbl:<period>[:window=<span>]")
+    seed: int = Field(default=0, ge=0)
     model_kwargs: dict[str, Any] = Field(default_factory=dict, description="model hyperparameters")
     train: dict[str, Any] = Field(default_factory=dict, description="overrides of TrainSettings")
     online: dict[str, Any] = Field(default_factory=dict, description="overrides of OnlineSettings")
-    history: Path | None = Field(None, description="observation file for the initial fit")
+    history: Path | None = Field(default=None, description="observation file for the initial fit")
     history_until: datetime | None = Field(
-        None, description="only history rows before this time (UTC) are used"
+        default=None, description="only history rows before this time (UTC) are used"
     )
 
     @field_validator("name")
@@ -150,8 +152,8 @@ class ZenohSettings(_Section):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     #: a BLOCK put that has waited this long closes the link (zenoh's default is 5 s)
-    block_wait_before_close_ms: int = Field(60_000, ge=1)
-    allow_remote: bool = Field(False, description="allow listen endpoints outside loopback")
+    block_wait_before_close_ms: int = Field(default=60_000, ge=1)
+    allow_remote: bool = Field(default=False, description="allow listen endpoints outside loopback")
 
     @model_validator(mode="after")
     def _loopback(self) -> ZenohSettings:
@@ -180,9 +182,9 @@ class HttpSettings(_Section):
     """The HTTP API (FastAPI on uvicorn)."""
 
     host: str = "127.0.0.1"
-    port: int = Field(8000, ge=0, le=65535, description="0 picks a free port")
-    allow_remote: bool = Field(False, description="allow binding outside loopback")
-    token: SecretStr | None = Field(None, description="bearer token for mutating endpoints")
+    port: int = Field(default=8000, ge=0, le=65535, description="0 picks a free port")
+    allow_remote: bool = Field(default=False, description="allow binding outside loopback")
+    token: SecretStr | None = Field(default=None, description="bearer token for mutating endpoints")
 
     @model_validator(mode="after")
     def _loopback(self) -> HttpSettings:
@@ -207,11 +209,11 @@ class StoreSettings(_Section):
     #: full: every commit is fsync'ed (survives power loss); normal: survives a killed process
     synchronous: Literal["full", "normal"] = "full"
     checkpoint_every: int = Field(
-        10,
+        default=10,
         ge=1,
         description="checkpoint after this many model updates (a restart re-learns the rest)",
     )
-    keep_checkpoints: int = Field(3, ge=1, description="checkpoints kept per well")
+    keep_checkpoints: int = Field(default=3, ge=1, description="checkpoints kept per well")
 
 
 class InputSettings(_Section):
@@ -219,12 +221,16 @@ class InputSettings(_Section):
 
     wells: list[str] = Field(default_factory=list, description="wells known from the start")
     unknown_wells: Literal["create", "reject"] = "create"
-    max_future_s: float = Field(86_400.0, gt=0, description="reject times further ahead than this")
-    pair_tolerance_s: float = Field(300.0, ge=0, description="measurement-to-sample time tolerance")
-    pending_max: int = Field(
-        100, ge=1, description="measurements waiting for their sample, per well"
+    max_future_s: float = Field(
+        default=86_400.0, gt=0, description="reject times further ahead than this"
     )
-    pending_timeout_s: float = Field(60.0, gt=0, description="wall-clock wait for a sample")
+    pair_tolerance_s: float = Field(
+        default=300.0, ge=0, description="measurement-to-sample time tolerance"
+    )
+    pending_max: int = Field(
+        default=100, ge=1, description="measurements waiting for their sample, per well"
+    )
+    pending_timeout_s: float = Field(default=60.0, gt=0, description="wall-clock wait for a sample")
 
     @field_validator("wells")
     @classmethod
@@ -240,15 +246,17 @@ class InputSettings(_Section):
 class QueueSettings(_Section):
     """Receive path: Zenoh FifoChannel -> receiver thread -> bounded per-worker queues."""
 
-    receive_capacity: int = Field(4096, ge=16)
-    worker_capacity: int = Field(10_000, ge=16)
-    workers: int = Field(1, ge=1, le=64)
+    receive_capacity: int = Field(default=4096, ge=16)
+    worker_capacity: int = Field(default=10_000, ge=16)
+    workers: int = Field(default=1, ge=1, le=64)
     #: how long the receiver waits on a full worker queue (back-pressure through Zenoh's
     #: BLOCK congestion control) before it drops the message and counts an overflow
-    block_s: float = Field(10.0, ge=0)
-    batch_max: int = Field(256, ge=1, description="at most this many messages per store commit")
+    block_s: float = Field(default=10.0, ge=0)
+    batch_max: int = Field(
+        default=256, ge=1, description="at most this many messages per store commit"
+    )
     batch_ms: float = Field(
-        20.0, gt=0, description="commit and publish at least this often while busy, ms"
+        default=20.0, gt=0, description="commit and publish at least this often while busy, ms"
     )
 
 
@@ -256,9 +264,9 @@ class DriftSettings(_Section):
     """The per-well streaming Hotelling drift test on the inputs of paired measurements."""
 
     enabled: bool = True
-    reference_size: int = Field(200, ge=3)
-    alpha: float = Field(0.01, gt=0, lt=1)
-    confirm: int = Field(5, ge=1)
+    reference_size: int = Field(default=200, ge=3)
+    alpha: float = Field(default=0.01, gt=0, lt=1)
+    confirm: int = Field(default=5, ge=1)
     on_drift: Literal["record", "retrain"] = "record"
 
 
@@ -269,7 +277,7 @@ class Settings(BaseSettings):
         env_prefix="VFM_", env_nested_delimiter="__", extra="forbid", validate_default=True
     )
 
-    prefix: str = Field("vfm", description="key-expression prefix")
+    prefix: str = Field(default="vfm", description="key-expression prefix")
     model: ModelSettings = Field(default_factory=ModelSettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     http: HttpSettings = Field(default_factory=HttpSettings)
@@ -277,9 +285,11 @@ class Settings(BaseSettings):
     inputs: InputSettings = Field(default_factory=InputSettings)
     queues: QueueSettings = Field(default_factory=QueueSettings)
     drift: DriftSettings = Field(default_factory=DriftSettings)
-    rolling_window: int = Field(50, ge=1, description="paired measurements in the rolling MAPE")
+    rolling_window: int = Field(
+        default=50, ge=1, description="paired measurements in the rolling MAPE"
+    )
     torch_threads: int = Field(
-        1, ge=1, le=64, description="torch intra-op threads (tiny tensors: 1)"
+        default=1, ge=1, le=64, description="torch intra-op threads (tiny tensors: 1)"
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

@@ -198,8 +198,9 @@ class WellState:
         }
 
     def rolling_mape(self) -> dict[str, Any]:
-        n = len(self.errors)
-        value = float(np.mean(self.errors) * 100.0) if n else None
+        errors = list(self.errors)  # a copy: the worker appends while the API reads
+        n = len(errors)
+        value = float(np.mean(errors) * 100.0) if n else None
         return {"value": value, "n": n, "window": self.errors.maxlen, "unit": "%"}
 
 
@@ -288,6 +289,12 @@ class Engine:
                 )
         ops: list[Op] = []
         now = time.time_ns()
+        restored = relearned_total = 0
+        by_well = (
+            {str(w): g for w, g in history.groupby("well", sort=False)}
+            if history is not None and not history.empty
+            else {}
+        )
         for well in names:
             ops.append(("well", (well, now, "history" if well in fitted else "config/store")))
             st = WellState(well, learners[well], cfg, self._worker_of(well))
@@ -295,8 +302,8 @@ class Engine:
             if row is not None:
                 st.learn_seq = row.learn_seq
                 self._restore_extra(st, row.extra)
-            elif well in fitted and st.detector is not None and history is not None:
-                own = history[history["well"] == well]
+            elif well in fitted and st.detector is not None and by_well:
+                own = by_well[well]
                 ref = own[["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]].to_numpy(
                     dtype=float
                 )
@@ -310,14 +317,17 @@ class Engine:
             self._load_recent(st)
             st.refresh()
             self.wells[well] = st
-            if row is not None or relearned:
-                logger.info(
-                    "Restored %s: version %d, %d update(s) re-learned after its checkpoint.",
-                    well,
-                    st.learner.version,
-                    relearned,
-                )
+            restored += row is not None
+            relearned_total += relearned
         self.store.write(ops)
+        logger.info(
+            "%d well(s): %d restored from checkpoints, %d fitted on the history; %d measurement(s) "
+            "re-learned after the checkpoints.",
+            len(names),
+            restored,
+            len(fitted),
+            relearned_total,
+        )
 
     def _restore_extra(self, st: WellState, extra: str) -> None:
         import json
@@ -615,7 +625,7 @@ class Engine:
                 ),
             )
         )
-        if rates is None:
+        if rates is None or q_total is None:
             self.counters.event("model not ready")
         else:
             pred = Prediction(

@@ -113,3 +113,52 @@ def test_drift_command_reports_periods(small_field: Path, tmp_path: Path) -> Non
     assert set(result["wells"]) == {"W01", "W02"}
     html = (out / "report.html").read_text()
     assert "data:image/png;base64" in html and "Hotelling" in html
+
+
+def test_evaluate_with_an_effect_shows_the_error_fall(tmp_path: Path) -> None:
+    data = tmp_path / "eroding.parquet"
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(data),
+                "--wells",
+                "2",
+                "--years",
+                "2.5",
+                "--start",
+                "2017-01-01",
+                "--hidden",
+                "erosion:rate=0.1",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    out = tmp_path / "eval"
+    assert (
+        main(
+            [
+                "evaluate",
+                str(data),
+                "--out",
+                str(out),
+                "--models",
+                "mm",
+                "--methods",
+                "pbl:182d",
+                "--effects",
+                "erosion",
+                "--quiet",
+                "--no-report",
+            ]
+        )
+        == 0
+    )
+    summary = {
+        s["model"]: s["mean_mape"]
+        for s in json.loads((out / "metrics.json").read_text())["summary"]
+    }
+    assert set(summary) == {"mm", "mm+erosion"}
+    assert summary["mm+erosion"] < 0.6 * summary["mm"], summary

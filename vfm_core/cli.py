@@ -85,6 +85,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             data_path=str(args.data),
             track_parameters=args.track_parameters,
             params=params,
+            effects=_split_list(args.effects),
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -188,6 +189,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="settings chosen by `vfm tune` (params.json); default: built-in defaults",
     )
     p.add_argument(
+        "--effects",
+        action="append",
+        help="physical effects to add to mm/hem/ham (shown beside the plain model), "
+        "e.g. erosion,real_gas or mypkg.effects:Scale",
+    )
+    p.add_argument(
         "--track-parameters",
         action="store_true",
         help="also write parameters.parquet (physical parameters after each update)",
@@ -212,7 +219,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: vfm_core modules that bring their own subcommands (each has ``register(subparsers)``).
-_INTERNAL_COMMANDS: tuple[str, ...] = ("vfm_core.tune", "vfm_core.drift_report")
+_INTERNAL_COMMANDS: tuple[str, ...] = (
+    "vfm_core.tune",
+    "vfm_core.drift_report",
+    "vfm_core.diagnose",
+)
 
 
 def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

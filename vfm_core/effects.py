@@ -511,7 +511,11 @@ class _EffectMixin:
         for e in self.effects:
             columns += [c for c in e.extra_columns if c not in columns]
         model.extra_columns = tuple(columns)
-        model.hyper["effects"] = [e.name for e in self.effects]
+        # how to rebuild the model (JSON): registry names, or module:Class for a user's own
+        model.hyper["effects"] = [
+            e.name if EFFECTS.get(e.name) is type(e) else f"{type(e).__module__}:{type(e).__qualname__}"
+            for e in self.effects
+        ]
         model.name = "+".join([model.base_name, *(e.name for e in self.effects)])
 
     def effect_values(self) -> dict[str, dict[str, torch.Tensor]]:

@@ -109,18 +109,31 @@ def run_study(
     data_path: str = "",
     run_kwargs: dict[str, Any] | None = None,
     params: dict[str, Any] | None = None,
+    effects: Sequence[str] = (),
 ) -> StudyResult:
     """Run every model with every method prequentially on one target case.
 
     ``params`` (from ``vfm tune``'s params.json) overrides the default settings per model
-    and method.
+    and method. ``effects`` adds, for each of ``mm``, ``hem`` and ``ham``, a run of the model
+    extended with those physical effects, labelled e.g. ``mm+erosion``, beside the plain one.
     """
     _check_names(models, methods)
     split_ts = resolve_split(targets, split)
     started = time.perf_counter()
     is_target = target_mask(frame, targets)
     n_test = int((is_target & (frame[TIME] >= split_ts).to_numpy()).sum())
-    combos = [(m, meth) for m in models for meth in methods]
+    effect_label = ""
+    if effects:
+        from vfm_core.effects import add_features, effect_model_factory, resolve_effects
+
+        frame = add_features(frame, list(effects))
+        effect_label = "+".join(c.name for c in resolve_effects(list(effects)))
+    combos: list[tuple[str, str, str]] = []
+    for m in models:
+        for meth in methods:
+            combos.append((m, meth, m))
+            if effects and m in ("mm", "hem", "ham"):
+                combos.append((m, meth, f"{m}+{effect_label}"))
     bar = tqdm(
         total=n_test * len(combos),
         disable=not progress,
@@ -134,8 +147,8 @@ def run_study(
     updates: dict[str, list[pd.Timestamp]] = {}
     initial_fits: dict[Any, Any] = {}
     try:
-        for model, meth in combos:
-            bar.set_postfix_str(f"{model} {meth}")
+        for model, meth, label in combos:
+            bar.set_postfix_str(f"{label} {meth}")
             base = bar.n
 
             def report(done: int, total: int, base: int = base) -> None:
@@ -143,6 +156,7 @@ def run_study(
 
             from vfm_core.tune import settings_for
 
+            extended = label != model
             result = run_prequential(
                 frame,
                 model,
@@ -153,14 +167,17 @@ def run_study(
                 progress=report,
                 track_parameters=track_parameters,
                 initial_fits=initial_fits,
+                model_factory=effect_model_factory(model, list(effects)) if extended else None,
                 **settings_for(params, model, meth),
                 **(run_kwargs or {}),
             )
+            if extended:
+                result.predictions["model"] = label
             bar.update(base + n_test - bar.n)
             predictions.append(result.predictions)
             updates[meth] = result.updates
             if track_parameters and not result.parameters.empty:
-                parameters.append(result.parameters.assign(model=model, method=meth))
+                parameters.append(result.parameters.assign(model=label, method=meth))
     finally:
         bar.close()
     preds = pd.concat(predictions, ignore_index=True)

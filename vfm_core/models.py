@@ -562,6 +562,12 @@ def load_model(path: str | Path) -> ChokeModel:
     if not isinstance(payload, dict) or payload.get("format") != "vfm-model/1":
         raise ConfigError(f"{path} is not a VFM model file (format vfm-model/1).")
     hyper = json.loads(payload["hyper"])
-    model = make_model(payload["name"], payload["wells"], **hyper)
+    if "effects" in hyper:
+        from vfm_core.effects import make_effect_model
+
+        effects = hyper.pop("effects")
+        model = make_effect_model(payload["name"].split("+")[0], payload["wells"], effects, **hyper)
+    else:
+        model = make_model(payload["name"], payload["wells"], **hyper)
     model.load_state_dict(payload["state"])
     return model

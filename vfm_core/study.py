@@ -149,7 +149,7 @@ def run_prequential(
         repr(train_settings),
         repr(model_kwargs),
     )
-    if initial_fits is not None and cache_key in initial_fits:
+    if initial_fits is not None and model_factory is None and cache_key in initial_fits:
         # the initial fit is the same for every method with the same window: reuse it
         model, iterations = (copy.deepcopy(v) for v in initial_fits[cache_key])
     else:

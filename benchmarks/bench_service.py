@@ -1,0 +1,294 @@
+"""Benchmark of the streaming service: latency and sustained rate, two processes over loopback.
+
+``vfm serve`` runs in a subprocess (model ``mm``, method ``ol``, store in a temp folder);
+this process is the plant: every well sends one sensor sample a second (spread evenly
+over the second), and a measurement (MPFM reading, paired with that sample) every few
+minutes per well, which the service learns from online. Figures per field size:
+
+* latency from putting a sample to receiving its prediction, p50 / p99 / max (ms);
+* the sustained rate: samples sent and predictions received per second, and how many
+  were lost (should be zero);
+* a burst: the same wells' samples sent as fast as Zenoh's BLOCK congestion control lets
+  them, to find the rate the service sustains without loss.
+
+Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
+
+    .venv/bin/python benchmarks/bench_service.py [--wells 100,1000] [--seconds 30] [--burst 20000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import threading
+import time
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import zenoh
+
+from service.testing import ServeProcess, client_session
+from vfm_core.data import target_mask
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+def make_history(
+    folder: Path, wells: int, rows_per_well: int
+) -> tuple[Path, dict[str, np.ndarray]]:
+    """A history of ``wells`` wells (copies of ten simulated ones) and each well's input rows."""
+    base = validate_frame(simulate_field(wells=10, years=1, seed=1).observations).frame
+    base = base[target_mask(base, "all")]
+    names = [f"B{j:04d}" for j in range(wells)]
+    parts, inputs = [], {}
+    for j, name in enumerate(names):
+        own = base[base["well"] == f"W{j % 10 + 1:02d}"]
+        hist = own.iloc[:rows_per_well].copy()
+        hist["well"] = name
+        parts.append(hist)
+        live = own.iloc[rows_per_well:]
+        inputs[name] = live[
+            ["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil", "q_total"]
+        ].to_numpy()
+    path = folder / "history.parquet"
+    pd.concat(parts, ignore_index=True).to_parquet(path)
+    return path, inputs
+
+
+class Plant:
+    """The sending side: one BLOCK publisher per key, and a prediction collector."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.session = client_session([endpoint], block_wait_before_close_ms=600_000)
+        self.sent: dict[tuple[str, str], float] = {}
+        self.latency: list[float] = []
+        self.received = 0
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._sub = self.session.declare_subscriber(
+            "vfm/*/prediction", zenoh.handlers.FifoChannel(1 << 17)
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._collect, daemon=True)
+        self._thread.start()
+
+    def _collect(self) -> None:
+        while not self._stop.is_set():
+            sample = self._sub.try_recv()
+            if sample is None:
+                time.sleep(0.0002)
+                continue
+            now = time.perf_counter()
+            well = str(sample.key_expr).split("/")[1]
+            t = json.loads(sample.payload.to_bytes())["time"]
+            sent = self.sent.pop((well, t), None)
+            if sent is not None:
+                self.latency.append(now - sent)
+            self.received += 1
+
+    def pub(self, key: str) -> zenoh.Publisher:
+        p = self._pubs.get(key)
+        if p is None:
+            p = self.session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            deadline = time.monotonic() + 30
+            while not p.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.01)
+            self._pubs[key] = p
+        return p
+
+    def send(self, well: str, when: datetime, row: np.ndarray, measure: bool) -> None:
+        iso = when.isoformat().replace("+00:00", "Z")
+        payload = (
+            f'{{"time":"{iso}","choke":{row[0]},"p_up":{row[1]},"p_down":{row[2]},'
+            f'"t_up":{row[3]},"eta_gas":{row[4]},"eta_oil":{row[5]}}}'
+        )
+        pub = self.pub(f"vfm/{well}/sensors")
+        self.sent[(well, iso)] = time.perf_counter()
+        pub.put(payload)
+        if measure:
+            self.pub(f"vfm/{well}/measurements/mpfm").put(f'{{"time":"{iso}","q_total":{row[6]}}}')
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        try:
+            self._sub.undeclare()
+            for p in self._pubs.values():
+                p.undeclare()
+        finally:
+            self.session.close()
+
+
+def run_field(
+    wells: int,
+    seconds: float,
+    burst: int,
+    measure_every_s: float,
+    workers: int,
+    synchronous: str,
+    history_rows: int,
+) -> dict[str, float]:
+    with tempfile.TemporaryDirectory(prefix="vfm-bench-") as tmp:
+        folder = Path(tmp)
+        history, inputs = make_history(folder, wells, history_rows)
+        cfg = folder / "vfm.toml"
+        cfg.write_text(f"""
+[model]
+name = "mm"
+method = "ol"
+history = "{history}"
+[zenoh]
+listen = ["tcp/127.0.0.1:0"]
+[http]
+port = 0
+[store]
+path = "{folder / "store.sqlite"}"
+synchronous = "{synchronous}"
+[queues]
+workers = {workers}
+""")
+        started = time.perf_counter()
+        serve = ServeProcess(cfg, folder / "serve.log").start(timeout=1800)
+        startup = time.perf_counter() - started
+        plant = Plant(serve.zenoh)
+        names = sorted(inputs)
+        for name in names:  # declare and match every publisher before the clock starts
+            plant.pub(f"vfm/{name}/sensors")
+            plant.pub(f"vfm/{name}/measurements/mpfm")
+        rng = np.random.default_rng(0)
+        phase = rng.uniform(0, measure_every_s, wells)
+        try:
+            # -- 1 Hz per well, spread over each second ------------------------------------------
+            t0_wall = datetime.now(UTC).replace(microsecond=0) - timedelta(hours=1)
+            t0 = time.perf_counter()
+            sent = 0
+            k = 0
+            n_seconds = int(seconds)
+            for second in range(n_seconds):
+                for j, name in enumerate(names):
+                    due = t0 + second + j / wells
+                    wait = due - time.perf_counter()
+                    if wait > 0:
+                        time.sleep(wait)
+                    row = inputs[name][(second + k) % len(inputs[name])]
+                    measure = (second + phase[j]) % measure_every_s < 1.0
+                    plant.send(name, t0_wall + timedelta(seconds=second), row, measure)
+                    sent += 1
+            send_s = time.perf_counter() - t0
+            deadline = time.monotonic() + 120
+            while plant.received < sent and time.monotonic() < deadline:
+                time.sleep(0.05)
+            steady_s = time.perf_counter() - t0
+            lat = np.array(plant.latency) * 1000.0
+            steady = {
+                "sent": sent,
+                "received": plant.received,
+                "lost": sent - plant.received,
+                "send_rate": sent / send_s,
+                "p50_ms": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
+                "p99_ms": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
+                "max_ms": float(lat.max()) if len(lat) else float("nan"),
+                "elapsed_s": steady_s,
+            }
+            # -- burst: as fast as BLOCK lets us ------------------------------------------------
+            plant.latency.clear()
+            base_received = plant.received
+            t1_wall = t0_wall + timedelta(seconds=n_seconds + 1)
+            t1 = time.perf_counter()
+            n_burst = 0
+            per_well = max(1, burst // wells)
+            for step in range(per_well):
+                for j, name in enumerate(names):
+                    row = inputs[name][step % len(inputs[name])]
+                    measure = (step + int(phase[j])) % int(measure_every_s) == 0
+                    plant.send(name, t1_wall + timedelta(seconds=step), row, measure)
+                    n_burst += 1
+            burst_send_s = time.perf_counter() - t1
+            deadline = time.monotonic() + 300
+            while plant.received - base_received < n_burst and time.monotonic() < deadline:
+                time.sleep(0.02)
+            burst_s = time.perf_counter() - t1
+            got = plant.received - base_received
+            lat = np.array(plant.latency) * 1000.0
+            burst_out = {
+                "sent": n_burst,
+                "received": got,
+                "lost": n_burst - got,
+                "send_s": burst_send_s,
+                "elapsed_s": burst_s,
+                "rate": got / burst_s,
+                "p50_ms": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
+            }
+        finally:
+            plant.close()
+            serve.stop()
+        import sqlite3
+
+        con = sqlite3.connect(folder / "store.sqlite")
+        learned = con.execute(
+            "SELECT COUNT(*) FROM measurements WHERE status = 'learned'"
+        ).fetchone()[0]
+        con.close()
+        return {
+            "wells": wells,
+            "startup_s": startup,
+            "learned": learned,
+            **{f"steady_{k}": v for k, v in steady.items()},
+            **{f"burst_{k}": v for k, v in burst_out.items()},
+        }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--wells", default="100,1000", help="comma-separated field sizes")
+    parser.add_argument("--seconds", type=float, default=30.0, help="length of the 1 Hz run")
+    parser.add_argument("--burst", type=int, default=20_000, help="samples in the burst")
+    parser.add_argument(
+        "--measure-every", type=float, default=180.0, help="seconds between a well's MPFM readings"
+    )
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--synchronous", default="full", choices=["full", "normal"])
+    parser.add_argument(
+        "--history-rows", type=int, default=60, help="history rows per well for the initial fit"
+    )
+    args = parser.parse_args()
+    print(
+        f"vfm service benchmark: mm + ol, store synchronous={args.synchronous}, workers={args.workers}, "
+        f"{args.seconds:g} s at 1 Hz per well, a measurement every {args.measure_every:g} s per well."
+    )
+    for wells in [int(w) for w in args.wells.split(",")]:
+        r = run_field(
+            wells,
+            args.seconds,
+            args.burst,
+            args.measure_every,
+            args.workers,
+            args.synchronous,
+            args.history_rows,
+        )
+        print(
+            f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s; {r['learned']} online updates)"
+        )
+        print(
+            f"  1 Hz per well: sent {r['steady_sent']:,} at {r['steady_send_rate']:,.0f}/s, received "
+            f"{r['steady_received']:,}, lost {r['steady_lost']}; latency p50 {r['steady_p50_ms']:.1f} ms, "
+            f"p99 {r['steady_p99_ms']:.1f} ms, max {r['steady_max_ms']:.1f} ms"
+        )
+        print(
+            f"  burst: {r['burst_sent']:,} samples sent in {r['burst_send_s']:.1f} s, all answered after "
+            f"{r['burst_elapsed_s']:.1f} s = {r['burst_rate']:,.0f} samples/s sustained, lost {r['burst_lost']}"
+        )
+
+
+if __name__ == "__main__":
+    main()

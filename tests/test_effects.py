@@ -1,0 +1,217 @@
+"""Candidate effects: each hook checked against the physics by hand, the protocol, the registry."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from vfm_core import physics as ph
+from vfm_core.data import make_batch
+from vfm_core.effects import (
+    DEFAULT_CANDIDATES,
+    EFFECTS,
+    Effect,
+    Prior,
+    add_features,
+    effect_model_factory,
+    make_effect_model,
+    resolve_effect,
+    standard_features,
+)
+from vfm_core.errors import ConfigError
+from vfm_core.models import Mechanistic
+from vfm_core.simulate import simulate_field
+from vfm_core.study import mape, run_prequential
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.fixture(scope="module")
+def small() -> pd.DataFrame:
+    field = simulate_field(wells=2, years=1.0, seed=3, start="2018-07-01")
+    return add_features(field.observations, list(EFFECTS))
+
+
+def _batch(frame: pd.DataFrame, model: object) -> object:
+    wells = sorted(frame["well"].unique())
+    rows = np.flatnonzero(frame["source"].isin(["mpfm", "well_test"]).to_numpy())[:400]
+    return make_batch(frame, wells, rows, extra_columns=model.extra_columns)  # type: ignore[attr-defined]
+
+
+def _fitted_pair(frame: pd.DataFrame, effects: list[str]) -> tuple[Mechanistic, object, object]:
+    wells = sorted(frame["well"].unique())
+    ext = make_effect_model("mm", wells, effects)
+    batch = _batch(frame, ext)
+    ext.setup(batch)  # type: ignore[arg-type]
+    base = Mechanistic(wells)
+    base.setup(batch)  # type: ignore[arg-type]
+    return base, ext, batch
+
+
+def test_registry_names_and_errors() -> None:
+    assert set(DEFAULT_CANDIDATES) <= set(EFFECTS)
+    assert {"valve_equal_percentage", "valve_sigmoid", "erosion_time"} <= set(EFFECTS)
+    with pytest.raises(ConfigError, match="choose one of"):
+        resolve_effect("erosoin")
+    with pytest.raises(ConfigError, match="Cannot import"):
+        resolve_effect("no_such_module_xyz:Thing")
+    with pytest.raises(ConfigError, match="Effect subclass"):
+        resolve_effect("vfm_core.physics:Prior")
+    with pytest.raises(ConfigError, match="extend the models"):
+        effect_model_factory("nn", ["erosion"])
+    with pytest.raises(ConfigError, match="twice"):
+        effect_model_factory("mm", ["erosion", "erosion"])
+
+
+def test_user_class_by_module_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    cls = resolve_effect("my_effects:WaterCutCurve")
+    assert issubclass(cls, Effect) and cls.name == "water_cut_curve"
+    sys.modules.pop("my_effects", None)
+
+
+def test_effects_off_at_prior_give_the_base_model(small: pd.DataFrame) -> None:
+    # erosion, valve and meter bias are off at their prior means: exactly the plain mm
+    base, ext, batch = _fitted_pair(small, ["erosion", "valve", "mpfm_bias"])
+    q_base = base.predict_batch(batch)  # type: ignore[arg-type]
+    q_ext = ext.predict_batch(batch)  # type: ignore[arg-type]
+    assert torch.allclose(q_base, q_ext, rtol=1e-10)
+    assert float(ext.prior_penalty().detach().abs().max()) == 0.0
+
+
+def test_real_gas_slip_critical_match_physics_at_strength_one(small: pd.DataFrame) -> None:
+    wells = sorted(small["well"].unique())
+    for name, kwargs in [("real_gas", "z"), ("slip", "slip"), ("critical_ratio", "p_cr")]:
+        ext = make_effect_model("mm", wells, [name])
+        batch = _batch(small, ext)
+        ext.setup(batch)  # type: ignore[arg-type]
+        theta = {k: v.unsqueeze(1) for k, v in ext.theta().items()}
+        u, p_up, p_down, t_up, eg, eo = batch.x.unbind(-1)  # type: ignore[attr-defined]
+        p1, p2, t1 = p_up * 1e5, p_down * 1e5, t_up + 273.15
+        kw = dict(rho_oil=theta["rho_oil"], rho_wat=theta["rho_wat"], kappa=theta["kappa"],
+                  m_gas=theta["m_gas"], p_cr=theta["p_cr"])
+        if kwargs == "z":
+            kw["z"] = ph.z_factor_papay(p1, t1, theta["m_gas"])
+        elif kwargs == "slip":
+            kw["slip"] = True
+        else:
+            rho_g1 = ph.gas_density(p1, t1, theta["m_gas"])
+            v_liq = ph.liquid_specific_volume(eg, eo, theta["rho_oil"], theta["rho_wat"])
+            kw["p_cr"] = ph.sachdeva_critical_ratio(eg, rho_g1, v_liq, theta["kappa"], iterations=30)
+        area = (theta["c_d"] * ext.a_max.unsqueeze(1)) * u  # type: ignore[attr-defined]
+        expected = area * ph.choke_mass_flux(p1, p2, t1, eg, eo, **kw) * ph.standard_volume_per_mass(
+            eg, eo, rho_oil=theta["rho_oil"], rho_wat=theta["rho_wat"], m_gas=theta["m_gas"]) * 3600
+        got = ext.predict_batch(batch)  # type: ignore[arg-type]
+        assert torch.allclose(got, expected, rtol=1e-9), name
+
+
+def test_erosion_and_meter_bias_by_hand(small: pd.DataFrame) -> None:
+    base, ext, batch = _fitted_pair(small, ["erosion", "mpfm_bias"])
+    with torch.no_grad():
+        ext.effect_params["erosion"].z[:] = 1.0  # rate = 0.05 per year-equivalent  # type: ignore[index]
+        ext.effect_params["mpfm_bias"].z[:, 0] = 1.2  # bias = +6 %  # type: ignore[index]
+    ratio = ext.predict_batch(batch) / base.predict_batch(batch)  # type: ignore[arg-type]
+    worn = 1.0 + 0.05 * batch.extra[..., list(batch.extra_names).index("throughput_years")]  # type: ignore[attr-defined]
+    meter = torch.where(batch.well_test, torch.ones_like(worn), torch.full_like(worn, 1.06))  # type: ignore[attr-defined]
+    assert torch.allclose(ratio, worn * meter, rtol=1e-9)
+    params = ext.physical_parameters()
+    assert params["erosion.rate"][0] == pytest.approx(0.05)
+    assert params["mpfm_bias.bias"][0] == pytest.approx(0.06)
+
+
+def test_valve_curve_monotone_and_anchored(small: pd.DataFrame) -> None:
+    _, ext, batch = _fitted_pair(small, ["valve"])
+    valve = ext.effects[0]  # type: ignore[attr-defined]
+    u = torch.linspace(0.01, 1.0, 200, dtype=torch.float64).unsqueeze(0)
+    slopes = torch.exp(torch.tensor([[-2.0, -1.0, 0.0, 0.5, 1.0, 2.0]], dtype=torch.float64))
+    curve = valve._curve(u, slopes)
+    assert bool((curve.diff(dim=1) > 0).all())
+    # at the well's median opening the factor is 1 whatever the shape
+    z = torch.zeros(1, 1, dtype=torch.float64)
+    p = {f"log_slope_{k + 1}": z + float(k) - 2.0 for k in range(6)}
+
+    class Inputs:
+        u_ref = torch.tensor([[0.4]], dtype=torch.float64)
+
+    Inputs.u = Inputs.u_ref  # type: ignore[attr-defined]
+    assert float(valve.area_factor(Inputs, p)) == pytest.approx(1.0)
+
+
+def test_projection_keeps_bounds_and_gradients_flow(small: pd.DataFrame) -> None:
+    _, ext, batch = _fitted_pair(small, ["erosion", "real_gas", "slip"])
+    q = ext.forward_batch(batch)  # type: ignore[arg-type]
+    q.sum().backward()
+    for name in ("erosion", "real_gas", "slip"):
+        grad = ext.effect_params[name].z.grad  # type: ignore[index]
+        assert grad is not None and bool(torch.isfinite(grad).all()) and float(grad.abs().sum()) > 0
+    with torch.no_grad():
+        ext.effect_params["erosion"].z[:] = -5.0  # type: ignore[index]
+    ext.project_()
+    assert float(ext.physical_parameters()["erosion.rate"].min()) == 0.0  # wear never shrinks
+
+
+def test_hem_and_ham_take_effects(small: pd.DataFrame) -> None:
+    wells = sorted(small["well"].unique())
+    for base in ("hem", "ham"):
+        model = make_effect_model(base, wells, ["erosion", "real_gas"])
+        batch = _batch(small, model)
+        model.setup(batch)  # type: ignore[arg-type]
+        q = model.predict_batch(batch)  # type: ignore[arg-type]
+        assert bool(torch.isfinite(q).all())
+        assert "erosion.rate" in model.physical_parameters()
+        assert model.name == f"{base}+erosion+real_gas"
+
+
+def test_features_use_only_the_past_and_do_not_mutate(small: pd.DataFrame) -> None:
+    frame = small.drop(columns=["years_on", "throughput_years"])
+    before = frame.copy()
+    feats = standard_features(frame)
+    pd.testing.assert_frame_equal(frame, before)
+    # changing a row's own measured rate does not change its throughput
+    changed = frame.copy()
+    k = int(np.flatnonzero(changed["q_total"].notna().to_numpy())[-50])  # after the 90-day scale window
+    changed.loc[changed.index[k], "q_total"] *= 10.0
+    assert standard_features(changed)["throughput_years"].iloc[k] == feats["throughput_years"].iloc[k]
+    assert (feats.groupby(frame["well"])["throughput_years"].diff().dropna() >= 0).all()
+
+
+def test_plain_forward_refuses_when_features_are_needed(small: pd.DataFrame) -> None:
+    _, ext, batch = _fitted_pair(small, ["erosion"])
+    with pytest.raises(ConfigError, match="forward_batch"):
+        ext.forward(batch.x)  # type: ignore[attr-defined]
+    _, gas, batch2 = _fitted_pair(small, ["real_gas"])
+    assert torch.allclose(gas.predict(batch2.x), gas.predict_batch(batch2))  # type: ignore[attr-defined]
+
+
+def test_factory_runs_prequentially_and_learns_hidden_wear() -> None:
+    field = simulate_field(wells=2, years=2.0, seed=5, start="2017-01-01", hidden=["erosion:rate=0.15"])
+    frame = add_features(field.observations, ["erosion"])
+    kw = dict(split="2018-01-01", method="pbl:3650d")
+    base = run_prequential(frame, "mm", **kw)  # type: ignore[arg-type]
+    ext = run_prequential(frame, "mm", model_factory=effect_model_factory("mm", ["erosion"]), **kw)  # type: ignore[arg-type]
+    assert mape(ext.predictions.predicted, ext.predictions.measured) < mape(
+        base.predictions.predicted, base.predictions.measured)
+    assert float(ext.final_model.physical_parameters()["erosion.rate"].min()) > 0.05  # type: ignore[union-attr]
+
+
+def test_a_user_effect_needs_a_valid_prior() -> None:
+    class Broken(Effect):
+        name = "broken"
+        parameters = {"x": Prior(0.0, 0.0, -1.0, 1.0, "-", "nothing")}
+
+    with pytest.raises(ConfigError, match="std > 0"):
+        resolve_effect(Broken)
+
+
+def test_hyper_names_rebuild_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    model = make_effect_model("mm", ["A"], ["erosion", "my_effects:TemperatureScale"])
+    assert model.hyper["effects"] == ["erosion", "my_effects:TemperatureScale"]
+    again = make_effect_model("mm", ["A"], model.hyper["effects"])
+    assert list(again.state_dict()) == list(model.state_dict())
+    sys.modules.pop("my_effects", None)

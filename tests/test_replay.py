@@ -1,0 +1,111 @@
+"""``vfm replay``: the command line, pacing, scoring and its errors, against a real service."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pytest
+
+from replay.replayer import ReplayError, replay_frame
+from service.app import running
+from service.testing import loopback_settings
+from vfm_core.cli import main
+from vfm_core.errors import ConfigError, DataError
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+pytestmark = pytest.mark.timeout(180)
+
+SPLIT = "2016-10-01"
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, Path, pd.DataFrame]]:
+    folder = tmp_path_factory.mktemp("replay")
+    frame = validate_frame(simulate_field(wells=1, years=1, seed=0).observations).frame
+    data = folder / "field.csv"
+    frame.to_csv(data, index=False)
+    settings = loopback_settings(
+        folder, model={"name": "mm", "method": "ol", "history": str(data), "history_until": SPLIT}
+    )
+    with running(settings) as svc:
+        yield svc, data, frame
+
+
+def test_cli_prints_mape_per_well_and_overall(
+    served: tuple[Any, Path, pd.DataFrame], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    svc, data, frame = served
+    out = tmp_path / "scored.parquet"
+    code = main(
+        [
+            "replay",
+            str(data),
+            "--connect",
+            svc.locators[0],
+            "--start",
+            SPLIT,
+            "--max",
+            "--quiet",
+            "--idle-timeout",
+            "1",
+            "--out",
+            str(out),
+        ]
+    )
+    text = capsys.readouterr().out
+    assert code == 0, text
+    n = int((frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).sum())
+    assert f"Replayed {n:,} rows" in text
+    assert "Predictions: " + f"{n:,} received; 0 sample(s) got none" in text
+    assert "W01" in text and "all" in text and "MAPE" in text
+    scored = pd.read_parquet(out)
+    assert len(scored) == int(
+        ((frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")) & (frame["source"] != "")).sum()
+    )
+    assert scored["predicted"].notna().all()
+
+
+def test_speed_paces_the_stream(served: tuple[Any, Path, pd.DataFrame]) -> None:
+    svc, _, frame = served
+    # ten days of data at 864,000 x real time: about one second
+    rows = frame[
+        (frame["time"] >= pd.Timestamp("2016-12-01", tz="UTC"))
+        & (frame["time"] < pd.Timestamp("2016-12-11", tz="UTC"))
+    ]
+    span = (rows["time"].iloc[-1] - rows["time"].iloc[0]).total_seconds()
+    result = replay_frame(
+        rows, connect=svc.locators, speed=864_000.0, progress=False, idle_timeout=1.0
+    )
+    # the sending alone takes span/speed; waiting for the last answers adds a little
+    assert result.elapsed_s >= span / 864_000.0 * 0.95
+    assert result.samples_sent == len(rows)
+
+
+def test_no_service_is_a_clear_error() -> None:
+    with pytest.raises(ReplayError, match="No service subscribes to vfm/W01/sensors after 1 s"):
+        frame = validate_frame(simulate_field(wells=1, years=1, seed=0).observations).frame
+        replay_frame(
+            frame.iloc[:10], connect=["tcp/127.0.0.1:9"], match_timeout=1.0, progress=False
+        )
+
+
+def test_bad_arguments() -> None:
+    frame = validate_frame(simulate_field(wells=1, years=1, seed=0).observations).frame
+    with pytest.raises(DataError, match="No rows to replay on or after 2030-01-01"):
+        replay_frame(frame, start="2030-01-01", progress=False)
+    with pytest.raises(ConfigError, match="--start 'soon' is not a date"):
+        replay_frame(frame, start="soon", progress=False)
+    with pytest.raises(ConfigError, match="--speed must be a positive number"):
+        replay_frame(frame, speed=0.0, progress=False)
+    with pytest.raises(ConfigError, match="invalid"):
+        replay_frame(frame, prefix="vfm/*", progress=False)
+
+
+def test_cli_error_exit_code(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code = main(["replay", str(tmp_path / "missing.parquet"), "--quiet"])
+    assert code == 2
+    assert "does not exist" in capsys.readouterr().err

@@ -1,0 +1,277 @@
+"""Bad input over Zenoh and HTTP: never a crash, never a corrupted model, each counted by reason.
+
+Also the bearer-token rules of the mutating endpoint.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections import Counter
+from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import httpx
+import pandas as pd
+import pytest
+import zenoh
+
+from service.api import create_app
+from service.app import Service, running
+from service.testing import client_session, loopback_settings, wait_until
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+pytestmark = pytest.mark.timeout(180)
+
+TOKEN = "bad-input-test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _sample(t: datetime, **changes: Any) -> dict[str, Any]:
+    data: dict[str, Any] = {
+        "time": t.isoformat(),
+        "choke": 0.4,
+        "p_up": 120.0,
+        "p_down": 30.0,
+        "t_up": 60.0,
+        "eta_gas": 0.1,
+        "eta_oil": 0.6,
+    }
+    data.update(changes)
+    return {k: v for k, v in data.items() if v is not ...}
+
+
+class Env:
+    def __init__(
+        self, svc: Any, http: httpx.Client, session: zenoh.Session, frame: pd.DataFrame
+    ) -> None:
+        self.svc = svc
+        self.http = http
+        self.session = session
+        self.frame = frame
+        self.predictions: list[dict[str, Any]] = []
+        session.declare_subscriber(
+            "vfm/*/prediction", lambda s: self.predictions.append(json.loads(s.payload.to_bytes()))
+        )
+
+    def put(self, key: str, payload: bytes | str | dict[str, Any]) -> None:
+        if isinstance(payload, dict):
+            payload = json.dumps(payload)
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def rejected(self) -> Counter[str]:
+        return Counter(self.http.get("/health").json()["rejected"])
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
+    folder = tmp_path_factory.mktemp("bad")
+    frame = validate_frame(simulate_field(wells=1, years=1, seed=0).observations).frame
+    data = folder / "field.parquet"
+    frame.to_parquet(data)
+    settings = loopback_settings(
+        folder,
+        model={"name": "mm", "method": "ol", "history": str(data)},
+        http={"token": TOKEN},
+        inputs={"unknown_wells": "reject", "pending_timeout_s": 1.0},
+    )
+    with running(settings) as svc:
+        session = client_session(svc.locators)
+        try:
+            with httpx.Client(base_url=svc.http_url, timeout=30) as http:
+                e = Env(svc, http, session, frame)
+                # let the service see our subscriber and us its subscriber
+                pub = session.declare_publisher("vfm/W01/sensors")
+                wait_until(lambda: pub.matching_status.matching, 10, "the service's subscriber")
+                pub.undeclare()
+                yield e
+        finally:
+            session.close()
+
+
+def _wait_for_prediction(env: Env, t: datetime) -> dict[str, Any]:
+    iso = t.isoformat().replace("+00:00", "Z")
+    wait_until(
+        lambda: any(p["time"] == iso for p in env.predictions), 20, f"the prediction at {iso}"
+    )
+    return next(p for p in env.predictions if p["time"] == iso)
+
+
+def test_bad_zenoh_inputs_are_counted_by_reason_and_harmless(env: Env) -> None:
+    before_state = env.http.get("/wells/W01").json()
+    before = env.rejected()
+    t0 = datetime(2017, 6, 1, tzinfo=UTC)
+    good = _sample(t0)
+    env.put("vfm/W01/sensors", good)
+    _wait_for_prediction(env, t0)
+    earlier = t0 - timedelta(hours=1)
+    future = datetime.now(UTC) + timedelta(days=3)
+    corpus: list[tuple[str, bytes | str | dict[str, Any], str]] = [
+        ("vfm/W01/sensors", b"{not json", "malformed JSON"),
+        ("vfm/W01/sensors", b"[1, 2, 3]", "not a JSON object"),
+        ("vfm/W01/sensors", _sample(t0 + timedelta(minutes=1), p_up=...), "missing field"),
+        ("vfm/W01/sensors", _sample(t0 + timedelta(minutes=1), choke="half"), "wrong type"),
+        (
+            "vfm/W01/sensors",
+            json.dumps(_sample(t0 + timedelta(minutes=1), p_up=float("nan"))),
+            "not finite",
+        ),
+        (
+            "vfm/W01/sensors",
+            json.dumps(_sample(t0 + timedelta(minutes=1), t_up=float("inf"))),
+            "not finite",
+        ),
+        (
+            "vfm/W01/sensors",
+            _sample(t0 + timedelta(minutes=1), p_up=-3.0),
+            "negative or zero pressure",
+        ),
+        ("vfm/W01/sensors", _sample(t0 + timedelta(minutes=1), p_down=130.0), "p_down >= p_up"),
+        ("vfm/W01/sensors", _sample(t0 + timedelta(minutes=1), choke=1.4), "choke outside 0..1"),
+        (
+            "vfm/W01/sensors",
+            _sample(t0 + timedelta(minutes=1), eta_gas=1.5),
+            "fraction outside 0..1",
+        ),
+        (
+            "vfm/W01/sensors",
+            _sample(t0 + timedelta(minutes=1), eta_gas=0.5, eta_oil=0.7),
+            "fractions sum above 1",
+        ),
+        (
+            "vfm/W01/sensors",
+            _sample(t0 + timedelta(minutes=1), t_up=-400.0),
+            "temperature below absolute zero",
+        ),
+        ("vfm/W01/sensors", _sample(future), "time in the future"),
+        ("vfm/W01/sensors", _sample(earlier), "time going backwards"),
+        ("vfm/W01/sensors", good, "duplicate"),
+        ("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": -5.0}, "negative rate"),
+        (
+            "vfm/W01/measurements/mpfm",
+            {"time": (t0 - timedelta(days=30)).isoformat(), "q_total": 50.0},
+            "no sensor sample within tolerance",
+        ),
+        ("vfm/W01/measurements/guess", {"time": t0.isoformat(), "q_total": 50.0}, "unknown source"),
+        ("vfm/W01/sensors/extra", good, "unparseable key"),
+        ("vfm/W01", good, "unparseable key"),
+        ("vfm/NOPE/sensors", _sample(t0), "unknown well"),
+        (
+            "vfm/W01/measurements/mpfm",
+            {"time": future.isoformat(), "q_total": 50.0},
+            "time in the future",
+        ),
+    ]
+    for key, payload, _ in corpus:
+        env.put(key, payload)
+    # a valid measurement, then the same again: the second is a duplicate
+    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": 900.0})
+    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": 900.0})
+    # a sentinel: once it is answered, everything before it was handled
+    t1 = t0 + timedelta(minutes=10)
+    env.put("vfm/W01/sensors", _sample(t1))
+    _wait_for_prediction(env, t1)
+    expected = Counter(reason for _, _, reason in corpus) + Counter({"duplicate": 1})
+    got = env.rejected() - before
+    assert got == expected
+    # nothing bad reached the model: exactly one update (the valid measurement)
+    after_state = env.http.get("/wells/W01").json()
+    assert after_state["version"] == before_state["version"] + 1
+    assert all(math.isfinite(p["value"]) for p in after_state["parameters"].values())
+    health = env.http.get("/health").json()
+    assert health["status"] == "ok" and health["events"].get("internal errors", 0) == 0
+
+
+def test_bad_http_inputs_are_counted_by_reason(env: Env) -> None:
+    before = env.rejected()
+    t0 = datetime(2017, 7, 1, tzinfo=UTC)
+    env.put("vfm/W01/sensors", _sample(t0))
+    _wait_for_prediction(env, t0)
+    post = "/wells/W01/well-tests"
+    cases: list[tuple[str, Any, int, str | None]] = [
+        (post, b"{oops", 422, "malformed JSON"),
+        (post, {"time": t0.isoformat()}, 422, "missing field"),
+        (post, {"time": t0.isoformat(), "q_total": "lots"}, 422, "wrong type"),
+        (post, {"time": "last tuesday", "q_total": 10.0}, 422, "wrong type"),
+        (post, {"time": t0.isoformat(), "q_total": -1.0}, 422, "negative rate"),
+        (post, b'{"time": "2017-07-01T00:00:00Z", "q_total": NaN}', 422, "not finite"),
+        (
+            post,
+            {"time": (datetime.now(UTC) + timedelta(days=2)).isoformat(), "q_total": 10.0},
+            422,
+            "time in the future",
+        ),
+        (
+            post,
+            {"time": (t0 - timedelta(days=40)).isoformat(), "q_total": 10.0},
+            422,
+            "no sensor sample within tolerance",
+        ),
+        ("/wells/NOPE/well-tests", {"time": t0.isoformat(), "q_total": 10.0}, 404, "unknown well"),
+    ]
+    for path, body, status, reason in cases:
+        kwargs = {"content": body} if isinstance(body, bytes) else {"json": body}
+        r = env.http.post(path, headers={**AUTH, "content-type": "application/json"}, **kwargs)
+        assert r.status_code == status, (body, r.text)
+        out = r.json()
+        assert out["reason"] == reason and out["detail"].endswith("."), out
+    ok = env.http.post(post, json={"time": t0.isoformat(), "q_total": 950.0}, headers=AUTH)
+    assert ok.status_code == 200 and ok.json()["status"] == "learned", ok.text
+    dup = env.http.post(post, json={"time": t0.isoformat(), "q_total": 950.0}, headers=AUTH)
+    assert dup.status_code == 409 and dup.json()["reason"] == "duplicate"
+    expected = Counter(reason for *_, reason in cases if reason) + Counter({"duplicate": 1})
+    assert env.rejected() - before == expected
+    # reads answer with sentences too
+    r = env.http.get("/wells/W01/history", params={"start": "yesterday"})
+    assert r.status_code == 422 and "ISO 8601" in r.json()["detail"]
+    assert env.http.get("/wells/NOPE").status_code == 404
+
+
+def test_token_rules(env: Env) -> None:
+    t0 = datetime(2017, 8, 1, tzinfo=UTC)
+    env.put("vfm/W01/sensors", _sample(t0))
+    _wait_for_prediction(env, t0)
+    body = {"time": t0.isoformat(), "q_total": 800.0}
+    missing = env.http.post("/wells/W01/well-tests", json=body)
+    assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+    wrong = env.http.post(
+        "/wells/W01/well-tests", json=body, headers={"Authorization": "Bearer nope"}
+    )
+    assert wrong.status_code == 401 and "bearer token" in wrong.json()["detail"]
+    right = env.http.post("/wells/W01/well-tests", json=body, headers=AUTH)
+    assert right.status_code == 200, right.text
+    result = right.json()
+    assert result["stored"] and result["version_after"] == result["version_before"] + 1
+    assert result["paired_sample_time"] == t0.isoformat().replace("+00:00", "Z")
+
+
+def test_no_token_configured_refuses_with_how_to(tmp_path) -> None:
+    """Without http.token the mutating endpoint is off (403), with a sentence saying how to set one."""
+    service = Service(loopback_settings(tmp_path))  # not started: the token check comes first
+    app = create_app(service)
+
+    async def calls() -> tuple[httpx.Response, httpx.Response, httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            post = await client.post(
+                "/wells/W01/well-tests",
+                headers=AUTH,
+                json={"time": "2020-01-01T00:00:00Z", "q_total": 1.0},
+            )
+            return post, await client.get("/health"), await client.get("/openapi.json")
+
+    r, health, docs = asyncio.run(calls())
+    assert r.status_code == 403
+    assert "VFM_HTTP__TOKEN" in r.json()["detail"] and "http.token" in r.json()["detail"]
+    assert health.json()["status"] == "starting"
+    paths = docs.json()["paths"]
+    assert {
+        "/health",
+        "/wells",
+        "/wells/{well}",
+        "/wells/{well}/history",
+        "/wells/{well}/well-tests",
+    } <= set(paths)

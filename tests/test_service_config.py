@@ -1,0 +1,102 @@
+"""The service's settings: sources, validation sentences, loopback-only defaults."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from service.config import endpoint_host, is_loopback_host, load_settings
+from vfm_core.errors import ConfigError
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def test_defaults_are_loopback_and_safe(monkeypatch: pytest.MonkeyPatch) -> None:
+    for key in [k for k in __import__("os").environ if k.startswith("VFM_")]:
+        monkeypatch.delenv(key)
+    s = load_settings()
+    assert s.http.host == "127.0.0.1"
+    assert s.zenoh.mode == "peer" and not s.zenoh.multicast_scouting
+    assert all(is_loopback_host(endpoint_host(ep) or "") for ep in s.zenoh.listen)
+    assert s.http.token is None
+    assert s.prefix == "vfm" and s.model.name == "mm" and s.model.method == "ol"
+
+
+def test_toml_file_then_env_override(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = tmp_path / "vfm.toml"
+    cfg.write_text(
+        '[model]\nname = "ham"\nmethod = "pbl:14d"\n[http]\nport = 8123\n[store]\npath = "data/s.sqlite"\n'
+    )
+    monkeypatch.setenv("VFM_HTTP__PORT", "9001")
+    monkeypatch.setenv("VFM_ZENOH__CONNECT", '["tcp/127.0.0.1:7447"]')
+    s = load_settings(cfg)
+    assert (s.model.name, s.model.method) == ("ham", "pbl:14d")
+    assert s.http.port == 9001  # the environment wins over the file
+    assert s.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    assert s.store.path == tmp_path / "data" / "s.sqlite"  # relative to the file
+
+
+def test_json_file(tmp_path) -> None:
+    cfg = tmp_path / "vfm.json"
+    cfg.write_text(json.dumps({"prefix": "vfm/field-a", "inputs": {"unknown_wells": "reject"}}))
+    s = load_settings(cfg)
+    assert s.prefix == "vfm/field-a" and s.inputs.unknown_wells == "reject"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        ({"model": {"name": "hamx"}}, ["model.name", "'hamx'", "last", "ham"]),
+        ({"model": {"name": "mtl"}}, ["mtl", "per well"]),
+        ({"model": {"method": "pbl:xx"}}, ["model.method", "14d"]),
+        ({"store": {"synchronous": "fast"}}, ["store.synchronous", "'fast'", "'full' or 'normal'"]),
+        ({"inputs": {"unknown_wells": "maybe"}}, ["inputs.unknown_wells", "'create' or 'reject'"]),
+        ({"zenoh": {"mode": "p2p"}}, ["zenoh.mode", "'peer', 'client' or 'router'"]),
+        ({"prefix": "vfm/*"}, ["prefix", "wildcards"]),
+        ({"bogus": 1}, ["'bogus' is unknown"]),
+        ({"http": {"token": "short"}}, ["at least 16 characters"]),
+        ({"zenoh": {"mode": "client", "connect": []}}, ["client", "zenoh.connect"]),
+        ({"drift": {"on_drift": "retrain"}}, ["on_drift", "pbl"]),
+    ],
+)
+def test_bad_values_stop_with_a_sentence(overrides: dict, expected: list[str]) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_settings(None, **overrides)
+    text = str(info.value)
+    for part in expected:
+        assert part in text, text
+    assert text.endswith(".")
+
+
+def test_non_loopback_binds_are_refused_unless_allowed() -> None:
+    with pytest.raises(ConfigError, match="http.host = '0.0.0.0' is not a loopback address"):
+        load_settings(None, http={"host": "0.0.0.0"})
+    with pytest.raises(ConfigError, match="zenoh.allow_remote"):
+        load_settings(None, zenoh={"listen": ["tcp/0.0.0.0:7447"]})
+    s = load_settings(None, http={"host": "0.0.0.0", "allow_remote": True, "token": "x" * 20})
+    assert s.http.host == "0.0.0.0"
+    s = load_settings(None, zenoh={"listen": ["tcp/[::]:7447"], "allow_remote": True})
+    assert s.zenoh.listen == ["tcp/[::]:7447"]
+    assert load_settings(None, zenoh={"listen": ["tcp/[::1]:7447"]}).zenoh.listen == [
+        "tcp/[::1]:7447"
+    ]
+
+
+def test_missing_or_unreadable_file(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_settings(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[model\nname=")
+    with pytest.raises(ConfigError, match="cannot be read"):
+        load_settings(bad)
+    other = tmp_path / "vfm.yaml"
+    other.write_text("a: 1")
+    with pytest.raises(ConfigError, match=r"\.toml or \.json"):
+        load_settings(other)
+
+
+def test_token_is_masked() -> None:
+    s = load_settings(None, http={"token": "t" * 20})
+    assert s.public_dict()["http"]["token"] == "***"
+    assert "tttt" not in repr(s)

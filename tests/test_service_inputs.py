@@ -1,0 +1,113 @@
+"""Checking inbound payloads and keys: every bad input gets its reason and a sentence."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from service.inputs import REASONS, Counters, Rejected, parse_measurement, parse_sensor, route_key
+
+pytestmark = pytest.mark.timeout(60)
+
+GOOD = {
+    "time": "2020-01-01T00:00:00Z",
+    "choke": 0.5,
+    "p_up": 100.0,
+    "p_down": 20.0,
+    "t_up": 60.0,
+    "eta_gas": 0.1,
+    "eta_oil": 0.5,
+}
+
+
+def _with(**changes: object) -> bytes:
+    data = {**GOOD, **changes}
+    return json.dumps({k: v for k, v in data.items() if v is not ...}).encode()
+
+
+SENSOR_CORPUS = [
+    (b"{bad", "malformed JSON"),
+    (b"\xff\xfe", "malformed JSON"),
+    (b"[1, 2]", "not a JSON object"),
+    (b"null", "not a JSON object"),
+    (_with(p_up=...), "missing field"),
+    (_with(choke="abc"), "wrong type"),
+    (_with(choke=True), "wrong type"),
+    (_with(t_up="NaN"), "wrong type"),
+    (_with(time="yesterday"), "wrong type"),
+    (_with(p_up=float("nan")), "not finite"),  # json.dumps writes NaN
+    (_with(t_up=float("inf")), "not finite"),
+    (_with(p_up=-5.0), "negative or zero pressure"),
+    (_with(p_down=0.0), "negative or zero pressure"),
+    (_with(p_down=150.0), "p_down >= p_up"),
+    (_with(p_down=100.0), "p_down >= p_up"),
+    (_with(choke=1.5), "choke outside 0..1"),
+    (_with(choke=-0.1), "choke outside 0..1"),
+    (_with(eta_gas=1.2), "fraction outside 0..1"),
+    (_with(eta_gas=0.6, eta_oil=0.6), "fractions sum above 1"),
+    (_with(t_up=-300.0), "temperature below absolute zero"),
+]
+
+
+@pytest.mark.parametrize(("payload", "reason"), SENSOR_CORPUS)
+def test_bad_sensor_payloads(payload: bytes, reason: str) -> None:
+    with pytest.raises(Rejected) as info:
+        parse_sensor(payload)
+    assert info.value.reason == reason
+    assert reason in REASONS
+    assert info.value.message.endswith(".") and len(info.value.message) > 15
+
+
+def test_good_sensor_payload() -> None:
+    sample = parse_sensor(_with())
+    assert sample.inputs() == [0.5, 100.0, 20.0, 60.0, 0.1, 0.5]
+    assert sample.time.tzinfo is not None
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b'{"time": "2020-01-01", "q_total": -1}', "negative rate"),
+        (b'{"time": "2020-01-01", "q_total": NaN}', "not finite"),
+        (b'{"time": "2020-01-01", "q_total": "12"}', "wrong type"),
+        (b'{"time": "2020-01-01"}', "missing field"),
+        (b'{"time": "x", "q_total": 3}', "wrong type"),
+    ],
+)
+def test_bad_measurement_payloads(payload: bytes, reason: str) -> None:
+    with pytest.raises(Rejected) as info:
+        parse_measurement(payload)
+    assert info.value.reason == reason
+
+
+def test_keys() -> None:
+    assert route_key("vfm", "vfm/W01/sensors") == ("W01", "sensors", None)
+    assert route_key("vfm", "vfm/W01/measurements/mpfm") == ("W01", "measurements", "mpfm")
+    assert route_key("vfm/a", "vfm/a/W01/measurements/well_test") == (
+        "W01",
+        "measurements",
+        "well_test",
+    )
+    for key, reason in [
+        ("vfm/W01", "unparseable key"),
+        ("vfm/W01/sensors/extra", "unparseable key"),
+        ("other/W01/sensors", "unparseable key"),
+        ("vfm/W01/measurements/guess", "unknown source"),
+    ]:
+        with pytest.raises(Rejected) as info:
+            route_key("vfm", key)
+        assert info.value.reason == reason
+
+
+def test_counters_count_every_rejection_and_log_each_reason_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    counters = Counters()
+    with caplog.at_level("WARNING", logger="vfm.service.inputs"):
+        for _ in range(100):
+            counters.reject("not finite", "p_up must be a finite number, got nan.")
+        counters.reject("duplicate", "again.")
+    snap = counters.snapshot()
+    assert snap["rejected"] == {"not finite": 100, "duplicate": 1}
+    assert len(caplog.records) == 2  # rate-limited: once per reason
