@@ -95,9 +95,15 @@ class ModelSettings(_Section):
         from vfm_core.learners import parse_method
 
         try:
-            parse_method(v)
+            kind = parse_method(v).kind
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
+        if kind not in ("ol", "pbl"):
+            raise ValueError(
+                f"method '{v}' is not available in the streaming service; use ol or "
+                "pbl:<period>[:window=<span>] (for drift-triggered retrains, as pbl:auto does, "
+                "set drift.on_drift = 'retrain')"
+            )
         return v.strip()
 
     @field_validator("history_until")
@@ -267,6 +273,7 @@ class DriftSettings(_Section):
     reference_size: int = Field(default=200, ge=3)
     alpha: float = Field(default=0.01, gt=0, lt=1)
     confirm: int = Field(default=5, ge=1)
+    #: record: store and show a confirmed drift; retrain: also retrain the well on its data
     on_drift: Literal["record", "retrain"] = "record"
 
 
@@ -300,18 +307,6 @@ class Settings(BaseSettings):
             return validate_prefix(v)
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
-
-    @model_validator(mode="after")
-    def _consistent(self) -> Settings:
-        if self.drift.on_drift == "retrain":
-            from vfm_core.learners import parse_method
-
-            if parse_method(self.model.method).kind != "pbl":
-                raise ValueError(
-                    f"drift.on_drift = 'retrain' needs a periodic method (pbl:<period>), but "
-                    f"model.method is '{self.model.method}'; use on_drift = 'record' or a pbl method"
-                )
-        return self
 
     @classmethod
     def settings_customise_sources(

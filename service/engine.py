@@ -24,6 +24,7 @@ learned after it, in the same order, which gives back the same model.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import queue
@@ -51,6 +52,9 @@ try:  # the lead's streaming Hotelling detector; the service runs without it
     from vfm_core.drift import StreamingHotelling
 except ImportError:  # pragma: no cover - depends on the vfm_core version
     StreamingHotelling = None  # type: ignore[assignment,misc]
+
+# vfm_core's WellLearner.predict takes the sample time (pbl retrains on the study's calendar)
+_PREDICT_TAKES_WHEN = "when" in inspect.signature(WellLearner.predict).parameters
 
 __all__ = ["Engine", "SensorItem", "MeasurementItem", "WellTestResult", "to_ns", "from_ns"]
 
@@ -149,7 +153,7 @@ class WellState:
         self.pending: list[_Pending] = []
         self.seen: OrderedDict[tuple[str, int], None] = OrderedDict()
         self.learn_seq = 0
-        self.updates_since_checkpoint = 0
+        self.checkpoint_version = learner.version
         self.errors: deque[float] = deque(maxlen=settings.rolling_window)
         self.learned_inputs: deque[tuple[float, ...]] = deque(maxlen=settings.drift.reference_size)
         self.detector: Any = None
@@ -389,7 +393,7 @@ class Engine:
         self._threads.clear()
         ops: list[Op] = []
         for st in self.wells.values():
-            if st.updates_since_checkpoint:
+            if st.learner.version != st.checkpoint_version:
                 ops.extend(self._checkpoint_ops(st))
         try:
             self.store.write(ops)
@@ -603,7 +607,15 @@ class Engine:
             self._reject(item, r, b)
             return
         learner = st.learner
-        rates = learner.predict(list(inputs)) if learner.ready else None
+        rates: dict[str, float | None] | None
+        if _PREDICT_TAKES_WHEN:  # pbl: a retrain that is due runs first, on the study's calendar
+            rates = learner.predict(list(inputs), when=sample.time)
+            if rates.get("q_total") is None:
+                rates = None
+        else:  # pragma: no cover - older vfm_core
+            rates = learner.predict(list(inputs)) if learner.ready else None
+        if learner.version != st.snapshot.get("version"):
+            self._changed(st, b.ops)
         q_total = rates["q_total"] if rates else None
         if q_total is not None and not math.isfinite(q_total):
             rates, q_total = None, None
@@ -756,6 +768,7 @@ class Engine:
         before = learner.predict(list(sample.inputs)) if p.future is not None else {}
         self._apply_learning(st, sample, p.q_total, p.time_ns, b.ops)
         st.learn_seq += 1
+        self._changed(st, b.ops)
         b.ops.append(
             (
                 "learned",
@@ -772,9 +785,6 @@ class Engine:
             )
         )
         self.counters.event("learned")
-        if st.updates_since_checkpoint >= self.settings.store.checkpoint_every:
-            b.ops.extend(self._checkpoint_ops(st))
-        st.refresh()
         if p.future is not None:
             after = learner.predict(list(sample.inputs))
             changed = learner.version != version_before
@@ -805,9 +815,7 @@ class Engine:
     ) -> None:
         """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
         learner = st.learner
-        changed = learner.learn(list(sample.inputs), q_total, from_ns(time_ns))
-        if changed:
-            st.updates_since_checkpoint += 1
+        learner.learn(list(sample.inputs), q_total, from_ns(time_ns))
         if sample.predicted is not None and q_total:
             st.errors.append(abs(sample.predicted - q_total) / abs(q_total))
         st.learned_inputs.append(sample.inputs)
@@ -818,11 +826,8 @@ class Engine:
         det.update(list(sample.inputs))
         if det.drift_detected and not was:
             action = "recorded"
-            if self.settings.drift.on_drift == "retrain" and learner.method.kind == "pbl":
-                import pandas as pd
-
-                learner.retrain(pd.Timestamp(time_ns, tz="UTC"))
-                st.updates_since_checkpoint += 1
+            if self.settings.drift.on_drift == "retrain":
+                learner.retrain(from_ns(time_ns))
                 action = "retrained"
             event = {
                 "time": _iso(time_ns),
@@ -844,6 +849,12 @@ class Engine:
             ref = np.asarray(st.learned_inputs, dtype=float)
             det.reset(ref if len(ref) >= self.settings.drift.reference_size else None)
 
+    def _changed(self, st: WellState, ops: list[Op]) -> None:
+        """The model's version moved: refresh what the API shows, checkpoint when due."""
+        if st.learner.version - st.checkpoint_version >= self.settings.store.checkpoint_every:
+            ops.extend(self._checkpoint_ops(st))
+        st.refresh()
+
     def _checkpoint_ops(self, st: WellState) -> list[Op]:
         import json
 
@@ -852,8 +863,8 @@ class Engine:
             "learned_inputs": [list(x) for x in st.learned_inputs],
             "drift_events": list(st.drift_events),
         }
-        st.updates_since_checkpoint = 0
         learner = st.learner
+        st.checkpoint_version = learner.version
         keep = self.settings.store.keep_checkpoints
         return [
             (

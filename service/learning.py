@@ -98,7 +98,12 @@ def fit_history(
             learner.model.load_state_dict(
                 _slice_state(full, learner.model.state_dict(), j, len(wells))
             )
-            _adopt_fit(learner, frame[frame[WELL] == well], summary["iterations"][j : j + 1])
+            _adopt_fit(
+                learner,
+                frame[frame[WELL] == well],
+                summary["iterations"][j : j + 1],
+                cfg.history_until,
+            )
     except (ValueError, RuntimeError) as exc:
         # WellLearner's private layout changed: fall back to one fit per well (slower)
         logger.warning("Batched history fit unavailable (%s); fitting well by well.", exc)
@@ -117,8 +122,14 @@ def _tensors(rows: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return x, y, t
 
 
-def _adopt_fit(learner: WellLearner, rows: pd.DataFrame, iterations: torch.Tensor) -> None:
-    """What WellLearner.fit_history does after its fit, for a model fitted elsewhere."""
+def _adopt_fit(
+    learner: WellLearner, rows: pd.DataFrame, iterations: torch.Tensor, split: datetime | None
+) -> None:
+    """What WellLearner.fit_history does after its fit, for a model fitted elsewhere.
+
+    With a split (``history_until``) the periodic retrains fall on split + k periods, the
+    calendar of ``vfm evaluate``; without one, a period after the last history row.
+    """
     # TODO(vfm_core): a public WellLearner.fit_many / adopt API would replace these privates.
     x, y, t = _tensors(rows)
     learner.iterations = iterations.clone()
@@ -127,7 +138,7 @@ def _adopt_fit(learner: WellLearner, rows: pd.DataFrame, iterations: torch.Tenso
     learner._bump(last.to_pydatetime())
     period = getattr(learner.method, "period", None)
     if learner.method.kind == "pbl" and period is not None:
-        learner.next_retrain = last + period
+        learner.next_retrain = (pd.Timestamp(split) if split is not None else last) + period
 
 
 def describe(learner: WellLearner) -> dict[str, Any]:

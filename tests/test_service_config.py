@@ -57,7 +57,7 @@ def test_json_file(tmp_path) -> None:
         ({"bogus": 1}, ["'bogus' is unknown"]),
         ({"http": {"token": "short"}}, ["at least 16 characters"]),
         ({"zenoh": {"mode": "client", "connect": []}}, ["client", "zenoh.connect"]),
-        ({"drift": {"on_drift": "retrain"}}, ["on_drift", "pbl"]),
+        ({"model": {"method": "pbl:auto"}}, ["pbl:auto", "drift.on_drift = 'retrain'"]),
     ],
 )
 def test_bad_values_stop_with_a_sentence(overrides: dict, expected: list[str]) -> None:

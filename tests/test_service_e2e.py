@@ -168,3 +168,26 @@ def test_replay_does_not_outrun_the_service(tmp_path) -> None:
         health = httpx.get(f"{svc.http_url}/health", timeout=10).json()
     assert result.missing == 0 and result.predictions_received == result.samples_sent > 100
     assert health["overflow"] == 0 and health["events"].get("backpressure waits", 0) > 0
+
+
+def test_periodic_learning_follows_the_study_calendar(tmp_path) -> None:
+    """pbl:30d through the service retrains on split + k periods, as `vfm evaluate` does."""
+    field = simulate_field(wells=2, years=1, seed=3, hidden=["erosion:rate=0.3"])
+    frame = validate_frame(field.observations).frame
+    frame = frame[frame["well"] == "W01"].reset_index(drop=True)  # a well with history
+    data = tmp_path / "field.parquet"
+    frame.to_parquet(data)
+    settings = loopback_settings(
+        tmp_path,
+        model={"name": "mm", "method": "pbl:30d", "history": str(data), "history_until": SPLIT},
+    )
+    with running(settings) as svc:
+        result = replay_frame(
+            frame, connect=svc.locators, start=SPLIT, progress=False, idle_timeout=2.0
+        )
+        state = httpx.get(f"{svc.http_url}/wells/W01", timeout=10).json()
+    reference = run_prequential(frame, "mm", "pbl:30d", split=SPLIT)
+    (ref,) = metrics_records(reference.predictions)
+    assert result.per_well["n"].iloc[0] == ref["n"]
+    assert result.per_well["mape"].iloc[0] == pytest.approx(ref["mape"], rel=1e-6)
+    assert state["version"] == 1 + len(reference.updates)  # the history fit, then each retrain

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from vfm_core.evaluate import run_study, summarise, write_study
 from vfm_core.simulate import simulate_field
@@ -45,29 +46,39 @@ def eroding_field():
 
 
 def test_online_learning_tracks_erosion_and_beats_pbl_182d(eroding_field) -> None:
+    from vfm_core.data import make_batch, target_mask
+
     frame = eroding_field.observations
     truth = eroding_field.truth_samples
     ol = run_prequential(frame, "mm", "ol", targets="all", track_parameters=True)
-    pbl = run_prequential(frame, "mm", "pbl:182d", targets="all", track_parameters=True)
+    pbl = run_prequential(frame, "mm", "pbl:182d", targets="all")
+    frozen = run_prequential(frame, "mm", "pbl:3650d", targets="all")  # the initial fit, never updated
     mape_ol = mape(ol.predictions["predicted"], ol.predictions["measured"])
     mape_pbl = mape(pbl.predictions["predicted"], pbl.predictions["measured"])
     assert mape_ol < mape_pbl, (mape_ol, mape_pbl)
 
     split = pd.Timestamp("2019-01-01", tz="UTC")
+    wells = list(ol.final_model.wells)
+    rows = np.flatnonzero(target_mask(frame, "all"))
+    last = make_batch(frame, wells, rows)
+    keep = last.mask & (torch.cumsum(last.mask.flip(1).long(), 1).flip(1) <= 50)  # latest 50 per well
+    growth = (ol.final_model.predict(last.x) / frozen.final_model.predict(last.x))
     params = ol.parameters[ol.parameters["name"] == "c_d"]
-    for well, g in params.groupby("well"):
+    coverage = []
+    for j, well in enumerate(wells):
         t_truth = truth[truth["well"] == well]
-        true_start = t_truth.loc[t_truth["time"] < split, "c_d_true"].iloc[-1]
-        true_end = t_truth["c_d_true"].iloc[-1]
-        true_change = true_end / true_start - 1.0
-        learned_start = g.loc[g["time"] <= split, "value"].iloc[-1]
-        learned_end = g["value"].iloc[-1]
-        learned_change = learned_end / learned_start - 1.0
+        true_change = t_truth["c_d_true"].iloc[-1] / t_truth.loc[t_truth["time"] < split, "c_d_true"].iloc[-1] - 1
         assert true_change > 0.02  # the simulator did erode the choke
-        # The learned C_D moved up, covering at least a quarter of the true growth. Not
-        # all of it: M_gas scales the rate too, and plain `mm` cannot tell the two apart
-        # (the rest goes into a lower M_gas); `vfm diagnose` with the erosion effect does.
-        assert learned_change > 0.25 * true_change, (well, learned_change, true_change)
+        # At fixed inputs the learned model now predicts a rate grown like the eroded choke.
+        learned_growth = float(growth[j][keep[j]].mean()) - 1.0
+        assert learned_growth > 0.4 * true_change, (well, learned_growth, true_change)
+        g = params[params["well"] == well]
+        c_d_change = g["value"].iloc[-1] / g.loc[g["time"] <= split, "value"].iloc[-1] - 1.0
+        assert c_d_change > 0, (well, c_d_change)  # C_D moved toward the true trend
+        coverage.append(c_d_change / true_change)
+    # Only part of the growth lands in C_D: M_gas and p_cr scale the rate too, and plain
+    # mm cannot tell them apart; `vfm diagnose` with the erosion effect isolates it.
+    assert np.mean(coverage) > 0.2, coverage
 
 
 def test_evaluate_outputs_follow_the_contract(tmp_path) -> None:

@@ -50,7 +50,7 @@ def _finite(value: float, name: str) -> float:
 class SensorSample(BaseModel):
     """One steady-state sample of a well's sensors (units: fraction, bar a, bar a, degC, -, -)."""
 
-    model_config = ConfigDict(extra="ignore", frozen=True)
+    model_config = ConfigDict(extra="ignore", frozen=True, allow_inf_nan=False)
 
     time: datetime
     choke: float = Field(ge=0.0, le=1.0, description="choke opening, fraction 0..1")
@@ -94,7 +94,7 @@ class SensorSample(BaseModel):
 class Measurement(BaseModel):
     """A measured total rate, Sm3/h at standard conditions."""
 
-    model_config = ConfigDict(extra="ignore", frozen=True)
+    model_config = ConfigDict(extra="ignore", frozen=True, allow_inf_nan=False)
 
     time: datetime
     q_total: float = Field(ge=0.0, description="measured total rate, Sm3/h")

@@ -259,7 +259,7 @@ class WellLearner:
             self.iterations = summary["iterations"]
         else:
             fit_batch(self.model, batch, self.train, self.iterations)
-        self._bump(until.to_pydatetime())
+        self._bump(until.to_pydatetime(warn=False))
 
     # -- state ----------------------------------------------------------------------------
     def physical_parameters(self) -> dict[str, dict[str, float | str]]:
