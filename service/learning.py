@@ -130,15 +130,8 @@ def _adopt_fit(
     With a split (``history_until``) the periodic retrains fall on split + k periods, the
     calendar of ``vfm evaluate``; without one, a period after the last history row.
     """
-    # TODO(vfm_core): a public WellLearner.fit_many / adopt API would replace these privates.
     x, y, t = _tensors(rows)
-    learner.iterations = iterations.clone()
-    learner._remember(x, y, t)
-    last = pd.Timestamp(int(t.max()), tz="UTC")
-    learner._bump(last.to_pydatetime())
-    period = getattr(learner.method, "period", None)
-    if learner.method.kind == "pbl" and period is not None:
-        learner.next_retrain = (pd.Timestamp(split) if split is not None else last) + period
+    learner.adopt_fit(x, y, t, iterations, first_retrain_base=split)
 
 
 def describe(learner: WellLearner) -> dict[str, Any]:

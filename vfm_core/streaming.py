@@ -145,13 +145,31 @@ class WellLearner:
             torch.arange(n).reshape(1, n),
         )
         summary = fit_batch(self.model, batch, self.train)
-        self.iterations = summary["iterations"]
+        self.adopt_fit(x, y, time_ns, summary["iterations"])
+
+    def adopt_fit(
+        self,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        time_ns: torch.Tensor,
+        iterations: torch.Tensor,
+        first_retrain_base: datetime | None = None,
+    ) -> None:
+        """Take on an initial fit done elsewhere (e.g. one batched fit of the whole field).
+
+        The model's parameters must already hold the fit; this records the history it was
+        fitted on, the early-stopped iteration count for later retrains, and (``pbl``) the
+        retrain calendar: one period after ``first_retrain_base`` (e.g. the split, as
+        ``vfm evaluate`` counts) or after the last history row.
+        """
+        self.iterations = iterations.clone()
         self._remember(x, y, time_ns)
         last = pd.Timestamp(int(time_ns.max()), tz="UTC")
         self._bump(last.to_pydatetime())
         if self.method.kind == "pbl":
             assert self.method.period is not None
-            self.next_retrain = last + self.method.period
+            base = last if first_retrain_base is None else _utc(first_retrain_base)
+            self.next_retrain = base + self.method.period
 
     def _remember(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor) -> None:
         self._x = torch.cat([self._x, x.reshape(-1, 6).to(DTYPE)])
