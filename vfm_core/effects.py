@@ -54,7 +54,7 @@ from torch import nn
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
-from vfm_core.models import ChokeModel, HybridArea, HybridError, Mechanistic
+from vfm_core.models import ChokeModel, HybridArea, HybridError, Mechanistic, PhysicalParameters
 from vfm_core.physics import Prior
 from vfm_core.schema import TARGET, TIME, WELL
 from vfm_core.units import bar_to_pa, degc_to_k
@@ -218,10 +218,14 @@ class Effect:
     def slip(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor | None:
         return None
 
-    def critical_ratio(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor | None:
+    def critical_ratio(
+        self, inputs: EffectInputs, p: dict[str, torch.Tensor]
+    ) -> torch.Tensor | None:
         return None
 
-    def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor | None:
+    def output_factor(
+        self, inputs: EffectInputs, p: dict[str, torch.Tensor]
+    ) -> torch.Tensor | None:
         return None
 
     def describe(self, values: Mapping[str, float]) -> str:
@@ -253,7 +257,9 @@ class Erosion(Effect):
         return torch.clamp(1.0 + p["rate"] * inputs.feature(self.basis), min=0.05)
 
     def describe(self, values: Mapping[str, float]) -> str:
-        unit = "per year-equivalent of throughput" if self.basis == "throughput_years" else "per year"
+        unit = (
+            "per year-equivalent of throughput" if self.basis == "throughput_years" else "per year"
+        )
         return f"C_D grows {100 * values['rate']:.2g} % {unit} (choke wear)."
 
 
@@ -261,7 +267,9 @@ class ErosionTime(Erosion):
     """Choke wear growing with time on stream: factor 1 + rate * years since the well's start."""
 
     name = "erosion_time"
-    description = "Choke wear: the effective flow area grows linearly with years since the well's start."
+    description = (
+        "Choke wear: the effective flow area grows linearly with years since the well's start."
+    )
     parameters = {"rate": Prior(0.0, 0.05, 0.0, 1.0, "1/yr", "relative C_D growth per year")}
     extra_columns = ("years_on",)
     basis = "years_on"
@@ -280,7 +288,12 @@ class Valve(Effect):
     knots: ClassVar[int] = 6
     parameters = {
         f"log_slope_{k + 1}": Prior(
-            0.0, 1.0, -4.0, 4.0, "-", f"log relative valve gain for u in [{k / 6:.2f}, {(k + 1) / 6:.2f}]"
+            0.0,
+            1.0,
+            -4.0,
+            4.0,
+            "-",
+            f"log relative valve gain for u in [{k / 6:.2f}, {(k + 1) / 6:.2f}]",
         )
         for k in range(6)
     }
@@ -341,7 +354,9 @@ class RealGas(Effect):
     """Real gas: upstream Z = 1 + strength (Z_Papay(p_up, t_up, M_gas) - 1); strength 1 is Papay."""
 
     name = "real_gas"
-    description = "Real-gas compressibility Z(p_up, t_up) by Papay's correlation in the gas density."
+    description = (
+        "Real-gas compressibility Z(p_up, t_up) by Papay's correlation in the gas density."
+    )
     parameters = {"strength": Prior(1.0, 0.5, -1.0, 3.0, "-", "share of Papay's Z - 1 (1 = full)")}
 
     def gas_z(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -357,7 +372,9 @@ class Slip(Effect):
 
     name = "slip"
     description = "Two-phase slip at the throat: a learned exponent on Simpson's slip multiplier."
-    parameters = {"exponent": Prior(1.0, 0.5, -2.0, 4.0, "-", "exponent on Simpson's slip multiplier")}
+    parameters = {
+        "exponent": Prior(1.0, 0.5, -2.0, 4.0, "-", "exponent on Simpson's slip multiplier")
+    }
 
     def slip(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         return p["exponent"]
@@ -370,13 +387,19 @@ class CriticalRatio(Effect):
     """Critical flow: p_cr moves from the constant parameter towards Sachdeva's solved ratio."""
 
     name = "critical_ratio"
-    description = "Critical (choked) flow at Sachdeva's solved critical ratio instead of a constant."
-    parameters = {"weight": Prior(1.0, 0.5, -0.5, 1.5, "-", "share of Sachdeva's solved ratio in p_cr")}
+    description = (
+        "Critical (choked) flow at Sachdeva's solved critical ratio instead of a constant."
+    )
+    parameters = {
+        "weight": Prior(1.0, 0.5, -0.5, 1.5, "-", "share of Sachdeva's solved ratio in p_cr")
+    }
 
     def critical_ratio(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         th = inputs.theta
         rho_g1 = ph.gas_density(inputs.p_up, inputs.t_up, th["m_gas"], inputs.z)
-        v_liq = ph.liquid_specific_volume(inputs.eta_gas, inputs.eta_oil, th["rho_oil"], th["rho_wat"])
+        v_liq = ph.liquid_specific_volume(
+            inputs.eta_gas, inputs.eta_oil, th["rho_oil"], th["rho_wat"]
+        )
         y_c = ph.sachdeva_critical_ratio(inputs.eta_gas, rho_g1, v_liq, th["kappa"], iterations=30)
         return th["p_cr"] + p["weight"] * (y_c - th["p_cr"])
 
@@ -388,7 +411,9 @@ class MeterBias(Effect):
     """MPFM bias against well tests: MPFM rows read factor 1 + bias + drift * years_on."""
 
     name = "mpfm_bias"
-    description = "Meter bias: the MPFM reads 1 + bias + drift * t against the well tests (MPFM rows only)."
+    description = (
+        "Meter bias: the MPFM reads 1 + bias + drift * t against the well tests (MPFM rows only)."
+    )
     parameters = {
         "bias": Prior(0.0, 0.05, -0.5, 1.0, "-", "relative MPFM bias at the well's start"),
         "drift": Prior(0.0, 0.02, -0.2, 0.2, "1/yr", "relative MPFM drift per year"),
@@ -412,12 +437,25 @@ class MeterBias(Effect):
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (
-        Erosion, ErosionTime, Valve, RealGas, Slip, CriticalRatio, MeterBias,
+        Erosion,
+        ErosionTime,
+        Valve,
+        RealGas,
+        Slip,
+        CriticalRatio,
+        MeterBias,
         *(_valve_family(f) for f in ph.AREA_FUNCTIONS if f != "linear"),
     )
 }
 #: What ``vfm diagnose`` tries by default (one per physical effect).
-DEFAULT_CANDIDATES: tuple[str, ...] = ("erosion", "valve", "real_gas", "slip", "critical_ratio", "mpfm_bias")
+DEFAULT_CANDIDATES: tuple[str, ...] = (
+    "erosion",
+    "valve",
+    "real_gas",
+    "slip",
+    "critical_ratio",
+    "mpfm_bias",
+)
 
 
 def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
@@ -437,7 +475,9 @@ def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
                 ) from None
             cls = getattr(module, attr, None)
             if cls is None:
-                raise ConfigError(f"The module '{module_name}' has no class '{attr}' (effect '{text}').")
+                raise ConfigError(
+                    f"The module '{module_name}' has no class '{attr}' (effect '{text}')."
+                )
         else:
             try:
                 cls = EFFECTS[text]
@@ -447,9 +487,13 @@ def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
                     "or give your own class as module:Class."
                 ) from None
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
-        raise ConfigError(f"'{name_or_path}' is not an Effect subclass; derive it from vfm_core.effects.Effect.")
+        raise ConfigError(
+            f"'{name_or_path}' is not an Effect subclass; derive it from vfm_core.effects.Effect."
+        )
     if not cls.name or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", cls.name):
-        raise ConfigError(f"Effect class {cls.__name__} needs a name made of letters, digits and '_'.")
+        raise ConfigError(
+            f"Effect class {cls.__name__} needs a name made of letters, digits and '_'."
+        )
     for key, prior in cls.parameters.items():
         if not (prior.std > 0 and prior.low <= prior.mean <= prior.high):
             raise ConfigError(
@@ -470,29 +514,9 @@ def resolve_effects(effects: Sequence[str | type[Effect]] | str) -> list[type[Ef
 
 
 # --- parameters and the model -----------------------------------------------------------------
-class EffectParameters(nn.Module):
-    """One effect's parameters per well as standardised offsets z: theta = mu + sigma z."""
-
-    def __init__(self, n_wells: int, priors: Mapping[str, Prior]) -> None:
-        super().__init__()
-        self.names = tuple(priors)
-        ps = [priors[n] for n in self.names]
-        self.register_buffer("mu", torch.tensor([p.mean for p in ps], dtype=DTYPE))
-        self.register_buffer("sigma", torch.tensor([p.std for p in ps], dtype=DTYPE))
-        self.register_buffer("z_low", torch.tensor([(p.low - p.mean) / p.std for p in ps], dtype=DTYPE))
-        self.register_buffer("z_high", torch.tensor([(p.high - p.mean) / p.std for p in ps], dtype=DTYPE))
-        self.z = nn.Parameter(torch.zeros(n_wells, len(self.names), dtype=DTYPE))
-
-    def values(self) -> dict[str, torch.Tensor]:
-        theta = self.mu + self.sigma * self.z
-        return {n: theta[:, i] for i, n in enumerate(self.names)}
-
-    def penalty(self) -> torch.Tensor:
-        return (self.z**2).sum(dim=1)
-
-    def project_(self) -> None:
-        with torch.no_grad():
-            self.z.copy_(torch.maximum(torch.minimum(self.z, self.z_high), self.z_low))
+def EffectParameters(n_wells: int, priors: Mapping[str, Prior]) -> PhysicalParameters:  # noqa: N802
+    """One effect's parameters per well, standardised like the mechanistic ones (theta = mu + sigma z)."""
+    return PhysicalParameters(n_wells, priors)
 
 
 class _EffectMixin:
@@ -505,7 +529,9 @@ class _EffectMixin:
         model: Any = self
         n = len(model.wells)
         self.effects = [cls() for cls in effects]
-        self.effect_params = nn.ModuleDict({e.name: EffectParameters(n, e.parameters) for e in self.effects})
+        self.effect_params = nn.ModuleDict(
+            {e.name: EffectParameters(n, e.parameters) for e in self.effects}
+        )
         model.register_buffer("u_ref", torch.full((n,), 0.5, dtype=DTYPE))
         columns: list[str] = []
         for e in self.effects:
@@ -513,7 +539,9 @@ class _EffectMixin:
         model.extra_columns = tuple(columns)
         # how to rebuild the model (JSON): registry names, or module:Class for a user's own
         model.hyper["effects"] = [
-            e.name if EFFECTS.get(e.name) is type(e) else f"{type(e).__module__}:{type(e).__qualname__}"
+            e.name
+            if EFFECTS.get(e.name) is type(e)
+            else f"{type(e).__module__}:{type(e).__qualname__}"
             for e in self.effects
         ]
         model.name = "+".join([model.base_name, *(e.name for e in self.effects)])
@@ -527,9 +555,16 @@ class _EffectMixin:
         assert batch.extra is not None and batch.well_test is not None
         extra = {n: batch.extra[..., i] for i, n in enumerate(batch.extra_names)}
         return EffectInputs(
-            u=u, p_up=bar_to_pa(p_up), p_down=bar_to_pa(p_down), t_up=degc_to_k(t_up),
-            eta_gas=eta_gas, eta_oil=eta_oil, theta={k: v.unsqueeze(1) for k, v in theta.items()},
-            well_test=batch.well_test, u_ref=model.u_ref.unsqueeze(1), extra=extra,
+            u=u,
+            p_up=bar_to_pa(p_up),
+            p_down=bar_to_pa(p_down),
+            t_up=degc_to_k(t_up),
+            eta_gas=eta_gas,
+            eta_oil=eta_oil,
+            theta={k: v.unsqueeze(1) for k, v in theta.items()},
+            well_test=batch.well_test,
+            u_ref=model.u_ref.unsqueeze(1),
+            extra=extra,
         )
 
     def _effect_rate(self, batch: Batch) -> torch.Tensor:
@@ -537,7 +572,9 @@ class _EffectMixin:
         model: Any = self
         theta = model.theta()
         inputs = self._inputs(batch, theta)
-        values = {k: {n: v.unsqueeze(1) for n, v in d.items()} for k, d in self.effect_values().items()}
+        values = {
+            k: {n: v.unsqueeze(1) for n, v in d.items()} for k, d in self.effect_values().items()
+        }
         area = model.area(batch.x, theta)
         z: torch.Tensor | float = 1.0
         for e in self.effects:
@@ -556,15 +593,25 @@ class _EffectMixin:
             if w is not None:
                 slip_w = w if slip_w is None else slip_w + w
         args = (inputs.p_up, inputs.p_down, inputs.t_up, inputs.eta_gas, inputs.eta_oil)
-        kw: dict[str, Any] = dict(rho_oil=th["rho_oil"], rho_wat=th["rho_wat"], kappa=th["kappa"],
-                                  m_gas=th["m_gas"], p_cr=torch.clamp(p_cr, 0.05, 0.99), z=z)
+        kw: dict[str, Any] = dict(
+            rho_oil=th["rho_oil"],
+            rho_wat=th["rho_wat"],
+            kappa=th["kappa"],
+            m_gas=th["m_gas"],
+            p_cr=torch.clamp(p_cr, 0.05, 0.99),
+            z=z,
+        )
         flux = ph.choke_mass_flux(*args, **kw)
         if slip_w is not None:
             flux_slip = ph.choke_mass_flux(*args, slip=True, **kw)
             ratio = torch.clamp(flux_slip, min=1e-12) / torch.clamp(flux, min=1e-12)
             flux = flux * torch.exp(slip_w * torch.log(ratio))
         per_kg = ph.standard_volume_per_mass(
-            inputs.eta_gas, inputs.eta_oil, rho_oil=th["rho_oil"], rho_wat=th["rho_wat"], m_gas=th["m_gas"]
+            inputs.eta_gas,
+            inputs.eta_oil,
+            rho_oil=th["rho_oil"],
+            rho_wat=th["rho_wat"],
+            m_gas=th["m_gas"],
         )
         q = area * flux * per_kg * 3600.0
         for e in self.effects:
@@ -577,22 +624,31 @@ class _EffectMixin:
         with torch.no_grad():
             u = torch.where(batch.mask, batch.x[..., 0], torch.full_like(batch.y, float("nan")))
             u_med = torch.nanmedian(u, dim=1).values
-            model.u_ref[new] = torch.where(torch.isfinite(u_med[new]), u_med[new], torch.full_like(u_med[new], 0.5))
+            model.u_ref[new] = torch.where(
+                torch.isfinite(u_med[new]), u_med[new], torch.full_like(u_med[new], 0.5)
+            )
             # A_max: the model at prior means (effects off) matches the median measured rate
-            saved_a, saved_z = model.a_max.clone(), [p.z.detach().clone() for p in self.effect_params.values()]
+            saved_a, saved_z = (
+                model.a_max.clone(),
+                [p.z.detach().clone() for p in self.effect_params.values()],
+            )
             saved_phys = model.phys.z.detach().clone()
             model.a_max[new] = 1.0
             model.phys.z[new] = 0.0
             for p in self.effect_params.values():
                 p.z[new] = 0.0
             unit = self._effect_rate(batch)
-            ratio = torch.where(batch.mask & (unit > 0), batch.y / unit, torch.full_like(unit, float("nan")))
+            ratio = torch.where(
+                batch.mask & (unit > 0), batch.y / unit, torch.full_like(unit, float("nan"))
+            )
             a_max = torch.nanmedian(ratio, dim=1).values
             model.a_max.copy_(saved_a)
             model.phys.z.copy_(saved_phys)
             for p, s in zip(self.effect_params.values(), saved_z, strict=True):
                 p.z.copy_(s)
-            model.a_max[new] = torch.where(torch.isfinite(a_max[new]), a_max[new], torch.ones_like(a_max[new]))
+            model.a_max[new] = torch.where(
+                torch.isfinite(a_max[new]), a_max[new], torch.ones_like(a_max[new])
+            )
 
     def _effect_penalty(self) -> torch.Tensor:
         model: Any = self
@@ -622,8 +678,14 @@ class _EffectMixin:
             )
         n = x.shape[1]
         w = len(model.wells)
-        batch = Batch(model.wells, x, torch.zeros(w, n, dtype=DTYPE), torch.ones(w, n, dtype=torch.bool),
-                      torch.zeros(w, n, dtype=torch.int64), torch.zeros(w, n, dtype=torch.int64))
+        batch = Batch(
+            model.wells,
+            x,
+            torch.zeros(w, n, dtype=DTYPE),
+            torch.ones(w, n, dtype=torch.bool),
+            torch.zeros(w, n, dtype=torch.int64),
+            torch.zeros(w, n, dtype=torch.int64),
+        )
         return model.forward_batch(batch)
 
 
@@ -632,7 +694,9 @@ class EffectMechanistic(_EffectMixin, Mechanistic):
 
     base_name = "mm"
 
-    def __init__(self, wells: Sequence[str], *, effects: Sequence[type[Effect]] = (), seed: int = 0) -> None:
+    def __init__(
+        self, wells: Sequence[str], *, effects: Sequence[type[Effect]] = (), seed: int = 0
+    ) -> None:
         Mechanistic.__init__(self, wells, seed=seed)
         self._init_effects(effects)
 
@@ -655,13 +719,21 @@ class EffectHybridError(_EffectMixin, HybridError):
 
     base_name = "hem"
 
-    def __init__(self, wells: Sequence[str], *, effects: Sequence[type[Effect]] = (), seed: int = 0,
-                 hidden: Sequence[int] = (16,)) -> None:
+    def __init__(
+        self,
+        wells: Sequence[str],
+        *,
+        effects: Sequence[type[Effect]] = (),
+        seed: int = 0,
+        hidden: Sequence[int] = (16,),
+    ) -> None:
         HybridError.__init__(self, wells, seed=seed, hidden=hidden)
         self._init_effects(effects)
 
     def forward_batch(self, batch: Batch) -> torch.Tensor:
-        return self._effect_rate(batch) + self.y_scale.unsqueeze(1) * self.net(self.normalise(batch.x))
+        return self._effect_rate(batch) + self.y_scale.unsqueeze(1) * self.net(
+            self.normalise(batch.x)
+        )
 
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return HybridError.prior_penalty(self, physical_only) + self._effect_penalty()
@@ -679,8 +751,14 @@ class EffectHybridArea(_EffectMixin, HybridArea):
 
     base_name = "ham"
 
-    def __init__(self, wells: Sequence[str], *, effects: Sequence[type[Effect]] = (), seed: int = 0,
-                 hidden: Sequence[int] = (16,)) -> None:
+    def __init__(
+        self,
+        wells: Sequence[str],
+        *,
+        effects: Sequence[type[Effect]] = (),
+        seed: int = 0,
+        hidden: Sequence[int] = (16,),
+    ) -> None:
         HybridArea.__init__(self, wells, seed=seed, hidden=hidden)
         self._init_effects(effects)
 
@@ -699,11 +777,15 @@ class EffectHybridArea(_EffectMixin, HybridArea):
 
 
 _BASES: dict[str, type[ChokeModel]] = {
-    "mm": EffectMechanistic, "hem": EffectHybridError, "ham": EffectHybridArea,
+    "mm": EffectMechanistic,
+    "hem": EffectHybridError,
+    "ham": EffectHybridArea,
 }
 
 
-def make_effect_model(base: str, wells: Sequence[str], effects: Sequence[str | type[Effect]], **hyper: Any) -> ChokeModel:
+def make_effect_model(
+    base: str, wells: Sequence[str], effects: Sequence[str | type[Effect]], **hyper: Any
+) -> ChokeModel:
     """Build ``base`` (mm, hem or ham) extended with ``effects`` for ``wells``."""
     try:
         cls = _BASES[base]

@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -193,10 +193,12 @@ class PhysicalParameters(nn.Module):
     penalty is simply sum(z^2). Bounds from :data:`vfm_core.physics.PRIORS`.
     """
 
-    def __init__(self, n_wells: int, names: Sequence[str]) -> None:
+    def __init__(self, n_wells: int, names: Sequence[str] | Mapping[str, ph.Prior]) -> None:
         super().__init__()
-        self.names = tuple(names)
-        priors = [ph.PRIORS[n] for n in self.names]
+        # names of vfm_core.physics.PRIORS, or a mapping name -> Prior (an effect's own)
+        table = names if isinstance(names, Mapping) else {n: ph.PRIORS[n] for n in names}
+        self.names = tuple(table)
+        priors = [table[n] for n in self.names]
         self.register_buffer("mu", torch.tensor([p.mean for p in priors], dtype=DTYPE))
         self.register_buffer("sigma", torch.tensor([p.std for p in priors], dtype=DTYPE))
         self.register_buffer(
