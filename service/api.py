@@ -29,10 +29,10 @@ from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from service.app import Service
-from service.engine import WellState, from_ns, to_ns
+from service.engine import ModelChangeRefused, WellState, from_ns, to_ns
 from service.inputs import REASONS, Rejected, classify_errors, parse_measurement
 from vfm_core.messages import Measurement
 
@@ -109,9 +109,62 @@ class WellSummary(BaseModel):
     last_update: str | None
 
 
+class ModelChangeIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", protected_namespaces=())
+
+    model: str | None = Field(
+        default=None,
+        description="base model: mm, hem, ham, lr, nn or last (default: the current one)",
+    )
+    effects: list[str] = Field(
+        default_factory=list,
+        description="effects extending mm, hem or ham, e.g. ['erosion'] or "
+        "['erosion:step_at=2019-06-01', 'mypkg.effects:Scale']; [] for none",
+    )
+    method: str | None = Field(
+        default=None, description="ol or pbl:<period> (default: the current one)"
+    )
+
+
+class HoldoutOut(BaseModel):
+    holdout_rows: int = Field(description="latest stored measurements held out to compare")
+    holdout_from: str | None = None
+    before: float | None = Field(
+        default=None, description="MAPE (%) of the current model, fitted on the older rows"
+    )
+    after: float | None = Field(
+        default=None, description="MAPE (%) of the new model, fitted on the same rows"
+    )
+    unit: str = "%"
+    fit_s: float | None = Field(default=None, description="time the fits took, s")
+
+
+class ModelChangeOut(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+
+    time: str
+    model_before: str
+    model_after: str
+    method: str
+    version_before: int
+    version_after: int
+    holdout: HoldoutOut
+    rolling_mape_before: float | None = Field(
+        description="rolling MAPE (%) of the replaced model at the change"
+    )
+
+
 class WellOut(WellSummary):
+    model_config = ConfigDict(protected_namespaces=())
+
     parameters: dict[str, Parameter] = Field(description="physical parameters, SI units")
     rolling_mape: RollingMape
+    measurements_remembered: int = Field(
+        description="measurements the model keeps for retrains and model changes"
+    )
+    model_changes: list[ModelChangeOut] = Field(
+        description="models set over HTTP, oldest first; the rolling MAPE restarts at each"
+    )
     drift: dict[str, Any]
     samples: int = Field(description="samples accepted since start")
     measurements: int = Field(description="measurements accepted since start")
@@ -270,8 +323,40 @@ def well_state(well: WellPath, service: ServiceDep) -> dict[str, Any]:
         measurements=st.measurements,
         last_sample_time=_iso(st.last_time_ns),
         pending_measurements=len(st.pending),
+        model_changes=list(st.model_changes),
     )
     return out
+
+
+@wells_router.put(
+    "/{well}/model",
+    response_model=ModelChangeOut,
+    summary="Replace the well's model (e.g. add an effect found by vfm diagnose)",
+    description=(
+        "Fits the new model on the well's stored history, compares it with the current one on "
+        "the latest 20 % of that history, then swaps it in between two messages with a higher "
+        "version; learning goes on during the fit and nothing is lost. Needs the bearer token. "
+        "GET /wells/{well} then shows the new model, its parameters and its rolling MAPE."
+    ),
+    responses={
+        401: {"model": ErrorOut},
+        403: {"model": ErrorOut},
+        404: {"model": ErrorOut},
+        409: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+        503: {"model": ErrorOut},
+    },
+)
+def change_model(
+    well: WellPath, body: ModelChangeIn, service: ServiceDep, _: TokenDep
+) -> dict[str, Any]:
+    engine = service.engine
+    if engine is None:
+        raise ApiError(503, "The service is starting; retry in a few seconds.")
+    try:
+        return engine.change_model(well, body.model, body.effects, body.method)
+    except ModelChangeRefused as exc:
+        raise ApiError(exc.status, exc.message) from None
 
 
 def _parse_time(value: str | None, name: str, default: datetime) -> datetime:

@@ -65,6 +65,11 @@ class ModelSettings(_Section):
         default="mm", description="model: lr, nn, mm, hem, ham or last (mtl is field-wide)"
     )
     method: str = Field(default="ol", description="ol or pbl:<period>[:window=<span>]")
+    effects: list[str] = Field(
+        default_factory=list,
+        description="effects extending mm, hem or ham (vfm diagnose names them), e.g. "
+        "['erosion', 'real_gas'] or 'mypkg.effects:Scale'",
+    )
     seed: int = Field(default=0, ge=0)
     model_kwargs: dict[str, Any] = Field(default_factory=dict, description="model hyperparameters")
     train: dict[str, Any] = Field(default_factory=dict, description="overrides of TrainSettings")
@@ -113,9 +118,29 @@ class ModelSettings(_Section):
             return v
         return v.replace(tzinfo=UTC) if v.tzinfo is None else v.astimezone(UTC)
 
+    @field_validator("effects", mode="before")
+    @classmethod
+    def _effect_list(cls, v: Any) -> Any:
+        return [e.strip() for e in v.split(",") if e.strip()] if isinstance(v, str) else v
+
+    @property
+    def full_name(self) -> str:
+        """The model with its effects, as checkpoints name it (e.g. ``mm+erosion``)."""
+        from vfm_core.effects import resolve_effects
+
+        return "+".join([self.name, *(c.name for c in resolve_effects(self.effects))])
+
     @model_validator(mode="after")
     def _settings_exist(self) -> ModelSettings:
         from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, settings_from_dict
+
+        if self.effects:
+            from vfm_core.streaming import WellLearner
+
+            try:
+                WellLearner("check", self.name, "ol", effects=self.effects)
+            except ConfigError as exc:
+                raise ValueError(f"model.effects: {exc}".rstrip(".")) from None
 
         for what, base, given in (
             ("train", DEFAULT_TRAIN[self.name], self.train),

@@ -56,7 +56,15 @@ except ImportError:  # pragma: no cover - depends on the vfm_core version
 # vfm_core's WellLearner.predict takes the sample time (pbl retrains on the study's calendar)
 _PREDICT_TAKES_WHEN = "when" in inspect.signature(WellLearner.predict).parameters
 
-__all__ = ["Engine", "SensorItem", "MeasurementItem", "WellTestResult", "to_ns", "from_ns"]
+__all__ = [
+    "Engine",
+    "SensorItem",
+    "MeasurementItem",
+    "WellTestResult",
+    "ModelChangeRefused",
+    "to_ns",
+    "from_ns",
+]
 
 logger = logging.getLogger("vfm.service.engine")
 
@@ -129,6 +137,36 @@ class WellTestResult:
     model_changed: bool = False
 
 
+class ModelChangeRefused(Exception):
+    """A model change that cannot be made: an HTTP status and a sentence."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass
+class _ModelStep:
+    """A step of a model change, run by the well's worker: take a copy, or swap in the new model."""
+
+    well: str
+    kind: str  # snapshot | swap | cancel
+    future: Future[Any]
+    learner: WellLearner | None = None
+    scores: dict[str, Any] = field(default_factory=dict)
+
+
+def _set_over_http(extra: str) -> bool:
+    """True when a checkpoint's extra state says its model was chosen over HTTP."""
+    import json
+
+    try:
+        return bool(json.loads(extra).get("model_changes"))
+    except (ValueError, AttributeError):
+        return False
+
+
 class _Batch:
     """What one worker batch writes, publishes and answers (after one commit)."""
 
@@ -158,6 +196,10 @@ class WellState:
         self.learned_inputs: deque[tuple[float, ...]] = deque(maxlen=settings.drift.reference_size)
         self.detector: Any = None
         self.drift_events: deque[dict[str, Any]] = deque(maxlen=20)
+        # model changes over HTTP: what was swapped in, when, and its held-out scores
+        self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
+        # while a new model is fitted off the worker: what the old one learned meanwhile
+        self.catch_up: list[tuple[tuple[float, ...], float, int, str]] | None = None
         self.samples = 0
         self.measurements = 0
         self.snapshot: dict[str, Any] = {}
@@ -230,6 +272,7 @@ class Engine:
         ]
         self._threads: list[threading.Thread] = []
         self._stop = object()
+        self._changing: set[str] = set()
         self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
         self._future_ns = int(settings.inputs.max_future_s * 1e9)
         self.started_at = time.time()
@@ -258,9 +301,12 @@ class Engine:
         learners: dict[str, WellLearner] = {}
         checkpoints: dict[str, Any] = {}
         method = cfg.model.method
+        configured = cfg.model.full_name
         for well in names:
             row = self.store.latest_checkpoint(well)
-            if row is not None and (row.model, row.method) == (cfg.model.name, method):
+            if row is not None and (
+                (row.model, row.method) == (configured, method) or _set_over_http(row.extra)
+            ):
                 try:
                     learners[well] = WellLearner.restore(row.blob)
                     checkpoints[well] = row
@@ -276,7 +322,7 @@ class Engine:
                     row.model,
                     row.method,
                     well,
-                    cfg.model.name,
+                    configured,
                     method,
                 )
             learners[well] = new_learner(well, cfg.model)
@@ -349,12 +395,15 @@ class Engine:
                 )
         st.learned_inputs.extend(tuple(x) for x in data.get("learned_inputs", []))
         st.drift_events.extend(data.get("drift_events", []))
+        st.model_changes.extend(data.get("model_changes", []))
 
     def _relearn(self, st: WellState, ops: list[Op]) -> int:
         rows = self.store.learned_after(st.well, st.learn_seq)
-        for seq, time_ns, _source, q_total, sample_ns, *rest in rows:
+        for seq, time_ns, source, q_total, sample_ns, *rest in rows:
             inputs, predicted = tuple(rest[:6]), rest[6]
-            self._apply_learning(st, _Sample(sample_ns, inputs, predicted), q_total, time_ns, ops)
+            self._apply_learning(
+                st, _Sample(sample_ns, inputs, predicted), q_total, time_ns, ops, source
+            )
             st.learn_seq = seq
         for predicted, measured in self.store.recent_errors(st.well, self.settings.rolling_window):
             if predicted is not None and measured:
@@ -500,6 +549,120 @@ class Engine:
             ) from None
         return fut
 
+    # -- model changes (HTTP thread; the swap itself runs on the well's worker) ---------------
+    def change_model(
+        self,
+        well: str,
+        model: str | None = None,
+        effects: list[str] | None = None,
+        method: str | None = None,
+        timeout: float = 600.0,
+    ) -> dict[str, Any]:
+        """Replace a well's model: fit the new one on the well's stored history, then swap.
+
+        The worker hands out a copy of the learner (so learning goes on meanwhile), the new
+        model is fitted on the copy's history here, and the worker then teaches it what the
+        old one learned in the meantime and swaps it in, with a higher version, in one step
+        between two messages. The change is checkpointed before this returns.
+        """
+        st = self.wells.get(well)
+        if st is None:
+            raise ModelChangeRefused(
+                404, f"The well '{well}' is not known to this service; GET /wells lists the wells."
+            )
+        old = st.learner
+        model = model or old.model_name
+        try:  # check the request before any work: a typo fails at once
+            WellLearner(well, model, method or old.method.text, effects=effects or [])
+        except VFMError as exc:
+            raise ModelChangeRefused(422, str(exc)) from None
+        with self._wells_lock:
+            if well in self._changing:
+                raise ModelChangeRefused(
+                    409, f"A model change of {well} is already running; wait for it to finish."
+                )
+            self._changing.add(well)
+        try:
+            copy: WellLearner = self._step(st, "snapshot", timeout)
+            started = time.perf_counter()
+            try:
+                new, scores = copy.refit_as(model, effects or [], method)
+            except VFMError as exc:
+                self._step(st, "cancel", timeout)
+                raise ModelChangeRefused(422, str(exc)) from None
+            except BaseException:
+                self._step(st, "cancel", timeout)
+                raise
+            scores["fit_s"] = round(time.perf_counter() - started, 2)
+            change: dict[str, Any] = self._step(st, "swap", timeout, new, scores)
+            return change
+        finally:
+            with self._wells_lock:
+                self._changing.discard(well)
+
+    def _step(
+        self,
+        st: WellState,
+        kind: str,
+        timeout: float,
+        learner: WellLearner | None = None,
+        scores: dict[str, Any] | None = None,
+    ) -> Any:
+        fut: Future[Any] = Future()
+        try:
+            self._queues[st.worker].put(
+                _ModelStep(st.well, kind, fut, learner, scores or {}), timeout=5.0
+            )
+        except queue.Full:
+            raise ModelChangeRefused(
+                503, "The service is busy (its queue is full); retry in a few seconds."
+            ) from None
+        return fut.result(timeout=timeout)
+
+    def _on_model_step(self, item: _ModelStep, b: _Batch) -> None:
+        st = self.wells[item.well]
+        if item.kind == "snapshot":
+            st.catch_up = []
+            item.future.set_result(WellLearner.restore(st.learner.checkpoint()))
+            return
+        if item.kind == "cancel":
+            st.catch_up = None
+            item.future.set_result(None)
+            return
+        new, old = item.learner, st.learner
+        assert new is not None
+        for inputs, q_total, time_ns, source in st.catch_up or []:
+            new.learn(list(inputs), q_total, from_ns(time_ns), source)
+        st.catch_up = None
+        new.version = max(new.version, old.version + 1)
+        before = st.rolling_mape()
+        change = {
+            "time": _iso(time.time_ns()),
+            "model_before": old.name,
+            "model_after": new.name,
+            "method": new.method.text,
+            "version_before": old.version,
+            "version_after": new.version,
+            "holdout": item.scores,
+            "rolling_mape_before": before["value"],
+        }
+        st.learner = new
+        st.errors.clear()  # the rolling error from now on is the new model's
+        st.model_changes.append(change)
+        b.ops.extend(self._checkpoint_ops(st))
+        st.refresh()
+        logger.info(
+            "Model of %s changed from %s (version %d) to %s (version %d); held-out MAPE %s -> %s %%.",
+            st.well,
+            old.name,
+            old.version,
+            new.name,
+            new.version,
+            item.scores.get("before"),
+            item.scores.get("after"),
+        )
+        b.answers.append((item.future, change))  # type: ignore[arg-type]
+
     def queue_depths(self) -> list[int]:
         return [q.qsize() for q in self._queues]
 
@@ -544,6 +707,8 @@ class Engine:
         try:
             if isinstance(item, SensorItem):
                 self._on_sample(item, b)
+            elif isinstance(item, _ModelStep):
+                self._on_model_step(item, b)
             else:
                 self._on_measurement(item, b)
         except Exception as exc:  # one bad message must not stop the worker
@@ -646,7 +811,7 @@ class Engine:
                 q_gas=rates["q_gas"],
                 q_oil=rates["q_oil"],
                 q_water=rates["q_water"],
-                model=learner.model_name,
+                model=learner.name,
                 version=learner.version,
             )
             b.outbox.append((item.well, pred.model_dump_json().encode()))
@@ -766,7 +931,7 @@ class Engine:
         learner = st.learner
         version_before = learner.version
         before = learner.predict(list(sample.inputs)) if p.future is not None else {}
-        self._apply_learning(st, sample, p.q_total, p.time_ns, b.ops)
+        self._apply_learning(st, sample, p.q_total, p.time_ns, b.ops, p.source)
         st.learn_seq += 1
         self._changed(st, b.ops)
         b.ops.append(
@@ -811,11 +976,19 @@ class Engine:
             )
 
     def _apply_learning(
-        self, st: WellState, sample: _Sample, q_total: float, time_ns: int, ops: list[Op]
+        self,
+        st: WellState,
+        sample: _Sample,
+        q_total: float,
+        time_ns: int,
+        ops: list[Op],
+        source: str = "mpfm",
     ) -> None:
         """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
         learner = st.learner
-        learner.learn(list(sample.inputs), q_total, from_ns(time_ns))
+        learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
+        if st.catch_up is not None:
+            st.catch_up.append((sample.inputs, q_total, time_ns, source))
         if sample.predicted is not None and q_total:
             st.errors.append(abs(sample.predicted - q_total) / abs(q_total))
         st.learned_inputs.append(sample.inputs)
@@ -862,6 +1035,7 @@ class Engine:
             "drift": st.detector.state_dict() if st.detector is not None else None,
             "learned_inputs": [list(x) for x in st.learned_inputs],
             "drift_events": list(st.drift_events),
+            "model_changes": list(st.model_changes),
         }
         learner = st.learner
         st.checkpoint_version = learner.version
@@ -874,7 +1048,7 @@ class Engine:
                     time.time_ns(),
                     learner.version,
                     st.learn_seq,
-                    learner.model_name,
+                    learner.name,
                     learner.method.text,
                     learner.checkpoint(),
                     json.dumps(extra),

@@ -19,10 +19,11 @@ import torch
 
 from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
+from vfm_core.effects import FeatureTracker, make_effect_model, standard_features
 from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
-from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL
+from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
 from vfm_core.streaming import WellLearner
 
 __all__ = ["new_learner", "load_history", "fit_history"]
@@ -40,25 +41,32 @@ def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
         online=settings_from_dict(DEFAULT_ONLINE[cfg.name], cfg.online),
         model_kwargs=cfg.model_kwargs,
         seed=cfg.seed,
+        effects=cfg.effects,
     )
 
 
 def load_history(cfg: ModelSettings) -> pd.DataFrame:
-    """The measured rows (MPFM and well tests) of the history file before ``history_until``."""
+    """The rows of the history file before ``history_until``, with the standard features
+    (:class:`vfm_core.effects.FeatureTracker`) as extra columns; :func:`fit_history` fits
+    on the measured ones (MPFM and well tests)."""
     if cfg.history is None:
         return pd.DataFrame()
     loaded = load_observations(cfg.history)
     frame = loaded.frame
-    keep = target_mask(frame, "all")
+    keep = np.ones(len(frame), dtype=bool)
     if cfg.history_until is not None:
-        keep = keep & (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
+        keep = (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
+    frame = frame.loc[keep].reset_index(drop=True)
+    feats = standard_features(frame)
+    for name in FeatureTracker.names:
+        frame[name] = feats[name].to_numpy()
     logger.info(
         "History %s: %d measured rows before %s.",
         cfg.history,
-        int(keep.sum()),
+        int(target_mask(frame, "all").sum()),
         cfg.history_until.isoformat() if cfg.history_until else "its end",
     )
-    return frame.loc[keep].reset_index(drop=True)
+    return frame
 
 
 def _slice_state(
@@ -83,14 +91,24 @@ def fit_history(
     """Fit the learners of the wells in ``history`` (one batched fit); returns the wells fitted."""
     if history.empty:
         return []
-    wells = [w for w in dict.fromkeys(history[WELL].astype(str)) if w in learners]
+    measured = history.loc[target_mask(history, "all")]
+    wells = [w for w in dict.fromkeys(measured[WELL].astype(str)) if w in learners]
     if not wells:
         return []
-    frame = history[history[WELL].isin(wells)].reset_index(drop=True)
+    trackers = {
+        w: FeatureTracker.from_frame(g)[0]
+        for w, g in history[history[WELL].isin(wells)].groupby(WELL, sort=False)
+    }
+    frame = measured[measured[WELL].isin(wells)].reset_index(drop=True)
     train = settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
-    batch = make_batch(frame, wells)
     try:
-        model = make_model(cfg.name, wells, seed=cfg.seed, **cfg.model_kwargs)
+        if cfg.effects:
+            model = make_effect_model(
+                cfg.name, wells, cfg.effects, seed=cfg.seed, **cfg.model_kwargs
+            )
+        else:
+            model = make_model(cfg.name, wells, seed=cfg.seed, **cfg.model_kwargs)
+        batch = make_batch(frame, wells, extra_columns=model.extra_columns)
         summary = fit_batch(model, batch, train)
         full = model.state_dict()
         for j, well in enumerate(wells):
@@ -103,6 +121,7 @@ def fit_history(
                 frame[frame[WELL] == well],
                 summary["iterations"][j : j + 1],
                 cfg.history_until,
+                trackers[well],
             )
     except (ValueError, RuntimeError) as exc:
         # WellLearner's private layout changed: fall back to one fit per well (slower)
@@ -110,7 +129,10 @@ def fit_history(
         for well in wells:
             own = frame[frame[WELL] == well]
             fresh = new_learner(well, cfg)
-            fresh.fit_history(*_tensors(own))
+            x, y, t = _tensors(own)
+            fresh.fit_history(
+                x, y, t, well_test=_well_tests(own), features=_features(own), tracker=trackers[well]
+            )
             learners[well] = fresh
     return wells
 
@@ -122,8 +144,20 @@ def _tensors(rows: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return x, y, t
 
 
+def _well_tests(rows: pd.DataFrame) -> torch.Tensor:
+    return torch.tensor((rows[SOURCE] == WELL_TEST).to_numpy())
+
+
+def _features(rows: pd.DataFrame) -> torch.Tensor:
+    return torch.tensor(rows[list(FeatureTracker.names)].to_numpy(dtype=np.float64))
+
+
 def _adopt_fit(
-    learner: WellLearner, rows: pd.DataFrame, iterations: torch.Tensor, split: datetime | None
+    learner: WellLearner,
+    rows: pd.DataFrame,
+    iterations: torch.Tensor,
+    split: datetime | None,
+    tracker: FeatureTracker,
 ) -> None:
     """What WellLearner.fit_history does after its fit, for a model fitted elsewhere.
 
@@ -131,18 +165,28 @@ def _adopt_fit(
     calendar of ``vfm evaluate``; without one, a period after the last history row.
     """
     x, y, t = _tensors(rows)
-    learner.adopt_fit(x, y, t, iterations, first_retrain_base=split)
+    learner.adopt_fit(
+        x,
+        y,
+        t,
+        iterations,
+        first_retrain_base=split,
+        well_test=_well_tests(rows),
+        features=_features(rows),
+        tracker=tracker,
+    )
 
 
 def describe(learner: WellLearner) -> dict[str, Any]:
     """The learner's public state, for the API."""
     last: datetime | None = learner.last_update
     return {
-        "model": learner.model_name,
+        "model": learner.name,
         "method": learner.method.text,
         "ready": learner.ready,
         "version": learner.version,
         "n_updates": learner.n_updates,
         "last_update": last.isoformat() if last else None,
         "parameters": learner.physical_parameters() if learner.ready else {},
+        "measurements_remembered": learner.remembered,
     }

@@ -79,6 +79,8 @@ __all__ = [
     "add_features",
     "resolve_effect",
     "resolve_effects",
+    "effect_spec",
+    "FeatureTracker",
     "make_effect_model",
     "effect_model_factory",
 ]
@@ -153,6 +155,111 @@ def add_features(frame: pd.DataFrame, effects: Sequence[str | type[Effect]]) -> 
     return out
 
 
+class FeatureTracker:
+    """The standard features of one well, kept up to date one row at a time (the service).
+
+    Follows :func:`standard_features` row by row: ``advance(t)`` integrates the last measured
+    rate up to ``t`` (steps capped at 48 h, never backwards) and returns the features at
+    ``t``; ``measured(t, q)`` then records the row's own rate, which only later rows see.
+    The throughput scale is the median measured rate of the well's first 90 days; until 90
+    days have passed it is the median so far (offline, the whole 90 days are known at once).
+    State is plain numbers (:meth:`state` / :meth:`from_state`), for checkpoints.
+    """
+
+    names: ClassVar[tuple[str, ...]] = tuple(STANDARD_FEATURES)
+    _EARLY_NS: ClassVar[int] = int(90 * 24 * 3600 * 1e9)
+
+    def __init__(self) -> None:
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self.last_rate = 0.0
+        self.cumulative = 0.0  # Sm3 (rate x hours)
+        self.early: list[float] = []
+        self.scale: float | None = None  # fixed once the first 90 days are over
+
+    def _scale(self) -> float:
+        if self.scale is not None:
+            return self.scale
+        return float(np.median(self.early)) if self.early else 1.0
+
+    def advance(self, time_ns: int, eta_gas: float, eta_oil: float) -> list[float]:
+        """Features at ``time_ns`` for a row with these mass fractions, in :attr:`names` order."""
+        if self.first_ns is None:
+            self.first_ns = self.last_ns = time_ns
+        assert self.last_ns is not None
+        if time_ns > self.last_ns:
+            hours = min((time_ns - self.last_ns) / 3.6e12, _MAX_STEP_HOURS)
+            self.cumulative += self.last_rate * hours
+            self.last_ns = time_ns
+        if self.scale is None and time_ns - self.first_ns > self._EARLY_NS and self.early:
+            self.scale = float(np.median(self.early))
+        wat = 1.0 - eta_gas - eta_oil
+        values = {
+            "years_on": max(time_ns - self.first_ns, 0) / 3.6e12 / HOURS_PER_YEAR,
+            "throughput_years": self.cumulative / (self._scale() * HOURS_PER_YEAR),
+            "water_cut": min(max(wat / max(eta_oil + wat, 1e-9), 0.0), 1.0),
+        }
+        return [values[n] for n in self.names]
+
+    def measured(self, time_ns: int, q_total: float) -> None:
+        """Record a measured rate (Sm3/h) at ``time_ns`` (after :meth:`advance` for that row)."""
+        if not (math.isfinite(q_total) and q_total > 0):
+            return
+        if self.first_ns is None:
+            self.first_ns = self.last_ns = time_ns
+        if self.scale is None and time_ns - self.first_ns <= self._EARLY_NS:
+            self.early.append(float(q_total))
+        self.last_rate = float(q_total)
+
+    @classmethod
+    def from_frame(cls, frame: pd.DataFrame) -> tuple[FeatureTracker, np.ndarray]:
+        """A tracker that has seen one well's rows (time order) and those rows' features [N, k]."""
+        feats = standard_features(frame)
+        tr = cls()
+        if frame.empty:
+            return tr, np.zeros((0, len(cls.names)))
+        ns = pd.DatetimeIndex(pd.to_datetime(frame[TIME], utc=True)).as_unit("ns").asi8
+        q = pd.to_numeric(frame[TARGET], errors="coerce").to_numpy(dtype=float)
+        order = np.argsort(ns, kind="stable")
+        tr.first_ns, tr.last_ns = int(ns[order[0]]), int(ns[order[-1]])
+        ok = np.isfinite(q) & (q > 0)
+        early = ok & (ns - tr.first_ns <= cls._EARLY_NS)
+        tr.scale = (
+            float(np.median(q[early]))
+            if early.any()
+            else (float(np.median(q[ok])) if ok.any() else 1.0)
+        )
+        if ok.any():
+            tr.last_rate = float(q[order][ok[order]][-1])
+        last = order[-1]
+        tr.cumulative = (
+            float(feats["throughput_years"].to_numpy()[last]) * tr.scale * HOURS_PER_YEAR
+        )
+        return tr, feats[list(cls.names)].to_numpy(dtype=float)
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "first_ns": self.first_ns,
+            "last_ns": self.last_ns,
+            "last_rate": self.last_rate,
+            "cumulative": self.cumulative,
+            "early": list(self.early),
+            "scale": self.scale,
+        }
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, Any]) -> FeatureTracker:
+        tr = cls()
+        tr.first_ns = state.get("first_ns")
+        tr.last_ns = state.get("last_ns")
+        tr.last_rate = float(state.get("last_rate", 0.0))
+        tr.cumulative = float(state.get("cumulative", 0.0))
+        tr.early = [float(v) for v in state.get("early", [])]
+        scale = state.get("scale")
+        tr.scale = None if scale is None else float(scale)
+        return tr
+
+
 # --- the protocol ---------------------------------------------------------------------------
 @dataclass
 class EffectInputs:
@@ -174,6 +281,7 @@ class EffectInputs:
     u_ref: torch.Tensor
     extra: dict[str, torch.Tensor] = field(default_factory=dict)
     z: torch.Tensor | float = 1.0
+    time_ns: torch.Tensor | None = None
 
     def feature(self, name: str) -> torch.Tensor:
         """A feature column [W, N] by name; a clear error if the batch lacks it."""
@@ -203,6 +311,21 @@ class Effect:
     description: ClassVar[str] = ""
     parameters: ClassVar[Mapping[str, Prior]] = {}
     extra_columns: ClassVar[tuple[str, ...]] = ()
+    #: Settings the effect accepts as ``name:key=value`` (key -> what it means); none by default.
+    settings: ClassVar[Mapping[str, str]] = {}
+    #: How to name this (configured) effect so it can be rebuilt; default ``name``.
+    spec: ClassVar[str] = ""
+
+    @classmethod
+    def configure(cls, **values: str) -> type[Effect]:
+        """A subclass with the given settings (text values from ``name:key=value``)."""
+        unknown = sorted(set(values) - set(cls.settings))
+        if unknown:
+            known = ", ".join(f"{k} ({v})" for k, v in cls.settings.items()) or "none"
+            raise ConfigError(
+                f"Effect '{cls.name}' has no setting {', '.join(unknown)}; its settings: {known}."
+            )
+        return cls
 
     @classmethod
     def features(cls, frame: pd.DataFrame) -> pd.DataFrame:
@@ -240,27 +363,72 @@ class Effect:
 
 # --- the library ------------------------------------------------------------------------------
 class Erosion(Effect):
-    """Choke wear: C_D A grows linearly with cumulative throughput, factor 1 + rate * V/V_year."""
+    """Choke wear: C_D A grows linearly with cumulative throughput, factor 1 + rate * V/V_year.
+
+    Optionally with a sudden step at a known date (a sand event, a choke change or repair,
+    from the well's log): ``erosion:step_at=2019-06-01`` multiplies the area by
+    1 + step from that time on and learns ``step`` as well.
+    """
 
     name = "erosion"
     description = (
         "Choke wear: the effective flow area grows in proportion to the cumulative produced "
-        "volume (in year-equivalents of the well's early rate)."
+        "volume (in year-equivalents of the well's early rate), optionally with a step at a date."
     )
     parameters = {
         "rate": Prior(0.0, 0.05, 0.0, 1.0, "1/yr-eq", "relative C_D growth per year of throughput"),
     }
     extra_columns = ("throughput_years",)
     basis = "throughput_years"
+    settings = {"step_at": "date and time (UTC) of a sudden C_D step, e.g. 2019-06-01"}
+    step_at_ns: ClassVar[int | None] = None
+
+    @classmethod
+    def configure(cls, **values: str) -> type[Effect]:
+        super().configure(**values)
+        if "step_at" not in values:
+            return cls
+        try:
+            when = pd.Timestamp(values["step_at"])
+        except (ValueError, TypeError):
+            raise ConfigError(
+                f"Effect '{cls.name}': step_at='{values['step_at']}' is not a date "
+                "(use e.g. step_at=2019-06-01 or 2019-06-01T12:00)."
+            ) from None
+        when = when.tz_localize("UTC") if when.tzinfo is None else when.tz_convert("UTC")
+        text = when.strftime("%Y-%m-%dT%H:%M")
+        return type(
+            f"{cls.__name__}Step",
+            (cls,),
+            {
+                "parameters": {
+                    **cls.parameters,
+                    "step": Prior(0.0, 0.1, -0.5, 2.0, "-", f"relative C_D step at {text} UTC"),
+                },
+                "step_at_ns": int(when.value),
+                "spec": f"{cls.name}:step_at={text}",
+                "__module__": cls.__module__,
+            },
+        )
 
     def area_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.clamp(1.0 + p["rate"] * inputs.feature(self.basis), min=0.05)
+        factor = torch.clamp(1.0 + p["rate"] * inputs.feature(self.basis), min=0.05)
+        if self.step_at_ns is not None:
+            if inputs.time_ns is None:
+                raise ConfigError(f"Effect '{self.spec}' needs each sample's time.")
+            after = (inputs.time_ns >= self.step_at_ns).to(factor.dtype)
+            factor = factor * torch.clamp(1.0 + p["step"] * after, min=0.05)
+        return factor
 
     def describe(self, values: Mapping[str, float]) -> str:
         unit = (
             "per year-equivalent of throughput" if self.basis == "throughput_years" else "per year"
         )
-        return f"C_D grows {100 * values['rate']:.2g} % {unit} (choke wear)."
+        text = f"C_D grows {100 * values['rate']:.2g} % {unit} (choke wear)"
+        if self.step_at_ns is not None and "step" in values:
+            when = pd.Timestamp(self.step_at_ns, tz="UTC").strftime("%Y-%m-%d %H:%M")
+            text += f", and steps by {100 * values['step']:+.2g} % at {when} UTC"
+        return text + "."
 
 
 class ErosionTime(Erosion):
@@ -459,11 +627,23 @@ DEFAULT_CANDIDATES: tuple[str, ...] = (
 
 
 def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
-    """An effect class from a registry name or ``module:Class`` (importable from PYTHONPATH)."""
+    """An effect class from a registry name or ``module:Class`` (importable from PYTHONPATH),
+    optionally followed by settings ``:key=value`` (e.g. ``erosion:step_at=2019-06-01``)."""
+    values: dict[str, str] = {}
     if isinstance(name_or_path, type):
         cls = name_or_path
     else:
-        text = str(name_or_path).strip()
+        parts = str(name_or_path).strip().split(":")
+        base = [x for x in parts if "=" not in x]
+        for item in (x for x in parts if "=" in x):
+            key, _, value = item.partition("=")
+            values[key.strip()] = value.strip()
+        text = ":".join(base).strip()
+        if len(base) > 2 or not text:
+            raise ConfigError(
+                f"Cannot read the effect '{name_or_path}'; write name, name:key=value or "
+                "module:Class."
+            )
         if ":" in text:
             module_name, _, attr = text.partition(":")
             try:
@@ -494,12 +674,23 @@ def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
         raise ConfigError(
             f"Effect class {cls.__name__} needs a name made of letters, digits and '_'."
         )
+    if values:
+        cls = cls.configure(**values)
     for key, prior in cls.parameters.items():
         if not (prior.std > 0 and prior.low <= prior.mean <= prior.high):
             raise ConfigError(
                 f"Effect '{cls.name}': parameter '{key}' needs std > 0 and low <= mean <= high."
             )
     return cls
+
+
+def effect_spec(cls: type[Effect]) -> str:
+    """The text that rebuilds ``cls`` through :func:`resolve_effect`."""
+    if cls.spec and cls.spec != cls.name:
+        return cls.spec
+    if EFFECTS.get(cls.name) is cls:
+        return cls.name
+    return f"{cls.__module__}:{cls.__qualname__}"
 
 
 def resolve_effects(effects: Sequence[str | type[Effect]] | str) -> list[type[Effect]]:
@@ -538,12 +729,7 @@ class _EffectMixin:
             columns += [c for c in e.extra_columns if c not in columns]
         model.extra_columns = tuple(columns)
         # how to rebuild the model (JSON): registry names, or module:Class for a user's own
-        model.hyper["effects"] = [
-            e.name
-            if EFFECTS.get(e.name) is type(e)
-            else f"{type(e).__module__}:{type(e).__qualname__}"
-            for e in self.effects
-        ]
+        model.hyper["effects"] = [effect_spec(type(e)) for e in self.effects]
         model.name = "+".join([model.base_name, *(e.name for e in self.effects)])
 
     def effect_values(self) -> dict[str, dict[str, torch.Tensor]]:
@@ -565,6 +751,7 @@ class _EffectMixin:
             well_test=batch.well_test,
             u_ref=model.u_ref.unsqueeze(1),
             extra=extra,
+            time_ns=batch.time_ns,
         )
 
     def _effect_rate(self, batch: Batch) -> torch.Tensor:
