@@ -133,6 +133,25 @@ def test_real_gas_and_slip_rank_near_the_top_and_halve_the_error(effect: str) ->
     assert mine.mape - floor <= 0.5 * (diag.baseline_mape - floor), format_summary(diag)
 
 
+def test_erosion_with_a_step_at_a_known_date() -> None:
+    """A sand event steps C_D up by 15 % on top of the wear; the operator knows its date.
+
+    ``erosion:step_at=<date>`` recovers the step and the wear rate (the simulator's truth:
+    0.15 and 0.05 per year-equivalent) and leaves a fraction of plain erosion's error."""
+    field = simulate_field(wells=1, years=3.0, seed=1, start="2017-01-01",
+                           hidden=["erosion:rate=0.05:step=0.15"])
+    event = next(iter(field.truth["wells"].values()))["sand_event"]
+    split = (pd.Timestamp(event) + pd.Timedelta(days=150)).strftime("%Y-%m-%d")
+    diag = run_diagnosis(field.observations, "mm", method=METHOD, split=split,
+                         effects=[f"erosion:step_at={event}"])
+    ext = diag.extended
+    assert ext is not None, format_summary(diag)
+    plain = next(c for c in diag.candidates if c.effect == "erosion")
+    assert ext.parameters["erosion.step"]["value"] == pytest.approx(0.15, abs=0.03)
+    assert ext.parameters["erosion.rate"]["value"] == pytest.approx(0.05, abs=0.015)
+    assert ext.mape < 0.5 * plain.mape < 0.5 * diag.baseline_mape, format_summary(diag)
+
+
 def test_critical_ratio_is_small_and_not_a_false_alarm() -> None:
     # Exempt from ranking and halving: Sachdeva's ratio changes the rate by about 1 %.
     diag = _diagnose("critical_ratio")

@@ -215,3 +215,65 @@ def test_hyper_names_rebuild_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
     again = make_effect_model("mm", ["A"], model.hyper["effects"])
     assert list(again.state_dict()) == list(model.state_dict())
     sys.modules.pop("my_effects", None)
+
+
+# --- effects in the streaming learner (the service) ---------------------------------------------
+def test_feature_tracker_matches_the_offline_features() -> None:
+    from vfm_core.effects import FeatureTracker
+
+    frame = simulate_field(wells=1, years=1.0, seed=5, start="2018-01-01").observations
+    tracker = FeatureTracker()
+    got = []
+    for row in frame.itertuples():
+        t = pd.Timestamp(row.time).value
+        got.append(tracker.advance(t, row.eta_gas, row.eta_oil))
+        if np.isfinite(row.q_total):
+            tracker.measured(t, row.q_total)
+    ref = standard_features(frame)[list(FeatureTracker.names)].to_numpy()
+    # after the first 90 days (whose median rate sets the throughput scale) they agree exactly
+    late = (frame["time"] > pd.Timestamp("2018-04-02", tz="UTC")).to_numpy()
+    np.testing.assert_allclose(np.asarray(got)[late], ref[late], rtol=1e-9, atol=1e-12)
+    assert ref[late, 1].max() > 0.5  # throughput really grows
+    # and a tracker built from the frame continues where the stream is
+    rebuilt, feats = FeatureTracker.from_frame(frame)
+    np.testing.assert_allclose(feats, ref)
+    assert rebuilt.state()["cumulative"] == pytest.approx(tracker.state()["cumulative"])
+
+
+def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
+    from vfm_core.streaming import WellLearner
+
+    frame = simulate_field(wells=1, years=1.5, seed=2, start="2017-01-01",
+                           hidden=["erosion:rate=0.3"]).observations
+    split = pd.Timestamp("2017-06-01", tz="UTC")
+    cols = ["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]
+    hist = frame[(frame["time"] < split) & frame["q_total"].notna()]
+    errors: dict[str, float] = {}
+    learners = {}
+    for effects in ([], ["erosion"]):
+        learner = WellLearner("W01", "mm", "pbl:3650d", effects=effects)
+        learner.fit_history(torch.tensor(hist[cols].to_numpy()),
+                            torch.tensor(hist["q_total"].to_numpy()),
+                            torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8))
+        ape = []
+        for row in frame[frame["time"] >= split].itertuples():
+            inputs = [getattr(row, c) for c in cols]
+            q = learner.predict(inputs, when=row.time)["q_total"]
+            if np.isfinite(row.q_total):
+                ape.append(abs(q - row.q_total) / row.q_total)
+                learner.learn(inputs, row.q_total, row.time, row.source)
+        errors[learner.name] = 100 * float(np.mean(ape))
+        learners[learner.name] = learner
+    # fitted once on five months: only the model with wear extrapolates it
+    assert errors["mm+erosion"] < 0.5 * errors["mm"], errors
+    ext = learners["mm+erosion"]
+    assert ext.physical_parameters()["erosion.rate"]["value"] > 0.1
+    # a checkpoint brings the effect model back, with the same predictions
+    back = WellLearner.restore(ext.checkpoint())
+    sample = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]
+    assert back.name == "mm+erosion" and back.predict(sample) == ext.predict(sample)
+    # another model on the same history: compared on the latest fifth, version moves on
+    new, scores = learners["mm"].refit_as(effects=["erosion"])
+    assert new.name == "mm+erosion" and new.version == learners["mm"].version + 1
+    assert new.remembered == learners["mm"].remembered
+    assert scores["after"] < 0.5 * scores["before"], scores

@@ -626,6 +626,10 @@ DEFAULT_CANDIDATES: tuple[str, ...] = (
 )
 
 
+#: name or module:Class, then optional :key=value settings (values may hold ':', e.g. times)
+_SPEC = re.compile(r"([A-Za-z_][\w.]*(?::[A-Za-z_]\w*(?=:|$))?)((?::[A-Za-z_]\w*=.*)?)")
+
+
 def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
     """An effect class from a registry name or ``module:Class`` (importable from PYTHONPATH),
     optionally followed by settings ``:key=value`` (e.g. ``erosion:step_at=2019-06-01``)."""
@@ -633,17 +637,17 @@ def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
     if isinstance(name_or_path, type):
         cls = name_or_path
     else:
-        parts = str(name_or_path).strip().split(":")
-        base = [x for x in parts if "=" not in x]
-        for item in (x for x in parts if "=" in x):
-            key, _, value = item.partition("=")
-            values[key.strip()] = value.strip()
-        text = ":".join(base).strip()
-        if len(base) > 2 or not text:
+        raw = str(name_or_path).strip()
+        m = _SPEC.fullmatch(raw)
+        if m is None:
             raise ConfigError(
                 f"Cannot read the effect '{name_or_path}'; write name, name:key=value or "
-                "module:Class."
+                "module:Class (settings as :key=value after either)."
             )
+        text = m.group(1)
+        for item in re.split(r":(?=[A-Za-z_]\w*=)", m.group(2))[1:]:
+            key, _, value = item.partition("=")
+            values[key.strip()] = value.strip()
         if ":" in text:
             module_name, _, attr = text.partition(":")
             try:
