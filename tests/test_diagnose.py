@@ -104,6 +104,7 @@ def test_bic_by_hand() -> None:
         ("valve", "valve"),
         ("valve:family=quick_opening", "valve"),
         ("mpfm_bias", "mpfm_bias"),
+        ("slip", "slip"),
     ],
 )
 def test_hidden_effect_ranks_first_and_halves_the_error(hidden: str, effect: str) -> None:
@@ -114,23 +115,6 @@ def test_hidden_effect_ranks_first_and_halves_the_error(hidden: str, effect: str
     print(format_summary(diag), f"floor {floor:.2f}")
     assert best.effect == effect, format_summary(diag)
     assert best.mape - floor <= 0.5 * (diag.baseline_mape - floor), format_summary(diag)
-
-
-@pytest.mark.parametrize("effect", ["real_gas", "slip"])
-def test_real_gas_and_slip_rank_near_the_top_and_halve_the_error(effect: str) -> None:
-    """A known limit, stated plainly: on 3 wells x 2 scored years real gas and slip are
-    confounded with wear and meter drift, since all of them mostly look like a slow trend
-    (Z -> 1 and the slip multiplier change as the pressure and gas fraction drift). Here the
-    true effect must rank in the top two and halve the error above the noise floor; on the
-    default 10-well field (5 years) real_gas ranks first by BIC."""
-    diag = _diagnose(effect)
-    field = _field(effect)
-    floor = _floor(field, field.observations)
-    names = [c.effect for c in diag.candidates]
-    assert effect in names[:2], format_summary(diag)
-    mine = diag.candidates[names.index(effect)]
-    assert mine.delta_bic < -MATERIAL_BIC, format_summary(diag)
-    assert mine.mape - floor <= 0.5 * (diag.baseline_mape - floor), format_summary(diag)
 
 
 def test_erosion_with_a_step_at_a_known_date() -> None:
@@ -152,11 +136,22 @@ def test_erosion_with_a_step_at_a_known_date() -> None:
     assert ext.mape < 0.5 * plain.mape < 0.5 * diag.baseline_mape, format_summary(diag)
 
 
-def test_critical_ratio_is_small_and_not_a_false_alarm() -> None:
-    # Exempt from ranking and halving: Sachdeva's ratio changes the rate by about 1 %.
-    diag = _diagnose("critical_ratio")
-    assert diag.baseline_mape < 4.0
-    assert all(c.mape < diag.baseline_mape + 1.0 for c in diag.candidates if c.effect == "critical_ratio")
+@pytest.mark.parametrize("effect", ["real_gas", "critical_ratio"])
+def test_effects_that_leave_no_trace_are_not_claimed(effect: str) -> None:
+    """A limit, stated plainly and checked: on this field, once mm refits C_D, A_max and its
+    constant p_cr, the hidden real-gas Z and Sachdeva's critical ratio leave almost nothing
+    behind (the baseline is within half a point of the noise floor; a constant p_cr
+    reproduces Sachdeva's ratio to about 0.02 % RMS), far below the MPFM's 2-5 % noise. No
+    diagnosis can rank what it cannot see; what it must not do is claim something else."""
+    diag = _diagnose(effect)
+    field = _field(effect)
+    floor = _floor(field, field.observations)
+    assert diag.baseline_mape - floor < 0.5, format_summary(diag)
+    assert not any(c.material for c in diag.candidates), format_summary(diag)
+    # the candidate itself stays physical: Papay's Z (strength 1) and Sachdeva's ratio (weight 1)
+    mine = next(c for c in diag.candidates if c.effect == effect)
+    value = next(iter(mine.parameters.values()))["value"]
+    assert 0.5 < value < 1.5, format_summary(diag)
 
 
 def test_nothing_hidden_no_false_discovery() -> None:
@@ -246,3 +241,21 @@ def test_bic_per_source_by_hand() -> None:
     r = np.array([0.1, -0.1, 0.01, -0.01])
     groups = np.array(["mpfm", "mpfm", "well_test", "well_test"])
     assert bic(r, 1, groups) == pytest.approx(2 * np.log(0.01) + 2 * np.log(1e-4) + np.log(4))
+
+
+def test_reference_bic_is_taken_on_the_well_tests_when_there_are_enough() -> None:
+    from vfm_core.diagnose import MIN_WELL_TESTS, reference_bic
+
+    n_wt = MIN_WELL_TESTS
+    p = pd.DataFrame({
+        "source": ["well_test"] * n_wt + ["mpfm"] * 100,
+        "measured": 100.0,
+        "predicted": [99.0, 101.0] * (n_wt // 2) + [90.0] * 100,  # 1 % on tests, 10 % on MPFM
+    })
+    value, on = reference_bic(p, 1)
+    assert on == "well tests"
+    assert value == pytest.approx(n_wt * np.log(0.01**2) + np.log(n_wt))
+    value, on = reference_bic(p.iloc[1:], 1)  # one test too few: every measurement, per source
+    assert on == "all measurements"
+    n = len(p) - 1
+    assert value == pytest.approx((n_wt - 1) * np.log(0.01**2) + 100 * np.log(0.1**2) + np.log(n))

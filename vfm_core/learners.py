@@ -68,6 +68,9 @@ class TrainSettings:
     #: (0 = full batch); the cost of a step then stays flat as history grows
     batch_size: int = 256
     seed: int = 0
+    #: False: no held-out slice; every initial fit runs ``max_iter`` iterations (for models
+    #: whose priors are their regulariser, on data whose latest slice is not like the rest)
+    early_stopping: bool = True
 
 
 @dataclass(frozen=True)
@@ -329,6 +332,11 @@ def fit_batch(
     n_w = batch.n_wells
     best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
 
+    if iterations is None and not settings.early_stopping:
+        iterations = torch.full((n_w,), settings.max_iter, dtype=torch.int64)
+        settings = replace(
+            settings, retrain_max_iter=max(settings.retrain_max_iter, settings.max_iter)
+        )
     if iterations is not None:
         fallback = torch.full_like(iterations, settings.default_iter)
         best_iter = torch.where(iterations > 0, iterations, fallback).clamp(

@@ -546,14 +546,9 @@ class WellLearner:
         rows = rows[torch.argsort(source._t[rows], stable=True)]
         self._x, self._y, self._t = source._x[rows], source._y[rows], source._t[rows]
         self._w, self._e = source._w[rows], source._e[rows]
-        if converge:
-            full = torch.tensor([self.train.max_iter], dtype=torch.int64)
-            settings = replace(self.train, retrain_max_iter=self.train.max_iter)
-            fit_batch(self.model, self._batch(), settings, full)
-            self.iterations = full
-        else:
-            summary = fit_batch(self.model, self._batch(), self.train)
-            self.iterations = summary["iterations"]
+        settings = replace(self.train, early_stopping=False) if converge else self.train
+        summary = fit_batch(self.model, self._batch(), settings)
+        self.iterations = summary["iterations"]
 
     def checkpoint(self) -> bytes:
         """Everything needed to resume, as bytes (tensors and plain values, no pickle)."""
