@@ -184,6 +184,11 @@ def run_demo(args: argparse.Namespace) -> int:
         if args.keep_serving:
             print(f"  API        {http_url}/docs  (e.g. curl {http_url}/wells/W01)")
             print(f"             POST well tests with: -H 'Authorization: Bearer {token}'")
+            print(
+                f"             add the wear the field hides: curl -X PUT {http_url}/wells/W01/model "
+                f"-H 'Authorization: Bearer {token}' -H 'content-type: application/json' "
+                """-d '{"effects": ["erosion"]}'"""
+            )
             print(f"  Zenoh      {zenoh_ep}  (vfm replay DATA --connect {zenoh_ep})")
             print("The service keeps running; press Ctrl-C to stop it.", flush=True)
             try:

@@ -27,7 +27,6 @@ import pytest
 
 from vfm_core.data import target_mask
 from vfm_core.diagnose import (
-    MATERIAL_BIC,
     Diagnosis,
     bic,
     format_summary,

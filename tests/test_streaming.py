@@ -75,3 +75,28 @@ def test_priors_only_learner_waits_for_data_and_rejects_bad_blobs() -> None:
         WellLearner.restore(b"not a checkpoint")
     with pytest.raises(ConfigError, match="shares parameters"):
         WellLearner("W9", "mtl", "ol")
+
+
+def test_a_first_format_checkpoint_still_restores() -> None:
+    """Checkpoints written before effects existed (format 1: no sources, no features)."""
+    import io
+
+    from vfm_core.streaming import WellLearner
+
+    learner = WellLearner("W01", "mm", "ol")
+    x = torch.tensor([[0.5, 60.0, 20.0, 70.0, 0.1, 0.6]] * 20, dtype=torch.float64)
+    y = torch.linspace(900.0, 1100.0, 20, dtype=torch.float64)
+    t = torch.arange(20, dtype=torch.int64) * 3_600_000_000_000 + 1_500_000_000_000_000_000
+    learner.fit_history(x, y, t)
+    payload = torch.load(io.BytesIO(learner.checkpoint()), weights_only=True)
+    for key in ("effects", "features", "w", "e"):
+        payload.pop(key)
+    payload["format"] = "vfm-well-learner/1"
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    back = WellLearner.restore(buf.getvalue())
+    sample = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]
+    assert back.predict(sample) == learner.predict(sample)
+    assert back.remembered == 20 and not bool(back._w.any())
+    # the features are rebuilt from the remembered rows: 19 hours on stream at the last row
+    assert float(back._e[-1, 0]) == pytest.approx(19 / (365.25 * 24))
