@@ -145,10 +145,15 @@ class ModelChangeOut(BaseModel):
     time: str
     model_before: str
     model_after: str
+    effects: list[str] = Field(default_factory=list, description="the new model's effects")
     method: str
     version_before: int
     version_after: int
     holdout: HoldoutOut
+    caught_up: int = Field(
+        default=0,
+        description="measurements learned while the new model was fitted, taught to it before the swap",
+    )
     rolling_mape_before: float | None = Field(
         description="rolling MAPE (%) of the replaced model at the change"
     )
@@ -340,7 +345,7 @@ def well_state(well: WellPath, service: ServiceDep) -> dict[str, Any]:
     ),
     responses={
         401: {"model": ErrorOut},
-        403: {"model": ErrorOut},
+        403: {"model": ErrorOut, "description": "no token configured, or a module not allowed"},
         404: {"model": ErrorOut},
         409: {"model": ErrorOut},
         422: {"model": ErrorOut},

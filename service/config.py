@@ -70,6 +70,11 @@ class ModelSettings(_Section):
         description="effects extending mm, hem or ham (vfm diagnose names them), e.g. "
         "['erosion', 'real_gas'] or 'mypkg.effects:Scale'",
     )
+    effect_modules: list[str] = Field(
+        default_factory=list,
+        description="modules whose effect classes (module:Class) may be named in "
+        "PUT /wells/{well}/model; the library's effects are always allowed",
+    )
     seed: int = Field(default=0, ge=0)
     model_kwargs: dict[str, Any] = Field(default_factory=dict, description="model hyperparameters")
     train: dict[str, Any] = Field(default_factory=dict, description="overrides of TrainSettings")

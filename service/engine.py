@@ -44,6 +44,7 @@ from service.config import Settings
 from service.inputs import Counters, Rejected, parse_measurement, parse_sensor, route_key
 from service.learning import describe, fit_history, load_history, new_learner
 from service.store import Op, Store
+from vfm_core.effects import effect_spec, resolve_effects
 from vfm_core.errors import VFMError
 from vfm_core.messages import Measurement, Prediction, SensorSample
 from vfm_core.streaming import WellLearner
@@ -157,14 +158,36 @@ class _ModelStep:
     scores: dict[str, Any] = field(default_factory=dict)
 
 
-def _set_over_http(extra: str) -> bool:
-    """True when a checkpoint's extra state says its model was chosen over HTTP."""
+def _checkpoint_fits(row: Any, spec: list[Any], configured: str) -> tuple[bool, str]:
+    """Whether a well's checkpoint may be restored under the configured model, and why.
+
+    Yes when it holds the configured model, effects (with their settings) and method; or
+    when its model was chosen over HTTP and the config has not changed since that choice
+    (a later edit of the config wins, and is said so).
+    """
     import json
 
     try:
-        return bool(json.loads(extra).get("model_changes"))
-    except (ValueError, AttributeError):
-        return False
+        extra = json.loads(row.extra)
+    except ValueError:
+        extra = {}
+    saved = extra.get("spec") if isinstance(extra, dict) else None
+    if saved is None:  # checkpoints before effects: compare names
+        return (row.model, row.method) == (configured, spec[2]), ""
+    if saved == spec:
+        return True, ""
+    changes = extra.get("model_changes") or []
+    if changes and changes[-1].get("config") == spec:
+        return True, (
+            f"keeps {row.model} ({row.method}), chosen over HTTP at {changes[-1].get('time')}; "
+            "edit the config's model to replace it"
+        )
+    if changes:
+        return False, (
+            f"the config changed since {row.model} was chosen over HTTP; building {configured} "
+            "from the history and the stored measurements"
+        )
+    return False, ""
 
 
 class _Batch:
@@ -273,6 +296,7 @@ class Engine:
         self._threads: list[threading.Thread] = []
         self._stop = object()
         self._changing: set[str] = set()
+        self._stopping = False
         self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
         self._future_ns = int(settings.inputs.max_future_s * 1e9)
         self.started_at = time.time()
@@ -302,11 +326,13 @@ class Engine:
         checkpoints: dict[str, Any] = {}
         method = cfg.model.method
         configured = cfg.model.full_name
+        spec = self._configured_spec()
         for well in names:
             row = self.store.latest_checkpoint(well)
-            if row is not None and (
-                (row.model, row.method) == (configured, method) or _set_over_http(row.extra)
-            ):
+            usable, why = _checkpoint_fits(row, spec, configured) if row else (False, "")
+            if why:
+                logger.info("%s: %s", well, why)
+            if row is not None and usable:
                 try:
                     learners[well] = WellLearner.restore(row.blob)
                     checkpoints[well] = row
@@ -354,6 +380,7 @@ class Engine:
                 self._restore_extra(st, row.extra)
             elif well in fitted and st.detector is not None and by_well:
                 own = by_well[well]
+                own = own[own["q_total"].notna()]
                 ref = own[["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]].to_numpy(
                     dtype=float
                 )
@@ -405,7 +432,10 @@ class Engine:
                 st, _Sample(sample_ns, inputs, predicted), q_total, time_ns, ops, source
             )
             st.learn_seq = seq
-        for predicted, measured in self.store.recent_errors(st.well, self.settings.rolling_window):
+        since = int(st.model_changes[-1]["version_after"]) if st.model_changes else None
+        for predicted, measured in self.store.recent_errors(
+            st.well, self.settings.rolling_window, since
+        ):
             if predicted is not None and measured:
                 st.errors.append(abs(predicted - measured) / abs(measured))
         return len(rows)
@@ -429,6 +459,7 @@ class Engine:
     def stop(self, timeout: float = 30.0) -> None:
         """Let the workers finish what is queued, checkpoint, and stop."""
         deadline = time.monotonic() + timeout
+        self._stopping = True
         for q in self._queues:
             while True:
                 try:
@@ -440,6 +471,16 @@ class Engine:
         for t in self._threads:
             t.join(max(0.1, deadline - time.monotonic()))
         self._threads.clear()
+        for q in self._queues:  # answer model-change steps the workers did not reach
+            while True:
+                try:
+                    item = q.get_nowait()
+                except queue.Empty:
+                    break
+                if isinstance(item, _ModelStep) and not item.future.done():
+                    item.future.set_exception(
+                        ModelChangeRefused(503, "The service stopped before the model change ran.")
+                    )
         ops: list[Op] = []
         for st in self.wells.values():
             if st.learner.version != st.checkpoint_version:
@@ -556,24 +597,36 @@ class Engine:
         model: str | None = None,
         effects: list[str] | None = None,
         method: str | None = None,
-        timeout: float = 600.0,
     ) -> dict[str, Any]:
         """Replace a well's model: fit the new one on the well's stored history, then swap.
 
         The worker hands out a copy of the learner (so learning goes on meanwhile), the new
         model is fitted on the copy's history here, and the worker then teaches it what the
         old one learned in the meantime and swaps it in, with a higher version, in one step
-        between two messages. The change is checkpointed before this returns.
+        between two messages. The change is checkpointed before this returns. Effects given
+        as ``module:Class`` must come from a module listed in ``model.effect_modules``.
         """
         st = self.wells.get(well)
         if st is None:
             raise ModelChangeRefused(
                 404, f"The well '{well}' is not known to this service; GET /wells lists the wells."
             )
+        effects = list(effects or [])
+        allowed = set(self.settings.model.effect_modules)
+        for text in effects:
+            base = text.split("=", 1)[0].rsplit(":", 1)[0] if "=" in text else text
+            module = base.split(":", 1)[0] if ":" in base else None
+            if module is not None and module not in allowed:
+                raise ModelChangeRefused(
+                    403,
+                    f"The effect '{text}' names the module '{module}', which is not in "
+                    "model.effect_modules; over HTTP only the library's effects and classes from "
+                    "those modules can be used.",
+                )
         old = st.learner
         model = model or old.model_name
         try:  # check the request before any work: a typo fails at once
-            WellLearner(well, model, method or old.method.text, effects=effects or [])
+            WellLearner(well, model, method or old.method.text, effects=effects)
         except VFMError as exc:
             raise ModelChangeRefused(422, str(exc)) from None
         with self._wells_lock:
@@ -583,18 +636,17 @@ class Engine:
                 )
             self._changing.add(well)
         try:
-            copy: WellLearner = self._step(st, "snapshot", timeout)
+            copy: WellLearner = self._step(st, "snapshot")
             started = time.perf_counter()
             try:
-                new, scores = copy.refit_as(model, effects or [], method)
-            except VFMError as exc:
-                self._step(st, "cancel", timeout)
-                raise ModelChangeRefused(422, str(exc)) from None
-            except BaseException:
-                self._step(st, "cancel", timeout)
+                new, scores = copy.refit_as(model, effects, method)
+            except BaseException as exc:
+                self._step(st, "cancel")
+                if isinstance(exc, VFMError):
+                    raise ModelChangeRefused(422, str(exc)) from None
                 raise
             scores["fit_s"] = round(time.perf_counter() - started, 2)
-            change: dict[str, Any] = self._step(st, "swap", timeout, new, scores)
+            change: dict[str, Any] = self._step(st, "swap", new, scores)
             return change
         finally:
             with self._wells_lock:
@@ -604,26 +656,32 @@ class Engine:
         self,
         st: WellState,
         kind: str,
-        timeout: float,
         learner: WellLearner | None = None,
         scores: dict[str, Any] | None = None,
     ) -> Any:
+        """Run one step of a model change on the well's worker and wait for it.
+
+        The snapshot waits at most 5 s for queue room (busy: 503); a swap or cancel waits
+        for room as long as it takes, since it must not be dropped once the copy is out.
+        """
+        if self._stopping:
+            raise ModelChangeRefused(503, "The service is stopping; retry after it restarts.")
         fut: Future[Any] = Future()
+        item = _ModelStep(st.well, kind, fut, learner, scores or {})
         try:
-            self._queues[st.worker].put(
-                _ModelStep(st.well, kind, fut, learner, scores or {}), timeout=5.0
-            )
+            self._queues[st.worker].put(item, timeout=5.0 if kind == "snapshot" else None)
         except queue.Full:
             raise ModelChangeRefused(
                 503, "The service is busy (its queue is full); retry in a few seconds."
             ) from None
-        return fut.result(timeout=timeout)
+        return fut.result()
 
     def _on_model_step(self, item: _ModelStep, b: _Batch) -> None:
         st = self.wells[item.well]
         if item.kind == "snapshot":
+            copy = WellLearner.restore(st.learner.checkpoint())
             st.catch_up = []
-            item.future.set_result(WellLearner.restore(st.learner.checkpoint()))
+            item.future.set_result(copy)
             return
         if item.kind == "cancel":
             st.catch_up = None
@@ -631,20 +689,26 @@ class Engine:
             return
         new, old = item.learner, st.learner
         assert new is not None
-        for inputs, q_total, time_ns, source in st.catch_up or []:
-            new.learn(list(inputs), q_total, from_ns(time_ns), source)
-        st.catch_up = None
+        try:
+            caught_up = list(st.catch_up or [])
+            for inputs, q_total, time_ns, source in caught_up:
+                new.learn(list(inputs), q_total, from_ns(time_ns), source)
+        finally:
+            st.catch_up = None
         new.version = max(new.version, old.version + 1)
         before = st.rolling_mape()
         change = {
             "time": _iso(time.time_ns()),
             "model_before": old.name,
             "model_after": new.name,
+            "effects": list(new.effects),
             "method": new.method.text,
             "version_before": old.version,
             "version_after": new.version,
             "holdout": item.scores,
+            "caught_up": len(caught_up),
             "rolling_mape_before": before["value"],
+            "config": self._configured_spec(),
         }
         st.learner = new
         st.errors.clear()  # the rolling error from now on is the new model's
@@ -662,6 +726,11 @@ class Engine:
             item.scores.get("after"),
         )
         b.answers.append((item.future, change))  # type: ignore[arg-type]
+
+    def _configured_spec(self) -> list[Any]:
+        """The configured model as [name, effect specs, method], to compare with checkpoints."""
+        m = self.settings.model
+        return [m.name, [effect_spec(c) for c in resolve_effects(m.effects)], m.method]
 
     def queue_depths(self) -> list[int]:
         return [q.qsize() for q in self._queues]
@@ -1036,6 +1105,7 @@ class Engine:
             "learned_inputs": [list(x) for x in st.learned_inputs],
             "drift_events": list(st.drift_events),
             "model_changes": list(st.model_changes),
+            "spec": [st.learner.model_name, list(st.learner.effects), st.learner.method.text],
         }
         learner = st.learner
         st.checkpoint_version = learner.version

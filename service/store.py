@@ -225,13 +225,16 @@ class Store:
                 (well, learn_seq),
             ).fetchall()
 
-    def recent_errors(self, well: str, n: int) -> list[tuple[float, float]]:
-        """(predicted, measured) of the last ``n`` learned measurements, oldest first."""
+    def recent_errors(
+        self, well: str, n: int, min_version: int | None = None
+    ) -> list[tuple[float, float]]:
+        """(predicted, measured) of the last ``n`` learned measurements, oldest first
+        (only those learned at model version ``min_version`` or later, when given)."""
         with self.reader() as con:
             rows = con.execute(
                 "SELECT predicted, q_total FROM measurements WHERE well = ? AND status = 'learned'"
-                " ORDER BY learn_seq DESC LIMIT ?",
-                (well, n),
+                " AND version_after >= ? ORDER BY learn_seq DESC LIMIT ?",
+                (well, -1 if min_version is None else min_version, n),
             ).fetchall()
         return [(p, q) for p, q in reversed(rows)]
 

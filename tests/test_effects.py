@@ -238,6 +238,17 @@ def test_feature_tracker_matches_the_offline_features() -> None:
     rebuilt, feats = FeatureTracker.from_frame(frame)
     np.testing.assert_allclose(feats, ref)
     assert rebuilt.state()["cumulative"] == pytest.approx(tracker.state()["cumulative"])
+    # a history shorter than 90 days, then the stream: the same features once 90 days are over
+    early = (frame["time"] < pd.Timestamp("2018-03-01", tz="UTC")).to_numpy()
+    short, _ = FeatureTracker.from_frame(frame[early])
+    assert short.scale is None
+    rest = []
+    for row in frame[~early].itertuples():
+        t = pd.Timestamp(row.time).value
+        rest.append(short.advance(t, row.eta_gas, row.eta_oil))
+        if np.isfinite(row.q_total):
+            short.measured(t, row.q_total)
+    np.testing.assert_allclose(np.asarray(rest)[late[~early]], ref[late], rtol=1e-9, atol=1e-12)
 
 
 def test_streaming_learner_with_an_effect_learns_the_wear() -> None:

@@ -71,13 +71,16 @@ def test_model_change_over_http(tmp_path: Any) -> None:
 
         # the change, while the second part streams in; the third comes after it
         done: list[ReplayResult] = []
+        # two months at 2.5e6 x real time: about 2 s, while the new model is being fitted
         feeder = threading.Thread(
             target=lambda: done.append(
-                replay_frame(second, connect=svc.locators, progress=False, idle_timeout=3.0)
+                replay_frame(
+                    second, connect=svc.locators, progress=False, idle_timeout=3.0, speed=2.5e6
+                )
             )
         )
         feeder.start()
-        time.sleep(0.5)
+        time.sleep(0.3)
         reply = http.put("/wells/W01/model", json=body, headers=auth)
         feeder.join(240)
         assert reply.status_code == 200, reply.text
@@ -89,6 +92,8 @@ def test_model_change_over_http(tmp_path: Any) -> None:
     print("change:", change, "rolling after:", after["rolling_mape"])
     assert change["model_before"] == "mm" and change["model_after"] == "mm+erosion"
     assert change["version_after"] > change["version_before"] >= before["version"]
+    # measurements arrived during the fit: the old model learned them and so did the new one
+    assert change["caught_up"] > 0, change
     # the effect helps on the held-out latest fifth of the stored history
     hold = change["holdout"]
     assert hold["holdout_rows"] > 50 and hold["after"] < 0.7 * hold["before"], hold
@@ -109,13 +114,33 @@ def test_model_change_over_http(tmp_path: Any) -> None:
     assert health["accepted"]["measurements"] == learned
     assert after["measurements_remembered"] == history + learned
 
-    # a restart keeps the model chosen over HTTP (the config still says mm)
+    # a restart keeps the model chosen over HTTP (the config still says mm), with its state
+    # and the rolling error of the new model only
     with running(_settings(tmp_path, data)) as svc, httpx.Client(base_url=svc.http_url) as http:
         again = http.get("/wells/W01").json()
     assert again["model"] == "mm+erosion" and again["version"] == after["version"]
     assert np.isclose(
         again["parameters"]["erosion.rate"]["value"], after["parameters"]["erosion.rate"]["value"]
     )
+    assert again["rolling_mape"]["n"] == after["rolling_mape"]["n"]
+    assert np.isclose(again["rolling_mape"]["value"], after["rolling_mape"]["value"])
+    # a later edit of the config wins over the HTTP choice
+    edited = _settings(tmp_path, data)
+    edited.model.effects = ["erosion", "real_gas"]
+    with running(edited) as svc, httpx.Client(base_url=svc.http_url) as http:
+        configured = http.get("/wells/W01").json()
+    assert configured["model"] == "mm+erosion+real_gas"
+
+
+def test_effects_from_modules_need_to_be_allowed(tmp_path: Any) -> None:
+    field = simulate_field(wells=1, years=0.5, seed=4)
+    data = tmp_path / "field.parquet"
+    validate_frame(field.observations).frame.to_parquet(data)
+    auth = {"Authorization": f"Bearer {TOKEN}"}
+    body = {"effects": ["my_effects:TemperatureScale"]}
+    with running(_settings(tmp_path, data)) as svc, httpx.Client(base_url=svc.http_url) as http:
+        refused = http.put("/wells/W01/model", json=body, headers=auth)
+    assert refused.status_code == 403 and "model.effect_modules" in refused.json()["detail"]
 
 
 def test_model_config_accepts_effects(tmp_path: Any) -> None:

@@ -137,6 +137,16 @@ def standard_features(frame: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def standard_scale(q: np.ndarray, time_ns: np.ndarray, first_ns: int) -> float:
+    """The throughput scale of :func:`standard_features`: the median measured rate (Sm3/h)
+    of the well's first 90 days (else of all its rows; 1 without any)."""
+    ok = np.isfinite(q) & (q > 0)
+    early = ok & (time_ns - first_ns <= int(90 * 24 * 3600 * 1e9))
+    if early.any():
+        return float(np.median(q[early]))
+    return float(np.median(q[ok])) if ok.any() else 1.0
+
+
 def add_features(frame: pd.DataFrame, effects: Sequence[str | type[Effect]]) -> pd.DataFrame:
     """A copy of ``frame`` with every extra column the ``effects`` need (input not mutated)."""
     out = frame.copy()
@@ -224,16 +234,18 @@ class FeatureTracker:
         tr.first_ns, tr.last_ns = int(ns[order[0]]), int(ns[order[-1]])
         ok = np.isfinite(q) & (q > 0)
         early = ok & (ns - tr.first_ns <= cls._EARLY_NS)
-        tr.scale = (
-            float(np.median(q[early]))
-            if early.any()
-            else (float(np.median(q[ok])) if ok.any() else 1.0)
-        )
+        if tr.last_ns - tr.first_ns <= cls._EARLY_NS:  # the first 90 days are not over yet
+            tr.scale = None
+            tr.early = [float(v) for v in q[order][early[order]]]
+        else:
+            tr.scale = standard_scale(q, ns, tr.first_ns)
         if ok.any():
             tr.last_rate = float(q[order][ok[order]][-1])
         last = order[-1]
         tr.cumulative = (
-            float(feats["throughput_years"].to_numpy()[last]) * tr.scale * HOURS_PER_YEAR
+            float(feats["throughput_years"].to_numpy()[last])
+            * standard_scale(q, ns, tr.first_ns)
+            * HOURS_PER_YEAR
         )
         return tr, feats[list(cls.names)].to_numpy(dtype=float)
 
@@ -318,14 +330,28 @@ class Effect:
 
     @classmethod
     def configure(cls, **values: str) -> type[Effect]:
-        """A subclass with the given settings (text values from ``name:key=value``)."""
+        """A subclass with the given settings (text values from ``name:key=value``).
+
+        By default each setting becomes a class attribute of that name holding the text;
+        override to parse values (see :class:`Erosion`).
+        """
         unknown = sorted(set(values) - set(cls.settings))
         if unknown:
             known = ", ".join(f"{k} ({v})" for k, v in cls.settings.items()) or "none"
             raise ConfigError(
                 f"Effect '{cls.name}' has no setting {', '.join(unknown)}; its settings: {known}."
             )
-        return cls
+        if not values:
+            return cls
+        text = ":".join(f"{k}={v}" for k, v in values.items())
+        base = cls.spec or (
+            cls.name if EFFECTS.get(cls.name) is cls else f"{cls.__module__}:{cls.__qualname__}"
+        )
+        return type(
+            f"{cls.__name__}Configured",
+            (cls,),
+            {**values, "spec": f"{base}:{text}", "__module__": cls.__module__},
+        )
 
     @classmethod
     def features(cls, frame: pd.DataFrame) -> pd.DataFrame:
@@ -385,11 +411,15 @@ class Erosion(Effect):
 
     @classmethod
     def configure(cls, **values: str) -> type[Effect]:
-        super().configure(**values)
+        unknown = sorted(set(values) - set(cls.settings))
+        if unknown:
+            return super().configure(**values)  # says which settings exist
         if "step_at" not in values:
             return cls
         try:
             when = pd.Timestamp(values["step_at"])
+            if pd.isna(when):
+                raise ValueError("no date")
         except (ValueError, TypeError):
             raise ConfigError(
                 f"Effect '{cls.name}': step_at='{values['step_at']}' is not a date "

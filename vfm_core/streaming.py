@@ -492,6 +492,10 @@ class WellLearner:
             effects=effects,
         )
         order = torch.argsort(self._t, stable=True)
+        if new.method.window is not None:  # pbl with a window: fit on the window only
+            start = int(self._t.max()) - new.method.window.value
+            order = order[self._t[order] >= start]
+            n = int(order.numel())
         cut = order[: max(int(round(n * (1.0 - holdout))), 1)]
         test = order[len(cut) :]
         scores: dict[str, Any] = {"holdout_rows": int(len(test)), "unit": "%"}
@@ -515,7 +519,8 @@ class WellLearner:
                 trial._fit_rows(self, cut, converge=spec_model == "mm")
                 q = trial.model.predict_batch(self._batch_of(trial, test))[0]
                 y = self._y[test]
-                scores[key] = float((torch.abs(q - y) / torch.abs(y)).mean() * 100.0)
+                ok = torch.abs(y) > 1e-9  # a zero rate has no relative error
+                scores[key] = float((torch.abs(q - y)[ok] / torch.abs(y[ok])).mean() * 100.0)
         new._fit_rows(self, order, converge=model == "mm")
         new.features = FeatureTracker.from_state(self.features.state())
         new.version = self.version + 1
