@@ -288,3 +288,32 @@ def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
     assert new.name == "mm+erosion" and new.version == learners["mm"].version + 1
     assert new.remembered == learners["mm"].remembered
     assert scores["after"] < 0.5 * scores["before"], scores
+
+
+def test_effect_settings_are_read_and_checked() -> None:
+    from vfm_core.effects import effect_spec
+
+    class Scaled(Effect):
+        name = "scaled"
+        parameters = {"k": Prior(0.0, 0.1, -1.0, 1.0, "-", "a scale")}
+        settings = {"basis": "what the scale applies to"}
+        basis = "rate"
+
+    cls = resolve_effect(Scaled)
+    assert cls is Scaled
+    configured = Scaled.configure(basis="pressure")
+    assert configured.basis == "pressure" and issubclass(configured, Scaled)
+    assert effect_spec(configured).endswith("Scaled:basis=pressure")
+    step = resolve_effect("erosion:step_at=2019-06-01T12:30")
+    assert effect_spec(step) == "erosion:step_at=2019-06-01T12:30"
+    assert resolve_effect(effect_spec(step)).step_at_ns == pd.Timestamp("2019-06-01T12:30Z").value
+    assert "step" in step.parameters and "step" not in EFFECTS["erosion"].parameters
+    for bad, message in (
+        ("erosion:step_at=", "is not a date"),
+        ("erosion:step_at=soon", "is not a date"),
+        ("erosion:rate=0.1", "has no setting rate; its settings: step_at"),
+        ("real_gas:strength=2", "has no setting strength; its settings: none"),
+        ("a:b:c", "Cannot read the effect"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            resolve_effect(bad)
