@@ -186,11 +186,14 @@ class FeatureTracker:
         self.cumulative = 0.0  # Sm3 (rate x hours)
         self.early: list[float] = []
         self.scale: float | None = None  # fixed once the first 90 days are over
+        self._median: float | None = None  # median of ``early``, cached until it changes
 
     def _scale(self) -> float:
         if self.scale is not None:
             return self.scale
-        return float(np.median(self.early)) if self.early else 1.0
+        if self._median is None:
+            self._median = float(np.median(self.early)) if self.early else 1.0
+        return self._median
 
     def advance(self, time_ns: int, eta_gas: float, eta_oil: float) -> list[float]:
         """Features at ``time_ns`` for a row with these mass fractions, in :attr:`names` order."""
@@ -219,6 +222,7 @@ class FeatureTracker:
             self.first_ns = self.last_ns = time_ns
         if self.scale is None and time_ns - self.first_ns <= self._EARLY_NS:
             self.early.append(float(q_total))
+            self._median = None
         self.last_rate = float(q_total)
 
     @classmethod

@@ -160,16 +160,44 @@ class WellLearner:
         self.iterations = torch.tensor([self.train.default_iter], dtype=torch.int64)
         self.next_retrain: pd.Timestamp | None = None
         # everything learned from, for periodic retrains: inputs, rates, times (ns)
-        self._x = torch.empty(0, 6, dtype=DTYPE)
-        self._y = torch.empty(0, dtype=DTYPE)
-        self._t = torch.empty(0, dtype=torch.int64)
-        self._w = torch.empty(0, dtype=torch.bool)  # well test (else MPFM)
-        self._e = torch.empty(0, len(FeatureTracker.names), dtype=DTYPE)  # standard features
+        # inputs, rates, times (ns), well test (else MPFM), standard features; rows learned
+        # one at a time wait in a tail and are joined when the tensors are next read
+        self._mem: list[torch.Tensor] = [
+            torch.empty(0, 6, dtype=DTYPE),
+            torch.empty(0, dtype=DTYPE),
+            torch.empty(0, dtype=torch.int64),
+            torch.empty(0, dtype=torch.bool),
+            torch.empty(0, len(FeatureTracker.names), dtype=DTYPE),
+        ]
+        self._tail: list[tuple[torch.Tensor, ...]] = []
+
+    def _column(i: int) -> property:  # type: ignore[misc]  # noqa: N805
+        def get(self: WellLearner) -> torch.Tensor:
+            if self._tail:
+                parts = list(zip(*self._tail, strict=True))
+                self._mem = [
+                    torch.cat([m, *rows]) for m, rows in zip(self._mem, parts, strict=True)
+                ]
+                self._tail = []
+            return self._mem[i]
+
+        def put(self: WellLearner, value: torch.Tensor) -> None:
+            get(self)
+            self._mem[i] = value
+
+        return property(get, put)
+
+    _x = _column(0)
+    _y = _column(1)
+    _t = _column(2)
+    _w = _column(3)
+    _e = _column(4)
+    del _column
 
     @property
     def remembered(self) -> int:
         """How many measurements the learner keeps for retrains and model changes."""
-        return int(self._y.shape[0])
+        return int(self._mem[1].shape[0]) + sum(int(r[1].shape[0]) for r in self._tail)
 
     @property
     def name(self) -> str:
@@ -296,11 +324,15 @@ class WellLearner:
         n = int(x.reshape(-1, 6).shape[0])
         w = torch.zeros(n, dtype=torch.bool) if w is None else w.reshape(-1).bool()
         e = torch.zeros(n, len(FeatureTracker.names), dtype=DTYPE) if e is None else e
-        self._x = torch.cat([self._x, x.reshape(-1, 6).to(DTYPE)])
-        self._y = torch.cat([self._y, y.reshape(-1).to(DTYPE)])
-        self._t = torch.cat([self._t, t.reshape(-1)])
-        self._w = torch.cat([self._w, w])
-        self._e = torch.cat([self._e, e.reshape(-1, len(FeatureTracker.names)).to(DTYPE)])
+        self._tail.append(
+            (
+                x.reshape(-1, 6).to(DTYPE),
+                y.reshape(-1).to(DTYPE),
+                t.reshape(-1),
+                w,
+                e.reshape(-1, len(FeatureTracker.names)).to(DTYPE),
+            )
+        )
 
     def _bump(self, when: datetime) -> None:
         self.version += 1
@@ -326,10 +358,11 @@ class WellLearner:
         ts = None if when is None else _utc(when)
         # the sample's features (a sample without a time sits at the latest one)
         at = self.features.last_ns if ts is None else ts.value
+        eta = inputs[4:6] if isinstance(inputs, list | tuple) else x[0, 0, 4:6].tolist()
         feats = (
             [0.0] * len(FeatureTracker.names)
             if at is None
-            else self.features.advance(int(at), float(x[0, 0, 4]), float(x[0, 0, 5]))
+            else self.features.advance(int(at), float(eta[0]), float(eta[1]))
         )
         if ts is not None:
             self._retrain_due(ts)

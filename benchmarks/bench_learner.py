@@ -1,0 +1,65 @@
+"""One well's streaming learner: cost of a prediction and of an online update, with a short
+and with a long remembered history, side by side in one run (report the ratio).
+
+The learner remembers every measurement (for periodic retrains and model changes); an
+update must not get slower as that history grows. Run:
+
+    python benchmarks/bench_learner.py [--rows 300000] [--updates 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pandas as pd
+import torch
+
+from vfm_core.learners import TrainSettings
+from vfm_core.streaming import WellLearner
+
+SAMPLE = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]  # choke -, p_up bar, p_down bar, t_up degC, eta_gas, eta_oil
+
+
+def _learner(rows: int, effects: list[str]) -> WellLearner:
+    learner = WellLearner(
+        "W01", "mm", "ol", effects=effects, train=TrainSettings(lr=0.03, max_iter=5, default_iter=5)
+    )
+    x = torch.tensor([SAMPLE], dtype=torch.float64).repeat(rows, 1)
+    y = torch.full((rows,), 1000.0, dtype=torch.float64)  # Sm3/h
+    t = torch.arange(rows, dtype=torch.int64) * 60_000_000_000 + 1_500_000_000_000_000_000
+    learner.fit_history(x, y, t)
+    return learner
+
+
+def _time(learner: WellLearner, updates: int) -> tuple[float, float]:
+    start = pd.Timestamp(int(learner._t.max()) + 10**12, tz="UTC")
+    t0 = time.perf_counter()
+    for i in range(updates * 10):
+        learner.predict(SAMPLE, when=start + pd.Timedelta(seconds=i))
+    predict = (time.perf_counter() - t0) / (updates * 10)
+    t0 = time.perf_counter()
+    for i in range(updates):
+        learner.learn(SAMPLE, 1000.0, start + pd.Timedelta(hours=1, minutes=i), "mpfm")
+    learn = (time.perf_counter() - t0) / updates
+    return predict * 1e6, learn * 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", type=int, default=300_000, help="long history, rows")
+    parser.add_argument("--updates", type=int, default=300)
+    args = parser.parse_args()
+    print(f"{'model':<12} {'history rows':>12} {'predict us':>11} {'ol update us':>13}")
+    for effects in ([], ["erosion"]):
+        figures = {}
+        for rows in (1_000, args.rows):
+            figures[rows] = _time(_learner(rows, effects), args.updates)
+            name = "+".join(["mm", *effects])
+            print(f"{name:<12} {rows:>12,} {figures[rows][0]:>11.0f} {figures[rows][1]:>13.0f}")
+        short, long = figures[1_000], figures[args.rows]
+        print(f"{'':<12} {'ratio long/short':>12} {long[0] / short[0]:>11.2f} {long[1] / short[1]:>13.2f}")
+
+
+if __name__ == "__main__":
+    main()
