@@ -886,6 +886,14 @@ class _EffectMixin:
         for p in self.effect_params.values():
             p.project_()
 
+    def project_(self) -> None:
+        model: Any = self
+        model.phys.project_()
+        self._project_effects()
+
+    def physical_parameters(self) -> dict[str, torch.Tensor]:
+        return {**Mechanistic.physical_parameters(self), **self._effect_physical()}  # type: ignore[arg-type]
+
     def _effect_physical(self) -> dict[str, torch.Tensor]:
         out: dict[str, torch.Tensor] = {}
         with torch.no_grad():
@@ -931,13 +939,6 @@ class EffectMechanistic(_EffectMixin, Mechanistic):
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return self.phys.penalty() + self._effect_penalty()
 
-    def project_(self) -> None:
-        self.phys.project_()
-        self._project_effects()
-
-    def physical_parameters(self) -> dict[str, torch.Tensor]:
-        return {**Mechanistic.physical_parameters(self), **self._effect_physical()}
-
 
 class EffectHybridError(_EffectMixin, HybridError):
     """``hem`` extended with effects: the network still adds to the extended mechanistic rate."""
@@ -963,13 +964,6 @@ class EffectHybridError(_EffectMixin, HybridError):
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return HybridError.prior_penalty(self, physical_only) + self._effect_penalty()
 
-    def project_(self) -> None:
-        self.phys.project_()
-        self._project_effects()
-
-    def physical_parameters(self) -> dict[str, torch.Tensor]:
-        return {**Mechanistic.physical_parameters(self), **self._effect_physical()}
-
 
 class EffectHybridArea(_EffectMixin, HybridArea):
     """``ham`` extended with effects: the area network multiplies the effects' area factors."""
@@ -992,13 +986,6 @@ class EffectHybridArea(_EffectMixin, HybridArea):
 
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return HybridArea.prior_penalty(self, physical_only) + self._effect_penalty()
-
-    def project_(self) -> None:
-        self.phys.project_()
-        self._project_effects()
-
-    def physical_parameters(self) -> dict[str, torch.Tensor]:
-        return {**Mechanistic.physical_parameters(self), **self._effect_physical()}
 
 
 _BASES: dict[str, type[ChokeModel]] = {
