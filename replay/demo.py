@@ -185,9 +185,9 @@ def run_demo(args: argparse.Namespace) -> int:
             print(f"  API        {http_url}/docs  (e.g. curl {http_url}/wells/W01)")
             print(f"             POST well tests with: -H 'Authorization: Bearer {token}'")
             print(
-                f"             add the wear the field hides: curl -X PUT {http_url}/wells/W01/model "
+                f"             model with the wear the field hides: curl -X PUT {http_url}/wells/W01/model "
                 f"-H 'Authorization: Bearer {token}' -H 'content-type: application/json' "
-                """-d '{"effects": ["erosion"]}'"""
+                """-d '{"model": "mm", "effects": ["erosion"]}'"""
             )
             print(f"  Zenoh      {zenoh_ep}  (vfm replay DATA --connect {zenoh_ep})")
             print("The service keeps running; press Ctrl-C to stop it.", flush=True)
