@@ -710,10 +710,20 @@ class Engine:
             "rolling_mape_before": before["value"],
             "config": self._configured_spec(),
         }
+        # commit what the batch holds so far, then the new model's checkpoint on its own:
+        # the swap happens only once that checkpoint is in the store
+        self._flush(b)
+        b.ops, b.outbox, b.answers = [], [], []
+        saved_version = st.checkpoint_version
         st.learner = new
-        st.errors.clear()  # the rolling error from now on is the new model's
         st.model_changes.append(change)
-        b.ops.extend(self._checkpoint_ops(st))
+        try:
+            self.store.write(self._checkpoint_ops(st))
+        except Exception:
+            st.learner, st.checkpoint_version = old, saved_version
+            st.model_changes.pop()
+            raise
+        st.errors.clear()  # the rolling error from now on is the new model's
         st.refresh()
         logger.info(
             "Model of %s changed from %s (version %d) to %s (version %d); held-out MAPE %s -> %s %%.",

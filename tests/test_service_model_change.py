@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -132,7 +133,10 @@ def test_model_change_over_http(tmp_path: Any) -> None:
     assert configured["model"] == "mm+erosion+real_gas"
 
 
-def test_effects_from_modules_need_to_be_allowed(tmp_path: Any) -> None:
+def test_effects_from_modules_need_to_be_allowed(
+    tmp_path: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "examples"))
     field = simulate_field(wells=1, years=0.5, seed=4)
     data = tmp_path / "field.parquet"
     validate_frame(field.observations).frame.to_parquet(data)
@@ -141,6 +145,14 @@ def test_effects_from_modules_need_to_be_allowed(tmp_path: Any) -> None:
     with running(_settings(tmp_path, data)) as svc, httpx.Client(base_url=svc.http_url) as http:
         refused = http.put("/wells/W01/model", json=body, headers=auth)
     assert refused.status_code == 403 and "model.effect_modules" in refused.json()["detail"]
+    allowed = _settings(tmp_path / "allowed", data)
+    allowed.model.effect_modules = ["my_effects"]
+    with running(allowed) as svc, httpx.Client(base_url=svc.http_url, timeout=60) as http:
+        done = http.put("/wells/W01/model", json=body, headers=auth)
+        state = http.get("/wells/W01").json()
+    assert done.status_code == 200, done.text
+    assert state["model"] == "mm+temperature_scale"
+    assert "temperature_scale.k" in state["parameters"]
 
 
 def test_model_config_accepts_effects(tmp_path: Any) -> None:
