@@ -886,6 +886,10 @@ class _EffectMixin:
         for p in self.effect_params.values():
             p.project_()
 
+    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
+        """The base model's prior penalty plus the effects' (sum of z^2), per well."""
+        return super().prior_penalty(physical_only) + self._effect_penalty()  # type: ignore[misc]
+
     def project_(self) -> None:
         model: Any = self
         model.phys.project_()
@@ -936,9 +940,6 @@ class EffectMechanistic(_EffectMixin, Mechanistic):
     def forward_batch(self, batch: Batch) -> torch.Tensor:
         return self._effect_rate(batch)
 
-    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
-        return self.phys.penalty() + self._effect_penalty()
-
 
 class EffectHybridError(_EffectMixin, HybridError):
     """``hem`` extended with effects: the network still adds to the extended mechanistic rate."""
@@ -961,9 +962,6 @@ class EffectHybridError(_EffectMixin, HybridError):
             self.normalise(batch.x)
         )
 
-    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
-        return HybridError.prior_penalty(self, physical_only) + self._effect_penalty()
-
 
 class EffectHybridArea(_EffectMixin, HybridArea):
     """``ham`` extended with effects: the area network multiplies the effects' area factors."""
@@ -983,9 +981,6 @@ class EffectHybridArea(_EffectMixin, HybridArea):
 
     def forward_batch(self, batch: Batch) -> torch.Tensor:
         return self._effect_rate(batch)
-
-    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
-        return HybridArea.prior_penalty(self, physical_only) + self._effect_penalty()
 
 
 _BASES: dict[str, type[ChokeModel]] = {
