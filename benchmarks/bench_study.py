@@ -19,13 +19,13 @@ import numpy as np
 import torch
 
 from vfm_core.data import make_batch, target_mask
-from vfm_core.evaluate import format_summary, run_study
+from vfm_core.jobs.evaluate import format_summary, run_study
 from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, OnlineLearner, fit_batch
 from vfm_core.models import MODELS, make_model
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.study import wells_of
+from vfm_core.jobs.study import wells_of
 
 
 def peak_rss_mb() -> float:
@@ -102,7 +102,7 @@ def main() -> None:
         )
         total += result.runtime_s
         if args.out:
-            from vfm_core.evaluate import write_study
+            from vfm_core.jobs.evaluate import write_study
 
             write_study(result, f"{args.out}/{case}")
         print()

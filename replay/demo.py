@@ -52,10 +52,10 @@ def run_demo(args: argparse.Namespace) -> int:
     import httpx
 
     from replay.replayer import replay_frame
-    from vfm_core.evaluate import run_study, write_study
+    from vfm_core.jobs.evaluate import run_study, write_study
     from vfm_core.observations import load_observations
     from vfm_core.simulate import simulate_field, write_field
-    from vfm_core.study import mape, metrics_records, run_prequential
+    from vfm_core.jobs.study import mape, metrics_records, run_prequential
 
     started = time.perf_counter()
     out = Path(args.out)

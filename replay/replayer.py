@@ -37,7 +37,7 @@ from vfm_core.messages import (
     validate_prefix,
 )
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, SOURCES, TARGET, TIME, WELL
-from vfm_core.study import mape
+from vfm_core.jobs.study import mape
 
 __all__ = ["ReplayResult", "replay_frame", "replay_config", "ReplayError"]
 

@@ -11,7 +11,7 @@ Data flow::
 Receiving never waits for learning: the receiver only checks and queues. A well always
 goes to the same worker, so its messages are handled in arrival order (a sample is
 predicted before the measurement at its time is learned from, as in
-:func:`vfm_core.study.run_prequential`). When a worker queue is full the receiver waits
+:func:`vfm_core.jobs.study.run_prequential`). When a worker queue is full the receiver waits
 up to ``queues.block_s`` (back-pressure: Zenoh's BLOCK congestion control then slows the
 publisher), then drops the message and counts a ``queue overflow``.
 

@@ -2,7 +2,7 @@
 
 :func:`fit_history` fits all wells of a history file in one batched MAP fit (every model
 but ``mtl`` keeps its own parameters per well, so this is the same as fitting each well
-alone, only faster), exactly as :func:`vfm_core.study.run_prequential` fits before its
+alone, only faster), exactly as :func:`vfm_core.jobs.study.run_prequential` fits before its
 split; that is what lets a replay through the service reproduce ``vfm evaluate``. Each
 well's slice of the fitted model is then loaded into its :class:`WellLearner`.
 """

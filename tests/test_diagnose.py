@@ -26,7 +26,7 @@ import pandas as pd
 import pytest
 
 from vfm_core.data import target_mask
-from vfm_core.diagnose import (
+from vfm_core.jobs.diagnose import (
     Diagnosis,
     bic,
     format_summary,
@@ -36,7 +36,7 @@ from vfm_core.diagnose import (
     write_diagnosis,
 )
 from vfm_core.simulate import SimulatedField, simulate_field
-from vfm_core.study import mape
+from vfm_core.jobs.study import mape
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SPLIT = "2019-01-01"
@@ -243,7 +243,7 @@ def test_bic_per_source_by_hand() -> None:
 
 
 def test_reference_bic_is_taken_on_the_well_tests_when_there_are_enough() -> None:
-    from vfm_core.diagnose import MIN_WELL_TESTS, reference_bic
+    from vfm_core.jobs.diagnose import MIN_WELL_TESTS, reference_bic
 
     n_wt = MIN_WELL_TESTS
     p = pd.DataFrame({

@@ -26,7 +26,7 @@ from vfm_core.effects import (
 from vfm_core.errors import ConfigError
 from vfm_core.models import Mechanistic
 from vfm_core.simulate import simulate_field
-from vfm_core.study import mape, run_prequential
+from vfm_core.jobs.study import mape, run_prequential
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

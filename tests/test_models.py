@@ -18,7 +18,7 @@ from vfm_core.learners import (
 )
 from vfm_core.models import MODELS, load_model, make_model, save_model
 from vfm_core.simulate import simulate_field
-from vfm_core.study import wells_of
+from vfm_core.jobs.study import wells_of
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from service.app import running
 from service.testing import loopback_settings
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
-from vfm_core.study import RunResult, mape, metrics_records, run_prequential
+from vfm_core.jobs.study import RunResult, mape, metrics_records, run_prequential
 
 pytestmark = pytest.mark.timeout(240)
 

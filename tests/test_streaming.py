@@ -12,7 +12,7 @@ from vfm_core.errors import ConfigError
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 from vfm_core.streaming import WellLearner
-from vfm_core.study import run_prequential
+from vfm_core.jobs.study import run_prequential
 
 
 @pytest.fixture(scope="module")

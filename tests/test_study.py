@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 import torch
 
-from vfm_core.evaluate import run_study, summarise, write_study
+from vfm_core.jobs.evaluate import run_study, summarise, write_study
 from vfm_core.simulate import simulate_field
-from vfm_core.study import mape, metrics_records, run_prequential
+from vfm_core.jobs.study import mape, metrics_records, run_prequential
 
 
 def test_mape_hand_computed() -> None:

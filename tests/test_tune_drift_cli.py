@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from vfm_core.cli import main
-from vfm_core.tune import load_params, run_tuning, settings_for, trial_grid
+from vfm_core.jobs.tune import load_params, run_tuning, settings_for, trial_grid
 
 
 @pytest.fixture(scope="module")

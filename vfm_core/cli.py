@@ -59,7 +59,7 @@ def _cmd_import_volve(args: argparse.Namespace) -> int:
 
 # --- evaluate -----------------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from vfm_core.evaluate import DEFAULT_METHODS, format_summary, run_study, write_study
+    from vfm_core.jobs.evaluate import DEFAULT_METHODS, format_summary, run_study, write_study
     from vfm_core.models import MODELS
     from vfm_core.observations import load_observations
 
@@ -70,7 +70,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     targets = _split_list(args.targets) or ["all"]
     params = None
     if args.params:
-        from vfm_core.tune import load_params
+        from vfm_core.jobs.tune import load_params
 
         params = load_params(args.params)
     for case in targets:
@@ -91,39 +91,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         written = write_study(result, out, report=not args.no_report)
         print(format_summary(result))
         print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
-    return 0
-
-
-# --- demo ---------------------------------------------------------------------------------
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from vfm_core.evaluate import format_summary, run_study, write_study
-    from vfm_core.observations import load_observations
-    from vfm_core.simulate import simulate_field, write_field
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    data = out / "field.parquet"
-    print(
-        f"1/3 Simulating a field of {args.wells} wells over {args.years:g} years (seed {args.seed}) ..."
-    )
-    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed)
-    write_field(field, data)
-    print(field.summary())
-    loaded = load_observations(data)
-    print("2/3 Evaluating the mechanistic and hybrid models with online and periodic learning ...")
-    result = run_study(
-        loaded.frame,
-        models=args.models,
-        methods=["ol", "pbl:14d", "pbl:182d"],
-        targets="all",
-        progress=not args.quiet,
-        data_path=str(data),
-    )
-    written = write_study(result, out / "study")
-    print("3/3 Results")
-    print(format_summary(result))
-    report = next(p for p in written if p.name == "report.html")
-    print(f"\nOpen {report.resolve()} in a browser for the plots; the data are in {data}.")
     return 0
 
 
@@ -202,14 +169,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_evaluate)
 
-    p = sub.add_parser("demo", help="the main job on an embedded default: simulate, learn, report")
-    p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
-    p.add_argument("--wells", type=int, default=10)
-    p.add_argument("--years", type=float, default=5.0)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--models", nargs="+", default=["last", "mm", "ham"])
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(handler=_cmd_demo)
     for module in _INTERNAL_COMMANDS:
         import importlib
 
@@ -220,9 +179,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: vfm_core modules that bring their own subcommands (each has ``register(subparsers)``).
 _INTERNAL_COMMANDS: tuple[str, ...] = (
-    "vfm_core.tune",
-    "vfm_core.drift_report",
-    "vfm_core.diagnose",
+    "vfm_core.jobs.tune",
+    "vfm_core.jobs.drift",
+    "vfm_core.jobs.diagnose",
 )
 
 
@@ -230,8 +189,7 @@ def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[
     """Add subcommands registered under the ``vfm.commands`` entry-point group.
 
     Each entry point is a ``register(subparsers)`` function that adds its parser(s) and
-    sets ``handler``. A plugin may replace a built-in command of the same name (the
-    service package brings the streaming ``demo``). A plugin that fails to import is
+    sets ``handler``. A plugin that fails to import is
     reported, not fatal, so the offline commands keep working.
     """
     from importlib.metadata import entry_points
@@ -243,8 +201,10 @@ def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[
             logging.getLogger("vfm.cli").warning("Command '%s' is unavailable: %s", ep.name, exc)
             continue
         if ep.name in sub.choices:
-            del sub.choices[ep.name]
-            sub._choices_actions = [a for a in sub._choices_actions if a.dest != ep.name]
+            logging.getLogger("vfm.cli").warning(
+                "Command '%s' from %s is ignored: a built-in command has that name.", ep.name, ep.value
+            )
+            continue
         register(sub)
 
 

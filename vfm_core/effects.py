@@ -1004,7 +1004,7 @@ def make_effect_model(
 def effect_model_factory(
     base: str, effects: Sequence[str | type[Effect]], **hyper: Any
 ) -> Callable[[list[str]], ChokeModel]:
-    """A ``model_factory`` for :func:`vfm_core.study.run_prequential`: wells -> extended model.
+    """A ``model_factory`` for :func:`vfm_core.jobs.study.run_prequential`: wells -> extended model.
 
     Names are resolved now, so a typo fails before any training. The frame given to
     ``run_prequential`` must hold the effects' columns: pass it through :func:`add_features`.

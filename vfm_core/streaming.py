@@ -4,7 +4,7 @@
 ``mtl``) with its learning method. ``predict`` answers a sensor sample with rates;
 ``learn`` takes a measured rate paired with the sample's inputs and either updates at
 once (``ol``) or keeps it for the next periodic retrain (``pbl:<period>``). The same
-models and update code as :func:`vfm_core.study.run_prequential` run here, so a replay
+models and update code as :func:`vfm_core.jobs.study.run_prequential` run here, so a replay
 through the service reproduces ``vfm evaluate``.
 
 A learner may extend ``mm``, ``hem`` or ``ham`` with effects (:mod:`vfm_core.effects`);

@@ -62,7 +62,7 @@ from vfm_core.effects import (
 )
 from vfm_core.learners import OnlineSettings, TrainSettings
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL, WELL_TEST
-from vfm_core.study import RunResult, mape, resolve_split, run_prequential
+from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
 
 __all__ = [
     "DRIVER_VARIABLES",
@@ -190,7 +190,7 @@ def residual_frame(
 ) -> pd.DataFrame:
     """The scored rows with inputs, derived variables and the relative residual ``r``.
 
-    ``predictions`` come from :func:`vfm_core.study.run_prequential` on the same frame,
+    ``predictions`` come from :func:`vfm_core.jobs.study.run_prequential` on the same frame,
     whose rows are the target rows on or after ``split`` in frame order. ``p_cr`` (per
     well) sets the critical-flow boundary (default 0.55).
     """
@@ -581,7 +581,7 @@ def _trend(x: np.ndarray, r: np.ndarray, bins: int = 14) -> tuple[np.ndarray, ..
 def _residual_grid(res: pd.DataFrame, drivers: list[dict[str, Any]], extended: pd.DataFrame | None = None) -> str:
     import matplotlib.pyplot as plt
 
-    from vfm_core.report import _figure_html
+    from vfm_core.reporting.study import _figure_html
 
     score = {d["name"]: d["score"] for d in drivers}
     names = [v for v in DRIVER_VARIABLES if v not in _CATEGORICAL]
@@ -621,7 +621,7 @@ def _residual_grid(res: pd.DataFrame, drivers: list[dict[str, Any]], extended: p
 def _time_grid(res: pd.DataFrame, extended: pd.DataFrame | None = None) -> str:
     import matplotlib.pyplot as plt
 
-    from vfm_core.report import _figure_html
+    from vfm_core.reporting.study import _figure_html
 
     wells = sorted(res["well"].unique())
     cols = min(3, len(wells))
@@ -654,7 +654,7 @@ def _time_grid(res: pd.DataFrame, extended: pd.DataFrame | None = None) -> str:
 def _rolling_plot(base: pd.DataFrame, ext: pd.DataFrame, name: str) -> str:
     import matplotlib.pyplot as plt
 
-    from vfm_core.report import _figure_html
+    from vfm_core.reporting.study import _figure_html
 
     fig, ax = plt.subplots(figsize=(10, 3))
     for frame_, colour, label in ((base, "#1f77b4", "base"), (ext, "#d62728", name)):
@@ -668,7 +668,7 @@ def _rolling_plot(base: pd.DataFrame, ext: pd.DataFrame, name: str) -> str:
 
 
 def _table(rows: list[dict[str, Any]], columns: list[tuple[str, str]]) -> str:
-    from vfm_core.report import _esc
+    from vfm_core.reporting.study import _esc
 
     head = "".join(f"<th class='label'>{_esc(h)}</th>" for _, h in columns)
     body = []
@@ -685,7 +685,7 @@ def _table(rows: list[dict[str, Any]], columns: list[tuple[str, str]]) -> str:
 
 def build_report(diag: Diagnosis, path: Path) -> Path:
     """Render the diagnosis as one self-contained HTML page (PNG figures inline)."""
-    from vfm_core.report import _CSS, _esc
+    from vfm_core.reporting.study import _CSS, _esc
 
     res = diag.residuals
     ext_res = None
@@ -802,12 +802,12 @@ def register(subparsers: Any) -> None:
     p.set_defaults(handler=_cmd_diagnose)
 
 
-if __name__ == "__main__":  # pragma: no cover - ``python -m vfm_core.diagnose``
+if __name__ == "__main__":  # pragma: no cover - ``python -m vfm_core.jobs.diagnose``
     import sys
 
     from vfm_core.errors import VFMError
 
-    _parser = argparse.ArgumentParser(prog="python -m vfm_core.diagnose")
+    _parser = argparse.ArgumentParser(prog="python -m vfm_core.jobs.diagnose")
     _sub = _parser.add_subparsers(dest="command", required=True)
     register(_sub)
     _args = _parser.parse_args(["diagnose", *sys.argv[1:]])

@@ -26,7 +26,7 @@ from scipy import stats
 from vfm_core.data import target_mask
 from vfm_core.drift import estimate_update_period
 from vfm_core.schema import INPUT_COLUMNS, TIME, WELL
-from vfm_core.study import resolve_split
+from vfm_core.jobs.study import resolve_split
 
 __all__ = ["drift_study", "register"]
 

@@ -1,6 +1,6 @@
 """One self-contained HTML page with the paper's tables and figures for a finished study.
 
-:func:`build_report` renders a :class:`vfm_core.evaluate.StudyResult` for a production
+:func:`build_report` renders a :class:`vfm_core.jobs.evaluate.StudyResult` for a production
 engineer: a computed summary in plain words, the mean MAPE table (the paper's Tables 2/3),
 the per-well MAPE table (Table C1/C2), per-well MAPE box plots, the 14-day rolling error
 against time, the days between well tests (Figure and Table C3), predicted against measured
@@ -36,7 +36,7 @@ from matplotlib.patches import Patch  # noqa: E402
 from PIL import Image  # noqa: E402
 
 if TYPE_CHECKING:
-    from vfm_core.evaluate import StudyResult
+    from vfm_core.jobs.evaluate import StudyResult
 
 __all__ = ["build_report", "BENCHMARK"]
 

@@ -32,7 +32,7 @@ from vfm_core.errors import ConfigError
 from vfm_core.learners import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
-from vfm_core.study import metrics_records, resolve_split, run_prequential
+from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
 
 __all__ = ["StudyResult", "run_study", "write_study", "summarise", "DEFAULT_METHODS"]
 
@@ -154,7 +154,7 @@ def run_study(
             def report(done: int, total: int, base: int = base) -> None:
                 bar.update(base + done - bar.n)
 
-            from vfm_core.tune import settings_for
+            from vfm_core.jobs.tune import settings_for
 
             extended = label != model
             result = run_prequential(
@@ -237,7 +237,7 @@ def write_study(
         if not result.parameters.empty:
             result.parameters.to_parquet(staging / "parameters.parquet", index=False)
         if report:
-            from vfm_core.report import build_report
+            from vfm_core.reporting.study import build_report
 
             build_report(result, staging / "report.html")
         written = []

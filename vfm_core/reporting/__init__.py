@@ -1,0 +1,1 @@
+"""HTML reports of the study, the drift test and the diagnosis."""
