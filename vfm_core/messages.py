@@ -18,6 +18,7 @@ Both the service and the replay tool use these classes, so the two cannot drift 
 from __future__ import annotations
 
 import math
+import unicodedata
 from datetime import UTC, datetime
 from typing import Literal
 
@@ -34,6 +35,9 @@ __all__ = [
     "prediction_key",
     "parse_key",
     "validate_prefix",
+    "validate_well_id",
+    "well_id_problem",
+    "WELL_ID_MAX",
 ]
 
 
@@ -138,12 +142,44 @@ def validate_prefix(prefix: str) -> str:
     return prefix
 
 
-def _well_chunk(well: str) -> str:
-    if not well or any(ch in well for ch in "/*$?#"):
-        raise ConfigError(
-            f"The well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')."
-        )
+#: The longest well id accepted anywhere (files, Zenoh keys, HTTP paths), characters.
+WELL_ID_MAX = 128
+
+
+def well_id_problem(well: str) -> str | None:
+    """Why ``well`` cannot be a well id, as a sentence; None when it can.
+
+    One rule on every path (observation files, Zenoh keys, HTTP, the config): 1 to
+    :data:`WELL_ID_MAX` characters, no control characters (a newline in an id would forge
+    log lines), none of ``/ * $ ? #`` (they have a meaning in key expressions), not ``.`` or
+    ``..``, and no space at either end.
+    """
+    shown = repr(well[:40] + ("..." if len(well) > 40 else ""))
+    if not well:
+        return "The well id is empty."
+    if len(well) > WELL_ID_MAX:
+        return f"The well id {shown} has {len(well)} characters; at most {WELL_ID_MAX} are allowed."
+    if any(unicodedata.category(ch) in ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp") for ch in well):
+        return f"The well id {shown} holds control or invisible characters; use printable ones."
+    if any(ch in well for ch in "/*$?#"):
+        return f"The well id {shown} cannot be used in a key expression (no '/', '*', '$', '?', '#')."
+    if well in (".", ".."):
+        return f"The well id {shown} is not a name."
+    if well != well.strip():
+        return f"The well id {shown} starts or ends with a space."
+    return None
+
+
+def validate_well_id(well: str) -> str:
+    """``well`` if it is a valid well id (see :func:`well_id_problem`), else a ConfigError."""
+    problem = well_id_problem(well)
+    if problem is not None:
+        raise ConfigError(problem)
     return well
+
+
+def _well_chunk(well: str) -> str:
+    return validate_well_id(well)
 
 
 def sensors_key(prefix: str, well: str) -> str:
