@@ -15,7 +15,7 @@ import time
 import pandas as pd
 import torch
 
-from vfm_core.learners import TrainSettings
+from vfm_core.learning import TrainSettings
 from vfm_core.streaming import WellLearner
 
 SAMPLE = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]  # choke -, p_up bar, p_down bar, t_up degC, eta_gas, eta_oil
@@ -33,7 +33,7 @@ def _learner(rows: int, effects: list[str]) -> WellLearner:
 
 
 def _time(learner: WellLearner, updates: int) -> tuple[float, float]:
-    start = pd.Timestamp(int(learner._t.max()) + 10**12, tz="UTC")
+    start = pd.Timestamp(int(learner.memory.t.max()) + 10**12, tz="UTC")
     t0 = time.perf_counter()
     for i in range(updates * 10):
         learner.predict(SAMPLE, when=start + pd.Timedelta(seconds=i))

@@ -20,7 +20,7 @@ import torch
 
 from vfm_core.data import make_batch, target_mask
 from vfm_core.jobs.evaluate import format_summary, run_study
-from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, OnlineLearner, fit_batch
+from vfm_core.learning import DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS
@@ -39,11 +39,11 @@ def ol_update_cost(frame, name: str, n: int = 200) -> float:
     batch = make_batch(frame, wells, rows)
     model = make_model(name, wells)
     fit_batch(model, batch.select(torch.cumsum(batch.mask.long(), 1) <= 200), DEFAULT_TRAIN[name])
-    learner = OnlineLearner(model, DEFAULT_ONLINE[name])
+    learner = parse_method("ol").bind(model)
     cols = [batch.select(torch.cumsum(batch.mask.long(), 1) == k + 201) for k in range(n)]
     started = time.perf_counter()
     for col in cols:
-        learner.learn(col)
+        learner.on_measurement(col)
     return (time.perf_counter() - started) / n * 1e6
 
 

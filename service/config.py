@@ -102,17 +102,19 @@ class ModelSettings(_Section):
     @field_validator("method")
     @classmethod
     def _known_method(cls, v: str) -> str:
-        from vfm_core.learners import parse_method
+        from vfm_core.learning import parse_method
+
+        from vfm_core.learning import METHODS
 
         try:
-            kind = parse_method(v).kind
+            streaming = parse_method(v).streaming
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
-        if kind not in ("ol", "pbl"):
+        if not streaming:
+            live = ", ".join(cls.example for cls in METHODS.values() if cls.streaming)
             raise ValueError(
-                f"method '{v}' is not available in the streaming service; use ol or "
-                "pbl:<period>[:window=<span>] (for drift-triggered retrains, as pbl:auto does, "
-                "set drift.on_drift = 'retrain')"
+                f"method '{v}' is not available in the streaming service; use one of {live} "
+                "(for drift-triggered retrains, as pbl:auto does, set drift.on_drift = 'retrain')"
             )
         return v.strip()
 
@@ -137,7 +139,7 @@ class ModelSettings(_Section):
 
     @model_validator(mode="after")
     def _settings_exist(self) -> ModelSettings:
-        from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, settings_from_dict
+        from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, settings_from_dict
 
         if self.effects:
             from vfm_core.streaming import WellLearner

@@ -19,8 +19,8 @@ import torch
 
 from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
-from vfm_core.effects import FeatureTracker, make_effect_model, standard_features
-from vfm_core.learners import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
+from vfm_core.features import FeatureTracker, standard_features
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
@@ -47,7 +47,7 @@ def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
 
 def load_history(cfg: ModelSettings) -> pd.DataFrame:
     """The rows of the history file before ``history_until``, with the standard features
-    (:class:`vfm_core.effects.FeatureTracker`) as extra columns; :func:`fit_history` fits
+    (:class:`vfm_core.features.FeatureTracker`) as extra columns; :func:`fit_history` fits
     on the measured ones (MPFM and well tests)."""
     if cfg.history is None:
         return pd.DataFrame()
@@ -102,12 +102,9 @@ def fit_history(
     frame = measured[measured[WELL].isin(wells)].reset_index(drop=True)
     train = settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
     try:
-        if cfg.effects:
-            model = make_effect_model(
-                cfg.name, wells, cfg.effects, seed=cfg.seed, **cfg.model_kwargs
-            )
-        else:
-            model = make_model(cfg.name, wells, seed=cfg.seed, **cfg.model_kwargs)
+        model = make_model(
+            cfg.name, wells, seed=cfg.seed, effects=cfg.effects, **cfg.model_kwargs
+        )
         batch = make_batch(frame, wells, extra_columns=model.extra_columns)
         summary = fit_batch(model, batch, train)
         full = model.state_dict()

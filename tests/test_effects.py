@@ -18,13 +18,11 @@ from vfm_core.effects import (
     Effect,
     Prior,
     add_features,
-    effect_model_factory,
-    make_effect_model,
     resolve_effect,
     standard_features,
 )
 from vfm_core.errors import ConfigError
-from vfm_core.models import Mechanistic
+from vfm_core.models import Mechanistic, make_model
 from vfm_core.simulate import simulate_field
 from vfm_core.jobs.study import mape, run_prequential
 
@@ -45,7 +43,7 @@ def _batch(frame: pd.DataFrame, model: object) -> object:
 
 def _fitted_pair(frame: pd.DataFrame, effects: list[str]) -> tuple[Mechanistic, object, object]:
     wells = sorted(frame["well"].unique())
-    ext = make_effect_model("mm", wells, effects)
+    ext = make_model("mm", wells, effects=effects)
     batch = _batch(frame, ext)
     ext.setup(batch)  # type: ignore[arg-type]
     base = Mechanistic(wells)
@@ -63,9 +61,9 @@ def test_registry_names_and_errors() -> None:
     with pytest.raises(ConfigError, match="Effect subclass"):
         resolve_effect("vfm_core.physics:Prior")
     with pytest.raises(ConfigError, match="extend the models"):
-        effect_model_factory("nn", ["erosion"])
+        make_model("nn", ["A"], effects=["erosion"])
     with pytest.raises(ConfigError, match="twice"):
-        effect_model_factory("mm", ["erosion", "erosion"])
+        make_model("mm", ["A"], effects=["erosion", "erosion"])
 
 
 def test_user_class_by_module_path(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -87,7 +85,7 @@ def test_effects_off_at_prior_give_the_base_model(small: pd.DataFrame) -> None:
 def test_real_gas_slip_critical_match_physics_at_strength_one(small: pd.DataFrame) -> None:
     wells = sorted(small["well"].unique())
     for name, kwargs in [("real_gas", "z"), ("slip", "slip"), ("critical_ratio", "p_cr")]:
-        ext = make_effect_model("mm", wells, [name])
+        ext = make_model("mm", wells, effects=[name])
         batch = _batch(small, ext)
         ext.setup(batch)  # type: ignore[arg-type]
         theta = {k: v.unsqueeze(1) for k, v in ext.theta().items()}
@@ -158,7 +156,7 @@ def test_projection_keeps_bounds_and_gradients_flow(small: pd.DataFrame) -> None
 def test_hem_and_ham_take_effects(small: pd.DataFrame) -> None:
     wells = sorted(small["well"].unique())
     for base in ("hem", "ham"):
-        model = make_effect_model(base, wells, ["erosion", "real_gas"])
+        model = make_model(base, wells, effects=["erosion", "real_gas"])
         batch = _batch(small, model)
         model.setup(batch)  # type: ignore[arg-type]
         q = model.predict_batch(batch)  # type: ignore[arg-type]
@@ -193,7 +191,7 @@ def test_factory_runs_prequentially_and_learns_hidden_wear() -> None:
     frame = add_features(field.observations, ["erosion"])
     kw = dict(split="2018-01-01", method="pbl:3650d")
     base = run_prequential(frame, "mm", **kw)  # type: ignore[arg-type]
-    ext = run_prequential(frame, "mm", model_factory=effect_model_factory("mm", ["erosion"]), **kw)  # type: ignore[arg-type]
+    ext = run_prequential(frame, "mm", effects=["erosion"], **kw)  # type: ignore[arg-type]
     assert mape(ext.predictions.predicted, ext.predictions.measured) < mape(
         base.predictions.predicted, base.predictions.measured)
     assert float(ext.final_model.physical_parameters()["erosion.rate"].min()) > 0.05  # type: ignore[union-attr]
@@ -210,16 +208,16 @@ def test_a_user_effect_needs_a_valid_prior() -> None:
 
 def test_hyper_names_rebuild_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.syspath_prepend(str(EXAMPLES))
-    model = make_effect_model("mm", ["A"], ["erosion", "my_effects:TemperatureScale"])
+    model = make_model("mm", ["A"], effects=["erosion", "my_effects:TemperatureScale"])
     assert model.hyper["effects"] == ["erosion", "my_effects:TemperatureScale"]
-    again = make_effect_model("mm", ["A"], model.hyper["effects"])
+    again = make_model("mm", ["A"], effects=model.hyper["effects"])
     assert list(again.state_dict()) == list(model.state_dict())
     sys.modules.pop("my_effects", None)
 
 
 # --- effects in the streaming learner (the service) ---------------------------------------------
 def test_feature_tracker_matches_the_offline_features() -> None:
-    from vfm_core.effects import FeatureTracker
+    from vfm_core.features import FeatureTracker
 
     frame = simulate_field(wells=1, years=1.0, seed=5, start="2018-01-01").observations
     tracker = FeatureTracker()

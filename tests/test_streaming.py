@@ -34,8 +34,7 @@ def test_streaming_matches_prequential_study(one_well: pd.DataFrame, method: str
         torch.tensor(hist["q_total"].to_numpy()),
         torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
     )
-    if method.startswith("pbl"):
-        learner.next_retrain = split + pd.Timedelta(days=30)  # the study's calendar
+    learner.method.start(split.value)  # the study's calendar of retrains
     predicted = []
     for _, row in live.iterrows():
         predicted.append(
@@ -77,26 +76,57 @@ def test_priors_only_learner_waits_for_data_and_rejects_bad_blobs() -> None:
         WellLearner("W9", "mtl", "ol")
 
 
-def test_a_first_format_checkpoint_still_restores() -> None:
-    """Checkpoints written before effects existed (format 1: no sources, no features)."""
+def _old_format(learner: WellLearner, version: int) -> bytes:
+    """The learner's checkpoint written as formats 1 or 2 did (before the method protocol):
+    the method's state in fields of the learner; format 1 also had no sources or features."""
     import io
+    import json
 
-    from vfm_core.streaming import WellLearner
+    p = torch.load(io.BytesIO(learner.checkpoint()), weights_only=True)
+    state, memory = p.pop("method_state"), p.pop("memory")
+    p.update(
+        format=f"vfm-well-learner/{version}",
+        optimizer=state.get("optimizer", {}),
+        iterations=state["iterations"],
+        next_retrain=(
+            pd.Timestamp(state["next_due"], tz="UTC").isoformat() if state.get("next_due") else ""
+        ),
+        x=memory["x"],
+        y=memory["y"],
+        t=memory["t"],
+    )
+    if version == 2:
+        p.update(w=memory["w"], e=memory["e"])
+    else:
+        for key in ("effects", "features"):
+            p.pop(key)
+    assert json.loads(p["train"])  # plain JSON, as then
+    buf = io.BytesIO()
+    torch.save(p, buf)
+    return buf.getvalue()
 
-    learner = WellLearner("W01", "mm", "ol")
+
+@pytest.mark.parametrize("method", ["ol", "pbl:30d"])
+def test_earlier_checkpoint_formats_still_restore(method: str) -> None:
+    """Format 1 (before effects: no sources, no features) and 2 (before the method protocol)."""
+    learner = WellLearner("W01", "mm", method)
     x = torch.tensor([[0.5, 60.0, 20.0, 70.0, 0.1, 0.6]] * 20, dtype=torch.float64)
     y = torch.linspace(900.0, 1100.0, 20, dtype=torch.float64)
     t = torch.arange(20, dtype=torch.int64) * 3_600_000_000_000 + 1_500_000_000_000_000_000
-    learner.fit_history(x, y, t)
-    payload = torch.load(io.BytesIO(learner.checkpoint()), weights_only=True)
-    for key in ("effects", "features", "w", "e"):
-        payload.pop(key)
-    payload["format"] = "vfm-well-learner/1"
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    back = WellLearner.restore(buf.getvalue())
+    learner.fit_history(x[:15], y[:15], t[:15])
+    for i in range(15, 18):  # ol: the optimiser now has momentum, which must come back
+        learner.learn(x[i].tolist(), float(y[i]), pd.Timestamp(int(t[i]), tz="UTC"))
     sample = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]
-    assert back.predict(sample) == learner.predict(sample)
-    assert back.remembered == 20 and not bool(back._w.any())
-    # the features are rebuilt from the remembered rows: 19 hours on stream at the last row
-    assert float(back._e[-1, 0]) == pytest.approx(19 / (365.25 * 24))
+    for version in (1, 2):
+        back = WellLearner.restore(_old_format(learner, version))
+        assert back.predict(sample) == learner.predict(sample)
+        assert back.remembered == 18 and not bool(back.memory.well_test.any())
+        assert back.method.state_dict()["next_due"] == learner.method.state_dict().get("next_due") if method != "ol" else True
+        # both keep learning alike (the optimiser's moments and the calendar came back)
+        twin = WellLearner.restore(learner.checkpoint())
+        for lrn in (back, twin):
+            lrn.learn(x[18].tolist(), float(y[18]), pd.Timestamp(int(t[18]), tz="UTC"))
+        assert back.predict(sample) == twin.predict(sample)
+        if version == 1:
+            # the features are rebuilt from the remembered rows: 17 hours on stream at the last
+            assert float(back.memory.features[17, 0]) == pytest.approx(17 / (365.25 * 24))

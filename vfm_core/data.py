@@ -16,11 +16,11 @@ import pandas as pd
 import torch
 
 from vfm_core.errors import ConfigError, DataError
+from vfm_core.physics import DTYPE
 from vfm_core.schema import INPUT_COLUMNS, MPFM, SOURCE, TARGET, TIME, WELL, WELL_TEST
 
 __all__ = ["TARGET_CASES", "Batch", "target_mask", "make_batch", "DTYPE"]
 
-DTYPE = torch.float64
 
 #: Which measurements count as targets: the paper's case 1 (MPFM and well tests) and
 #: case 2 (well tests only), with their default split dates.

@@ -1,11 +1,12 @@
-"""Candidate physical effects that extend the mechanistic choke models, and the models they make.
+"""Candidate physical effects that extend the mechanistic choke models.
 
 An *effect* is a small documented physical term with named parameters (SI units, Gaussian
 priors, hard bounds) that modifies the Sachdeva forward computation through one or more
-hooks. :class:`EffectModel` composes a list of effects into ``mm``, ``hem`` or ``ham``
-with autograd, keeping one set of effect parameters per well, standardised like
-:class:`vfm_core.models.PhysicalParameters` (theta = mu + sigma z; the prior penalty is
-sum z^2; bounds clamp z). A prior mean is the documented physics where the literature
+hooks. The physics models take effects as a constructor argument
+(``make_model("mm", wells, effects=["erosion"])``, :mod:`vfm_core.models.physical`) and
+keep one set of effect parameters per well, standardised like the mechanistic ones
+(theta = mu + sigma z; the prior penalty is sum z^2; bounds clamp z). This module knows
+only the physics: it never imports a model. A prior mean is the documented physics where the literature
 fixes the size (Papay's Z, Simpson's slip, Sachdeva's critical ratio: strength 1) and
 *off* where only the data can tell the size (wear, valve shape, meter bias); A_max is
 set with every effect at its prior mean, so an extended model starts level with the data.
@@ -33,8 +34,8 @@ Features an effect needs beyond the six inputs are columns named in ``extra_colu
 ``module:Class`` (importable from PYTHONPATH) wherever an effect name is accepted.
 
 Public surface: :data:`EFFECTS`, :data:`DEFAULT_CANDIDATES`, :class:`Effect`,
-:class:`EffectInputs`, :func:`resolve_effect`, :func:`effect_model_factory`,
-:func:`add_features`, :func:`standard_features`, :func:`make_effect_model`.
+:class:`EffectInputs`, :func:`resolve_effect`, :func:`resolve_effects`,
+:func:`effect_spec`, :func:`add_features`, :func:`standard_features`.
 """
 
 from __future__ import annotations
@@ -42,28 +43,22 @@ from __future__ import annotations
 import importlib
 import math
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import ClassVar
 
-import numpy as np
 import pandas as pd
 import torch
-from torch import nn
 
 from vfm_core import physics as ph
-from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
-from vfm_core.models import ChokeModel, HybridArea, HybridError, Mechanistic, PhysicalParameters
-from vfm_core.physics import Prior
-from vfm_core.schema import TARGET, TIME, WELL
-from vfm_core.units import bar_to_pa, degc_to_k
+from vfm_core.features import standard_features
+from vfm_core.physics import DTYPE, Prior
 
 __all__ = [
     "Prior",
     "Effect",
     "EffectInputs",
-    "EffectParameters",
     "Erosion",
     "ErosionTime",
     "Valve",
@@ -74,78 +69,12 @@ __all__ = [
     "MeterBias",
     "EFFECTS",
     "DEFAULT_CANDIDATES",
-    "STANDARD_FEATURES",
     "standard_features",
     "add_features",
     "resolve_effect",
     "resolve_effects",
     "effect_spec",
-    "FeatureTracker",
-    "make_effect_model",
-    "effect_model_factory",
 ]
-
-HOURS_PER_YEAR = 365.25 * 24.0
-#: Longest time step (hours) integrated into the cumulative throughput: longer gaps
-#: between rows are shut-ins or historian gaps, not production.
-_MAX_STEP_HOURS = 48.0
-
-
-# --- features ---------------------------------------------------------------------------
-#: Names of the features :func:`standard_features` computes, with their units.
-STANDARD_FEATURES: dict[str, str] = {
-    "years_on": "years since the well's first row (yr)",
-    "throughput_years": "cumulative produced standard volume over one year of the well's "
-    "early median rate (year-equivalents, -)",
-    "water_cut": "water share of the liquid mass, eta_wat / (eta_oil + eta_wat) (-)",
-}
-
-
-def standard_features(frame: pd.DataFrame) -> pd.DataFrame:
-    """Per-row features effects and diagnosis use, indexed like ``frame``.
-
-    ``throughput_years`` integrates the last measured rate (forward-filled, so a row never
-    sees its own measurement) over time per well, gaps longer than 48 h counted as 48 h,
-    divided by the well's median measured rate in its first 90 days times one year.
-    """
-    out = pd.DataFrame(index=frame.index)
-    t = pd.to_datetime(frame[TIME], utc=True)
-    hours = (t - t.min()).dt.total_seconds().to_numpy() / 3600.0
-    wells = frame[WELL].astype(str).to_numpy()
-    q = pd.to_numeric(frame[TARGET], errors="coerce").to_numpy(dtype=float)
-    years_on = np.zeros(len(frame))
-    throughput = np.zeros(len(frame))
-    for well in pd.unique(wells):
-        idx = np.flatnonzero(wells == well)
-        idx = idx[np.argsort(hours[idx], kind="stable")]
-        h = hours[idx]
-        years_on[idx] = (h - h[0]) / HOURS_PER_YEAR
-        rate = pd.Series(q[idx]).ffill().fillna(0.0).to_numpy()
-        dt = np.clip(np.diff(h, prepend=h[0]), 0.0, _MAX_STEP_HOURS)
-        prev_rate = np.concatenate([[0.0], rate[:-1]])
-        cumulative = np.cumsum(prev_rate * dt)
-        early = q[idx][(h - h[0]) <= 90 * 24.0]
-        early = early[np.isfinite(early) & (early > 0)]
-        finite = q[idx][np.isfinite(q[idx]) & (q[idx] > 0)]
-        scale = np.median(early) if len(early) else (np.median(finite) if len(finite) else 1.0)
-        throughput[idx] = cumulative / (scale * HOURS_PER_YEAR)
-    out["years_on"] = years_on
-    out["throughput_years"] = throughput
-    oil = frame["eta_oil"].to_numpy(dtype=float)
-    wat = 1.0 - frame["eta_gas"].to_numpy(dtype=float) - oil
-    out["water_cut"] = np.clip(wat / np.clip(oil + wat, 1e-9, None), 0.0, 1.0)
-    return out
-
-
-def standard_scale(q: np.ndarray, time_ns: np.ndarray, first_ns: int) -> float:
-    """The throughput scale of :func:`standard_features`: the median measured rate (Sm3/h)
-    of the well's first 90 days (else of all its rows; 1 without any)."""
-    ok = np.isfinite(q) & (q > 0)
-    early = ok & (time_ns - first_ns <= int(90 * 24 * 3600 * 1e9))
-    if early.any():
-        return float(np.median(q[early]))
-    return float(np.median(q[ok])) if ok.any() else 1.0
-
 
 def add_features(frame: pd.DataFrame, effects: Sequence[str | type[Effect]]) -> pd.DataFrame:
     """A copy of ``frame`` with every extra column the ``effects`` need (input not mutated)."""
@@ -163,117 +92,6 @@ def add_features(frame: pd.DataFrame, effects: Sequence[str | type[Effect]]) -> 
                     )
                 out[col] = feats[col].to_numpy()
     return out
-
-
-class FeatureTracker:
-    """The standard features of one well, kept up to date one row at a time (the service).
-
-    Follows :func:`standard_features` row by row: ``advance(t)`` integrates the last measured
-    rate up to ``t`` (steps capped at 48 h, never backwards) and returns the features at
-    ``t``; ``measured(t, q)`` then records the row's own rate, which only later rows see.
-    The throughput scale is the median measured rate of the well's first 90 days; until 90
-    days have passed it is the median so far (offline, the whole 90 days are known at once).
-    State is plain numbers (:meth:`state` / :meth:`from_state`), for checkpoints.
-    """
-
-    names: ClassVar[tuple[str, ...]] = tuple(STANDARD_FEATURES)
-    _EARLY_NS: ClassVar[int] = int(90 * 24 * 3600 * 1e9)
-
-    def __init__(self) -> None:
-        self.first_ns: int | None = None
-        self.last_ns: int | None = None
-        self.last_rate = 0.0
-        self.cumulative = 0.0  # Sm3 (rate x hours)
-        self.early: list[float] = []
-        self.scale: float | None = None  # fixed once the first 90 days are over
-        self._median: float | None = None  # median of ``early``, cached until it changes
-
-    def _scale(self) -> float:
-        if self.scale is not None:
-            return self.scale
-        if self._median is None:
-            self._median = float(np.median(self.early)) if self.early else 1.0
-        return self._median
-
-    def advance(self, time_ns: int, eta_gas: float, eta_oil: float) -> list[float]:
-        """Features at ``time_ns`` for a row with these mass fractions, in :attr:`names` order."""
-        if self.first_ns is None:
-            self.first_ns = self.last_ns = time_ns
-        assert self.last_ns is not None
-        if time_ns > self.last_ns:
-            hours = min((time_ns - self.last_ns) / 3.6e12, _MAX_STEP_HOURS)
-            self.cumulative += self.last_rate * hours
-            self.last_ns = time_ns
-        if self.scale is None and time_ns - self.first_ns > self._EARLY_NS and self.early:
-            self.scale = float(np.median(self.early))
-        wat = 1.0 - eta_gas - eta_oil
-        values = {
-            "years_on": max(time_ns - self.first_ns, 0) / 3.6e12 / HOURS_PER_YEAR,
-            "throughput_years": self.cumulative / (self._scale() * HOURS_PER_YEAR),
-            "water_cut": min(max(wat / max(eta_oil + wat, 1e-9), 0.0), 1.0),
-        }
-        return [values[n] for n in self.names]
-
-    def measured(self, time_ns: int, q_total: float) -> None:
-        """Record a measured rate (Sm3/h) at ``time_ns`` (after :meth:`advance` for that row)."""
-        if not (math.isfinite(q_total) and q_total > 0):
-            return
-        if self.first_ns is None:
-            self.first_ns = self.last_ns = time_ns
-        if self.scale is None and time_ns - self.first_ns <= self._EARLY_NS:
-            self.early.append(float(q_total))
-            self._median = None
-        self.last_rate = float(q_total)
-
-    @classmethod
-    def from_frame(cls, frame: pd.DataFrame) -> tuple[FeatureTracker, np.ndarray]:
-        """A tracker that has seen one well's rows (time order) and those rows' features [N, k]."""
-        feats = standard_features(frame)
-        tr = cls()
-        if frame.empty:
-            return tr, np.zeros((0, len(cls.names)))
-        ns = pd.DatetimeIndex(pd.to_datetime(frame[TIME], utc=True)).as_unit("ns").asi8
-        q = pd.to_numeric(frame[TARGET], errors="coerce").to_numpy(dtype=float)
-        order = np.argsort(ns, kind="stable")
-        tr.first_ns, tr.last_ns = int(ns[order[0]]), int(ns[order[-1]])
-        ok = np.isfinite(q) & (q > 0)
-        early = ok & (ns - tr.first_ns <= cls._EARLY_NS)
-        if tr.last_ns - tr.first_ns <= cls._EARLY_NS:  # the first 90 days are not over yet
-            tr.scale = None
-            tr.early = [float(v) for v in q[order][early[order]]]
-        else:
-            tr.scale = standard_scale(q, ns, tr.first_ns)
-        if ok.any():
-            tr.last_rate = float(q[order][ok[order]][-1])
-        last = order[-1]
-        tr.cumulative = (
-            float(feats["throughput_years"].to_numpy()[last])
-            * standard_scale(q, ns, tr.first_ns)
-            * HOURS_PER_YEAR
-        )
-        return tr, feats[list(cls.names)].to_numpy(dtype=float)
-
-    def state(self) -> dict[str, Any]:
-        return {
-            "first_ns": self.first_ns,
-            "last_ns": self.last_ns,
-            "last_rate": self.last_rate,
-            "cumulative": self.cumulative,
-            "early": list(self.early),
-            "scale": self.scale,
-        }
-
-    @classmethod
-    def from_state(cls, state: Mapping[str, Any]) -> FeatureTracker:
-        tr = cls()
-        tr.first_ns = state.get("first_ns")
-        tr.last_ns = state.get("last_ns")
-        tr.last_rate = float(state.get("last_rate", 0.0))
-        tr.cumulative = float(state.get("cumulative", 0.0))
-        tr.early = [float(v) for v in state.get("early", [])]
-        scale = state.get("scale")
-        tr.scale = None if scale is None else float(scale)
-        return tr
 
 
 # --- the protocol ---------------------------------------------------------------------------
@@ -331,6 +149,8 @@ class Effect:
     settings: ClassVar[Mapping[str, str]] = {}
     #: How to name this (configured) effect so it can be rebuilt; default ``name``.
     spec: ClassVar[str] = ""
+    #: True when the effect treats MPFM readings and well tests differently (a meter bias)
+    uses_source: ClassVar[bool] = False
 
     @classmethod
     def configure(cls, **values: str) -> type[Effect]:
@@ -621,6 +441,7 @@ class MeterBias(Effect):
         "drift": Prior(0.0, 0.02, -0.2, 0.2, "1/yr", "relative MPFM drift per year"),
     }
     extra_columns = ("years_on",)
+    uses_source = True
 
     def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         factor = 1.0 + p["bias"] + p["drift"] * inputs.feature("years_on")
@@ -740,280 +561,3 @@ def resolve_effects(effects: Sequence[str | type[Effect]] | str) -> list[type[Ef
     if len(set(names)) != len(names):
         raise ConfigError(f"Effects {names} name one effect twice; give each once.")
     return classes
-
-
-# --- parameters and the model -----------------------------------------------------------------
-def EffectParameters(n_wells: int, priors: Mapping[str, Prior]) -> PhysicalParameters:  # noqa: N802
-    """One effect's parameters per well, standardised like the mechanistic ones (theta = mu + sigma z)."""
-    return PhysicalParameters(n_wells, priors)
-
-
-class _EffectMixin:
-    """Composes effects into a Mechanistic-family model; see :func:`make_effect_model`."""
-
-    effects: list[Effect]
-    effect_params: nn.ModuleDict
-
-    def _init_effects(self, effects: Sequence[type[Effect]]) -> None:
-        model: Any = self
-        n = len(model.wells)
-        self.effects = [cls() for cls in effects]
-        self.effect_params = nn.ModuleDict(
-            {e.name: EffectParameters(n, e.parameters) for e in self.effects}
-        )
-        model.register_buffer("u_ref", torch.full((n,), 0.5, dtype=DTYPE))
-        columns: list[str] = []
-        for e in self.effects:
-            columns += [c for c in e.extra_columns if c not in columns]
-        model.extra_columns = tuple(columns)
-        # how to rebuild the model (JSON): registry names, or module:Class for a user's own
-        model.hyper["effects"] = [effect_spec(type(e)) for e in self.effects]
-        model.name = "+".join([model.base_name, *(e.name for e in self.effects)])
-
-    def effect_values(self) -> dict[str, dict[str, torch.Tensor]]:
-        return {e.name: self.effect_params[e.name].values() for e in self.effects}
-
-    def _inputs(self, batch: Batch, theta: dict[str, torch.Tensor]) -> EffectInputs:
-        model: Any = self
-        u, p_up, p_down, t_up, eta_gas, eta_oil = batch.x.unbind(-1)
-        assert batch.extra is not None and batch.well_test is not None
-        extra = {n: batch.extra[..., i] for i, n in enumerate(batch.extra_names)}
-        return EffectInputs(
-            u=u,
-            p_up=bar_to_pa(p_up),
-            p_down=bar_to_pa(p_down),
-            t_up=degc_to_k(t_up),
-            eta_gas=eta_gas,
-            eta_oil=eta_oil,
-            theta={k: v.unsqueeze(1) for k, v in theta.items()},
-            well_test=batch.well_test,
-            u_ref=model.u_ref.unsqueeze(1),
-            extra=extra,
-            time_ns=batch.time_ns,
-        )
-
-    def _effect_rate(self, batch: Batch) -> torch.Tensor:
-        """The mechanistic rate with every effect applied, Sm3/h [W, N]."""
-        model: Any = self
-        theta = model.theta()
-        inputs = self._inputs(batch, theta)
-        values = {
-            k: {n: v.unsqueeze(1) for n, v in d.items()} for k, d in self.effect_values().items()
-        }
-        area = model.area(batch.x, theta)
-        z: torch.Tensor | float = 1.0
-        for e in self.effects:
-            f = e.area_factor(inputs, values[e.name])
-            area = area if f is None else area * f
-            gz = e.gas_z(inputs, values[e.name])
-            z = z if gz is None else z * gz
-        inputs.z = z
-        th = inputs.theta
-        p_cr: torch.Tensor = th["p_cr"]
-        slip_w: torch.Tensor | None = None
-        for e in self.effects:
-            pc = e.critical_ratio(inputs, values[e.name])
-            p_cr = p_cr if pc is None else pc
-            w = e.slip(inputs, values[e.name])
-            if w is not None:
-                slip_w = w if slip_w is None else slip_w + w
-        args = (inputs.p_up, inputs.p_down, inputs.t_up, inputs.eta_gas, inputs.eta_oil)
-        kw: dict[str, Any] = dict(
-            rho_oil=th["rho_oil"],
-            rho_wat=th["rho_wat"],
-            kappa=th["kappa"],
-            m_gas=th["m_gas"],
-            p_cr=torch.clamp(p_cr, 0.05, 0.99),
-            z=z,
-        )
-        flux = ph.choke_mass_flux(*args, **kw)
-        if slip_w is not None:
-            flux_slip = ph.choke_mass_flux(*args, slip=True, **kw)
-            ratio = torch.clamp(flux_slip, min=1e-12) / torch.clamp(flux, min=1e-12)
-            flux = flux * torch.exp(slip_w * torch.log(ratio))
-        per_kg = ph.standard_volume_per_mass(
-            inputs.eta_gas,
-            inputs.eta_oil,
-            rho_oil=th["rho_oil"],
-            rho_wat=th["rho_wat"],
-            m_gas=th["m_gas"],
-        )
-        q = area * flux * per_kg * 3600.0
-        for e in self.effects:
-            f = e.output_factor(inputs, values[e.name])
-            q = q if f is None else q * f
-        return q
-
-    def _setup_new(self, batch: Batch, new: torch.Tensor) -> None:
-        model: Any = self
-        with torch.no_grad():
-            u = torch.where(batch.mask, batch.x[..., 0], torch.full_like(batch.y, float("nan")))
-            u_med = torch.nanmedian(u, dim=1).values
-            model.u_ref[new] = torch.where(
-                torch.isfinite(u_med[new]), u_med[new], torch.full_like(u_med[new], 0.5)
-            )
-            # A_max: the model at prior means (effects off) matches the median measured rate
-            saved_a, saved_z = (
-                model.a_max.clone(),
-                [p.z.detach().clone() for p in self.effect_params.values()],
-            )
-            saved_phys = model.phys.z.detach().clone()
-            model.a_max[new] = 1.0
-            model.phys.z[new] = 0.0
-            for p in self.effect_params.values():
-                p.z[new] = 0.0
-            unit = self._effect_rate(batch)
-            ratio = torch.where(
-                batch.mask & (unit > 0), batch.y / unit, torch.full_like(unit, float("nan"))
-            )
-            a_max = torch.nanmedian(ratio, dim=1).values
-            model.a_max.copy_(saved_a)
-            model.phys.z.copy_(saved_phys)
-            for p, s in zip(self.effect_params.values(), saved_z, strict=True):
-                p.z.copy_(s)
-            model.a_max[new] = torch.where(
-                torch.isfinite(a_max[new]), a_max[new], torch.ones_like(a_max[new])
-            )
-
-    def _effect_penalty(self) -> torch.Tensor:
-        model: Any = self
-        total = torch.zeros(len(model.wells), dtype=DTYPE)
-        for p in self.effect_params.values():
-            total = total + p.penalty()
-        return total
-
-    def _project_effects(self) -> None:
-        for p in self.effect_params.values():
-            p.project_()
-
-    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
-        """The base model's prior penalty plus the effects' (sum of z^2), per well."""
-        return super().prior_penalty(physical_only) + self._effect_penalty()  # type: ignore[misc]
-
-    def project_(self) -> None:
-        model: Any = self
-        model.phys.project_()
-        self._project_effects()
-
-    def physical_parameters(self) -> dict[str, torch.Tensor]:
-        return {**Mechanistic.physical_parameters(self), **self._effect_physical()}  # type: ignore[arg-type]
-
-    def _effect_physical(self) -> dict[str, torch.Tensor]:
-        out: dict[str, torch.Tensor] = {}
-        with torch.no_grad():
-            for e in self.effects:
-                for n, v in self.effect_params[e.name].values().items():
-                    out[f"{e.name}.{n}"] = v.detach().clone()
-        return out
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        model: Any = self
-        if model.extra_columns or any(isinstance(e, MeterBias) for e in self.effects):
-            raise ConfigError(
-                f"The model {model.name} needs per-sample features or the measurement source; "
-                "call forward_batch(batch) with a batch from make_batch(..., extra_columns=model.extra_columns)."
-            )
-        n = x.shape[1]
-        w = len(model.wells)
-        batch = Batch(
-            model.wells,
-            x,
-            torch.zeros(w, n, dtype=DTYPE),
-            torch.ones(w, n, dtype=torch.bool),
-            torch.zeros(w, n, dtype=torch.int64),
-            torch.zeros(w, n, dtype=torch.int64),
-        )
-        return model.forward_batch(batch)
-
-
-class EffectMechanistic(_EffectMixin, Mechanistic):
-    """``mm`` extended with effects (see the module docstring)."""
-
-    base_name = "mm"
-
-    def __init__(
-        self, wells: Sequence[str], *, effects: Sequence[type[Effect]] = (), seed: int = 0
-    ) -> None:
-        Mechanistic.__init__(self, wells, seed=seed)
-        self._init_effects(effects)
-
-    def forward_batch(self, batch: Batch) -> torch.Tensor:
-        return self._effect_rate(batch)
-
-
-class EffectHybridError(_EffectMixin, HybridError):
-    """``hem`` extended with effects: the network still adds to the extended mechanistic rate."""
-
-    base_name = "hem"
-
-    def __init__(
-        self,
-        wells: Sequence[str],
-        *,
-        effects: Sequence[type[Effect]] = (),
-        seed: int = 0,
-        hidden: Sequence[int] = (16,),
-    ) -> None:
-        HybridError.__init__(self, wells, seed=seed, hidden=hidden)
-        self._init_effects(effects)
-
-    def forward_batch(self, batch: Batch) -> torch.Tensor:
-        return self._effect_rate(batch) + self.y_scale.unsqueeze(1) * self.net(
-            self.normalise(batch.x)
-        )
-
-
-class EffectHybridArea(_EffectMixin, HybridArea):
-    """``ham`` extended with effects: the area network multiplies the effects' area factors."""
-
-    base_name = "ham"
-
-    def __init__(
-        self,
-        wells: Sequence[str],
-        *,
-        effects: Sequence[type[Effect]] = (),
-        seed: int = 0,
-        hidden: Sequence[int] = (16,),
-    ) -> None:
-        HybridArea.__init__(self, wells, seed=seed, hidden=hidden)
-        self._init_effects(effects)
-
-    def forward_batch(self, batch: Batch) -> torch.Tensor:
-        return self._effect_rate(batch)
-
-
-_BASES: dict[str, type[ChokeModel]] = {
-    "mm": EffectMechanistic,
-    "hem": EffectHybridError,
-    "ham": EffectHybridArea,
-}
-
-
-def make_effect_model(
-    base: str, wells: Sequence[str], effects: Sequence[str | type[Effect]], **hyper: Any
-) -> ChokeModel:
-    """Build ``base`` (mm, hem or ham) extended with ``effects`` for ``wells``."""
-    try:
-        cls = _BASES[base]
-    except KeyError:
-        raise ConfigError(f"Effects extend the models {', '.join(_BASES)}, not '{base}'.") from None
-    return cls(list(wells), effects=resolve_effects(effects), **hyper)
-
-
-def effect_model_factory(
-    base: str, effects: Sequence[str | type[Effect]], **hyper: Any
-) -> Callable[[list[str]], ChokeModel]:
-    """A ``model_factory`` for :func:`vfm_core.jobs.study.run_prequential`: wells -> extended model.
-
-    Names are resolved now, so a typo fails before any training. The frame given to
-    ``run_prequential`` must hold the effects' columns: pass it through :func:`add_features`.
-    """
-    classes = resolve_effects(effects)
-    if base not in _BASES:
-        raise ConfigError(f"Effects extend the models {', '.join(_BASES)}, not '{base}'.")
-
-    def factory(wells: list[str]) -> ChokeModel:
-        return make_effect_model(base, wells, classes, **hyper)
-
-    return factory

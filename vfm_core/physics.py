@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import torch
 
 __all__ = [
+    "DTYPE",
     "R_GAS",
     "P_SC",
     "T_SC",
@@ -57,6 +58,9 @@ __all__ = [
     "choke_area_m2",
 ]
 
+#: The floating-point type of every tensor in the VFM (the physics needs the precision).
+DTYPE = torch.float64
+
 #: Universal gas constant, J/(mol K).
 R_GAS = 8.314462618
 #: Standard conditions: pressure in Pa and temperature in K.
@@ -69,7 +73,7 @@ Tensorish = torch.Tensor | float
 
 
 def _t(x: Tensorish) -> torch.Tensor:
-    return x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=torch.float64)
+    return x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=DTYPE)
 
 
 @dataclass(frozen=True)

@@ -55,12 +55,11 @@ from vfm_core.effects import (
     DEFAULT_CANDIDATES,
     Effect,
     add_features,
-    effect_model_factory,
     resolve_effect,
     resolve_effects,
-    standard_features,
 )
-from vfm_core.learners import OnlineSettings, TrainSettings
+from vfm_core.features import standard_features
+from vfm_core.learning import OnlineSettings, TrainSettings
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL, WELL_TEST
 from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
 
@@ -446,8 +445,7 @@ def run_diagnosis(
     bar = tqdm(jobs, desc="diagnose", unit="run", disable=not progress)
     for key, classes, how in bar:
         bar.set_postfix_str(key.strip("_"))
-        factory = effect_model_factory(model, classes) if classes else None
-        runs[key] = run_prequential(frame, model, how, model_factory=factory, **kw)
+        runs[key] = run_prequential(frame, model, how, effects=classes, **kw)
     base = runs["baseline"]
     base_p = base.predictions
     base_mape = mape(base_p["predicted"], base_p["measured"])

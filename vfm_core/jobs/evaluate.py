@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
-from vfm_core.learners import parse_method
+from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
 from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
@@ -124,7 +124,7 @@ def run_study(
     n_test = int((is_target & (frame[TIME] >= split_ts).to_numpy()).sum())
     effect_label = ""
     if effects:
-        from vfm_core.effects import add_features, effect_model_factory, resolve_effects
+        from vfm_core.effects import add_features, resolve_effects
 
         frame = add_features(frame, list(effects))
         effect_label = "+".join(c.name for c in resolve_effects(list(effects)))
@@ -167,7 +167,7 @@ def run_study(
                 progress=report,
                 track_parameters=track_parameters,
                 initial_fits=initial_fits,
-                model_factory=effect_model_factory(model, list(effects)) if extended else None,
+                effects=list(effects) if extended else (),
                 **settings_for(params, model, meth),
                 **(run_kwargs or {}),
             )

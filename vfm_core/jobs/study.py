@@ -8,6 +8,7 @@ the numbers of the paper's tables.
 from __future__ import annotations
 
 import copy
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,14 +19,13 @@ import torch
 
 from vfm_core.data import TARGET_CASES, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
-from vfm_core.learners import (
-    DEFAULT_ONLINE,
+from vfm_core.learning import (
     DEFAULT_TRAIN,
-    Method,
-    OnlineLearner,
+    NEVER,
+    FrameMemory,
+    LearningMethod,
     OnlineSettings,
     TrainSettings,
-    fit_batch,
     parse_method,
 )
 from vfm_core.models import ChokeModel, make_model
@@ -90,30 +90,35 @@ def _param_rows(
 def run_prequential(
     frame: pd.DataFrame,
     model_name: str,
-    method: str | Method,
+    method: str | LearningMethod,
     *,
     targets: str = "all",
     split: str | pd.Timestamp | None = None,
     train: TrainSettings | None = None,
     online: OnlineSettings | None = None,
     model_kwargs: dict[str, Any] | None = None,
+    effects: Sequence[Any] = (),
     seed: int = 0,
     progress: Progress | None = None,
     track_parameters: bool = False,
-    model_factory: Callable[[list[str]], ChokeModel] | None = None,
     initial_fits: dict[Any, Any] | None = None,
 ) -> RunResult:
     """Fit on data before ``split``, then predict-then-learn every target observation after it.
 
     ``frame`` is a loaded observation frame (time-sorted). ``targets`` chooses which
-    measurements count (``all``: MPFM and well tests; ``well_test``). ``progress(done, total)``
-    is called as observations are processed. ``initial_fits``, a dict shared between
-    calls, caches the initial fit so that methods with the same window reuse it.
-    """
-    import time as _time
+    measurements count (``all``: MPFM and well tests; ``well_test``). ``effects`` extend a
+    physics model (the frame must hold their feature columns: see
+    :func:`vfm_core.effects.add_features`). ``progress(done, total)`` is called as
+    observations are processed. ``initial_fits``, a dict shared between calls, caches the
+    initial fit so that methods with the same window reuse it.
 
-    started = _time.perf_counter()
-    meth = parse_method(method) if isinstance(method, str) else method
+    Any learning method runs through its protocol (:mod:`vfm_core.learning.method`):
+    methods that learn per measurement see the test observations in rounds, one per well
+    (one day of the field for a shared model); the others have their predictions between
+    two scheduled retrains made in one call.
+    """
+    started = time.perf_counter()
+    meth = parse_method(method)
     split_ts = resolve_split(targets, split)
     torch.manual_seed(seed)
     is_target = target_mask(frame, targets)
@@ -126,52 +131,47 @@ def run_prequential(
             "choose an earlier --split."
         )
     wells = wells_of(frame.iloc[np.flatnonzero(is_target)])
-    model = (
-        model_factory(wells)
-        if model_factory is not None
-        else make_model(model_name, wells, seed=seed, **(model_kwargs or {}))
-    )
+    model = make_model(model_name, wells, seed=seed, effects=effects, **(model_kwargs or {}))
     train_settings = train or DEFAULT_TRAIN.get(model_name, TrainSettings())
-    online_settings = online or DEFAULT_ONLINE.get(model_name, OnlineSettings())
-
-    def rows_until(t_end: pd.Timestamp) -> np.ndarray:
-        keep = is_target & (times < t_end).to_numpy()
-        if meth.window is not None:
-            keep &= (times >= t_end - meth.window).to_numpy()
-        return np.flatnonzero(keep)
+    meth.bind(model, train=train_settings, online=online)
+    memory = FrameMemory(frame, is_target, wells, model.extra_columns)
+    window = None if meth.window is None else int(meth.window.value)
+    initial = memory.batch(split_ts.value, window)
 
     cache_key = (
-        model_name,
+        model.name,
+        repr(model.hyper),
         targets,
         split_ts,
         meth.window,
         seed,
         repr(train_settings),
-        repr(model_kwargs),
     )
-    if initial_fits is not None and model_factory is None and cache_key in initial_fits:
+    if initial_fits is not None and cache_key in initial_fits:
         # the initial fit is the same for every method with the same window: reuse it
-        model, iterations = (copy.deepcopy(v) for v in initial_fits[cache_key])
+        fitted, iterations = initial_fits[cache_key]
+        model.load_state_dict(fitted)
+        meth.adopt(initial, iterations)
     else:
-        initial = fit_batch(
-            model,
-            make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(split_ts)),
-            train_settings,
-        )
-        iterations = initial["iterations"]
-        if initial_fits is not None and model_factory is None:
-            initial_fits[cache_key] = (copy.deepcopy(model), iterations.clone())
+        meth.fit(initial)
+        if initial_fits is not None:
+            initial_fits[cache_key] = (copy.deepcopy(model.state_dict()), meth.iterations.clone())
+    meth.start(split_ts.value)
     param_rows = _param_rows(model, split_ts, model.ready) if track_parameters else []
     predicted = np.full(len(frame), np.nan)
+    spread = np.full(len(frame), np.nan)
     test = make_batch(frame, wells, extra_columns=model.extra_columns, rows=test_rows)
     total = len(test_rows)
     done = 0
-    updates: list[pd.Timestamp] = []
 
-    if meth.kind == "ol" or model.gradient_free:
-        # The benchmark `last` always predicts the previous measurement, whatever the
-        # method (the paper's benchmark), so it runs the per-observation loop.
-        learner = OnlineLearner(model, online_settings)
+    def record(batch: Batch, where: torch.Tensor) -> None:
+        forecast = meth.predict(batch)
+        rows = batch.row[where].numpy()
+        predicted[rows] = forecast.mean[where].numpy()
+        if forecast.std is not None:
+            spread[rows] = forecast.std[where].numpy()
+
+    if meth.per_measurement or model.gradient_free:
         rounds: list[Batch]
         if model.shared:
             # Shared parameters must see the field in time order: one round per day,
@@ -182,67 +182,43 @@ def run_prequential(
         else:
             rounds = [test.column(k) for k in range(test.x.shape[1])]
         for rb in rounds:
-            q = model.predict_batch(rb)
-            predicted[rb.row[rb.mask].numpy()] = q[rb.mask].numpy()
-            learner.learn(rb)
+            has = rb.mask.any(1)
+            now = torch.where(rb.mask, rb.time_ns, torch.full_like(rb.time_ns, NEVER))
+            now = now.min(dim=1).values
+            if model.shared:  # the field moves together: every well is at the round's start
+                now = torch.full_like(now, int(now.min()))
+            meth.retrain_due(memory, now)
+            record(rb, rb.mask)
+            meth.on_measurement(rb, memory)
             if track_parameters:
-                last_t = [
-                    pd.Timestamp(int(t), tz="UTC") for t in rb.time_ns.min(dim=1).values.tolist()
-                ]
                 param_rows += _param_rows(
                     model,
-                    [t if rb.mask[j].any() else split_ts for j, t in enumerate(last_t)],
-                    rb.mask.any(1),
+                    [
+                        pd.Timestamp(int(t), tz="UTC") if bool(has[j]) else split_ts
+                        for j, t in enumerate(now.tolist())
+                    ],
+                    has,
                 )
             done += int(rb.mask.sum())
             if progress is not None:
                 progress(done, total)
-    elif meth.kind == "auto":
-        updates = _run_auto(
-            frame,
-            model,
-            meth,
-            test,
-            wells,
-            is_target,
-            times,
-            predicted,
-            lambda end, mask: fit_batch(
-                model,
-                make_batch(frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)),
-                train_settings,
-                iterations,
-                wells=mask,
-            ),
-        )
-        done = total
-        if progress is not None:
-            progress(done, total)
     else:
-        assert meth.period is not None
-        t_last = times.iloc[test_rows].max()
-        start = split_ts
+        t_last = int(test.time_ns[test.mask].max())
+        start = int(split_ts.value)
         while start <= t_last:
-            end = start + meth.period
-            in_period = (test.time_ns >= start.value) & (test.time_ns < end.value) & test.mask
+            due = meth.next_due()
+            end = NEVER if due is None else max(int(due), start + 1)
+            in_period = (test.time_ns >= start) & (test.time_ns < end) & test.mask
             if bool(in_period.any()):
-                q = model.predict_batch(test)
-                predicted[test.row[in_period].numpy()] = q[in_period].numpy()
+                record(test, in_period)
                 done += int(in_period.sum())
                 if progress is not None:
                     progress(done, total)
-            if end <= t_last:
-                fit_batch(
-                    model,
-                    make_batch(
-                        frame, wells, extra_columns=model.extra_columns, rows=rows_until(end)
-                    ),
-                    train_settings,
-                    iterations,
-                )
-                updates.append(end)
-                if track_parameters:
-                    param_rows += _param_rows(model, end, model.ready)
+            if end > t_last:
+                break
+            meth.retrain_due(memory, torch.full((len(wells),), end, dtype=torch.int64))
+            if track_parameters:
+                param_rows += _param_rows(model, pd.Timestamp(end, tz="UTC"), model.ready)
             start = end
 
     scored = frame.iloc[test_rows]
@@ -250,86 +226,25 @@ def run_prequential(
         {
             "time": scored[TIME].to_numpy(),
             "well": scored[WELL].astype(str).to_numpy(),
-            "model": model_name,
+            "model": model.name,
             "method": meth.text,
             "source": scored[SOURCE].to_numpy(),
             "predicted": predicted[test_rows],
             "measured": scored[TARGET].to_numpy(),
         }
     )
+    if meth.intervals:
+        predictions["predicted_std"] = spread[test_rows]
     predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
     return RunResult(
-        model=model_name,
+        model=model.name,
         method=meth.text,
         predictions=predictions,
-        updates=updates,
+        updates=[pd.Timestamp(t, tz="UTC") for t in sorted(meth.retrains)],
         parameters=pd.DataFrame(param_rows, columns=["time", "well", "name", "value"]),
         final_model=model,
-        runtime_s=_time.perf_counter() - started,
+        runtime_s=time.perf_counter() - started,
     )
-
-
-def _run_auto(
-    frame: pd.DataFrame,
-    model: ChokeModel,
-    meth: Method,
-    test: Batch,
-    wells: list[str],
-    is_target: np.ndarray,
-    times: pd.Series,
-    predicted: np.ndarray,
-    retrain: Callable[[pd.Timestamp, torch.Tensor], Any],
-) -> list[pd.Timestamp]:
-    """``pbl:auto``: retrain a well when a streaming Hotelling test confirms a shift in its inputs.
-
-    Each well's detector starts with its latest ``reference`` training inputs; after a
-    confirmed shift at time t the well is retrained on data before t and the detector
-    restarts from the latest ``reference`` inputs up to t. Detection needs only the
-    inputs, so the retrain times are found first, then the model runs through them.
-    """
-    from vfm_core.drift import StreamingHotelling
-    from vfm_core.schema import INPUT_COLUMNS
-
-    x_all = frame[list(INPUT_COLUMNS)].to_numpy(dtype=float)
-    events: dict[int, list[int]] = {}
-    for j, well in enumerate(wells):
-        own = np.flatnonzero(is_target & (frame[WELL].astype(str) == well).to_numpy())
-        test_pos = test.row[j][test.mask[j]].numpy()
-        history = own[own < (test_pos[0] if len(test_pos) else len(frame))]
-        history = (
-            history[times.iloc[history].to_numpy() < times.iloc[test_pos[0]]]
-            if len(test_pos)
-            else history
-        )
-        det = StreamingHotelling(meth.reference, meth.alpha, meth.confirm)
-        seen = list(x_all[history[-meth.reference :]]) if len(history) else []
-        det.reset(np.asarray(seen) if len(seen) >= meth.reference else None)
-        recent = seen[-meth.reference :]
-        for k, pos in enumerate(test_pos):
-            det.update(x_all[pos])
-            recent = (recent + [x_all[pos]])[-meth.reference :]
-            if det.drift_detected and k + 1 < len(test_pos):
-                t_ns = int(test.time_ns[j][k + 1])  # retrain before the next observation
-                events.setdefault(t_ns, []).append(j)
-                det.reset(np.asarray(recent) if len(recent) >= meth.reference else None)
-    updates: list[pd.Timestamp] = []
-    done_mask = torch.zeros_like(test.mask)
-    for t_ns in sorted(events):
-        due = test.mask & ~done_mask & (test.time_ns < t_ns)
-        if bool(due.any()):
-            q = model.predict_batch(test)
-            predicted[test.row[due].numpy()] = q[due].numpy()
-            done_mask |= due
-        mask = torch.zeros(len(wells), dtype=torch.bool)
-        mask[events[t_ns]] = True
-        when = pd.Timestamp(t_ns, tz="UTC")
-        retrain(when, mask)
-        updates.append(when)
-    rest = test.mask & ~done_mask
-    if bool(rest.any()):
-        q = model.predict_batch(test)
-        predicted[test.row[rest].numpy()] = q[rest].numpy()
-    return updates
 
 
 def mape(predicted: np.ndarray | pd.Series, measured: np.ndarray | pd.Series) -> float:

@@ -1,29 +1,20 @@
-"""Training and the passive learners: MAP batch fits, online learning, periodic batch learning.
+"""MAP training of a model on a batch: the initial fit and every retrain.
 
-- :func:`fit_batch`: MAP training on a batch (squared scaled error plus the prior penalty
-  weighted by sigma_eps^2 / N, paper eq. objective-function), Adam or SGD, with early
-  stopping on the latest slice of each well's data: a first pass on all but that slice
-  finds the best number of iterations per well, a second pass from the same start on all
-  the data runs exactly that many (so the newest data are learned from, not only used
-  to stop).
-- :class:`OnlineLearner` (``ol``): for each new measurement, E gradient steps with rate
-  gamma from the current parameters on that observation alone (paper eq. MAP-OL); the
-  prior pull stays on for physical parameters only. Optimiser state carries over.
-- :class:`PeriodicSchedule` (``pbl:<period>[:window=<span>]``): retrain every period on
-  all data seen so far (or the last window), warm-started from the current parameters.
-
-Method strings are parsed by :func:`parse_method`.
+:func:`fit_batch` minimises the squared scaled error plus the prior penalty weighted by
+sigma_eps^2 / N (paper eq. objective-function), with Adam or SGD on mini-batches, and
+early stopping on the latest slice of each well's data: a first pass on all but that
+slice finds the best number of iterations per well, a second pass from the same start on
+all the data runs exactly that many (so the newest data are learned from, not only used
+to stop). Wells stay independent: losses, gradient clipping and iteration counts are per
+well; only a shared model (``mtl``) couples them.
 """
 
 from __future__ import annotations
 
-import re
 import zlib
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
-import pandas as pd
 import torch
 
 from vfm_core.data import DTYPE, Batch
@@ -32,14 +23,14 @@ from vfm_core.models import ChokeModel
 
 __all__ = [
     "TrainSettings",
-    "OnlineSettings",
-    "Method",
-    "parse_method",
-    "fit_batch",
-    "OnlineLearner",
-    "scaled_errors",
     "DEFAULT_TRAIN",
-    "DEFAULT_ONLINE",
+    "fit_batch",
+    "make_optimizer",
+    "scaled_errors",
+    "per_well_loss",
+    "clip_per_well_",
+    "well_generators",
+    "settings_from_dict",
 ]
 
 
@@ -73,25 +64,9 @@ class TrainSettings:
     early_stopping: bool = True
 
 
-@dataclass(frozen=True)
-class OnlineSettings:
-    """Online learning: E steps of rate gamma per new measurement."""
-
-    optimizer: str = "adam"
-    lr: float = 1e-2
-    steps: int = 10
-    schedule_power: float = 0.0
-    noise: float = 0.05
-    #: per-well cap on the gradient norm of one step, so a single odd measurement
-    #: (or an input far outside the training range) cannot throw the model away
-    max_grad_norm: float = 1.0
-
-
-#: Defaults per model. Batch settings start from the paper's Tables B.1-B.2, adapted to
-#: this implementation's scaling (physical parameters in prior standard deviations, rates
-#: scaled by the well's median). Online settings were chosen by `vfm tune --grid small
-#: --methods ol` on a development field (`vfm simulate --seed 1`), never on the field the
-#: study reports (seed 0); `vfm tune` on your own data improves on them.
+#: Batch defaults per model, from the paper's Tables B.1-B.2 adapted to this
+#: implementation's scaling (physical parameters in prior standard deviations, rates
+#: scaled by the well's median); `vfm tune` on your own data improves on them.
 DEFAULT_TRAIN: dict[str, TrainSettings] = {
     "last": TrainSettings(),
     "lr": TrainSettings(lr=0.05),
@@ -101,91 +76,8 @@ DEFAULT_TRAIN: dict[str, TrainSettings] = {
     "hem": TrainSettings(lr=1e-2),
     "ham": TrainSettings(lr=1e-2),
 }
-DEFAULT_ONLINE: dict[str, OnlineSettings] = {
-    "last": OnlineSettings(),
-    "lr": OnlineSettings(optimizer="sgd", lr=1e-4, steps=10),
-    "nn": OnlineSettings(optimizer="sgd", lr=1e-4, steps=10),
-    "mtl": OnlineSettings(lr=1e-4, steps=10),
-    "mm": OnlineSettings(lr=1e-3, steps=10),
-    "hem": OnlineSettings(lr=1e-4, steps=1),
-    "ham": OnlineSettings(lr=1e-4, steps=1),
-}
 
-
-@dataclass(frozen=True)
-class Method:
-    """A parsed learning method: ``ol``, ``pbl`` with a period and optional window, or
-    ``auto`` (``pbl:auto``: retrain a well when the Hotelling drift test confirms a shift
-    in its inputs; ``alpha``, ``confirm`` and ``reference`` set the detector)."""
-
-    kind: str
-    period: pd.Timedelta | None = None
-    window: pd.Timedelta | None = None
-    text: str = ""
-    alpha: float = 0.01
-    confirm: int = 5
-    reference: int = 200
-
-    def __str__(self) -> str:
-        return self.text
-
-
-_PBL = re.compile(r"^pbl:(?P<period>[^:]+)(?::window=(?P<window>.+))?$")
-
-
-def _parse_span(text: str, what: str, method: str) -> pd.Timedelta:
-    # pandas deprecates the lower-case day unit; accept "14d" as users write it
-    normalised = re.sub(r"(?<=\d)d\b", "D", text.strip())
-    try:
-        span = pd.Timedelta(normalised)
-    except ValueError:
-        span = None
-    if span is None or span <= pd.Timedelta(0):
-        raise ConfigError(
-            f"Method '{method}': the {what} '{text}' is not a positive time span; "
-            "write it like 14d, 182d or 12h."
-        )
-    return span
-
-
-def parse_method(text: str) -> Method:
-    """Parse ``ol``, ``pbl:14d`` or ``pbl:182d:window=365d``."""
-    text = text.strip()
-    if text == "ol":
-        return Method("ol", text=text)
-    if text == "pbl:auto" or text.startswith("pbl:auto:"):
-        options: dict[str, Any] = {}
-        for part in text.split(":")[2:]:
-            key, _, value = part.partition("=")
-            caster = {"alpha": float, "confirm": int, "reference": int, "window": str}.get(key)
-            if caster is None or not value:
-                raise ConfigError(
-                    f"Method '{text}': unknown option '{part}'; pbl:auto takes alpha=, confirm=, "
-                    "reference= and window=, e.g. pbl:auto:alpha=0.01:confirm=5."
-                )
-            try:
-                options[key] = caster(value)
-            except ValueError:
-                raise ConfigError(f"Method '{text}': '{value}' is not a valid {key}.") from None
-        window = options.pop("window", None)
-        return Method(
-            "auto",
-            window=_parse_span(window, "window", text) if window else None,
-            text=text,
-            **options,
-        )
-    m = _PBL.match(text)
-    if not m:
-        raise ConfigError(
-            f"Unknown learning method '{text}'; use 'ol' or 'pbl:<period>[:window=<span>]', "
-            "e.g. pbl:14d or pbl:182d:window=365d."
-        )
-    period = _parse_span(m["period"], "period", text)
-    window = _parse_span(m["window"], "window", text) if m["window"] else None
-    return Method("pbl", period=period, window=window, text=text)
-
-
-def _optimizer(
+def make_optimizer(
     params: list[torch.nn.Parameter], kind: str, lr: float, power: float
 ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler | None]:
     if kind == "adam":
@@ -207,7 +99,7 @@ def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
     return torch.where(batch.mask, e, torch.zeros_like(e))
 
 
-def _per_well_loss(
+def per_well_loss(
     model: ChokeModel, batch: Batch, noise: float, physical_only: bool
 ) -> torch.Tensor:
     """MAP objective per well [W]: mean squared scaled error + sigma^2/N prior penalty."""
@@ -345,7 +237,7 @@ def fit_batch(
         has_val = torch.zeros_like(has_val)
     # pass 1: find the best iteration count on the held-out latest slice
     if bool(has_val.any()):
-        opt, sched = _optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
+        opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
         best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
         since = torch.zeros(n_w, dtype=torch.int64)
         for k in range(1, settings.max_iter + 1):
@@ -378,7 +270,7 @@ def fit_batch(
     if model.shared:
         best_iter = torch.full_like(best_iter, int(best_iter.max()))
     per_well = set(map(id, model.per_well_parameters()))
-    opt, sched = _optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
+    opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
     final = _snapshot(params)
     total_iter = int(best_iter.max())
     for k in range(1, total_iter + 1):
@@ -403,53 +295,6 @@ def fit_batch(
     return {"iterations": best_iter}
 
 
-@dataclass
-class OnlineLearner:
-    """Online learning on a model: ``learn(batch)`` takes E steps on the new observations.
-
-    ``batch`` normally holds one new measurement per well (wells without one are masked
-    out and do not move); the prior pull is on physical parameters only.
-    """
-
-    model: ChokeModel
-    settings: OnlineSettings
-    _opt: torch.optim.Optimizer | None = field(default=None, init=False, repr=False)
-    _sched: Any = field(default=None, init=False, repr=False)
-    updates: int = field(default=0, init=False)
-
-    def learn(self, batch: Batch) -> None:
-        self.model.setup(batch)
-        if self.model.gradient_free:
-            self.model.observe(batch)
-            self.updates += 1
-            return
-        if self._opt is None:
-            params = [p for p in self.model.parameters() if p.requires_grad]
-            self._opt, self._sched = _optimizer(
-                params, self.settings.optimizer, self.settings.lr, self.settings.schedule_power
-            )
-        ready = self.model.ready & (batch.count() > 0)
-        if not bool(ready.any()):
-            return
-        batch = batch.select(batch.mask & ready.unsqueeze(1))
-        # Adam's momentum would move wells that have no new measurement: hold them still.
-        idle = ~ready
-        held = [(p, p.detach()[idle].clone()) for p in self.model.per_well_parameters()]
-        for _ in range(self.settings.steps):
-            self._opt.zero_grad()
-            loss = _per_well_loss(self.model, batch, self.settings.noise, physical_only=True).sum()
-            loss.backward()
-            clip_per_well_(self.model, self.settings.max_grad_norm)
-            self._opt.step()
-            self.model.project_()
-            if bool(idle.any()):
-                for p, before in held:
-                    p.data[idle] = before
-        if self._sched is not None:
-            self._sched.step()
-        self.updates += 1
-
-
 def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
     """Apply JSON overrides to a settings dataclass, with a clear error for unknown keys."""
     valid = set(asdict(base))
@@ -457,6 +302,3 @@ def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
     if unknown:
         raise ConfigError(f"Unknown settings {sorted(unknown)}; valid ones are {sorted(valid)}.")
     return replace(base, **overrides)
-
-
-ProgressFn = Callable[[int], None]

@@ -1,0 +1,306 @@
+"""The learning-method protocol: how a fitted model keeps learning from new measurements.
+
+One protocol, implemented once per method, used alike by the prequential study
+(:func:`vfm_core.jobs.study.run_prequential`, all wells at once), the streaming learner
+(:class:`vfm_core.streaming.WellLearner`, one well) and therefore the service. A method
+object holds the method's hyperparameters (parsed from its text, ``pbl:14d``) and, once
+bound to a model, its learned state; the model's parameters stay in the model.
+
+Life of a method, for a model of W wells::
+
+    method = parse_method("pbl:14d").bind(model, train=..., online=...)
+    method.fit(history_batch)          # initial MAP fit (or adopt(batch, iterations))
+    method.start(split_ns)             # the calendar origin of scheduled retrains
+    loop, in time order:
+        method.retrain_due(memory, now_ns)    # scheduled retrains whose time has come
+        forecast = method.predict(batch)      # mean rate and, if the method has one, sd
+        method.on_measurement(batch)          # learn from the measurement(s)
+
+- ``per_measurement``: True when the method learns from each measurement (``ol``,
+  ``pbl:auto``'s drift test, ``bayes``). A method that learns only at scheduled retrains
+  (``pbl``) may have its predictions between two retrains made in one call; the study
+  does that and tells it of measurements only through ``retrain_due``.
+- ``next_due()``: when the next scheduled retrain falls due (epoch ns), or None.
+- ``intervals``: True when ``predict`` gives a predictive standard deviation.
+- ``streaming``: False for a method the streaming learner (and so the service) does not
+  run; ``pbl:auto`` is one: the service has its own drift test (``drift.on_drift``).
+- ``state_dict()`` / ``load_state_dict()``: tensors and plain values only (checkpoints
+  are read back with ``torch.load(weights_only=True)``).
+
+Methods register with :func:`register`; :func:`parse_method` finds a method by the start
+of its text and lists the valid ones for an unknown text. A new method is a subclass in
+its own module, registered and imported by :mod:`vfm_core.learning`; nothing else changes.
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+import pandas as pd
+import torch
+
+from vfm_core.data import Batch
+from vfm_core.errors import ConfigError
+from vfm_core.learning.memory import Memory
+from vfm_core.learning.training import DEFAULT_TRAIN, TrainSettings, fit_batch
+from vfm_core.models import ChokeModel
+
+__all__ = [
+    "Forecast",
+    "LearningMethod",
+    "METHODS",
+    "register",
+    "parse_method",
+    "parse_span",
+    "parse_options",
+    "NEVER",
+]
+
+#: "no time yet": later than every int64 nanosecond time
+NEVER = torch.iinfo(torch.int64).max
+
+
+class Forecast(NamedTuple):
+    """A prediction: the mean rate [W, N] (Sm3/h) and its predictive sd [W, N] or None."""
+
+    mean: torch.Tensor
+    std: torch.Tensor | None = None
+
+
+def parse_span(text: str, what: str, method: str) -> pd.Timedelta:
+    """A positive time span like ``14d``, ``182d`` or ``12h``; a clear error otherwise."""
+    # pandas deprecates the lower-case day unit; accept "14d" as users write it
+    normalised = re.sub(r"(?<=\d)d\b", "D", text.strip())
+    try:
+        span = pd.Timedelta(normalised)
+    except ValueError:
+        span = None
+    if span is None or pd.isna(span) or span <= pd.Timedelta(0):
+        raise ConfigError(
+            f"Method '{method}': the {what} '{text}' is not a positive time span; "
+            "write it like 14d, 182d or 12h."
+        )
+    return span
+
+
+def parse_options(
+    text: str, rest: str, casters: dict[str, Callable[[str], Any]], example: str
+) -> dict[str, Any]:
+    """``key=value`` options separated by ':' (``rest`` is the text after the method's name)."""
+    options: dict[str, Any] = {}
+    for part in [p for p in rest.split(":") if p]:
+        key, _, value = part.partition("=")
+        caster = casters.get(key)
+        if caster is None or not value:
+            known = ", ".join(f"{k}=" for k in casters) or "no options"
+            raise ConfigError(
+                f"Method '{text}': unknown option '{part}'; it takes {known} (e.g. {example})."
+            )
+        try:
+            options[key] = caster(value)
+        except (ValueError, ConfigError) as exc:
+            detail = str(exc) if isinstance(exc, ConfigError) else f"'{value}' is not a valid {key}"
+            raise ConfigError(f"Method '{text}': {detail.rstrip('.')}.") from None
+    return options
+
+
+M = TypeVar("M", bound="LearningMethod")
+
+
+class LearningMethod(ABC):
+    """Base of every learning method; see the module docstring for the protocol.
+
+    Subclasses set the class variables, parse their text in :meth:`from_text`, and
+    override :meth:`_learn` (per-measurement learning), :meth:`next_due` /
+    :meth:`retrain_due` (scheduled retrains), :meth:`predict` (intervals) and the state.
+    """
+
+    #: the registry name and the start of the method's text (``ol``, ``pbl``, ``pbl:auto``)
+    key: ClassVar[str] = ""
+    #: the method family, as ``vfm tune`` and the reports group them (``ol``, ``pbl``, ...)
+    kind: ClassVar[str] = ""
+    #: one line for listings and errors
+    summary: ClassVar[str] = ""
+    #: a valid text of the method (the contract tests run it)
+    example: ClassVar[str] = ""
+    per_measurement: ClassVar[bool] = True
+    intervals: ClassVar[bool] = False
+    streaming: ClassVar[bool] = True
+
+    def __init__(self, text: str, *, window: pd.Timedelta | None = None) -> None:
+        self.text = text
+        #: retrains use only the measurements of this span before the retrain time
+        self.window = window
+        self._model: ChokeModel | None = None
+        self.train = TrainSettings()
+        #: iterations per well of the initial (early-stopped) fit, reused by warm retrains
+        self.iterations = torch.zeros(0, dtype=torch.int64)
+        #: times (epoch ns) of the retrains so far in the order they ran (a checkpoint keeps
+        #: the last 100), and their count
+        self.retrains: list[int] = []
+        self.n_retrains = 0
+
+    @classmethod
+    def from_text(cls: type[M], text: str) -> M:
+        """The method described by ``text`` (its key, then ``:option=value`` parts)."""
+        rest = text[len(cls.key) :].lstrip(":")
+        if rest:
+            parse_options(text, rest, {}, cls.key)
+        return cls(text)
+
+    def __str__(self) -> str:
+        return self.text
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.text!r})"
+
+    # -- binding ---------------------------------------------------------------------------
+    @property
+    def model(self) -> ChokeModel:
+        if self._model is None:
+            raise RuntimeError(f"The method {self.text} is not bound to a model; call bind().")
+        return self._model
+
+    def bind(self: M, model: ChokeModel, *, train: TrainSettings | None = None, **_: Any) -> M:
+        """Attach the method to ``model`` (its parameters are what the method learns).
+
+        ``train`` sets the batch fits (initial and retrains); subclasses take their own
+        settings as further keywords (``online`` for ``ol``) and ignore the others.
+        """
+        self._model = model
+        self.train = train or DEFAULT_TRAIN.get(model.key, TrainSettings())
+        self.iterations = torch.full(
+            (len(model.wells),), self.train.default_iter, dtype=torch.int64
+        )
+        return self
+
+    def copy_for(self: M, model: ChokeModel) -> M:
+        """The same method with the same state, bound to ``model`` (a copy of the bound one)."""
+        other = copy.copy(self)
+        other._model = model
+        other._rebind(model)
+        other.load_state_dict(copy.deepcopy(self.state_dict()))
+        return other
+
+    def _rebind(self, model: ChokeModel) -> None:
+        """Rebuild what holds references to the model's parameters (optimisers)."""
+        return None
+
+    # -- fitting ---------------------------------------------------------------------------
+    def fit(self, batch: Batch, *, converge: bool = False) -> None:
+        """Initial MAP fit of the model on ``batch`` (``converge``: no early stopping)."""
+        settings = replace(self.train, early_stopping=False) if converge else self.train
+        summary = fit_batch(self.model, batch, settings)
+        self.iterations = summary["iterations"].clone()
+        self._fitted(batch, torch.ones(batch.n_wells, dtype=torch.bool))
+
+    def adopt(self, batch: Batch, iterations: torch.Tensor) -> None:
+        """Take on an initial fit done elsewhere (the model already holds it)."""
+        self.iterations = iterations.clone()
+        self._fitted(batch, torch.ones(batch.n_wells, dtype=torch.bool))
+
+    def _fitted(self, batch: Batch, wells: torch.Tensor) -> None:
+        """Hook after a batch fit of ``wells`` on ``batch`` (Bayesian methods take their
+        covariance here)."""
+        return None
+
+    def start(self, t_ns: int) -> None:
+        """The calendar origin of scheduled retrains (the split, or the last history row)."""
+        return None
+
+    # -- scheduled retrains -----------------------------------------------------------------
+    def next_due(self) -> int | None:
+        """When the next scheduled retrain of any well falls due (epoch ns), or None."""
+        return None
+
+    def retrain_due(self, memory: Memory, now_ns: torch.Tensor) -> torch.Tensor:
+        """Run every scheduled retrain due at or before ``now_ns`` [W] (epoch ns; NEVER for
+        a well with nothing now). Returns the wells whose model changed [W] (bool)."""
+        return torch.zeros(len(self.model.wells), dtype=torch.bool)
+
+    def retrain(
+        self,
+        memory: Memory,
+        until_ns: int,
+        wells: torch.Tensor | None = None,
+        at_ns: int | None = None,
+    ) -> None:
+        """Warm-start batch retrain of ``wells`` (default all) on the memory before ``until_ns``
+        (the method's window applies), recorded as done at ``at_ns`` (default ``until_ns``).
+        A gradient-free model does not retrain."""
+        model = self.model
+        if model.gradient_free:
+            return
+        window = None if self.window is None else int(self.window.value)
+        batch = memory.batch(until_ns, window)
+        if not bool(batch.count().any()):
+            return
+        fit_batch(model, batch, self.train, self.iterations, wells=wells)
+        self.retrains.append(int(until_ns if at_ns is None else at_ns))
+        self.n_retrains += 1
+        mask = torch.ones(batch.n_wells, dtype=torch.bool) if wells is None else wells
+        self._fitted(batch, mask & (batch.count() > 0))
+
+    # -- measurements and predictions -----------------------------------------------------------
+    def on_measurement(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
+        """Learn from new measurements (normally one per well; wells without one are masked
+        out and do not move). ``memory`` holds every measurement so far, these included.
+        Returns the wells whose model changed [W] (bool)."""
+        has = batch.count() > 0
+        if self.model.gradient_free:  # the benchmark remembers the last value, whatever the method
+            self.model.setup(batch)
+            self.model.observe(batch)
+            return has
+        return self._learn(batch, memory)
+
+    @abstractmethod
+    def _learn(self, batch: Batch, memory: Memory | None) -> torch.Tensor:
+        """The method's own learning from measurements (gradient models); changed wells [W]."""
+
+    def predict(self, batch: Batch) -> Forecast:
+        """The predicted rate for every sample of ``batch`` (NaN where a well has no model)."""
+        return Forecast(self.model.predict_batch(batch), None)
+
+    # -- state -----------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "iterations": self.iterations.clone(),
+            "retrains": list(self.retrains[-100:]),
+            "n_retrains": self.n_retrains,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "iterations" in state:
+            self.iterations = torch.as_tensor(state["iterations"]).clone()
+        self.retrains = [int(t) for t in state.get("retrains", [])]
+        self.n_retrains = int(state.get("n_retrains", len(self.retrains)))
+
+
+#: every registered method by key (filled by :func:`register`)
+METHODS: dict[str, type[LearningMethod]] = {}
+
+
+def register(cls: type[M]) -> type[M]:
+    """Class decorator: add a method to :data:`METHODS` under its key."""
+    if not cls.key or cls.key in METHODS:
+        raise ValueError(f"Learning method {cls.__name__} needs a unique key, not '{cls.key}'.")
+    METHODS[cls.key] = cls
+    return cls
+
+
+def parse_method(text: str | LearningMethod) -> LearningMethod:
+    """A new (unbound) method from its text, e.g. ``ol``, ``pbl:14d``, ``pbl:auto:alpha=0.05``."""
+    if isinstance(text, LearningMethod):
+        return type(text).from_text(text.text)
+    text = str(text).strip()
+    # the longest key that starts the text: pbl:auto before pbl
+    for key in sorted(METHODS, key=len, reverse=True):
+        if text == key or text.startswith(key + ":"):
+            return METHODS[key].from_text(text)
+    choices = "; ".join(f"{cls.key}: {cls.summary}" for cls in METHODS.values())
+    raise ConfigError(f"Unknown learning method '{text}'. Choose one of: {choices}.")

@@ -1,0 +1,208 @@
+"""The model protocol every choke model implements, and the parameter blocks models share.
+
+A model is an ``nn.Module`` batched over wells: well j's parameters sit at index j of a
+leading well dimension (except the shared network of ``mtl``), so one optimiser step
+updates every well at once and independently. The protocol:
+
+- ``setup(batch)``: statistics taken from training data (input normalisation, the rate
+  scale, the choke's full-open area of the mechanistic models); wells already set up are
+  left alone, so it can be called again as new wells appear.
+- ``forward_batch(batch) -> q``: predicted total rate [W, N] in Sm3/h for a
+  :class:`vfm_core.data.Batch` (inputs in file units, plus time, source and feature
+  columns for the models that need them); ``forward(x)`` for the six inputs alone.
+- ``predict(x)`` / ``predict_batch(batch)``: the same without gradients, NaN for wells
+  not set up yet (a model with no data says so instead of guessing).
+- ``prior_penalty(physical_only)``: sum over parameters of ((theta - mu)/sigma)^2 per
+  well, the negative log Gaussian prior of MAP training (He initialisation's variance is
+  the prior of network weights, centred on zero).
+- ``project_()``: clamp physical parameters into their bounds after each step.
+- ``observe(batch)``: learning without gradients (the ``last`` benchmark only).
+- ``physical_parameters()``: named physical parameters in SI units, per well.
+- ``state_dict()`` / ``load_state_dict()`` hold tensors only; hyperparameters are the
+  constructor's keyword arguments (``model.hyper``, JSON). No pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+import torch
+from torch import nn
+
+from vfm_core import physics as ph
+from vfm_core.data import DTYPE, Batch
+
+__all__ = ["ChokeModel", "WellMLP", "PhysicalParameters", "N_INPUTS"]
+
+#: the six inputs of every model, in vfm_core.schema.INPUT_COLUMNS order
+N_INPUTS = 6
+
+
+class ChokeModel(nn.Module):
+    """Abstract base of all models; see the module docstring for the protocol."""
+
+    #: registry name (``mm``); an instance's :attr:`name` adds its effects (``mm+erosion``)
+    key: ClassVar[str] = ""
+    #: True when parameters are shared across wells (early stopping is then global).
+    shared: ClassVar[bool] = False
+    #: True when the model learns by ``observe`` rather than by gradients.
+    gradient_free: ClassVar[bool] = False
+
+    def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
+        super().__init__()
+        self.wells = list(wells)
+        self.hyper: dict[str, Any] = {"seed": seed}
+        self._gen = torch.Generator().manual_seed(seed)
+        n = len(self.wells)
+        self.register_buffer("ready", torch.zeros(n, dtype=torch.bool))
+        self.register_buffer("y_scale", torch.ones(n, dtype=DTYPE))
+        self.register_buffer("x_mean", torch.zeros(n, 6, dtype=DTYPE))
+        self.register_buffer("x_std", torch.ones(n, 6, dtype=DTYPE))
+
+    @property
+    def name(self) -> str:
+        """The model's full name: the registry name, plus its effects if any (``mm+erosion``)."""
+        return self.key
+
+    #: extra per-sample feature columns the model needs (see :class:`vfm_core.data.Batch`)
+    extra_columns: tuple[str, ...] = ()
+    #: True when predictions depend on the measurement source (a meter bias, say)
+    needs_source: bool = False
+
+    # -- set-up from training data -------------------------------------------------------
+    def setup(self, batch: Batch) -> None:
+        """Take normalisation statistics for wells that have data and are not set up yet."""
+        counts = batch.count()
+        new = (~self.ready) & (counts > 0)
+        if not bool(new.any()):
+            return
+        m = batch.mask.unsqueeze(-1).to(DTYPE)
+        n = counts.clamp(min=1).to(DTYPE).unsqueeze(-1)
+        mean = (batch.x * m).sum(1) / n
+        var = (((batch.x - mean.unsqueeze(1)) ** 2) * m).sum(1) / n
+        std = var.sqrt()
+        # a feature that never moved in training gets unit scale (nothing to normalise)
+        std = torch.where(std > 1e-9 * (mean.abs() + 1.0), std, torch.ones_like(std))
+        y = torch.where(batch.mask, batch.y, torch.full_like(batch.y, float("nan")))
+        y_med = torch.nanmedian(y, dim=1).values
+        self.x_mean[new] = mean[new]
+        self.x_std[new] = std[new]
+        self.y_scale[new] = torch.where(y_med[new] > 0, y_med[new], torch.ones_like(y_med[new]))
+        self._setup_new(batch, new)
+        self.ready |= new
+
+    def _setup_new(self, batch: Batch, new: torch.Tensor) -> None:
+        """Model-specific set-up of the wells in ``new`` (mask [W])."""
+
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.x_mean.unsqueeze(1)) / self.x_std.unsqueeze(1)
+
+    # -- protocol ------------------------------------------------------------------------
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError(f"{type(self).__name__} must implement forward().")
+
+    def predict(self, x: torch.Tensor) -> torch.Tensor:
+        """Predicted total rate [W, N], Sm3/h, without gradients; NaN for wells not set up."""
+        with torch.no_grad():
+            q = self.forward(x)
+        return torch.where(self.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
+
+    def forward_batch(self, batch: Batch) -> torch.Tensor:
+        """Rates for a whole batch. Models that need more than the six inputs (time, the
+        measurement source, extra features) override this; the learners call it."""
+        return self.forward(batch.x)
+
+    def predict_batch(self, batch: Batch) -> torch.Tensor:
+        """:meth:`predict` for a batch (see :meth:`forward_batch`)."""
+        with torch.no_grad():
+            q = self.forward_batch(batch)
+        return torch.where(self.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
+
+    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
+        """Sum of squared standardised deviations from the prior means, per well [W]."""
+        return torch.zeros(len(self.wells), dtype=DTYPE)
+
+    def project_(self) -> None:
+        """Clamp parameters into their physical bounds (after an optimiser step)."""
+
+    def observe(self, batch: Batch) -> None:
+        """Learn from measurements without gradients (only the ``last`` benchmark does)."""
+
+    def physical_parameters(self) -> dict[str, torch.Tensor]:
+        """Named physical parameters per well [W], SI units (empty for data-driven models)."""
+        return {}
+
+    def per_well_parameters(self) -> list[torch.nn.Parameter]:
+        """Parameters with a leading well dimension (all of them unless shared)."""
+        return [] if self.shared else list(self.parameters())
+
+
+class WellMLP(nn.Module):
+    """One ReLU multilayer perceptron per well, evaluated in one batched call.
+
+    Weights are [W, fan_in, fan_out]; hidden layers use He initialisation, the output
+    layer starts at zero (the prior mean), so an untrained network adds nothing.
+    """
+
+    def __init__(self, n_wells: int, sizes: Sequence[int], gen: torch.Generator) -> None:
+        super().__init__()
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            last = i == len(sizes) - 2
+            w = torch.randn(n_wells, fan_in, fan_out, generator=gen, dtype=DTYPE)
+            w = torch.zeros_like(w) if last else w * math.sqrt(2.0 / fan_in)
+            self.weights.append(nn.Parameter(w))
+            self.biases.append(nn.Parameter(torch.zeros(n_wells, fan_out, dtype=DTYPE)))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        n = len(self.weights)
+        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            z = torch.baddbmm(b.unsqueeze(1), z, w)
+            if i < n - 1:
+                z = torch.relu(z)
+        return z.squeeze(-1)
+
+    def prior_penalty(self) -> torch.Tensor:
+        total = torch.zeros(self.weights[0].shape[0], dtype=DTYPE)
+        for w, b in zip(self.weights, self.biases, strict=True):
+            he_var = 2.0 / w.shape[1]
+            total = total + (w**2).sum(dim=(1, 2)) / he_var + (b**2).sum(dim=1)
+        return total
+
+
+class PhysicalParameters(nn.Module):
+    """The mechanistic parameters as standardised offsets z: theta = mu + sigma z.
+
+    Learning in z keeps every parameter on the same scale for SGD and Adam, and the prior
+    penalty is simply sum(z^2). Bounds from :data:`vfm_core.physics.PRIORS`.
+    """
+
+    def __init__(self, n_wells: int, names: Sequence[str] | Mapping[str, ph.Prior]) -> None:
+        super().__init__()
+        # names of vfm_core.physics.PRIORS, or a mapping name -> Prior (an effect's own)
+        table = names if isinstance(names, Mapping) else {n: ph.PRIORS[n] for n in names}
+        self.names = tuple(table)
+        priors = [table[n] for n in self.names]
+        self.register_buffer("mu", torch.tensor([p.mean for p in priors], dtype=DTYPE))
+        self.register_buffer("sigma", torch.tensor([p.std for p in priors], dtype=DTYPE))
+        self.register_buffer(
+            "z_low", torch.tensor([(p.low - p.mean) / p.std for p in priors], dtype=DTYPE)
+        )
+        self.register_buffer(
+            "z_high", torch.tensor([(p.high - p.mean) / p.std for p in priors], dtype=DTYPE)
+        )
+        self.z = nn.Parameter(torch.zeros(n_wells, len(self.names), dtype=DTYPE))
+
+    def values(self) -> dict[str, torch.Tensor]:
+        theta = self.mu + self.sigma * self.z
+        return {n: theta[:, i] for i, n in enumerate(self.names)}
+
+    def penalty(self) -> torch.Tensor:
+        return (self.z**2).sum(dim=1)
+
+    def project_(self) -> None:
+        with torch.no_grad():
+            self.z.copy_(torch.maximum(torch.minimum(self.z, self.z_high), self.z_low))

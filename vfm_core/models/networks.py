@@ -1,0 +1,169 @@
+"""The data-driven models of the paper: the ``last`` benchmark, linear regression, a neural
+network per well and the multi-task network shared by all wells (``lr``, ``nn``, ``mtl``).
+
+All predict the total rate at standard conditions (Sm3/h) from the six inputs in file units
+(see :mod:`vfm_core.models.base` for the protocol).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from vfm_core.data import DTYPE, Batch
+from vfm_core.models.base import ChokeModel, WellMLP
+
+__all__ = ["LastValue", "LinearRegression", "NeuralNet", "MultiTask"]
+
+
+class LastValue(ChokeModel):
+    """Benchmark: the last measured rate of the well (independent of the inputs)."""
+
+    key = "last"
+    gradient_free = True
+
+    def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
+        super().__init__(wells, seed=seed)
+        self.register_buffer("last_y", torch.full((len(self.wells),), float("nan"), dtype=DTYPE))
+
+    def setup(self, batch: Batch) -> None:
+        super().setup(batch)
+        self.observe(batch)
+
+    def observe(self, batch: Batch) -> None:
+        counts = batch.count()
+        has = counts > 0
+        idx = (counts - 1).clamp(min=0)
+        latest = batch.y.gather(1, idx.unsqueeze(1)).squeeze(1)
+        self.last_y.copy_(torch.where(has, latest, self.last_y))
+        self.ready |= has
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.last_y.unsqueeze(1).expand(x.shape[0], x.shape[1])
+
+
+class LinearRegression(ChokeModel):
+    """q = y_scale (w . x_norm + b): a line through the normalised inputs.
+
+    Prior: w ~ N(0, 1), b ~ N(1, 1) (the rate scale is the training median).
+    """
+
+    key = "lr"
+
+    def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
+        super().__init__(wells, seed=seed)
+        n = len(self.wells)
+        self.w = nn.Parameter(torch.zeros(n, 6, dtype=DTYPE))
+        self.b = nn.Parameter(torch.ones(n, dtype=DTYPE))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = self.normalise(x)
+        return self.y_scale.unsqueeze(1) * ((z * self.w.unsqueeze(1)).sum(-1) + self.b.unsqueeze(1))
+
+    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
+        if physical_only:
+            return super().prior_penalty()
+        return (self.w**2).sum(1) + (self.b - 1.0) ** 2
+
+
+class NeuralNet(ChokeModel):
+    """q = y_scale (1 + MLP(x_norm)): a ReLU network per well (paper eq. nn-model)."""
+
+    key = "nn"
+
+    def __init__(
+        self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (32, 32)
+    ) -> None:
+        super().__init__(wells, seed=seed)
+        self.hyper["hidden"] = list(hidden)
+        self.net = WellMLP(len(self.wells), [6, *hidden, 1], self._gen)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.y_scale.unsqueeze(1) * (1.0 + self.net(self.normalise(x)))
+
+    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
+        return super().prior_penalty() if physical_only else self.net.prior_penalty()
+
+
+class MultiTask(ChokeModel):
+    """Multi-task learning (paper eq. mtl-model): beta_j per well + a shared pre-activation ResNet.
+
+    z1 = W01 x + W02 beta_j + b0; r_l = W_l2 a(W_l1 a(z_l) + b_l1) + b_l2; z_{l+1} = z_l + r_l;
+    q = y_scale_j (1 + W_out z_{L+1} + b_out). Inputs are normalised with statistics of the
+    whole field, so the shared network sees one input space; beta_j ~ N(0, 1).
+    """
+
+    key = "mtl"
+    shared = True
+
+    def __init__(
+        self,
+        wells: Sequence[str],
+        *,
+        seed: int = 0,
+        width: int = 32,
+        blocks: int = 2,
+        task_dim: int = 4,
+    ) -> None:
+        super().__init__(wells, seed=seed)
+        self.hyper.update(width=width, blocks=blocks, task_dim=task_dim)
+        g = self._gen
+
+        def he(fan_in: int, fan_out: int) -> nn.Parameter:
+            return nn.Parameter(
+                torch.randn(fan_in, fan_out, generator=g, dtype=DTYPE) * math.sqrt(2.0 / fan_in)
+            )
+
+        self.beta = nn.Parameter(torch.zeros(len(self.wells), task_dim, dtype=DTYPE))
+        self.w_in = he(6 + task_dim, width)
+        self.b_in = nn.Parameter(torch.zeros(width, dtype=DTYPE))
+        self.w1 = nn.ParameterList([he(width, width) for _ in range(blocks)])
+        self.b1 = nn.ParameterList(
+            [nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)]
+        )
+        self.w2 = nn.ParameterList([he(width, width) for _ in range(blocks)])
+        self.b2 = nn.ParameterList(
+            [nn.Parameter(torch.zeros(width, dtype=DTYPE)) for _ in range(blocks)]
+        )
+        self.w_out = nn.Parameter(torch.zeros(width, 1, dtype=DTYPE))
+        self.b_out = nn.Parameter(torch.zeros(1, dtype=DTYPE))
+
+    def _setup_new(self, batch: Batch, new: torch.Tensor) -> None:
+        # one input normalisation for all wells, taken at the first set-up
+        if bool(self.ready.any()):
+            self.x_mean[new] = self.x_mean[self.ready][0]
+            self.x_std[new] = self.x_std[self.ready][0]
+            return
+        m = batch.mask.unsqueeze(-1).to(DTYPE)
+        n = m.sum()
+        mean = (batch.x * m).sum((0, 1)) / n
+        std = ((((batch.x - mean) ** 2) * m).sum((0, 1)) / n).sqrt().clamp(min=1e-9)
+        self.x_mean[:] = mean
+        self.x_std[:] = std
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = self.normalise(x)
+        beta = self.beta.unsqueeze(1).expand(-1, x.shape[1], -1)
+        h = torch.cat([z, beta], dim=-1) @ self.w_in + self.b_in
+        for w1, b1, w2, b2 in zip(self.w1, self.b1, self.w2, self.b2, strict=True):
+            h = h + torch.relu(torch.relu(h) @ w1 + b1) @ w2 + b2
+        out = (h @ self.w_out).squeeze(-1) + self.b_out
+        return self.y_scale.unsqueeze(1) * (1.0 + out)
+
+    def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
+        n = len(self.wells)
+        if physical_only:
+            return torch.zeros(n, dtype=DTYPE)
+        shared = torch.zeros((), dtype=DTYPE)
+        for w in [self.w_in, *self.w1, *self.w2, self.w_out]:
+            shared = shared + (w**2).sum() / (2.0 / w.shape[0])
+        for b in [self.b_in, *self.b1, *self.b2, self.b_out]:
+            shared = shared + (b**2).sum()
+        # shared weights are charged once, spread evenly over the wells
+        return (self.beta**2).sum(1) + shared / n
+
+    def per_well_parameters(self) -> list[torch.nn.Parameter]:
+        return [self.beta]
