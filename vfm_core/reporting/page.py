@@ -142,7 +142,7 @@ def png(fig: Figure) -> Png:
 
 
 def figure(fig: Figure | Png, caption: str = "", alt: str = "") -> Markup:
-    """``<figure>`` with the embedded PNG and its caption, as safe markup.
+    """A figure element with the embedded PNG and its caption, as safe markup.
 
     ``caption`` and ``alt`` are escaped unless they are :class:`~markupsafe.Markup` (a
     caption rendered by a template, e.g. with ``{% set caption %}...{% endset %}``).
