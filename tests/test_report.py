@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from vfm_core.jobs.evaluate import StudyResult, summarise
-from vfm_core.reporting.study import build_report
 from vfm_core.jobs.study import metrics_records
+from vfm_core.reporting.study import build_report
 
 SPLIT = pd.Timestamp("2019-01-01", tz="UTC")
 WELLS = ("<b>W1</b>", "W2", "W3")

@@ -11,9 +11,6 @@ Outputs: ``DIR/drift.json`` (periods per well) and ``DIR/report.html``.
 from __future__ import annotations
 
 import argparse
-import base64
-import html
-import io
 import json
 import os
 from pathlib import Path
@@ -25,8 +22,8 @@ from scipy import stats
 
 from vfm_core.data import target_mask
 from vfm_core.drift import estimate_update_period
-from vfm_core.schema import INPUT_COLUMNS, TIME, WELL
 from vfm_core.jobs.study import resolve_split
+from vfm_core.schema import INPUT_COLUMNS, TIME, WELL
 
 __all__ = ["drift_study", "register"]
 
@@ -96,91 +93,15 @@ def drift_study(
     }
 
 
-def _figure(result: dict[str, Any]) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    wells = [(w, e) for w, e in result["wells"].items() if e.get("t2")]
-    if not wells:
-        return ""
-    cols = 2
-    rows = (len(wells) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(12, 2.6 * rows), squeeze=False, sharey=False)
-    split = (
-        pd.Timestamp(result["split"]).tz_localize(None)
-        if pd.Timestamp(result["split"]).tzinfo
-        else pd.Timestamp(result["split"])
-    )
-    for ax, (well, e) in zip(axes.ravel(), wells, strict=False):
-        t = pd.to_datetime(e["times"])
-        t2 = np.asarray(e["t2"])
-        det = np.asarray(e["detected"])
-        ax.scatter(t[~det], t2[~det], s=3, color="#1f77b4", label="no shift")
-        ax.scatter(t[det], t2[det], s=3, color="#d62728", label="shift detected (SD)")
-        ax.axhline(
-            e["t2_critical"],
-            color="k",
-            lw=0.8,
-            ls="--",
-            label=f"critical value, alpha={result['alpha']}",
-        )
-        ax.axvline(split, color="grey", lw=1, label="split")
-        if e.get("first_shift"):
-            ax.axvline(
-                pd.Timestamp(e["first_shift"]),
-                color="#ff7f0e",
-                lw=1.2,
-                label="first confirmed shift",
-            )
-        ax.set_yscale("log")
-        ax.set_title(f"{well}: Hotelling T² vs reference window", fontsize=9)
-        ax.set_ylabel("T² (-)")
-        ax.tick_params(labelsize=7)
-    for ax in axes.ravel()[len(wells) :]:
-        ax.axis("off")
-    axes[0, 0].legend(fontsize=7, loc="upper left", markerscale=3)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode()
-
-
 def write_drift(result: dict[str, Any], out: Path, data_path: str) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     tmp_json = out / ".drift.json.tmp"
     tmp_json.write_text(json.dumps(result, indent=1))
-    rows = []
-    for well, e in result["wells"].items():
-        period = "-" if e.get("period_days") is None else f"{e['period_days']:.0f}"
-        share = (
-            "-"
-            if e.get("share_detected_after_split") is None
-            else f"{100 * e['share_detected_after_split']:.0f} %"
-        )
-        rows.append(
-            f"<tr><td>{html.escape(well)}</td><td>{e.get('n_train', 0)}</td><td>{period}</td>"
-            f"<td>{html.escape(str(e.get('first_shift') or e.get('error') or 'none'))}</td><td>{share}</td></tr>"
-        )
-    img = _figure(result)
-    med = result["median_period_days"]
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>VFM drift report</title>
-<style>body{{font-family:sans-serif;max-width:1200px;margin:auto}}td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style></head><body>
-<h1>Input drift: Hotelling T² (paper appendix A)</h1>
-<p>Data: {html.escape(data_path)}; targets {html.escape(result["targets"])}; split {html.escape(result["split"][:10])};
-alpha {result["alpha"]}; a shift is confirmed after {result["confirm"]} consecutive detections; reference window:
-the first {100 * result["reference_fraction"]:.0f} % of each well's observations before the split.</p>
-<p>Median estimated retraining period across wells: <b>{"-" if med is None else f"{med:.0f} days"}</b>.
-A short period means the inputs left the region the model was trained on quickly; retrain such wells often
-(or use <code>pbl:auto</code>).</p>
-<table><tr><th>well</th><th>observations before split</th><th>estimated period (days)</th><th>first confirmed shift</th>
-<th>share of observations after the split flagged</th></tr>{"".join(rows)}</table>
-{f'<img alt="T2 over time per well" src="data:image/png;base64,{img}" style="max-width:100%">' if img else ""}
-</body></html>"""
     tmp_html = out / ".report.html.tmp"
-    tmp_html.write_text(page)
+    # Imported here: matplotlib and the templates are only needed for the report.
+    from vfm_core.reporting.drift import build_report
+
+    build_report(result, tmp_html, data_path)
     os.replace(tmp_json, out / "drift.json")
     os.replace(tmp_html, out / "report.html")
     return [out / "drift.json", out / "report.html"]

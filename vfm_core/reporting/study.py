@@ -1,21 +1,20 @@
-"""One self-contained HTML page with the paper's tables and figures for a finished study.
+"""The study report: one self-contained HTML page with the paper's tables and figures.
 
-:func:`build_report` renders a :class:`vfm_core.jobs.evaluate.StudyResult` for a production
-engineer: a computed summary in plain words, the mean MAPE table (the paper's Tables 2/3),
-the per-well MAPE table (Table C1/C2), per-well MAPE box plots, the 14-day rolling error
-against time, the days between well tests (Figure and Table C3), predicted against measured
-rates per well and, when tracked, the discharge coefficient over time.
+Owns what the study page shows and computes: :func:`build_report` renders a
+:class:`vfm_core.jobs.evaluate.StudyResult` for a production engineer: a computed summary
+in plain words, the mean MAPE table (the paper's Tables 2/3), the per-well MAPE table
+(Table C1/C2), per-well MAPE box plots, the 14-day rolling error against time, the days
+between well tests (Figure and Table C3), predicted against measured rates per well and,
+when tracked, the discharge coefficient over time.
 
-The page has no external resources: figures are PNG (matplotlib, Agg backend) embedded as
-base64, styles are inline. Tables use every scored observation; only the figures thin
-their points to keep the file small. Rates are in Sm3/h, errors in percent.
+This module shapes the numbers and draws the figures; the page itself is the template
+``templates/study.html.j2`` on the shared layout of :mod:`vfm_core.reporting.page`, which
+escapes every text taken from the data. Tables use every scored observation; only the
+figures thin their points to keep the file small. Rates are in Sm3/h, errors in percent.
 """
 
 from __future__ import annotations
 
-import base64
-import html
-import io
 import math
 import re
 from collections.abc import Iterable, Sequence
@@ -23,17 +22,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
-matplotlib.use("Agg")
-
-import matplotlib.dates as mdates  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-from PIL import Image  # noqa: E402
+from vfm_core.reporting import page
+from vfm_core.reporting.page import Png
 
 if TYPE_CHECKING:
     from vfm_core.jobs.evaluate import StudyResult
@@ -43,8 +39,6 @@ __all__ = ["build_report", "BENCHMARK"]
 #: The benchmark model: it repeats the most recent measured rate (the paper's Benchmark).
 BENCHMARK = "last"
 
-_DPI = 100
-_SEP = ' class="sep"'
 #: Most points drawn per panel in the time-series grids (tables never subsample).
 _MAX_POINTS_PER_PANEL = 1500
 
@@ -84,51 +78,16 @@ _GAP_LABELS: tuple[str, ...] = (
     "9m-1y",
     "> 1y",
 )
-
-_CSS = """
-body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
-       max-width: 1180px; margin: 1.5em auto; padding: 0 1em; color: #222; line-height: 1.45; }
-h1 { font-size: 1.6em; margin-bottom: 0.2em; }
-h2 { font-size: 1.25em; margin-top: 2em; border-bottom: 1px solid #ccc; padding-bottom: 0.2em; }
-table { border-collapse: collapse; margin: 0.6em 0 1.2em 0; font-size: 0.92em; }
-th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; white-space: nowrap; }
-th { background: #f2f2f2; }
-td.label, th.label { text-align: left; }
-td.best { background: #d9f2d9; font-weight: bold; }
-td.sep, th.sep { border-left: 3px double #999; }
-table.meta td, table.meta th { text-align: left; border: none; padding: 0.1em 1em 0.1em 0; }
-table.meta th { background: none; font-weight: 600; }
-caption { caption-side: top; text-align: left; font-size: 0.92em; color: #444;
-          padding-bottom: 0.3em; }
-figure { margin: 1em 0 2em 0; }
-figure img { max-width: 100%; height: auto; border: 1px solid #eee; }
-figcaption { font-size: 0.92em; color: #444; margin-top: 0.3em; }
-p.summary { background: #f7f9fc; border-left: 4px solid #1f77b4; padding: 0.6em 1em; }
-p.note { color: #555; font-size: 0.92em; }
-span.swatch { display: inline-block; width: 0.9em; height: 0.9em; vertical-align: middle;
-              margin-right: 0.3em; border-radius: 2px; }
-"""
+#: Off-scale wells named in the box plot's caption (the rest are counted).
+_MAX_OFF_SCALE_NAMED = 12
 
 
 # --------------------------------------------------------------------------- small helpers
 
 
-def _esc(value: Any) -> str:
-    return html.escape(str(value), quote=True)
-
-
 def _natural_key(text: str) -> list[Any]:
     """Sort key so that W2 comes before W10."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", text)]
-
-
-def _fmt_pct(value: float | None, digits: int = 1) -> str:
-    """A percentage for a table cell; huge values (diverged models) in scientific notation."""
-    if value is None or not np.isfinite(value):
-        return "–"
-    if abs(value) >= 1e4:
-        return f"{value:.1e}"
-    return f"{value:.{digits}f}"
 
 
 def _to_float(value: Any) -> float:
@@ -189,25 +148,6 @@ def _break_gaps(times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.n
     )
 
 
-def _figure_html(fig: Figure, caption: str, alt: str) -> str:
-    """Encode a figure as an embedded PNG and close it."""
-    try:
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=_DPI, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-    # A 256-colour palette looks the same for line plots and makes the PNG about 3x smaller.
-    buf.seek(0)
-    with Image.open(buf) as image:
-        small = io.BytesIO()
-        image.convert("RGB").quantize(colors=256).save(small, format="PNG", optimize=True)
-    data = base64.b64encode(small.getvalue()).decode("ascii")
-    return (
-        f'<figure><img src="data:image/png;base64,{data}" alt="{_esc(alt)}">'
-        f"<figcaption>{caption}</figcaption></figure>\n"
-    )
-
-
 def _axis_top(values: Iterable[float], typical: Iterable[float]) -> float | None:
     """Upper y limit that shows the data but not a diverged model's astronomical errors.
 
@@ -226,6 +166,22 @@ def _axis_top(values: Iterable[float], typical: Iterable[float]) -> float | None
         return None
     top = 1.1 * float(kept.max())
     return top if top > 0 else 1.0
+
+
+def _date_axes_below(axes: np.ndarray, n_panels: int) -> None:
+    """Readable dates under the bottom row of a grid of ``n_panels`` panels sharing x.
+
+    With an odd number of panels the hidden last cell leaves the one above it without
+    dates, so that one gets its own labels.
+    """
+    for ax in axes[-1, :]:
+        ax.set_xlabel("time (UTC)")
+        page.date_axis(ax)
+    ncols = axes.shape[1]
+    if n_panels % ncols and axes.shape[0] > 1:
+        ax = axes[-2, -1]
+        ax.xaxis.set_tick_params(labelbottom=True)
+        ax.set_xlabel("time (UTC)")
 
 
 # --------------------------------------------------------------------------- data shaping
@@ -330,98 +286,76 @@ class _Study:
 
 
 # --------------------------------------------------------------------------- text sections
+# Each returns the numbers and plain-text pieces one part of the template shows.
 
 
-def _header(study: _Study) -> str:
+def _header(study: _Study) -> dict[str, Any]:
     r = study.result
     p = study.preds
     finite = np.isfinite(pd.to_numeric(p["predicted"], errors="coerce").to_numpy(dtype=float))
-    n_scored = int(finite.sum())
     per_combo = p.groupby(["model", "method"]).size() if len(p) else pd.Series(dtype=int)
-    n_test = int(per_combo.max()) if len(per_combo) else 0
     first = p.groupby(["model", "method"]).ngroup() == 0 if len(p) else pd.Series(dtype=bool)
     by_source = p.loc[first.to_numpy(dtype=bool), "source"].astype(str).value_counts()
-    source_text = ", ".join(f"{_esc(k)} {int(v):,}" for k, v in by_source.items()) or "none"
-    n_runs = len(per_combo)
-    scored_wells = sorted({str(w) for w in p.loc[finite, "well"]}, key=_natural_key)
     runtime = float(r.runtime_s or 0.0)
     runtime_text = f"{runtime:,.1f} s" + (f" ({runtime / 60:.1f} min)" if runtime >= 120 else "")
-    split = pd.Timestamp(r.split)
-    target_text = _TARGET_NAMES.get(str(r.targets), str(r.targets))
-    rows = [
-        ("Data", _esc(r.data_path or "(not recorded)")),
-        ("Target case", f"<code>{_esc(r.targets)}</code> = {_esc(target_text)}"),
-        ("Split (start of the test period)", _esc(split.strftime("%Y-%m-%d %H:%M UTC"))),
-        ("Runtime", _esc(runtime_text)),
-        (
-            "Wells",
-            f"{len(study.wells)} ({len(scored_wells)} with scored predictions): "
-            + _esc(", ".join(study.wells)),
-        ),
-        ("Test observations per model and method", f"{n_test:,} ({source_text})"),
-        ("Scored predictions", f"{n_scored:,} over {n_runs} model-method runs"),
-        (
-            "Models",
-            "<br>".join(
-                f"<code>{_esc(m)}</code>: {_esc(_model_label(m))}" for m in study.all_models
-            )
-            or "none",
-        ),
-        (
-            "Learning methods",
-            "<br>".join(
-                f'<span class="swatch" style="background:{study.colours[m]}"></span>'
-                f"<code>{_esc(m)}</code>: {_esc(_method_label(m))}"
-                for m in study.methods
-            )
-            or "none",
-        ),
-    ]
-    body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
-    return (
-        "<h1>Virtual flow meter study: passive learning</h1>\n"
-        f'<table class="meta">{body}</table>\n'
-        '<p class="note">MAPE: mean absolute percentage error of the predicted total rate '
-        "(Sm3/h) against the measured rate, per well over the whole test period, in percent. "
-        "Every observation is predicted before the model learns from it.</p>\n"
-    )
+    targets = str(r.targets)
+    return {
+        "data_path": str(r.data_path or "(not recorded)"),
+        "targets": targets,
+        "target_text": _TARGET_NAMES.get(targets, targets),
+        "split_text": pd.Timestamp(r.split).strftime("%Y-%m-%d %H:%M UTC"),
+        "runtime_text": runtime_text,
+        "wells": study.wells,
+        "n_scored_wells": len({str(w) for w in p.loc[finite, "well"]}),
+        "n_test": int(per_combo.max()) if len(per_combo) else 0,
+        "sources": [(str(k), int(v)) for k, v in by_source.items()],
+        "n_scored": int(finite.sum()),
+        "n_runs": len(per_combo),
+        "models": [(m, _model_label(m)) for m in study.all_models],
+        "methods": [(m, study.colours[m], _method_label(m)) for m in study.methods],
+    }
 
 
-def _summary_text(study: _Study) -> str:
-    """Plain-language findings computed from the numbers."""
-    sentences: list[str] = []
+def _summary(study: _Study) -> dict[str, Any]:
+    """The facts behind the plain-language findings; the template words them.
+
+    Every key is present; a finding that does not apply is ``None`` or empty.
+    """
+    facts: dict[str, Any] = {
+        "empty": True,
+        "n_models": len(study.models),
+        "models": study.models,
+        "methods_ranked": [],
+        "median_best": None,
+        "best_method_per_model": [],
+        "best_combination": None,
+        "best_model": None,
+        "many_methods": len(study.methods) > 1,
+        "benchmark": None,
+        "diverged": [],
+        "n_diverged_more": 0,
+        "missing_wells": [],
+    }
     mean = study.mean
     if mean.empty or not np.isfinite(mean.to_numpy(dtype=float)).any():
-        return (
-            '<h2>What this shows</h2>\n<p class="summary">No model produced a scored '
-            "prediction, so there is nothing to compare.</p>\n"
-        )
+        return facts
+    facts["empty"] = False
 
-    n_models = len(study.models)
-    over = f"the {n_models} models" if n_models != 1 else f"model {_esc(study.models[0])}"
     if study.all_column is not None and study.all_column.notna().any():
         col = study.all_column.dropna().sort_values()
+        facts["methods_ranked"] = [(str(m), float(v)) for m, v in col.items()]
         best_m = str(col.index[0])
-        if len(col) == 1:
-            sentences.append(
-                f"With the one learning method <b>{_esc(best_m)}</b>, the mean MAPE across wells "
-                f"averaged over {over} is {_fmt_pct(col.iloc[0])}&nbsp;%."
-            )
-        else:
-            ranking = ", ".join(f"{_esc(m)} {_fmt_pct(v)}&nbsp;%" for m, v in col.iloc[1:].items())
-            sentences.append(
-                f"Averaged over {over}, <b>{_esc(best_m)}</b> gives the lowest mean MAPE "
-                f"({_fmt_pct(col.iloc[0])}&nbsp;%; then {ranking})."
-            )
+        if len(col) > 1:
             # The mean across wells is at the mercy of a single diverged well; the median is not.
             rec = study.records[study.records["model"].isin(study.models)]
             med = rec.groupby(["model", "method"])["mape"].median().groupby("method").mean()
             med = med.reindex(study.methods).dropna().sort_values()
             if len(med) > 1 and str(med.index[0]) != best_m:
-                sentences.append(
-                    f"On the median across wells, which one bad well cannot dominate, "
-                    f"<b>{_esc(med.index[0])}</b> is best instead ({_fmt_pct(med.iloc[0])}&nbsp;%"
-                    f" against {_fmt_pct(med.get(best_m, math.nan))}&nbsp;% for {_esc(best_m)})."
+                facts["median_best"] = (
+                    str(med.index[0]),
+                    float(med.iloc[0]),
+                    float(med.get(best_m, math.nan)),
+                    best_m,
                 )
             per_model = (
                 study.mean[study.models].idxmin(axis=0, skipna=True).dropna()
@@ -433,139 +367,94 @@ def _summary_text(study: _Study) -> str:
                 groups: dict[str, list[str]] = {}
                 for model, meth in per_model.items():
                     groups.setdefault(str(meth), []).append(str(model))
-                parts = [
-                    f"{_esc(meth)} for {_esc(', '.join(models))}" for meth, models in groups.items()
-                ]
-                sentences.append("The best method per model is " + "; ".join(parts) + ".")
+                facts["best_method_per_model"] = list(groups.items())
 
     models_block = mean[study.models] if study.models else pd.DataFrame()
     if not models_block.empty and np.isfinite(models_block.to_numpy(dtype=float)).any():
         stacked = models_block.stack().dropna()
         (meth, model) = stacked.idxmin()
         if len(stacked) > 1:
-            sentences.append(
-                f"The best single combination is <b>{_esc(model)}</b> with <b>{_esc(meth)}</b> "
-                f"({_fmt_pct(stacked.min())}&nbsp;% mean MAPE across wells)."
-            )
+            facts["best_combination"] = (str(model), str(meth), float(stacked.min()))
         best_model = study.best_model()
         if best_model is not None and len(study.models) > 1:
-            over_methods = "Averaged over the methods, t" if len(study.methods) > 1 else "T"
-            sentences.append(
-                f"{over_methods}he most accurate model is <b>{_esc(best_model)}</b> "
-                f"({_esc(_model_label(best_model))})."
-            )
+            facts["best_model"] = (best_model, _model_label(best_model))
 
     if study.has_benchmark:
         bench = mean[BENCHMARK].dropna()
         if not bench.empty:
-            b_meth = str(bench.idxmin())
             b_val = float(bench.min())
-            text = (
-                f"The benchmark <b>{BENCHMARK}</b> (repeat the most recent measured rate) "
-                f"reaches {_fmt_pct(b_val)}&nbsp;% at best ({_esc(b_meth)})"
-            )
+            beaten: tuple[int, int] | None = None
             if not models_block.empty:
                 vals = models_block.to_numpy(dtype=float).ravel()
                 vals = vals[np.isfinite(vals)]
                 if vals.size:
-                    beaten = int((vals < b_val).sum())
-                    text += f"; {beaten} of {vals.size} model-method combinations beat it"
-            sentences.append(text + ".")
+                    beaten = (int((vals < b_val).sum()), int(vals.size))
+            facts["benchmark"] = {
+                "name": BENCHMARK,
+                "method": str(bench.idxmin()),
+                "mape": b_val,
+                "beaten": beaten,
+            }
 
     # The mean hides how the wells differ: name divergent wells and the spread.
     rec = study.records
-    extreme = rec[rec["mape"] > 100.0]
-    if len(extreme):
-        items = [
-            f"{_esc(r.well)} with {_esc(r.model)}/{_esc(r.method)} ({_fmt_pct(r.mape)}&nbsp;%)"
-            for r in extreme.sort_values("mape", ascending=False).head(6).itertuples()
-        ]
-        more = f" and {len(extreme) - 6} more" if len(extreme) > 6 else ""
-        sentences.append(
-            "<b>Warning:</b> some wells have a MAPE above 100&nbsp;%, i.e. the model's "
-            f"predictions ran away: {', '.join(items)}{more}. A mean across wells that "
-            "includes such a well says little; look at the medians in the box plot instead."
-        )
-    missing = sorted(
+    extreme = rec[rec["mape"] > 100.0].sort_values("mape", ascending=False)
+    facts["diverged"] = [
+        (str(r.well), str(r.model), str(r.method), float(r.mape))
+        for r in extreme.head(6).itertuples()
+    ]
+    facts["n_diverged_more"] = max(len(extreme) - 6, 0)
+    facts["missing_wells"] = sorted(
         {str(w) for w in study.wells} - {str(w) for w in rec.loc[rec["mape"].notna(), "well"]},
         key=_natural_key,
     )
-    if missing:
-        sentences.append(f"No scored predictions for: {_esc(', '.join(missing))}.")
-    return '<h2>What this shows</h2>\n<p class="summary">' + " ".join(sentences) + "</p>\n"
+    return facts
 
 
-def _mean_table(study: _Study) -> str:
+def _mean_table(study: _Study) -> dict[str, Any] | None:
+    """Mean MAPE across wells: one row per method, one cell per model column."""
     mean = study.mean
     if mean.empty:
-        return "<h2>Mean MAPE across wells</h2><p>No results.</p>\n"
+        return None
     columns: list[tuple[str, pd.Series, bool]] = [(m, mean[m], False) for m in study.models]
     if study.all_column is not None:
         columns.append(("All", study.all_column, True))
     if study.has_benchmark:
         columns.append((f"{BENCHMARK} (benchmark)", mean[BENCHMARK], True))
-    head = '<th class="label">Learning method</th>' + "".join(
-        f"<th{_SEP if sep else ''}>{_esc(name)}</th>" for name, _, sep in columns
-    )
-    body = []
+    rows = []
     for meth in study.methods:
-        cells = [
-            f'<td class="label"><span class="swatch" style="background:{study.colours[meth]}">'
-            f"</span>{_esc(meth)}</td>"
-        ]
+        cells = []
         for _, series, sep in columns:
             value = float(series.get(meth, math.nan))
             finite = series.dropna()
             # A column where every method ties has no best cell to point at.
             best = bool(finite.nunique() > 1 and np.isfinite(value) and value == finite.min())
-            cls = " ".join(c for c in ("best" if best else "", "sep" if sep else "") if c)
-            cells.append(
-                f"<td{f' class={chr(34)}{cls}{chr(34)}' if cls else ''}>{_fmt_pct(value)}</td>"
-            )
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    caption = (
-        "Mean MAPE across wells (%) per model (columns) and learning method (rows), as the paper's "
-        "Tables 2 and 3. <i>All</i> averages the non-benchmark models. The lowest value in each "
-        "column is highlighted."
-    )
-    return (
-        "<h2>Mean MAPE across wells</h2>\n"
-        f"<table><caption>{caption}</caption><thead><tr>{head}</tr></thead>"
-        f"<tbody>{''.join(body)}</tbody></table>\n"
-    )
+            classes = " ".join(c for c in ("best" if best else "", "sep" if sep else "") if c)
+            cells.append((value, classes))
+        rows.append({"method": meth, "colour": study.colours[meth], "cells": cells})
+    return {"columns": [(name, sep) for name, _, sep in columns], "rows": rows}
 
 
-def _well_table(study: _Study) -> str:
+def _well_table(study: _Study) -> dict[str, Any] | None:
+    """MAPE per well: one cell per model listing every method's value, the lowest marked."""
     if study.records.empty:
-        return ""
-    order = ", ".join(_esc(m) for m in study.methods)
+        return None
     names = {m: m if m != BENCHMARK else f"{m} (benchmark)" for m in study.all_models}
-    head = '<th class="label">Well</th>' + "".join(
-        f"<th{_SEP if m == BENCHMARK else ''}>{_esc(names[m])}</th>" for m in study.all_models
-    )
-    body = []
+    rows = []
     for well in study.wells:
-        cells = [f'<td class="label">{_esc(well)}</td>']
+        cells = []
         for model in study.all_models:
             values = [study.per_well(model, meth, well) for meth in study.methods]
             finite = [v for v in values if np.isfinite(v)]
             low = min(finite) if len(finite) > 1 else None
-            parts = [
-                f"<b>{_fmt_pct(v)}</b>" if low is not None and v == low else _fmt_pct(v)
-                for v in values
-            ]
-            cells.append(f"<td{_SEP if model == BENCHMARK else ''}>{', '.join(parts)}</td>")
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    caption = (
-        f"MAPE (%) per well, model and learning method, as the paper's Table C1. Each cell lists "
-        f"the methods in the order <b>{order}</b>; the lowest of each cell is bold; – means no "
-        "scored prediction."
-    )
-    return (
-        "<h2>MAPE per well</h2>\n"
-        f"<table><caption>{caption}</caption><thead><tr>{head}</tr></thead>"
-        f"<tbody>{''.join(body)}</tbody></table>\n"
-    )
+            parts = [(v, low is not None and v == low) for v in values]
+            cells.append((parts, model == BENCHMARK))
+        rows.append({"well": well, "cells": cells})
+    return {
+        "methods": study.methods,
+        "columns": [(names[m], m == BENCHMARK) for m in study.all_models],
+        "rows": rows,
+    }
 
 
 # --------------------------------------------------------------------------- figures
@@ -578,10 +467,11 @@ def _method_legend(study: _Study, extra: Sequence[Any] = ()) -> list[Any]:
     return handles + list(extra)
 
 
-def _box_plot(study: _Study) -> str:
+def _box_plot(study: _Study) -> dict[str, Any] | None:
+    """Box plot of the per-well MAPE and the wells it leaves off its scale."""
     rec = study.records.dropna(subset=["mape"])
     if rec.empty:
-        return "<h2>Per-well MAPE</h2><p>No per-well MAPE to plot.</p>\n"
+        return None
     groups = study.models + ([BENCHMARK] if study.has_benchmark else [])
     n_meth = max(len(study.methods), 1)
     width = 0.8 / n_meth
@@ -610,7 +500,8 @@ def _box_plot(study: _Study) -> str:
             raw_wells.append(sel["well"].astype(str).to_numpy())
             labels.append(f"{model}, {meth}")
     top = _axis_top(np.concatenate(raw), [s["med"] for s in stats])
-    fig, ax = plt.subplots(figsize=(max(7.0, 1.5 * len(groups) + 3), 4.8))
+    fig = Figure(figsize=(max(7.0, 1.5 * len(groups) + 3), 4.8))
+    ax = fig.subplots()
     parts = ax.bxp(
         stats,
         positions=positions,
@@ -628,14 +519,14 @@ def _box_plot(study: _Study) -> str:
     for patch, colour in zip(parts["boxes"], colours, strict=True):
         patch.set_facecolor(colour)
         patch.set_alpha(0.75)
-    off_scale: list[str] = []
+    off_scale: list[tuple[str, str, float]] = []
     if top is not None:
         ax.set_ylim(0, top)
         for pos, values, wells, label in zip(positions, raw, raw_wells, labels, strict=True):
             above = values > top
             if above.any():
                 off_scale += [
-                    f"{_esc(w)} ({_esc(label)}): {_fmt_pct(v)}&nbsp;%"
+                    (str(w), label, float(v))
                     for w, v in zip(wells[above], values[above], strict=True)
                 ]
                 ax.annotate(
@@ -679,18 +570,12 @@ def _box_plot(study: _Study) -> str:
         loc="upper left",
         bbox_to_anchor=(1.0, 1.0),
     )
-    caption = (
-        "Distribution across wells of the MAPE, grouped by model, one box per learning method "
-        "(as the paper's Figures 8/11). Boxes: P25 to P75, line: median, whiskers: P10 and P90, "
-        "circles: single wells outside the whiskers. The benchmark is its own group on the right."
-    )
-    if off_scale:
-        caption += (
-            f" The y axis stops at {top:.0f}&nbsp;%; red labels count the wells above it "
-            f"(diverged predictions): {'; '.join(off_scale[:12])}"
-            + (f" and {len(off_scale) - 12} more." if len(off_scale) > 12 else ".")
-        )
-    return "<h2>Per-well MAPE</h2>\n" + _figure_html(fig, caption, "box plot of per-well MAPE")
+    return {
+        "png": page.png(fig),
+        "top": top,
+        "off_scale": off_scale[:_MAX_OFF_SCALE_NAMED],
+        "n_off_scale_more": max(len(off_scale) - _MAX_OFF_SCALE_NAMED, 0),
+    }
 
 
 def _rolling_frames(study: _Study, scored: pd.DataFrame) -> dict[tuple[str, str], pd.DataFrame]:
@@ -721,22 +606,16 @@ def _rolling_frames(study: _Study, scored: pd.DataFrame) -> dict[tuple[str, str]
     return out
 
 
-def _rolling_plot(study: _Study, scored: pd.DataFrame) -> str:
-    title = "<h2>Error over time</h2>\n"
+def _rolling_plot(study: _Study, scored: pd.DataFrame) -> dict[str, Any] | None:
+    """The 14-day rolling error across wells per model, and where its shared axis stops."""
     frames = _rolling_frames(study, scored)
     if not frames:
-        return title + "<p>No scored predictions to plot.</p>\n"
+        return None
     panels = [m for m in study.all_models if any((m, meth) in frames for meth in study.methods)]
     ncols = 1 if len(panels) == 1 else 2
     nrows = math.ceil(len(panels) / ncols)
-    fig, axes = plt.subplots(
-        nrows,
-        ncols,
-        figsize=(7.2 * ncols, 2.9 * nrows + 0.6),
-        sharex=True,
-        sharey=True,
-        squeeze=False,
-    )
+    fig = Figure(figsize=(7.2 * ncols, 2.9 * nrows + 0.6))
+    axes = fig.subplots(nrows, ncols, sharex=True, sharey=True, squeeze=False)
     top = _axis_top(
         np.concatenate([f["p75"].to_numpy(dtype=float) for f in frames.values()]),
         [float(f["median"].median()) for f in frames.values() if f["median"].notna().any()],
@@ -792,14 +671,7 @@ def _rolling_plot(study: _Study, scored: pd.DataFrame) -> str:
         ax.set_visible(False)
     if top is not None:
         axes.flat[0].set_ylim(0, top)
-    for ax in axes[-1, :]:
-        ax.set_xlabel("time (UTC)")
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
-    # With an odd number of panels, the hidden last cell leaves the one above without dates.
-    if len(panels) % ncols and nrows > 1:
-        ax = axes[-2, -1]
-        ax.xaxis.set_tick_params(labelbottom=True)
-        ax.set_xlabel("time (UTC)")
+    _date_axes_below(axes, len(panels))
     extra: list[Any] = [Patch(facecolor="#888", alpha=0.3, label="P25-P75 across wells")]
     if any(updates.values()):
         extra.append(
@@ -819,15 +691,7 @@ def _rolling_plot(study: _Study, scored: pd.DataFrame) -> str:
         frameon=False,
     )
     fig.tight_layout(rect=(0, 0.05, 1, 0.97))
-    caption = (
-        "As the paper's Figure 10: for every well, the absolute percentage error of each scored "
-        "prediction is averaged per day and then over a rolling 14-day window; the line is the "
-        "median across wells, the band P25 to P75 across wells. Thin vertical lines mark the "
-        "periodic retrains of each PBL method in its colour (faint where there are many)."
-    )
-    if top is not None:
-        caption += f" The y axis is shared and stops at {top:.0f}&nbsp;%."
-    return title + _figure_html(fig, caption, "rolling error over time")
+    return {"png": page.png(fig), "top": top}
 
 
 def _gap_counts(well_tests: dict[str, list[Any]]) -> pd.DataFrame:
@@ -851,13 +715,14 @@ def _gap_counts(well_tests: dict[str, list[Any]]) -> pd.DataFrame:
     return frame.reindex(sorted(frame.index, key=_natural_key)).astype(int)
 
 
-def _well_test_section(study: _Study) -> str:
-    title = "<h2>Days between well tests</h2>\n"
+def _well_test_section(study: _Study) -> dict[str, Any] | None:
+    """Histogram and table of the days between chronological well tests per well."""
     counts = _gap_counts(study.result.well_tests or {})
     if counts.empty:
-        return title + "<p>No well has two or more well tests, so there are no gaps to show.</p>\n"
-    cmap = plt.get_cmap("tab20b" if len(counts) > 10 else "tab10")
-    fig, ax = plt.subplots(figsize=(9, 4.6))
+        return None
+    cmap = matplotlib.colormaps["tab20b" if len(counts) > 10 else "tab10"]
+    fig = Figure(figsize=(9, 4.6))
+    ax = fig.subplots()
     bottom = np.zeros(len(_GAP_LABELS))
     x = np.arange(len(_GAP_LABELS))
     for i, (well, row) in enumerate(counts.iterrows()):
@@ -886,27 +751,21 @@ def _well_test_section(study: _Study) -> str:
         loc="upper left",
         bbox_to_anchor=(1.0, 1.0),
     )
-    edges = ", ".join(f"{int(e)}" for e in _GAP_EDGES_DAYS[1:-1])
-    caption = (
-        "As the paper's Figure 12: how long the wells go between two tests over the whole data "
-        f"set (training and test period). Bins have different widths; edges at {edges} days."
-    )
-    fig_html = _figure_html(fig, caption, "stacked histogram of days between well tests")
     pct = counts.div(counts.sum(axis=1), axis=0) * 100.0
-    head = '<th class="label">Well</th><th>tests</th>' + "".join(
-        f"<th>{_esc(b)}</th>" for b in _GAP_LABELS
-    )
-    body = []
-    for well, row in pct.iterrows():
-        n_tests = int(counts.loc[well].sum()) + 1
-        cells = "".join(f"<td>{v:.1f}&nbsp;%</td>" for v in row.to_numpy(dtype=float))
-        body.append(f'<tr><td class="label">{_esc(well)}</td><td>{n_tests}</td>{cells}</tr>')
-    table = (
-        "<table><caption>Share of the gaps between chronological well tests per well in each bin, "
-        "as the paper's Table C3 (d = day, w = week, m = month, y = year).</caption>"
-        f"<thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>\n"
-    )
-    return title + fig_html + table
+    rows = [
+        {
+            "well": str(well),
+            "tests": int(counts.loc[well].sum()) + 1,
+            "shares": [float(v) for v in row.to_numpy(dtype=float)],
+        }
+        for well, row in pct.iterrows()
+    ]
+    return {
+        "png": page.png(fig),
+        "edges": [int(e) for e in _GAP_EDGES_DAYS[1:-1]],
+        "bins": _GAP_LABELS,
+        "rows": rows,
+    }
 
 
 def _rate_limits(measured: np.ndarray, predicted: pd.Series) -> tuple[float, float]:
@@ -929,21 +788,23 @@ def _rate_limits(measured: np.ndarray, predicted: pd.Series) -> tuple[float, flo
     return max(0.0, lo - pad), hi + pad
 
 
-def _rates_grid(study: _Study, model: str, heading: str, intro: str) -> str:
+def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
+    """Predicted against measured rates per well for one model; ``why`` it is shown
+    (``"best"``: the most accurate model, ``"mechanistic"``: mm, whose parameters mean
+    something)."""
     p = study.preds
     sub = p[p["model"] == model]
     if sub.empty:
-        return ""
+        return None
     sub = sub.assign(time=pd.to_datetime(sub["time"], utc=True), well=sub["well"].astype(str))
     measured = sub.drop_duplicates(["time", "well", "source"]).sort_values("time")
     wells = [w for w in study.wells if (sub["well"] == w).any()]
     if not wells:
-        return ""
+        return None
     ncols = 1 if len(wells) == 1 else 2
     nrows = math.ceil(len(wells) / ncols)
-    fig, axes = plt.subplots(
-        nrows, ncols, figsize=(7.2 * ncols, 2.7 * nrows + 0.6), sharex=True, squeeze=False
-    )
+    fig = Figure(figsize=(7.2 * ncols, 2.7 * nrows + 0.6))
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
     n_series = len(study.methods) + 1
     per_series = max(200, _MAX_POINTS_PER_PANEL // n_series)
     any_clipped = False
@@ -1010,12 +871,7 @@ def _rates_grid(study: _Study, model: str, heading: str, intro: str) -> str:
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(wells) :]:
         ax.set_visible(False)
-    for ax in axes[-1, :]:
-        ax.set_xlabel("time (UTC)")
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
-    if len(wells) % ncols and nrows > 1:
-        axes[-2, -1].xaxis.set_tick_params(labelbottom=True)
-        axes[-2, -1].set_xlabel("time (UTC)")
+    _date_axes_below(axes, len(wells))
     handles = [
         Line2D(
             [],
@@ -1049,51 +905,39 @@ def _rates_grid(study: _Study, model: str, heading: str, intro: str) -> str:
         frameon=False,
     )
     fig.tight_layout(rect=(0, 0.05, 1, 0.97))
-    caption = (
-        f"{intro} Test period only. Long series are thinned evenly for drawing (at most "
-        f"{per_series} points per series); every well test is shown."
-    )
-    if any_clipped:
-        caption += (
-            " The y axis follows the measured rates; predictions far outside them are cut off."
-        )
-    return f"<h2>{heading}</h2>\n" + _figure_html(
-        fig, caption, f"predicted and measured rates, {model}"
-    )
+    return {
+        "model": model,
+        "label": _model_label(model),
+        "why": why,
+        "png": page.png(fig),
+        "per_series": per_series,
+        "clipped": any_clipped,
+    }
 
 
-def _rates_section(study: _Study) -> str:
+def _rates_section(study: _Study) -> list[dict[str, Any]]:
+    """The rates of the best model and, when it is not the best, of the mechanistic model."""
     best = study.best_model()
     if best is None:
-        return ""
-    intro = (
-        f"Model <b>{_esc(best)}</b> ({_esc(_model_label(best))}) is shown because it has the "
-        "lowest mean MAPE of the non-benchmark models, averaged over the learning methods."
-    )
-    out = _rates_grid(
-        study, best, f"Predicted and measured rates: {_esc(best)} (best model)", intro
-    )
+        return []
+    grids = [_rates_grid(study, best, "best")]
     if "mm" in study.models and best != "mm":
-        out += _rates_grid(
-            study,
-            "mm",
-            "Predicted and measured rates: mm (mechanistic model)",
-            "The mechanistic model <b>mm</b>, whose parameters have a physical meaning.",
-        )
-    return out
+        grids.append(_rates_grid(study, "mm", "mechanistic"))
+    return [g for g in grids if g is not None]
 
 
-def _parameter_section(study: _Study) -> str:
+def _parameter_section(study: _Study) -> Png | None:
+    """The discharge coefficient of mm over time per well, when it was tracked."""
     params = study.result.parameters
     if params is None or not isinstance(params, pd.DataFrame) or params.empty:
-        return ""
+        return None
     needed = {"time", "well", "model", "method", "name", "value"}
     if not needed.issubset(params.columns):
-        return ""
+        return None
     cd = params[(params["model"].astype(str) == "mm") & (params["name"].astype(str) == "c_d")]
     cd = cd.assign(value=pd.to_numeric(cd["value"], errors="coerce")).dropna(subset=["value"])
     if cd.empty:
-        return ""
+        return None
     cd = cd.assign(time=pd.to_datetime(cd["time"], utc=True), well=cd["well"].astype(str))
     wells = sorted(cd["well"].unique(), key=_natural_key)
     methods = [m for m in study.methods if (cd["method"] == m).any()]
@@ -1101,9 +945,8 @@ def _parameter_section(study: _Study) -> str:
     colours = {m: study.colours.get(m, "#555") for m in methods}
     ncols = 1 if len(wells) == 1 else 2
     nrows = math.ceil(len(wells) / ncols)
-    fig, axes = plt.subplots(
-        nrows, ncols, figsize=(7.2 * ncols, 2.5 * nrows + 0.6), sharex=True, squeeze=False
-    )
+    fig = Figure(figsize=(7.2 * ncols, 2.5 * nrows + 0.6))
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
     end = pd.to_datetime(study.preds["time"], utc=True).max() if len(study.preds) else None
     for ax, well in zip(axes.flat, wells, strict=False):
         for meth in methods:
@@ -1130,12 +973,7 @@ def _parameter_section(study: _Study) -> str:
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(wells) :]:
         ax.set_visible(False)
-    for ax in axes[-1, :]:
-        ax.set_xlabel("time (UTC)")
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
-    if len(wells) % ncols and nrows > 1:
-        axes[-2, -1].xaxis.set_tick_params(labelbottom=True)
-        axes[-2, -1].set_xlabel("time (UTC)")
+    _date_axes_below(axes, len(wells))
     handles = [Line2D([], [], color=colours[m], linewidth=2, label=m) for m in methods]
     fig.suptitle(
         "Discharge coefficient C_D of the mechanistic model mm after each update", fontsize=12
@@ -1151,15 +989,7 @@ def _parameter_section(study: _Study) -> str:
         frameon=False,
     )
     fig.tight_layout(rect=(0, 0.05, 1, 0.97))
-    caption = (
-        "The estimated discharge coefficient per well over the test period, one line per learning "
-        "method (held constant between updates). Online learning moves it with every measurement; "
-        "periodic batch learning only at its retrains. A drifting C_D absorbs changes the model "
-        "does not describe (e.g. erosion or a changed choke characteristic)."
-    )
-    return "<h2>Discharge coefficient over time (mm)</h2>\n" + _figure_html(
-        fig, caption, "discharge coefficient over time"
-    )
+    return page.png(fig)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -1169,30 +999,24 @@ def build_report(result: StudyResult, path: Path) -> Path:
     """Write the study as one self-contained HTML file at ``path`` and return the path.
 
     Figures are PNG embedded as base64; nothing is loaded from outside the file. Text taken
-    from the data (well, model and method names, the data path) is HTML-escaped.
+    from the data (well, model and method names, the data path) is escaped by the template
+    engine. The file is written atomically.
     """
-    path = Path(path)
     study = _Study(result)
     scored = study.scored()
     # Names from the data go into figure text too: never read them as mathtext ($...$).
-    with plt.rc_context({"text.parse_math": False}):
-        sections = [
-            _header(study),
-            _summary_text(study),
-            _mean_table(study),
-            _well_table(study),
-            _box_plot(study),
-            _rolling_plot(study, scored),
-            _well_test_section(study),
-            _rates_section(study),
-            _parameter_section(study),
-        ]
-    page = (
-        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-        f"<title>VFM study report: {_esc(result.targets)}, "
-        f"split {_esc(pd.Timestamp(result.split).date())}</title>\n"
-        f"<style>{_CSS}</style>\n</head>\n<body>\n" + "".join(sections) + "</body>\n</html>\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
-    return path
+    with matplotlib.rc_context({"text.parse_math": False}):
+        context = {
+            "title_targets": str(result.targets),
+            "title_split": str(pd.Timestamp(result.split).date()),
+            "header": _header(study),
+            "summary": _summary(study),
+            "mean_table": _mean_table(study),
+            "well_table": _well_table(study),
+            "box": _box_plot(study),
+            "rolling": _rolling_plot(study, scored),
+            "well_tests": _well_test_section(study),
+            "rates": _rates_section(study),
+            "c_d": _parameter_section(study),
+        }
+    return page.write_page(path, page.render("study.html.j2", **context))
