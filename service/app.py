@@ -23,6 +23,7 @@ from typing import Any
 
 from service.config import Settings
 from service.engine import Engine
+from service.http import create_app
 from service.inputs import Counters
 from service.store import Store
 from service.transport import Transport, ZenohTransport
@@ -63,7 +64,7 @@ class Service:
             self.engine = Engine(s, self.store, self.counters, self.transport.publish)
             self.engine.load()
             self.engine.start()
-            self.transport.start(self.engine.on_message)
+            self.transport.start(self.engine.deliver)
             self.locators = self.transport.locators()
         except BaseException:
             self.stop()
@@ -101,7 +102,7 @@ class Service:
         snap = self.counters.snapshot()
         engine = self.engine
         depths = engine.queue_depths() if engine is not None else []
-        pending = sum(len(st.pending) for st in engine.wells.values()) if engine is not None else 0
+        pending = engine.pending_measurements() if engine is not None else 0
         return {
             "status": "ok" if self.ready else "starting",
             "uptime_s": round(time.time() - self.started_at, 3),
@@ -168,8 +169,6 @@ def _raise_stop(signum: int, frame: Any) -> None:
 
 def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None) -> int:
     """Run the service in the foreground until SIGINT/SIGTERM, then stop it cleanly."""
-    from service.api import create_app
-
     main = threading.current_thread() is threading.main_thread()
     previous = (
         {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -222,8 +221,6 @@ class _Running:
 @contextmanager
 def running(settings: Settings, transport: Transport | None = None) -> Iterator[_Running]:
     """The service with its HTTP API on background threads; stopped (and Zenoh closed) on exit."""
-    from service.api import create_app
-
     sock = bind_socket(settings.http.host, settings.http.port)
     service = Service(settings, transport)
     server = None

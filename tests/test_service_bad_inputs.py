@@ -18,8 +18,8 @@ import pandas as pd
 import pytest
 import zenoh
 
-from service.api import create_app
 from service.app import Service, running
+from service.http import create_app
 from service.testing import client_session, loopback_settings, wait_until
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
