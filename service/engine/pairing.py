@@ -56,11 +56,18 @@ class Pairing:
         self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
 
     def nearest(self, st: WellState, time_ns: int) -> Sample | None:
-        """The well's sample nearest ``time_ns`` within the tolerance (memory, then store)."""
+        """The well's sample nearest ``time_ns`` within the tolerance (memory, then store).
+
+        Before the oldest sample in memory the store is asked, and the oldest in memory
+        still competes: it may not be committed yet (a well's first sample, say).
+        """
         if st.recent and time_ns >= st.recent[0].time_ns:
-            best = nearest_in(st.recent, time_ns)
-            return best if abs(best.time_ns - time_ns) <= self._tol_ns else None
-        return self.store.nearest_sample(st.well, time_ns, self._tol_ns)
+            found: list[Sample] = [nearest_in(st.recent, time_ns)]
+        else:
+            stored = self.store.nearest_sample(st.well, time_ns, self._tol_ns)
+            found = [s for s in (stored, st.recent[0] if st.recent else None) if s is not None]
+        best = min(found, key=lambda s: abs(s.time_ns - time_ns), default=None)
+        return best if best is not None and abs(best.time_ns - time_ns) <= self._tol_ns else None
 
     def on_measurement(self, st: WellState, item: MeasurementItem, b: Batch) -> None:
         """A measurement: refuse a duplicate, store it, then learn from it or let it wait."""
