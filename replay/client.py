@@ -25,7 +25,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Protocol
@@ -213,7 +213,7 @@ class ZenohBus:
         self.close()
 
 
-def sample_of(when: datetime, inputs: Sequence[float]) -> SensorSample:
+def sample_of(when: datetime, inputs: Iterable[float]) -> SensorSample:
     """A sensor sample from its time and six inputs (INPUT_COLUMNS order); ValidationError if bad."""
     choke, p_up, p_down, t_up, eta_gas, eta_oil = (float(v) for v in inputs)
     return SensorSample(

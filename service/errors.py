@@ -121,4 +121,6 @@ class Stopping(Unavailable):
 
 def unknown_well(well: str) -> UnknownWell:
     """The refusal of a request about a well this service does not know (no input refused)."""
-    return UnknownWell(f"The well '{well}' is not known to this service; GET /wells lists the wells.")
+    return UnknownWell(
+        f"The well '{well}' is not known to this service; GET /wells lists the wells."
+    )

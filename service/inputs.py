@@ -203,4 +203,3 @@ class Counters:
                 "rejected": dict(self.rejected),
                 "events": dict(self.events),
             }
-

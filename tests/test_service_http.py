@@ -16,7 +16,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.engine import WellTestResult
+from service.engine import Engine, WellTestResult
 from service.errors import (
     Busy,
     Conflict,
@@ -31,6 +31,7 @@ from service.errors import (
 from service.http import create_app
 from service.http.deps import get_engine
 from service.inputs import Counters
+from service.store import Store
 from service.testing import loopback_settings
 
 pytestmark = pytest.mark.timeout(60)
@@ -40,11 +41,14 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
 class StubService:
+    """A service that has not started: settings and counters, no engine or store yet."""
+
+    engine: Engine | None = None
+    store: Store | None = None
+
     def __init__(self, folder: Path, token: str | None = TOKEN) -> None:
         self.settings = loopback_settings(folder, http={"token": token})
         self.counters = Counters()
-        self.engine = None
-        self.store = None
 
     def health(self) -> dict[str, Any]:  # not called here
         raise NotImplementedError

@@ -74,12 +74,12 @@ class Pairing:
         m = item.measurement
         t = to_ns(m.time)
         if (item.source, t) in st.seen or self.store.measurement_exists(item.well, item.source, t):
-            error = Duplicate(
+            duplicate = Duplicate(
                 f"The {item.source} measurement of {item.well} at {iso(t)} arrived before; "
                 "it is stored once.",
                 "duplicate",
             )
-            refuse(self.counters, error, item.well, b, item.future)
+            refuse(self.counters, duplicate, item.well, b, item.future)
             return
         sample: Sample | None = None
         if st.last_time_ns is not None and t <= st.last_time_ns:

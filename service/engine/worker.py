@@ -30,7 +30,7 @@ from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
 from service.engine.state import Sample, WellState
-from service.errors import Duplicate, InvalidRequest, Stopping
+from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping
 from service.inputs import Counters
 from service.store import InsertSample, Store
 from vfm_core.messages import Prediction
@@ -182,7 +182,7 @@ class Workers:
         inputs = tuple(sample.inputs())
         if st.last_time_ns is not None and t <= st.last_time_ns:
             if t == st.last_time_ns and inputs == st.last_inputs:
-                error: InvalidRequest | Duplicate = Duplicate(
+                error: ServiceError = Duplicate(
                     f"The sample of {item.well} at {iso(t)} arrived before.", "duplicate"
                 )
             else:
