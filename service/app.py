@@ -1,13 +1,17 @@
-"""The running service: store + engine + Zenoh transport + HTTP API, started and stopped in order.
+"""The running service: store + engine + transport + HTTP API, started and stopped in order.
 
 :class:`Service` owns the parts; :func:`serve` runs it with uvicorn in the foreground
 (``vfm serve``); :func:`running` runs it on background threads for tests and the demo::
 
-    with running(settings) as svc:
+    with running(settings) as svc:                       # Zenoh, as configured
         print(svc.http_url, svc.locators)
+    with running(settings, MemoryTransport()) as svc:    # the same, without a network
+        ...
 
-Start order: store, Zenoh session, engine (restore or fit), workers, subscriber, HTTP.
-Stop order is the reverse, and every Zenoh session is closed in ``finally``.
+Start order: store, transport (the Zenoh session), engine (restore or fit), workers,
+subscriber, HTTP. Stop order is the reverse, and every Zenoh session is closed in
+``finally``. The HTTP app is built by :func:`service.http.create_app`, which is handed the
+service and never imports this module.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from service.engine import Engine
 from service.http import create_app
 from service.inputs import Counters
 from service.store import Store
-from service.transport import Transport, ZenohTransport
+from service.transport import MemoryTransport, Transport, ZenohTransport
 from vfm_core.errors import ConfigError
 
 __all__ = ["Service", "serve", "running", "bind_socket"]
@@ -71,11 +75,13 @@ class Service:
             raise
         self.ready = True
         logger.info(
-            "Serving %d well(s) with %s/%s on Zenoh %s under '%s/**'; store %s.",
+            "Serving %d well(s) with %s/%s on %s under '%s/**'; store %s.",
             len(self.engine.wells),
             s.model.name,
             s.model.method,
-            ", ".join(self.locators) or ", ".join(s.zenoh.connect),
+            "an in-memory transport"
+            if isinstance(self.transport, MemoryTransport)
+            else "Zenoh " + (", ".join(self.locators) or ", ".join(s.zenoh.connect)),
             s.prefix,
             s.store.path,
         )
@@ -99,6 +105,7 @@ class Service:
 
     # -- what the API shows ---------------------------------------------------------------
     def health(self) -> dict[str, Any]:
+        """Status, accepted and refused inputs, events, queues and where the service listens."""
         snap = self.counters.snapshot()
         engine = self.engine
         depths = engine.queue_depths() if engine is not None else []
@@ -216,6 +223,11 @@ class _Running:
     def engine(self) -> Engine:
         assert self.service.engine is not None
         return self.service.engine
+
+    @property
+    def transport(self) -> Transport:
+        assert self.service.transport is not None
+        return self.service.transport
 
 
 @contextmanager

@@ -2,11 +2,11 @@
 
 Data flow::
 
-    transport receiver thread            worker thread(s), one owner per well
-    ------------------------            ------------------------------------------------
+    transport receiver thread           worker thread(s), one owner per well
+    -------------------------           ------------------------------------------------
     key + JSON -> checks -> item  --->  bounded queue -> batch -> predict / pair / learn
-    (intake: refusals counted by reason) -> one store commit -> publish predictions
-                                         -> answer HTTP callers
+    (intake; refusals counted)          -> one store commit -> publish predictions
+                                        -> answer HTTP callers
 
 :class:`Engine` wires the parts, each in its own module: :mod:`~service.engine.recovery`
 (restore, re-learn, fit on the history), :mod:`~service.engine.intake` (receiving,

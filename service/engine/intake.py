@@ -78,8 +78,9 @@ class Intake:
                 self.check_time(measurement.time, "measurement")
                 item = MeasurementItem(well, measurement, str(source), received_ns)
             st = self.well_state(well)
-        except ServiceError as error:
-            self.counters.reject(error.reason or "", error.message, where=key)
+        except ServiceError as error:  # every refusal here is of an input: it has a reason
+            if error.reason is not None:
+                self.counters.reject(error.reason, error.message, where=key)
             return
         self._enqueue(st.worker, item, key)
 

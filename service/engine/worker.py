@@ -25,7 +25,7 @@ from typing import Any
 
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
-from service.engine.items import STOP, Batch, MeasurementItem, ModelStep, SensorItem, refuse
+from service.engine.items import STOP, Batch, Item, ModelStep, SensorItem, refuse
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
@@ -135,7 +135,7 @@ class Workers:
                         self.pairing.expire(st, b, now)
             self.flush(b)
 
-    def _handle(self, item: SensorItem | MeasurementItem | ModelStep, b: Batch) -> None:
+    def _handle(self, item: Item, b: Batch) -> None:
         try:
             if isinstance(item, SensorItem):
                 self._on_sample(self.wells[item.well], item, b)

@@ -39,6 +39,7 @@ from service.errors import (
     Stopping,
     UnknownWell,
 )
+from service.http.deps import get_service
 from service.inputs import classify_errors
 
 __all__ = ["STATUS", "status_of", "install_error_handlers"]
@@ -83,7 +84,7 @@ def install_error_handlers(app: FastAPI) -> None:
         reason, sentence = classify_errors(errors)  # type: ignore[arg-type]
         on_body = any(e.get("loc", ("",))[0] == "body" for e in errors)
         if on_body:
-            request.app.state.service.counters.reject(
+            get_service(request).counters.reject(
                 reason, sentence, where=f"{request.method} {request.url.path}"
             )
         return JSONResponse({"detail": sentence, "reason": reason}, status_code=422)
