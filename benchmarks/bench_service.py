@@ -19,23 +19,20 @@ Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
-import threading
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import zenoh
 
-from service.testing import ServeProcess, client_session
+from replay.client import FieldClient, ZenohBus, sample_of
+from service.testing import ServeProcess
 from vfm_core.data import target_mask
+from vfm_core.messages import Measurement
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
-
-EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
 def make_history(
@@ -61,70 +58,40 @@ def make_history(
 
 
 class Plant:
-    """The sending side: one BLOCK publisher per key, and a prediction collector."""
+    """The sending side: the shared field client on Zenoh, timing each sample to its prediction."""
 
     def __init__(self, endpoint: str) -> None:
-        self.session = client_session([endpoint], block_wait_before_close_ms=600_000)
-        self.sent: dict[tuple[str, str], float] = {}
-        self.latency: list[float] = []
-        self.received = 0
-        self._pubs: dict[str, zenoh.Publisher] = {}
-        self._sub = self.session.declare_subscriber(
-            "vfm/*/prediction", zenoh.handlers.FifoChannel(1 << 17)
+        self.bus = ZenohBus.connect(
+            [endpoint], block_wait_before_close_ms=600_000, capacity=1 << 17
         )
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._collect, daemon=True)
-        self._thread.start()
+        self.client = FieldClient(self.bus, "vfm", track_latency=True)
 
-    def _collect(self) -> None:
-        while not self._stop.is_set():
-            sample = self._sub.try_recv()
-            if sample is None:
-                time.sleep(0.0002)
-                continue
-            now = time.perf_counter()
-            well = str(sample.key_expr).split("/")[1]
-            t = json.loads(sample.payload.to_bytes())["time"]
-            sent = self.sent.pop((well, t), None)
-            if sent is not None:
-                self.latency.append(now - sent)
-            self.received += 1
+    @property
+    def received(self) -> int:
+        return self.client.count
 
-    def pub(self, key: str) -> zenoh.Publisher:
-        p = self._pubs.get(key)
-        if p is None:
-            p = self.session.declare_publisher(
-                key,
-                encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            deadline = time.monotonic() + 30
-            while not p.matching_status.matching and time.monotonic() < deadline:
-                time.sleep(0.01)
-            self._pubs[key] = p
-        return p
+    @property
+    def latency(self) -> list[float]:
+        return self.client.latency_s
+
+    def ready(self, well: str) -> None:
+        """Declare and match the well's publishers before the clock starts."""
+        for key in (f"vfm/{well}/sensors", f"vfm/{well}/measurements/mpfm"):
+            if not self.bus.matching(key, 30.0):
+                raise RuntimeError(f"No service subscribes to {key}.")
 
     def send(self, well: str, when: datetime, row: np.ndarray, measure: bool) -> None:
-        iso = when.isoformat().replace("+00:00", "Z")
-        payload = (
-            f'{{"time":"{iso}","choke":{row[0]},"p_up":{row[1]},"p_down":{row[2]},'
-            f'"t_up":{row[3]},"eta_gas":{row[4]},"eta_oil":{row[5]}}}'
-        )
-        pub = self.pub(f"vfm/{well}/sensors")
-        self.sent[(well, iso)] = time.perf_counter()
-        pub.put(payload)
+        self.client.send_sample(well, sample_of(when, row[:6]))
         if measure:
-            self.pub(f"vfm/{well}/measurements/mpfm").put(f'{{"time":"{iso}","q_total":{row[6]}}}')
+            self.client.send_measurement(
+                well, "mpfm", Measurement(time=when, q_total=float(row[6]))
+            )
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
         try:
-            self._sub.undeclare()
-            for p in self._pubs.values():
-                p.undeclare()
+            self.client.close()
         finally:
-            self.session.close()
+            self.bus.close()
 
 
 def run_field(
@@ -161,8 +128,7 @@ workers = {workers}
         plant = Plant(serve.zenoh)
         names = sorted(inputs)
         for name in names:  # declare and match every publisher before the clock starts
-            plant.pub(f"vfm/{name}/sensors")
-            plant.pub(f"vfm/{name}/measurements/mpfm")
+            plant.ready(name)
         rng = np.random.default_rng(0)
         phase = rng.uniform(0, measure_every_s, wells)
         try:

@@ -1,8 +1,10 @@
-"""Replay observation files through a running service over Zenoh, and the ``vfm demo``.
+"""The field side: replay observation files through a running service, and the ``vfm demo``.
 
 Public surface: :func:`replay_frame` and :class:`ReplayResult` (from ``replay.replayer``,
-imported lazily so that ``vfm --help`` stays fast). This package talks to the service
-only over Zenoh; only ``replay.demo`` starts one.
+imported lazily so that ``vfm --help`` stays fast), and the field client that sends a
+field's inputs and collects the predictions (``replay.client.FieldClient``, shared by the
+replay, the benchmark and the tests). This package talks to the service only through a
+bus (Zenoh, or the service's in-memory transport); only ``replay.demo`` starts a service.
 """
 
 from typing import Any

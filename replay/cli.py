@@ -29,11 +29,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.out:
         from pathlib import Path
 
+        from vfm_core.fileio import write_with
+
         out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        result.scored.to_parquet(
-            out, index=False
-        ) if out.suffix != ".csv" else result.scored.to_csv(out, index=False)
+        scored = result.scored
+        if out.suffix == ".csv":
+            write_with(out, lambda path: scored.to_csv(path, index=False))
+        else:
+            write_with(out, lambda path: scored.to_parquet(path, index=False))
         print(f"Wrote the scored predictions to {out}.")
     return 0
 

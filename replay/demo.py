@@ -24,7 +24,7 @@ __all__ = ["register", "run_demo"]
 
 
 def _config_text(out: Path, data: Path, split: str, model: str, method: str, token: str) -> str:
-    return f"""# Written by `vfm demo`: the service's settings (see service/README_SECTION.md).
+    return f"""# Written by `vfm demo`: the service's settings (see README.md, 'The streaming service').
 prefix = "vfm"
 
 [model]
@@ -52,10 +52,11 @@ def run_demo(args: argparse.Namespace) -> int:
     import httpx
 
     from replay.replayer import replay_frame
+    from vfm_core.fileio import write_text_atomic
     from vfm_core.jobs.evaluate import run_study, write_study
+    from vfm_core.jobs.study import mape, metrics_records, run_prequential
     from vfm_core.observations import load_observations
     from vfm_core.simulate import simulate_field, write_field
-    from vfm_core.jobs.study import mape, metrics_records, run_prequential
 
     started = time.perf_counter()
     out = Path(args.out)
@@ -77,9 +78,7 @@ def run_demo(args: argparse.Namespace) -> int:
         stale.unlink()
     token = secrets.token_urlsafe(24)
     config = out / "service.toml"
-    config.write_text(
-        _config_text(out, data, split, args.model, args.method, token), encoding="utf-8"
-    )
+    write_text_atomic(config, _config_text(out, data, split, args.model, args.method, token))
     print(
         f"2/{n_steps} Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
         flush=True,

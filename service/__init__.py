@@ -1,6 +1,17 @@
 """The streaming VFM service: Zenoh in, predictions out, an HTTP API, a durable SQLite store.
 
-Public surface: ``service.config.load_settings`` / ``Settings``, ``service.app.Service``,
-``serve`` and ``running``, ``service.api.create_app``. See ``service/README_SECTION.md``.
-Submodules are imported where used, so that ``vfm --help`` stays fast.
+Layout (one job per module):
+
+* ``config``: the settings tree; ``errors``: the domain errors (one hierarchy);
+  ``inputs``: checking payloads and keys, counting rejections; ``store``: SQLite with
+  typed rows and write operations; ``learning``: building learners, the history fit;
+  ``transport``: the bus interface, Zenoh and in-memory;
+* ``engine``: the core, free of Zenoh and HTTP (a package: recovery, intake, worker,
+  pairing, learning, checkpoints, model_change, behind the ``Engine`` facade);
+* ``http``: the FastAPI app, a router per concern (a package);
+* ``app``: ``Service`` (store + engine + transport), ``serve`` and ``running``;
+  ``cli``: ``vfm serve``; ``testing``: loopback settings and ``vfm serve`` in a subprocess.
+
+Imports run one way (``app`` -> ``http`` -> ``engine`` -> ``store``/``inputs``/``config``
+-> ``vfm_core``). Submodules are imported where used, so that ``vfm --help`` stays fast.
 """

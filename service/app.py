@@ -1,13 +1,17 @@
-"""The running service: store + engine + Zenoh transport + HTTP API, started and stopped in order.
+"""The running service: store + engine + transport + HTTP API, started and stopped in order.
 
 :class:`Service` owns the parts; :func:`serve` runs it with uvicorn in the foreground
 (``vfm serve``); :func:`running` runs it on background threads for tests and the demo::
 
-    with running(settings) as svc:
+    with running(settings) as svc:                       # Zenoh, as configured
         print(svc.http_url, svc.locators)
+    with running(settings, MemoryTransport()) as svc:    # the same, without a network
+        ...
 
-Start order: store, Zenoh session, engine (restore or fit), workers, subscriber, HTTP.
-Stop order is the reverse, and every Zenoh session is closed in ``finally``.
+Start order: store, transport (the Zenoh session), engine (restore or fit), workers,
+subscriber, HTTP. Stop order is the reverse, and every Zenoh session is closed in
+``finally``. The HTTP app is built by :func:`service.http.create_app`, which is handed the
+service and never imports this module.
 """
 
 from __future__ import annotations
@@ -23,9 +27,10 @@ from typing import Any
 
 from service.config import Settings
 from service.engine import Engine
+from service.http import create_app
 from service.inputs import Counters
 from service.store import Store
-from service.transport import Transport, ZenohTransport
+from service.transport import MemoryTransport, Transport, ZenohTransport
 from vfm_core.errors import ConfigError
 
 __all__ = ["Service", "serve", "running", "bind_socket"]
@@ -63,18 +68,20 @@ class Service:
             self.engine = Engine(s, self.store, self.counters, self.transport.publish)
             self.engine.load()
             self.engine.start()
-            self.transport.start(self.engine.on_message)
+            self.transport.start(self.engine.deliver)
             self.locators = self.transport.locators()
         except BaseException:
             self.stop()
             raise
         self.ready = True
         logger.info(
-            "Serving %d well(s) with %s/%s on Zenoh %s under '%s/**'; store %s.",
+            "Serving %d well(s) with %s/%s on %s under '%s/**'; store %s.",
             len(self.engine.wells),
             s.model.name,
             s.model.method,
-            ", ".join(self.locators) or ", ".join(s.zenoh.connect),
+            "an in-memory transport"
+            if isinstance(self.transport, MemoryTransport)
+            else "Zenoh " + (", ".join(self.locators) or ", ".join(s.zenoh.connect)),
             s.prefix,
             s.store.path,
         )
@@ -98,10 +105,11 @@ class Service:
 
     # -- what the API shows ---------------------------------------------------------------
     def health(self) -> dict[str, Any]:
+        """Status, accepted and refused inputs, events, queues and where the service listens."""
         snap = self.counters.snapshot()
         engine = self.engine
         depths = engine.queue_depths() if engine is not None else []
-        pending = sum(len(st.pending) for st in engine.wells.values()) if engine is not None else 0
+        pending = engine.pending_measurements() if engine is not None else 0
         return {
             "status": "ok" if self.ready else "starting",
             "uptime_s": round(time.time() - self.started_at, 3),
@@ -168,8 +176,6 @@ def _raise_stop(signum: int, frame: Any) -> None:
 
 def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None) -> int:
     """Run the service in the foreground until SIGINT/SIGTERM, then stop it cleanly."""
-    from service.api import create_app
-
     main = threading.current_thread() is threading.main_thread()
     previous = (
         {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -218,12 +224,15 @@ class _Running:
         assert self.service.engine is not None
         return self.service.engine
 
+    @property
+    def transport(self) -> Transport:
+        assert self.service.transport is not None
+        return self.service.transport
+
 
 @contextmanager
 def running(settings: Settings, transport: Transport | None = None) -> Iterator[_Running]:
     """The service with its HTTP API on background threads; stopped (and Zenoh closed) on exit."""
-    from service.api import create_app
-
     sock = bind_socket(settings.http.host, settings.http.port)
     service = Service(settings, transport)
     server = None

@@ -19,7 +19,7 @@ import ipaddress
 import json
 import tomllib
 from contextvars import ContextVar
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 
@@ -35,7 +35,8 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from vfm_core.errors import ConfigError
-from vfm_core.messages import validate_prefix
+from vfm_core.messages import validate_prefix, well_id_problem
+from vfm_core.timeutil import utc
 
 __all__ = [
     "Settings",
@@ -121,9 +122,7 @@ class ModelSettings(_Section):
     @field_validator("history_until")
     @classmethod
     def _utc(cls, v: datetime | None) -> datetime | None:
-        if v is None:
-            return v
-        return v.replace(tzinfo=UTC) if v.tzinfo is None else v.astimezone(UTC)
+        return None if v is None else utc(v)
 
     @field_validator("effects", mode="before")
     @classmethod
@@ -274,10 +273,9 @@ class InputSettings(_Section):
     @classmethod
     def _well_ids(cls, v: list[str]) -> list[str]:
         for well in v:
-            if not well or any(ch in well for ch in "/*$?#"):
-                raise ValueError(
-                    f"well id '{well}' cannot be used in a key expression (no '/', '*', '$', '?', '#')"
-                )
+            problem = well_id_problem(well)
+            if problem is not None:
+                raise ValueError(problem[0].lower() + problem[1:].rstrip("."))
         return v
 
 

@@ -1,10 +1,11 @@
 """Checking what arrives: key expressions and JSON payloads, with a reason for every rejection.
 
 The same functions check Zenoh payloads and HTTP bodies, so a bad value gets the same
-reason and sentence on both paths. :class:`Rejected` carries a short stable ``reason``
-(the key of the counters in ``GET /health``) and a sentence for people.
-:class:`Counters` counts accepted inputs and rejections by reason and logs each reason
-once, then at most once a minute with the count since.
+reason and sentence on both paths: each raises :class:`service.errors.InvalidRequest`
+with a short stable ``reason`` (a key of :data:`service.errors.REASONS`, the counters of
+``GET /health``) and a sentence for people. :class:`Counters` counts accepted inputs and
+rejections by reason and logs each reason once, then at most once a minute with the count
+since.
 """
 
 from __future__ import annotations
@@ -20,11 +21,10 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from service.errors import InvalidRequest
 from vfm_core.messages import Measurement, SensorSample, parse_key
 
 __all__ = [
-    "REASONS",
-    "Rejected",
     "Counters",
     "parse_sensor",
     "parse_measurement",
@@ -37,54 +37,18 @@ logger = logging.getLogger("vfm.service.inputs")
 
 SOURCES: tuple[str, ...] = ("mpfm", "well_test")
 
-#: Every reason an input can be rejected for, with what it means.
-REASONS: dict[str, str] = {
-    "malformed JSON": "the payload is not valid JSON",
-    "not a JSON object": "the payload is JSON but not an object {...}",
-    "missing field": "a required field is absent",
-    "wrong type": "a field has the wrong type (text or true/false where a number belongs, a bad time)",
-    "not finite": "a number is NaN or infinite",
-    "negative or zero pressure": "p_up or p_down is not above 0 bar a",
-    "p_down >= p_up": "the downstream pressure is not below the upstream one",
-    "choke outside 0..1": "the choke opening is not a fraction 0..1",
-    "fraction outside 0..1": "eta_gas or eta_oil is not within 0..1",
-    "fractions sum above 1": "eta_gas + eta_oil exceeds 1",
-    "temperature below absolute zero": "t_up is at or below -273.15 degC",
-    "negative rate": "q_total is below 0",
-    "time in the future": "the time lies further ahead than inputs.max_future_s",
-    "time going backwards": "a sensor sample is older than the well's previous one",
-    "duplicate": "the same sample or measurement arrived before",
-    "unknown well": "the well is not known and inputs.unknown_wells = 'reject'",
-    "unparseable key": "the key expression is not <prefix>/<well>/sensors or .../measurements/<source>",
-    "unknown source": "the measurement source is not mpfm or well_test",
-    "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
-    "too many pending measurements": "more than inputs.pending_max measurements wait for samples",
-    "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
-}
-
 _NUMERIC_SENSOR = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
-
-
-class Rejected(Exception):
-    """An input that cannot be used: ``reason`` (a key of :data:`REASONS`) and a sentence."""
-
-    def __init__(self, reason: str, message: str, status: int = 422) -> None:
-        super().__init__(message)
-        assert reason in REASONS, reason
-        self.reason = reason
-        self.message = message
-        self.status = status
 
 
 def _loads(payload: bytes | str) -> dict[str, Any]:
     try:
         data = json.loads(payload)
     except (ValueError, UnicodeDecodeError) as exc:
-        raise Rejected("malformed JSON", f"The payload is not valid JSON ({exc}).") from None
+        raise InvalidRequest(f"The payload is not valid JSON ({exc}).", "malformed JSON") from None
     if not isinstance(data, dict):
-        raise Rejected(
-            "not a JSON object",
+        raise InvalidRequest(
             f"The payload must be a JSON object {{...}}, not {type(data).__name__}.",
+            "not a JSON object",
         )
     return data
 
@@ -95,12 +59,12 @@ def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
             continue  # reported as a missing field by the schema
         value = data[name]
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise Rejected(
-                "wrong type",
+            raise InvalidRequest(
                 f"{name} must be a number, got {json.dumps(value)[:40]} ({type(value).__name__}).",
+                "wrong type",
             )
         if not math.isfinite(value):
-            raise Rejected("not finite", f"{name} must be a finite number, got {value}.")
+            raise InvalidRequest(f"{name} must be a finite number, got {value}.", "not finite")
 
 
 def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
@@ -157,7 +121,7 @@ def parse_sensor(payload: bytes | str | dict[str, Any]) -> SensorSample:
         return SensorSample.model_validate(data)
     except ValidationError as exc:
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
-        raise Rejected(reason, sentence) from None
+        raise InvalidRequest(sentence, reason) from None
 
 
 def parse_measurement(payload: bytes | str | dict[str, Any]) -> Measurement:
@@ -168,22 +132,22 @@ def parse_measurement(payload: bytes | str | dict[str, Any]) -> Measurement:
         return Measurement.model_validate(data)
     except ValidationError as exc:
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
-        raise Rejected(reason, sentence) from None
+        raise InvalidRequest(sentence, reason) from None
 
 
 def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:
-    """(well, kind, source) of an inbound key, or :class:`Rejected`; kind is sensors|measurements|prediction."""
+    """(well, kind, source) of an inbound key, or :class:`InvalidRequest`; kind is sensors|measurements|prediction."""
     parsed = parse_key(prefix, key)
     if parsed is None:
-        raise Rejected(
-            "unparseable key",
+        raise InvalidRequest(
             f"The key '{key}' is not {prefix}/<well>/sensors or {prefix}/<well>/measurements/<source>.",
+            "unparseable key",
         )
     well, kind, source = parsed
     if kind == "measurements" and source not in SOURCES:
-        raise Rejected(
-            "unknown source",
+        raise InvalidRequest(
             f"The measurement source '{source}' in '{key}' is not one of {', '.join(SOURCES)}.",
+            "unknown source",
         )
     return well, kind, source
 
@@ -239,7 +203,3 @@ class Counters:
                 "rejected": dict(self.rejected),
                 "events": dict(self.events),
             }
-
-
-def now_ns() -> int:
-    return time.time_ns()

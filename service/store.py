@@ -15,29 +15,53 @@ What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures ba
   ``learn_seq`` they include and a JSON side-car (drift detector state).
 - ``drift_events``: confirmed drifts per well.
 
-Writes go through :meth:`Store.write`, a list of statements run in one transaction under
-a lock (group commit). Readers (the HTTP API, pairing look-ups) open their own
-connections: WAL lets them read while the writer writes.
+Reads return typed rows (:class:`SampleRow`, :class:`LearnedRow`, :class:`CheckpointRow`,
+...), filled by column name. Writes are typed operations, one small frozen dataclass per
+statement (:class:`AddWell`, :class:`InsertSample`, :class:`MarkLearned`, ...) whose
+fields are bound to the statement by name, so no caller depends on the order of a
+table's columns. :meth:`Store.write` runs a list of them in one transaction under a lock
+(group commit). Readers (the HTTP API, pairing look-ups) open their own connections:
+WAL lets them read while the writer writes.
 """
 
 from __future__ import annotations
 
 import sqlite3
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 from vfm_core.errors import ConfigError
 
-__all__ = ["Store", "Op", "CheckpointRow", "INPUT_FIELDS"]
+__all__ = [
+    "Store",
+    "INPUT_FIELDS",
+    # rows read
+    "SampleRow",
+    "LearnedRow",
+    "PendingRow",
+    "ErrorRow",
+    "CheckpointRow",
+    "DriftEventRow",
+    "HistorySample",
+    "HistoryMeasurement",
+    # writes
+    "Op",
+    "AddWell",
+    "InsertSample",
+    "InsertMeasurement",
+    "MarkLearned",
+    "MarkUnpaired",
+    "InsertCheckpoint",
+    "PruneCheckpoints",
+    "InsertDriftEvent",
+]
 
 #: the six model inputs, in vfm_core.schema.INPUT_COLUMNS order
 INPUT_FIELDS: tuple[str, ...] = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
-
-Op = tuple[str, Sequence[Any]]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -79,36 +103,79 @@ CREATE UNIQUE INDEX IF NOT EXISTS drift_events_key ON drift_events (well, time_n
 
 SCHEMA_VERSION = "1"
 
-# statements the engine uses, by name, so that callers never build SQL
-SQL: dict[str, str] = {
-    "well": "INSERT OR IGNORE INTO wells (well, created_ns, origin) VALUES (?, ?, ?)",
-    "sample": (
-        "INSERT OR IGNORE INTO samples (well, time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil,"
-        " received_ns, q_total, q_gas, q_oil, q_water, version)"
-        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
-    ),
-    "measurement": (
-        "INSERT OR IGNORE INTO measurements (well, time_ns, source, q_total, received_ns, via, status)"
-        " VALUES (?, ?, ?, ?, ?, ?, 'pending')"
-    ),
-    "learned": (
-        "UPDATE measurements SET status = 'learned', learn_seq = ?, sample_time_ns = ?,"
-        " choke = ?, p_up = ?, p_down = ?, t_up = ?, eta_gas = ?, eta_oil = ?,"
-        " predicted = ?, version_after = ? WHERE well = ? AND source = ? AND time_ns = ?"
-    ),
-    "unpaired": "UPDATE measurements SET status = 'unpaired' WHERE well = ? AND source = ? AND time_ns = ?",
-    "checkpoint": (
-        "INSERT INTO checkpoints (well, created_ns, version, learn_seq, model, method, blob, extra)"
-        " VALUES (?, ?, ?, ?, ?, ?, ?, ?)"
-    ),
-    "prune_checkpoints": (
-        "DELETE FROM checkpoints WHERE well = ? AND id NOT IN"
-        " (SELECT id FROM checkpoints WHERE well = ? ORDER BY id DESC LIMIT ?)"
-    ),
-    "drift": (
-        "INSERT OR IGNORE INTO drift_events (well, time_ns, statistic, p_value, action) VALUES (?, ?, ?, ?, ?)"
-    ),
-}
+
+# -- rows read --------------------------------------------------------------------------------
+class SampleRow(NamedTuple):
+    """A stored sensor sample as pairing needs it: its time, six inputs and the prediction made."""
+
+    time_ns: int
+    inputs: tuple[float, ...]  # INPUT_FIELDS order: fraction, bar a, bar a, degC, -, -
+    predicted: float | None  # q_total predicted at this sample, Sm3/h (None: no model yet)
+
+
+class LearnedRow(NamedTuple):
+    """A learned measurement, in learning order, with the sample it was paired with."""
+
+    learn_seq: int
+    time_ns: int
+    source: str
+    q_total: float
+    sample: SampleRow
+
+
+class PendingRow(NamedTuple):
+    """A measurement still waiting for its sensor sample."""
+
+    time_ns: int
+    source: str
+    q_total: float
+    via: str
+
+
+class ErrorRow(NamedTuple):
+    """The prediction made at a learned measurement's sample, and the measured rate (Sm3/h)."""
+
+    predicted: float | None
+    measured: float
+
+
+class DriftEventRow(NamedTuple):
+    time_ns: int
+    statistic: float | None
+    p_value: float | None
+    action: str
+
+
+class HistorySample(NamedTuple):
+    """A stored sample with the prediction made for it (None where the model was not ready)."""
+
+    time_ns: int
+    choke: float
+    p_up: float
+    p_down: float
+    t_up: float
+    eta_gas: float
+    eta_oil: float
+    received_ns: int
+    q_total: float | None
+    q_gas: float | None
+    q_oil: float | None
+    q_water: float | None
+    version: int | None
+
+
+class HistoryMeasurement(NamedTuple):
+    """A stored measurement with its status, its paired sample and the prediction there."""
+
+    time_ns: int
+    source: str
+    q_total: float
+    received_ns: int
+    via: str
+    status: str  # pending | learned | unpaired
+    sample_time_ns: int | None
+    predicted: float | None
+    version_after: int | None
 
 
 @dataclass(frozen=True)
@@ -119,8 +186,195 @@ class CheckpointRow:
     model: str
     method: str
     blob: bytes
-    extra: str
+    extra: str  # JSON side-car: drift state, learned inputs, drift events, model changes, spec
     created_ns: int
+
+
+# -- writes -----------------------------------------------------------------------------------
+class Op:
+    """One write statement; a subclass is a frozen dataclass whose fields are its parameters."""
+
+    __slots__ = ()
+    SQL: ClassVar[str]
+
+    def params(self) -> Mapping[str, Any]:
+        """The statement's parameters by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True, slots=True)
+class AddWell(Op):
+    well: str
+    created_ns: int
+    origin: str  # history | config/store | first sight
+
+    SQL: ClassVar[str] = (
+        "INSERT OR IGNORE INTO wells (well, created_ns, origin) VALUES (:well, :created_ns, :origin)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class InsertSample(Op):
+    """An accepted sensor sample with the prediction made for it (rates None: not ready)."""
+
+    well: str
+    time_ns: int
+    inputs: tuple[float, ...]  # INPUT_FIELDS order
+    received_ns: int
+    q_total: float | None
+    q_gas: float | None
+    q_oil: float | None
+    q_water: float | None
+    version: int | None
+
+    SQL: ClassVar[str] = (
+        "INSERT OR IGNORE INTO samples (well, time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil,"
+        " received_ns, q_total, q_gas, q_oil, q_water, version)"
+        " VALUES (:well, :time_ns, :choke, :p_up, :p_down, :t_up, :eta_gas, :eta_oil,"
+        " :received_ns, :q_total, :q_gas, :q_oil, :q_water, :version)"
+    )
+
+    def params(self) -> Mapping[str, Any]:
+        return {
+            "well": self.well,
+            "time_ns": self.time_ns,
+            **dict(zip(INPUT_FIELDS, self.inputs, strict=True)),
+            "received_ns": self.received_ns,
+            "q_total": self.q_total,
+            "q_gas": self.q_gas,
+            "q_oil": self.q_oil,
+            "q_water": self.q_water,
+            "version": self.version,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class InsertMeasurement(Op):
+    """An accepted measurement, pending until it is learned or found unpaired."""
+
+    well: str
+    time_ns: int
+    source: str
+    q_total: float
+    received_ns: int
+    via: str  # zenoh | http
+
+    SQL: ClassVar[str] = (
+        "INSERT OR IGNORE INTO measurements (well, time_ns, source, q_total, received_ns, via, status)"
+        " VALUES (:well, :time_ns, :source, :q_total, :received_ns, :via, 'pending')"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class MarkLearned(Op):
+    """A measurement learned from: its place in the learning order and the paired sample."""
+
+    well: str
+    source: str
+    time_ns: int
+    learn_seq: int
+    sample: SampleRow
+    version_after: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE measurements SET status = 'learned', learn_seq = :learn_seq,"
+        " sample_time_ns = :sample_time_ns, choke = :choke, p_up = :p_up, p_down = :p_down,"
+        " t_up = :t_up, eta_gas = :eta_gas, eta_oil = :eta_oil, predicted = :predicted,"
+        " version_after = :version_after"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+    def params(self) -> Mapping[str, Any]:
+        return {
+            "well": self.well,
+            "source": self.source,
+            "time_ns": self.time_ns,
+            "learn_seq": self.learn_seq,
+            "sample_time_ns": self.sample.time_ns,
+            **dict(zip(INPUT_FIELDS, self.sample.inputs, strict=True)),
+            "predicted": self.sample.predicted,
+            "version_after": self.version_after,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class MarkUnpaired(Op):
+    well: str
+    source: str
+    time_ns: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE measurements SET status = 'unpaired'"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class InsertCheckpoint(Op):
+    well: str
+    created_ns: int
+    version: int
+    learn_seq: int
+    model: str
+    method: str
+    blob: bytes
+    extra: str
+
+    SQL: ClassVar[str] = (
+        "INSERT INTO checkpoints (well, created_ns, version, learn_seq, model, method, blob, extra)"
+        " VALUES (:well, :created_ns, :version, :learn_seq, :model, :method, :blob, :extra)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class PruneCheckpoints(Op):
+    """Keep only the well's latest ``keep`` checkpoints."""
+
+    well: str
+    keep: int
+
+    SQL: ClassVar[str] = (
+        "DELETE FROM checkpoints WHERE well = :well AND id NOT IN"
+        " (SELECT id FROM checkpoints WHERE well = :well ORDER BY id DESC LIMIT :keep)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class InsertDriftEvent(Op):
+    well: str
+    time_ns: int
+    statistic: float
+    p_value: float
+    action: str  # recorded | retrained
+
+    SQL: ClassVar[str] = (
+        "INSERT OR IGNORE INTO drift_events (well, time_ns, statistic, p_value, action)"
+        " VALUES (:well, :time_ns, :statistic, :p_value, :action)"
+    )
+
+
+# -- reading helpers --------------------------------------------------------------------------
+_Row = TypeVar("_Row")
+
+_SAMPLE_COLUMNS = "time_ns, " + ", ".join(INPUT_FIELDS) + ", q_total"
+
+
+def _named(cursor: sqlite3.Cursor) -> Iterator[dict[str, Any]]:
+    """The cursor's rows as column name -> value."""
+    names = [d[0] for d in cursor.description]
+    for values in cursor:
+        yield dict(zip(names, values, strict=True))
+
+
+def _fetch(cursor: sqlite3.Cursor, row: type[_Row]) -> list[_Row]:
+    return [row(**named) for named in _named(cursor)]
+
+
+def _sample_row(
+    named: Mapping[str, Any], time: str = "time_ns", predicted: str = "q_total"
+) -> SampleRow:
+    """A :class:`SampleRow` from named columns (a sample's own, or a learned measurement's copy)."""
+    return SampleRow(named[time], tuple(named[k] for k in INPUT_FIELDS), named[predicted])
 
 
 class Store:
@@ -165,7 +419,7 @@ class Store:
 
     # -- writing ------------------------------------------------------------------------
     def write(self, ops: Sequence[Op]) -> list[int]:
-        """Run named statements (keys of ``SQL``) in one transaction; rowcounts per op."""
+        """Run the operations in one transaction; rowcounts per op."""
         if not ops:
             return []
         counts: list[int] = []
@@ -173,8 +427,8 @@ class Store:
             con = self._writer
             con.execute("BEGIN IMMEDIATE")
             try:
-                for name, params in ops:
-                    counts.append(con.execute(SQL[name], params).rowcount)
+                for op in ops:
+                    counts.append(con.execute(op.SQL, op.params()).rowcount)
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
@@ -207,71 +461,102 @@ class Store:
 
     def latest_checkpoint(self, well: str) -> CheckpointRow | None:
         with self.reader() as con:
-            row = con.execute(
-                "SELECT well, version, learn_seq, model, method, blob, extra, created_ns FROM checkpoints"
-                " WHERE well = ? ORDER BY id DESC LIMIT 1",
-                (well,),
-            ).fetchone()
-        return CheckpointRow(*row) if row else None
+            rows = _fetch(
+                con.execute(
+                    "SELECT well, version, learn_seq, model, method, blob, extra, created_ns"
+                    " FROM checkpoints WHERE well = ? ORDER BY id DESC LIMIT 1",
+                    (well,),
+                ),
+                CheckpointRow,
+            )
+        return rows[0] if rows else None
 
-    def learned_after(self, well: str, learn_seq: int) -> list[tuple[Any, ...]]:
-        """Learned measurements after ``learn_seq``, in learning order:
-        (learn_seq, time_ns, source, q_total, sample_time_ns, 6 inputs..., predicted)."""
+    def learned_after(self, well: str, learn_seq: int) -> list[LearnedRow]:
+        """Learned measurements after ``learn_seq``, in learning order, with their samples."""
         with self.reader() as con:
-            return con.execute(
-                "SELECT learn_seq, time_ns, source, q_total, sample_time_ns,"
-                " choke, p_up, p_down, t_up, eta_gas, eta_oil, predicted FROM measurements"
+            cursor = con.execute(
+                "SELECT learn_seq, time_ns, source, q_total, sample_time_ns, "
+                + ", ".join(INPUT_FIELDS)
+                + ", predicted FROM measurements"
                 " WHERE well = ? AND status = 'learned' AND learn_seq > ? ORDER BY learn_seq",
                 (well, learn_seq),
-            ).fetchall()
+            )
+            return [
+                LearnedRow(
+                    r["learn_seq"],
+                    r["time_ns"],
+                    r["source"],
+                    r["q_total"],
+                    _sample_row(r, time="sample_time_ns", predicted="predicted"),
+                )
+                for r in _named(cursor)
+            ]
 
-    def recent_errors(
-        self, well: str, n: int, min_version: int | None = None
-    ) -> list[tuple[float, float]]:
-        """(predicted, measured) of the last ``n`` learned measurements, oldest first
-        (only those learned at model version ``min_version`` or later, when given)."""
+    def recent_errors(self, well: str, n: int, min_version: int | None = None) -> list[ErrorRow]:
+        """The last ``n`` learned measurements, oldest first (only those learned at model
+        version ``min_version`` or later, when given)."""
         with self.reader() as con:
-            rows = con.execute(
-                "SELECT predicted, q_total FROM measurements WHERE well = ? AND status = 'learned'"
-                " AND version_after >= ? ORDER BY learn_seq DESC LIMIT ?",
-                (well, -1 if min_version is None else min_version, n),
-            ).fetchall()
-        return [(p, q) for p, q in reversed(rows)]
+            rows = _fetch(
+                con.execute(
+                    "SELECT predicted, q_total AS measured FROM measurements"
+                    " WHERE well = ? AND status = 'learned'"
+                    " AND version_after >= ? ORDER BY learn_seq DESC LIMIT ?",
+                    (well, -1 if min_version is None else min_version, n),
+                ),
+                ErrorRow,
+            )
+        return rows[::-1]
 
-    def pending(self, well: str) -> list[tuple[int, str, float, str]]:
-        """(time_ns, source, q_total, via) of measurements still waiting for a sample."""
+    def pending(self, well: str) -> list[PendingRow]:
+        """Measurements still waiting for a sample, in arrival order."""
         with self.reader() as con:
-            return con.execute(
-                "SELECT time_ns, source, q_total, via FROM measurements WHERE well = ? AND status = 'pending'"
-                " ORDER BY id",
-                (well,),
-            ).fetchall()
+            return _fetch(
+                con.execute(
+                    "SELECT time_ns, source, q_total, via FROM measurements"
+                    " WHERE well = ? AND status = 'pending' ORDER BY id",
+                    (well,),
+                ),
+                PendingRow,
+            )
 
-    def recent_samples(self, well: str, n: int) -> list[tuple[Any, ...]]:
-        """The last ``n`` samples, oldest first: (time_ns, 6 inputs..., q_total predicted)."""
+    def recent_samples(self, well: str, n: int) -> list[SampleRow]:
+        """The last ``n`` samples, oldest first."""
         with self.reader() as con:
-            rows = con.execute(
-                "SELECT time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil, q_total FROM samples"
+            cursor = con.execute(
+                f"SELECT {_SAMPLE_COLUMNS} FROM samples"  # noqa: S608 - constant columns
                 " WHERE well = ? ORDER BY time_ns DESC LIMIT ?",
                 (well, n),
-            ).fetchall()
-        return list(reversed(rows))
+            )
+            rows = [_sample_row(r) for r in _named(cursor)]
+        return rows[::-1]
 
-    def nearest_sample(self, well: str, time_ns: int, tolerance_ns: int) -> tuple[Any, ...] | None:
+    def nearest_sample(self, well: str, time_ns: int, tolerance_ns: int) -> SampleRow | None:
         """The stored sample nearest to ``time_ns`` within the tolerance, or None."""
         with self.reader() as con:
-            before = con.execute(
-                "SELECT time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil, q_total FROM samples"
-                " WHERE well = ? AND time_ns <= ? AND time_ns >= ? ORDER BY time_ns DESC LIMIT 1",
-                (well, time_ns, time_ns - tolerance_ns),
-            ).fetchone()
-            after = con.execute(
-                "SELECT time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil, q_total FROM samples"
-                " WHERE well = ? AND time_ns > ? AND time_ns <= ? ORDER BY time_ns ASC LIMIT 1",
-                (well, time_ns, time_ns + tolerance_ns),
-            ).fetchone()
-        found = [r for r in (before, after) if r is not None]
-        return min(found, key=lambda r: abs(r[0] - time_ns)) if found else None
+            before = [
+                _sample_row(r)
+                for r in _named(
+                    con.execute(
+                        f"SELECT {_SAMPLE_COLUMNS} FROM samples"  # noqa: S608
+                        " WHERE well = ? AND time_ns <= ? AND time_ns >= ?"
+                        " ORDER BY time_ns DESC LIMIT 1",
+                        (well, time_ns, time_ns - tolerance_ns),
+                    )
+                )
+            ]
+            after = [
+                _sample_row(r)
+                for r in _named(
+                    con.execute(
+                        f"SELECT {_SAMPLE_COLUMNS} FROM samples"  # noqa: S608
+                        " WHERE well = ? AND time_ns > ? AND time_ns <= ?"
+                        " ORDER BY time_ns ASC LIMIT 1",
+                        (well, time_ns, time_ns + tolerance_ns),
+                    )
+                )
+            ]
+        found = before + after
+        return min(found, key=lambda r: abs(r.time_ns - time_ns)) if found else None
 
     def measurement_exists(self, well: str, source: str, time_ns: int) -> bool:
         with self.reader() as con:
@@ -283,32 +568,42 @@ class Store:
                 is not None
             )
 
-    def drift_events(self, well: str, limit: int = 20) -> list[tuple[int, float, float, str]]:
+    def drift_events(self, well: str, limit: int = 20) -> list[DriftEventRow]:
         with self.reader() as con:
-            rows = con.execute(
-                "SELECT time_ns, statistic, p_value, action FROM drift_events WHERE well = ?"
-                " ORDER BY time_ns DESC LIMIT ?",
-                (well, limit),
-            ).fetchall()
-        return list(reversed(rows))
+            rows = _fetch(
+                con.execute(
+                    "SELECT time_ns, statistic, p_value, action FROM drift_events WHERE well = ?"
+                    " ORDER BY time_ns DESC LIMIT ?",
+                    (well, limit),
+                ),
+                DriftEventRow,
+            )
+        return rows[::-1]
 
     def history(
         self, well: str, start_ns: int, end_ns: int, limit: int
-    ) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    ) -> tuple[list[HistorySample], list[HistoryMeasurement]]:
         """Samples (with predictions) and measurements of a well in [start, end), time order."""
         with self.reader() as con:
-            samples = con.execute(
-                "SELECT time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil, received_ns,"
-                " q_total, q_gas, q_oil, q_water, version FROM samples"
-                " WHERE well = ? AND time_ns >= ? AND time_ns < ? ORDER BY time_ns LIMIT ?",
-                (well, start_ns, end_ns, limit),
-            ).fetchall()
-            measurements = con.execute(
-                "SELECT time_ns, source, q_total, received_ns, via, status, sample_time_ns, predicted,"
-                " version_after FROM measurements"
-                " WHERE well = ? AND time_ns >= ? AND time_ns < ? ORDER BY time_ns, source LIMIT ?",
-                (well, start_ns, end_ns, limit),
-            ).fetchall()
+            samples = _fetch(
+                con.execute(
+                    "SELECT time_ns, " + ", ".join(INPUT_FIELDS) + ", received_ns,"
+                    " q_total, q_gas, q_oil, q_water, version FROM samples"
+                    " WHERE well = ? AND time_ns >= ? AND time_ns < ? ORDER BY time_ns LIMIT ?",
+                    (well, start_ns, end_ns, limit),
+                ),
+                HistorySample,
+            )
+            measurements = _fetch(
+                con.execute(
+                    "SELECT time_ns, source, q_total, received_ns, via, status, sample_time_ns,"
+                    " predicted, version_after FROM measurements"
+                    " WHERE well = ? AND time_ns >= ? AND time_ns < ?"
+                    " ORDER BY time_ns, source LIMIT ?",
+                    (well, start_ns, end_ns, limit),
+                ),
+                HistoryMeasurement,
+            )
         return samples, measurements
 
     def counts(self) -> dict[str, int]:

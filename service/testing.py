@@ -3,13 +3,12 @@
 Nothing here fakes a part: :func:`loopback_settings` makes settings with a Zenoh
 listener on a free loopback port (multicast scouting off), HTTP on a free port and a
 store in the given folder; :class:`ServeProcess` runs ``vfm serve`` in a subprocess
-(spawned, never forked after Zenoh opened) and waits for its ready line;
-:func:`client_session` opens a Zenoh session that connects to it.
+(spawned, never forked after Zenoh opened) and waits for its ready line. The field side
+(sending inputs, collecting predictions) is :class:`replay.client.FieldClient`.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import queue
 import re
@@ -21,12 +20,10 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-import zenoh
-
 from service.config import Settings, load_settings
 from vfm_core.errors import VFMError
 
-__all__ = ["loopback_settings", "ServeProcess", "client_session", "wait_until", "READY"]
+__all__ = ["loopback_settings", "ServeProcess", "wait_until", "READY"]
 
 READY = re.compile(r"vfm serve: ready: http=(?P<http>\S+) zenoh=(?P<zenoh>\S+)")
 
@@ -46,23 +43,8 @@ def loopback_settings(folder: str | Path, **overrides: Any) -> Settings:
     return load_settings(None, **base)
 
 
-def client_session(
-    connect: list[str], *, block_wait_before_close_ms: int = 60_000
-) -> zenoh.Session:
-    """A peer session that connects to ``connect`` only (no multicast, no listener). Close it."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("connect/endpoints", json.dumps(connect))
-    cfg.insert_json5(
-        "transport/link/tx/queue/congestion_control/block/wait_before_close",
-        json.dumps(block_wait_before_close_ms * 1000),
-    )
-    return zenoh.open(cfg)
-
-
 def wait_until(predicate: Any, timeout: float, what: str, interval: float = 0.05) -> None:
+    """Poll ``predicate`` until it is true; TimeoutError naming ``what`` after ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while not predicate():
         if time.monotonic() > deadline:

@@ -1,4 +1,8 @@
-"""The service's link to Zenoh, behind a small interface the engine does not know about.
+"""The service's link to a message bus, behind a small interface the engine does not know about.
+
+:class:`Transport` is what the service needs: start receiving (each message handed to
+``deliver(key, payload, received_ns)`` on a receiver thread), publish a prediction,
+stop. Two implementations share that path:
 
 :class:`ZenohTransport` subscribes to ``<prefix>/**`` with a FifoChannel (never a
 callback: a slow callback would stall every subscriber of the session) and hands each
@@ -9,15 +13,24 @@ them under load), never back to this session's own subscriber.
 Zenoh facts this relies on are in ``/work/shared/notes/zenoh.md``: never the default
 config (it joins multicast and listens everywhere), close every session (an open one
 hangs the interpreter at exit), never fork after ``zenoh.open``.
+
+:class:`MemoryTransport` is the same without a network, for tests and for embedding the
+engine: inputs put on it reach ``deliver`` on its receiver thread, in order, and its
+bounded queue makes a sender wait as a BLOCK publisher does; predictions are recorded and
+handed to its subscribers. It also offers the field side that
+:class:`replay.client.FieldClient` drives (``put``, ``matching``, ``subscribe``), so the
+replay tool, the benchmark and the tests run the real engine code path either way.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import queue
 import secrets
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -27,7 +40,14 @@ from service.config import ZenohSettings
 from vfm_core.errors import ConfigError
 from vfm_core.messages import prediction_key
 
-__all__ = ["Transport", "ZenohTransport", "zenoh_config", "session_locators"]
+__all__ = [
+    "Transport",
+    "ZenohTransport",
+    "MemoryTransport",
+    "zenoh_config",
+    "session_locators",
+    "key_matches",
+]
 
 logger = logging.getLogger("vfm.service.transport")
 
@@ -188,3 +208,107 @@ class ZenohTransport:
             if self._session is not None:
                 self._session.close()
                 self._session = None
+
+
+def key_matches(expr: str, key: str) -> bool:
+    """Whether ``key`` matches the key expression ``expr`` (``*`` one chunk, ``**`` any)."""
+
+    def match(e: list[str], k: list[str]) -> bool:
+        if not e:
+            return not k
+        if e[0] == "**":
+            return any(match(e[1:], k[i:]) for i in range(len(k) + 1))
+        return bool(k) and (e[0] == "*" or e[0] == k[0]) and match(e[1:], k[1:])
+
+    return match(expr.split("/"), key.split("/"))
+
+
+class MemoryTransport:
+    """Inputs in and predictions out in memory, on the same receiver-thread path as Zenoh.
+
+    ``capacity`` bounds the receive queue (as ``queues.receive_capacity`` bounds Zenoh's
+    FifoChannel); :attr:`published` keeps the latest ``keep`` predictions as
+    ``(key, payload)``. Subscribers are called on the worker thread that publishes, so
+    they must be quick and must not put inputs themselves.
+    """
+
+    def __init__(self, prefix: str = "vfm", capacity: int = 4096, keep: int = 100_000) -> None:
+        self.prefix = prefix
+        self.received = 0
+        self.published: deque[tuple[str, bytes]] = deque(maxlen=keep)
+        self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(capacity)  # None: stop
+        self._thread: threading.Thread | None = None
+        self._receiving = threading.Event()
+        self._subscribers: dict[int, tuple[str, Callable[[str, bytes], None]]] = {}
+        self._sub_lock = threading.Lock()
+        self._next_id = 0
+
+    # -- the service's side (Transport) ---------------------------------------------------
+    def start(self, deliver: Deliver) -> None:
+        inbox = self._inbox
+
+        def receive() -> None:
+            while (message := inbox.get()) is not None:
+                key, payload = message
+                self.received += 1
+                try:
+                    deliver(key, payload, time.time_ns())
+                except Exception:  # a bug in one message must not end reception
+                    logger.exception("Delivering %s failed", key)
+
+        self._thread = threading.Thread(target=receive, name="vfm-memory-receiver", daemon=True)
+        self._receiving.set()
+        self._thread.start()
+
+    def publish(self, well: str, payload: bytes) -> None:
+        key = prediction_key(self.prefix, well)
+        self.published.append((key, payload))
+        with self._sub_lock:
+            subscribers = list(self._subscribers.values())
+        for expr, callback in subscribers:
+            if key_matches(expr, key):
+                callback(key, payload)
+
+    def locators(self) -> list[str]:
+        return []
+
+    def stop_receiving(self, timeout: float = 10.0) -> None:
+        """End the receiver thread once it has handed on what was put before."""
+        if self._thread is None:
+            return
+        self._receiving.clear()
+        self._inbox.put(None)
+        self._thread.join(timeout)
+        if self._thread.is_alive():  # pragma: no cover - receiver stuck in deliver
+            logger.warning("The memory receiver thread did not stop within %.0f s.", timeout)
+        self._thread = None
+
+    def close(self) -> None:
+        self.stop_receiving()
+        with self._sub_lock:
+            self._subscribers.clear()
+
+    # -- the field's side (what replay.client.FieldClient needs) ---------------------------
+    def put(self, key: str, payload: bytes | str) -> None:
+        """Send an input; waits while the receive queue is full (like a BLOCK publisher)."""
+        self._inbox.put((key, payload.encode() if isinstance(payload, str) else payload))
+
+    def matching(self, key: str, timeout: float) -> bool:
+        """Whether a service receives ``key`` (waits up to ``timeout`` s for it to start)."""
+        return self._receiving.wait(timeout) and key.startswith(self.prefix + "/")
+
+    def subscribe(
+        self, key_expr: str, callback: Callable[[str, bytes], None]
+    ) -> Callable[[], None]:
+        """Call ``callback(key, payload)`` for every prediction matching ``key_expr``; returns
+        the function that ends the subscription."""
+        with self._sub_lock:
+            token = self._next_id
+            self._next_id += 1
+            self._subscribers[token] = (key_expr, callback)
+
+        def unsubscribe() -> None:
+            with self._sub_lock:
+                self._subscribers.pop(token, None)
+
+        return unsubscribe

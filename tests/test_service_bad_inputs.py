@@ -1,4 +1,5 @@
-"""Bad input over Zenoh and HTTP: never a crash, never a corrupted model, each counted by reason.
+"""Bad input over Zenoh, in memory and over HTTP: never a crash, never a corrupted model,
+each counted by reason.
 
 Also the bearer-token rules of the mutating endpoint.
 """
@@ -14,13 +15,13 @@ from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import httpx
-import pandas as pd
 import pytest
-import zenoh
 
-from service.api import create_app
+from replay.client import FieldClient, ZenohBus
 from service.app import Service, running
-from service.testing import client_session, loopback_settings, wait_until
+from service.http import create_app
+from service.testing import loopback_settings
+from service.transport import MemoryTransport
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -45,30 +46,22 @@ def _sample(t: datetime, **changes: Any) -> dict[str, Any]:
 
 
 class Env:
-    def __init__(
-        self, svc: Any, http: httpx.Client, session: zenoh.Session, frame: pd.DataFrame
-    ) -> None:
-        self.svc = svc
+    def __init__(self, http: httpx.Client, client: FieldClient) -> None:
         self.http = http
-        self.session = session
-        self.frame = frame
-        self.predictions: list[dict[str, Any]] = []
-        session.declare_subscriber(
-            "vfm/*/prediction", lambda s: self.predictions.append(json.loads(s.payload.to_bytes()))
-        )
+        self.client = client
 
     def put(self, key: str, payload: bytes | str | dict[str, Any]) -> None:
-        if isinstance(payload, dict):
-            payload = json.dumps(payload)
-        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.client.put_raw(key, json.dumps(payload) if isinstance(payload, dict) else payload)
 
     def rejected(self) -> Counter[str]:
         return Counter(self.http.get("/health").json()["rejected"])
 
 
-@pytest.fixture(scope="module")
-def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
-    folder = tmp_path_factory.mktemp("bad")
+@pytest.fixture(scope="module", params=["memory", "zenoh"])
+def env(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
+    """The service with bad inputs sent in memory (the engine's receiving path without a
+    network) and over Zenoh: the same checks must hold on both."""
+    folder = tmp_path_factory.mktemp(f"bad-{request.param}")
     frame = validate_frame(simulate_field(wells=1, years=1, seed=0).observations).frame
     data = folder / "field.parquet"
     frame.to_parquet(data)
@@ -78,26 +71,23 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
         http={"token": TOKEN},
         inputs={"unknown_wells": "reject", "pending_timeout_s": 1.0},
     )
-    with running(settings) as svc:
-        session = client_session(svc.locators)
+    memory = MemoryTransport(settings.prefix) if request.param == "memory" else None
+    with running(settings, memory) as svc:
+        bus = memory or ZenohBus.connect(svc.locators, block_wait_before_close_ms=60_000)
         try:
-            with httpx.Client(base_url=svc.http_url, timeout=30) as http:
-                e = Env(svc, http, session, frame)
-                # let the service see our subscriber and us its subscriber
-                pub = session.declare_publisher("vfm/W01/sensors")
-                wait_until(lambda: pub.matching_status.matching, 10, "the service's subscriber")
-                pub.undeclare()
-                yield e
+            with (
+                httpx.Client(base_url=svc.http_url, timeout=30) as http,
+                FieldClient(bus, settings.prefix, match_timeout=10.0) as client,
+            ):
+                client.wait_for_service("W01")  # and let the service see our subscriber
+                yield Env(http, client)
         finally:
-            session.close()
+            if memory is None:
+                bus.close()  # type: ignore[attr-defined]
 
 
-def _wait_for_prediction(env: Env, t: datetime) -> dict[str, Any]:
-    iso = t.isoformat().replace("+00:00", "Z")
-    wait_until(
-        lambda: any(p["time"] == iso for p in env.predictions), 20, f"the prediction at {iso}"
-    )
-    return next(p for p in env.predictions if p["time"] == iso)
+def _wait_for_prediction(env: Env, t: datetime) -> float:
+    return env.client.wait_for_prediction("W01", t, timeout=20.0)
 
 
 def test_bad_zenoh_inputs_are_counted_by_reason_and_harmless(env: Env) -> None:

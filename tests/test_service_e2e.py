@@ -20,9 +20,9 @@ import pytest
 from replay.replayer import ReplayResult, replay_frame
 from service.app import running
 from service.testing import loopback_settings
+from vfm_core.jobs.study import RunResult, mape, metrics_records, run_prequential
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
-from vfm_core.jobs.study import RunResult, mape, metrics_records, run_prequential
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from service.inputs import REASONS, Counters, Rejected, parse_measurement, parse_sensor, route_key
+from service.errors import REASONS, InvalidRequest
+from service.inputs import Counters, parse_measurement, parse_sensor, route_key
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -52,7 +53,7 @@ SENSOR_CORPUS = [
 
 @pytest.mark.parametrize(("payload", "reason"), SENSOR_CORPUS)
 def test_bad_sensor_payloads(payload: bytes, reason: str) -> None:
-    with pytest.raises(Rejected) as info:
+    with pytest.raises(InvalidRequest) as info:
         parse_sensor(payload)
     assert info.value.reason == reason
     assert reason in REASONS
@@ -76,7 +77,7 @@ def test_good_sensor_payload() -> None:
     ],
 )
 def test_bad_measurement_payloads(payload: bytes, reason: str) -> None:
-    with pytest.raises(Rejected) as info:
+    with pytest.raises(InvalidRequest) as info:
         parse_measurement(payload)
     assert info.value.reason == reason
 
@@ -95,7 +96,7 @@ def test_keys() -> None:
         ("other/W01/sensors", "unparseable key"),
         ("vfm/W01/measurements/guess", "unknown source"),
     ]:
-        with pytest.raises(Rejected) as info:
+        with pytest.raises(InvalidRequest) as info:
             route_key("vfm", key)
         assert info.value.reason == reason
 

@@ -7,6 +7,10 @@ with one token-protected call, while the replay goes on: the new model is fitted
 well's stored history, swapped in with a higher version, nothing sent is lost (what
 streams in during the fit is taught to the new model too), the rolling error over the
 rest of the replay falls, and the choice survives a restart.
+
+The engine's code path is the real one, without a network: the replay sends through the
+service's in-memory transport (``MemoryTransport``), which hands every input to the same
+receiver path as Zenoh; the Zenoh path itself is tested end to end elsewhere.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import pytest
 from replay.replayer import ReplayResult, replay_frame
 from service.app import running
 from service.testing import loopback_settings
+from service.transport import MemoryTransport
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -44,6 +49,10 @@ def _settings(folder: Any, data: Any) -> Any:
     )
 
 
+def _memory(settings: Any) -> MemoryTransport:
+    return MemoryTransport(settings.prefix, settings.queues.receive_capacity)
+
+
 def test_model_change_over_http(tmp_path: Any) -> None:
     field = simulate_field(wells=1, years=1.5, seed=4, hidden=["erosion:rate=0.4"])
     frame = validate_frame(field.observations).frame
@@ -56,11 +65,13 @@ def test_model_change_over_http(tmp_path: Any) -> None:
     auth = {"Authorization": f"Bearer {TOKEN}"}
     body = {"effects": ["erosion"]}
 
+    settings = _settings(tmp_path, data)
+    bus = _memory(settings)
     with (
-        running(_settings(tmp_path, data)) as svc,
+        running(settings, bus) as svc,
         httpx.Client(base_url=svc.http_url, timeout=300) as http,
     ):
-        replay_frame(first, connect=svc.locators, start=SPLIT, progress=False, idle_timeout=2.0)
+        replay_frame(first, bus=bus, start=SPLIT, progress=False, idle_timeout=2.0)
         before = http.get("/wells/W01").json()
         assert before["model"] == "mm"
 
@@ -75,9 +86,7 @@ def test_model_change_over_http(tmp_path: Any) -> None:
         # two months at 2.5e6 x real time: about 2 s, while the new model is being fitted
         feeder = threading.Thread(
             target=lambda: done.append(
-                replay_frame(
-                    second, connect=svc.locators, progress=False, idle_timeout=3.0, speed=2.5e6
-                )
+                replay_frame(second, bus=bus, progress=False, idle_timeout=3.0, speed=2.5e6)
             )
         )
         feeder.start()
@@ -86,7 +95,7 @@ def test_model_change_over_http(tmp_path: Any) -> None:
         feeder.join(240)
         assert reply.status_code == 200, reply.text
         change = reply.json()
-        done.append(replay_frame(third, connect=svc.locators, progress=False, idle_timeout=2.0))
+        done.append(replay_frame(third, bus=bus, progress=False, idle_timeout=2.0))
         after = http.get("/wells/W01").json()
         health = http.get("/health").json()
 
@@ -117,7 +126,11 @@ def test_model_change_over_http(tmp_path: Any) -> None:
 
     # a restart keeps the model chosen over HTTP (the config still says mm), with its state
     # and the rolling error of the new model only
-    with running(_settings(tmp_path, data)) as svc, httpx.Client(base_url=svc.http_url) as http:
+    settings = _settings(tmp_path, data)
+    with (
+        running(settings, _memory(settings)) as svc,
+        httpx.Client(base_url=svc.http_url) as http,
+    ):
         again = http.get("/wells/W01").json()
     assert again["model"] == "mm+erosion" and again["version"] == after["version"]
     assert np.isclose(
@@ -128,7 +141,7 @@ def test_model_change_over_http(tmp_path: Any) -> None:
     # a later edit of the config wins over the HTTP choice
     edited = _settings(tmp_path, data)
     edited.model.effects = ["erosion", "real_gas"]
-    with running(edited) as svc, httpx.Client(base_url=svc.http_url) as http:
+    with running(edited, _memory(edited)) as svc, httpx.Client(base_url=svc.http_url) as http:
         configured = http.get("/wells/W01").json()
     assert configured["model"] == "mm+erosion+real_gas"
 
@@ -142,12 +155,19 @@ def test_effects_from_modules_need_to_be_allowed(
     validate_frame(field.observations).frame.to_parquet(data)
     auth = {"Authorization": f"Bearer {TOKEN}"}
     body = {"effects": ["my_effects:TemperatureScale"]}
-    with running(_settings(tmp_path, data)) as svc, httpx.Client(base_url=svc.http_url) as http:
+    settings = _settings(tmp_path, data)
+    with (
+        running(settings, _memory(settings)) as svc,
+        httpx.Client(base_url=svc.http_url) as http,
+    ):
         refused = http.put("/wells/W01/model", json=body, headers=auth)
     assert refused.status_code == 403 and "model.effect_modules" in refused.json()["detail"]
     allowed = _settings(tmp_path / "allowed", data)
     allowed.model.effect_modules = ["my_effects"]
-    with running(allowed) as svc, httpx.Client(base_url=svc.http_url, timeout=60) as http:
+    with (
+        running(allowed, _memory(allowed)) as svc,
+        httpx.Client(base_url=svc.http_url, timeout=60) as http,
+    ):
         done = http.put("/wells/W01/model", json=body, headers=auth)
         state = http.get("/wells/W01").json()
     assert done.status_code == 200, done.text

@@ -11,96 +11,54 @@
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from collections.abc import Iterator
-from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pandas as pd
 import pytest
-import zenoh
 
+from replay.client import FieldClient, ZenohBus
 from service.config import ModelSettings
 from service.learning import fit_history, load_history, new_learner
-from service.testing import ServeProcess, client_session, wait_until
-from vfm_core.messages import Measurement, SensorSample, measurement_key, sensors_key
+from service.testing import ServeProcess, wait_until
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
+from vfm_core.timeutil import to_ns
 
 pytestmark = pytest.mark.timeout(300)
 
 SPLIT = "2016-04-01"
 TOKEN = "restart-test-token-0123456789"
-EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-
-
-def _ns(t: datetime) -> int:
-    return ((t - EPOCH) // timedelta(microseconds=1)) * 1000
 
 
 class Link:
-    """A test client on Zenoh: publishes rows (BLOCK), records the predictions it sees."""
+    """A test client on Zenoh: the shared field client, which records the predictions it sees."""
 
     def __init__(self, endpoint: str) -> None:
-        self.session = client_session([endpoint])
-        self.seen: dict[str, int] = {}  # well -> latest predicted sample time (ns)
-        self.count = 0
-        self._pubs: dict[str, zenoh.Publisher] = {}
-        self._sub = self.session.declare_subscriber("vfm/*/prediction", self._on_prediction)
+        self.bus = ZenohBus.connect([endpoint], block_wait_before_close_ms=60_000)
+        self.client = FieldClient(self.bus, "vfm", match_timeout=10.0)
 
-    def _on_prediction(self, sample: zenoh.Sample) -> None:
-        well = str(sample.key_expr).split("/")[1]
-        t = _ns(
-            datetime.fromisoformat(
-                json.loads(sample.payload.to_bytes())["time"].replace("Z", "+00:00")
-            )
-        )
-        self.seen[well] = max(self.seen.get(well, 0), t)
-        self.count += 1
+    @property
+    def count(self) -> int:
+        return self.client.count
 
-    def _pub(self, key: str) -> zenoh.Publisher:
-        pub = self._pubs.get(key)
-        if pub is None:
-            pub = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK
-            )
-            wait_until(lambda: pub.matching_status.matching, 10, f"a subscriber on {key}")
-            self._pubs[key] = pub
-        return pub
+    @property
+    def seen(self) -> dict[str, int]:
+        """Well -> the latest sample time (ns) a prediction was seen for."""
+        return self.client.latest
 
     def stream(self, rows: pd.DataFrame, stop: threading.Event | None = None) -> int:
-        sent = 0
-        for r in rows.itertuples(index=False):
-            if stop is not None and stop.is_set():
-                break
-            t = r.time.to_pydatetime()
-            sample = SensorSample(
-                time=t,
-                choke=r.choke,
-                p_up=r.p_up,
-                p_down=r.p_down,
-                t_up=r.t_up,
-                eta_gas=r.eta_gas,
-                eta_oil=r.eta_oil,
-            )
-            self._pub(sensors_key("vfm", r.well)).put(sample.model_dump_json())
-            if r.source:
-                m = Measurement(time=t, q_total=r.q_total)
-                self._pub(measurement_key("vfm", r.well, r.source)).put(m.model_dump_json())
-            sent += 1
-        return sent
+        return len(self.client.stream(rows, stop=stop).samples)
 
     def close(self) -> None:
         try:
-            self._sub.undeclare()
-            for pub in self._pubs.values():
-                pub.undeclare()
+            self.client.close()
         finally:
-            self.session.close()
+            self.bus.close()
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +201,7 @@ def test_kill9_and_restart_keep_state_and_data(
     acked = rest[
         (rest["source"] != "")
         & rest.apply(
-            lambda r: _ns(r["time"].to_pydatetime()) < acknowledged.get(r["well"], 0), axis=1
+            lambda r: to_ns(r["time"].to_pydatetime()) < acknowledged.get(r["well"], 0), axis=1
         )
     ]
     assert len(acked) >= 100

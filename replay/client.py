@@ -1,0 +1,426 @@
+"""The field side of the streaming interface: publish a field's inputs, collect the predictions.
+
+One client for the replay tool (``vfm replay``), the service benchmark and the tests.
+:class:`FieldClient` publishes sensor samples and measurements of wells on a
+:class:`FieldBus` and collects the predictions the service answers with: by (well,
+sample time), with a count, the latest answered sample time per well and, if asked, the
+latency from sending a sample to receiving its prediction. Two buses fit:
+
+* :class:`ZenohBus`: a Zenoh session that connects only (no multicast, no listener), one
+  publisher per key with BLOCK congestion control, each used only once the service's
+  subscriber has matched it (nothing reaches a subscriber that has not matched), and a
+  FifoChannel subscriber read by its own thread (never a callback: a slow one would stall
+  the session).
+* :class:`service.transport.MemoryTransport`: the service's in-memory transport offers
+  the same three methods, so the same client drives the real engine without a network.
+  This package does not import ``service``: the bus is handed in.
+
+Payloads are the pydantic models of :mod:`vfm_core.messages`; units as in the observation
+format (fraction 0..1, bar a, degC, Sm3/h).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Collection, Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Protocol
+
+import numpy as np
+import pandas as pd
+import zenoh
+from pydantic import ValidationError
+from tqdm import tqdm
+
+from vfm_core.errors import ConfigError, VFMError
+from vfm_core.messages import (
+    Measurement,
+    SensorSample,
+    measurement_key,
+    sensors_key,
+    validate_prefix,
+)
+from vfm_core.schema import INPUT_COLUMNS, SOURCE, SOURCES, TARGET, TIME, WELL
+from vfm_core.timeutil import to_ns
+
+__all__ = [
+    "FieldBus",
+    "FieldClient",
+    "ZenohBus",
+    "Streamed",
+    "ReplayError",
+    "field_config",
+    "sample_of",
+]
+
+logger = logging.getLogger("vfm.replay.client")
+
+
+class ReplayError(VFMError):
+    """The field side could not run: no service matched, or the link closed."""
+
+
+def _no_service(key: str, timeout: float) -> ReplayError:
+    return ReplayError(
+        f"No service subscribes to {key} after {timeout:g} s. Start `vfm serve` first, and check "
+        "that --connect points at its Zenoh endpoint (or the router) and --prefix matches."
+    )
+
+
+class FieldBus(Protocol):
+    """What the field client needs of a message bus."""
+
+    def put(self, key: str, payload: bytes | str) -> None:
+        """Send one message; in order per bus; waits while the receiver cannot take it."""
+        ...
+
+    def matching(self, key: str, timeout: float) -> bool:
+        """Whether a service subscribes to ``key`` (waiting up to ``timeout`` s)."""
+        ...
+
+    def subscribe(
+        self, key_expr: str, callback: Callable[[str, bytes], None]
+    ) -> Callable[[], None]:
+        """Call ``callback(key, payload)`` per message on ``key_expr``; returns the unsubscribe."""
+        ...
+
+
+def field_config(
+    connect: Sequence[str], *, mode: str = "peer", block_wait_before_close_ms: int = 600_000
+) -> zenoh.Config:
+    """A loopback-safe Zenoh config for the field side: connect only, no multicast, no listener.
+
+    ``block_wait_before_close_ms``: how long a BLOCK put may wait for a busy service before
+    Zenoh closes the link (its default, 5 s, is too short for a replay).
+    """
+    if mode not in ("peer", "client"):
+        raise ConfigError(f"Zenoh mode '{mode}' is not valid for replay; choose peer or client.")
+    if not connect:
+        raise ConfigError("Give at least one --connect endpoint, e.g. tcp/127.0.0.1:7447.")
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("listen/endpoints", "[]")
+    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    cfg.insert_json5(
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        json.dumps(block_wait_before_close_ms * 1000),  # microseconds
+    )
+    return cfg
+
+
+class ZenohBus:
+    """The field side on Zenoh: BLOCK publishers used once matched, FifoChannel subscribers.
+
+    Close it (or use ``with``): an open session hangs the interpreter at exit.
+    """
+
+    #: after the first match, wait this long so the service also sees our subscriber, s
+    SETTLE_S = 0.3
+
+    def __init__(
+        self, session: zenoh.Session, *, match_timeout: float = 30.0, capacity: int = 65536
+    ) -> None:
+        self.session = session
+        self.match_timeout = match_timeout
+        self.capacity = capacity
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._settled = False
+
+    @classmethod
+    def connect(
+        cls,
+        connect: Sequence[str],
+        *,
+        mode: str = "peer",
+        block_wait_before_close_ms: int = 600_000,
+        match_timeout: float = 30.0,
+        capacity: int = 65536,
+    ) -> ZenohBus:
+        """A session that connects to ``connect`` (the service or a router)."""
+        cfg = field_config(
+            connect, mode=mode, block_wait_before_close_ms=block_wait_before_close_ms
+        )
+        return cls(zenoh.open(cfg), match_timeout=match_timeout, capacity=capacity)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            self._publishers[key] = pub
+        return pub
+
+    def matching(self, key: str, timeout: float) -> bool:
+        pub = self._publisher(key)
+        deadline = time.monotonic() + timeout
+        # the stubs say bool, zenoh 1.10 returns a MatchingStatus (always truthy): read .matching
+        while not getattr(pub.matching_status, "matching", False):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        if not self._settled:
+            self._settled = True
+            time.sleep(self.SETTLE_S)
+        return True
+
+    def put(self, key: str, payload: bytes | str) -> None:
+        """Publish on ``key``; the first time, wait for the service to match (else ReplayError)."""
+        if key not in self._publishers and not self.matching(key, self.match_timeout):
+            raise _no_service(key, self.match_timeout)
+        self._publishers[key].put(payload)
+
+    def subscribe(
+        self, key_expr: str, callback: Callable[[str, bytes], None]
+    ) -> Callable[[], None]:
+        sub = self.session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(self.capacity))
+
+        def read() -> None:
+            for sample in sub:  # ends when the subscriber is undeclared
+                try:
+                    callback(str(sample.key_expr), sample.payload.to_bytes())
+                except Exception:  # one bad message must not end reception
+                    logger.exception("Handling a message on %s failed", sample.key_expr)
+
+        thread = threading.Thread(target=read, name="vfm-field-rx", daemon=True)
+        thread.start()
+
+        def unsubscribe() -> None:
+            sub.undeclare()
+            thread.join(5)
+
+        return unsubscribe
+
+    def close(self) -> None:
+        try:
+            for pub in self._publishers.values():
+                pub.undeclare()
+            self._publishers.clear()
+        finally:
+            self.session.close()
+
+    def __enter__(self) -> ZenohBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def sample_of(when: datetime, inputs: Iterable[float]) -> SensorSample:
+    """A sensor sample from its time and six inputs (INPUT_COLUMNS order); ValidationError if bad."""
+    choke, p_up, p_down, t_up, eta_gas, eta_oil = (float(v) for v in inputs)
+    return SensorSample(
+        time=when,
+        choke=choke,
+        p_up=p_up,
+        p_down=p_down,
+        t_up=t_up,
+        eta_gas=eta_gas,
+        eta_oil=eta_oil,
+    )
+
+
+@dataclass
+class Streamed:
+    """What :meth:`FieldClient.stream` sent."""
+
+    samples: list[tuple[str, int]] = field(default_factory=list)  # (well, sample time ns)
+    measurements: int = 0
+    skipped: int = 0  # rows whose values fail the message schema
+    started: float = 0.0  # time.monotonic() when sending began
+
+
+class FieldClient:
+    """Publishes a field's sensor samples and measurements; collects the predictions.
+
+    ``predictions`` maps (well, sample time in epoch ns) to the predicted q_total (Sm3/h);
+    ``latest`` holds the latest answered sample time per well; with ``track_latency``,
+    ``latency_s`` holds the seconds from sending each sample to receiving its prediction.
+    Close it to end the prediction subscription (the bus stays open: its owner closes it).
+    """
+
+    def __init__(
+        self,
+        bus: FieldBus,
+        prefix: str = "vfm",
+        *,
+        match_timeout: float = 30.0,
+        track_latency: bool = False,
+    ) -> None:
+        self.bus = bus
+        self.prefix = validate_prefix(prefix)
+        self.match_timeout = match_timeout
+        self.track_latency = track_latency
+        self.predictions: dict[tuple[str, int], float] = {}
+        self.latest: dict[str, int] = {}
+        self.latency_s: list[float] = []
+        self.count = 0
+        self.bad = 0
+        self.last_at = time.monotonic()
+        self._sent_at: dict[tuple[str, int], float] = {}
+        self._lock = threading.Lock()
+        self._n_prefix = len(prefix) + 1
+        self._unsubscribe: Callable[[], None] | None = bus.subscribe(
+            f"{prefix}/*/prediction", self._on_prediction
+        )
+
+    # -- receiving --------------------------------------------------------------------------
+    def _on_prediction(self, key: str, payload: bytes) -> None:
+        now = time.perf_counter()
+        well = key[self._n_prefix :].rsplit("/", 1)[0]
+        try:
+            data = json.loads(payload)
+            t = to_ns(datetime.fromisoformat(str(data["time"]).replace("Z", "+00:00")))
+            q = float(data["q_total"])
+        except (ValueError, KeyError, TypeError):
+            with self._lock:
+                self.bad += 1
+            return
+        with self._lock:
+            self.predictions[(well, t)] = q
+            self.count += 1
+            self.last_at = time.monotonic()
+            if t > self.latest.get(well, t - 1):
+                self.latest[well] = t
+            if self.track_latency:
+                sent = self._sent_at.pop((well, t), None)
+                if sent is not None:
+                    self.latency_s.append(now - sent)
+
+    def prediction(self, well: str, when: datetime) -> float | None:
+        """The q_total predicted for the well's sample at ``when`` (None: not received)."""
+        with self._lock:
+            return self.predictions.get((well, to_ns(when)))
+
+    def wait_for_prediction(self, well: str, when: datetime, timeout: float = 20.0) -> float:
+        """Wait for the prediction of the well's sample at ``when``; TimeoutError if none comes."""
+        deadline = time.monotonic() + timeout
+        while (q := self.prediction(well, when)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"No prediction for the sample of {well} at {when.isoformat()} within {timeout:g} s."
+                )
+            time.sleep(0.01)
+        return q
+
+    def wait_for_answers(
+        self,
+        expected: Collection[tuple[str, int]],
+        *,
+        idle_timeout: float,
+        final_timeout: float,
+        since: float | None = None,
+    ) -> int:
+        """Wait until every expected (well, time ns) is answered, or none came for
+        ``idle_timeout`` s (wells without a model never answer), at most ``final_timeout`` s.
+        Returns how many are answered."""
+        since = time.monotonic() if since is None else since
+        deadline = time.monotonic() + final_timeout
+        wanted = set(expected)
+        got = 0
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self.count >= len(wanted):
+                    got = sum(1 for k in wanted if k in self.predictions)
+                idle = time.monotonic() - self.last_at
+            if got == len(wanted):
+                break
+            if idle > idle_timeout and time.monotonic() - since > idle_timeout:
+                break
+            time.sleep(0.05)
+        with self._lock:
+            return sum(1 for k in wanted if k in self.predictions)
+
+    # -- sending ----------------------------------------------------------------------------
+    def wait_for_service(self, well: str) -> None:
+        """Wait until the service subscribes to the well's samples (ReplayError after the timeout)."""
+        key = sensors_key(self.prefix, well)
+        if not self.bus.matching(key, self.match_timeout):
+            raise _no_service(key, self.match_timeout)
+
+    def send_sample(self, well: str, sample: SensorSample) -> None:
+        if self.track_latency:
+            with self._lock:
+                self._sent_at[(well, to_ns(sample.time))] = time.perf_counter()
+        self.bus.put(sensors_key(self.prefix, well), sample.model_dump_json())
+
+    def send_measurement(self, well: str, source: str, measurement: Measurement) -> None:
+        """An MPFM reading (``mpfm``) or a well test (``well_test``)."""
+        self.bus.put(measurement_key(self.prefix, well, source), measurement.model_dump_json())
+
+    def put_raw(self, key: str, payload: bytes | str) -> None:
+        """Any payload on any key (for tests of what the service refuses)."""
+        self.bus.put(key, payload)
+
+    def stream(
+        self,
+        rows: pd.DataFrame,
+        *,
+        speed: float | None = None,
+        stop: threading.Event | None = None,
+        progress: bool = False,
+    ) -> Streamed:
+        """Send observation rows (time-sorted) as they would arrive live: per row the sensor
+        sample, then its measurement if it has one. ``speed``: N times real time (None: as
+        fast as the bus takes them); ``stop`` ends the stream early. A second row of a well
+        at the same time carries only its measurement; rows whose values fail the message
+        schema are skipped and counted."""
+        out = Streamed(started=time.monotonic())
+        if rows.empty:
+            return out
+        times = pd.DatetimeIndex(rows[TIME])
+        t0_data = times[0]
+        wells = rows[WELL].astype(str).to_numpy()
+        x = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+        q = rows[TARGET].to_numpy(dtype=float)
+        src = rows[SOURCE].astype(str).to_numpy()
+        py_times = [t.to_pydatetime() for t in times]
+        last_sent: dict[str, int] = {}
+        for i in tqdm(
+            range(len(rows)),
+            total=len(rows),
+            unit="row",
+            desc="replay",
+            disable=not progress,
+            mininterval=0.5,
+        ):
+            if stop is not None and stop.is_set():
+                break
+            well, when = wells[i], py_times[i]
+            if speed is not None:
+                due = out.started + (times[i] - t0_data).total_seconds() / speed
+                wait = due - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            t_ns = to_ns(when)
+            if last_sent.get(well) != t_ns:
+                try:
+                    sample = sample_of(when, x[i])
+                except ValidationError:
+                    out.skipped += 1
+                    continue
+                self.send_sample(well, sample)
+                out.samples.append((well, t_ns))
+                last_sent[well] = t_ns
+            if src[i] in SOURCES and np.isfinite(q[i]):
+                self.send_measurement(well, src[i], Measurement(time=when, q_total=float(q[i])))
+                out.measurements += 1
+        return out
+
+    def close(self) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+
+    def __enter__(self) -> FieldClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,132 @@
+"""Checkpoints of each well's model, written in the same transactions as the data.
+
+A checkpoint is :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors and
+plain values, never pickle) with a JSON side-car: the drift detector's state and
+reference inputs, the drift events, the model changes made over HTTP, and the model's
+specification ``[model, effects, method]``. It is written every
+``store.checkpoint_every`` model updates, after a model change and at a clean stop, and
+the latest ``store.keep_checkpoints`` of a well are kept. Since it goes into the same
+transaction as the data, the store never holds a model that is ahead of its data.
+
+On start, :func:`usable` says whether a well's latest checkpoint may be restored under
+the configured model (see :mod:`service.engine.recovery`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Iterable
+from typing import Any
+
+from service.config import Settings
+from service.engine.state import WellState
+from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
+from vfm_core.effects import effect_spec, resolve_effects
+from vfm_core.errors import VFMError
+
+__all__ = ["Checkpoints", "configured_spec", "usable"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+
+def configured_spec(settings: Settings) -> list[Any]:
+    """The configured model as [name, effect specs, method], to compare with checkpoints."""
+    m = settings.model
+    return [m.name, [effect_spec(c) for c in resolve_effects(m.effects)], m.method]
+
+
+def usable(row: CheckpointRow, spec: list[Any], configured: str) -> tuple[bool, str]:
+    """Whether a well's checkpoint may be restored under the configured model, and why.
+
+    Yes when it holds the configured model, effects (with their settings) and method; or
+    when its model was chosen over HTTP and the config has not changed since that choice
+    (a later edit of the config wins, and is said so).
+    """
+    try:
+        extra = json.loads(row.extra)
+    except ValueError:
+        extra = {}
+    saved = extra.get("spec") if isinstance(extra, dict) else None
+    if saved is None:  # checkpoints before effects: compare names
+        return (row.model, row.method) == (configured, spec[2]), ""
+    if saved == spec:
+        return True, ""
+    changes = extra.get("model_changes") or []
+    if changes and changes[-1].get("config") == spec:
+        return True, (
+            f"keeps {row.model} ({row.method}), chosen over HTTP at {changes[-1].get('time')}; "
+            "edit the config's model to replace it"
+        )
+    if changes:
+        return False, (
+            f"the config changed since {row.model} was chosen over HTTP; building {configured} "
+            "from the history and the stored measurements"
+        )
+    return False, ""
+
+
+class Checkpoints:
+    """Writes each well's checkpoint when due, and reads its side-car back."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.every = settings.store.checkpoint_every
+        self.keep = settings.store.keep_checkpoints
+
+    def ops(self, st: WellState) -> list[Op]:
+        """The writes of a checkpoint of the well's model now (and of pruning older ones)."""
+        learner = st.learner
+        extra = {
+            "drift": st.detector.state_dict() if st.detector is not None else None,
+            "learned_inputs": [list(x) for x in st.learned_inputs],
+            "drift_events": list(st.drift_events),
+            "model_changes": list(st.model_changes),
+            "spec": [learner.model_name, list(learner.effects), learner.method.text],
+        }
+        st.checkpoint_version = learner.version
+        return [
+            InsertCheckpoint(
+                well=st.well,
+                created_ns=time.time_ns(),
+                version=learner.version,
+                learn_seq=st.learn_seq,
+                model=learner.name,
+                method=learner.method.text,
+                blob=learner.checkpoint(),
+                extra=json.dumps(extra),
+            ),
+            PruneCheckpoints(well=st.well, keep=self.keep),
+        ]
+
+    def changed(self, st: WellState, ops: list[Op]) -> None:
+        """The model's version moved: checkpoint when due, refresh what the API shows."""
+        if st.learner.version - st.checkpoint_version >= self.every:
+            ops.extend(self.ops(st))
+        st.refresh()
+
+    def final_ops(self, wells: Iterable[WellState]) -> list[Op]:
+        """Checkpoints of every well whose model moved since its last one (at a clean stop)."""
+        ops: list[Op] = []
+        for st in wells:
+            if st.learner.version != st.checkpoint_version:
+                ops.extend(self.ops(st))
+        return ops
+
+    @staticmethod
+    def restore_side_car(st: WellState, extra: str) -> None:
+        """Put a checkpoint's side-car back: drift state and events, learned inputs, changes."""
+        try:
+            data = json.loads(extra)
+        except ValueError:
+            return
+        if st.detector is not None and data.get("drift"):
+            try:
+                st.detector.load_state_dict(data["drift"])
+            except (KeyError, TypeError, ValueError, VFMError) as exc:
+                logger.warning(
+                    "Drift state of %s not restored (%s); the detector starts over.", st.well, exc
+                )
+        st.learned_inputs.extend(tuple(x) for x in data.get("learned_inputs", []))
+        st.drift_events.extend(data.get("drift_events", []))
+        st.model_changes.extend(data.get("model_changes", []))

@@ -1,0 +1,166 @@
+"""The engine's facade: what the service and the HTTP layer call, free of Zenoh and HTTP.
+
+Data flow::
+
+    transport receiver thread           worker thread(s), one owner per well
+    -------------------------           ------------------------------------------------
+    key + JSON -> checks -> item  --->  bounded queue -> batch -> predict / pair / learn
+    (intake; refusals counted)          -> one store commit -> publish predictions
+                                        -> answer HTTP callers
+
+:class:`Engine` wires the parts, each in its own module: :mod:`~service.engine.recovery`
+(restore, re-learn, fit on the history), :mod:`~service.engine.intake` (receiving,
+routing, back-pressure), :mod:`~service.engine.worker` (the loop, group commit, publish,
+answers), :mod:`~service.engine.pairing`, :mod:`~service.engine.learning` (predict,
+learn, rolling error, drift), :mod:`~service.engine.checkpoints` and
+:mod:`~service.engine.model_change`. It raises the domain errors of :mod:`service.errors`,
+never an HTTP status.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from typing import Any
+
+from service.config import Settings
+from service.engine.checkpoints import Checkpoints
+from service.engine.intake import Intake, worker_of
+from service.engine.learning import Learning
+from service.engine.model_change import ModelChanges
+from service.engine.pairing import Pairing
+from service.engine.recovery import Recovery
+from service.engine.state import WellState, WellTestResult
+from service.engine.worker import Workers
+from service.errors import unknown_well
+from service.inputs import Counters
+from service.store import Store
+from vfm_core.messages import Measurement
+from vfm_core.timeutil import iso
+
+__all__ = ["Engine"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+
+class Engine:
+    """Per-well learners behind bounded worker queues; see the module docstring."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: Store,
+        counters: Counters,
+        publish: Callable[[str, bytes], None],
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.counters = counters
+        self._wells: dict[str, WellState] = {}
+        self._queues: list[queue.Queue[Any]] = [
+            queue.Queue(settings.queues.worker_capacity) for _ in range(settings.queues.workers)
+        ]
+        self._stopping = threading.Event()
+        self._checkpoints = Checkpoints(settings)
+        self._learning = Learning(settings, counters, self._checkpoints)
+        self._pairing = Pairing(settings, store, counters, self._learning)
+        self._intake = Intake(settings, store, counters, self._wells, self._queues)
+        self._model_changes = ModelChanges(
+            settings, store, self._wells, self._queues, self._checkpoints, self._stopping
+        )
+        self._workers = Workers(
+            settings,
+            store,
+            counters,
+            publish,
+            self._wells,
+            self._queues,
+            self._learning,
+            self._pairing,
+            self._checkpoints,
+            self._model_changes,
+        )
+        self._recovery = Recovery(
+            settings,
+            store,
+            self._learning,
+            self._checkpoints,
+            lambda well: worker_of(well, len(self._queues)),
+        )
+
+    # -- life cycle -----------------------------------------------------------------------
+    def load(self) -> None:
+        """Restore every known well from the store, or fit it on the history; re-learn the rest."""
+        self._wells.update(self._recovery.load())
+
+    def start(self) -> None:
+        """Start the worker threads."""
+        self._workers.start()
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Let the workers finish what is queued, checkpoint, and stop."""
+        self._stopping.set()
+        self._workers.stop(timeout)
+        try:
+            self.store.write(self._checkpoints.final_ops(self._wells.values()))
+        except Exception as exc:  # pragma: no cover - disk full at shutdown
+            logger.error("Final checkpoints not written: %s", exc)
+
+    # -- what comes in --------------------------------------------------------------------
+    def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
+        """One inbound message from the transport's receiver thread: check and queue."""
+        self._intake.deliver(key, payload, received_ns)
+
+    def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:
+        """Queue a well test; the future answers once it is stored (and learned, or pending)."""
+        return self._intake.submit_well_test(well, measurement)
+
+    def change_model(
+        self,
+        well: str,
+        model: str | None = None,
+        effects: list[str] | None = None,
+        method: str | None = None,
+    ) -> dict[str, Any]:
+        """Replace a well's model (see :mod:`service.engine.model_change`); blocks until done."""
+        return self._model_changes.change(well, model, effects, method)
+
+    # -- what the API reads -----------------------------------------------------------------
+    @property
+    def wells(self) -> Mapping[str, WellState]:
+        """The wells' state by id (read-only outside the engine)."""
+        return self._wells
+
+    def has_well(self, well: str) -> bool:
+        return well in self._wells
+
+    def well_summaries(self) -> list[dict[str, Any]]:
+        """Every well's model, method, readiness, version and updates."""
+        return [dict(st.snapshot) for st in list(self._wells.values())]
+
+    def well_view(self, well: str) -> dict[str, Any]:
+        """One well's full state: the summary, parameters, rolling MAPE, drift, changes."""
+        st = self._wells.get(well)
+        if st is None:
+            raise unknown_well(well)
+        out = dict(st.snapshot)
+        out.update(
+            rolling_mape=st.rolling_mape(),
+            drift=st.drift_state(),
+            samples=st.samples,
+            measurements=st.measurements,
+            last_sample_time=iso(st.last_time_ns),
+            pending_measurements=len(st.pending),
+            model_changes=list(st.model_changes),
+        )
+        return out
+
+    def queue_depths(self) -> list[int]:
+        return [q.qsize() for q in self._queues]
+
+    def pending_measurements(self) -> int:
+        """Measurements of all wells still waiting for their sensor sample."""
+        return sum(len(st.pending) for st in list(self._wells.values()))

@@ -1,0 +1,88 @@
+"""What passes between the engine's threads: queued items, and what one worker batch collects.
+
+The receiver thread (and the HTTP threads) put :class:`SensorItem`,
+:class:`MeasurementItem` and :class:`ModelStep` on a worker's queue; the worker handles
+them in arrival order into a :class:`Batch`: the store writes, the predictions to
+publish and the answers for waiting callers, all released after one commit.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.engine.state import WellTestResult
+from service.errors import ServiceError
+from service.inputs import Counters
+from service.store import Op
+from vfm_core.messages import Measurement, SensorSample
+from vfm_core.streaming import WellLearner
+
+__all__ = ["SensorItem", "MeasurementItem", "ModelStep", "Item", "Batch", "STOP", "refuse"]
+
+
+@dataclass(slots=True)
+class SensorItem:
+    well: str
+    sample: SensorSample
+    received_ns: int
+
+
+@dataclass(slots=True)
+class MeasurementItem:
+    well: str
+    measurement: Measurement
+    source: str  # mpfm | well_test
+    received_ns: int
+    via: str = "zenoh"  # zenoh | http
+    future: Future[WellTestResult] | None = None
+
+
+@dataclass
+class ModelStep:
+    """A step of a model change, run by the well's worker: take a copy, or swap in the new model."""
+
+    well: str
+    kind: str  # snapshot | swap | cancel
+    future: Future[Any]
+    learner: WellLearner | None = None
+    scores: dict[str, Any] = field(default_factory=dict)
+
+
+Item = SensorItem | MeasurementItem | ModelStep
+
+#: put on a worker's queue to end its loop
+STOP = object()
+
+
+class Batch:
+    """What one worker batch writes, publishes and answers (after one commit)."""
+
+    __slots__ = ("ops", "outbox", "answers")
+
+    def __init__(self) -> None:
+        self.ops: list[Op] = []
+        self.outbox: list[tuple[str, bytes]] = []  # (well, prediction JSON)
+        self.answers: list[tuple[Future[Any], Any]] = []  # (future, result or exception)
+
+    def answer(self, future: Future[Any] | None, result: Any) -> None:
+        """Answer ``future`` (if any) with a result or an exception, once the batch is committed."""
+        if future is not None:
+            self.answers.append((future, result))
+
+    def clear(self) -> None:
+        self.ops, self.outbox, self.answers = [], [], []
+
+
+def refuse(
+    counters: Counters,
+    error: ServiceError,
+    where: str,
+    batch: Batch,
+    future: Future[Any] | None = None,
+) -> None:
+    """Count a refused input under its reason and answer its caller (if one waits)."""
+    if error.reason is not None:
+        counters.reject(error.reason, error.message, where=where)
+    batch.answer(future, error)

@@ -1,0 +1,166 @@
+"""Predicting and learning for one well, on its worker thread, and the drift test.
+
+* :meth:`Learning.predict`: the rates for a sensor sample (with ``pbl``, a retrain that is
+  due runs first, on the calendar of ``vfm evaluate``), or None while the model cannot answer.
+* :meth:`Learning.learn_paired`: learn from a measurement paired with its sample, record
+  it as learned (its place in the learning order, the sample, the prediction made there)
+  and answer a waiting well-test caller with the prediction before and after.
+* :meth:`Learning.apply`: the learning step itself, also used to re-learn after a
+  checkpoint on start: learn, score the prediction made at the sample (the rolling
+  error), and feed the well's streaming Hotelling T^2 detector; a confirmed drift is
+  stored and, with ``drift.on_drift = "retrain"``, retrains the well.
+
+This module uses only the public surface of :class:`vfm_core.streaming.WellLearner`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+from service.config import Settings
+from service.engine.checkpoints import Checkpoints
+from service.engine.items import Batch
+from service.engine.state import Pending, Sample, WellState, WellTestResult
+from service.inputs import Counters
+from service.store import InsertDriftEvent, MarkLearned, Op
+from vfm_core.timeutil import from_ns, iso
+
+__all__ = ["Learning"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+Rates = dict[str, float | None]
+
+
+class Learning:
+    """Prediction, learning, rolling error and drift for the wells of the workers."""
+
+    def __init__(self, settings: Settings, counters: Counters, checkpoints: Checkpoints) -> None:
+        self.settings = settings
+        self.counters = counters
+        self.checkpoints = checkpoints
+
+    def predict(self, st: WellState, inputs: tuple[float, ...], when: datetime) -> Rates | None:
+        """Rates (Sm3/h) at one sample, or None while the model has no (finite) answer."""
+        rates = st.learner.predict(list(inputs), when=when)
+        q_total = rates.get("q_total")
+        if q_total is None or not math.isfinite(q_total):
+            return None
+        return rates
+
+    def learn_paired(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
+        """Learn from a measurement paired with ``sample``; record it; answer its caller."""
+        learner = st.learner
+        version_before = learner.version
+        before = learner.predict(list(sample.inputs)) if p.future is not None else {}
+        self.apply(st, sample, p.q_total, p.time_ns, b.ops, p.source)
+        st.learn_seq += 1
+        self.checkpoints.changed(st, b.ops)
+        b.ops.append(
+            MarkLearned(
+                well=st.well,
+                source=p.source,
+                time_ns=p.time_ns,
+                learn_seq=st.learn_seq,
+                sample=sample,
+                version_after=learner.version,
+            )
+        )
+        self.counters.event("learned")
+        if p.future is None:
+            return
+        after = learner.predict(list(sample.inputs))
+        changed = learner.version != version_before
+        b.answer(
+            p.future,
+            WellTestResult(
+                st.well,
+                iso(p.time_ns) or "",
+                p.q_total,
+                "learned",
+                "Stored and learned from: the model was updated."
+                if changed
+                else "Stored; the model keeps it for its next periodic retrain (method "
+                f"{learner.method.text}).",
+                paired_sample_time=iso(sample.time_ns),
+                before=before,
+                after=after,
+                version_before=version_before,
+                version_after=learner.version,
+                model_changed=changed,
+            ),
+        )
+
+    def apply(
+        self,
+        st: WellState,
+        sample: Sample,
+        q_total: float,
+        time_ns: int,
+        ops: list[Op],
+        source: str = "mpfm",
+    ) -> None:
+        """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
+        learner = st.learner
+        learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
+        if st.catch_up is not None:
+            st.catch_up.append((sample.inputs, q_total, time_ns, source))
+        if sample.predicted is not None and q_total:
+            st.errors.append(abs(sample.predicted - q_total) / abs(q_total))
+        st.learned_inputs.append(sample.inputs)
+        det = st.detector
+        if det is None:
+            return
+        was = bool(det.drift_detected)
+        det.update(list(sample.inputs))
+        if det.drift_detected and not was:
+            self._on_drift(st, time_ns, ops)
+
+    def _on_drift(self, st: WellState, time_ns: int, ops: list[Op]) -> None:
+        det = st.detector
+        assert det is not None
+        action = "recorded"
+        if self.settings.drift.on_drift == "retrain":
+            st.learner.retrain(from_ns(time_ns))
+            action = "retrained"
+        event: dict[str, Any] = {
+            "time": iso(time_ns),
+            "statistic": float(det.statistic),
+            "p_value": float(det.p_value),
+            "action": action,
+        }
+        st.drift_events.append(event)
+        ops.append(
+            InsertDriftEvent(
+                well=st.well,
+                time_ns=time_ns,
+                statistic=event["statistic"],
+                p_value=event["p_value"],
+                action=action,
+            )
+        )
+        logger.info(
+            "Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.",
+            st.well,
+            event["time"],
+            event["statistic"],
+            event["p_value"],
+            action,
+        )
+        self.counters.event("drifts")
+        ref = np.asarray(st.learned_inputs, dtype=float)
+        det.reset(ref if len(ref) >= self.settings.drift.reference_size else None)
+
+    def seed_reference(self, st: WellState, inputs: np.ndarray) -> None:
+        """After a history fit: the latest measured rows' inputs [n, 6] as the drift reference."""
+        if st.detector is None:
+            return
+        ref = inputs[-self.settings.drift.reference_size :]
+        st.learned_inputs.extend(tuple(map(float, r)) for r in ref)
+        if len(ref) >= self.settings.drift.reference_size:
+            st.detector.reset(ref)

@@ -1,0 +1,219 @@
+"""Replacing a well's model while it keeps learning (``PUT /wells/{well}/model``).
+
+Four steps, the first and last on the well's worker between two messages, so no sample
+goes unanswered and no measurement is skipped:
+
+1. *snapshot*: the worker hands out a copy of the well's learner and starts noting what
+   the current model learns from now on (``WellState.catch_up``);
+2. *refit* (on the caller's thread, off the worker): the copy fits the new model on
+   everything the well remembers and compares it with the current one on the latest
+   fifth (:meth:`vfm_core.streaming.WellLearner.refit_as`);
+3. *catch-up*: the worker teaches the new model what arrived during the fit;
+4. *swap*: the worker commits what its batch holds, then the new model's checkpoint, and
+   only then swaps it in with a higher version; the rolling error restarts with it.
+
+A failed fit sends a *cancel* step instead. Refusals are domain errors:
+:class:`~service.errors.UnknownWell`, :class:`~service.errors.NotAllowed` (an effect
+from a module not in ``model.effect_modules``), :class:`~service.errors.InvalidRequest`
+(an unknown model, effect or method), :class:`~service.errors.Conflict` (a change of the
+well is already running), :class:`~service.errors.Busy` and
+:class:`~service.errors.Stopping`.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from typing import Any
+
+from service.config import Settings
+from service.engine.checkpoints import Checkpoints, configured_spec
+from service.engine.items import Batch, ModelStep
+from service.engine.state import WellState
+from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
+from service.store import Store
+from vfm_core.errors import VFMError
+from vfm_core.streaming import WellLearner
+from vfm_core.timeutil import from_ns, iso
+
+__all__ = ["ModelChanges", "effect_module"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+
+def effect_module(text: str) -> str | None:
+    """The module an effect spec names (``mypkg.effects:Scale[:k=v]``), None for a library effect."""
+    base = text.split("=", 1)[0].rsplit(":", 1)[0] if "=" in text else text
+    return base.split(":", 1)[0] if ":" in base else None
+
+
+class ModelChanges:
+    """Model changes of the wells: the request on the caller's thread, the steps on the worker."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: Store,
+        wells: Mapping[str, WellState],
+        queues: list[queue.Queue[Any]],
+        checkpoints: Checkpoints,
+        stopping: threading.Event,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.wells = wells
+        self.queues = queues
+        self.checkpoints = checkpoints
+        self.stopping = stopping
+        self._changing: set[str] = set()
+        self._lock = threading.Lock()
+
+    # -- the caller's side (an HTTP thread) -----------------------------------------------
+    def change(
+        self,
+        well: str,
+        model: str | None = None,
+        effects: list[str] | None = None,
+        method: str | None = None,
+    ) -> dict[str, Any]:
+        """Replace a well's model: fit the new one on the well's stored history, then swap.
+
+        Returns the change (models and versions before and after, held-out MAPE, what was
+        caught up), checkpointed before this returns. Effects given as ``module:Class``
+        must come from a module listed in ``model.effect_modules``.
+        """
+        st = self.wells.get(well)
+        if st is None:
+            raise unknown_well(well)
+        effects = list(effects or [])
+        allowed = set(self.settings.model.effect_modules)
+        for text in effects:
+            module = effect_module(text)
+            if module is not None and module not in allowed:
+                raise NotAllowed(
+                    f"The effect '{text}' names the module '{module}', which is not in "
+                    "model.effect_modules; over HTTP only the library's effects and classes from "
+                    "those modules can be used."
+                )
+        old = st.learner
+        model = model or old.model_name
+        try:  # check the request before any work: a typo fails at once
+            WellLearner(well, model, method or old.method.text, effects=effects)
+        except VFMError as exc:
+            raise InvalidRequest(str(exc)) from None
+        with self._lock:
+            if well in self._changing:
+                raise Conflict(
+                    f"A model change of {well} is already running; wait for it to finish."
+                )
+            self._changing.add(well)
+        try:
+            copy: WellLearner = self._step(st, "snapshot")
+            started = time.perf_counter()
+            try:
+                new, scores = copy.refit_as(model, effects, method)
+            except BaseException as exc:
+                self._step(st, "cancel")
+                if isinstance(exc, VFMError):
+                    raise InvalidRequest(str(exc)) from None
+                raise
+            scores["fit_s"] = round(time.perf_counter() - started, 2)
+            change: dict[str, Any] = self._step(st, "swap", new, scores)
+            return change
+        finally:
+            with self._lock:
+                self._changing.discard(well)
+
+    def _step(
+        self,
+        st: WellState,
+        kind: str,
+        learner: WellLearner | None = None,
+        scores: dict[str, Any] | None = None,
+    ) -> Any:
+        """Run one step of a model change on the well's worker and wait for it.
+
+        The snapshot waits at most 5 s for queue room (busy); a swap or cancel waits for
+        room as long as it takes, since it must not be dropped once the copy is out.
+        """
+        if self.stopping.is_set():
+            raise Stopping("The service is stopping; retry after it restarts.")
+        fut: Future[Any] = Future()
+        item = ModelStep(st.well, kind, fut, learner, scores or {})
+        try:
+            self.queues[st.worker].put(item, timeout=5.0 if kind == "snapshot" else None)
+        except queue.Full:
+            raise Busy("The service is busy (its queue is full); retry in a few seconds.") from None
+        return fut.result()
+
+    # -- the worker's side --------------------------------------------------------------------
+    def on_step(self, item: ModelStep, b: Batch, flush: Callable[[Batch], None]) -> None:
+        """Run a step on the well's worker; ``flush`` commits what the batch holds so far."""
+        st = self.wells[item.well]
+        if item.kind == "snapshot":
+            copy = WellLearner.restore(st.learner.checkpoint())
+            st.catch_up = []
+            item.future.set_result(copy)
+            return
+        if item.kind == "cancel":
+            st.catch_up = None
+            item.future.set_result(None)
+            return
+        self._swap(st, item, b, flush)
+
+    def _swap(
+        self, st: WellState, item: ModelStep, b: Batch, flush: Callable[[Batch], None]
+    ) -> None:
+        new, old = item.learner, st.learner
+        assert new is not None
+        try:
+            caught_up = list(st.catch_up or [])
+            for inputs, q_total, time_ns, source in caught_up:
+                new.learn(list(inputs), q_total, from_ns(time_ns), source)
+        finally:
+            st.catch_up = None
+        new.version = max(new.version, old.version + 1)
+        before = st.rolling_mape()
+        change = {
+            "time": iso(time.time_ns()),
+            "model_before": old.name,
+            "model_after": new.name,
+            "effects": list(new.effects),
+            "method": new.method.text,
+            "version_before": old.version,
+            "version_after": new.version,
+            "holdout": item.scores,
+            "caught_up": len(caught_up),
+            "rolling_mape_before": before["value"],
+            "config": configured_spec(self.settings),
+        }
+        # commit what the batch holds so far, then the new model's checkpoint on its own:
+        # the swap happens only once that checkpoint is in the store
+        flush(b)
+        b.clear()
+        saved_version = st.checkpoint_version
+        st.learner = new
+        st.model_changes.append(change)
+        try:
+            self.store.write(self.checkpoints.ops(st))
+        except Exception:
+            st.learner, st.checkpoint_version = old, saved_version
+            st.model_changes.pop()
+            raise
+        st.errors.clear()  # the rolling error from now on is the new model's
+        st.refresh()
+        logger.info(
+            "Model of %s changed from %s (version %d) to %s (version %d); held-out MAPE %s -> %s %%.",
+            st.well,
+            old.name,
+            old.version,
+            new.name,
+            new.version,
+            item.scores.get("before"),
+            item.scores.get("after"),
+        )
+        b.answer(item.future, change)

@@ -1,0 +1,168 @@
+"""Pairing a measurement with the well's sensor sample nearest its time, on the well's worker.
+
+A measurement (MPFM reading or well test) is paired with the sample nearest its time
+within ``inputs.pair_tolerance_s``: from the recent samples in memory, else from the
+store. If no sample at or after its time has arrived yet it waits, stored as ``pending``
+(at most ``inputs.pending_max`` per well, ``inputs.pending_timeout_s`` of wall time), and
+is settled when a later sample arrives or the wait runs out: learned from if a sample
+lies within the tolerance, else marked ``unpaired``. A sample is always predicted before
+the measurement at its time is learned from (prequential order, as in ``vfm evaluate``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+from service.config import Settings
+from service.engine.items import Batch, MeasurementItem, refuse
+from service.engine.learning import Learning
+from service.engine.state import Pending, Sample, WellState, WellTestResult
+from service.errors import Duplicate, InvalidRequest
+from service.inputs import Counters
+from service.store import InsertMeasurement, MarkUnpaired, Store
+from vfm_core.timeutil import iso, to_ns
+
+__all__ = ["Pairing", "nearest_in"]
+
+
+def nearest_in(recent: deque[Sample], time_ns: int) -> Sample:
+    """The sample of ``recent`` (in time order, not empty) nearest to ``time_ns``."""
+    lo, hi = 0, len(recent) - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if recent[mid].time_ns < time_ns:
+            lo = mid + 1
+        else:
+            hi = mid
+    best = recent[lo]
+    if lo > 0 and abs(recent[lo - 1].time_ns - time_ns) <= abs(best.time_ns - time_ns):
+        best = recent[lo - 1]
+    return best
+
+
+class Pairing:
+    """Measurements in: duplicates refused, paired at once, or kept pending for their sample."""
+
+    def __init__(
+        self, settings: Settings, store: Store, counters: Counters, learning: Learning
+    ) -> None:
+        self.store = store
+        self.counters = counters
+        self.learning = learning
+        self.tolerance_s = settings.inputs.pair_tolerance_s
+        self.pending_max = settings.inputs.pending_max
+        self.pending_timeout_s = settings.inputs.pending_timeout_s
+        self._tol_ns = int(settings.inputs.pair_tolerance_s * 1e9)
+
+    def nearest(self, st: WellState, time_ns: int) -> Sample | None:
+        """The well's sample nearest ``time_ns`` within the tolerance (memory, then store).
+
+        Before the oldest sample in memory the store is asked, and the oldest in memory
+        still competes: it may not be committed yet (a well's first sample, say).
+        """
+        if st.recent and time_ns >= st.recent[0].time_ns:
+            found: list[Sample] = [nearest_in(st.recent, time_ns)]
+        else:
+            stored = self.store.nearest_sample(st.well, time_ns, self._tol_ns)
+            found = [s for s in (stored, st.recent[0] if st.recent else None) if s is not None]
+        best = min(found, key=lambda s: abs(s.time_ns - time_ns), default=None)
+        return best if best is not None and abs(best.time_ns - time_ns) <= self._tol_ns else None
+
+    def on_measurement(self, st: WellState, item: MeasurementItem, b: Batch) -> None:
+        """A measurement: refuse a duplicate, store it, then learn from it or let it wait."""
+        m = item.measurement
+        t = to_ns(m.time)
+        if (item.source, t) in st.seen or self.store.measurement_exists(item.well, item.source, t):
+            duplicate = Duplicate(
+                f"The {item.source} measurement of {item.well} at {iso(t)} arrived before; "
+                "it is stored once.",
+                "duplicate",
+            )
+            refuse(self.counters, duplicate, item.well, b, item.future)
+            return
+        sample: Sample | None = None
+        if st.last_time_ns is not None and t <= st.last_time_ns:
+            sample = self.nearest(st, t)
+            if sample is None:
+                error = InvalidRequest(
+                    f"No sensor sample of {item.well} lies within {self.tolerance_s:g} s of "
+                    f"the measurement at {iso(t)}, so it cannot be paired with inputs; it was not stored.",
+                    "no sensor sample within tolerance",
+                )
+                refuse(self.counters, error, item.well, b, item.future)
+                return
+        b.ops.append(
+            InsertMeasurement(
+                well=item.well,
+                time_ns=t,
+                source=item.source,
+                q_total=m.q_total,
+                received_ns=item.received_ns,
+                via=item.via,
+            )
+        )
+        st.remember_measurement(item.source, t)
+        st.measurements += 1
+        self.counters.accept("well_tests" if item.via == "http" else "measurements")
+        if item.via == "http":
+            # stored durably first, then learned from
+            self.store.write(b.ops)
+            b.ops.clear()
+        p = Pending(t, item.source, m.q_total, item.via, time.monotonic(), item.future)
+        if sample is not None:
+            self.learning.learn_paired(st, p, sample, b)
+            return
+        if len(st.pending) >= self.pending_max:
+            oldest = st.pending.pop(0)
+            self.counters.event("pending forced")
+            self._settle(st, oldest, b, force=True)
+        st.pending.append(p)
+        if p.future is not None:
+            b.answer(
+                p.future,
+                WellTestResult(
+                    st.well,
+                    iso(t) or "",
+                    m.q_total,
+                    "pending",
+                    f"Stored. No sensor sample of {st.well} at or after {iso(t)} has arrived yet; the well test "
+                    "is learned from when it does.",
+                    version_before=st.learner.version,
+                    version_after=st.learner.version,
+                ),
+            )
+            p.future = None
+
+    def resolve(self, st: WellState, b: Batch, upto: int) -> None:
+        """A sample at ``upto`` (epoch ns) arrived: settle the measurements at or before it."""
+        due = [p for p in st.pending if p.time_ns <= upto]
+        if not due:
+            return
+        st.pending = [p for p in st.pending if p.time_ns > upto]
+        for p in due:
+            self._settle(st, p, b)
+
+    def expire(self, st: WellState, b: Batch, now: float) -> None:
+        """Settle the measurements that waited longer than ``inputs.pending_timeout_s``."""
+        wait = self.pending_timeout_s
+        due = [p for p in st.pending if now - p.since > wait]
+        if due:
+            st.pending = [p for p in st.pending if now - p.since <= wait]
+            for p in due:
+                self._settle(st, p, b, force=True)
+
+    def _settle(self, st: WellState, p: Pending, b: Batch, force: bool = False) -> None:
+        sample = self.nearest(st, p.time_ns)
+        if sample is None:
+            b.ops.append(MarkUnpaired(well=st.well, source=p.source, time_ns=p.time_ns))
+            error = InvalidRequest(
+                f"No sensor sample of {st.well} arrived within {self.tolerance_s:g} s of the "
+                f"{p.source} measurement at {iso(p.time_ns)}"
+                + (" before the wait ran out" if force else "")
+                + "; it is stored but not learned from.",
+                "no sensor sample within tolerance",
+            )
+            refuse(self.counters, error, st.well, b, p.future)
+            return
+        self.learning.learn_paired(st, p, sample, b)

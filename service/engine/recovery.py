@@ -1,0 +1,183 @@
+"""Start-up: every known well restored from its checkpoint or fitted on the history, then caught up.
+
+The wells are those of the config (``inputs.wells``), of the store and of the history
+file. For each well:
+
+1. its latest checkpoint is restored if it holds the configured model (or one chosen over
+   HTTP since the config last changed; :func:`service.engine.checkpoints.usable`);
+2. otherwise a new learner is built, and all such wells with rows in the history file
+   (before ``model.history_until``) are fitted in one batched fit
+   (:func:`service.learning.fit_history`), whose latest inputs become the drift reference;
+3. the measurements learned after the checkpoint (all of them for a new learner) are
+   re-learned from the store, in the same order, which gives back the same model bit for
+   bit; the rolling error is refilled from the store;
+4. the recent samples (for pairing) and the measurements still pending are loaded.
+
+What this changes (new wells, checkpoints of refitted models) is written in one commit.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import pandas as pd
+
+from service.config import Settings
+from service.engine.checkpoints import Checkpoints, configured_spec, usable
+from service.engine.learning import Learning
+from service.engine.state import RECENT_SAMPLES, Pending, WellState
+from service.learning import fit_history, load_history, new_learner
+from service.store import AddWell, CheckpointRow, Op, Store
+from vfm_core.errors import VFMError
+from vfm_core.schema import INPUT_COLUMNS
+from vfm_core.streaming import WellLearner
+
+__all__ = ["Recovery"]
+
+logger = logging.getLogger("vfm.service.engine")
+
+
+class Recovery:
+    """Builds the wells' state on start; see the module docstring."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: Store,
+        learning: Learning,
+        checkpoints: Checkpoints,
+        worker_of: Callable[[str], int],
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.learning = learning
+        self.checkpoints = checkpoints
+        self.worker_of = worker_of
+
+    def load(self) -> dict[str, WellState]:
+        """Every known well, restored or fitted and caught up, in a stable order."""
+        cfg = self.settings
+        history = load_history(cfg.model) if cfg.model.history is not None else None
+        names = list(
+            dict.fromkeys(
+                [
+                    *cfg.inputs.wells,
+                    *self.store.wells(),
+                    *(
+                        []
+                        if history is None or history.empty
+                        else history["well"].astype(str).tolist()
+                    ),
+                ]
+            )
+        )
+        learners, checkpoints = self._restore(names)
+        fresh = [w for w in names if w not in checkpoints]
+        fitted: list[str] = []
+        if history is not None and fresh:
+            started = time.perf_counter()
+            fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
+            if fitted:
+                logger.info(
+                    "Fitted %d well(s) on the history in %.1f s.",
+                    len(fitted),
+                    time.perf_counter() - started,
+                )
+        ops: list[Op] = []
+        now = time.time_ns()
+        restored = relearned_total = 0
+        by_well = (
+            {str(w): g for w, g in history.groupby("well", sort=False)}
+            if history is not None and not history.empty
+            else {}
+        )
+        wells: dict[str, WellState] = {}
+        for well in names:
+            origin = "history" if well in fitted else "config/store"
+            ops.append(AddWell(well=well, created_ns=now, origin=origin))
+            st = WellState(well, learners[well], cfg, self.worker_of(well))
+            row = checkpoints.get(well)
+            if row is not None:
+                st.learn_seq = row.learn_seq
+                self.checkpoints.restore_side_car(st, row.extra)
+            elif well in fitted and by_well:
+                self._seed_drift_reference(st, by_well[well])
+            relearned = self._relearn(st, ops)
+            if well in fitted or (row is None and relearned):
+                ops.extend(self.checkpoints.ops(st))
+            self._load_recent(st)
+            st.refresh()
+            wells[well] = st
+            restored += row is not None
+            relearned_total += relearned
+        self.store.write(ops)
+        logger.info(
+            "%d well(s): %d restored from checkpoints, %d fitted on the history; %d measurement(s) "
+            "re-learned after the checkpoints.",
+            len(names),
+            restored,
+            len(fitted),
+            relearned_total,
+        )
+        return wells
+
+    def _restore(self, names: list[str]) -> tuple[dict[str, WellLearner], dict[str, CheckpointRow]]:
+        """A learner per well: from a usable checkpoint, else a new one (priors only)."""
+        cfg = self.settings
+        learners: dict[str, WellLearner] = {}
+        checkpoints: dict[str, CheckpointRow] = {}
+        configured = cfg.model.full_name
+        spec = configured_spec(cfg)
+        for well in names:
+            row = self.store.latest_checkpoint(well)
+            ok, why = usable(row, spec, configured) if row else (False, "")
+            if why:
+                logger.info("%s: %s", well, why)
+            if row is not None and ok:
+                try:
+                    learners[well] = WellLearner.restore(row.blob)
+                    checkpoints[well] = row
+                    continue
+                except VFMError as exc:
+                    logger.warning(
+                        "Checkpoint of %s unusable (%s); rebuilding it from the store.", well, exc
+                    )
+            elif row is not None:
+                logger.warning(
+                    "The store holds a %s/%s model for %s but the config asks for %s/%s; building a new "
+                    "model from the history and every stored measurement.",
+                    row.model,
+                    row.method,
+                    well,
+                    configured,
+                    cfg.model.method,
+                )
+            learners[well] = new_learner(well, cfg.model)
+        return learners, checkpoints
+
+    def _seed_drift_reference(self, st: WellState, own: pd.DataFrame) -> None:
+        measured = own[own["q_total"].notna()]
+        self.learning.seed_reference(st, measured[list(INPUT_COLUMNS)].to_numpy(dtype=float))
+
+    def _relearn(self, st: WellState, ops: list[Op]) -> int:
+        """Re-learn what the store learned after the well's checkpoint; refill the rolling error."""
+        rows = self.store.learned_after(st.well, st.learn_seq)
+        for row in rows:
+            self.learning.apply(st, row.sample, row.q_total, row.time_ns, ops, row.source)
+            st.learn_seq = row.learn_seq
+        since = int(st.model_changes[-1]["version_after"]) if st.model_changes else None
+        for err in self.store.recent_errors(st.well, self.settings.rolling_window, since):
+            if err.predicted is not None and err.measured:
+                st.errors.append(abs(err.predicted - err.measured) / abs(err.measured))
+        return len(rows)
+
+    def _load_recent(self, st: WellState) -> None:
+        st.recent.extend(self.store.recent_samples(st.well, RECENT_SAMPLES))
+        if st.recent:
+            st.last_time_ns = st.recent[-1].time_ns
+            st.last_inputs = st.recent[-1].inputs
+        now = time.monotonic()
+        for p in self.store.pending(st.well):
+            st.pending.append(Pending(p.time_ns, p.source, p.q_total, p.via, now))

@@ -1,0 +1,141 @@
+"""What the engine keeps in memory per well, owned by the well's worker thread.
+
+:class:`WellState` holds the well's learner and what feeding it needs: the recent samples
+(for pairing), the measurements waiting for a sample, the duplicate check, the learning
+order (``learn_seq``), the rolling error, the drift detector and its reference inputs,
+and the model changes made over HTTP. Only the well's worker writes to it; the HTTP API
+reads :attr:`WellState.snapshot` (replaced whole, never half-written) and the small views
+below.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict, deque
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.config import Settings
+from service.learning import describe
+from service.store import SampleRow
+from vfm_core.drift import StreamingHotelling
+from vfm_core.streaming import WellLearner
+
+__all__ = [
+    "RECENT_SAMPLES",
+    "SEEN_MEASUREMENTS",
+    "Sample",
+    "Pending",
+    "WellTestResult",
+    "WellState",
+    "CatchUp",
+]
+
+RECENT_SAMPLES = 512  # per well, in memory, for pairing; older ones are looked up in the store
+SEEN_MEASUREMENTS = 1024  # per well, recent measurement keys for the duplicate check
+
+#: a sensor sample as pairing and learning use it: time (epoch ns), six inputs, prediction made
+Sample = SampleRow
+
+#: what a well learned while its new model was being fitted: inputs, q_total, time (ns), source
+CatchUp = tuple[tuple[float, ...], float, int, str]
+
+
+@dataclass
+class WellTestResult:
+    """What a well test did: stored (always), learned or still waiting for its sample."""
+
+    well: str
+    time: str
+    q_total: float
+    status: str  # learned | pending
+    message: str
+    paired_sample_time: str | None = None
+    before: dict[str, float | None] = field(default_factory=dict)
+    after: dict[str, float | None] = field(default_factory=dict)
+    version_before: int = 0
+    version_after: int = 0
+    model_changed: bool = False
+
+
+@dataclass(slots=True)
+class Pending:
+    """A stored measurement waiting for the sensor sample at its time."""
+
+    time_ns: int
+    source: str
+    q_total: float  # Sm3/h
+    via: str  # zenoh | http
+    since: float  # time.monotonic() when it started waiting
+    future: Future[WellTestResult] | None = None
+
+
+class WellState:
+    """One well: its learner and what the service needs to feed it (owned by one worker)."""
+
+    def __init__(self, well: str, learner: WellLearner, settings: Settings, worker: int) -> None:
+        self.well = well
+        self.learner = learner
+        self.worker = worker
+        self.recent: deque[Sample] = deque(maxlen=RECENT_SAMPLES)
+        self.last_time_ns: int | None = None
+        self.last_inputs: tuple[float, ...] | None = None
+        self.pending: list[Pending] = []
+        self.seen: OrderedDict[tuple[str, int], None] = OrderedDict()
+        self.learn_seq = 0
+        self.checkpoint_version = learner.version
+        self.errors: deque[float] = deque(maxlen=settings.rolling_window)
+        self.learned_inputs: deque[tuple[float, ...]] = deque(maxlen=settings.drift.reference_size)
+        self.detector: StreamingHotelling | None = None
+        if settings.drift.enabled:
+            d = settings.drift
+            self.detector = StreamingHotelling(
+                reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm
+            )
+        self.drift_events: deque[dict[str, Any]] = deque(maxlen=20)
+        # model changes over HTTP: what was swapped in, when, and its held-out scores
+        self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
+        # while a new model is fitted off the worker: what the old one learned meanwhile
+        self.catch_up: list[CatchUp] | None = None
+        self.samples = 0
+        self.measurements = 0
+        self.snapshot: dict[str, Any] = {}
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Rebuild the snapshot the HTTP API reads (replaced whole, so readers never see half)."""
+        snap = describe(self.learner)
+        snap["well"] = self.well
+        self.snapshot = snap
+
+    def remember_measurement(self, source: str, time_ns: int) -> None:
+        self.seen[(source, time_ns)] = None
+        if len(self.seen) > SEEN_MEASUREMENTS:
+            self.seen.popitem(last=False)
+
+    def drift_state(self) -> dict[str, Any]:
+        """The drift detector's state for the API (statistic, p-value, events)."""
+        det = self.detector
+        if det is None:
+            return {"enabled": False, "detected": False, "note": "disabled"}
+        stat = float(det.statistic)
+        pval = float(det.p_value)
+        return {
+            "enabled": True,
+            "detected": bool(det.drift_detected) or bool(self.drift_events),
+            "active": bool(det.drift_detected),
+            "statistic": stat if math.isfinite(stat) else None,
+            "p_value": pval if math.isfinite(pval) else None,
+            "n_seen": int(det.n_seen),
+            "events": list(self.drift_events),
+        }
+
+    def rolling_mape(self) -> dict[str, Any]:
+        """MAPE (%) of the predictions made at the last paired measurements' samples."""
+        errors = list(self.errors)  # a copy: the worker appends while the API reads
+        n = len(errors)
+        value = float(np.mean(errors) * 100.0) if n else None
+        return {"value": value, "n": n, "window": self.errors.maxlen, "unit": "%"}

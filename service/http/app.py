@@ -1,0 +1,51 @@
+"""The FastAPI application: one router per concern over a running service.
+
+=======================================  =====================================================
+``GET /health``                          counts of accepted and rejected inputs (by reason),
+                                         queue depths, overflow count (:mod:`.health`)
+``GET /wells``                           every well with its model version (:mod:`.wells`)
+``GET /wells/{well}``                    model, method, physical parameters (value, unit),
+                                         version, updates, last update, rolling MAPE, drift
+``GET /wells/{well}/history``            samples, predictions and measurements in [start, end)
+``POST /wells/{well}/well-tests``        a well-test result {time, q_total}: stored, then
+                                         learned from; answers with the prediction before and
+                                         after (bearer token; :mod:`.well_tests`)
+``PUT /wells/{well}/model``              replace the well's model (bearer token;
+                                         :mod:`.model_changes`)
+=======================================  =====================================================
+
+Errors answer ``{"detail": "<a sentence>", "reason": "<counter key>"}`` with the status
+of :data:`service.http.errors.STATUS`. Dependencies (:mod:`.deps`) are injected with
+``Annotated[..., Depends()]``, so tests override them.
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+
+from service.errors import REASONS
+from service.http import health, model_changes, well_tests, wells
+from service.http.deps import ServiceView
+from service.http.errors import install_error_handlers
+
+__all__ = ["create_app"]
+
+
+def create_app(service: ServiceView) -> FastAPI:
+    """The FastAPI app for a service (kept in ``app.state.service``)."""
+    app = FastAPI(
+        title="vfm: streaming virtual flow meter",
+        version="1",
+        description=(
+            "Predicted rates for every sensor sample over Zenoh; model state, history and well tests over "
+            "HTTP. Units: bar absolute, degC, fractions 0..1, Sm3/h; times ISO 8601 UTC. "
+            "Rejection reasons: " + "; ".join(f"'{k}': {v}" for k, v in REASONS.items()) + "."
+        ),
+    )
+    app.state.service = service
+    install_error_handlers(app)
+    app.include_router(health.router)
+    app.include_router(wells.router)
+    app.include_router(model_changes.router)
+    app.include_router(well_tests.router)
+    return app

@@ -1,0 +1,128 @@
+"""What the routers depend on, injected with ``Annotated[..., Depends()]`` so tests can override it.
+
+:class:`ServiceView` is all the HTTP layer needs of the running service (its settings,
+counters, engine and store, and the health summary); :class:`service.app.Service` is
+one, and the HTTP package never imports :mod:`service.app`. ``app.state.service`` holds
+it. Override :func:`get_service`, :func:`get_engine` or :func:`get_store` in
+``app.dependency_overrides`` to run a router against stand-ins.
+"""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated, Any, Protocol
+
+from fastapi import Depends, Path, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.config import Settings
+from service.engine import Engine
+from service.errors import NotAllowed, NotAuthenticated, Starting, unknown_well
+from service.inputs import Counters
+from service.store import Store
+
+__all__ = [
+    "ServiceView",
+    "get_service",
+    "get_engine",
+    "get_running_engine",
+    "get_store",
+    "get_counters",
+    "require_token",
+    "ServiceDep",
+    "EngineDep",
+    "MaybeEngineDep",
+    "StoreDep",
+    "CountersDep",
+    "TokenDep",
+    "WellPath",
+    "KnownWell",
+]
+
+
+class ServiceView(Protocol):
+    """What the HTTP layer reads of the service."""
+
+    settings: Settings
+    counters: Counters
+    engine: Engine | None
+    store: Store | None
+
+    def health(self) -> dict[str, Any]: ...
+
+
+def get_service(request: Request) -> ServiceView:
+    return request.app.state.service  # type: ignore[no-any-return]
+
+
+ServiceDep = Annotated[ServiceView, Depends(get_service)]
+
+
+def get_engine(service: ServiceDep) -> Engine | None:
+    """The engine, or None before the service has started."""
+    return service.engine
+
+
+MaybeEngineDep = Annotated[Engine | None, Depends(get_engine)]
+
+
+def get_running_engine(engine: MaybeEngineDep) -> Engine:
+    """The engine of a started service (503 before)."""
+    if engine is None:
+        raise Starting("The service is starting; retry in a few seconds.")
+    return engine
+
+
+EngineDep = Annotated[Engine, Depends(get_running_engine)]
+
+
+def get_store(service: ServiceDep) -> Store:
+    if service.store is None:
+        raise Starting("The service is starting; retry in a few seconds.")
+    return service.store
+
+
+StoreDep = Annotated[Store, Depends(get_store)]
+
+
+def get_counters(service: ServiceDep) -> Counters:
+    return service.counters
+
+
+CountersDep = Annotated[Counters, Depends(get_counters)]
+
+_bearer = HTTPBearer(auto_error=False, description="the service's http.token")
+
+
+def require_token(
+    service: ServiceDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """Mutating endpoints: refused when no token is configured, or it is missing or wrong."""
+    token = service.settings.http.token
+    if token is None:
+        raise NotAllowed(
+            "Posting is disabled because no API token is configured; set http.token in the config file "
+            "or VFM_HTTP__TOKEN in the environment, restart, and send 'Authorization: Bearer <token>'."
+        )
+    if credentials is None or not secrets.compare_digest(
+        credentials.credentials.encode(), token.get_secret_value().encode()
+    ):
+        raise NotAuthenticated(
+            "A valid bearer token is required: send 'Authorization: Bearer <token>' "
+            "with the service's http.token."
+        )
+
+
+TokenDep = Annotated[None, Depends(require_token)]
+WellPath = Annotated[str, Path(description="well id", min_length=1, max_length=200)]
+
+
+def known_well(well: WellPath, engine: MaybeEngineDep) -> str:
+    """The well of the path, if this service knows it (404 otherwise)."""
+    if engine is None or not engine.has_well(well):
+        raise unknown_well(well)
+    return well
+
+
+KnownWell = Annotated[str, Depends(known_well)]

@@ -1,0 +1,211 @@
+"""The HTTP API's request and response bodies (the OpenAPI schema at ``/docs``).
+
+Units: rates Sm3/h at standard conditions, pressures bar absolute, temperatures degC,
+fractions 0..1, MAPE in percent; times ISO 8601 UTC.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = [
+    "ErrorOut",
+    "HealthOut",
+    "Parameter",
+    "RollingMape",
+    "WellSummary",
+    "WellOut",
+    "ModelChangeIn",
+    "HoldoutOut",
+    "ModelChangeOut",
+    "SampleOut",
+    "PredictionOut",
+    "MeasurementOut",
+    "HistoryOut",
+    "WellTestOut",
+]
+
+
+class ErrorOut(BaseModel):
+    detail: str = Field(description="what was wrong, as a sentence")
+    reason: str | None = Field(None, description="the rejection counter this was counted under")
+
+
+class HealthOut(BaseModel):
+    status: str
+    uptime_s: float
+    wells: int
+    accepted: dict[str, int] = Field(
+        description="accepted inputs: sensors, measurements, well_tests"
+    )
+    rejected: dict[str, int] = Field(description="rejected inputs by reason")
+    rejected_total: int
+    not_ready: int = Field(
+        description="samples not answered because the well's model had no data yet"
+    )
+    predictions_published: int
+    learned: int
+    overflow: int = Field(description="messages dropped because a worker queue stayed full")
+    queue_depths: list[int]
+    queue_capacity: int
+    pending_measurements: int
+    events: dict[str, int]
+    zenoh: dict[str, Any]
+    store: str
+
+
+class Parameter(BaseModel):
+    value: float
+    unit: str
+
+
+class RollingMape(BaseModel):
+    value: float | None = Field(description="MAPE in percent over the last paired measurements")
+    n: int
+    window: int | None
+    unit: str = "%"
+
+
+class WellSummary(BaseModel):
+    well: str
+    model: str
+    method: str
+    ready: bool
+    version: int
+    n_updates: int
+    last_update: str | None
+
+
+class ModelChangeIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", protected_namespaces=())
+
+    model: str | None = Field(
+        default=None,
+        description="base model: mm, hem, ham, lr, nn or last (default: the current one)",
+    )
+    effects: list[str] = Field(
+        default_factory=list,
+        description="effects extending mm, hem or ham, e.g. ['erosion'] or "
+        "['erosion:step_at=2019-06-01', 'mypkg.effects:Scale']; [] for none",
+    )
+    method: str | None = Field(
+        default=None, description="ol or pbl:<period> (default: the current one)"
+    )
+
+
+class HoldoutOut(BaseModel):
+    holdout_rows: int = Field(description="latest stored measurements held out to compare")
+    holdout_from: str | None = None
+    before: float | None = Field(
+        default=None, description="MAPE (%) of the current model, fitted on the older rows"
+    )
+    after: float | None = Field(
+        default=None, description="MAPE (%) of the new model, fitted on the same rows"
+    )
+    unit: str = "%"
+    fit_s: float | None = Field(default=None, description="time the fits took, s")
+
+
+class ModelChangeOut(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+
+    time: str
+    model_before: str
+    model_after: str
+    effects: list[str] = Field(default_factory=list, description="the new model's effects")
+    method: str
+    version_before: int
+    version_after: int
+    holdout: HoldoutOut
+    caught_up: int = Field(
+        default=0,
+        description="measurements learned while the new model was fitted, taught to it before the swap",
+    )
+    rolling_mape_before: float | None = Field(
+        description="rolling MAPE (%) of the replaced model at the change"
+    )
+
+
+class WellOut(WellSummary):
+    model_config = ConfigDict(protected_namespaces=())
+
+    parameters: dict[str, Parameter] = Field(description="physical parameters, SI units")
+    rolling_mape: RollingMape
+    measurements_remembered: int = Field(
+        description="measurements the model keeps for retrains and model changes"
+    )
+    model_changes: list[ModelChangeOut] = Field(
+        description="models set over HTTP, oldest first; the rolling MAPE restarts at each"
+    )
+    drift: dict[str, Any]
+    samples: int = Field(description="samples accepted since start")
+    measurements: int = Field(description="measurements accepted since start")
+    last_sample_time: str | None
+    pending_measurements: int
+
+
+class SampleOut(BaseModel):
+    time: str
+    choke: float
+    p_up: float
+    p_down: float
+    t_up: float
+    eta_gas: float
+    eta_oil: float
+    received: str
+
+
+class PredictionOut(BaseModel):
+    time: str
+    q_total: float
+    q_gas: float | None
+    q_oil: float | None
+    q_water: float | None
+    version: int | None
+
+
+class MeasurementOut(BaseModel):
+    time: str
+    source: str
+    q_total: float
+    received: str
+    via: str
+    status: str = Field(description="pending | learned | unpaired")
+    paired_sample_time: str | None
+    predicted: float | None = Field(
+        description="the prediction at the paired sample, before learning"
+    )
+    version_after: int | None
+
+
+class HistoryOut(BaseModel):
+    well: str
+    start: str
+    end: str
+    samples: list[SampleOut]
+    predictions: list[PredictionOut]
+    measurements: list[MeasurementOut]
+    truncated: bool
+
+
+class WellTestOut(BaseModel):
+    well: str
+    time: str
+    q_total: float
+    stored: bool = True
+    status: str = Field(
+        description="learned, or pending (waiting for the sensor sample at its time)"
+    )
+    message: str
+    paired_sample_time: str | None
+    before: dict[str, float | None] = Field(
+        description="prediction at the paired sample before learning, Sm3/h"
+    )
+    after: dict[str, float | None] = Field(
+        description="prediction at the same inputs after learning, Sm3/h"
+    )
+    version_before: int
+    version_after: int
+    model_changed: bool
