@@ -18,7 +18,14 @@ import torch
 from vfm_core.learning import TrainSettings
 from vfm_core.streaming import WellLearner
 
-SAMPLE = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]  # choke -, p_up bar, p_down bar, t_up degC, eta_gas, eta_oil
+SAMPLE = [
+    0.5,
+    60.0,
+    20.0,
+    70.0,
+    0.1,
+    0.6,
+]  # choke -, p_up bar, p_down bar, t_up degC, eta_gas, eta_oil
 
 
 def _learner(rows: int, effects: list[str]) -> WellLearner:
@@ -58,7 +65,9 @@ def main() -> None:
             name = "+".join(["mm", *effects])
             print(f"{name:<12} {rows:>12,} {figures[rows][0]:>11.0f} {figures[rows][1]:>13.0f}")
         short, long = figures[1_000], figures[args.rows]
-        print(f"{'':<12} {'ratio long/short':>12} {long[0] / short[0]:>11.2f} {long[1] / short[1]:>13.2f}")
+        print(
+            f"{'':<12} {'ratio long/short':>12} {long[0] / short[0]:>11.2f} {long[1] / short[1]:>13.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -20,12 +20,12 @@ import torch
 
 from vfm_core.data import make_batch, target_mask
 from vfm_core.jobs.evaluate import format_summary, run_study
-from vfm_core.learning import DEFAULT_TRAIN, fit_batch, parse_method
+from vfm_core.jobs.study import wells_of
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.jobs.study import wells_of
 
 
 def peak_rss_mb() -> float:

@@ -40,7 +40,9 @@ class WaterCutCurve(Effect):
     name = "water_cut_curve"
     description = "A learned smooth factor of the water cut (piecewise linear log-factor)."
     parameters = {
-        f"log_factor_{k}": Prior(0.0, 0.1, -1.0, 1.0, "-", f"log rate factor at water cut {k / 10:.1f}")
+        f"log_factor_{k}": Prior(
+            0.0, 0.1, -1.0, 1.0, "-", f"log rate factor at water cut {k / 10:.1f}"
+        )
         for k in range(_KNOTS)
     }
 
@@ -54,8 +56,10 @@ class WaterCutCurve(Effect):
         return torch.exp(v_left + weight * (v_right - v_left))
 
     def describe(self, values: Mapping[str, float]) -> str:
-        text = ", ".join(f"{k / 10:.1f}: {100 * (pow(2.718281828, values[f'log_factor_{k}']) - 1):+.1f} %"
-                         for k in range(_KNOTS))
+        text = ", ".join(
+            f"{k / 10:.1f}: {100 * (pow(2.718281828, values[f'log_factor_{k}']) - 1):+.1f} %"
+            for k in range(_KNOTS)
+        )
         return f"Rate factor by water cut: {text}."
 
 

@@ -103,9 +103,7 @@ class ModelSettings(_Section):
     @field_validator("method")
     @classmethod
     def _known_method(cls, v: str) -> str:
-        from vfm_core.learning import parse_method
-
-        from vfm_core.learning import METHODS
+        from vfm_core.learning import METHODS, parse_method
 
         try:
             streaming = parse_method(v).streaming

@@ -102,9 +102,7 @@ def fit_history(
     frame = measured[measured[WELL].isin(wells)].reset_index(drop=True)
     train = settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
     try:
-        model = make_model(
-            cfg.name, wells, seed=cfg.seed, effects=cfg.effects, **cfg.model_kwargs
-        )
+        model = make_model(cfg.name, wells, seed=cfg.seed, effects=cfg.effects, **cfg.model_kwargs)
         batch = make_batch(frame, wells, extra_columns=model.extra_columns)
         summary = fit_batch(model, batch, train)
         full = model.state_dict()

@@ -35,8 +35,8 @@ from vfm_core.jobs.diagnose import (
     run_diagnosis,
     write_diagnosis,
 )
-from vfm_core.simulate import SimulatedField, simulate_field
 from vfm_core.jobs.study import mape
+from vfm_core.simulate import SimulatedField, simulate_field
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SPLIT = "2019-01-01"
@@ -45,15 +45,18 @@ METHOD = "pbl:3650d"
 
 @cache
 def _field(hidden: str) -> SimulatedField:
-    return simulate_field(wells=3, years=3.0, seed=1, start="2017-01-01",
-                          hidden=[] if hidden == "none" else [hidden])
+    return simulate_field(
+        wells=3, years=3.0, seed=1, start="2017-01-01", hidden=[] if hidden == "none" else [hidden]
+    )
 
 
 def _floor(field: SimulatedField, frame: pd.DataFrame) -> float:
     scored = target_mask(frame, "all") & (frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).to_numpy()
     truth = field.truth_samples
-    return mape((truth["q_true"] * truth["mpfm_factor"].where(frame["source"] == "mpfm", 1.0))[scored],
-                frame["q_total"][scored])
+    return mape(
+        (truth["q_true"] * truth["mpfm_factor"].where(frame["source"] == "mpfm", 1.0))[scored],
+        frame["q_total"][scored],
+    )
 
 
 @cache
@@ -73,11 +76,24 @@ def _custom_frame() -> pd.DataFrame:
 def test_rank_drivers_finds_the_variable_out_of_sample() -> None:
     rng = np.random.default_rng(0)
     n = 3000
-    res = pd.DataFrame({
-        "time": pd.date_range("2020-01-01", periods=n, freq="6h", tz="UTC"),
-        "well": rng.choice(["A", "B"], n), "source": "mpfm", "flow_regime": "critical",
-    })
-    for col in ("choke", "p_up", "p_down", "p_ratio", "t_up", "eta_gas", "eta_oil", "throughput_years"):
+    res = pd.DataFrame(
+        {
+            "time": pd.date_range("2020-01-01", periods=n, freq="6h", tz="UTC"),
+            "well": rng.choice(["A", "B"], n),
+            "source": "mpfm",
+            "flow_regime": "critical",
+        }
+    )
+    for col in (
+        "choke",
+        "p_up",
+        "p_down",
+        "p_ratio",
+        "t_up",
+        "eta_gas",
+        "eta_oil",
+        "throughput_years",
+    ):
         res[col] = rng.uniform(0, 1, n)
     res["water_cut"] = rng.uniform(0, 1, n)
     res["r"] = 0.05 * np.sin(6 * res["water_cut"]) + rng.normal(0, 0.02, n)
@@ -121,12 +137,14 @@ def test_erosion_with_a_step_at_a_known_date() -> None:
 
     ``erosion:step_at=<date>`` recovers the step and the wear rate (the simulator's truth:
     0.15 and 0.05 per year-equivalent) and leaves a fraction of plain erosion's error."""
-    field = simulate_field(wells=1, years=3.0, seed=1, start="2017-01-01",
-                           hidden=["erosion:rate=0.05:step=0.15"])
+    field = simulate_field(
+        wells=1, years=3.0, seed=1, start="2017-01-01", hidden=["erosion:rate=0.05:step=0.15"]
+    )
     event = next(iter(field.truth["wells"].values()))["sand_event"]
     split = (pd.Timestamp(event) + pd.Timedelta(days=150)).strftime("%Y-%m-%d")
-    diag = run_diagnosis(field.observations, "mm", method=METHOD, split=split,
-                         effects=[f"erosion:step_at={event}"])
+    diag = run_diagnosis(
+        field.observations, "mm", method=METHOD, split=split, effects=[f"erosion:step_at={event}"]
+    )
     ext = diag.extended
     assert ext is not None, format_summary(diag)
     plain = next(c for c in diag.candidates if c.effect == "erosion")
@@ -165,8 +183,9 @@ def test_effect_outside_the_library_is_named_and_removed_by_a_user_effect(
 ) -> None:
     monkeypatch.syspath_prepend(str(EXAMPLES))
     frame = _custom_frame()
-    diag = run_diagnosis(frame, "mm", method=METHOD, split=SPLIT,
-                         effects=["my_effects:TemperatureScale"])
+    diag = run_diagnosis(
+        frame, "mm", method=METHOD, split=SPLIT, effects=["my_effects:TemperatureScale"]
+    )
     sys.modules.pop("my_effects", None)
     summary = format_summary(diag)
     assert not any(c.material for c in diag.candidates), summary
@@ -183,7 +202,9 @@ def _floor_custom(frame: pd.DataFrame) -> float:
     field = _field("none")
     scored = target_mask(frame, "all") & (frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).to_numpy()
     t = field.truth_samples
-    factor = t["mpfm_factor"].where(frame["source"] == "mpfm", 1.0) * np.exp(0.015 * (frame["t_up"] - 60.0))
+    factor = t["mpfm_factor"].where(frame["source"] == "mpfm", 1.0) * np.exp(
+        0.015 * (frame["t_up"] - 60.0)
+    )
     return mape((t["q_true"] * factor)[scored], frame["q_total"][scored])
 
 
@@ -203,15 +224,25 @@ def test_outputs_follow_the_contract(tmp_path: Path) -> None:
         assert {"effect", "mape", "delta_mape", "delta_bic", "parameters"} <= set(c)
     assert "erosion.rate" in data["candidates"][0]["parameters"]
     html = (tmp_path / "out" / "report.html").read_text()
-    assert "data:image/png;base64," in html and "src=\"http" not in html
+    assert "data:image/png;base64," in html and 'src="http' not in html
     assert "Verdict" in html
 
 
 def test_command_line_parser() -> None:
     parser = argparse.ArgumentParser(prog="vfm")
     register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["diagnose", "f.parquet", "--out", "d", "--effects", "erosion,real_gas",
-                              "--targets", "well_test"])
+    args = parser.parse_args(
+        [
+            "diagnose",
+            "f.parquet",
+            "--out",
+            "d",
+            "--effects",
+            "erosion,real_gas",
+            "--targets",
+            "well_test",
+        ]
+    )
     assert args.model == "mm" and args.method == "ol" and args.targets == "well_test"
     assert args.effects == ["erosion,real_gas"] and callable(args.handler)
 
@@ -223,10 +254,23 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     write_field(simulate_field(wells=2, years=1.5, seed=2, start="2018-01-01"), data)
     parser = argparse.ArgumentParser(prog="vfm")
     register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["diagnose", str(data), "--out", str(tmp_path / "d"), "--quiet",
-                              "--method", "pbl:182d", "--candidate-method", METHOD,
-                              "--candidates", "erosion,mpfm_bias",
-                              "--effects", "erosion"])
+    args = parser.parse_args(
+        [
+            "diagnose",
+            str(data),
+            "--out",
+            str(tmp_path / "d"),
+            "--quiet",
+            "--method",
+            "pbl:182d",
+            "--candidate-method",
+            METHOD,
+            "--candidates",
+            "erosion,mpfm_bias",
+            "--effects",
+            "erosion",
+        ]
+    )
     assert args.handler(args) == 0
     data_json = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     assert sorted(c["effect"] for c in data_json["candidates"]) == ["erosion", "mpfm_bias"]
@@ -246,11 +290,13 @@ def test_reference_bic_is_taken_on_the_well_tests_when_there_are_enough() -> Non
     from vfm_core.jobs.diagnose import MIN_WELL_TESTS, reference_bic
 
     n_wt = MIN_WELL_TESTS
-    p = pd.DataFrame({
-        "source": ["well_test"] * n_wt + ["mpfm"] * 100,
-        "measured": 100.0,
-        "predicted": [99.0, 101.0] * (n_wt // 2) + [90.0] * 100,  # 1 % on tests, 10 % on MPFM
-    })
+    p = pd.DataFrame(
+        {
+            "source": ["well_test"] * n_wt + ["mpfm"] * 100,
+            "measured": 100.0,
+            "predicted": [99.0, 101.0] * (n_wt // 2) + [90.0] * 100,  # 1 % on tests, 10 % on MPFM
+        }
+    )
     value, on = reference_bic(p, 1)
     assert on == "well tests"
     assert value == pytest.approx(n_wt * np.log(0.01**2) + np.log(n_wt))

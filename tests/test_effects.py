@@ -22,9 +22,9 @@ from vfm_core.effects import (
     standard_features,
 )
 from vfm_core.errors import ConfigError
+from vfm_core.jobs.study import mape, run_prequential
 from vfm_core.models import Mechanistic, make_model
 from vfm_core.simulate import simulate_field
-from vfm_core.jobs.study import mape, run_prequential
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -91,8 +91,13 @@ def test_real_gas_slip_critical_match_physics_at_strength_one(small: pd.DataFram
         theta = {k: v.unsqueeze(1) for k, v in ext.theta().items()}
         u, p_up, p_down, t_up, eg, eo = batch.x.unbind(-1)  # type: ignore[attr-defined]
         p1, p2, t1 = p_up * 1e5, p_down * 1e5, t_up + 273.15
-        kw = dict(rho_oil=theta["rho_oil"], rho_wat=theta["rho_wat"], kappa=theta["kappa"],
-                  m_gas=theta["m_gas"], p_cr=theta["p_cr"])
+        kw = dict(
+            rho_oil=theta["rho_oil"],
+            rho_wat=theta["rho_wat"],
+            kappa=theta["kappa"],
+            m_gas=theta["m_gas"],
+            p_cr=theta["p_cr"],
+        )
         if kwargs == "z":
             kw["z"] = ph.z_factor_papay(p1, t1, theta["m_gas"])
         elif kwargs == "slip":
@@ -100,10 +105,18 @@ def test_real_gas_slip_critical_match_physics_at_strength_one(small: pd.DataFram
         else:
             rho_g1 = ph.gas_density(p1, t1, theta["m_gas"])
             v_liq = ph.liquid_specific_volume(eg, eo, theta["rho_oil"], theta["rho_wat"])
-            kw["p_cr"] = ph.sachdeva_critical_ratio(eg, rho_g1, v_liq, theta["kappa"], iterations=30)
+            kw["p_cr"] = ph.sachdeva_critical_ratio(
+                eg, rho_g1, v_liq, theta["kappa"], iterations=30
+            )
         area = (theta["c_d"] * ext.a_max.unsqueeze(1)) * u  # type: ignore[attr-defined]
-        expected = area * ph.choke_mass_flux(p1, p2, t1, eg, eo, **kw) * ph.standard_volume_per_mass(
-            eg, eo, rho_oil=theta["rho_oil"], rho_wat=theta["rho_wat"], m_gas=theta["m_gas"]) * 3600
+        expected = (
+            area
+            * ph.choke_mass_flux(p1, p2, t1, eg, eo, **kw)
+            * ph.standard_volume_per_mass(
+                eg, eo, rho_oil=theta["rho_oil"], rho_wat=theta["rho_wat"], m_gas=theta["m_gas"]
+            )
+            * 3600
+        )
         got = ext.predict_batch(batch)  # type: ignore[arg-type]
         assert torch.allclose(got, expected, rtol=1e-9), name
 
@@ -172,9 +185,13 @@ def test_features_use_only_the_past_and_do_not_mutate(small: pd.DataFrame) -> No
     pd.testing.assert_frame_equal(frame, before)
     # changing a row's own measured rate does not change its throughput
     changed = frame.copy()
-    k = int(np.flatnonzero(changed["q_total"].notna().to_numpy())[-50])  # after the 90-day scale window
+    k = int(
+        np.flatnonzero(changed["q_total"].notna().to_numpy())[-50]
+    )  # after the 90-day scale window
     changed.loc[changed.index[k], "q_total"] *= 10.0
-    assert standard_features(changed)["throughput_years"].iloc[k] == feats["throughput_years"].iloc[k]
+    assert (
+        standard_features(changed)["throughput_years"].iloc[k] == feats["throughput_years"].iloc[k]
+    )
     assert (feats.groupby(frame["well"])["throughput_years"].diff().dropna() >= 0).all()
 
 
@@ -187,13 +204,16 @@ def test_plain_forward_refuses_when_features_are_needed(small: pd.DataFrame) -> 
 
 
 def test_factory_runs_prequentially_and_learns_hidden_wear() -> None:
-    field = simulate_field(wells=2, years=2.0, seed=5, start="2017-01-01", hidden=["erosion:rate=0.15"])
+    field = simulate_field(
+        wells=2, years=2.0, seed=5, start="2017-01-01", hidden=["erosion:rate=0.15"]
+    )
     frame = add_features(field.observations, ["erosion"])
     kw = dict(split="2018-01-01", method="pbl:3650d")
     base = run_prequential(frame, "mm", **kw)  # type: ignore[arg-type]
     ext = run_prequential(frame, "mm", effects=["erosion"], **kw)  # type: ignore[arg-type]
     assert mape(ext.predictions.predicted, ext.predictions.measured) < mape(
-        base.predictions.predicted, base.predictions.measured)
+        base.predictions.predicted, base.predictions.measured
+    )
     assert float(ext.final_model.physical_parameters()["erosion.rate"].min()) > 0.05  # type: ignore[union-attr]
 
 
@@ -252,8 +272,9 @@ def test_feature_tracker_matches_the_offline_features() -> None:
 def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
     from vfm_core.streaming import WellLearner
 
-    frame = simulate_field(wells=1, years=1.5, seed=2, start="2017-01-01",
-                           hidden=["erosion:rate=0.3"]).observations
+    frame = simulate_field(
+        wells=1, years=1.5, seed=2, start="2017-01-01", hidden=["erosion:rate=0.3"]
+    ).observations
     split = pd.Timestamp("2017-06-01", tz="UTC")
     cols = ["choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil"]
     hist = frame[(frame["time"] < split) & frame["q_total"].notna()]
@@ -261,9 +282,11 @@ def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
     learners = {}
     for effects in ([], ["erosion"]):
         learner = WellLearner("W01", "mm", "pbl:3650d", effects=effects)
-        learner.fit_history(torch.tensor(hist[cols].to_numpy()),
-                            torch.tensor(hist["q_total"].to_numpy()),
-                            torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8))
+        learner.fit_history(
+            torch.tensor(hist[cols].to_numpy()),
+            torch.tensor(hist["q_total"].to_numpy()),
+            torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
+        )
         ape = []
         for row in frame[frame["time"] >= split].itertuples():
             inputs = [getattr(row, c) for c in cols]

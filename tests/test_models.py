@@ -124,7 +124,9 @@ def test_one_online_step_lowers_error_on_that_observation(spec, field, train_row
 
 
 @pytest.mark.parametrize(
-    "spec", [s for s in SPECS if not MODELS[s[0]].gradient_free], ids=lambda s: "+".join([s[0], *s[1]])
+    "spec",
+    [s for s in SPECS if not MODELS[s[0]].gradient_free],
+    ids=lambda s: "+".join([s[0], *s[1]]),
 )
 def test_batch_fit_learns_a_shift(spec, field, train_rows) -> None:
     """Set up on the data, then fit to targets 15 % higher: the error must at least halve."""

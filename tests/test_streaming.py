@@ -9,10 +9,10 @@ import torch
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
+from vfm_core.jobs.study import run_prequential
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 from vfm_core.streaming import WellLearner
-from vfm_core.jobs.study import run_prequential
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +121,11 @@ def test_earlier_checkpoint_formats_still_restore(method: str) -> None:
         back = WellLearner.restore(_old_format(learner, version))
         assert back.predict(sample) == learner.predict(sample)
         assert back.remembered == 18 and not bool(back.memory.well_test.any())
-        assert back.method.state_dict()["next_due"] == learner.method.state_dict().get("next_due") if method != "ol" else True
+        assert (
+            back.method.state_dict()["next_due"] == learner.method.state_dict().get("next_due")
+            if method != "ol"
+            else True
+        )
         # both keep learning alike (the optimiser's moments and the calendar came back)
         twin = WellLearner.restore(learner.checkpoint())
         for lrn in (back, twin):

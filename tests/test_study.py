@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from vfm_core.jobs.evaluate import run_study, summarise, write_study
-from vfm_core.simulate import simulate_field
 from vfm_core.jobs.study import mape, metrics_records, run_prequential
+from vfm_core.simulate import simulate_field
 
 
 def test_mape_hand_computed() -> None:
@@ -52,7 +52,9 @@ def test_online_learning_tracks_erosion_and_beats_pbl_182d(eroding_field) -> Non
     truth = eroding_field.truth_samples
     ol = run_prequential(frame, "mm", "ol", targets="all", track_parameters=True)
     pbl = run_prequential(frame, "mm", "pbl:182d", targets="all")
-    frozen = run_prequential(frame, "mm", "pbl:3650d", targets="all")  # the initial fit, never updated
+    frozen = run_prequential(
+        frame, "mm", "pbl:3650d", targets="all"
+    )  # the initial fit, never updated
     mape_ol = mape(ol.predictions["predicted"], ol.predictions["measured"])
     mape_pbl = mape(pbl.predictions["predicted"], pbl.predictions["measured"])
     assert mape_ol < mape_pbl, (mape_ol, mape_pbl)
@@ -61,13 +63,18 @@ def test_online_learning_tracks_erosion_and_beats_pbl_182d(eroding_field) -> Non
     wells = list(ol.final_model.wells)
     rows = np.flatnonzero(target_mask(frame, "all"))
     last = make_batch(frame, wells, rows)
-    keep = last.mask & (torch.cumsum(last.mask.flip(1).long(), 1).flip(1) <= 50)  # latest 50 per well
-    growth = (ol.final_model.predict(last.x) / frozen.final_model.predict(last.x))
+    keep = last.mask & (
+        torch.cumsum(last.mask.flip(1).long(), 1).flip(1) <= 50
+    )  # latest 50 per well
+    growth = ol.final_model.predict(last.x) / frozen.final_model.predict(last.x)
     params = ol.parameters[ol.parameters["name"] == "c_d"]
     coverage = []
     for j, well in enumerate(wells):
         t_truth = truth[truth["well"] == well]
-        true_change = t_truth["c_d_true"].iloc[-1] / t_truth.loc[t_truth["time"] < split, "c_d_true"].iloc[-1] - 1
+        true_change = (
+            t_truth["c_d_true"].iloc[-1] / t_truth.loc[t_truth["time"] < split, "c_d_true"].iloc[-1]
+            - 1
+        )
         assert true_change > 0.02  # the simulator did erode the choke
         # At fixed inputs the learned model now predicts a rate grown like the eroded choke.
         learned_growth = float(growth[j][keep[j]].mean()) - 1.0

@@ -9,7 +9,9 @@ import pytest
 
 from vfm_core.cli import main
 
-VOLVE = Path(__file__).resolve().parents[2] / "shared" / "data" / "volve" / "volve_daily_production.csv"
+VOLVE = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "volve" / "volve_daily_production.csv"
+)
 
 
 @pytest.mark.skipif(
@@ -23,13 +25,33 @@ def test_volve_slice_end_to_end(tmp_path: Path) -> None:
 
     frame = pd.read_parquet(data)
     # two long-lived wells, 2013-2015: fit on 2013-2014, score 2015
-    part = frame[frame["well"].isin(["15/9-F-12", "15/9-F-14"]) & (frame["time"] >= "2013-01-01")
-                 & (frame["time"] < "2016-01-01")]
+    part = frame[
+        frame["well"].isin(["15/9-F-12", "15/9-F-14"])
+        & (frame["time"] >= "2013-01-01")
+        & (frame["time"] < "2016-01-01")
+    ]
     slice_path = tmp_path / "slice.parquet"
     part.to_parquet(slice_path, index=False)
     out = tmp_path / "study"
-    assert main(["evaluate", str(slice_path), "--out", str(out), "--models", "last,mm",
-                 "--methods", "ol,pbl:182d", "--split", "2015-01-01", "--quiet", "--no-report"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                str(slice_path),
+                "--out",
+                str(out),
+                "--models",
+                "last,mm",
+                "--methods",
+                "ol,pbl:182d",
+                "--split",
+                "2015-01-01",
+                "--quiet",
+                "--no-report",
+            ]
+        )
+        == 0
+    )
     metrics = json.loads((out / "metrics.json").read_text())
     by = {(r["model"], r["method"], r["well"]): r for r in metrics["records"]}
     assert len(by) == 8

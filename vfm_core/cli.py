@@ -202,7 +202,9 @@ def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[
             continue
         if ep.name in sub.choices:
             logging.getLogger("vfm.cli").warning(
-                "Command '%s' from %s is ignored: a built-in command has that name.", ep.name, ep.value
+                "Command '%s' from %s is ignored: a built-in command has that name.",
+                ep.name,
+                ep.value,
             )
             continue
         register(sub)

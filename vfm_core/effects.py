@@ -76,6 +76,7 @@ __all__ = [
     "effect_spec",
 ]
 
+
 def add_features(frame: pd.DataFrame, effects: Sequence[str | type[Effect]]) -> pd.DataFrame:
     """A copy of ``frame`` with every extra column the ``effects`` need (input not mutated)."""
     out = frame.copy()

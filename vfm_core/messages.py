@@ -162,7 +162,9 @@ def well_id_problem(well: str) -> str | None:
     if any(unicodedata.category(ch) in ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp") for ch in well):
         return f"The well id {shown} holds control or invisible characters; use printable ones."
     if any(ch in well for ch in "/*$?#"):
-        return f"The well id {shown} cannot be used in a key expression (no '/', '*', '$', '?', '#')."
+        return (
+            f"The well id {shown} cannot be used in a key expression (no '/', '*', '$', '?', '#')."
+        )
     if well in (".", ".."):
         return f"The well id {shown} is not a name."
     if well != well.strip():

@@ -44,7 +44,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -59,9 +59,9 @@ from vfm_core.effects import (
     resolve_effects,
 )
 from vfm_core.features import standard_features
+from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
 from vfm_core.learning import OnlineSettings, TrainSettings
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL, WELL_TEST
-from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
 
 __all__ = [
     "DRIVER_VARIABLES",
@@ -83,13 +83,31 @@ __all__ = [
 
 #: Variables the residual is examined against (numeric, then categorical).
 DRIVER_VARIABLES: tuple[str, ...] = (
-    "time", "choke", "p_up", "p_down", "p_ratio", "t_up", "eta_gas", "eta_oil", "water_cut",
-    "throughput_years", "well", "source", "flow_regime",
+    "time",
+    "choke",
+    "p_up",
+    "p_down",
+    "p_ratio",
+    "t_up",
+    "eta_gas",
+    "eta_oil",
+    "water_cut",
+    "throughput_years",
+    "well",
+    "source",
+    "flow_regime",
 )
 _CATEGORICAL = {"well", "source", "flow_regime"}
 _UNITS = {
-    "time": "date", "choke": "fraction", "p_up": "bar", "p_down": "bar", "p_ratio": "p_down/p_up",
-    "t_up": "degC", "eta_gas": "-", "eta_oil": "-", "water_cut": "water/liquid mass",
+    "time": "date",
+    "choke": "fraction",
+    "p_up": "bar",
+    "p_down": "bar",
+    "p_ratio": "p_down/p_up",
+    "t_up": "degC",
+    "eta_gas": "-",
+    "eta_oil": "-",
+    "water_cut": "water/liquid mass",
     "throughput_years": "year-equivalents",
 }
 #: A candidate is a *material* improvement only if it lowers the MAPE by at least
@@ -125,12 +143,37 @@ class CandidateResult:
     #: the change in BIC over every scored measurement (delta_bic may be on well tests only)
     delta_bic_all: float = float("nan")
 
+    #: the variables the residual is examined against, in report order
+    driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
+
+    @property
+    def material_rule(self) -> dict[str, float]:
+        """What makes a candidate material: MAPE drop (points, relative) and BIC drop."""
+        return {
+            "mape_abs": MATERIAL_MAPE_ABS,
+            "mape_rel": MATERIAL_MAPE_REL,
+            "bic": MATERIAL_BIC,
+        }
+
+    def residuals_of(self, run: RunResult) -> pd.DataFrame:
+        """The residual frame of another run on the same scored rows as the diagnosis."""
+        out = self.residuals.copy()
+        out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
+        out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
+        return out
+
     def to_json(self) -> dict[str, Any]:
         return {
-            "effect": self.effect, "mape": self.mape, "delta_mape": self.delta_mape,
-            "bic": self.bic, "delta_bic": self.delta_bic, "delta_bic_all": self.delta_bic_all,
+            "effect": self.effect,
+            "mape": self.mape,
+            "delta_mape": self.delta_mape,
+            "bic": self.bic,
+            "delta_bic": self.delta_bic,
+            "delta_bic_all": self.delta_bic_all,
             "n_parameters": self.n_parameters,
-            "material": self.material, "meaning": self.meaning, "parameters": self.parameters,
+            "material": self.material,
+            "meaning": self.meaning,
+            "parameters": self.parameters,
         }
 
 
@@ -159,6 +202,25 @@ class Diagnosis:
     #: what the candidates' BIC was taken on: "well tests" or "all measurements"
     bic_on: str = "all measurements"
 
+    #: the variables the residual is examined against, in report order
+    driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
+
+    @property
+    def material_rule(self) -> dict[str, float]:
+        """What makes a candidate material: MAPE drop (points, relative) and BIC drop."""
+        return {
+            "mape_abs": MATERIAL_MAPE_ABS,
+            "mape_rel": MATERIAL_MAPE_REL,
+            "bic": MATERIAL_BIC,
+        }
+
+    def residuals_of(self, run: RunResult) -> pd.DataFrame:
+        """The residual frame of another run on the same scored rows as the diagnosis."""
+        out = self.residuals.copy()
+        out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
+        out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
+        return out
+
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "format": "vfm-diagnosis/1",
@@ -166,10 +228,14 @@ class Diagnosis:
             "method": self.method,
             "targets": self.targets,
             "split": self.split.isoformat(),
-            "baseline": {"mape": self.baseline_mape, "bic": self.baseline_bic, "n": int(len(self.residuals)),
-                         "candidate_method": self.candidate_method,
-                         "candidate_mape": self.candidate_baseline_mape,
-                         "bic_on": self.bic_on},
+            "baseline": {
+                "mape": self.baseline_mape,
+                "bic": self.baseline_bic,
+                "n": int(len(self.residuals)),
+                "candidate_method": self.candidate_method,
+                "candidate_mape": self.candidate_baseline_mape,
+                "bic_on": self.bic_on,
+            },
             "drivers": self.drivers,
             "candidates": [c.to_json() for c in self.candidates],
             "regions": self.regions,
@@ -184,7 +250,11 @@ class Diagnosis:
 
 # --- residuals and drivers ------------------------------------------------------------------
 def residual_frame(
-    frame: pd.DataFrame, predictions: pd.DataFrame, *, targets: str, split: pd.Timestamp,
+    frame: pd.DataFrame,
+    predictions: pd.DataFrame,
+    *,
+    targets: str,
+    split: pd.Timestamp,
     p_cr: dict[str, float] | None = None,
 ) -> pd.DataFrame:
     """The scored rows with inputs, derived variables and the relative residual ``r``.
@@ -198,11 +268,13 @@ def residual_frame(
         raise ValueError("The predictions do not belong to this frame, target case and split.")
     scored = frame.iloc[rows]
     feats = standard_features(frame).iloc[rows]
-    out = pd.DataFrame({
-        "time": pd.to_datetime(scored[TIME], utc=True).to_numpy(),
-        "well": scored[WELL].astype(str).to_numpy(),
-        "source": scored[SOURCE].astype(str).to_numpy(),
-    })
+    out = pd.DataFrame(
+        {
+            "time": pd.to_datetime(scored[TIME], utc=True).to_numpy(),
+            "well": scored[WELL].astype(str).to_numpy(),
+            "source": scored[SOURCE].astype(str).to_numpy(),
+        }
+    )
     for col in INPUT_COLUMNS:
         out[col] = scored[col].to_numpy(dtype=float)
     out["p_ratio"] = out["p_down"] / out["p_up"]
@@ -223,7 +295,9 @@ def _values(res: pd.DataFrame, name: str) -> np.ndarray:
     return res[name].to_numpy()
 
 
-def _binned_fit(x_train: np.ndarray, r_train: np.ndarray, x_test: np.ndarray, bins: int) -> np.ndarray:
+def _binned_fit(
+    x_train: np.ndarray, r_train: np.ndarray, x_test: np.ndarray, bins: int
+) -> np.ndarray:
     """Binned means on quantile bins of the training x; test points take their bin's mean."""
     edges = np.unique(np.quantile(x_train, np.linspace(0, 1, bins + 1)))
     if len(edges) < 2:
@@ -242,7 +316,11 @@ def _group_fit(x_train: np.ndarray, r_train: np.ndarray, x_test: np.ndarray) -> 
 
 
 def rank_drivers(
-    residuals: pd.DataFrame, variables: Sequence[str] = DRIVER_VARIABLES, *, blocks: int = 6, bins: int = 10
+    residuals: pd.DataFrame,
+    variables: Sequence[str] = DRIVER_VARIABLES,
+    *,
+    blocks: int = 6,
+    bins: int = 10,
 ) -> list[dict[str, Any]]:
     """Out-of-sample share of the residual variance each variable explains, best first.
 
@@ -272,8 +350,13 @@ def rank_drivers(
                 fit = _binned_fit(x[train].astype(float), r[train], x[test].astype(float), bins)
             sse += float(((r[test] - fit) ** 2).sum())
             sst += float(((r[test] - r[train].mean()) ** 2).sum())
-        out.append({"name": name, "score": 1.0 - sse / sst if sst > 0 else 0.0,
-                    "unit": _UNITS.get(name, "category")})
+        out.append(
+            {
+                "name": name,
+                "score": 1.0 - sse / sst if sst > 0 else 0.0,
+                "unit": _UNITS.get(name, "category"),
+            }
+        )
     return sorted(out, key=lambda d: -d["score"])
 
 
@@ -320,12 +403,22 @@ def _regions(res: pd.DataFrame) -> dict[str, list[dict[str, Any]]]:
         rows = []
         for key, g in groups:
             key = key[0] if isinstance(key, tuple) else key
-            rows.append({"region": str(key), "n": int(len(g)), "mape": mape(g["predicted"], g["measured"]),
-                         "median_residual": float(np.nanmedian(g["r"])) if len(g) else float("nan")})
+            rows.append(
+                {
+                    "region": str(key),
+                    "n": int(len(g)),
+                    "mape": mape(g["predicted"], g["measured"]),
+                    "median_residual": float(np.nanmedian(g["r"])) if len(g) else float("nan"),
+                }
+            )
         return sorted(rows, key=lambda d: -(d["mape"] if math.isfinite(d["mape"]) else -1))
 
-    choke_bin = pd.cut(res["choke"], [0, 0.2, 0.4, 0.6, 0.8, 1.0001], right=False,
-                       labels=["0-0.2", "0.2-0.4", "0.4-0.6", "0.6-0.8", "0.8-1"])
+    choke_bin = pd.cut(
+        res["choke"],
+        [0, 0.2, 0.4, 0.6, 0.8, 1.0001],
+        right=False,
+        labels=["0-0.2", "0.2-0.4", "0.4-0.6", "0.6-0.8", "0.8-1"],
+    )
     quarter = res["time"].dt.tz_convert(None).dt.to_period("Q").astype(str)
     return {
         "well": summary(res.groupby("well", sort=False)),
@@ -336,9 +429,16 @@ def _regions(res: pd.DataFrame) -> dict[str, list[dict[str, Any]]]:
     }
 
 
-def _findings(res: pd.DataFrame, regions: dict[str, list[dict[str, Any]]], overall: float) -> list[str]:
-    words = {"well": "well", "period": "quarter", "choke": "choke opening", "flow_regime": "flow regime",
-             "source": "measurement source"}
+def _findings(
+    res: pd.DataFrame, regions: dict[str, list[dict[str, Any]]], overall: float
+) -> list[str]:
+    words = {
+        "well": "well",
+        "period": "quarter",
+        "choke": "choke opening",
+        "flow_regime": "flow regime",
+        "source": "measurement source",
+    }
     out = []
     for key, rows in regions.items():
         rows = [r for r in rows if r["n"] >= 10 and math.isfinite(r["mape"])]
@@ -355,7 +455,9 @@ def _findings(res: pd.DataFrame, regions: dict[str, list[dict[str, Any]]], overa
 
 
 # --- candidates -----------------------------------------------------------------------------
-def _parameter_summary(run: RunResult, effects: Sequence[type[Effect]]) -> tuple[dict[str, Any], str, int]:
+def _parameter_summary(
+    run: RunResult, effects: Sequence[type[Effect]]
+) -> tuple[dict[str, Any], str, int]:
     model = run.final_model
     assert model is not None
     params = model.physical_parameters()
@@ -369,16 +471,24 @@ def _parameter_summary(run: RunResult, effects: Sequence[type[Effect]]) -> tuple
             values = params[key].numpy()
             med = float(np.median(values[ready])) if ready.any() else float("nan")
             medians.setdefault(cls.name, {})[pname] = med
-            out[key] = {"value": med, "unit": prior.unit, "meaning": prior.meaning,
-                        "prior_mean": prior.mean, "prior_std": prior.std,
-                        "per_well": {w: float(v) for w, v in zip(model.wells, values, strict=True)}}
+            out[key] = {
+                "value": med,
+                "unit": prior.unit,
+                "meaning": prior.meaning,
+                "prior_mean": prior.mean,
+                "prior_std": prior.std,
+                "per_well": {w: float(v) for w, v in zip(model.wells, values, strict=True)},
+            }
             k += int(ready.sum())
     meaning = " ".join(cls().describe(medians.get(cls.name, {})) for cls in effects)
     return out, meaning, k
 
 
 def _score(
-    name: str, run: RunResult, effects: Sequence[type[Effect]], base_mape: float,
+    name: str,
+    run: RunResult,
+    effects: Sequence[type[Effect]],
+    base_mape: float,
     base: RunResult,
 ) -> CandidateResult:
     p = run.predictions
@@ -394,9 +504,12 @@ def _score(
     delta_bic = b - b0 if on == on0 else delta_all
     material = bool(
         delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
-        and delta_bic < -MATERIAL_BIC and delta_all < -MATERIAL_BIC
+        and delta_bic < -MATERIAL_BIC
+        and delta_all < -MATERIAL_BIC
     )
-    return CandidateResult(name, m, delta_mape, b, delta_bic, k, params, meaning, material, run, delta_all)
+    return CandidateResult(
+        name, m, delta_mape, b, delta_bic, k, params, meaning, material, run, delta_all
+    )
 
 
 def run_diagnosis(
@@ -431,8 +544,14 @@ def run_diagnosis(
     ext_classes = resolve_effects(list(effects)) if effects else []
     split_ts = resolve_split(targets, split)
     frame = add_features(frame, [*cand_classes, *ext_classes])
-    kw: dict[str, Any] = dict(targets=targets, split=split_ts, train=train, online=online, seed=seed,
-                              track_parameters=False)
+    kw: dict[str, Any] = dict(
+        targets=targets,
+        split=split_ts,
+        train=train,
+        online=online,
+        seed=seed,
+        track_parameters=False,
+    )
     cand_method = candidate_method or CANDIDATE_METHOD
     # (key, effects, method): the baseline, one run per candidate, the extended model
     jobs: list[tuple[str, list[type[Effect]], str]] = [("baseline", [], method)]
@@ -451,8 +570,11 @@ def run_diagnosis(
     base_mape = mape(base_p["predicted"], base_p["measured"])
     assert base.final_model is not None
     phys = base.final_model.physical_parameters()
-    p_cr = ({w: float(v) for w, v in zip(base.final_model.wells, phys["p_cr"], strict=True)}
-            if "p_cr" in phys else None)
+    p_cr = (
+        {w: float(v) for w, v in zip(base.final_model.wells, phys["p_cr"], strict=True)}
+        if "p_cr" in phys
+        else None
+    )
     res = residual_frame(frame, base_p, targets=targets, split=split_ts, p_cr=p_cr)
     base_bic = bic(res["r"].to_numpy(), 0, res["source"].to_numpy())
     drivers = rank_drivers(res)
@@ -462,17 +584,45 @@ def run_diagnosis(
     cand_base_mape = mape(cand_base["predicted"], cand_base["measured"])
     cand_run = runs.get("__candidate_baseline__", base)
     results = [_score(c.name, runs[c.name], [c], cand_base_mape, cand_run) for c in cand_classes]
-    results.sort(key=lambda c: (c.delta_bic if math.isfinite(c.delta_bic) else math.inf))
-    extended = _score("+".join(c.name for c in ext_classes), runs["__extended__"], ext_classes,
-                      base_mape, base) if ext_classes else None
+    results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+    extended = (
+        _score(
+            "+".join(c.name for c in ext_classes),
+            runs["__extended__"],
+            ext_classes,
+            base_mape,
+            base,
+        )
+        if ext_classes
+        else None
+    )
     scored_on = reference_bic(cand_run.predictions, 0)[1]
     verdict = _verdict(cand_base_mape, results, drivers)
-    return Diagnosis(model, str(method), targets, split_ts, base, base_mape, base_bic, res, drivers, regions,
-                     results, findings, verdict, extended, time.perf_counter() - started,
-                     cand_method, cand_base_mape, scored_on)
+    return Diagnosis(
+        model,
+        str(method),
+        targets,
+        split_ts,
+        base,
+        base_mape,
+        base_bic,
+        res,
+        drivers,
+        regions,
+        results,
+        findings,
+        verdict,
+        extended,
+        time.perf_counter() - started,
+        cand_method,
+        cand_base_mape,
+        scored_on,
+    )
 
 
-def _verdict(base_mape: float, candidates: list[CandidateResult], drivers: list[dict[str, Any]]) -> str:
+def _verdict(
+    base_mape: float, candidates: list[CandidateResult], drivers: list[dict[str, Any]]
+) -> str:
     material = [c for c in candidates if c.material]
     top = drivers[0] if drivers else None
     if material:
@@ -512,7 +662,9 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-def write_diagnosis(diag: Diagnosis, out_dir: str | os.PathLike[str], *, report: bool = True) -> list[Path]:
+def write_diagnosis(
+    diag: Diagnosis, out_dir: str | os.PathLike[str], *, report: bool = True
+) -> list[Path]:
     """Write ``diagnosis.json`` (and ``report.html``) into ``out_dir``, each atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -521,7 +673,9 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | os.PathLike[str], *, report:
     written: list[Path] = []
     try:
         (staging / "diagnosis.json").write_text(
-            json.dumps(_json_safe(diag.to_json()), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+            json.dumps(_json_safe(diag.to_json()), indent=2, allow_nan=False) + "\n",
+            encoding="utf-8",
+        )
         names = ["diagnosis.json"]
         if report:
             # Imported here: matplotlib and the templates are only needed for the report.
@@ -538,34 +692,38 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | os.PathLike[str], *, report:
 
 
 def format_summary(diag: Diagnosis) -> str:
-    lines = [f"Baseline {diag.model} ({diag.method}, {diag.targets}): MAPE {diag.baseline_mape:.2f} % "
-             f"on {len(diag.residuals):,} observations."]
+    lines = [
+        f"Baseline {diag.model} ({diag.method}, {diag.targets}): MAPE {diag.baseline_mape:.2f} % "
+        f"on {len(diag.residuals):,} observations."
+    ]
     if diag.candidate_method != diag.method:
-        lines.append(f"Candidates compared with {diag.candidate_method}: baseline MAPE "
-                     f"{diag.candidate_baseline_mape:.2f} %.")
-    lines.append("Drivers (out-of-sample R^2 of the residual): " + ", ".join(
-        f"{d['name']} {d['score']:.2f}" for d in diag.drivers[:5]))
-    lines.append(f"Candidates (dBIC on the {diag.bic_on}; dBIC all on every measurement; * material):")
+        lines.append(
+            f"Candidates compared with {diag.candidate_method}: baseline MAPE "
+            f"{diag.candidate_baseline_mape:.2f} %."
+        )
+    lines.append(
+        "Drivers (out-of-sample R^2 of the residual): "
+        + ", ".join(f"{d['name']} {d['score']:.2f}" for d in diag.drivers[:5])
+    )
+    lines.append(
+        f"Candidates (dBIC on the {diag.bic_on}; dBIC all on every measurement; * material):"
+    )
     for c in diag.candidates:
         flag = " *" if c.material else ""
-        lines.append(f"  {c.effect:<16} MAPE {c.mape:6.2f} %  dMAPE {c.delta_mape:+6.2f}  dBIC {c.delta_bic:+9.1f}"
-                     f"  dBIC all {c.delta_bic_all:+9.1f}{flag}")
+        lines.append(
+            f"  {c.effect:<16} MAPE {c.mape:6.2f} %  dMAPE {c.delta_mape:+6.2f}  dBIC {c.delta_bic:+9.1f}"
+            f"  dBIC all {c.delta_bic_all:+9.1f}{flag}"
+        )
     if diag.extended is not None:
         e = diag.extended
-        lines.append(f"With --effects {e.effect}: MAPE {e.mape:.2f} % (dMAPE {e.delta_mape:+.2f}, dBIC {e.delta_bic:+.1f}).")
+        lines.append(
+            f"With --effects {e.effect}: MAPE {e.mape:.2f} % (dMAPE {e.delta_mape:+.2f}, dBIC {e.delta_bic:+.1f})."
+        )
     lines.append(diag.verdict)
     return "\n".join(lines)
 
 
 # --- the report (drawn by vfm_core.reporting.diagnosis) ------------------------------------
-def residual_frame_from(diag: Diagnosis, run: RunResult) -> pd.DataFrame:
-    """The residual frame of another run on the same scored rows as the diagnosis."""
-    out = diag.residuals.copy()
-    out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
-    out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
-    return out
-
-
 # --- command line ---------------------------------------------------------------------------
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from vfm_core.observations import load_observations
@@ -583,9 +741,18 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         resolve_effect(c)
     loaded = load_observations(args.data)
     print(loaded.summary())
-    diag = run_diagnosis(loaded.frame, args.model, method=args.method, candidate_method=args.candidate_method,
-                         targets=args.targets, split=args.split,
-                         candidates=candidates, effects=effects, seed=args.seed, progress=not args.quiet)
+    diag = run_diagnosis(
+        loaded.frame,
+        args.model,
+        method=args.method,
+        candidate_method=args.candidate_method,
+        targets=args.targets,
+        split=args.split,
+        candidates=candidates,
+        effects=effects,
+        seed=args.seed,
+        progress=not args.quiet,
+    )
     written = write_diagnosis(diag, args.out, report=not args.no_report)
     print(format_summary(diag))
     print(f"Diagnosis took {diag.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
@@ -595,24 +762,42 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 def register(subparsers: Any) -> None:
     """Add ``vfm diagnose`` to the CLI (called from ``vfm_core.cli``)."""
     p = subparsers.add_parser(
-        "diagnose", help="find where a model fails and which physical effect is missing",
+        "diagnose",
+        help="find where a model fails and which physical effect is missing",
         description="Learn the model prequentially, rank what its residual depends on, try each "
-        "candidate effect under the same protocol and report the verdict.")
+        "candidate effect under the same protocol and report the verdict.",
+    )
     p.add_argument("data", help="observation file (.parquet or .csv)")
     p.add_argument("--out", required=True, help="output folder (diagnosis.json, report.html)")
-    p.add_argument("--model", default="mm", choices=["mm", "hem", "ham"], help="base model (default mm)")
-    p.add_argument("--method", default="ol", help="learning method: ol or pbl:<period> (default ol)")
-    p.add_argument("--candidate-method", default=CANDIDATE_METHOD,
-                   help=f"protocol of the candidate comparison (default {CANDIDATE_METHOD}: fit once "
-                   "before the split, score the rest; online learning would hide a missing effect)")
-    p.add_argument("--targets", default="all", choices=["all", "well_test"], help="target case (default all)")
+    p.add_argument(
+        "--model", default="mm", choices=["mm", "hem", "ham"], help="base model (default mm)"
+    )
+    p.add_argument(
+        "--method", default="ol", help="learning method: ol or pbl:<period> (default ol)"
+    )
+    p.add_argument(
+        "--candidate-method",
+        default=CANDIDATE_METHOD,
+        help=f"protocol of the candidate comparison (default {CANDIDATE_METHOD}: fit once "
+        "before the split, score the rest; online learning would hide a missing effect)",
+    )
+    p.add_argument(
+        "--targets", default="all", choices=["all", "well_test"], help="target case (default all)"
+    )
     p.add_argument("--split", default=None, help="first day scored (default as vfm evaluate)")
-    p.add_argument("--candidates", action="append",
-                   help="comma-separated candidate effects (default: " + ",".join(DEFAULT_CANDIDATES)
-                   + "; 'none' for none); registry names or module:Class")
-    p.add_argument("--effects", action="append",
-                   help="effects to add to the model and compare side by side, e.g. erosion,real_gas "
-                   "or mypkg.effects:Scale")
+    p.add_argument(
+        "--candidates",
+        action="append",
+        help="comma-separated candidate effects (default: "
+        + ",".join(DEFAULT_CANDIDATES)
+        + "; 'none' for none); registry names or module:Class",
+    )
+    p.add_argument(
+        "--effects",
+        action="append",
+        help="effects to add to the model and compare side by side, e.g. erosion,real_gas "
+        "or mypkg.effects:Scale",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

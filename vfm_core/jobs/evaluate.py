@@ -29,10 +29,10 @@ from tqdm import tqdm
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
+from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
 from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
-from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
 
 __all__ = ["StudyResult", "run_study", "write_study", "summarise", "DEFAULT_METHODS"]
 

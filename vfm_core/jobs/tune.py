@@ -35,8 +35,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from vfm_core.errors import ConfigError
-from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 
 __all__ = ["GRIDS", "trial_grid", "run_tuning", "load_params", "register"]
 

@@ -99,7 +99,9 @@ class PeriodicBatch(LearningMethod):
         if not bool(new.any()):
             unset = has & (self._next == NEVER)
             if bool(unset.any()):
-                first = torch.where(batch.mask, batch.time_ns, torch.full_like(batch.time_ns, NEVER))
+                first = torch.where(
+                    batch.mask, batch.time_ns, torch.full_like(batch.time_ns, NEVER)
+                )
                 self._next[unset] = first.min(dim=1).values[unset] + int(self.period.value)
             return torch.zeros_like(has)
         if memory is None:

@@ -77,6 +77,7 @@ DEFAULT_TRAIN: dict[str, TrainSettings] = {
     "ham": TrainSettings(lr=1e-2),
 }
 
+
 def make_optimizer(
     params: list[torch.nn.Parameter], kind: str, lr: float, power: float
 ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler | None]:
@@ -237,7 +238,9 @@ def fit_batch(
         has_val = torch.zeros_like(has_val)
     # pass 1: find the best iteration count on the held-out latest slice
     if bool(has_val.any()):
-        opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
+        opt, sched = make_optimizer(
+            params, settings.optimizer, settings.lr, settings.schedule_power
+        )
         best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
         since = torch.zeros(n_w, dtype=torch.int64)
         for k in range(1, settings.max_iter + 1):

@@ -74,9 +74,7 @@ class DriftTriggered(LearningMethod):
             "pbl:auto:alpha=0.01:confirm=5",
         )
         window = options.pop("window", None)
-        return cls(
-            text, window=parse_span(window, "window", text) if window else None, **options
-        )
+        return cls(text, window=parse_span(window, "window", text) if window else None, **options)
 
     def bind(self, model: ChokeModel, **kw: Any) -> DriftTriggered:  # type: ignore[override]
         super().bind(model, **kw)

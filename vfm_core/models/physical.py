@@ -247,9 +247,7 @@ class Mechanistic(ChokeModel):
     def _setup_new(self, batch: Batch, new: torch.Tensor) -> None:
         with torch.no_grad():
             if self.effects:
-                u = torch.where(
-                    batch.mask, batch.x[..., 0], torch.full_like(batch.y, float("nan"))
-                )
+                u = torch.where(batch.mask, batch.x[..., 0], torch.full_like(batch.y, float("nan")))
                 u_med = torch.nanmedian(u, dim=1).values
                 self.u_ref[new] = torch.where(
                     torch.isfinite(u_med[new]), u_med[new], torch.full_like(u_med[new], 0.5)

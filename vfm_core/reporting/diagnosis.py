@@ -20,13 +20,6 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from vfm_core.jobs.diagnose import (
-    DRIVER_VARIABLES,
-    MATERIAL_BIC,
-    MATERIAL_MAPE_ABS,
-    MATERIAL_MAPE_REL,
-    residual_frame_from,
-)
 from vfm_core.jobs.study import mape
 from vfm_core.reporting import page
 from vfm_core.reporting.page import Png
@@ -52,12 +45,12 @@ def _decimal_years(times: pd.Series) -> np.ndarray:
     return 1970.0 + ((t - epoch) / pd.Timedelta(days=365.25)).to_numpy(dtype=float)
 
 
-def _numeric_drivers(res: pd.DataFrame) -> list[str]:
+def _numeric_drivers(res: pd.DataFrame, variables: tuple[str, ...]) -> list[str]:
     """The driver variables with an axis: time and every numeric column (not well, source,
     flow regime)."""
     return [
         v
-        for v in DRIVER_VARIABLES
+        for v in variables
         if v == "time" or (v in res.columns and pd.api.types.is_numeric_dtype(res[v]))
     ]
 
@@ -81,12 +74,15 @@ def _trend(x: np.ndarray, r: np.ndarray, bins: int = 14) -> tuple[np.ndarray, ..
 
 
 def _residual_grid(
-    res: pd.DataFrame, drivers: list[dict[str, Any]], extended: pd.DataFrame | None = None
+    res: pd.DataFrame,
+    drivers: list[dict[str, Any]],
+    variables: tuple[str, ...],
+    extended: pd.DataFrame | None = None,
 ) -> Png:
     """The residual against each numeric driver variable, base (and extended) model."""
     score = {d["name"]: d["score"] for d in drivers}
     units = {d["name"]: d.get("unit", "-") for d in drivers}
-    names = _numeric_drivers(res)
+    names = _numeric_drivers(res, variables)
     cols = 4
     rows = math.ceil(len(names) / cols)
     fig = Figure(figsize=(4.0 * cols, 2.8 * rows))
@@ -181,7 +177,7 @@ def _extended(diag: Diagnosis) -> tuple[dict[str, Any] | None, pd.DataFrame | No
     if e is None or e.run is None:
         return None, None
     res = diag.residuals
-    ext_res = residual_frame_from(diag, e.run)
+    ext_res = diag.residuals_of(e.run)
     per_well = []
     for well, g in res.groupby("well"):
         h = ext_res[ext_res["well"] == well]
@@ -215,13 +211,13 @@ def build_report(diag: Diagnosis, path: Path) -> Path:
             "diag": diag,
             "n_scored": len(res),
             "material": {
-                "mape_abs": MATERIAL_MAPE_ABS,
-                "mape_rel_pct": 100 * MATERIAL_MAPE_REL,
-                "bic": MATERIAL_BIC,
+                "mape_abs": diag.material_rule["mape_abs"],
+                "mape_rel_pct": 100 * diag.material_rule["mape_rel"],
+                "bic": diag.material_rule["bic"],
             },
             "candidates": [c.to_json() for c in diag.candidates],
             "extended": extended,
-            "residual_grid": _residual_grid(res, diag.drivers, ext_res),
+            "residual_grid": _residual_grid(res, diag.drivers, diag.driver_variables, ext_res),
             "time_grid": _time_grid(res, ext_res),
         }
     return page.write_page(path, page.render("diagnosis.html.j2", **context))
