@@ -6,6 +6,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+LINTED := vfm_core service replay tests benchmarks examples
 
 .PHONY: install demo test lint bench clean
 
@@ -23,12 +24,15 @@ demo: $(STAMP)
 	$(VENV)/bin/vfm demo
 
 test: $(STAMP)
+	$(VENV)/bin/ruff check $(LINTED)
+	$(VENV)/bin/ruff format --check $(LINTED)
 	@# pytest exits 5 when it collects no test: that is a broken suite, say so.
 	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no test" >&2; fi; exit $$rc
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check vfm_core service replay tests benchmarks
+	$(VENV)/bin/ruff check $(LINTED)
+	$(VENV)/bin/ruff format --check $(LINTED)
 	$(VENV)/bin/mypy
 
 bench: $(STAMP)

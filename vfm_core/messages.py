@@ -117,7 +117,13 @@ class Measurement(BaseModel):
 
 
 class Prediction(BaseModel):
-    """The service's answer to a sensor sample: predicted rates in Sm3/h."""
+    """The service's answer to a sensor sample: predicted rates in Sm3/h.
+
+    With a learning method that carries its uncertainty (``bayes``), ``q_total_std`` is the
+    predictive standard deviation of the total rate a well test would measure, and
+    ``q_total_p05`` / ``q_total_p95`` bound its central 90 % interval; otherwise they are
+    null.
+    """
 
     time: datetime
     q_total: float
@@ -126,6 +132,9 @@ class Prediction(BaseModel):
     q_water: float | None = None
     model: str
     version: int
+    q_total_std: float | None = None
+    q_total_p05: float | None = None
+    q_total_p95: float | None = None
 
 
 Source = Literal["mpfm", "well_test"]

@@ -51,9 +51,6 @@ PARAMETER_UNITS: dict[str, str] = {name: p.unit for name, p in ph.PRIORS.items()
 #: the checkpoint formats :meth:`WellLearner.restore` reads (the first writes today's)
 CHECKPOINT_FORMATS = ("vfm-well-learner/3", "vfm-well-learner/2", "vfm-well-learner/1")
 
-#: a central 90 % interval is the mean +- this many predictive standard deviations
-Z90 = 1.6448536269514722
-
 
 def phase_split(
     q_total: torch.Tensor, x: torch.Tensor, theta: dict[str, torch.Tensor] | None = None
@@ -326,10 +323,10 @@ class WellLearner:
         out["q_total"] = float(q[0, 0])
         out.update({k: float(v[0, 0]) for k, v in phase_split(q, x, theta).items()})
         if forecast.std is not None:
-            sd = float(forecast.std[0, 0])
-            out["q_total_std"] = sd
-            out["q_total_p05"] = max(out["q_total"] - Z90 * sd, 0.0)
-            out["q_total_p95"] = out["q_total"] + Z90 * sd
+            out["q_total_std"] = float(forecast.std[0, 0])
+        if forecast.p05 is not None and forecast.p95 is not None:
+            out["q_total_p05"] = float(forecast.p05[0, 0])
+            out["q_total_p95"] = float(forecast.p95[0, 0])
         return out
 
     def learn(

@@ -160,6 +160,8 @@ def run_prequential(
     param_rows = _param_rows(model, split_ts, model.ready) if track_parameters else []
     predicted = np.full(len(frame), np.nan)
     spread = np.full(len(frame), np.nan)
+    low = np.full(len(frame), np.nan)
+    high = np.full(len(frame), np.nan)
     test = make_batch(frame, wells, extra_columns=model.extra_columns, rows=test_rows)
     total = len(test_rows)
     done = 0
@@ -170,6 +172,9 @@ def run_prequential(
         predicted[rows] = forecast.mean[where].numpy()
         if forecast.std is not None:
             spread[rows] = forecast.std[where].numpy()
+        if forecast.p05 is not None and forecast.p95 is not None:
+            low[rows] = forecast.p05[where].numpy()
+            high[rows] = forecast.p95[where].numpy()
 
     if meth.per_measurement or model.gradient_free:
         rounds: list[Batch]
@@ -235,6 +240,8 @@ def run_prequential(
     )
     if meth.intervals:
         predictions["predicted_std"] = spread[test_rows]
+        predictions["predicted_p05"] = low[test_rows]
+        predictions["predicted_p95"] = high[test_rows]
     predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
     return RunResult(
         model=model.name,

@@ -66,10 +66,16 @@ NEVER = torch.iinfo(torch.int64).max
 
 
 class Forecast(NamedTuple):
-    """A prediction: the mean rate [W, N] (Sm3/h) and its predictive sd [W, N] or None."""
+    """A prediction [W, N], Sm3/h: the rate and, for methods with ``intervals``, its
+    predictive standard deviation and the bounds of its central 90 % interval (else None).
+
+    The interval is that of the measurement being predicted (the sample's source: MPFM or
+    well test), parameter uncertainty and that meter's noise together."""
 
     mean: torch.Tensor
     std: torch.Tensor | None = None
+    p05: torch.Tensor | None = None
+    p95: torch.Tensor | None = None
 
 
 def parse_span(text: str, what: str, method: str) -> pd.Timedelta:
