@@ -11,6 +11,7 @@ well; only a shared model (``mtl``) couples them.
 
 from __future__ import annotations
 
+import time
 import zlib
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -62,6 +63,9 @@ class TrainSettings:
     #: False: no held-out slice; every initial fit runs ``max_iter`` iterations (for models
     #: whose priors are their regulariser, on data whose latest slice is not like the rest)
     early_stopping: bool = True
+    #: wall-clock budget of one fit, seconds (0: none): past it the fit stops where it is,
+    #: keeping every parameter it has reached (a service must never wait on a retrain)
+    time_budget_s: float = 0.0
 
 
 #: Batch defaults per model, from the paper's Tables B.1-B.2 adapted to this
@@ -210,6 +214,7 @@ def fit_batch(
     retrains only those wells (the others keep their parameters; shared parameters always
     train). Returns a summary with ``iterations``, the count per well, for later retrains.
     """
+    deadline = time.monotonic() + settings.time_budget_s if settings.time_budget_s > 0 else None
     model.setup(batch)
     if model.gradient_free:
         model.observe(batch)
@@ -222,6 +227,7 @@ def fit_batch(
     if wells is not None and not model.shared:
         batch = batch.select(batch.mask & wells.unsqueeze(1))
     train, val, has_val = _split_latest(batch, settings.val_fraction)
+    timed_out = False
     n_w = batch.n_wells
     best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
 
@@ -263,6 +269,9 @@ def fit_batch(
             since = torch.where(improved, torch.zeros_like(since), since + 1)
             if bool((since[has_val] >= settings.patience).all()):
                 break
+            if deadline is not None and time.monotonic() > deadline:
+                timed_out = True
+                break
         best_iter = torch.where(
             has_val, best_iter, torch.full_like(best_iter, settings.default_iter)
         )
@@ -285,17 +294,24 @@ def fit_batch(
         if sched is not None:
             sched.step()
         model.project_()
+        if deadline is not None and time.monotonic() > deadline and k < total_iter:
+            # out of time: every well still running stops here, where it is
+            timed_out = True
+            best_iter = best_iter.clamp(max=k)
+            total_iter = k
         done = best_iter == k
         if bool(done.any()):
             for p, f in zip(params, final, strict=True):
                 if id(p) in per_well:
                     f[done] = p.detach()[done]
+        if k >= total_iter:
+            break
     for p, f in zip(params, final, strict=True):
         if id(p) in per_well:
             # wells that stopped early keep their snapshot; the rest end at total_iter
             keep = best_iter < total_iter
             p.data[keep] = f[keep]
-    return {"iterations": best_iter}
+    return {"iterations": best_iter, "timed_out": timed_out}
 
 
 def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
