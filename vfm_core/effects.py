@@ -438,7 +438,7 @@ class MeterBias(Effect):
         "Meter bias: the MPFM reads 1 + bias + drift * t against the well tests (MPFM rows only)."
     )
     parameters = {
-        "bias": Prior(0.0, 0.05, -0.5, 1.0, "-", "relative MPFM bias at the well's start"),
+        "bias": Prior(0.0, 0.05, -0.5, 1.0, "-", "relative MPFM bias at the well's start", 0.5),
         "drift": Prior(0.0, 0.02, -0.2, 0.2, "1/yr", "relative MPFM drift per year"),
     }
     extra_columns = ("years_on",)

@@ -78,7 +78,15 @@ def _t(x: Tensorish) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class Prior:
-    """A Gaussian prior N(mean, std^2) with hard physical bounds [low, high] (SI units)."""
+    """A Gaussian prior N(mean, std^2) with hard physical bounds [low, high] (SI units).
+
+    ``drift``: how far the parameter of a real well may wander in a year, in prior standard
+    deviations per square root of a year (the process noise of a Bayesian filter: a random
+    walk of variance (drift std)^2 per year). The rule: what wells change over months (the
+    discharge coefficient: wear and deposits; the densities and the gas molar mass, as
+    water cut and gas composition change) a good part of its prior range, 0.25-0.5; constants
+    of the fluid and the structural parameters of effects (slopes, exponents), 0.05.
+    """
 
     mean: float
     std: float
@@ -86,18 +94,19 @@ class Prior:
     high: float
     unit: str
     meaning: str
+    drift: float = 0.05
 
 
 #: Priors of the mechanistic parameters (shared/notes/choke-physics.md, "Typical priors").
 #: The standard deviation is a quarter of the typical range, so the range is about +-2 sd;
 #: the bounds are wider physical limits that learning may never cross.
 PRIORS: dict[str, Prior] = {
-    "rho_oil": Prior(840.0, 20.0, 650.0, 1000.0, "kg/m3", "oil density"),
-    "rho_wat": Prior(1017.5, 8.0, 990.0, 1100.0, "kg/m3", "water density"),
-    "kappa": Prior(1.28, 0.015, 1.05, 1.67, "-", "gas heat-capacity ratio"),
-    "m_gas": Prior(0.0205, 0.0018, 0.016, 0.040, "kg/mol", "gas molar mass"),
-    "p_cr": Prior(0.55, 0.05, 0.2, 0.95, "-", "critical pressure ratio p_down/p_up"),
-    "c_d": Prior(0.825, 0.04, 0.3, 1.5, "-", "discharge coefficient"),
+    "rho_oil": Prior(840.0, 20.0, 650.0, 1000.0, "kg/m3", "oil density", 0.25),
+    "rho_wat": Prior(1017.5, 8.0, 990.0, 1100.0, "kg/m3", "water density", 0.25),
+    "kappa": Prior(1.28, 0.015, 1.05, 1.67, "-", "gas heat-capacity ratio", 0.05),
+    "m_gas": Prior(0.0205, 0.0018, 0.016, 0.040, "kg/mol", "gas molar mass", 0.25),
+    "p_cr": Prior(0.55, 0.05, 0.2, 0.95, "-", "critical pressure ratio p_down/p_up", 0.05),
+    "c_d": Prior(0.825, 0.04, 0.3, 1.5, "-", "discharge coefficient", 0.5),
 }
 
 

@@ -380,15 +380,38 @@ class WellLearner:
         self._bump(ts.to_pydatetime(warn=False))
 
     # -- state ----------------------------------------------------------------------------
-    def physical_parameters(self) -> dict[str, dict[str, float | str]]:
-        """Named physical parameters with values (SI) and units (effects' as ``effect.name``)."""
-        units = dict(PARAMETER_UNITS)
+    def physical_parameters(self) -> dict[str, dict[str, Any]]:
+        """Named physical parameters (effects' as ``effect.name``): ``value`` (SI), ``unit``,
+        ``std`` (the learning method's posterior standard deviation; None for a method that
+        keeps no uncertainty), the bounds ``low`` and ``high`` learning may not cross (None
+        for a set quantity such as ``a_max``), and ``at_bound``: True when the value sits
+        within a thousandth of the range of a bound that is not also the prior's mean (the
+        data push it beyond what physics allows: often a sign of a missing effect)."""
+        priors = dict(ph.PRIORS)
         for e in getattr(self.model, "effects", []):
-            units.update({f"{e.name}.{k}": pr.unit for k, pr in e.parameters.items()})
-        return {
-            name: {"value": float(v[0]), "unit": units.get(name, "")}
-            for name, v in self.model.physical_parameters().items()
-        }
+            priors.update({f"{e.name}.{k}": pr for k, pr in e.parameters.items()})
+        sd = self.method.parameter_sd()
+        out: dict[str, dict[str, Any]] = {}
+        for name, v in self.model.physical_parameters().items():
+            value = float(v[0])
+            prior = priors.get(name)
+            std = sd.get(name)
+            entry: dict[str, Any] = {
+                "value": value,
+                "unit": prior.unit if prior is not None else PARAMETER_UNITS.get(name, ""),
+                "std": float(std[0]) if std is not None else None,
+                "low": prior.low if prior is not None else None,
+                "high": prior.high if prior is not None else None,
+                "at_bound": False,
+            }
+            if prior is not None:
+                # a bound that is also the prior's mean is the effect switched off, not a warning
+                tol = 1e-3 * (prior.high - prior.low)
+                low = prior.low < prior.mean and value <= prior.low + tol
+                high = prior.high > prior.mean and value >= prior.high - tol
+                entry["at_bound"] = bool(low or high)
+            out[name] = entry
+        return out
 
     # -- another model on the same history ----------------------------------------------------
     def refit_as(

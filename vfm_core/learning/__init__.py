@@ -6,10 +6,12 @@
   the registry (:data:`METHODS`) and :func:`parse_method`.
 - One module per method: :mod:`~vfm_core.learning.online` (``ol``),
   :mod:`~vfm_core.learning.periodic` (``pbl:<period>``),
-  :mod:`~vfm_core.learning.triggered` (``pbl:auto``).
+  :mod:`~vfm_core.learning.triggered` (``pbl:auto``), :mod:`~vfm_core.learning.bayes`
+  (``bayes``: a Kalman filter with drift and predictive intervals).
 - :mod:`vfm_core.learning.memory`: the measurements a retrain reads.
 """
 
+from vfm_core.learning.bayes import BayesianFilter
 from vfm_core.learning.memory import FrameMemory, Memory, WellMemory
 from vfm_core.learning.method import (
     METHODS,
@@ -32,6 +34,7 @@ from vfm_core.learning.triggered import DriftTriggered
 __all__ = [
     "METHODS",
     "NEVER",
+    "BayesianFilter",
     "DEFAULT_ONLINE",
     "DEFAULT_TRAIN",
     "DriftTriggered",

@@ -272,6 +272,16 @@ class LearningMethod(ABC):
         """The predicted rate for every sample of ``batch`` (NaN where a well has no model)."""
         return Forecast(self.model.predict_batch(batch), None)
 
+    # -- what the method knows -------------------------------------------------------------------
+    def parameter_sd(self) -> dict[str, torch.Tensor]:
+        """Posterior standard deviation [W] of the physical parameters, SI units, by the names of
+        ``model.physical_parameters()``; empty for a method that keeps no uncertainty."""
+        return {}
+
+    def stats(self) -> dict[str, torch.Tensor]:
+        """Per-well counters worth reporting (e.g. refused outliers) [W]; empty by default."""
+        return {}
+
     # -- state -----------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -18,6 +18,8 @@ updates every well at once and independently. The protocol:
 - ``project_()``: clamp physical parameters into their bounds after each step.
 - ``observe(batch)``: learning without gradients (the ``last`` benchmark only).
 - ``physical_parameters()``: named physical parameters in SI units, per well.
+- ``filter_blocks()``: the per-well parameters a Bayesian learning method tracks, with
+  their prior variances, their drift per year and their SI scale (:class:`FilterBlock`).
 - ``state_dict()`` / ``load_state_dict()`` hold tensors only; hyperparameters are the
   constructor's keyword arguments (``model.hyper``, JSON). No pickle anywhere.
 """
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -34,10 +37,51 @@ from torch import nn
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
 
-__all__ = ["ChokeModel", "WellMLP", "PhysicalParameters", "N_INPUTS"]
+__all__ = ["ChokeModel", "WellMLP", "PhysicalParameters", "FilterBlock", "make_block", "N_INPUTS"]
 
 #: the six inputs of every model, in vfm_core.schema.INPUT_COLUMNS order
 N_INPUTS = 6
+
+
+#: drift of a network's output layer per square root of a year, in its own units (for
+#: ``ham`` the bias is the log of the area factor, elsewhere a share of the median rate):
+#: the level a few percent a year, the slopes a tenth of that
+HEAD_DRIFT_BIAS = 0.025
+HEAD_DRIFT_WEIGHT = 0.0025
+
+
+@dataclass(frozen=True)
+class FilterBlock:
+    """Per-well parameters a Bayesian learning method tracks: every element of ``param[j]``.
+
+    ``labels``: one name per element (``c_d``, ``erosion.rate``, ``head.bias``);
+    ``prior_var``: each element's prior variance (its own units); ``drift``: its random-walk
+    standard deviation per square root of a year (own units); ``scale``: SI units per unit
+    of the element (a standardised physical parameter: its prior sd), or 0 where the
+    element has no physical meaning (network weights).
+    """
+
+    param: nn.Parameter
+    labels: tuple[str, ...]
+    prior_var: torch.Tensor
+    drift: torch.Tensor
+    scale: torch.Tensor
+
+    @property
+    def size(self) -> int:
+        return len(self.labels)
+
+
+def make_block(
+    param: nn.Parameter, labels: Sequence[str], prior_var: Any, drift: Any, scale: Any = 0.0
+) -> FilterBlock:
+    k = len(labels)
+
+    def vec(v: Any) -> torch.Tensor:
+        t = torch.as_tensor(v, dtype=DTYPE)
+        return t.expand(k).clone() if t.dim() == 0 else t.reshape(k).clone()
+
+    return FilterBlock(param, tuple(labels), vec(prior_var), vec(drift), vec(scale))
 
 
 class ChokeModel(nn.Module):
@@ -138,6 +182,11 @@ class ChokeModel(nn.Module):
         """Parameters with a leading well dimension (all of them unless shared)."""
         return [] if self.shared else list(self.parameters())
 
+    def filter_blocks(self) -> list[FilterBlock]:
+        """What a Bayesian learning method tracks per well (see :class:`FilterBlock`); a
+        model without per-well parameters (the ``last`` benchmark) has none."""
+        return []
+
 
 class WellMLP(nn.Module):
     """One ReLU multilayer perceptron per well, evaluated in one batched call.
@@ -165,6 +214,18 @@ class WellMLP(nn.Module):
                 z = torch.relu(z)
         return z.squeeze(-1)
 
+    def head_blocks(self, prefix: str = "head") -> list[FilterBlock]:
+        """The output layer as filter blocks: its weights (prior variance 2/fan_in, He) and
+        its bias (prior variance 1); the layers below stay as fitted."""
+        w, b = self.weights[-1], self.biases[-1]
+        fan_in = int(w.shape[1])
+        return [
+            make_block(
+                w, [f"{prefix}.w{i}" for i in range(fan_in)], 2.0 / fan_in, HEAD_DRIFT_WEIGHT
+            ),
+            make_block(b, [f"{prefix}.bias"], 1.0, HEAD_DRIFT_BIAS),
+        ]
+
     def prior_penalty(self) -> torch.Tensor:
         total = torch.zeros(self.weights[0].shape[0], dtype=DTYPE)
         for w, b in zip(self.weights, self.biases, strict=True):
@@ -186,6 +247,9 @@ class PhysicalParameters(nn.Module):
         table = names if isinstance(names, Mapping) else {n: ph.PRIORS[n] for n in names}
         self.names = tuple(table)
         priors = [table[n] for n in self.names]
+        self.drifts = {
+            n: float(getattr(p, "drift", 0.05)) for n, p in zip(self.names, priors, strict=True)
+        }
         self.register_buffer("mu", torch.tensor([p.mean for p in priors], dtype=DTYPE))
         self.register_buffer("sigma", torch.tensor([p.std for p in priors], dtype=DTYPE))
         self.register_buffer(
@@ -195,6 +259,17 @@ class PhysicalParameters(nn.Module):
             "z_high", torch.tensor([(p.high - p.mean) / p.std for p in priors], dtype=DTYPE)
         )
         self.z = nn.Parameter(torch.zeros(n_wells, len(self.names), dtype=DTYPE))
+
+    def filter_block(self, prefix: str = "") -> FilterBlock:
+        """All parameters as one filter block, in standardised units (prior variance 1,
+        drift from each prior, SI scale = prior sd)."""
+        return make_block(
+            self.z,
+            [f"{prefix}{n}" for n in self.names],
+            1.0,
+            [self.drifts[n] for n in self.names],
+            self.sigma,
+        )
 
     def values(self) -> dict[str, torch.Tensor]:
         theta = self.mu + self.sigma * self.z

@@ -14,7 +14,15 @@ import torch
 from torch import nn
 
 from vfm_core.data import DTYPE, Batch
-from vfm_core.models.base import ChokeModel, WellMLP
+from vfm_core.models.base import (
+    HEAD_DRIFT_BIAS,
+    HEAD_DRIFT_WEIGHT,
+    ChokeModel,
+    FilterBlock,
+    WellMLP,
+    make_block,
+)
+from vfm_core.schema import INPUT_COLUMNS
 
 __all__ = ["LastValue", "LinearRegression", "NeuralNet", "MultiTask"]
 
@@ -68,6 +76,13 @@ class LinearRegression(ChokeModel):
             return super().prior_penalty()
         return (self.w**2).sum(1) + (self.b - 1.0) ** 2
 
+    def filter_blocks(self) -> list[FilterBlock]:
+        """Slopes and level, in units of the well's median rate (prior variance 1)."""
+        return [
+            make_block(self.w, [f"w.{c}" for c in INPUT_COLUMNS], 1.0, HEAD_DRIFT_WEIGHT),
+            make_block(self.b, ["level"], 1.0, HEAD_DRIFT_BIAS),
+        ]
+
 
 class NeuralNet(ChokeModel):
     """q = y_scale (1 + MLP(x_norm)): a ReLU network per well (paper eq. nn-model)."""
@@ -86,6 +101,10 @@ class NeuralNet(ChokeModel):
 
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return super().prior_penalty() if physical_only else self.net.prior_penalty()
+
+    def filter_blocks(self) -> list[FilterBlock]:
+        """The output layer (last-layer Bayesian learning; the layers below stay as fitted)."""
+        return self.net.head_blocks("head")
 
 
 class MultiTask(ChokeModel):
@@ -167,3 +186,8 @@ class MultiTask(ChokeModel):
 
     def per_well_parameters(self) -> list[torch.nn.Parameter]:
         return [self.beta]
+
+    def filter_blocks(self) -> list[FilterBlock]:
+        """Each well's task vector beta_j (the shared network stays as fitted)."""
+        dim = int(self.beta.shape[1])
+        return [make_block(self.beta, [f"beta.{i}" for i in range(dim)], 1.0, 0.05)]

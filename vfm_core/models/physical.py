@@ -24,7 +24,7 @@ from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
 from vfm_core.effects import Effect, EffectInputs, effect_spec, resolve_effects
 from vfm_core.errors import ConfigError
-from vfm_core.models.base import ChokeModel, PhysicalParameters, WellMLP
+from vfm_core.models.base import ChokeModel, FilterBlock, PhysicalParameters, WellMLP
 from vfm_core.units import bar_to_pa, degc_to_k
 
 __all__ = ["PHYSICAL_NAMES", "Mechanistic", "HybridError", "HybridArea", "mechanistic_rate"]
@@ -300,6 +300,14 @@ class Mechanistic(ChokeModel):
                 for n, v in self.effect_params[e.name].values().items():
                     out[f"{e.name}.{n}"] = v.detach().clone()
         return out
+
+    def filter_blocks(self) -> list[FilterBlock]:
+        """The mechanistic parameters, each effect's, and a hybrid's output layer."""
+        blocks = [self.phys.filter_block()]
+        blocks += [self.effect_params[e.name].filter_block(f"{e.name}.") for e in self.effects]
+        if self.net is not None:
+            blocks += self.net.head_blocks("head")
+        return blocks
 
     def physical_priors(self) -> dict[str, ph.Prior]:
         """The prior (mean, sd, bounds, unit) of every learned physical parameter, by the

@@ -1,0 +1,711 @@
+"""Bayesian online learning (``bayes[:key=value:...]``): a filter that knows how sure it is.
+
+The state of a well is a Gaussian over the parameters its model exposes to a filter
+(:meth:`vfm_core.models.base.ChokeModel.filter_blocks`: the mechanistic parameters in
+prior standard deviations, every effect's, and the output layer of a network): the mean
+is the model's parameters, the covariance P is kept here.
+
+- **Start.** The batch (MAP) fit, then a Kalman pass over the history it was fitted on
+  (linearised at the fit, J the sensitivity of the log rate to the parameters by central
+  differences), so that a well that drifted starts where it ended, not at its history's
+  average (see :meth:`BayesianFilter._fitted`). :func:`laplace_sd` gives the plain Laplace
+  covariance of a fit (the Gauss-Newton Hessian of the MAP objective) for a diagnosis.
+- **Drift.** Between measurements the parameters wander as a random walk: P grows by
+  Q dt, dt in years, Q = diag(drift^2). Each parameter's drift is a property of the
+  parameter (``Prior.drift`` for physical ones, see :class:`vfm_core.physics.Prior`; a
+  network's output layer a few percent a year), times the option ``drift`` (default 1),
+  or set one by one (``drift_c_d=0.8``). So a well test after 60 days of silence moves
+  the parameters more than one after 2 days, and it moves what is likely to have moved
+  (the discharge coefficient) rather than what was learned once (an effect's slope).
+- **Update.** Each measurement y is one iterated extended Kalman step in log space,
+  log y = log h(x; theta) + e, e ~ N(0, s^2), with the noise s of its source: MPFM and
+  well test each have their own relative noise, estimated per well from the residuals of
+  the fit before the split (divided by the rows less the parameters fitted, shrunk towards
+  3 % and 1 % when there are few), then adapted online from the innovations (``adapt``, an
+  exponentially weighted variance), so a well test counts for what it is. The Joseph form keeps P symmetric and positive.
+- **Outliers.** An innovation beyond ``huber`` predictive standard deviations is
+  down-weighted (its noise inflated by |z|/huber); beyond ``gate`` it is refused, and
+  counted. Three refusals in a row mean the well itself changed: P is widened by a year's
+  drift and the measurement is taken.
+- **Prediction.** The rate h(x; theta) (the median of a log-normal), and its spread in log
+  space sqrt(H (P + Q dt) H^T + s^2): the parameters' uncertainty at the time of the sample
+  and the noise of the meter the rate is compared with (a well test's for the service's
+  predictions). H, the sensitivity of the log rate, is taken at the well's last measured
+  sample (in log space it barely depends on the inputs for the choke models), which saves
+  a backward pass per prediction. The central 90 % interval is rate x exp(+-1.645 sd).
+- **Calibration.** A filter's intervals are only as honest as its model. Each meter's
+  intervals carry a factor learned by adaptive conformal inference (Gibbs and Candes,
+  2021): after every measurement the factor's log grows by 0.9 ``calibrate`` if the
+  measurement fell outside the 90 % interval given for it and shrinks by 0.1 ``calibrate``
+  if inside, so in the long run 90 % fall inside, whatever the model lacks. The factor widens the intervals
+  only; the filter's gain is the Kalman gain.
+
+Networks get the cheap approximation: only their output layer is filtered (last-layer
+Bayesian learning); the layers below stay as fitted. Options: ``drift``, ``drift_<label>``,
+``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
+(Kalman iterations per update, default 2), ``huber`` (3), ``gate`` (6), ``adapt`` (0.02),
+``calibrate`` (0.05), ``params`` (labels to filter, joined with '+'; default all).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from vfm_core.data import DTYPE, Batch
+from vfm_core.errors import ConfigError
+from vfm_core.learning.memory import Memory
+from vfm_core.learning.method import (
+    NEVER,
+    Forecast,
+    LearningMethod,
+    parse_options,
+    register,
+)
+from vfm_core.models import ChokeModel
+from vfm_core.models.base import FilterBlock
+
+__all__ = ["BayesianFilter", "laplace_sd", "NOISE_DEFAULTS", "Z90"]
+
+#: a central 90 % interval spans +-Z90 standard deviations (in log space)
+Z90 = 1.6448536269514722
+#: relative noise (sd) of each meter when the history says little: MPFM and well test
+NOISE_DEFAULTS = (0.03, 0.01)
+#: pseudo-rows of the default in the per-well noise estimate (shrinkage)
+_NOISE_PRIOR_ROWS = 20.0
+#: smallest relative noise the filter assumes (a perfect meter would freeze the model)
+_NOISE_FLOOR = 0.002
+_NS_PER_YEAR = 365.25 * 86400e9
+_FD_STEP = 1e-4
+#: refusals in a row after which a well is taken to have changed
+_RESET_AFTER = 3
+
+
+def _flat(blocks: list[FilterBlock], n_wells: int) -> torch.Tensor:
+    """The blocks' current values as one vector per well [W, D]."""
+    return torch.cat([b.param.detach().reshape(n_wells, -1) for b in blocks], dim=1)
+
+
+def _assign(blocks: list[FilterBlock], theta: torch.Tensor, wells: torch.Tensor) -> None:
+    """Write [W, D] into the blocks' parameters for ``wells`` only."""
+    n = theta.shape[0]
+    with torch.no_grad():
+        start = 0
+        for b in blocks:
+            view = b.param.data.reshape(n, -1)
+            k = view.shape[1]
+            view[wells] = theta[wells, start : start + k]
+            start += k
+
+
+def _log_rate(model: ChokeModel, batch: Batch) -> torch.Tensor:
+    q = model.forward_batch(batch)
+    return torch.log(torch.clamp(q, min=1e-12))
+
+
+def _jacobian_fd(
+    model: ChokeModel, blocks: list[FilterBlock], batch: Batch
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """log h [W, N] and its sensitivity to every filtered parameter [W, N, D] (central
+    differences, all wells at once: a well's rate depends only on its own parameters)."""
+    n_w = batch.n_wells
+    theta = _flat(blocks, n_w)
+    everyone = torch.ones(n_w, dtype=torch.bool)
+    with torch.no_grad():
+        base = _log_rate(model, batch)
+        cols = []
+        for d in range(theta.shape[1]):
+            step = torch.zeros_like(theta)
+            step[:, d] = _FD_STEP
+            _assign(blocks, theta + step, everyone)
+            up = _log_rate(model, batch)
+            _assign(blocks, theta - step, everyone)
+            down = _log_rate(model, batch)
+            cols.append((up - down) / (2 * _FD_STEP))
+        _assign(blocks, theta, everyone)
+    return base, torch.stack(cols, dim=-1)
+
+
+def _source(batch: Batch) -> torch.Tensor:
+    """0 for MPFM rows, 1 for well tests [W, N]."""
+    assert batch.well_test is not None
+    return batch.well_test.to(torch.int64)
+
+
+def _laplace(
+    model: ChokeModel,
+    blocks: list[FilterBlock],
+    batch: Batch,
+    prior_var: torch.Tensor,
+    defaults: torch.Tensor,
+    fixed: tuple[float | None, float | None],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Laplace covariance [W, D, D], noise per source [W, 2], last sensitivity [W, D] and
+    last time [W] from a fit on ``batch``."""
+    log_h, jac = _jacobian_fd(model, blocks, batch)
+    y = torch.where(batch.mask & (batch.y > 0), batch.y, torch.ones_like(batch.y))
+    ok = batch.mask & (batch.y > 0) & torch.isfinite(log_h)
+    r = torch.where(ok, torch.log(y) - log_h, torch.zeros_like(log_h))
+    src = _source(batch)
+    noise = torch.empty(batch.n_wells, 2, dtype=DTYPE)
+    for s in (0, 1):
+        rows = ok & (src == s)
+        n = rows.sum(1).to(DTYPE)
+        # a robust spread: residuals beyond 5 median absolute deviations are clipped
+        med = torch.where(rows, r.abs(), torch.full_like(r, float("nan"))).nanmedian(1).values
+        cap = torch.nan_to_num(5 * 1.4826 * med, nan=1.0).clamp(min=1e-6).unsqueeze(1)
+        ss = torch.where(rows, torch.clamp(r.abs(), max=cap) ** 2, torch.zeros_like(r)).sum(1)
+        var = (ss + _NOISE_PRIOR_ROWS * defaults[s] ** 2) / (n + _NOISE_PRIOR_ROWS)
+        noise[:, s] = var.sqrt().clamp(min=_NOISE_FLOOR)
+        if fixed[s] is not None:
+            noise[:, s] = float(fixed[s])  # type: ignore[arg-type]
+    row_var = torch.gather(noise, 1, src) ** 2  # [W, N]
+    w = torch.where(ok, 1.0 / row_var, torch.zeros_like(row_var))
+    jac = torch.where(ok.unsqueeze(-1), jac, torch.zeros_like(jac))
+    info = torch.einsum("wnd,wn,wne->wde", jac, w, jac) + torch.diag_embed(1.0 / prior_var).expand(
+        batch.n_wells, -1, -1
+    )
+    cov = _inverse_spd(info)
+    counts = ok.sum(1)
+    last = (counts - 1).clamp(min=0)
+    h_last = jac[torch.arange(batch.n_wells), last]
+    t = torch.where(ok, batch.time_ns, torch.full_like(batch.time_ns, -1))
+    t_last = t.max(dim=1).values
+    return cov, noise, h_last, torch.where(counts > 0, t_last, torch.full_like(t_last, NEVER))
+
+
+def _reorder(batch: Batch, order: torch.Tensor) -> Batch:
+    """The batch with each well's samples in the given order [W, N]."""
+    assert batch.well_test is not None and batch.extra is not None
+
+    def take(t: torch.Tensor) -> torch.Tensor:
+        idx = order if t.dim() == 2 else order.unsqueeze(-1).expand(-1, -1, t.shape[-1])
+        return torch.gather(t, 1, idx)
+
+    return Batch(
+        batch.wells,
+        take(batch.x),
+        take(batch.y),
+        take(batch.mask),
+        take(batch.time_ns),
+        take(batch.row),
+        take(batch.well_test),
+        take(batch.extra),
+        batch.extra_names,
+    )
+
+
+def _noise_from(
+    r: torch.Tensor,
+    ok: torch.Tensor,
+    src: torch.Tensor,
+    defaults: torch.Tensor,
+    dof: float,
+) -> torch.Tensor:
+    """Relative noise per well and meter [W, 2] from a fit's residuals ``r`` in log space:
+    robust to outliers, corrected for the ``dof`` parameters the fit took (at most half the
+    rows), and shrunk towards ``defaults`` with few rows."""
+    noise = torch.empty(r.shape[0], 2, dtype=DTYPE)
+    for s in (0, 1):
+        rows = ok & (src == s)
+        n = rows.sum(1).to(DTYPE)
+        # residuals beyond 5 median absolute deviations are clipped
+        med = torch.where(rows, r.abs(), torch.full_like(r, float("nan"))).nanmedian(1).values
+        cap = torch.nan_to_num(5 * 1.4826 * med, nan=1.0).clamp(min=1e-6).unsqueeze(1)
+        ss = torch.where(rows, torch.clamp(r.abs(), max=cap) ** 2, torch.zeros_like(r)).sum(1)
+        free = n - torch.minimum(torch.full_like(n, dof), n / 2)
+        var = (ss + _NOISE_PRIOR_ROWS * defaults[s] ** 2) / (free + _NOISE_PRIOR_ROWS)
+        noise[:, s] = var.sqrt().clamp(min=_NOISE_FLOOR)
+    return noise
+
+
+def _history_pass(
+    y: torch.Tensor,
+    log_h: torch.Tensor,
+    jac: torch.Tensor,
+    ok: torch.Tensor,
+    src: torch.Tensor,
+    time_ns: torch.Tensor,
+    noise: torch.Tensor,
+    prior_var: torch.Tensor,
+    q: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """A linear Kalman filter over history rows (time order per well), linearised at the fit:
+    log y = log h + J m + e. Returns the state m [W, D] (offset from the fit) and P at the
+    last row, the one-step-ahead innovations and their parameter variance [W, N], the last
+    sensitivity [W, D] and the last time [W]."""
+    n_w, n, d = jac.shape
+    m = torch.zeros(n_w, d, dtype=DTYPE)
+    # the start: around the fit, as far as the well can have drifted over its history (at
+    # least a year's drift, at most the prior): the fit is the history's average
+    first = torch.where(ok, time_ns, torch.full_like(time_ns, NEVER)).min(dim=1).values
+    final = torch.where(ok, time_ns, torch.full_like(time_ns, -1)).max(dim=1).values
+    span = ((final - first).clamp(min=0).to(DTYPE) / _NS_PER_YEAR).clamp(min=1.0)
+    P0 = torch.minimum(prior_var.unsqueeze(0), q.unsqueeze(0) * span.unsqueeze(1))
+    P = torch.diag_embed(P0)
+    eye = torch.eye(d, dtype=DTYPE)
+    last = torch.full((n_w,), NEVER, dtype=torch.int64)
+    h_last = torch.zeros(n_w, d, dtype=DTYPE)
+    innov = torch.zeros(n_w, n, dtype=DTYPE)
+    hph_all = torch.zeros(n_w, n, dtype=DTYPE)
+    R_all = torch.gather(noise, 1, src) ** 2
+    qd = torch.diag_embed(q)
+    for k in range(n):
+        live = ok[:, k]
+        if not bool(live.any()):
+            continue
+        t = time_ns[:, k]
+        dt = torch.where(
+            live & (last != NEVER), (t - last).clamp(min=0).to(DTYPE) / _NS_PER_YEAR, 0.0
+        )
+        P = P + qd.unsqueeze(0) * dt.view(-1, 1, 1)
+        H = jac[:, k]
+        R = R_all[:, k]
+        r = y[:, k] - log_h[:, k] - (H * m).sum(1)
+        PH = torch.einsum("wde,we->wd", P, H)
+        hph = (PH * H).sum(1)
+        S = hph + R
+        z = r / S.sqrt()
+        # robust: a residual beyond 3 sd counts for less (Huber), one beyond 6 sd not at all
+        w = torch.where(z.abs() > 3.0, 3.0 / z.abs(), torch.ones_like(z))
+        live = live & (z.abs() <= 6.0)
+        Rk = R / w
+        K = PH / (hph + Rk).unsqueeze(1)
+        m = torch.where(live.unsqueeze(1), m + K * r.unsqueeze(1), m)
+        A = eye - torch.einsum("wd,we->wde", K, H)
+        P_new = A @ P @ A.transpose(-1, -2) + torch.einsum("wd,we->wde", K, K) * Rk.view(-1, 1, 1)
+        P = torch.where(live.view(-1, 1, 1), 0.5 * (P_new + P_new.transpose(-1, -2)), P)
+        innov[:, k] = torch.where(ok[:, k], r, 0.0)
+        hph_all[:, k] = torch.where(ok[:, k], hph, 0.0)
+        h_last = torch.where(ok[:, k].unsqueeze(1), H, h_last)
+        last = torch.where(ok[:, k], t, last)
+    return m, P, innov, hph_all, h_last, last
+
+
+def _inverse_spd(a: torch.Tensor) -> torch.Tensor:
+    """Inverse of symmetric positive definite matrices [W, D, D] (with a jitter if needed)."""
+    a = 0.5 * (a + a.transpose(-1, -2))
+    eye = torch.eye(a.shape[-1], dtype=a.dtype)
+    for jitter in (0.0, 1e-10, 1e-8, 1e-6):
+        chol, info = torch.linalg.cholesky_ex(a + jitter * eye)
+        if not bool(info.any()):
+            return torch.cholesky_inverse(chol)
+    return torch.linalg.pinv(a, hermitian=True)
+
+
+def laplace_sd(
+    model: ChokeModel, batch: Batch, noise: tuple[float, float] = NOISE_DEFAULTS
+) -> dict[str, torch.Tensor]:
+    """Posterior standard deviation [W] of every physical parameter of a fitted ``model``
+    (SI units, keyed like ``model.physical_parameters()``), by a Laplace approximation on
+    ``batch`` with the relative noise of each meter estimated as the filter does."""
+    blocks = model.filter_blocks()
+    if not blocks:
+        return {}
+    prior_var = torch.cat([b.prior_var for b in blocks])
+    cov, _, _, _ = _laplace(
+        model, blocks, batch, prior_var, torch.tensor(noise, dtype=DTYPE), (None, None)
+    )
+    return _physical_sd(blocks, cov)
+
+
+def _physical_sd(blocks: list[FilterBlock], cov: torch.Tensor) -> dict[str, torch.Tensor]:
+    sd = torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=0).sqrt()
+    out: dict[str, torch.Tensor] = {}
+    start = 0
+    for b in blocks:
+        for i, label in enumerate(b.labels):
+            if float(b.scale[i]) > 0:
+                out[label] = sd[:, start + i] * b.scale[i]
+        start += b.size
+    return out
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError("not a number >= 0")
+    return value
+
+
+@register
+class BayesianFilter(LearningMethod):
+    """``bayes``: see the module docstring."""
+
+    key = "bayes"
+    kind = "bayes"
+    summary = "a Kalman filter over the model's parameters, with drift and 90 % intervals"
+    example = "bayes"
+    intervals = True
+
+    def __init__(
+        self,
+        text: str = "bayes",
+        *,
+        drift: float = 1.0,
+        drifts: dict[str, float] | None = None,
+        noise_mpfm: float | None = None,
+        noise_well_test: float | None = None,
+        iterations: int = 2,
+        huber: float = 3.0,
+        gate: float = 6.0,
+        adapt: float = 0.02,
+        calibrate: float = 0.05,
+        params: tuple[str, ...] = (),
+    ) -> None:
+        super().__init__(text)
+        if iterations < 1:
+            raise ConfigError(f"Method '{text}': iterations must be at least 1.")
+        if not 0.0 <= adapt < 1.0:
+            raise ConfigError(f"Method '{text}': adapt must lie in [0, 1).")
+        if gate and huber and gate < huber:
+            raise ConfigError(f"Method '{text}': gate ({gate}) must not be below huber ({huber}).")
+        self.drift = drift
+        self.drifts = dict(drifts or {})
+        self.noise = (noise_mpfm, noise_well_test)
+        #: Kalman iterations per update (1 = the extended filter)
+        self.kalman_iterations = iterations
+        self.huber = huber
+        self.gate = gate
+        self.adapt = adapt
+        self.calibrate = calibrate
+        self.params = tuple(params)
+        self._blocks: list[FilterBlock] = []
+
+    @classmethod
+    def from_text(cls, text: str) -> BayesianFilter:
+        rest = text[len(cls.key) :]
+        parts = [p for p in rest.split(":") if p]
+        drifts = {}
+        plain = []
+        for part in parts:
+            key, _, value = part.partition("=")
+            if key.startswith("drift_") and value:
+                try:
+                    drifts[key[len("drift_") :]] = _positive(value)
+                except ValueError:
+                    raise ConfigError(
+                        f"Method '{text}': {key}='{value}' is not a number >= 0."
+                    ) from None
+            else:
+                plain.append(part)
+        options = parse_options(
+            text,
+            ":".join(plain),
+            {
+                "drift": _positive,
+                "noise_mpfm": _positive,
+                "noise_well_test": _positive,
+                "iterations": int,
+                "huber": _positive,
+                "gate": _positive,
+                "adapt": _positive,
+                "calibrate": _positive,
+                "params": lambda v: tuple(p for p in v.split("+") if p),
+            },
+            "bayes:drift=2:noise_well_test=0.01",
+        )
+        return cls(text, drifts=drifts, **options)
+
+    # -- binding -----------------------------------------------------------------------------
+    def bind(self, model: ChokeModel, **kw: Any) -> BayesianFilter:  # type: ignore[override]
+        super().bind(model, **kw)
+        self._rebind(model)
+        n, d = len(model.wells), self._dim
+        self._P = torch.zeros(n, d, d, dtype=DTYPE)
+        self._last = torch.full((n,), NEVER, dtype=torch.int64)
+        self._noise = torch.tensor([self._fixed_or_default(s) for s in (0, 1)], dtype=DTYPE).repeat(
+            n, 1
+        )
+        self._h = torch.zeros(n, d, dtype=DTYPE)
+        self._scale = torch.zeros(n, 2, dtype=DTYPE)
+        self._started = torch.zeros(n, dtype=torch.bool)
+        self._counts = {
+            k: torch.zeros(n, dtype=torch.int64)
+            for k in ("updates", "downweighted", "refused", "resets")
+        }
+        self._run = torch.zeros(n, dtype=torch.int64)
+        return self
+
+    def _fixed_or_default(self, s: int) -> float:
+        return float(self.noise[s]) if self.noise[s] is not None else NOISE_DEFAULTS[s]
+
+    def _rebind(self, model: ChokeModel) -> None:
+        blocks = model.filter_blocks()
+        labels = [label for b in blocks for label in b.labels]
+        unknown = sorted(set(self.params) - set(labels)) + sorted(set(self.drifts) - set(labels))
+        if unknown:
+            raise ConfigError(
+                f"Method '{self.text}': the model {model.name} has no parameter {', '.join(unknown)}; "
+                f"its filtered parameters are {', '.join(labels) or 'none'}."
+            )
+        self._blocks = blocks
+        keep = torch.tensor([not self.params or label in self.params for label in labels])
+        self._labels = labels
+        self._keep = keep
+        prior_var = torch.cat([b.prior_var for b in blocks]) if blocks else torch.zeros(0)
+        drift = torch.cat([b.drift for b in blocks]) if blocks else torch.zeros(0)
+        drift = drift * self.drift
+        for i, label in enumerate(labels):
+            if label in self.drifts:
+                drift[i] = self.drifts[label]
+        # a parameter left out of the filter keeps its fitted value: no uncertainty, no drift
+        self._prior_var = torch.where(keep, prior_var, torch.full_like(prior_var, 1e-30))
+        self._q = torch.where(keep, drift**2, torch.zeros_like(drift))
+        self._dim = len(labels)
+
+    # -- start ---------------------------------------------------------------------------------
+    def _fitted(self, batch: Batch, wells: torch.Tensor) -> None:
+        """Start the filter from a batch fit: a Kalman pass over the fitted history.
+
+        A batch fit treats the history as if the well never changed, so for a drifting well
+        it lands on the history's average, not on its end. The filter therefore runs over the
+        history rows in time order, linearised at the fit (one Jacobian, no more model
+        evaluations), starting around the fit with the spread the well can have drifted
+        over its history (at least a year's, at most the prior's); its state at the last row is
+        where the well is now. The noise of each meter comes from the fit's residuals,
+        corrected for the parameters it took and shrunk towards the defaults when a meter
+        has few rows."""
+        if self._dim == 0 or self.model.gradient_free:
+            return
+        model, blocks = self.model, self._blocks
+        order = torch.argsort(
+            torch.where(batch.mask, batch.time_ns, torch.full_like(batch.time_ns, NEVER)),
+            dim=1,
+            stable=True,
+        )
+        batch = _reorder(batch, order)
+        theta = _flat(blocks, batch.n_wells)
+        log_h, jac = _jacobian_fd(model, blocks, batch)
+        jac = jac * self._keep.to(DTYPE)
+        ok = batch.mask & (batch.y > 0) & torch.isfinite(log_h) & wells.unsqueeze(1)
+        y = torch.log(torch.where(ok, batch.y, torch.ones_like(batch.y)))
+        src = _source(batch)
+        defaults = torch.tensor([self._fixed_or_default(0), self._fixed_or_default(1)], dtype=DTYPE)
+        # each meter's noise: the fit's residuals, with the degrees of freedom the fit took
+        residual = torch.where(ok, y - log_h, torch.zeros_like(y))
+        dof = float(int(self._keep.sum()) + 1)
+        noise = self._fix_noise(_noise_from(residual, ok, src, defaults, dof))
+        # ... then, for a well that drifted (its residuals hold the drift), from the pass's
+        # one-step-ahead errors once the pass has settled (after a fifth of the rows)
+        m, P, innov, _, h_last, t_last = _history_pass(
+            y, log_h, jac, ok, src, batch.time_ns, noise, self._prior_var, self._q
+        )
+        rank = torch.cumsum(ok.long(), 1)
+        settled = ok & (rank > (0.2 * ok.sum(1, keepdim=True)).clamp(min=dof))
+        noise = torch.minimum(
+            noise, self._fix_noise(_noise_from(innov, settled, src, defaults, dof))
+        )
+        m, P, _, _, h_last, t_last = _history_pass(
+            y, log_h, jac, ok, src, batch.time_ns, noise, self._prior_var, self._q
+        )
+        has = wells & (t_last != NEVER)
+        _assign(blocks, theta + m, has)
+        model.project_()
+        self._P[has] = P[has]
+        self._noise[has] = noise[has]
+        self._h[has] = h_last[has]
+        self._last[has] = t_last[has]
+        self._started |= has
+
+    def _fix_noise(self, noise: torch.Tensor) -> torch.Tensor:
+        for s in (0, 1):
+            if self.noise[s] is not None:
+                noise[:, s] = float(self.noise[s])  # type: ignore[arg-type]
+        return noise
+
+    def _grow(self, now: torch.Tensor) -> torch.Tensor:
+        """P after the drift from each well's last update to ``now`` [W] (not stored)."""
+        dt = torch.where(
+            (self._last != NEVER) & (now != NEVER),
+            (now - self._last).clamp(min=0).to(DTYPE) / _NS_PER_YEAR,
+            torch.zeros(len(now), dtype=DTYPE),
+        )
+        return self._P + torch.diag_embed(self._q.unsqueeze(0) * dt.unsqueeze(1))
+
+    # -- predictions ---------------------------------------------------------------------------
+    def predict(self, batch: Batch) -> Forecast:
+        mean = self.model.predict_batch(batch)
+        if self._dim == 0 or self.model.gradient_free:
+            return Forecast(mean)
+        sd = self._spread(batch.time_ns, _source(batch))
+        missing = ~self._started.unsqueeze(1).expand_as(mean)
+        nan = torch.full_like(mean, float("nan"))
+        sd = torch.where(missing, nan, sd)
+        return Forecast(mean, mean * sd, mean * torch.exp(-Z90 * sd), mean * torch.exp(Z90 * sd))
+
+    def _spread(self, time_ns: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+        """Predictive sd of the log rate [W, N] at these times, for these meters: the
+        parameters' variance h (P + Q dt) h, plus the meter's noise, times the calibration
+        factor of that meter."""
+        hph = torch.einsum("wd,wde,we->w", self._h, self._P, self._h)
+        hqh = (self._h**2 * self._q.unsqueeze(0)).sum(1)
+        dt = torch.where(
+            self._last.unsqueeze(1) != NEVER,
+            (time_ns - self._last.unsqueeze(1)).clamp(min=0).to(DTYPE) / _NS_PER_YEAR,
+            torch.zeros(time_ns.shape, dtype=DTYPE),
+        )
+        noise = torch.gather(self._noise, 1, src) ** 2
+        var = hph.unsqueeze(1) + hqh.unsqueeze(1) * dt + noise
+        return var.clamp(min=0).sqrt() * torch.exp(torch.gather(self._scale, 1, src))
+
+    # -- learning -----------------------------------------------------------------------------
+    def _learn(self, batch: Batch, memory: Memory | None) -> torch.Tensor:
+        model = self.model
+        model.setup(batch)
+        changed = torch.zeros(batch.n_wells, dtype=torch.bool)
+        if self._dim == 0:
+            return changed
+        counts = batch.count()
+        for k in range(int(counts.max()) if counts.numel() else 0):
+            one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
+            changed |= self._update(one)
+        return changed
+
+    def _update(self, one: Batch) -> torch.Tensor:
+        """One measurement per well (masked where none): an iterated EKF step in log space."""
+        model, blocks, n = self.model, self._blocks, one.n_wells
+        live = one.mask[:, 0] & model.ready & (one.y[:, 0] > 0)
+        # a well with a model but no filter state yet (e.g. fitted on its first measurement)
+        fresh = live & ~self._started
+        if bool(fresh.any()):
+            self._P[fresh] = torch.diag_embed(self._prior_var).expand(int(fresh.sum()), -1, -1)
+            self._last[fresh] = one.time_ns[fresh, 0]
+            self._started |= fresh
+        if not bool(live.any()):
+            return live
+        t = torch.where(live, one.time_ns[:, 0], self._last)
+        src = _source(one)[:, 0]
+        if self.calibrate > 0:
+            # adaptive conformal calibration: was this measurement inside the 90 % interval
+            # the filter gave for it? A miss widens that meter's intervals, a hit narrows them
+            # a little, so that in the long run 90 % fall inside, whatever the model lacks.
+            with torch.no_grad():
+                mean = _log_rate(model, one)[:, 0]
+            sd = self._spread(one.time_ns[:, :1], src.unsqueeze(1))[:, 0]
+            miss = (torch.log(one.y[:, 0].clamp(min=1e-12)) - mean).abs() > Z90 * sd
+            step = self.calibrate * (miss.to(DTYPE) - 0.1)
+            rows = torch.arange(n)[live]
+            self._scale[rows, src[live]] += step[live]
+        P = self._grow(t)
+        self._P = torch.where(live.view(-1, 1, 1), P, self._P)
+        self._last = torch.where(live, t, self._last)
+        y = torch.log(torch.where(live, one.y[:, 0], torch.ones(n, dtype=DTYPE)))
+        R = self._noise[torch.arange(n), src] ** 2
+        m = _flat(blocks, n)
+        theta = m.clone()
+        keep = self._keep.to(DTYPE)
+        h0 = H = log_h = None
+        Rk = R.clone()
+        for i in range(self.kalman_iterations):
+            log_h, H = self._linearise(one, theta, live)
+            H = H * keep
+            if i == 0:
+                h0, H0 = log_h, H
+                S0 = torch.einsum("wd,wde,we->w", H, P, H) + R
+                z = (y - log_h) / S0.sqrt()
+                weight = torch.ones(n, dtype=DTYPE)
+                if self.huber:
+                    weight = torch.where(z.abs() > self.huber, self.huber / z.abs(), weight)
+                refused = live & (z.abs() > self.gate) if self.gate else torch.zeros_like(live)
+                self._run = torch.where(refused, self._run + 1, torch.where(live, 0, self._run))
+                reset = refused & (self._run >= _RESET_AFTER)
+                if bool(reset.any()):  # the well changed: a year's drift, then take it
+                    P = P + torch.diag_embed(self._q).unsqueeze(0) * reset.view(-1, 1, 1)
+                    self._counts["resets"] += reset.long()
+                    self._run = torch.where(reset, 0, self._run)
+                    refused = refused & ~reset
+                    weight = torch.where(reset, torch.ones_like(weight), weight)
+                self._counts["refused"] += refused.long()
+                self._counts["downweighted"] += (live & ~refused & (weight < 1)).long()
+                live = live & ~refused
+                if not bool(live.any()):
+                    return live
+                Rk = R / weight
+            S = torch.einsum("wd,wde,we->w", H, P, H) + Rk
+            K = torch.einsum("wde,we->wd", P, H) / S.unsqueeze(1)
+            innov = y - log_h - torch.einsum("wd,wd->w", H, m - theta)
+            theta = torch.where(live.unsqueeze(1), m + K * innov.unsqueeze(1), m)
+        assert H is not None and h0 is not None
+        eye = torch.eye(self._dim, dtype=DTYPE)
+        A = eye - torch.einsum("wd,we->wde", K, H)
+        P_new = A @ P @ A.transpose(-1, -2) + torch.einsum("wd,we->wde", K, K) * Rk.view(-1, 1, 1)
+        P_new = 0.5 * (P_new + P_new.transpose(-1, -2))
+        self._P = torch.where(live.view(-1, 1, 1), P_new, self._P)
+        _assign(blocks, theta, live)
+        model.project_()
+        self._h = torch.where(live.unsqueeze(1), H0, self._h)
+        if self.adapt > 0:
+            # the meter's noise follows the innovations (their variance beyond the parameters')
+            r0 = y - h0
+            hph = torch.einsum("wd,wde,we->w", H0, P, H0)
+            cap = (self.huber or 3.0) ** 2 * (hph + R)
+            sample = torch.clamp(r0**2, max=cap) - hph
+            new = (1 - self.adapt) * R + self.adapt * sample.clamp(min=_NOISE_FLOOR**2)
+            fixed = torch.tensor([self.noise[0] is not None, self.noise[1] is not None])
+            upd = live & ~fixed[src]
+            idx = torch.arange(n)[upd]
+            self._noise[idx, src[upd]] = new[upd].sqrt().clamp(min=_NOISE_FLOOR)
+        self._counts["updates"] += live.long()
+        return live
+
+    def _linearise(
+        self, one: Batch, theta: torch.Tensor, live: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """log h [W] and its gradient [W, D] at ``theta`` (one sample per well)."""
+        model, blocks = self.model, self._blocks
+        n = one.n_wells
+        saved = _flat(blocks, n)
+        _assign(blocks, theta, live)
+        model.project_()
+        try:
+            with torch.enable_grad():
+                log_h = _log_rate(model, one)[:, 0]
+                total = torch.where(live, log_h, torch.zeros_like(log_h)).sum()
+                grads = torch.autograd.grad(total, [b.param for b in blocks], allow_unused=True)
+            H = torch.cat(
+                [
+                    (g if g is not None else torch.zeros_like(b.param)).reshape(n, -1)
+                    for g, b in zip(grads, blocks, strict=True)
+                ],
+                dim=1,
+            )
+            return log_h.detach(), H.detach()
+        finally:
+            _assign(blocks, saved, torch.ones(n, dtype=torch.bool))
+
+    # -- what it knows ----------------------------------------------------------------------------
+    def parameter_sd(self) -> dict[str, torch.Tensor]:
+        """Posterior sd [W] of every physical parameter now (SI units, by name)."""
+        if not self._blocks:
+            return {}
+        return _physical_sd(self._blocks, self._P)
+
+    def stats(self) -> dict[str, torch.Tensor]:
+        """Per well: measurements taken, down-weighted and refused, and resets after a change."""
+        return {k: v.clone() for k, v in self._counts.items()}
+
+    # -- state ----------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        state = super().state_dict()
+        state.update(
+            P=self._P.clone(),
+            last=self._last.clone(),
+            noise=self._noise.clone(),
+            h=self._h.clone(),
+            started=self._started.clone(),
+            run=self._run.clone(),
+            scale=self._scale.clone(),
+            counts={k: v.clone() for k, v in self._counts.items()},
+        )
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        for name in ("P", "last", "noise", "h", "started", "run", "scale"):
+            if name in state:
+                setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
+        for k, v in state.get("counts", {}).items():
+            self._counts[k] = torch.as_tensor(v).clone()
