@@ -162,3 +162,20 @@ def test_evaluate_with_an_effect_shows_the_error_fall(tmp_path: Path) -> None:
     }
     assert set(summary) == {"mm", "mm+erosion"}
     assert summary["mm+erosion"] < 0.6 * summary["mm"], summary
+
+
+def test_every_method_has_something_to_tune_and_bayes_its_drift() -> None:
+    from vfm_core.jobs.tune import method_for
+    from vfm_core.learning import METHODS, parse_method
+
+    for cls in METHODS.values():
+        trials = trial_grid(["mm"], [cls.example], "small")
+        assert trials, cls.key
+        for t in trials:  # every setting is one the method and the settings accept
+            parse_method(t.get("text", t["method"]))
+            settings_for({"models": {"mm": {t["method"]: t}}}, "mm", t["method"])
+    bayes = trial_grid(["mm", "last"], ["bayes"], "small")
+    assert {t["text"] for t in bayes} == {f"bayes:drift={d:g}" for d in (0.25, 0.5, 1, 2, 4)}
+    params = {"models": {"mm": {"bayes": {"text": "bayes:drift=2"}}}}
+    assert method_for(params, "mm", "bayes") == "bayes:drift=2"
+    assert method_for(params, "ham", "bayes") == "bayes"

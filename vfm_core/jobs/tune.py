@@ -5,13 +5,14 @@ across wells on a time-ordered inner split of the data *before* the study's spli
 model is fitted on data before the inner split and run prequentially from the inner
 split up to the split. The test period is never looked at.
 
-Grids (``--grid``):
+Grids (``--grid``), what each learning method tries on them:
 
 - ``paper``: online learning gamma in {5e-1, 1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-10},
   E in {1, 10, 20}, SGD or Adam; batch learning gamma in {1e-1, 1e-2, 1e-3, 1e-4, 1e-5}
-  with E by early stopping.
+  with E by early stopping; ``bayes`` a drift factor in {0.25, 0.5, 1, 2, 4} and a noise
+  adaptation rate in {0, 0.02, 0.1}.
 - ``small`` (default): gamma in {1e-1, 1e-2, 1e-3, 1e-4}, E in {1, 10}, SGD or Adam; batch
-  gamma in {1e-1, 1e-2, 1e-3}.
+  gamma in {1e-1, 1e-2, 1e-3}; ``bayes`` the drift factor alone.
 
 Results go line by line to ``DIR/trials.jsonl``, so an interrupted search resumes where it
 stopped; the chosen settings go to ``DIR/params.json``, which ``vfm evaluate --params`` and
@@ -38,45 +39,41 @@ from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 
-__all__ = ["GRIDS", "trial_grid", "run_tuning", "load_params", "register"]
+__all__ = [
+    "GRIDS",
+    "trial_grid",
+    "run_tuning",
+    "load_params",
+    "settings_for",
+    "method_for",
+    "register",
+]
 
-GRIDS: dict[str, dict[str, list[Any]]] = {
-    "paper": {
-        "ol_lr": [5e-1, 1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-10],
-        "ol_steps": [1, 10, 20],
-        "ol_optimizer": ["sgd", "adam"],
-        "pbl_lr": [1e-1, 1e-2, 1e-3, 1e-4, 1e-5],
-    },
-    "small": {
-        "ol_lr": [1e-1, 1e-2, 1e-3, 1e-4],
-        "ol_steps": [1, 10],
-        "ol_optimizer": ["sgd", "adam"],
-        "pbl_lr": [1e-1, 1e-2, 1e-3],
-    },
+#: The grids by name; what each method tries on them is the method's (see
+#: :meth:`vfm_core.learning.method.LearningMethod.tuning`).
+GRIDS: dict[str, str] = {
+    "paper": "the paper's grid (section 4.2, Table B.1)",
+    "small": "a smaller grid, about a quarter of the paper's",
 }
 
 
 def trial_grid(models: Sequence[str], methods: Sequence[str], grid: str) -> list[dict[str, Any]]:
-    """Every (model, method, setting) to try, as JSON-able dicts with a stable key."""
-    try:
-        g = GRIDS[grid]
-    except KeyError:
-        raise ConfigError(f"Unknown grid '{grid}'; choose one of {sorted(GRIDS)}.") from None
+    """Every (model, method, setting) to try, as JSON-able dicts with a stable key.
+
+    Each learning method says what it tries (:meth:`LearningMethod.tuning`): online steps
+    for ``ol``, the batch learning rate for the retraining methods, the drift for ``bayes``.
+    """
+    if grid not in GRIDS:
+        raise ConfigError(f"Unknown grid '{grid}'; choose one of {sorted(GRIDS)}.")
     trials = []
     for model, method in itertools.product(models, methods):
-        kind = parse_method(method).kind
         if model == "last":
             continue  # the benchmark has nothing to tune
-        if kind == "ol":
-            for lr, steps, opt in itertools.product(g["ol_lr"], g["ol_steps"], g["ol_optimizer"]):
-                s = {"optimizer": opt, "lr": lr, "steps": steps}
-                trials.append({"model": model, "method": method, "online": s})
-        else:
-            for lr in g["pbl_lr"]:
-                trials.append({"model": model, "method": method, "train": {"lr": lr}})
+        for option in parse_method(method).tuning(grid):
+            trials.append({"model": model, "method": method, **option})
     for t in trials:
         t["key"] = json.dumps(
-            {k: t.get(k) for k in ("model", "method", "online", "train")}, sort_keys=True
+            {k: t.get(k) for k in ("model", "method", "online", "train", "text")}, sort_keys=True
         )
     return trials
 
@@ -97,7 +94,7 @@ def _run_trial(args: tuple[str, dict[str, Any], str, str, str]) -> dict[str, Any
         result = run_prequential(
             frame,
             model,
-            trial["method"],
+            trial.get("text", trial["method"]),
             targets=targets,
             split=inner_split,
             train=train,
@@ -186,6 +183,8 @@ def run_tuning(
                 entry["online"] = rec["online"]
             if "train" in rec:
                 entry["train"] = rec["train"]
+            if "text" in rec:
+                entry["text"] = rec["text"]
             chosen[rec["model"]][rec["method"]] = entry
     params = {
         "format": "vfm-params/1",
@@ -212,6 +211,13 @@ def load_params(path: str | os.PathLike[str]) -> dict[str, Any]:
     if params.get("format") != "vfm-params/1":
         raise ConfigError(f"{path} is not a vfm tune parameter file (format vfm-params/1).")
     return params
+
+
+def method_for(params: dict[str, Any] | None, model: str, method: str) -> str:
+    """The method's text with the options a params file chose for it (e.g. ``bayes:drift=2``
+    for ``bayes``), or ``method`` itself."""
+    entry = ((params or {}).get("models", {}).get(model, {}) or {}).get(method) or {}
+    return str(entry.get("text", method))
 
 
 def settings_for(params: dict[str, Any] | None, model: str, method: str) -> dict[str, Any]:

@@ -676,6 +676,18 @@ class BayesianFilter(LearningMethod):
         finally:
             _assign(blocks, saved, torch.ones(n, dtype=torch.bool))
 
+    # -- tuning -----------------------------------------------------------------------------------
+    def tuning(self, grid: str) -> list[dict[str, Any]]:
+        """How fast the parameters may drift (a factor on every default drift), and with the
+        paper grid also how fast the meters' noise adapts."""
+        scales = [0.25, 0.5, 1.0, 2.0, 4.0]
+        adapts = [0.0, 0.02, 0.1] if grid == "paper" else [0.02]
+        return [
+            {"text": f"bayes:drift={d:g}" + (f":adapt={a:g}" if a != 0.02 else "")}
+            for d in scales
+            for a in adapts
+        ]
+
     # -- what it knows ----------------------------------------------------------------------------
     def parameter_sd(self) -> dict[str, torch.Tensor]:
         """Posterior sd [W] of every physical parameter now (SI units, by name)."""

@@ -272,6 +272,15 @@ class LearningMethod(ABC):
         """The predicted rate for every sample of ``batch`` (NaN where a well has no model)."""
         return Forecast(self.model.predict_batch(batch), None)
 
+    # -- tuning ----------------------------------------------------------------------------------
+    def tuning(self, grid: str) -> list[dict[str, Any]]:
+        """The settings ``vfm tune`` tries for this method with the grid ``grid`` (``small`` or
+        ``paper``): each a dict of ``train`` (batch settings), ``online`` (online settings) or
+        ``text`` (the method's own options, e.g. ``bayes:drift=2``). Default: the batch
+        learning rate, which every retrain uses."""
+        rates = [1e-1, 1e-2, 1e-3] + ([1e-4, 1e-5] if grid == "paper" else [])
+        return [{"train": {"lr": lr}} for lr in rates]
+
     # -- what the method knows -------------------------------------------------------------------
     def parameter_sd(self) -> dict[str, torch.Tensor]:
         """Posterior standard deviation [W] of the physical parameters, SI units, by the names of

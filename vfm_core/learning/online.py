@@ -110,6 +110,20 @@ class OnlineLearning(LearningMethod):
         self.updates += 1
         return ready
 
+    def tuning(self, grid: str) -> list[dict[str, Any]]:
+        """Step size gamma, steps E and optimiser (the paper's grid, or a small one)."""
+        if grid == "paper":
+            rates = [5e-1, 1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-10]
+            steps = [1, 10, 20]
+        else:
+            rates, steps = [1e-1, 1e-2, 1e-3, 1e-4], [1, 10]
+        return [
+            {"online": {"optimizer": opt, "lr": lr, "steps": e}}
+            for lr in rates
+            for e in steps
+            for opt in ("sgd", "adam")
+        ]
+
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state["optimizer"] = self._opt.state_dict() if self._opt is not None else {}
