@@ -54,6 +54,7 @@ from vfm_core import physics as ph
 from vfm_core.errors import ConfigError
 from vfm_core.features import standard_features
 from vfm_core.physics import DTYPE, Prior
+from vfm_core.timeutil import utc_timestamp
 
 __all__ = [
     "Prior",
@@ -250,7 +251,7 @@ class Erosion(Effect):
                 f"Effect '{cls.name}': step_at='{values['step_at']}' is not a date "
                 "(use e.g. step_at=2019-06-01 or 2019-06-01T12:00)."
             ) from None
-        when = when.tz_localize("UTC") if when.tzinfo is None else when.tz_convert("UTC")
+        when = utc_timestamp(when)
         text = when.strftime("%Y-%m-%dT%H:%M")
         return type(
             f"{cls.__name__}Step",

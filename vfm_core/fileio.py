@@ -18,7 +18,8 @@ __all__ = ["atomic_path", "write_text_atomic", "write_bytes_atomic", "write_with
 
 @contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """A temporary path beside ``path``; on success it replaces ``path``, on error it is removed."""
+    """A temporary path beside ``path``; on success it is flushed to disk and replaces
+    ``path``, on error it is removed. Parent folders are created."""
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
@@ -30,6 +31,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     os.chmod(temp, 0o666 & ~umask)
     try:
         yield temp
+        with open(temp, "rb+") as handle:  # on disk before it takes the final name
+            os.fsync(handle.fileno())
         os.replace(temp, final)
     finally:
         temp.unlink(missing_ok=True)

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import logging
 import os
-import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
@@ -47,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from vfm_core.errors import DataError, ObservationFormatError
+from vfm_core.fileio import write_with
 from vfm_core.schema import (
     INPUT_COLUMNS,
     OPTIONAL_RATE_COLUMNS,
@@ -216,24 +216,15 @@ def save_observations(frame: pd.DataFrame, path: str | os.PathLike[str]) -> Path
     file = Path(path)
     kind = _format_of(file)
     checked = validate_frame(frame, name=str(path), filter_illogical=False).frame
-    file.parent.mkdir(parents=True, exist_ok=True)
-    temp = file.with_name(f".{file.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    # os.open with mode 0o666 lets the umask decide permissions, as for a normal file.
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    descriptor = os.open(temp, flags, 0o666)
-    try:
-        with os.fdopen(descriptor, "wb") as handle:
+
+    def write(temp: Path) -> None:
+        with temp.open("wb") as handle:
             if kind == "csv":
                 _write_csv(checked, handle, gzip=file.name.lower().endswith(".gz"))
             else:
                 checked.to_parquet(handle, index=False)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp, file)
-    except BaseException:
-        temp.unlink(missing_ok=True)
-        raise
-    return file
+
+    return write_with(file, write)
 
 
 # --- reading -------------------------------------------------------------------------

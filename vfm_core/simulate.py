@@ -71,8 +71,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import secrets
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,6 +85,8 @@ from tqdm import tqdm
 
 from vfm_core import physics, schema, units
 from vfm_core.errors import ConfigError
+from vfm_core.fileio import write_with
+from vfm_core.timeutil import utc_timestamp
 
 __all__ = [
     "ParamSpec",
@@ -1165,13 +1166,9 @@ def simulate_field(
         raise ConfigError(f"years must lie between 1/12 and 50, not {years!r}.")
     effects = _resolve_hidden(hidden)
     try:
-        t_origin = pd.Timestamp(start)
+        t_origin = utc_timestamp(start)
     except ValueError:
         raise ConfigError(f"start '{start}' is not a date; give e.g. 2016-01-01.") from None
-    if t_origin.tzinfo is None:
-        t_origin = t_origin.tz_localize("UTC")
-    else:
-        t_origin = t_origin.tz_convert("UTC")
     # Whole years end on the same calendar day (2016-01-01 + 5 years = 2021-01-01).
     whole = int(years)
     t_end = t_origin + pd.DateOffset(years=whole)
@@ -1342,17 +1339,6 @@ def truth_paths(out: str | os.PathLike[str]) -> tuple[Path, Path]:
     return path.with_name(name + ".truth.json"), path.with_name(name + samples_suffix)
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
-        write(temp)
-        os.replace(temp, path)
-    except BaseException:
-        temp.unlink(missing_ok=True)
-        raise
-
-
 def write_field(field: SimulatedField, out: str | os.PathLike[str]) -> list[Path]:
     """Write the observations to ``out`` (CSV or Parquet by suffix) and the truth beside it.
 
@@ -1377,8 +1363,8 @@ def write_field(field: SimulatedField, out: str | os.PathLike[str]) -> list[Path
         else:
             samples.to_parquet(temp, index=False)
 
-    _atomic_write(json_path, write_json)
-    _atomic_write(samples_path, write_samples)
+    write_with(json_path, write_json)
+    write_with(samples_path, write_samples)
     return [*written, json_path, samples_path]
 
 

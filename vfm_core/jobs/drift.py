@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from scipy import stats
 
 from vfm_core.data import target_mask
 from vfm_core.drift import estimate_update_period
+from vfm_core.fileio import staging_dir
 from vfm_core.jobs.study import resolve_split
 from vfm_core.schema import INPUT_COLUMNS, TIME, WELL
 
@@ -94,16 +94,13 @@ def drift_study(
 
 
 def write_drift(result: dict[str, Any], out: Path, data_path: str) -> list[Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    tmp_json = out / ".drift.json.tmp"
-    tmp_json.write_text(json.dumps(result, indent=1))
-    tmp_html = out / ".report.html.tmp"
+    """drift.json and report.html in ``out``, both or neither (written in a staging folder)."""
     # Imported here: matplotlib and the templates are only needed for the report.
     from vfm_core.reporting.drift import build_report
 
-    build_report(result, tmp_html, data_path)
-    os.replace(tmp_json, out / "drift.json")
-    os.replace(tmp_html, out / "report.html")
+    with staging_dir(out) as staging:
+        (staging / "drift.json").write_text(json.dumps(result, indent=1))
+        build_report(result, staging / "report.html", data_path)
     return [out / "drift.json", out / "report.html"]
 
 

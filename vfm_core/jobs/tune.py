@@ -36,6 +36,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vfm_core.errors import ConfigError
+from vfm_core.fileio import write_text_atomic
 from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 
@@ -194,9 +195,7 @@ def run_tuning(
         "grid": grid,
         "models": chosen,
     }
-    tmp = out_dir / "params.json.tmp"
-    tmp.write_text(json.dumps(params, indent=2))
-    os.replace(tmp, out_dir / "params.json")
+    write_text_atomic(out_dir / "params.json", json.dumps(params, indent=2))
     return params
 
 
