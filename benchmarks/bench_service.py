@@ -111,6 +111,7 @@ def run_field(
     workers: int,
     synchronous: str,
     history_rows: int,
+    queues: str = "",
 ) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="vfm-bench-") as tmp:
         folder = Path(tmp)
@@ -130,6 +131,7 @@ path = "{folder / "store.sqlite"}"
 synchronous = "{synchronous}"
 [queues]
 workers = {workers}
+{queues}
 """)
         started = time.perf_counter()
         serve = ServeProcess(cfg, folder / "serve.log").start(timeout=1800)
@@ -265,7 +267,9 @@ def _flood(
     out.put(n)
 
 
-def run_flood(kind: str, baseline_s: float, flood_s: float, period_s: float) -> dict[str, Any]:
+def run_flood(
+    kind: str, baseline_s: float, flood_s: float, period_s: float, queues: str = ""
+) -> dict[str, Any]:
     """A good well's latency before and during a flood from another process (see the docstring)."""
     import multiprocessing as mp
 
@@ -292,6 +296,8 @@ port = 0
 [store]
 path = "{folder / "store.sqlite"}"
 synchronous = "normal"
+[queues]
+{queues}
 """)
         serve = ServeProcess(cfg, folder / "serve.log").start(timeout=600)
         plant = Plant(serve.zenoh)
@@ -374,9 +380,12 @@ def main() -> None:
     parser.add_argument("--scenario", default="load", choices=["load", "flood"])
     parser.add_argument("--flood-kind", default="samples", choices=["samples", "names"])
     parser.add_argument("--flood-seconds", type=float, default=10.0)
+    parser.add_argument(
+        "--queues", default="", help="TOML lines for [queues], e.g. 'receive_capacity = 256'"
+    )
     args = parser.parse_args()
     if args.scenario == "flood":
-        f = run_flood(args.flood_kind, 5.0, args.flood_seconds, 0.05)
+        f = run_flood(args.flood_kind, 5.0, args.flood_seconds, 0.05, args.queues)
         print(
             f"Fairness: a good well sends a sample every 50 ms; another process floods "
             f"{'new well names' if f['kind'] == 'names' else 'one well'} for {f['flood_s']:g} s "
@@ -406,6 +415,7 @@ def main() -> None:
             args.workers,
             args.synchronous,
             args.history_rows,
+            args.queues,
         )
         print(
             f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s; {r['learned']} online updates)"

@@ -401,10 +401,11 @@ class QueueSettings(_Section):
     """Receive path: Zenoh FifoChannel -> receiver thread -> bounded per-worker queues."""
 
     receive_capacity: int = Field(
-        default=4096,
+        default=64,
         ge=16,
         description="the Zenoh FifoChannel; a well's message waits behind at most this many "
-        "messages of other wells before it reaches its own queue",
+        "messages of other wells before it reaches its own queue (small keeps that wait short; "
+        "the senders' BLOCK congestion control buffers the rest)",
     )
     worker_capacity: int = Field(default=10_000, ge=16)
     well_capacity: int = Field(
