@@ -14,7 +14,8 @@ standard conditions, times UTC):
   and ``source`` of the row of the sample it was paired with when both have the same time
   (the usual case: a meter reading sent with its sample); otherwise it is a row of its
   own at the measurement's time carrying the paired sample's inputs (exactly what the
-  service learned from);
+  service learned from); an MPFM reading and a well test at the same sample's time give
+  that sample two rows, one per source, as the observation format has it;
 * measurements still pending or never paired have no inputs and are left out (their
   count is in ``DataFrame.attrs["left_out"]``).
 
