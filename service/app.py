@@ -117,6 +117,7 @@ class Service:
             "status": "ok" if self.ready else "starting",
             "uptime_s": round(time.time() - self.started_at, 3),
             "wells": len(engine.wells) if engine is not None else 0,
+            "received": int(getattr(self.transport, "received", 0)),
             "accepted": snap["accepted"],
             "rejected": snap["rejected"],
             "rejected_total": sum(snap["rejected"].values()),
@@ -188,6 +189,7 @@ def _uvicorn_server(app: Any, settings: Settings) -> Any:
         access_log=False,
         lifespan="off",
         limit_concurrency=settings.http.max_connections,
+        timeout_graceful_shutdown=settings.http.shutdown_grace_s,
     )
     return uvicorn.Server(config)
 

@@ -281,6 +281,12 @@ class HttpSettings(_Section):
     max_model_changes: int = Field(
         default=1, ge=1, description="model changes fitted at the same time (503 above)"
     )
+    shutdown_grace_s: float = Field(
+        default=5.0,
+        ge=0,
+        description="at SIGTERM, how long requests in flight (a model change) may take to "
+        "finish before the service stops anyway, s",
+    )
     max_export_rows: int = Field(
         default=1_000_000, ge=1, description="most rows GET /wells/{well}/history.csv returns"
     )

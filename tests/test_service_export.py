@@ -214,13 +214,14 @@ def test_load_store_gives_the_observation_format(served: Served) -> None:
     con = sqlite3.connect(served.store)
     n_samples = con.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
     learned = con.execute(
-        "SELECT time_ns, sample_time_ns, q_total, source FROM measurements"
-        " WHERE status = 'learned'"
+        "SELECT time_ns, sample_time_ns, q_total, source FROM measurements WHERE status = 'learned'"
     ).fetchall()
     con.close()
     apart = [r for r in learned if r[0] != r[1]]
     # a sample whose time an MPFM reading and a well test share has a row per source
-    shared = len([r for r in learned if r[0] == r[1]]) - len({r[0] for r in learned if r[0] == r[1]})
+    shared = len([r for r in learned if r[0] == r[1]]) - len(
+        {r[0] for r in learned if r[0] == r[1]}
+    )
     assert served.well_test["status_code"] == 200 and shared == 1
     assert len(frame) == n_samples + len(apart) + shared
     measured = frame[frame["q_total"].notna()]
@@ -268,7 +269,9 @@ def test_vfm_export_writes_parquet_and_csv(served: Served, tmp_path: Path) -> No
     bad = parser.parse_args(["export", "--store", str(served.store), "--out", "x.txt"])
     with pytest.raises(Exception, match=r"\.parquet or \.csv"):
         bad.handler(bad)
-    missing = parser.parse_args(["export", "--store", str(tmp_path / "no.sqlite"), "--out", "x.csv"])
+    missing = parser.parse_args(
+        ["export", "--store", str(tmp_path / "no.sqlite"), "--out", "x.csv"]
+    )
     with pytest.raises(Exception, match="does not exist"):
         missing.handler(missing)
 

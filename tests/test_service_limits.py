@@ -418,7 +418,9 @@ def test_a_schema_1_store_is_migrated_in_place_and_keeps_working(tmp_path: Path)
     finally:
         store.close()
     con = sqlite3.connect(path)
-    assert con.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()[0] == SCHEMA_VERSION
+    assert (
+        con.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()[0] == SCHEMA_VERSION
+    )
     con.close()
     # and a service starts on it: the well is restored from the store and keeps serving
     settings = loopback_settings(

@@ -79,7 +79,9 @@ class Intake:
         try:
             well, kind, source = route_key(self.settings.prefix, key)
             if kind == "prediction":
-                return  # outputs, e.g. of another service instance: not ours to take in
+                # outputs, e.g. of another service instance: not ours to take in
+                self.counters.event("outputs ignored")
+                return
             item: SensorItem | MeasurementItem
             if kind == "sensors":
                 sample = parse_sensor(payload, self.limits)

@@ -142,6 +142,14 @@ class ModelChanges:
         fit = _Fit(self, well)
         try:
             copy: WellLearner = self._step(st, "snapshot")
+            logger.info(
+                "Model change of %s: fitting %s%s (%s) on %d stored measurement(s).",
+                well,
+                model,
+                "".join(f"+{e}" for e in effects),
+                method or old.method.text,
+                copy.remembered,
+            )
             started = time.perf_counter()
             try:
                 new, scores = fit.run(lambda: copy.refit_as(model, effects, method))

@@ -38,6 +38,9 @@ class HealthOut(BaseModel):
     status: str
     uptime_s: float
     wells: int
+    received: int = Field(
+        default=0, description="messages received over the bus (Zenoh or in memory) since start"
+    )
     accepted: dict[str, int] = Field(
         description="accepted inputs: sensors, measurements, well_tests"
     )
