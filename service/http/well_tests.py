@@ -13,7 +13,7 @@ from dataclasses import asdict
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import Response
 
 from service.errors import Busy, ServiceError
 from service.http.deps import CountersDep, EngineDep, ServiceDep, TokenDep, WellPath
@@ -79,5 +79,9 @@ async def post_well_test(
             f"The well test was queued but not handled within {WELL_TEST_WAIT_S:g} s; the "
             f"service is overloaded. It is still stored once handled; check GET /wells/{well}/history."
         ) from None
-    body = WellTestOut(**asdict(result)).model_dump()
-    return JSONResponse(body, status_code=200 if result.status == "learned" else 202)
+    # pydantic writes a non-finite number as null (json.dumps would refuse it: a 500)
+    return Response(
+        WellTestOut(**asdict(result)).model_dump_json(),
+        status_code=200 if result.status == "learned" else 202,
+        media_type="application/json",
+    )
