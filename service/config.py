@@ -281,8 +281,8 @@ class HttpSettings(_Section):
     max_model_changes: int = Field(
         default=1, ge=1, description="model changes fitted at the same time (503 above)"
     )
-    shutdown_grace_s: float = Field(
-        default=5.0,
+    shutdown_grace_s: int = Field(
+        default=5,
         ge=0,
         description="at SIGTERM, how long requests in flight (a model change) may take to "
         "finish before the service stops anyway, s",

@@ -131,7 +131,8 @@ def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
             finite = math.isfinite(value)
         except OverflowError:  # an integer with hundreds of digits
             finite = False
-            value = f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
+            digits = int(int(value).bit_length() * 0.30103) + 1
+            value = f"an integer of about {digits} digits"
         if not finite:
             raise InvalidRequest(f"{name} must be a finite number, got {value}.", "not finite")
 

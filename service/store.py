@@ -224,6 +224,10 @@ class Op:
     __slots__ = ()
     SQL: ClassVar[str]
 
+    def statement(self) -> str:
+        """The SQL statement (its class's ``SQL``, unless the operation builds its own)."""
+        return self.SQL
+
     def params(self) -> Mapping[str, Any]:
         """The statement's parameters by name."""
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -414,9 +418,10 @@ class DeleteWellRows(Op):
         if self.table not in _WELL_TABLES:
             raise ValueError(f"'{self.table}' is not a table of well rows")
 
-    @property  # type: ignore[misc]
-    def SQL(self) -> str:  # noqa: N802 - the Op interface
-        return f"DELETE FROM {self.table} WHERE well = :well"  # noqa: S608 - whitelisted
+    SQL: ClassVar[str] = "DELETE FROM <table> WHERE well = :well"
+
+    def statement(self) -> str:
+        return self.SQL.replace("<table>", self.table)  # a whitelisted table name
 
     def params(self) -> Mapping[str, Any]:
         return {"well": self.well}
@@ -523,7 +528,7 @@ class Store:
             con.execute("BEGIN IMMEDIATE")
             try:
                 for op in ops:
-                    counts.append(con.execute(op.SQL, op.params()).rowcount)
+                    counts.append(con.execute(op.statement(), op.params()).rowcount)
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
