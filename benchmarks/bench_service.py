@@ -11,9 +11,17 @@ minutes per well, which the service learns from online. Figures per field size:
 * a burst: the same wells' samples sent as fast as Zenoh's BLOCK congestion control lets
   them, to find the rate the service sustains without loss.
 
+Fairness (``--scenario flood``): two wells with a history; a good well sends a sample every
+50 ms from this process while, from a second process with its own Zenoh session, another
+well floods as fast as Zenoh's BLOCK congestion control lets it (several thousand samples
+a second) -- or, with ``--flood-kind names``, a stream of new well names. Figures: the
+good well's latency (send to prediction) before and during the flood, p50 / p99 / max, and
+what the flood got (sent, accepted, refused by reason).
+
 Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--wells 100,1000] [--seconds 30] [--burst 20000]
+    .venv/bin/python benchmarks/bench_service.py --scenario flood [--flood-kind samples|names]
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ import tempfile
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -102,6 +111,7 @@ def run_field(
     workers: int,
     synchronous: str,
     history_rows: int,
+    queues: str = "",
 ) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="vfm-bench-") as tmp:
         folder = Path(tmp)
@@ -121,6 +131,7 @@ path = "{folder / "store.sqlite"}"
 synchronous = "{synchronous}"
 [queues]
 workers = {workers}
+{queues}
 """)
         started = time.perf_counter()
         serve = ServeProcess(cfg, folder / "serve.log").start(timeout=1800)
@@ -212,6 +223,145 @@ workers = {workers}
         }
 
 
+def _flood(
+    endpoint: str, kind: str, seconds: float, row: list[float], t0_ns: int, out: Any
+) -> None:
+    """The flooding side, in its own process and Zenoh session: as fast as BLOCK lets it."""
+    import zenoh
+
+    from replay.client import field_config
+
+    names = kind == "names"
+    with zenoh.open(field_config([endpoint], block_wait_before_close_ms=600_000)) as session:
+        pub = session.declare_publisher(
+            "vfm/F/sensors",
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        deadline = time.monotonic() + 30
+        while not getattr(pub.matching_status, "matching", False):
+            if time.monotonic() > deadline:
+                out.put(-1)
+                return
+            time.sleep(0.01)
+        inputs = (
+            f'"choke": {row[0]}, "p_up": {row[1]}, "p_down": {row[2]}, "t_up": {row[3]}, '
+            f'"eta_gas": {row[4]}, "eta_oil": {row[5]}'
+        )
+        n = 0
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            for _ in range(100):
+                when = datetime.fromtimestamp((t0_ns + n * 1000) / 1e9, UTC).isoformat()
+                payload = f'{{"time": "{when}", {inputs}}}'
+                if names:
+                    session.put(
+                        f"vfm/N{n:06d}/sensors",
+                        payload,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
+                else:
+                    pub.put(payload)
+                n += 1
+        pub.undeclare()
+    out.put(n)
+
+
+def run_flood(
+    kind: str, baseline_s: float, flood_s: float, period_s: float, queues: str = ""
+) -> dict[str, Any]:
+    """A good well's latency before and during a flood from another process (see the docstring)."""
+    import multiprocessing as mp
+
+    import httpx
+
+    with tempfile.TemporaryDirectory(prefix="vfm-bench-flood-") as tmp:
+        folder = Path(tmp)
+        history, inputs = make_history(folder, 2, 60)
+        # the history's wells are B0000 and B0001: rename them G (good) and F (flooding)
+        frame = pd.read_parquet(history)
+        frame["well"] = frame["well"].map({"B0000": "G", "B0001": "F"})
+        frame.to_parquet(history)
+        g_rows, f_rows = inputs["B0000"], inputs["B0001"]
+        cfg = folder / "vfm.toml"
+        cfg.write_text(f"""
+[model]
+name = "mm"
+method = "ol"
+history = "{history}"
+[zenoh]
+listen = ["tcp/127.0.0.1:0"]
+[http]
+port = 0
+[store]
+path = "{folder / "store.sqlite"}"
+synchronous = "normal"
+[queues]
+{queues}
+""")
+        serve = ServeProcess(cfg, folder / "serve.log").start(timeout=600)
+        plant = Plant(serve.zenoh)
+        plant.ready("G")
+        t_now = datetime.now(UTC).replace(microsecond=0) - timedelta(minutes=30)
+        try:
+
+            def good(seconds: float, start: datetime, k0: int) -> tuple[list[float], int, int]:
+                plant.latency.clear()
+                sent = 0
+                t0 = time.perf_counter()
+                k = k0
+                while time.perf_counter() - t0 < seconds:
+                    when = start + timedelta(milliseconds=k)
+                    plant.client.send_sample("G", sample_of(when, g_rows[k % len(g_rows)][:6]))
+                    sent += 1
+                    k += 1
+                    time.sleep(period_s)
+                wait_end = time.monotonic() + 60
+                while len(plant.latency) < sent and time.monotonic() < wait_end:
+                    time.sleep(0.05)
+                return [x * 1000.0 for x in plant.latency], sent, k
+
+            before, sent_before, k = good(baseline_s, t_now, 0)
+            ctx = mp.get_context("spawn")
+            out = ctx.Queue()
+            flood_t0 = int((t_now + timedelta(minutes=1)).timestamp() * 1e9)
+            proc = ctx.Process(
+                target=_flood,
+                args=(serve.zenoh, kind, flood_s, list(f_rows[0][:6]), flood_t0, out),
+            )
+            proc.start()
+            time.sleep(1.0)  # let the flood start
+            during, sent_during, _ = good(flood_s - 1.0, t_now, k)
+            flooded = out.get(timeout=120)
+            proc.join(30)
+            health = httpx.get(f"{serve.http_url}/health", timeout=30).json()
+        finally:
+            plant.close()
+            serve.stop()
+
+    def stats(lat: list[float], sent: int) -> dict[str, float]:
+        a = np.array(lat) if lat else np.array([float("nan")])
+        return {
+            "sent": sent,
+            "answered": len(lat),
+            "p50_ms": float(np.percentile(a, 50)),
+            "p99_ms": float(np.percentile(a, 99)),
+            "max_ms": float(a.max()),
+        }
+
+    return {
+        "kind": kind,
+        "before": stats(before, sent_before),
+        "during": stats(during, sent_during),
+        "flood_sent": flooded,
+        "flood_s": flood_s,
+        "accepted": health["accepted"],
+        "rejected": health["rejected"],
+        "wells": health["wells"],
+        "overflow": health["overflow"],
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -227,7 +377,31 @@ def main() -> None:
     parser.add_argument(
         "--history-rows", type=int, default=60, help="history rows per well for the initial fit"
     )
+    parser.add_argument("--scenario", default="load", choices=["load", "flood"])
+    parser.add_argument("--flood-kind", default="samples", choices=["samples", "names"])
+    parser.add_argument("--flood-seconds", type=float, default=10.0)
+    parser.add_argument(
+        "--queues", default="", help="TOML lines for [queues], e.g. 'receive_capacity = 256'"
+    )
     args = parser.parse_args()
+    if args.scenario == "flood":
+        f = run_flood(args.flood_kind, 5.0, args.flood_seconds, 0.05, args.queues)
+        print(
+            f"Fairness: a good well sends a sample every 50 ms; another process floods "
+            f"{'new well names' if f['kind'] == 'names' else 'one well'} for {f['flood_s']:g} s "
+            f"({f['flood_sent']:,} messages sent, {f['flood_sent'] / f['flood_s']:,.0f}/s)."
+        )
+        for phase in ("before", "during"):
+            r = f[phase]
+            print(
+                f"  good well {phase:<6} the flood: {r['answered']}/{r['sent']} answered, latency p50 "
+                f"{r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms, max {r['max_ms']:.1f} ms"
+            )
+        print(
+            f"  service: {f['wells']} wells, accepted {f['accepted']}, refused {f['rejected']}, "
+            f"overflow {f['overflow']}"
+        )
+        return
     print(
         f"vfm service benchmark: mm + ol, store synchronous={args.synchronous}, workers={args.workers}, "
         f"{args.seconds:g} s at 1 Hz per well, a measurement every {args.measure_every:g} s per well."
@@ -241,6 +415,7 @@ def main() -> None:
             args.workers,
             args.synchronous,
             args.history_rows,
+            args.queues,
         )
         print(
             f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s; {r['learned']} online updates)"

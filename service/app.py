@@ -104,6 +104,9 @@ class Service:
                     self.store = None
 
     # -- what the API shows ---------------------------------------------------------------
+    def _limits(self) -> dict[str, Any]:
+        return _limits_of(self.settings)
+
     def health(self) -> dict[str, Any]:
         """Status, accepted and refused inputs, events, queues and where the service listens."""
         snap = self.counters.snapshot()
@@ -114,6 +117,7 @@ class Service:
             "status": "ok" if self.ready else "starting",
             "uptime_s": round(time.time() - self.started_at, 3),
             "wells": len(engine.wells) if engine is not None else 0,
+            "received": int(getattr(self.transport, "received", 0)),
             "accepted": snap["accepted"],
             "rejected": snap["rejected"],
             "rejected_total": sum(snap["rejected"].values()),
@@ -123,6 +127,9 @@ class Service:
             "overflow": snap["events"].get("overflow", 0),
             "queue_depths": depths,
             "queue_capacity": self.settings.queues.worker_capacity,
+            "busy_wells": engine.busy_wells() if engine is not None else [],
+            "retired_wells": len(engine.retired) if engine is not None else 0,
+            "limits": self._limits(),
             "pending_measurements": pending,
             "events": snap["events"],
             "zenoh": {
@@ -133,6 +140,26 @@ class Service:
             },
             "store": str(self.settings.store.path),
         }
+
+
+def _limits_of(settings: Settings) -> dict[str, Any]:
+    i, q, h, m = settings.inputs, settings.queues, settings.http, settings.model
+    return {
+        "max_payload_bytes": i.max_payload_bytes,
+        "max_body_bytes": h.max_body_bytes,
+        "max_json_depth": i.max_json_depth,
+        "max_future_s": i.max_future_s,
+        "earliest_time": i.earliest_time.isoformat(),
+        "max_rate": i.max_rate,
+        "rate_factor": i.rate_factor,
+        "max_wells": i.max_wells,
+        "new_wells_per_s": i.new_wells_per_s,
+        "well_rate_hz": i.well_rate_hz,
+        "well_capacity": q.well_capacity,
+        "retrain_budget_s": m.retrain_budget_s,
+        "min_retrain_period_s": m.min_retrain_period_s,
+        "change_budget_s": m.change_budget_s,
+    }
 
 
 def bind_socket(host: str, port: int) -> socket.socket:
@@ -156,7 +183,14 @@ def bind_socket(host: str, port: int) -> socket.socket:
 def _uvicorn_server(app: Any, settings: Settings) -> Any:
     import uvicorn
 
-    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
+    config = uvicorn.Config(
+        app,
+        log_level="warning",
+        access_log=False,
+        lifespan="off",
+        limit_concurrency=settings.http.max_connections,
+        timeout_graceful_shutdown=settings.http.shutdown_grace_s,
+    )
     return uvicorn.Server(config)
 
 

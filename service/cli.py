@@ -1,4 +1,5 @@
-"""``vfm serve [--config FILE]``: the streaming service in the foreground."""
+"""``vfm serve [--config FILE]``: the streaming service in the foreground; ``vfm export
+--store PATH --out FILE [--well W]``: a store's history in the observation format."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import logging
 import sys
 from typing import Any
 
-__all__ = ["register"]
+__all__ = ["register", "register_export"]
 
 READY_LINE = "vfm serve: ready"
 
@@ -46,6 +47,30 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--config", default=None, help="settings file (.toml or .json)")
     p.set_defaults(handler=_cmd_serve)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from service.export import export_store
+
+    rows, path = export_store(args.store, args.out, args.well)
+    what = f"well {args.well}" if args.well else "every well"
+    print(f"Wrote {rows:,} rows of {what} from the store {args.store} to {path}.")
+    return 0
+
+
+def register_export(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "export",
+        help="write a service store's history as an observation file (.parquet or .csv)",
+        description="Read a `vfm serve` store (read-only: a running service is not disturbed) and "
+        "write its samples and learned measurements in the observation format, with the "
+        "service's predictions as extra columns (predicted, predicted_std, predicted_p05, "
+        "predicted_p95, version). The file feeds vfm evaluate and vfm diagnose.",
+    )
+    p.add_argument("--store", required=True, help="the service's SQLite store (store.path)")
+    p.add_argument("--out", required=True, help="output file, .parquet or .csv")
+    p.add_argument("--well", default=None, help="only this well")
+    p.set_defaults(handler=_cmd_export)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -36,10 +36,11 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from vfm_core.errors import ConfigError
 from vfm_core.messages import validate_prefix, well_id_problem
-from vfm_core.timeutil import utc
+from vfm_core.timeutil import PLAUSIBLE_MIN, time_problem, utc
 
 __all__ = [
     "Settings",
+    "method_problem",
     "ModelSettings",
     "ZenohSettings",
     "HttpSettings",
@@ -57,6 +58,36 @@ _CONFIG_FILE: ContextVar[Path | None] = ContextVar("vfm_config_file", default=No
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+def method_problem(text: str, min_retrain_period_s: float) -> str | None:
+    """Why ``text`` cannot be a well's learning method in the service, as a sentence; None
+    when it can. The one rule for the config (``model.method``) and for
+    ``PUT /wells/{well}/model``: a registered method (:func:`vfm_core.learning.parse_method`)
+    that the streaming learner runs (``LearningMethod.streaming``: not ``pbl:auto``), whose
+    retrain period, if it has one, is at least ``min_retrain_period_s`` (a retrain every
+    nanosecond would keep a worker retraining forever).
+    """
+    from vfm_core.learning import METHODS, parse_method
+
+    try:
+        method = parse_method(text)
+    except ConfigError as exc:
+        return str(exc)
+    if not method.streaming:
+        live = ", ".join(cls.example for cls in METHODS.values() if cls.streaming)
+        return (
+            f"The method '{text}' is not available in the streaming service; use one of {live} "
+            "(for drift-triggered retrains, as pbl:auto does, set drift.on_drift = 'retrain')."
+        )
+    period = getattr(method, "period", None)
+    if period is not None and period.total_seconds() < min_retrain_period_s:
+        return (
+            f"The method '{text}' retrains every {period}; the service retrains at most every "
+            f"{min_retrain_period_s:g} s (model.min_retrain_period_s), so that retraining cannot "
+            "keep a worker busy: choose a longer period, e.g. pbl:14d."
+        )
+    return None
 
 
 class ModelSettings(_Section):
@@ -84,6 +115,29 @@ class ModelSettings(_Section):
     history_until: datetime | None = Field(
         default=None, description="only history rows before this time (UTC) are used"
     )
+    retrain_budget_s: float = Field(
+        default=30.0,
+        ge=0,
+        description="wall-clock budget of one retrain or first fit of a live well, s (0: none); "
+        "past it the fit stops where it is (model.train.time_budget_s overrides it)",
+    )
+    min_retrain_period_s: float = Field(
+        default=3600.0,
+        ge=0,
+        description="shortest retrain period a method may have (pbl:<period>), s; also over HTTP",
+    )
+    max_catch_up_retrains: int = Field(
+        default=10,
+        ge=1,
+        description="when a sample or measurement comes more than this many retrain periods "
+        "after the next scheduled retrain (a long gap), one retrain replaces them all",
+    )
+    change_budget_s: float = Field(
+        default=300.0,
+        gt=0,
+        description="PUT /wells/{well}/model: how long the new model's fit may take, s; "
+        "past it the change is abandoned (503) and the current model kept",
+    )
 
     @field_validator("name")
     @classmethod
@@ -103,18 +157,12 @@ class ModelSettings(_Section):
     @field_validator("method")
     @classmethod
     def _known_method(cls, v: str) -> str:
-        from vfm_core.learning import METHODS, parse_method
+        from vfm_core.learning import parse_method
 
-        try:
-            streaming = parse_method(v).streaming
+        try:  # the full rule (with the minimum period) runs once every field is read
+            parse_method(v)
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
-        if not streaming:
-            live = ", ".join(cls.example for cls in METHODS.values() if cls.streaming)
-            raise ValueError(
-                f"method '{v}' is not available in the streaming service; use one of {live} "
-                "(for drift-triggered retrains, as pbl:auto does, set drift.on_drift = 'retrain')"
-            )
         return v.strip()
 
     @field_validator("history_until")
@@ -137,6 +185,10 @@ class ModelSettings(_Section):
     @model_validator(mode="after")
     def _settings_exist(self) -> ModelSettings:
         from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, settings_from_dict
+
+        problem = method_problem(self.method, self.min_retrain_period_s)
+        if problem is not None:
+            raise ValueError(f"model.method: {problem[0].lower()}{problem[1:]}".rstrip("."))
 
         if self.effects:
             from vfm_core.streaming import WellLearner
@@ -220,6 +272,24 @@ class HttpSettings(_Section):
     port: int = Field(default=8000, ge=0, le=65535, description="0 picks a free port")
     allow_remote: bool = Field(default=False, description="allow binding outside loopback")
     token: SecretStr | None = Field(default=None, description="bearer token for mutating endpoints")
+    max_body_bytes: int = Field(
+        default=65_536, ge=1024, description="largest request body accepted (413 above), bytes"
+    )
+    max_connections: int = Field(
+        default=64, ge=1, description="concurrent connections and requests (503 above)"
+    )
+    max_model_changes: int = Field(
+        default=1, ge=1, description="model changes fitted at the same time (503 above)"
+    )
+    shutdown_grace_s: int = Field(
+        default=5,
+        ge=0,
+        description="at SIGTERM, how long requests in flight (a model change) may take to "
+        "finish before the service stops anyway, s",
+    )
+    max_export_rows: int = Field(
+        default=1_000_000, ge=1, description="most rows GET /wells/{well}/history.csv returns"
+    )
 
     @model_validator(mode="after")
     def _loopback(self) -> HttpSettings:
@@ -257,7 +327,55 @@ class InputSettings(_Section):
     wells: list[str] = Field(default_factory=list, description="wells known from the start")
     unknown_wells: Literal["create", "reject"] = "create"
     max_future_s: float = Field(
-        default=86_400.0, gt=0, description="reject times further ahead than this"
+        default=300.0,
+        gt=0,
+        description="reject times further ahead of the service's clock than this, s "
+        "(the clock skew allowed; a sample from the future blocks the well's later ones until then)",
+    )
+    earliest_time: datetime = Field(
+        default=PLAUSIBLE_MIN, description="reject times before this one (UTC) as implausible"
+    )
+    max_payload_bytes: int = Field(
+        default=65_536, ge=256, description="largest Zenoh payload accepted, bytes"
+    )
+    max_json_depth: int = Field(
+        default=32, ge=2, description="deepest JSON nesting accepted (a message is flat: 1)"
+    )
+    max_rate: float = Field(
+        default=1e7, gt=0, description="largest measured q_total accepted, Sm3/h"
+    )
+    rate_factor: float = Field(
+        default=20.0,
+        ge=0,
+        description="refuse a q_total more than this many times above or below the median of "
+        "the well's recent measurements (0: off)",
+    )
+    rate_history: int = Field(
+        default=50, ge=1, description="recent measurements of a well whose median is the reference"
+    )
+    rate_min_history: int = Field(
+        default=5, ge=1, description="measurements a well needs before rate_factor applies"
+    )
+    max_wells: int = Field(
+        default=2000,
+        ge=1,
+        description="most wells the service holds; a new well beyond is refused "
+        "(wells of the config, the store and the history are always loaded)",
+    )
+    new_wells_per_s: float = Field(
+        default=10.0, gt=0, description="new wells created per second at most (on first sight)"
+    )
+    new_wells_burst: int = Field(
+        default=100, ge=1, description="new wells that may appear at once before the rate applies"
+    )
+    well_rate_hz: float = Field(
+        default=0.0,
+        ge=0,
+        description="per-well quota: messages per second a well may send (0: no quota; "
+        "fairness then comes from the per-well queues alone)",
+    )
+    well_burst: int = Field(
+        default=1000, ge=1, description="messages a well may send at once above well_rate_hz"
     )
     pair_tolerance_s: float = Field(
         default=300.0, ge=0, description="measurement-to-sample time tolerance"
@@ -266,6 +384,14 @@ class InputSettings(_Section):
         default=100, ge=1, description="measurements waiting for their sample, per well"
     )
     pending_timeout_s: float = Field(default=60.0, gt=0, description="wall-clock wait for a sample")
+
+    @field_validator("earliest_time")
+    @classmethod
+    def _earliest(cls, v: datetime) -> datetime:
+        problem = time_problem(v, what="inputs.earliest_time")
+        if problem is not None:
+            raise ValueError(problem[0].lower() + problem[1:].rstrip("."))
+        return utc(v)
 
     @field_validator("wells")
     @classmethod
@@ -280,11 +406,23 @@ class InputSettings(_Section):
 class QueueSettings(_Section):
     """Receive path: Zenoh FifoChannel -> receiver thread -> bounded per-worker queues."""
 
-    receive_capacity: int = Field(default=4096, ge=16)
+    receive_capacity: int = Field(
+        default=64,
+        ge=16,
+        description="the Zenoh FifoChannel; a well's message waits behind at most this many "
+        "messages of other wells before it reaches its own queue (small keeps that wait short; "
+        "the senders' BLOCK congestion control buffers the rest)",
+    )
     worker_capacity: int = Field(default=10_000, ge=16)
+    well_capacity: int = Field(
+        default=1000,
+        ge=1,
+        description="messages queued per well at most; the worker serves its wells round robin",
+    )
     workers: int = Field(default=1, ge=1, le=64)
-    #: how long the receiver waits on a full worker queue (back-pressure through Zenoh's
-    #: BLOCK congestion control) before it drops the message and counts an overflow
+    #: how long the receiver waits on a full worker queue or a full well queue
+    #: (back-pressure through Zenoh's BLOCK congestion control) before it drops the message
+    #: and counts a 'queue overflow' or 'well flooding'
     block_s: float = Field(default=10.0, ge=0)
     batch_max: int = Field(
         default=256, ge=1, description="at most this many messages per store commit"

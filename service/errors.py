@@ -44,6 +44,9 @@ __all__ = [
 #: Every reason an input can be refused for, with what it means (the rejection counters).
 REASONS: dict[str, str] = {
     "malformed JSON": "the payload is not valid JSON",
+    "payload too large": "the payload is larger than inputs.max_payload_bytes (Zenoh) or "
+    "http.max_body_bytes (HTTP)",
+    "too deeply nested": "the JSON nests deeper than inputs.max_json_depth",
     "not a JSON object": "the payload is JSON but not an object {...}",
     "missing field": "a required field is absent",
     "wrong type": "a field has the wrong type (text or true/false where a number belongs, a bad time)",
@@ -55,16 +58,27 @@ REASONS: dict[str, str] = {
     "fractions sum above 1": "eta_gas + eta_oil exceeds 1",
     "temperature below absolute zero": "t_up is at or below -273.15 degC",
     "negative rate": "q_total is below 0",
+    "implausible rate": "q_total is above inputs.max_rate, or more than inputs.rate_factor times "
+    "above or below the median of the well's recent measurements",
     "time in the future": "the time lies further ahead than inputs.max_future_s",
+    "time out of range": "the time lies outside 1677-09-22..2262-04-10 (what int64 nanoseconds "
+    "hold) or before inputs.earliest_time",
     "time going backwards": "a sensor sample is older than the well's previous one",
     "duplicate": "the same sample or measurement arrived before",
-    "unknown well": "the well is not known and inputs.unknown_wells = 'reject'",
+    "unknown well": "the well is not known and inputs.unknown_wells = 'reject' (or, over HTTP, "
+    "the well is not known: HTTP never creates a well)",
+    "retired well": "the well was retired with DELETE /wells/{well}; purge it to reuse the id",
+    "too many wells": "the service holds inputs.max_wells wells; a new one is not created",
+    "too many new wells": "new wells appear faster than inputs.new_wells_per_s (burst "
+    "inputs.new_wells_burst); a new one is not created now",
     "unparseable key": "the key expression is not <prefix>/<well>/sensors or .../measurements/<source>, "
     "or its well id is not valid",
     "unknown source": "the measurement source is not mpfm or well_test",
     "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
     "too many pending measurements": "more than inputs.pending_max measurements wait for samples",
     "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
+    "well flooding": "the well sends faster than its share: its own queue (queues.well_capacity) "
+    "stayed full for queues.block_s, or it exceeded inputs.well_rate_hz",
 }
 
 

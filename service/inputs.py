@@ -3,9 +3,11 @@
 The same functions check Zenoh payloads and HTTP bodies, so a bad value gets the same
 reason and sentence on both paths: each raises :class:`service.errors.InvalidRequest`
 with a short stable ``reason`` (a key of :data:`service.errors.REASONS`, the counters of
-``GET /health``) and a sentence for people. :class:`Counters` counts accepted inputs and
-rejections by reason and logs each reason once, then at most once a minute with the count
-since.
+``GET /health``) and a sentence for people. :class:`Limits` bounds what is parsed at all:
+the payload's size and the JSON's nesting depth. :class:`Counters` counts accepted inputs
+and rejections by reason and logs each reason once, then at most once a minute with the
+count since; everything it logs passes :func:`printable` first, so no input can forge a
+log line (a newline or control character in a key or id is shown escaped).
 """
 
 from __future__ import annotations
@@ -17,15 +19,19 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
 
 from service.errors import InvalidRequest
-from vfm_core.messages import Measurement, SensorSample, parse_key
+from vfm_core.messages import Measurement, SensorSample, parse_key, well_id_problem
 
 __all__ = [
     "Counters",
+    "Limits",
+    "DEFAULT_LIMITS",
+    "printable",
     "parse_sensor",
     "parse_measurement",
     "classify_errors",
@@ -40,11 +46,69 @@ SOURCES: tuple[str, ...] = ("mpfm", "well_test")
 _NUMERIC_SENSOR = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
 
 
-def _loads(payload: bytes | str) -> dict[str, Any]:
+def printable(text: object, limit: int = 200) -> str:
+    """``text`` safe to log: at most ``limit`` characters, control and invisible characters
+    escaped (``\\n``, ``\\x00``, ``\\u2028``), so no input can start a forged log line."""
+    s = str(text)
+    if len(s) > limit:
+        s = s[:limit] + f"...({len(s)} characters)"
+    return s if s.isprintable() else s.encode("unicode_escape").decode("ascii")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What an inbound payload may be at most, before it is parsed: size and JSON depth."""
+
+    max_bytes: int = 65_536
+    max_depth: int = 32
+
+
+DEFAULT_LIMITS = Limits()
+
+
+def _depth_exceeds(data: Any, limit: int) -> bool:
+    """Whether parsed JSON nests deeper than ``limit`` (iterative: no recursion to exhaust)."""
+    stack: list[tuple[Any, int]] = [(data, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict):
+            children: Iterable[Any] = value.values()
+        elif isinstance(value, list):
+            children = value
+        else:
+            continue
+        if depth > limit:
+            return True
+        stack.extend((child, depth + 1) for child in children)
+    return False
+
+
+def _loads(payload: bytes | str, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:
+    size = len(payload)
+    if size > limits.max_bytes:
+        raise InvalidRequest(
+            f"The payload has {size:,} bytes; at most {limits.max_bytes:,} are accepted "
+            "(a sample or measurement takes about 200).",
+            "payload too large",
+        )
     try:
         data = json.loads(payload)
+    except RecursionError:
+        raise InvalidRequest(
+            f"The payload nests JSON deeper than {limits.max_depth} levels; a sample or "
+            "measurement is one flat object.",
+            "too deeply nested",
+        ) from None
     except (ValueError, UnicodeDecodeError) as exc:
-        raise InvalidRequest(f"The payload is not valid JSON ({exc}).", "malformed JSON") from None
+        raise InvalidRequest(
+            f"The payload is not valid JSON ({printable(exc, 120)}).", "malformed JSON"
+        ) from None
+    if _depth_exceeds(data, limits.max_depth):
+        raise InvalidRequest(
+            f"The payload nests JSON deeper than {limits.max_depth} levels; a sample or "
+            "measurement is one flat object.",
+            "too deeply nested",
+        )
     if not isinstance(data, dict):
         raise InvalidRequest(
             f"The payload must be a JSON object {{...}}, not {type(data).__name__}.",
@@ -63,7 +127,13 @@ def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
                 f"{name} must be a number, got {json.dumps(value)[:40]} ({type(value).__name__}).",
                 "wrong type",
             )
-        if not math.isfinite(value):
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer with hundreds of digits
+            finite = False
+            digits = int(int(value).bit_length() * 0.30103) + 1
+            value = f"an integer of about {digits} digits"
+        if not finite:
             raise InvalidRequest(f"{name} must be a finite number, got {value}.", "not finite")
 
 
@@ -76,7 +146,7 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     msg = str(e.get("msg", "")).removeprefix("Value error, ")
     value = e.get("input")
     if kind == "json_invalid":
-        return "malformed JSON", f"The payload is not valid JSON ({msg})."
+        return "malformed JSON", f"The payload is not valid JSON ({printable(msg, 120)})."
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         return "not a JSON object", "The payload must be a JSON object {...}."
     if kind == "missing":
@@ -105,6 +175,8 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
         return "fractions sum above 1", msg[0].upper() + msg[1:] + "."
     if "absolute zero" in msg:
         return "temperature below absolute zero", msg[0].upper() + msg[1:] + "."
+    if field == "time" and "can represent" in msg:
+        return "time out of range", msg[0].upper() + msg[1:] + "."
     if field == "time":
         return (
             "wrong type",
@@ -113,9 +185,11 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     return "wrong type", f"{field or 'The payload'}: {msg}."
 
 
-def parse_sensor(payload: bytes | str | dict[str, Any]) -> SensorSample:
+def parse_sensor(
+    payload: bytes | str | dict[str, Any], limits: Limits = DEFAULT_LIMITS
+) -> SensorSample:
     """A checked :class:`SensorSample` from JSON (or an already decoded object)."""
-    data = payload if isinstance(payload, dict) else _loads(payload)
+    data = payload if isinstance(payload, dict) else _loads(payload, limits)
     _check_numbers(data, _NUMERIC_SENSOR)
     try:
         return SensorSample.model_validate(data)
@@ -124,9 +198,11 @@ def parse_sensor(payload: bytes | str | dict[str, Any]) -> SensorSample:
         raise InvalidRequest(sentence, reason) from None
 
 
-def parse_measurement(payload: bytes | str | dict[str, Any]) -> Measurement:
+def parse_measurement(
+    payload: bytes | str | dict[str, Any], limits: Limits = DEFAULT_LIMITS
+) -> Measurement:
     """A checked :class:`Measurement` from JSON (or an already decoded object)."""
-    data = payload if isinstance(payload, dict) else _loads(payload)
+    data = payload if isinstance(payload, dict) else _loads(payload, limits)
     _check_numbers(data, ("q_total",))
     try:
         return Measurement.model_validate(data)
@@ -136,17 +212,24 @@ def parse_measurement(payload: bytes | str | dict[str, Any]) -> Measurement:
 
 
 def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:
-    """(well, kind, source) of an inbound key, or :class:`InvalidRequest`; kind is sensors|measurements|prediction."""
+    """(well, kind, source) of an inbound key, or :class:`InvalidRequest`; kind is sensors|measurements|prediction.
+
+    The well id must pass :func:`vfm_core.messages.well_id_problem`, the one rule for ids."""
     parsed = parse_key(prefix, key)
     if parsed is None:
         raise InvalidRequest(
-            f"The key '{key}' is not {prefix}/<well>/sensors or {prefix}/<well>/measurements/<source>.",
+            f"The key {printable(repr(key), 120)} is not {prefix}/<well>/sensors or "
+            f"{prefix}/<well>/measurements/<source>.",
             "unparseable key",
         )
     well, kind, source = parsed
+    problem = well_id_problem(well)
+    if problem is not None:
+        raise InvalidRequest(problem, "unparseable key")
     if kind == "measurements" and source not in SOURCES:
         raise InvalidRequest(
-            f"The measurement source '{source}' in '{key}' is not one of {', '.join(SOURCES)}.",
+            f"The measurement source {printable(repr(source), 60)} of {well} is not one of "
+            f"{', '.join(SOURCES)}.",
             "unknown source",
         )
     return well, kind, source
@@ -184,7 +267,8 @@ class Counters:
                 return
             count = self._since_log.pop(reason)
             self._last_log[reason] = now
-        where = f" ({where})" if where else ""
+        where = f" ({printable(where)})" if where else ""
+        message = printable(message, 400)
         if last is None:
             logger.warning("Rejected input: %s%s: %s", reason, where, message)
         else:

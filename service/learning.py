@@ -10,6 +10,7 @@ well's slice of the fitted model is then loaded into its :class:`WellLearner`.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from datetime import datetime
 from typing import Any
 
@@ -26,9 +27,33 @@ from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
 from vfm_core.streaming import WellLearner
 
-__all__ = ["new_learner", "load_history", "fit_history"]
+__all__ = ["new_learner", "load_history", "fit_history", "train_settings", "apply_budget"]
 
 logger = logging.getLogger("vfm.service.learning")
+
+
+def _budget(cfg: ModelSettings) -> float:
+    return float(cfg.train.get("time_budget_s", cfg.retrain_budget_s))
+
+
+def train_settings(cfg: ModelSettings) -> Any:
+    """The batch-training settings of a live well: the model's defaults, ``model.train``,
+    and the wall-clock budget of one fit (``model.retrain_budget_s`` unless
+    ``model.train.time_budget_s`` is given), so no retrain can keep a worker busy for long."""
+    return replace(
+        settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train), time_budget_s=_budget(cfg)
+    )
+
+
+def apply_budget(learner: WellLearner, cfg: ModelSettings) -> WellLearner:
+    """Give a restored or refitted learner the configured retrain budget (its other
+    settings stay those it was built with)."""
+    budget = _budget(cfg)
+    if learner.train.time_budget_s != budget:
+        learner.train = replace(learner.train, time_budget_s=budget)
+    if learner.method.train.time_budget_s != budget:
+        learner.method.train = replace(learner.method.train, time_budget_s=budget)
+    return learner
 
 
 def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
@@ -37,7 +62,7 @@ def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
         well,
         cfg.name,
         cfg.method,
-        train=settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train),
+        train=train_settings(cfg),
         online=settings_from_dict(DEFAULT_ONLINE[cfg.name], cfg.online),
         model_kwargs=cfg.model_kwargs,
         seed=cfg.seed,

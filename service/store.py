@@ -2,9 +2,12 @@
 
 What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures bar a):
 
-- ``wells``: every well the service knows, with when and how it was added.
+- ``wells``: every well the service knows, with when and how it was added, and when it
+  was retired (``DELETE /wells/{well}``; null while in service).
 - ``samples``: every accepted sensor sample with the prediction made for it (empty
-  prediction columns while the well's model was not ready).
+  prediction columns while the well's model was not ready), and the prediction's
+  interval where the method gives one (``q_total_std``, ``q_total_p05``, ``q_total_p95``,
+  Sm3/h; null otherwise).
 - ``measurements``: every accepted measurement (MPFM reading or well test) with its
   status: ``pending`` (waiting for its sensor sample), ``learned`` (with the order it was
   learned in, ``learn_seq``, the paired inputs and the prediction at that sample, so
@@ -22,6 +25,11 @@ fields are bound to the statement by name, so no caller depends on the order of 
 table's columns. :meth:`Store.write` runs a list of them in one transaction under a lock
 (group commit). Readers (the HTTP API, pairing look-ups) open their own connections:
 WAL lets them read while the writer writes.
+
+Schema versions (``meta.schema``): 1, the first; 2 adds the interval columns of
+``samples`` and ``wells.retired_ns``. A version-1 store is migrated in place when the
+service opens it (columns added, nothing rewritten); a store of a later version than this
+code knows is refused with a sentence.
 """
 
 from __future__ import annotations
@@ -58,6 +66,10 @@ __all__ = [
     "InsertCheckpoint",
     "PruneCheckpoints",
     "InsertDriftEvent",
+    "RetireWell",
+    "DeleteWellRows",
+    "purge_ops",
+    "SCHEMA_VERSION",
 ]
 
 #: the six model inputs, in vfm_core.schema.INPUT_COLUMNS order
@@ -66,7 +78,8 @@ INPUT_FIELDS: tuple[str, ...] = ("choke", "p_up", "p_down", "t_up", "eta_gas", "
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS wells (
-    well TEXT PRIMARY KEY, created_ns INTEGER NOT NULL, origin TEXT NOT NULL
+    well TEXT PRIMARY KEY, created_ns INTEGER NOT NULL, origin TEXT NOT NULL,
+    retired_ns INTEGER
 );
 CREATE TABLE IF NOT EXISTS samples (
     id INTEGER PRIMARY KEY,
@@ -74,7 +87,8 @@ CREATE TABLE IF NOT EXISTS samples (
     choke REAL NOT NULL, p_up REAL NOT NULL, p_down REAL NOT NULL, t_up REAL NOT NULL,
     eta_gas REAL NOT NULL, eta_oil REAL NOT NULL,
     received_ns INTEGER NOT NULL,
-    q_total REAL, q_gas REAL, q_oil REAL, q_water REAL, version INTEGER
+    q_total REAL, q_gas REAL, q_oil REAL, q_water REAL, version INTEGER,
+    q_total_std REAL, q_total_p05 REAL, q_total_p95 REAL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS samples_well_time ON samples (well, time_ns);
 CREATE TABLE IF NOT EXISTS measurements (
@@ -101,7 +115,17 @@ CREATE TABLE IF NOT EXISTS drift_events (
 CREATE UNIQUE INDEX IF NOT EXISTS drift_events_key ON drift_events (well, time_ns);
 """
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"
+
+#: the statements that bring a store of the key's version to the next one
+_MIGRATIONS: dict[str, list[str]] = {
+    "1": [
+        "ALTER TABLE samples ADD COLUMN q_total_std REAL",
+        "ALTER TABLE samples ADD COLUMN q_total_p05 REAL",
+        "ALTER TABLE samples ADD COLUMN q_total_p95 REAL",
+        "ALTER TABLE wells ADD COLUMN retired_ns INTEGER",
+    ],
+}
 
 
 # -- rows read --------------------------------------------------------------------------------
@@ -162,6 +186,9 @@ class HistorySample(NamedTuple):
     q_oil: float | None
     q_water: float | None
     version: int | None
+    q_total_std: float | None = None
+    q_total_p05: float | None = None
+    q_total_p95: float | None = None
 
 
 class HistoryMeasurement(NamedTuple):
@@ -197,6 +224,10 @@ class Op:
     __slots__ = ()
     SQL: ClassVar[str]
 
+    def statement(self) -> str:
+        """The SQL statement (its class's ``SQL``, unless the operation builds its own)."""
+        return self.SQL
+
     def params(self) -> Mapping[str, Any]:
         """The statement's parameters by name."""
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -226,12 +257,18 @@ class InsertSample(Op):
     q_oil: float | None
     q_water: float | None
     version: int | None
+    #: the prediction's sd and 90 % interval, Sm3/h (None: the method gives none)
+    q_total_std: float | None = None
+    q_total_p05: float | None = None
+    q_total_p95: float | None = None
 
     SQL: ClassVar[str] = (
         "INSERT OR IGNORE INTO samples (well, time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil,"
-        " received_ns, q_total, q_gas, q_oil, q_water, version)"
+        " received_ns, q_total, q_gas, q_oil, q_water, version, q_total_std, q_total_p05,"
+        " q_total_p95)"
         " VALUES (:well, :time_ns, :choke, :p_up, :p_down, :t_up, :eta_gas, :eta_oil,"
-        " :received_ns, :q_total, :q_gas, :q_oil, :q_water, :version)"
+        " :received_ns, :q_total, :q_gas, :q_oil, :q_water, :version, :q_total_std,"
+        " :q_total_p05, :q_total_p95)"
     )
 
     def params(self) -> Mapping[str, Any]:
@@ -245,6 +282,9 @@ class InsertSample(Op):
             "q_oil": self.q_oil,
             "q_water": self.q_water,
             "version": self.version,
+            "q_total_std": self.q_total_std,
+            "q_total_p05": self.q_total_p05,
+            "q_total_p95": self.q_total_p95,
         }
 
 
@@ -353,6 +393,45 @@ class InsertDriftEvent(Op):
     )
 
 
+@dataclass(frozen=True, slots=True)
+class RetireWell(Op):
+    """Mark a well retired: its data stay, the service no longer loads or serves it."""
+
+    well: str
+    retired_ns: int
+
+    SQL: ClassVar[str] = "UPDATE wells SET retired_ns = :retired_ns WHERE well = :well"
+
+
+#: the tables that hold a well's rows, as :class:`DeleteWellRows` may name them
+_WELL_TABLES = ("samples", "measurements", "checkpoints", "drift_events", "wells")
+
+
+@dataclass(frozen=True, slots=True)
+class DeleteWellRows(Op):
+    """Delete every row of a well from one of its tables (a purge)."""
+
+    well: str
+    table: str
+
+    def __post_init__(self) -> None:
+        if self.table not in _WELL_TABLES:
+            raise ValueError(f"'{self.table}' is not a table of well rows")
+
+    SQL: ClassVar[str] = "DELETE FROM <table> WHERE well = :well"
+
+    def statement(self) -> str:
+        return self.SQL.replace("<table>", self.table)  # a whitelisted table name
+
+    def params(self) -> Mapping[str, Any]:
+        return {"well": self.well}
+
+
+def purge_ops(well: str) -> list[Op]:
+    """The writes that remove every row of a well (samples, measurements, checkpoints, ...)."""
+    return [DeleteWellRows(well=well, table=t) for t in _WELL_TABLES]
+
+
 # -- reading helpers --------------------------------------------------------------------------
 _Row = TypeVar("_Row")
 
@@ -402,11 +481,32 @@ class Store:
                 "INSERT INTO meta (key, value) VALUES ('schema', ?)", (SCHEMA_VERSION,)
             )
         elif row[0] != SCHEMA_VERSION:
-            raise ConfigError(
-                f"The store {self.path} has schema version {row[0]}, this service writes "
-                f"version {SCHEMA_VERSION}; use a new store.path."
-            )
+            self._migrate(str(row[0]))
         self._readers: list[sqlite3.Connection] = []
+
+    def _migrate(self, version: str) -> None:
+        """Bring an older store to :data:`SCHEMA_VERSION` in place, one version at a time."""
+        if version not in _MIGRATIONS:
+            raise ConfigError(
+                f"The store {self.path} has schema version {version}, this service writes "
+                f"version {SCHEMA_VERSION} and reads versions up to it; use a new store.path "
+                "or a newer version of the service."
+            )
+        con = self._writer
+        while version != SCHEMA_VERSION:
+            steps = _MIGRATIONS.get(version)
+            if steps is None:  # pragma: no cover - a gap in _MIGRATIONS
+                raise ConfigError(f"No migration of the store from schema version {version}.")
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                for statement in steps:
+                    con.execute(statement)
+                version = str(int(version) + 1)
+                con.execute("UPDATE meta SET value = ? WHERE key = 'schema'", (version,))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
 
     def _connect(self) -> sqlite3.Connection:
         con = sqlite3.connect(
@@ -428,7 +528,7 @@ class Store:
             con.execute("BEGIN IMMEDIATE")
             try:
                 for op in ops:
-                    counts.append(con.execute(op.SQL, op.params()).rowcount)
+                    counts.append(con.execute(op.statement(), op.params()).rowcount)
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
@@ -456,8 +556,34 @@ class Store:
         yield con
 
     def wells(self) -> list[str]:
+        """The wells in service (not retired), in the order they were added."""
         with self.reader() as con:
-            return [r[0] for r in con.execute("SELECT well FROM wells ORDER BY created_ns, well")]
+            return [
+                r[0]
+                for r in con.execute(
+                    "SELECT well FROM wells WHERE retired_ns IS NULL ORDER BY created_ns, well"
+                )
+            ]
+
+    def retired_wells(self) -> dict[str, int]:
+        """Retired wells (their data kept) -> when they were retired (epoch ns)."""
+        with self.reader() as con:
+            return {
+                r[0]: int(r[1])
+                for r in con.execute(
+                    "SELECT well, retired_ns FROM wells WHERE retired_ns IS NOT NULL"
+                )
+            }
+
+    def recent_rates(self, well: str, n: int) -> list[float]:
+        """The q_total (Sm3/h) of the well's last ``n`` stored measurements, oldest first."""
+        with self.reader() as con:
+            rows = con.execute(
+                "SELECT q_total FROM measurements WHERE well = ? AND status != 'unpaired'"
+                " ORDER BY time_ns DESC LIMIT ?",
+                (well, n),
+            ).fetchall()
+        return [float(r[0]) for r in rows[::-1]]
 
     def latest_checkpoint(self, well: str) -> CheckpointRow | None:
         with self.reader() as con:
@@ -588,7 +714,8 @@ class Store:
             samples = _fetch(
                 con.execute(
                     "SELECT time_ns, " + ", ".join(INPUT_FIELDS) + ", received_ns,"
-                    " q_total, q_gas, q_oil, q_water, version FROM samples"
+                    " q_total, q_gas, q_oil, q_water, version, q_total_std, q_total_p05,"
+                    " q_total_p95 FROM samples"
                     " WHERE well = ? AND time_ns >= ? AND time_ns < ? ORDER BY time_ns LIMIT ?",
                     (well, start_ns, end_ns, limit),
                 ),

@@ -92,17 +92,21 @@ class ServeProcess:
         )
         self._pump.start()
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                line = lines.get(timeout=0.2)
-            except queue.Empty:
-                if self.proc.poll() is not None:
-                    break
-                continue
-            m = READY.search(line)
-            if m:
-                self.http_url, self.zenoh = m["http"], m["zenoh"].split(",")[0]
-                return self
+        try:
+            while time.monotonic() < deadline:
+                try:
+                    line = lines.get(timeout=0.2)
+                except queue.Empty:
+                    if self.proc.poll() is not None:
+                        break
+                    continue
+                m = READY.search(line)
+                if m:
+                    self.http_url, self.zenoh = m["http"], m["zenoh"].split(",")[0]
+                    return self
+        except BaseException:  # interrupted while waiting: never leave the child behind
+            self.stop()
+            raise
         self.stop()
         tail = self.log_path.read_text(encoding="utf-8", errors="replace")[-2000:]
         raise VFMError(

@@ -157,7 +157,7 @@ class ZenohTransport:
                 try:
                     deliver(key, sample.payload.to_bytes(), time.time_ns())
                 except Exception:  # a bug in one message must not end reception
-                    logger.exception("Delivering %s failed", key)
+                    logger.exception("Delivering %r failed", key[:200])
 
         self._thread = threading.Thread(target=receive, name="vfm-zenoh-receiver", daemon=True)
         self._thread.start()
@@ -254,7 +254,7 @@ class MemoryTransport:
                 try:
                     deliver(key, payload, time.time_ns())
                 except Exception:  # a bug in one message must not end reception
-                    logger.exception("Delivering %s failed", key)
+                    logger.exception("Delivering %r failed", key[:200])
 
         self._thread = threading.Thread(target=receive, name="vfm-memory-receiver", daemon=True)
         self._receiving.set()

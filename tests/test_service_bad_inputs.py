@@ -46,9 +46,12 @@ def _sample(t: datetime, **changes: Any) -> dict[str, Any]:
 
 
 class Env:
-    def __init__(self, http: httpx.Client, client: FieldClient) -> None:
+    def __init__(self, http: httpx.Client, client: FieldClient, level: float) -> None:
         self.http = http
         self.client = client
+        #: the well's typical measured rate, Sm3/h: good measurements lie near it (a rate
+        #: far from the well's recent ones is refused as implausible)
+        self.q = level
 
     def put(self, key: str, payload: bytes | str | dict[str, Any]) -> None:
         self.client.put_raw(key, json.dumps(payload) if isinstance(payload, dict) else payload)
@@ -80,7 +83,7 @@ def env(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
                 FieldClient(bus, settings.prefix, match_timeout=10.0) as client,
             ):
                 client.wait_for_service("W01")  # and let the service see our subscriber
-                yield Env(http, client)
+                yield Env(http, client, float(frame["q_total"].median()))
         finally:
             if memory is None:
                 bus.close()  # type: ignore[attr-defined]
@@ -142,24 +145,28 @@ def test_bad_zenoh_inputs_are_counted_by_reason_and_harmless(env: Env) -> None:
         ("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": -5.0}, "negative rate"),
         (
             "vfm/W01/measurements/mpfm",
-            {"time": (t0 - timedelta(days=30)).isoformat(), "q_total": 50.0},
+            {"time": (t0 - timedelta(days=30)).isoformat(), "q_total": env.q},
             "no sensor sample within tolerance",
         ),
-        ("vfm/W01/measurements/guess", {"time": t0.isoformat(), "q_total": 50.0}, "unknown source"),
+        (
+            "vfm/W01/measurements/guess",
+            {"time": t0.isoformat(), "q_total": env.q},
+            "unknown source",
+        ),
         ("vfm/W01/sensors/extra", good, "unparseable key"),
         ("vfm/W01", good, "unparseable key"),
         ("vfm/NOPE/sensors", _sample(t0), "unknown well"),
         (
             "vfm/W01/measurements/mpfm",
-            {"time": future.isoformat(), "q_total": 50.0},
+            {"time": future.isoformat(), "q_total": env.q},
             "time in the future",
         ),
     ]
     for key, payload, _ in corpus:
         env.put(key, payload)
     # a valid measurement, then the same again: the second is a duplicate
-    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": 900.0})
-    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": 900.0})
+    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": env.q})
+    env.put("vfm/W01/measurements/mpfm", {"time": t0.isoformat(), "q_total": env.q})
     # a sentinel: once it is answered, everything before it was handled
     t1 = t0 + timedelta(minutes=10)
     env.put("vfm/W01/sensors", _sample(t1))
@@ -185,22 +192,27 @@ def test_bad_http_inputs_are_counted_by_reason(env: Env) -> None:
         (post, b"{oops", 422, "malformed JSON"),
         (post, {"time": t0.isoformat()}, 422, "missing field"),
         (post, {"time": t0.isoformat(), "q_total": "lots"}, 422, "wrong type"),
-        (post, {"time": "last tuesday", "q_total": 10.0}, 422, "wrong type"),
+        (post, {"time": "last tuesday", "q_total": env.q}, 422, "wrong type"),
         (post, {"time": t0.isoformat(), "q_total": -1.0}, 422, "negative rate"),
         (post, b'{"time": "2017-07-01T00:00:00Z", "q_total": NaN}', 422, "not finite"),
         (
             post,
-            {"time": (datetime.now(UTC) + timedelta(days=2)).isoformat(), "q_total": 10.0},
+            {"time": (datetime.now(UTC) + timedelta(days=2)).isoformat(), "q_total": env.q},
             422,
             "time in the future",
         ),
         (
             post,
-            {"time": (t0 - timedelta(days=40)).isoformat(), "q_total": 10.0},
+            {"time": (t0 - timedelta(days=40)).isoformat(), "q_total": env.q},
             422,
             "no sensor sample within tolerance",
         ),
-        ("/wells/NOPE/well-tests", {"time": t0.isoformat(), "q_total": 10.0}, 404, "unknown well"),
+        (
+            "/wells/NOPE/well-tests",
+            {"time": t0.isoformat(), "q_total": env.q},
+            404,
+            "unknown well",
+        ),
     ]
     for path, body, status, reason in cases:
         kwargs = {"content": body} if isinstance(body, bytes) else {"json": body}
@@ -208,9 +220,9 @@ def test_bad_http_inputs_are_counted_by_reason(env: Env) -> None:
         assert r.status_code == status, (body, r.text)
         out = r.json()
         assert out["reason"] == reason and out["detail"].endswith("."), out
-    ok = env.http.post(post, json={"time": t0.isoformat(), "q_total": 950.0}, headers=AUTH)
+    ok = env.http.post(post, json={"time": t0.isoformat(), "q_total": env.q * 1.05}, headers=AUTH)
     assert ok.status_code == 200 and ok.json()["status"] == "learned", ok.text
-    dup = env.http.post(post, json={"time": t0.isoformat(), "q_total": 950.0}, headers=AUTH)
+    dup = env.http.post(post, json={"time": t0.isoformat(), "q_total": env.q * 1.05}, headers=AUTH)
     assert dup.status_code == 409 and dup.json()["reason"] == "duplicate"
     expected = Counter(reason for *_, reason in cases if reason) + Counter({"duplicate": 1})
     assert env.rejected() - before == expected
@@ -224,7 +236,7 @@ def test_token_rules(env: Env) -> None:
     t0 = datetime(2017, 8, 1, tzinfo=UTC)
     env.put("vfm/W01/sensors", _sample(t0))
     _wait_for_prediction(env, t0)
-    body = {"time": t0.isoformat(), "q_total": 800.0}
+    body = {"time": t0.isoformat(), "q_total": env.q * 0.95}
     missing = env.http.post("/wells/W01/well-tests", json=body)
     assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
     wrong = env.http.post(

@@ -25,6 +25,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from vfm_core.errors import ConfigError
+from vfm_core.timeutil import time_problem
 
 __all__ = [
     "SensorSample",
@@ -42,6 +43,12 @@ __all__ = [
 
 
 def _utc(value: datetime) -> datetime:
+    """The time in UTC, refused (ValueError, which pydantic reports) outside the span the VFM
+    represents (int64 epoch nanoseconds: 1677 to 2262), including an offset that pushes it
+    past year 1 or 9999."""
+    problem = time_problem(value)
+    if problem is not None:
+        raise ValueError(problem[0].lower() + problem[1:].rstrip("."))
     return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
 
 

@@ -3,6 +3,12 @@
 Files and messages carry ISO 8601 times (a naive time is taken as UTC); tensors and the
 service's store carry int64 epoch nanoseconds, which cover 1677-09-21 to 2262-04-11
 (:data:`TIME_MIN`, :data:`TIME_MAX`).
+
+:func:`time_problem` is the one rule for a time that comes from outside (a message, an
+HTTP body or query): it must lie within the representable span, a day inside those limits
+(:data:`REPRESENTABLE_MIN`, :data:`REPRESENTABLE_MAX`), and, where the caller asks, not
+before a plausible earliest time (:data:`PLAUSIBLE_MIN`, 1970-01-01, by default) nor
+further ahead than a given bound.
 """
 
 from __future__ import annotations
@@ -14,6 +20,10 @@ import pandas as pd
 __all__ = [
     "TIME_MIN",
     "TIME_MAX",
+    "REPRESENTABLE_MIN",
+    "REPRESENTABLE_MAX",
+    "PLAUSIBLE_MIN",
+    "time_problem",
     "utc",
     "utc_timestamp",
     "to_ns",
@@ -25,11 +35,52 @@ _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 #: the earliest and latest times an int64 count of nanoseconds since 1970 can hold
 TIME_MIN: pd.Timestamp = pd.Timestamp.min.tz_localize("UTC")
 TIME_MAX: pd.Timestamp = pd.Timestamp.max.tz_localize("UTC")
+#: the span a time from outside may take: a day inside TIME_MIN..TIME_MAX, so that a
+#: time zone offset or a few hours of arithmetic never leave the int64-nanosecond range
+REPRESENTABLE_MIN = datetime(1677, 9, 22, tzinfo=UTC)
+REPRESENTABLE_MAX = datetime(2262, 4, 10, tzinfo=UTC)
+#: the default earliest plausible time of a measurement or sample (no MPFM before it)
+PLAUSIBLE_MIN = datetime(1970, 1, 1, tzinfo=UTC)
 
 
 def utc(when: datetime) -> datetime:
     """An aware UTC datetime (a naive one is taken as UTC)."""
     return when.replace(tzinfo=UTC) if when.tzinfo is None else when.astimezone(UTC)
+
+
+def time_problem(
+    when: datetime,
+    *,
+    earliest: datetime | None = None,
+    latest: datetime | None = None,
+    what: str = "time",
+) -> str | None:
+    """Why ``when`` cannot be taken, as a sentence; None when it can.
+
+    Always checked: the representable span (:data:`REPRESENTABLE_MIN` ..
+    :data:`REPRESENTABLE_MAX`). ``earliest`` (e.g. :data:`PLAUSIBLE_MIN`) and ``latest``
+    (e.g. now plus a clock-skew allowance) narrow it. A naive time is taken as UTC.
+    """
+    try:
+        t = utc(when)
+    except OverflowError:  # an offset pushes it past year 1 or 9999
+        return (
+            f"The {what} {when.isoformat()} lies outside the span the VFM can represent "
+            f"({REPRESENTABLE_MIN.date()} to {REPRESENTABLE_MAX.date()})."
+        )
+    if t < REPRESENTABLE_MIN or t > REPRESENTABLE_MAX:
+        return (
+            f"The {what} {t.isoformat()} lies outside the span the VFM can represent "
+            f"({REPRESENTABLE_MIN.date()} to {REPRESENTABLE_MAX.date()})."
+        )
+    if earliest is not None and t < utc(earliest):
+        return (
+            f"The {what} {t.isoformat()} lies before {utc(earliest).isoformat()}, the earliest "
+            "plausible time; check the sender's clock and time zone."
+        )
+    if latest is not None and t > utc(latest):
+        return f"The {what} {t.isoformat()} lies after {utc(latest).isoformat()}."
+    return None
 
 
 def utc_timestamp(when: datetime | pd.Timestamp | str | int) -> pd.Timestamp:

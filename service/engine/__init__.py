@@ -6,7 +6,9 @@ fit on the history), ``intake`` (receiving, routing to workers, back-pressure),
 (a measurement with the nearest sensor sample; pending measurements), ``learning``
 (predict, learn, rolling error, drift detector), ``checkpoints``, ``model_change``
 (``PUT /wells/{well}/model``: snapshot, refit off the worker, catch-up, swap), ``state``
-(what is kept per well) and ``items`` (what passes between threads). :class:`Engine`
+(what is kept per well), ``items`` (what passes between threads), ``fairqueue`` (a
+worker's queue: one FIFO per well, served round robin) and ``registry`` (which wells
+exist; admitting new ones, retiring). :class:`Engine`
 (``core``) is the facade the service and the HTTP layer use.
 """
 

@@ -4,38 +4,42 @@ Data flow::
 
     transport receiver thread           worker thread(s), one owner per well
     -------------------------           ------------------------------------------------
-    key + JSON -> checks -> item  --->  bounded queue -> batch -> predict / pair / learn
-    (intake; refusals counted)          -> one store commit -> publish predictions
-                                        -> answer HTTP callers
+    key + JSON -> checks -> item  --->  per-well FIFOs, round robin -> batch -> predict /
+    (intake; refusals counted)          pair / learn -> one store commit -> publish
+                                        predictions -> answer HTTP callers
 
 :class:`Engine` wires the parts, each in its own module: :mod:`~service.engine.recovery`
 (restore, re-learn, fit on the history), :mod:`~service.engine.intake` (receiving,
 routing, back-pressure), :mod:`~service.engine.worker` (the loop, group commit, publish,
 answers), :mod:`~service.engine.pairing`, :mod:`~service.engine.learning` (predict,
-learn, rolling error, drift), :mod:`~service.engine.checkpoints` and
-:mod:`~service.engine.model_change`. It raises the domain errors of :mod:`service.errors`,
+learn, rolling error, drift), :mod:`~service.engine.checkpoints`,
+:mod:`~service.engine.model_change`, :mod:`~service.engine.fairqueue` (the per-well
+queues) and :mod:`~service.engine.registry` (which wells exist; new and retired ones). It raises the domain errors of :mod:`service.errors`,
 never an HTTP status.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import threading
+import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from typing import Any
 
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
+from service.engine.fairqueue import FairQueue
 from service.engine.intake import Intake, worker_of
+from service.engine.items import RetireStep
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
 from service.engine.recovery import Recovery
+from service.engine.registry import Registry
 from service.engine.state import WellState, WellTestResult
 from service.engine.worker import Workers
-from service.errors import unknown_well
+from service.errors import Busy, Stopping, unknown_well
 from service.inputs import Counters
 from service.store import Store
 from vfm_core.messages import Measurement
@@ -60,16 +64,24 @@ class Engine:
         self.store = store
         self.counters = counters
         self._wells: dict[str, WellState] = {}
-        self._queues: list[queue.Queue[Any]] = [
-            queue.Queue(settings.queues.worker_capacity) for _ in range(settings.queues.workers)
+        q = settings.queues
+        self._queues: list[FairQueue] = [
+            FairQueue(q.worker_capacity, q.well_capacity) for _ in range(q.workers)
         ]
         self._stopping = threading.Event()
+        self._registry = Registry(settings, self._wells)
         self._checkpoints = Checkpoints(settings)
         self._learning = Learning(settings, counters, self._checkpoints)
         self._pairing = Pairing(settings, store, counters, self._learning)
-        self._intake = Intake(settings, store, counters, self._wells, self._queues)
+        self._intake = Intake(settings, counters, self._registry, self._queues)
         self._model_changes = ModelChanges(
-            settings, store, self._wells, self._queues, self._checkpoints, self._stopping
+            settings,
+            store,
+            self._wells,
+            self._queues,
+            self._checkpoints,
+            self._stopping,
+            self._learning.catch_up,
         )
         self._workers = Workers(
             settings,
@@ -82,6 +94,7 @@ class Engine:
             self._pairing,
             self._checkpoints,
             self._model_changes,
+            self._registry,
         )
         self._recovery = Recovery(
             settings,
@@ -94,20 +107,28 @@ class Engine:
     # -- life cycle -----------------------------------------------------------------------
     def load(self) -> None:
         """Restore every known well from the store, or fit it on the history; re-learn the rest."""
-        self._wells.update(self._recovery.load())
+        self._registry.retired.update(self.store.retired_wells())
+        self._wells.update(self._recovery.load(set(self._registry.retired)))
 
     def start(self) -> None:
         """Start the worker threads."""
         self._workers.start()
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Let the workers finish what is queued, checkpoint, and stop."""
+    def stop(self, timeout: float = 30.0) -> bool:
+        """Let the workers finish what is queued, checkpoint, and stop. A model change still
+        fitting is waited for (at most 10 s) and then abandoned. True when everything ended
+        in time; the checkpoints are written either way, of the wells whose worker ended."""
         self._stopping.set()
-        self._workers.stop(timeout)
-        try:
-            self.store.write(self._checkpoints.final_ops(self._wells.values()))
-        except Exception as exc:  # pragma: no cover - disk full at shutdown
-            logger.error("Final checkpoints not written: %s", exc)
+        fits_done = self._model_changes.wait(min(10.0, timeout))
+        ended = self._workers.stop(timeout)
+        if ended:
+            try:
+                self.store.write(self._checkpoints.final_ops(self._wells.values()))
+            except Exception as exc:  # pragma: no cover - disk full at shutdown
+                logger.error("Final checkpoints not written: %s", exc)
+        else:  # a worker still owns its wells' learners: the store has their data anyway
+            logger.warning("Final checkpoints skipped; a restart re-learns from the store.")
+        return ended and fits_done
 
     # -- what comes in --------------------------------------------------------------------
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
@@ -127,6 +148,28 @@ class Engine:
     ) -> dict[str, Any]:
         """Replace a well's model (see :mod:`service.engine.model_change`); blocks until done."""
         return self._model_changes.change(well, model, effects, method)
+
+    def retire_well(self, well: str, purge: bool = False, timeout: float = 30.0) -> dict[str, Any]:
+        """Stop serving a well (``DELETE /wells/{well}``) after what is queued for it: its
+        data stay in the store (a last checkpoint is written) and it is not loaded again, or
+        with ``purge`` every row of it is deleted and the id is free. Its messages are refused
+        from now on (``retired well``)."""
+        if well not in self._wells:
+            raise unknown_well(well)
+        if self._stopping.is_set():
+            raise Stopping("The service is stopping; retry after it restarts.")
+        when = time.time_ns()
+        self._registry.retiring(well, when)
+        fut: Future[dict[str, Any]] = Future()
+        q = self._queues[worker_of(well, len(self._queues))]
+        q.put(well, RetireStep(well, purge, when, fut), force=True)
+        try:
+            return fut.result(timeout)
+        except TimeoutError:
+            raise Busy(
+                f"The retirement of {well} is queued but did not run within {timeout:g} s; "
+                "it runs once the well's queue is through. Check GET /wells."
+            ) from None
 
     # -- what the API reads -----------------------------------------------------------------
     @property
@@ -160,6 +203,15 @@ class Engine:
 
     def queue_depths(self) -> list[int]:
         return [q.qsize() for q in self._queues]
+
+    def busy_wells(self) -> list[int]:
+        """Per worker: the wells with messages waiting."""
+        return [q.busy_wells() for q in self._queues]
+
+    @property
+    def retired(self) -> dict[str, int]:
+        """Retired wells (data kept) -> when (epoch ns)."""
+        return dict(self._registry.retired)
 
     def pending_measurements(self) -> int:
         """Measurements of all wells still waiting for their sensor sample."""

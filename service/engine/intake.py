@@ -1,37 +1,51 @@
 """Receiving: check each inbound message, route it to the worker that owns its well, back-pressure.
 
 The transport's receiver thread calls :meth:`Intake.deliver` with every message. It only
-checks (key, payload, time, well) and queues; it never learns, so receiving never waits
-for learning. A well always goes to the same worker (a hash of its id), so its messages
-are handled in arrival order. When that worker's queue is full the receiver waits up to
-``queues.block_s`` (back-pressure: Zenoh's BLOCK congestion control then slows the
-publisher), then drops the message and counts a ``queue overflow``. Well tests posted
-over HTTP enter here too (:meth:`Intake.submit_well_test`).
+checks (key, payload, time, rate, well) and queues; it never learns and never builds a
+model, so receiving never waits for learning. A well always goes to the same worker (a
+hash of its id), into that worker's :class:`~service.engine.fairqueue.FairQueue`: one
+FIFO per well (its messages keep their order), served round robin. When the well's FIFO
+(``queues.well_capacity``) or the worker's queue (``queues.worker_capacity``) is full the
+receiver waits up to ``queues.block_s`` (back-pressure: Zenoh's BLOCK congestion control
+then slows the publisher), then drops the message and counts ``well flooding`` or
+``queue overflow``. Well tests posted over HTTP enter here too
+(:meth:`Intake.submit_well_test`).
 
-A well not seen before is created on first sight (``inputs.unknown_wells = "create"``),
-if its id passes :func:`vfm_core.messages.well_id_problem`, the one rule for well ids.
+A well not seen before is admitted by the :class:`~service.engine.registry.Registry`
+(``inputs.unknown_wells``, ``inputs.max_wells``, ``inputs.new_wells_per_s``) if its id
+passes :func:`vfm_core.messages.well_id_problem`, the one rule for well ids; its worker
+creates it.
+
+Times are checked here against one rule (:func:`vfm_core.timeutil.time_problem`): within
+the span the VFM represents, not before ``inputs.earliest_time``, at most
+``inputs.max_future_s`` ahead of the service's clock; rates against ``inputs.max_rate``
+(the worker checks them against the well's own recent median).
 """
 
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 import zlib
 from concurrent.futures import Future
 from datetime import datetime
-from typing import Any
 
 from service.config import Settings
+from service.engine.fairqueue import FairQueue
 from service.engine.items import MeasurementItem, SensorItem
-from service.engine.state import WellState, WellTestResult
-from service.errors import Busy, InvalidRequest, ServiceError, UnknownWell
-from service.inputs import Counters, parse_measurement, parse_sensor, route_key
-from service.learning import new_learner
-from service.store import AddWell, Store
+from service.engine.registry import Registry
+from service.engine.state import WellTestResult
+from service.errors import Busy, InvalidRequest, ServiceError
+from service.inputs import (
+    Counters,
+    Limits,
+    parse_measurement,
+    parse_sensor,
+    printable,
+    route_key,
+)
 from vfm_core.messages import Measurement, well_id_problem
-from vfm_core.timeutil import to_ns
+from vfm_core.timeutil import time_problem, to_ns
 
 __all__ = ["Intake", "worker_of"]
 
@@ -49,17 +63,15 @@ class Intake:
     def __init__(
         self,
         settings: Settings,
-        store: Store,
         counters: Counters,
-        wells: dict[str, WellState],
-        queues: list[queue.Queue[Any]],
+        registry: Registry,
+        queues: list[FairQueue],
     ) -> None:
         self.settings = settings
-        self.store = store
         self.counters = counters
-        self.wells = wells
+        self.registry = registry
         self.queues = queues
-        self._lock = threading.Lock()
+        self.limits = Limits(settings.inputs.max_payload_bytes, settings.inputs.max_json_depth)
         self._future_ns = int(settings.inputs.max_future_s * 1e9)
 
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
@@ -67,101 +79,113 @@ class Intake:
         try:
             well, kind, source = route_key(self.settings.prefix, key)
             if kind == "prediction":
-                return  # outputs, e.g. of another service instance: not ours to take in
+                # outputs, e.g. of another service instance: not ours to take in
+                self.counters.event("outputs ignored")
+                return
             item: SensorItem | MeasurementItem
             if kind == "sensors":
-                sample = parse_sensor(payload)
+                sample = parse_sensor(payload, self.limits)
                 self.check_time(sample.time, "sample")
                 item = SensorItem(well, sample, received_ns)
             else:
-                measurement = parse_measurement(payload)
+                measurement = parse_measurement(payload, self.limits)
                 self.check_time(measurement.time, "measurement")
+                self.check_rate(measurement.q_total, well)
                 item = MeasurementItem(well, measurement, str(source), received_ns)
-            st = self.well_state(well)
+            self.registry.admit(well)
+            self.registry.quota(well)
         except ServiceError as error:  # every refusal here is of an input: it has a reason
             if error.reason is not None:
                 self.counters.reject(error.reason, error.message, where=key)
             return
-        self._enqueue(st.worker, item, key)
+        except Exception as exc:  # a bug must not end reception, and must be counted
+            self.counters.event("internal errors")
+            logger.exception("Checking a message on %s failed: %s", printable(key), exc)
+            return
+        self._enqueue(item, key)
 
     def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:
         """Queue a well test; the future answers after it is stored (and learned).
 
-        Raises (before queueing) :class:`InvalidRequest` for a time too far ahead or a bad
-        well id, :class:`UnknownWell`, or :class:`Busy` when the queue stays full.
+        Raises (before queueing) :class:`InvalidRequest` for a bad time, rate or well id,
+        :class:`UnknownWell` for a well this service does not hold (HTTP never creates
+        one), or :class:`Busy` when the queue stays full.
         """
+        problem = well_id_problem(well)
+        if problem is not None:
+            raise InvalidRequest(problem, "unparseable key")
         self.check_time(measurement.time, "well test")
-        st = self.well_state(well)
+        self.check_rate(measurement.q_total, well)
+        self.registry.admit(well, create=False)
         fut: Future[WellTestResult] = Future()
         item = MeasurementItem(
             well, measurement, "well_test", time.time_ns(), via="http", future=fut
         )
-        try:
-            self.queues[st.worker].put(item, timeout=2.0)
-        except queue.Full:
+        full = self.queues[worker_of(well, len(self.queues))].put(well, item, timeout=2.0)
+        if full != "ok":
             raise Busy(
                 "The service is busy (its queue is full); retry in a few seconds.",
-                "queue overflow",
-            ) from None
+                "well flooding" if full == "well" else "queue overflow",
+            )
         return fut
 
-    def well_state(self, well: str, *, create: bool = True) -> WellState:
-        """The well's state; unknown wells are created or refused as configured."""
-        st = self.wells.get(well)
-        if st is not None:
-            return st
-        if not create or self.settings.inputs.unknown_wells == "reject":
-            raise UnknownWell(
-                f"The well '{well}' is not known to this service; add it to inputs.wells or set "
-                "inputs.unknown_wells = 'create'.",
-                "unknown well",
-            )
-        problem = well_id_problem(well)
-        if problem is not None:
-            raise InvalidRequest(problem, "unparseable key")
-        with self._lock:
-            st = self.wells.get(well)
-            if st is None:
-                st = WellState(
-                    well,
-                    new_learner(well, self.settings.model),
-                    self.settings,
-                    worker_of(well, len(self.queues)),
-                )
-                self.store.write(
-                    [AddWell(well=well, created_ns=time.time_ns(), origin="first sight")]
-                )
-                self.wells[well] = st
-                logger.info(
-                    "New well %s (first sight); it gets predictions once it has a measurement.",
-                    well,
-                )
-        return st
-
     def check_time(self, when: datetime, what: str) -> None:
-        """Refuse a time further ahead than ``inputs.max_future_s``."""
+        """Refuse a time outside the representable span, before ``inputs.earliest_time`` or
+        further ahead than ``inputs.max_future_s``."""
+        problem = time_problem(
+            when, earliest=self.settings.inputs.earliest_time, what=f"{what} time"
+        )
+        if problem is not None:
+            raise InvalidRequest(
+                problem.rstrip(".") + " (inputs.earliest_time and the int64-nanosecond span "
+                "1677-09-22..2262-04-10 bound it).",
+                "time out of range",
+            )
         ahead = to_ns(when) - time.time_ns()
         if ahead > self._future_ns:
             raise InvalidRequest(
-                f"The {what} time {when.isoformat()} lies {ahead / 3.6e12:.1f} h in the future; "
-                f"at most {self.settings.inputs.max_future_s / 3600:g} h ahead is accepted (inputs.max_future_s).",
+                f"The {what} time {when.isoformat()} lies {ahead / 3.6e12:.2f} h ahead of the "
+                f"service's clock; at most {self.settings.inputs.max_future_s:g} s ahead is "
+                "accepted (inputs.max_future_s), so that a sample from the future cannot hold "
+                "back the well's real-time samples. Check the sender's clock and time zone.",
                 "time in the future",
             )
 
-    def _enqueue(self, worker: int, item: SensorItem | MeasurementItem, where: str) -> None:
-        q = self.queues[worker]
-        try:
-            q.put_nowait(item)
+    def check_rate(self, q_total: float, well: str) -> None:
+        """Refuse a rate above ``inputs.max_rate`` (Sm3/h)."""
+        cap = self.settings.inputs.max_rate
+        if q_total > cap:
+            raise InvalidRequest(
+                f"q_total = {q_total:.6g} Sm3/h of {well} is above {cap:g} Sm3/h "
+                "(inputs.max_rate), more than any well produces; check the meter's unit.",
+                "implausible rate",
+            )
+
+    def _enqueue(self, item: SensorItem | MeasurementItem, where: str) -> None:
+        q = self.queues[worker_of(item.well, len(self.queues))]
+        if q.put(item.well, item) == "ok":
             return
-        except queue.Full:
-            self.counters.event("backpressure waits")
-        try:
-            q.put(item, timeout=self.settings.queues.block_s)
-        except queue.Full:
-            self.counters.event("overflow")
+        self.counters.event("backpressure waits")
+        full = q.put(item.well, item, timeout=self.settings.queues.block_s)
+        if full == "ok":
+            return
+        if q.depth(item.well) == 0:
+            self.registry.abandon(item.well)  # a new well whose first message was dropped
+        block = self.settings.queues.block_s
+        if full == "well":
+            self.counters.event("well flooding")
             self.counters.reject(
-                "queue overflow",
-                f"The worker queue stayed full for {self.settings.queues.block_s:g} s; the message was dropped. "
-                "The service cannot keep up: add workers (queues.workers) or slow the sender.",
+                "well flooding",
+                f"The queue of {item.well} stayed full ({self.settings.queues.well_capacity} "
+                f"messages, queues.well_capacity) for {block:g} s; the message was dropped. The "
+                "well sends faster than the service learns from it: slow the sender down.",
                 where=where,
             )
+            return
+        self.counters.event("overflow")
+        self.counters.reject(
+            "queue overflow",
+            f"The worker queue stayed full for {block:g} s; the message was dropped. "
+            "The service cannot keep up: add workers (queues.workers) or slow the sender.",
+            where=where,
+        )

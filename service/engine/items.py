@@ -1,7 +1,8 @@
 """What passes between the engine's threads: queued items, and what one worker batch collects.
 
 The receiver thread (and the HTTP threads) put :class:`SensorItem`,
-:class:`MeasurementItem` and :class:`ModelStep` on a worker's queue; the worker handles
+:class:`MeasurementItem`, :class:`ModelStep` and :class:`RetireStep` on a worker's queue
+(:class:`~service.engine.fairqueue.FairQueue`, in the FIFO of their well); the worker handles
 them in arrival order into a :class:`Batch`: the store writes, the predictions to
 publish and the answers for waiting callers, all released after one commit.
 """
@@ -19,7 +20,15 @@ from service.store import Op
 from vfm_core.messages import Measurement, SensorSample
 from vfm_core.streaming import WellLearner
 
-__all__ = ["SensorItem", "MeasurementItem", "ModelStep", "Item", "Batch", "STOP", "refuse"]
+__all__ = [
+    "SensorItem",
+    "MeasurementItem",
+    "ModelStep",
+    "RetireStep",
+    "Item",
+    "Batch",
+    "refuse",
+]
 
 
 @dataclass(slots=True)
@@ -50,10 +59,17 @@ class ModelStep:
     scores: dict[str, Any] = field(default_factory=dict)
 
 
-Item = SensorItem | MeasurementItem | ModelStep
+@dataclass
+class RetireStep:
+    """Retire a well (``DELETE /wells/{well}``), run by its worker after what was queued before."""
 
-#: put on a worker's queue to end its loop
-STOP = object()
+    well: str
+    purge: bool
+    when_ns: int
+    future: Future[Any]
+
+
+Item = SensorItem | MeasurementItem | ModelStep | RetireStep
 
 
 class Batch:

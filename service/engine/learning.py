@@ -10,6 +10,15 @@
   error), and feed the well's streaming Hotelling T^2 detector; a confirmed drift is
   stored and, with ``drift.on_drift = "retrain"``, retrains the well.
 
+A worker must never hang on one well. Each fit of a live well has a wall-clock budget
+(``model.retrain_budget_s``, see :func:`service.learning.train_settings`) on top of its
+iteration caps; a method's retrain period is at least ``model.min_retrain_period_s``; and
+when a sample or measurement comes more than ``model.max_catch_up_retrains`` periods
+after the next scheduled retrain (a well back from a long gap), one retrain on everything
+so far replaces the missed ones, keeping the calendar's phase (the missed ones would all
+train on the same data). Steps slower than a second are counted (``slow learning steps``)
+and logged.
+
 This module uses only the public surface of :class:`vfm_core.streaming.WellLearner`.
 """
 
@@ -17,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from datetime import datetime
 from typing import Any
 
@@ -28,7 +38,8 @@ from service.engine.items import Batch
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.store import InsertDriftEvent, MarkLearned, Op
-from vfm_core.timeutil import from_ns, iso
+from vfm_core.streaming import WellLearner
+from vfm_core.timeutil import from_ns, iso, to_ns
 
 __all__ = ["Learning"]
 
@@ -44,10 +55,55 @@ class Learning:
         self.settings = settings
         self.counters = counters
         self.checkpoints = checkpoints
+        self.max_catch_up = settings.model.max_catch_up_retrains
+        self._last_slow_log = 0.0
+
+    def catch_up(self, learner: WellLearner, time_ns: int) -> bool:
+        """Before a step at ``time_ns``: one retrain instead of more than
+        ``model.max_catch_up_retrains`` missed ones (see the module docstring). True if it ran."""
+        method = learner.method
+        due = method.next_due()
+        period = getattr(method, "period", None)
+        if due is None or period is None or time_ns < due:
+            return False
+        period_ns = int(period.value)
+        if period_ns <= 0:
+            return False
+        missed = (time_ns - due) // period_ns + 1
+        if missed <= self.max_catch_up:
+            return False
+        learner.retrain(from_ns(time_ns))
+        method.start(due + (missed - 1) * period_ns)  # the next one where the calendar puts it
+        self.counters.event("retrains collapsed")
+        logger.info(
+            "%s: %d scheduled retrains were due at once (a gap in its data); one retrain on "
+            "everything so far replaced them.",
+            learner.well,
+            missed,
+        )
+        return True
+
+    def _timed(self, st: WellState, started: float, what: str) -> None:
+        took = time.monotonic() - started
+        if took < 1.0:
+            return
+        self.counters.event("slow learning steps")
+        if time.monotonic() - self._last_slow_log > 60.0:
+            self._last_slow_log = time.monotonic()
+            logger.warning(
+                "%s of %s took %.1f s (model.retrain_budget_s bounds each fit); other wells of "
+                "its worker waited meanwhile.",
+                what,
+                st.well,
+                took,
+            )
 
     def predict(self, st: WellState, inputs: tuple[float, ...], when: datetime) -> Rates | None:
         """Rates (Sm3/h) at one sample, or None while the model has no (finite) answer."""
+        started = time.monotonic()
+        self.catch_up(st.learner, to_ns(when))
         rates = st.learner.predict(list(inputs), when=when)
+        self._timed(st, started, "A prediction (with its scheduled retrains)")
         q_total = rates.get("q_total")
         if q_total is None or not math.isfinite(q_total):
             return None
@@ -107,7 +163,10 @@ class Learning:
     ) -> None:
         """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
         learner = st.learner
+        started = time.monotonic()
+        self.catch_up(learner, time_ns)
         learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
+        self._timed(st, started, "Learning a measurement")
         if st.catch_up is not None:
             st.catch_up.append((sample.inputs, q_total, time_ns, source))
         if sample.predicted is not None and q_total:

@@ -5,36 +5,41 @@ goes unanswered and no measurement is skipped:
 
 1. *snapshot*: the worker hands out a copy of the well's learner and starts noting what
    the current model learns from now on (``WellState.catch_up``);
-2. *refit* (on the caller's thread, off the worker): the copy fits the new model on
+2. *refit* (on a thread of its own, off the worker): the copy fits the new model on
    everything the well remembers and compares it with the current one on the latest
-   fifth (:meth:`vfm_core.streaming.WellLearner.refit_as`);
+   fifth (:meth:`vfm_core.streaming.WellLearner.refit_as`); the caller waits at most
+   ``model.change_budget_s``, after which the change is abandoned (503) and the current
+   model kept; at most ``http.max_model_changes`` fits run at once (503 beyond);
 3. *catch-up*: the worker teaches the new model what arrived during the fit;
 4. *swap*: the worker commits what its batch holds, then the new model's checkpoint, and
    only then swaps it in with a higher version; the rolling error restarts with it.
 
-A failed fit sends a *cancel* step instead. Refusals are domain errors:
-:class:`~service.errors.UnknownWell`, :class:`~service.errors.NotAllowed` (an effect
-from a module not in ``model.effect_modules``), :class:`~service.errors.InvalidRequest`
-(an unknown model, effect or method), :class:`~service.errors.Conflict` (a change of the
-well is already running), :class:`~service.errors.Busy` and
-:class:`~service.errors.Stopping`.
+A failed or abandoned fit sends a *cancel* step instead. The method is checked by the
+same rule as the config (:func:`service.config.method_problem`: a registered method the
+streaming learner runs, with a retrain period of at least ``model.min_retrain_period_s``).
+Refusals are domain errors: :class:`~service.errors.UnknownWell`,
+:class:`~service.errors.NotAllowed` (an effect from a module not in
+``model.effect_modules``), :class:`~service.errors.InvalidRequest` (an unknown model,
+effect or method), :class:`~service.errors.Conflict` (a change of the well is already
+running), :class:`~service.errors.Busy` and :class:`~service.errors.Stopping`.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from typing import Any
 
-from service.config import Settings
+from service.config import Settings, method_problem
 from service.engine.checkpoints import Checkpoints, configured_spec
+from service.engine.fairqueue import FairQueue
 from service.engine.items import Batch, ModelStep
 from service.engine.state import WellState
 from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
+from service.learning import apply_budget
 from service.store import Store
 from vfm_core.errors import VFMError
 from vfm_core.streaming import WellLearner
@@ -59,9 +64,10 @@ class ModelChanges:
         settings: Settings,
         store: Store,
         wells: Mapping[str, WellState],
-        queues: list[queue.Queue[Any]],
+        queues: list[FairQueue],
         checkpoints: Checkpoints,
         stopping: threading.Event,
+        catch_up: Callable[[WellLearner, int], bool] | None = None,
     ) -> None:
         self.settings = settings
         self.store = store
@@ -69,8 +75,18 @@ class ModelChanges:
         self.queues = queues
         self.checkpoints = checkpoints
         self.stopping = stopping
+        self.catch_up = catch_up
         self._changing: set[str] = set()
         self._lock = threading.Lock()
+        self._slots = threading.BoundedSemaphore(settings.http.max_model_changes)
+        self._fits: set[threading.Thread] = set()
+
+    def wait(self, timeout: float) -> bool:
+        """Wait for the fits still running (at a stop); True when none is left."""
+        deadline = time.monotonic() + timeout
+        for thread in list(self._fits):
+            thread.join(max(0.0, deadline - time.monotonic()))
+        return not any(t.is_alive() for t in self._fits)
 
     # -- the caller's side (an HTTP thread) -----------------------------------------------
     def change(
@@ -101,32 +117,53 @@ class ModelChanges:
                 )
         old = st.learner
         model = model or old.model_name
+        problem = method_problem(
+            method or old.method.text, self.settings.model.min_retrain_period_s
+        )
+        if problem is not None:
+            raise InvalidRequest(problem)
         try:  # check the request before any work: a typo fails at once
             WellLearner(well, model, method or old.method.text, effects=effects)
         except VFMError as exc:
             raise InvalidRequest(str(exc)) from None
+        if self.stopping.is_set():
+            raise Stopping("The service is stopping; retry after it restarts.")
         with self._lock:
             if well in self._changing:
                 raise Conflict(
                     f"A model change of {well} is already running; wait for it to finish."
                 )
+            if not self._slots.acquire(blocking=False):
+                raise Busy(
+                    f"{self.settings.http.max_model_changes} model change(s) are being fitted "
+                    "(http.max_model_changes); retry when they have finished."
+                )
             self._changing.add(well)
+        fit = _Fit(self, well)
         try:
             copy: WellLearner = self._step(st, "snapshot")
+            logger.info(
+                "Model change of %s: fitting %s%s (%s) on %d stored measurement(s).",
+                well,
+                model,
+                "".join(f"+{e}" for e in effects),
+                method or old.method.text,
+                copy.remembered,
+            )
             started = time.perf_counter()
             try:
-                new, scores = copy.refit_as(model, effects, method)
+                new, scores = fit.run(lambda: copy.refit_as(model, effects, method))
             except BaseException as exc:
                 self._step(st, "cancel")
                 if isinstance(exc, VFMError):
                     raise InvalidRequest(str(exc)) from None
                 raise
+            apply_budget(new, self.settings.model)
             scores["fit_s"] = round(time.perf_counter() - started, 2)
             change: dict[str, Any] = self._step(st, "swap", new, scores)
             return change
         finally:
-            with self._lock:
-                self._changing.discard(well)
+            fit.release()
 
     def _step(
         self,
@@ -144,16 +181,21 @@ class ModelChanges:
             raise Stopping("The service is stopping; retry after it restarts.")
         fut: Future[Any] = Future()
         item = ModelStep(st.well, kind, fut, learner, scores or {})
-        try:
-            self.queues[st.worker].put(item, timeout=5.0 if kind == "snapshot" else None)
-        except queue.Full:
-            raise Busy("The service is busy (its queue is full); retry in a few seconds.") from None
+        snapshot = kind == "snapshot"
+        full = self.queues[st.worker].put(
+            st.well, item, timeout=5.0 if snapshot else None, force=not snapshot
+        )
+        if full != "ok":
+            raise Busy("The service is busy (its queue is full); retry in a few seconds.")
         return fut.result()
 
     # -- the worker's side --------------------------------------------------------------------
     def on_step(self, item: ModelStep, b: Batch, flush: Callable[[Batch], None]) -> None:
         """Run a step on the well's worker; ``flush`` commits what the batch holds so far."""
-        st = self.wells[item.well]
+        st = self.wells.get(item.well)
+        if st is None:  # retired meanwhile
+            item.future.set_exception(unknown_well(item.well))
+            return
         if item.kind == "snapshot":
             copy = WellLearner.restore(st.learner.checkpoint())
             st.catch_up = []
@@ -173,6 +215,8 @@ class ModelChanges:
         try:
             caught_up = list(st.catch_up or [])
             for inputs, q_total, time_ns, source in caught_up:
+                if self.catch_up is not None:
+                    self.catch_up(new, time_ns)
                 new.learn(list(inputs), q_total, from_ns(time_ns), source)
         finally:
             st.catch_up = None
@@ -217,3 +261,61 @@ class ModelChanges:
             item.scores.get("after"),
         )
         b.answer(item.future, change)
+
+
+class _Fit:
+    """One model change's fit on a thread of its own, waited for at most
+    ``model.change_budget_s``; its slot (``http.max_model_changes``) and the well's
+    'changing' mark are released when both the caller and the fit are done."""
+
+    def __init__(self, owner: ModelChanges, well: str) -> None:
+        self.owner = owner
+        self.well = well
+        self._holders = 1  # the caller; the thread adds itself
+        self._lock = threading.Lock()
+
+    def run(self, work: Callable[[], Any]) -> Any:
+        result: dict[str, Any] = {}
+        done = threading.Event()
+
+        def target() -> None:
+            try:
+                result["value"] = work()
+            except BaseException as exc:  # handed to the caller
+                result["error"] = exc
+            finally:
+                done.set()
+                self.owner._fits.discard(threading.current_thread())
+                self.release()
+
+        with self._lock:
+            self._holders += 1
+        thread = threading.Thread(target=target, name=f"vfm-refit-{self.well}", daemon=True)
+        self.owner._fits.add(thread)
+        thread.start()
+        budget = self.owner.settings.model.change_budget_s
+        if not done.wait(budget):
+            logger.warning(
+                "The model change of %s did not finish its fit within %g s "
+                "(model.change_budget_s); it was abandoned and the current model kept.",
+                self.well,
+                budget,
+            )
+            raise Busy(
+                f"The new model of {self.well} was not fitted within {budget:g} s "
+                "(model.change_budget_s); the change was abandoned and the current model kept. "
+                "Fit on less data (a method with a window) or raise the budget."
+            )
+        if "error" in result:
+            raise result["error"]
+        return result["value"]
+
+    def release(self) -> None:
+        with self._lock:
+            self._holders -= 1
+            last = self._holders == 0
+        if last:
+            owner = self.owner
+            with owner._lock:
+                owner._changing.discard(self.well)
+            owner._slots.release()

@@ -5,7 +5,9 @@ within ``inputs.pair_tolerance_s``: from the recent samples in memory, else from
 store. If no sample at or after its time has arrived yet it waits, stored as ``pending``
 (at most ``inputs.pending_max`` per well, ``inputs.pending_timeout_s`` of wall time), and
 is settled when a later sample arrives or the wait runs out: learned from if a sample
-lies within the tolerance, else marked ``unpaired``. A sample is always predicted before
+lies within the tolerance, else marked ``unpaired``. A rate far from the well's recent
+ones (:meth:`~service.engine.state.WellState.rate_problem`) is refused before anything
+is stored (``implausible rate``). A sample is always predicted before
 the measurement at its time is learned from (prequential order, as in ``vfm evaluate``).
 """
 
@@ -81,6 +83,16 @@ class Pairing:
             )
             refuse(self.counters, duplicate, item.well, b, item.future)
             return
+        problem = st.rate_problem(m.q_total)
+        if problem is not None:
+            refuse(
+                self.counters,
+                InvalidRequest(problem, "implausible rate"),
+                item.well,
+                b,
+                item.future,
+            )
+            return
         sample: Sample | None = None
         if st.last_time_ns is not None and t <= st.last_time_ns:
             sample = self.nearest(st, t)
@@ -103,6 +115,7 @@ class Pairing:
             )
         )
         st.remember_measurement(item.source, t)
+        st.rates.append(m.q_total)
         st.measurements += 1
         self.counters.accept("well_tests" if item.via == "http" else "measurements")
         if item.via == "http":

@@ -1,7 +1,8 @@
 """Start-up: every known well restored from its checkpoint or fitted on the history, then caught up.
 
 The wells are those of the config (``inputs.wells``), of the store and of the history
-file. For each well:
+file, but not those retired over HTTP (``DELETE /wells/{well}``; purge one to reuse its
+id). For each well:
 
 1. its latest checkpoint is restored if it holds the configured model (or one chosen over
    HTTP since the config last changed; :func:`service.engine.checkpoints.usable`);
@@ -28,7 +29,7 @@ from service.config import Settings
 from service.engine.checkpoints import Checkpoints, configured_spec, usable
 from service.engine.learning import Learning
 from service.engine.state import RECENT_SAMPLES, Pending, WellState
-from service.learning import fit_history, load_history, new_learner
+from service.learning import apply_budget, fit_history, load_history, new_learner
 from service.store import AddWell, CheckpointRow, Op, Store
 from vfm_core.errors import VFMError
 from vfm_core.schema import INPUT_COLUMNS
@@ -56,8 +57,9 @@ class Recovery:
         self.checkpoints = checkpoints
         self.worker_of = worker_of
 
-    def load(self) -> dict[str, WellState]:
-        """Every known well, restored or fitted and caught up, in a stable order."""
+    def load(self, retired: set[str] | None = None) -> dict[str, WellState]:
+        """Every known well (but the ``retired``), restored or fitted and caught up, in a
+        stable order."""
         cfg = self.settings
         history = load_history(cfg.model) if cfg.model.history is not None else None
         names = list(
@@ -73,6 +75,14 @@ class Recovery:
                 ]
             )
         )
+        skipped = [w for w in names if w in (retired or set())]
+        if skipped:
+            logger.info(
+                "%d retired well(s) not loaded (%s); DELETE /wells/{well}?purge=true frees an id.",
+                len(skipped),
+                ", ".join(skipped[:10]) + (" ..." if len(skipped) > 10 else ""),
+            )
+            names = [w for w in names if w not in (retired or set())]
         learners, checkpoints = self._restore(names)
         fresh = [w for w in names if w not in checkpoints]
         fitted: list[str] = []
@@ -105,6 +115,7 @@ class Recovery:
             elif well in fitted and by_well:
                 self._seed_drift_reference(st, by_well[well])
             relearned = self._relearn(st, ops)
+            st.seed_rates()
             if well in fitted or (row is None and relearned):
                 ops.extend(self.checkpoints.ops(st))
             self._load_recent(st)
@@ -137,7 +148,7 @@ class Recovery:
                 logger.info("%s: %s", well, why)
             if row is not None and ok:
                 try:
-                    learners[well] = WellLearner.restore(row.blob)
+                    learners[well] = apply_budget(WellLearner.restore(row.blob), cfg.model)
                     checkpoints[well] = row
                     continue
                 except VFMError as exc:

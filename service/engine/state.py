@@ -3,7 +3,8 @@
 :class:`WellState` holds the well's learner and what feeding it needs: the recent samples
 (for pairing), the measurements waiting for a sample, the duplicate check, the learning
 order (``learn_seq``), the rolling error, the drift detector and its reference inputs,
-and the model changes made over HTTP. Only the well's worker writes to it; the HTTP API
+and the model changes made over HTTP, and its recent measured rates (whose median is the
+reference of the plausible-rate check). Only the well's worker writes to it; the HTTP API
 reads :attr:`WellState.snapshot` (replaced whole, never half-written) and the small views
 below.
 """
@@ -102,8 +103,44 @@ class WellState:
         self.catch_up: list[CatchUp] | None = None
         self.samples = 0
         self.measurements = 0
+        inputs = settings.inputs
+        self._rate_factor = inputs.rate_factor
+        self._rate_min = inputs.rate_min_history
+        #: the latest measured rates (Sm3/h), from the learner's memory on, for rate_problem
+        self.rates: deque[float] = deque(maxlen=inputs.rate_history)
+        self.seed_rates()
         self.snapshot: dict[str, Any] = {}
         self.refresh()
+
+    def seed_rates(self) -> None:
+        """Refill the recent rates from what the learner remembers (after a restore)."""
+        self.rates.clear()
+        if self.learner.remembered:
+            n = self.rates.maxlen or 1
+            self.rates.extend(float(v) for v in self.learner.memory.y[-n:].tolist())
+
+    def rate_problem(self, q_total: float) -> str | None:
+        """Why a measured rate (Sm3/h) is implausible for this well, as a sentence; None if not.
+
+        Once the well has ``inputs.rate_min_history`` measurements, a rate more than
+        ``inputs.rate_factor`` times above or below their median is refused (a meter in the
+        wrong unit, a stuck or zero reading): learning from it would wreck the model.
+        """
+        if self._rate_factor <= 0 or len(self.rates) < self._rate_min:
+            return None
+        median = float(np.median(np.fromiter(self.rates, dtype=float)))
+        if median <= 0:
+            return None
+        factor = self._rate_factor
+        if q_total > median * factor or q_total < median / factor:
+            side = "above" if q_total > median else "below"
+            return (
+                f"q_total = {q_total:.6g} Sm3/h of {self.well} is more than {factor:g} times {side} "
+                f"the median of its last {len(self.rates)} measurements ({median:.6g} Sm3/h; "
+                "inputs.rate_factor). Check the meter (unit, stuck or zero reading); if the well "
+                "really changed that much, raise inputs.rate_factor or set it to 0."
+            )
+        return None
 
     def refresh(self) -> None:
         """Rebuild the snapshot the HTTP API reads (replaced whole, so readers never see half)."""

@@ -1,6 +1,8 @@
-"""The worker threads: take items in arrival order, handle them, commit once, publish, answer.
+"""The worker threads: take items, handle them, commit once, publish, answer.
 
-Each worker owns the wells that hash to it and loops over its bounded queue. Items are
+Each worker owns the wells that hash to it and loops over its
+:class:`~service.engine.fairqueue.FairQueue`: each well's items in arrival order, the
+wells in turn (round robin), so a flooding well cannot hold back the others. Items are
 handled into a :class:`~service.engine.items.Batch`; the batch is committed to the store
 in one transaction (group commit) when the queue runs dry, the batch holds
 ``queues.batch_max`` items, or it has run for ``queues.batch_ms`` (so a slow learning
@@ -10,29 +12,34 @@ acknowledged. Every half second a worker also settles the measurements of its we
 waited too long for their sample.
 
 A sensor sample is handled here: refused if it is not after the well's previous one
-(``duplicate`` or ``time going backwards``), else predicted, stored with its prediction,
-published, and the measurements waiting for it are settled.
+(``duplicate`` or ``time going backwards``), else predicted, stored with its prediction
+(and its interval, with a method that gives one), published, and the measurements waiting
+for it are settled. The first message of a new well builds the well here, on its worker
+(never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
+well after everything queued for it before (``DELETE /wells/{well}``).
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
 
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
-from service.engine.items import STOP, Batch, Item, ModelStep, SensorItem, refuse
+from service.engine.fairqueue import CLOSED, FairQueue
+from service.engine.intake import worker_of
+from service.engine.items import Batch, Item, ModelStep, RetireStep, SensorItem, refuse
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
+from service.engine.registry import Registry
 from service.engine.state import Sample, WellState
-from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping
+from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping, UnknownWell
 from service.inputs import Counters
-from service.store import InsertSample, Store
+from service.learning import new_learner
+from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import Prediction
 from vfm_core.timeutil import iso, to_ns
 
@@ -53,12 +60,15 @@ class Workers:
         counters: Counters,
         publish: Publish,
         wells: Mapping[str, WellState],
-        queues: list[queue.Queue[Any]],
+        queues: list[FairQueue],
         learning: Learning,
         pairing: Pairing,
         checkpoints: Checkpoints,
         model_changes: ModelChanges,
+        registry: Registry,
     ) -> None:
+        self.settings = settings
+        self.registry = registry
         self.store = store
         self.counters = counters
         self.publish = publish
@@ -78,55 +88,49 @@ class Workers:
             t.start()
             self._threads.append(t)
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Let the workers finish what is queued and end; answer the callers they did not reach."""
+    def stop(self, timeout: float = 30.0) -> bool:
+        """Let the workers finish what is queued and end; answer the callers they did not
+        reach. True when every worker ended within ``timeout`` s."""
         deadline = time.monotonic() + timeout
         for q in self.queues:
-            while True:
-                try:
-                    q.put(STOP, timeout=0.5)
-                    break
-                except queue.Full:
-                    if time.monotonic() > deadline:
-                        break
+            q.close()
         for t in self._threads:
             t.join(max(0.1, deadline - time.monotonic()))
+        ended = not any(t.is_alive() for t in self._threads)
+        if not ended:
+            logger.warning(
+                "A worker did not finish within %.0f s (a long learning step); stopping anyway.",
+                timeout,
+            )
         self._threads.clear()
         for q in self.queues:  # callers still waiting on items the workers did not reach
-            while True:
-                try:
-                    item = q.get_nowait()
-                except queue.Empty:
-                    break
+            for item in q.drain():
                 future = getattr(item, "future", None)
                 if future is not None and not future.done():
-                    what = "model change" if isinstance(item, ModelStep) else "well test"
+                    what = {ModelStep: "model change", RetireStep: "retirement"}.get(
+                        type(item), "well test"
+                    )
                     future.set_exception(Stopping(f"The service stopped before the {what} ran."))
+        return ended
 
     # -- the loop -------------------------------------------------------------------------
-    def _run(self, index: int, q: queue.Queue[Any]) -> None:
+    def _run(self, index: int, q: FairQueue) -> None:
         last_expiry = time.monotonic()
         stopping = False
         while not stopping:
             b = Batch()
-            try:
-                item = q.get(timeout=0.5)
-            except queue.Empty:
-                item = None
+            item = q.get(timeout=0.5)
             began = time.monotonic()
             n = 0
             while item is not None:
-                if item is STOP:
+                if item is CLOSED:
                     stopping = True
                     break
                 self._handle(item, b)
                 n += 1
                 if n >= self.batch_max or time.monotonic() - began > self.batch_s:
                     break
-                try:
-                    item = q.get_nowait()
-                except queue.Empty:
-                    break
+                item = q.get_nowait()
             now = time.monotonic()
             if now - last_expiry > 0.5:
                 last_expiry = now
@@ -137,12 +141,19 @@ class Workers:
 
     def _handle(self, item: Item, b: Batch) -> None:
         try:
-            if isinstance(item, SensorItem):
-                self._on_sample(self.wells[item.well], item, b)
-            elif isinstance(item, ModelStep):
+            if isinstance(item, ModelStep):
                 self.model_changes.on_step(item, b, self.flush)
+                return
+            if isinstance(item, RetireStep):
+                self._retire(item, b)
+                return
+            st = self._state(item, b)
+            if st is None:
+                return
+            if isinstance(item, SensorItem):
+                self._on_sample(st, item, b)
             else:
-                self.pairing.on_measurement(self.wells[item.well], item, b)
+                self.pairing.on_measurement(st, item, b)
         except Exception as exc:  # one bad message must not stop the worker
             logger.exception(
                 "Unexpected error on %s of %s: %s", type(item).__name__, item.well, exc
@@ -175,6 +186,71 @@ class Workers:
             else:
                 fut.set_result(result)
 
+    # -- wells --------------------------------------------------------------------------------
+    def _state(self, item: Item, b: Batch) -> WellState | None:
+        """The item's well; a new one (admitted by the registry) is built here, on its worker."""
+        st = self.wells.get(item.well)
+        if st is not None:
+            return st
+        future = getattr(item, "future", None)
+        if not self.registry.expected(item.well):  # retired (or purged) after it was queued
+            error: ServiceError = (
+                InvalidRequest(
+                    f"The well {item.well} was retired; its messages are refused.", "retired well"
+                )
+                if self.registry.is_retired(item.well)
+                else UnknownWell(
+                    f"The well {item.well} is no longer known to this service.", "unknown well"
+                )
+            )
+            refuse(self.counters, error, item.well, b, future)
+            return None
+        st = WellState(
+            item.well,
+            new_learner(item.well, self.settings.model),
+            self.settings,
+            worker_of(item.well, len(self.queues)),
+        )
+        b.ops.append(AddWell(well=item.well, created_ns=time.time_ns(), origin="first sight"))
+        self.registry.created(item.well, st)
+        self.counters.event("wells created")
+        logger.info(
+            "New well %s (first sight); it gets predictions once it has a measurement.", item.well
+        )
+        return st
+
+    def _retire(self, item: RetireStep, b: Batch) -> None:
+        """Retire a well: stop serving it, then keep its data (with a last checkpoint) or purge it."""
+        st = self.wells.get(item.well)
+        if st is None:
+            self.registry.unretire(item.well)
+            b.answer(
+                item.future, UnknownWell(f"The well {item.well} is not known to this service.")
+            )
+            return
+        self.flush(b)  # what was handled before is committed first
+        b.clear()
+        ops = (
+            purge_ops(item.well)
+            if item.purge
+            else [*self.checkpoints.ops(st), RetireWell(well=item.well, retired_ns=item.when_ns)]
+        )
+        self.store.write(ops)
+        self.registry.retired_done(item.well, item.purge)
+        self.counters.event("wells retired")
+        logger.info("Well %s retired%s.", item.well, " and its data removed" if item.purge else "")
+        b.answer(
+            item.future,
+            {
+                "well": item.well,
+                "retired": iso(item.when_ns),
+                "purged": item.purge,
+                "samples": st.samples,
+                "measurements": st.measurements,
+                "version": st.learner.version,
+            },
+        )
+
     # -- samples ----------------------------------------------------------------------------
     def _on_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
         sample = item.sample
@@ -198,6 +274,7 @@ class Workers:
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops)
         q_total = rates["q_total"] if rates else None
+        interval = {k: (rates or {}).get(k) for k in ("q_total_std", "q_total_p05", "q_total_p95")}
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
@@ -213,6 +290,7 @@ class Workers:
                 q_oil=rates["q_oil"] if rates else None,
                 q_water=rates["q_water"] if rates else None,
                 version=learner.version if rates else None,
+                **interval,
             )
         )
         if rates is None or q_total is None:
@@ -226,6 +304,7 @@ class Workers:
                 q_water=rates["q_water"],
                 model=learner.name,
                 version=learner.version,
+                **interval,
             )
             b.outbox.append((item.well, pred.model_dump_json().encode()))
         if st.pending:

@@ -7,15 +7,18 @@
 ``GET /wells/{well}``                    model, method, physical parameters (value, unit),
                                          version, updates, last update, rolling MAPE, drift
 ``GET /wells/{well}/history``            samples, predictions and measurements in [start, end)
+``GET /wells/{well}/history.csv``        the same as CSV in the observation format (streamed)
 ``POST /wells/{well}/well-tests``        a well-test result {time, q_total}: stored, then
                                          learned from; answers with the prediction before and
                                          after (bearer token; :mod:`.well_tests`)
 ``PUT /wells/{well}/model``              replace the well's model (bearer token;
                                          :mod:`.model_changes`)
+``DELETE /wells/{well}``                 retire a well, keeping or purging its data (bearer
+                                         token; :mod:`.wells`)
 =======================================  =====================================================
 
 Errors answer ``{"detail": "<a sentence>", "reason": "<counter key>"}`` with the status
-of :data:`service.http.errors.STATUS`. Dependencies (:mod:`.deps`) are injected with
+of :data:`service.http.errors.STATUS`; a body above ``http.max_body_bytes`` gets 413. Dependencies (:mod:`.deps`) are injected with
 ``Annotated[..., Depends()]``, so tests override them.
 """
 
@@ -26,7 +29,7 @@ from fastapi import FastAPI
 from service.errors import REASONS
 from service.http import health, model_changes, well_tests, wells
 from service.http.deps import ServiceView
-from service.http.errors import install_error_handlers
+from service.http.errors import BodyLimit, install_error_handlers
 
 __all__ = ["create_app"]
 
@@ -44,6 +47,11 @@ def create_app(service: ServiceView) -> FastAPI:
     )
     app.state.service = service
     install_error_handlers(app)
+
+    def count(message: str, where: str) -> None:
+        service.counters.reject("payload too large", message, where=where)
+
+    app.add_middleware(BodyLimit, limit=service.settings.http.max_body_bytes, count=count)
     app.include_router(health.router)
     app.include_router(wells.router)
     app.include_router(model_changes.router)

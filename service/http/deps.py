@@ -17,9 +17,10 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.config import Settings
 from service.engine import Engine
-from service.errors import NotAllowed, NotAuthenticated, Starting, unknown_well
+from service.errors import InvalidRequest, NotAllowed, NotAuthenticated, Starting, unknown_well
 from service.inputs import Counters
 from service.store import Store
+from vfm_core.messages import WELL_ID_MAX, well_id_problem
 
 __all__ = [
     "ServiceView",
@@ -115,7 +116,21 @@ def require_token(
 
 
 TokenDep = Annotated[None, Depends(require_token)]
-WellPath = Annotated[str, Path(description="well id", min_length=1, max_length=200)]
+
+
+def checked_well(
+    well: Annotated[
+        str, Path(description=f"well id: 1 to {WELL_ID_MAX} printable characters, no / * $ ? #")
+    ],
+) -> str:
+    """The well id of the path, if it follows the one rule for ids (422 otherwise)."""
+    problem = well_id_problem(well)
+    if problem is not None:
+        raise InvalidRequest(problem, "unparseable key")
+    return well
+
+
+WellPath = Annotated[str, Depends(checked_well)]
 
 
 def known_well(well: WellPath, engine: MaybeEngineDep) -> str:

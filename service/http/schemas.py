@@ -25,6 +25,7 @@ __all__ = [
     "MeasurementOut",
     "HistoryOut",
     "WellTestOut",
+    "RetiredOut",
 ]
 
 
@@ -37,6 +38,9 @@ class HealthOut(BaseModel):
     status: str
     uptime_s: float
     wells: int
+    received: int = Field(
+        default=0, description="messages received over the bus (Zenoh or in memory) since start"
+    )
     accepted: dict[str, int] = Field(
         description="accepted inputs: sensors, measurements, well_tests"
     )
@@ -50,6 +54,13 @@ class HealthOut(BaseModel):
     overflow: int = Field(description="messages dropped because a worker queue stayed full")
     queue_depths: list[int]
     queue_capacity: int
+    busy_wells: list[int] = Field(
+        default_factory=list, description="per worker, the wells with messages waiting"
+    )
+    retired_wells: int = 0
+    limits: dict[str, Any] = Field(
+        default_factory=dict, description="the input limits in force (see the config)"
+    )
     pending_measurements: int
     events: dict[str, int]
     zenoh: dict[str, Any]
@@ -57,8 +68,19 @@ class HealthOut(BaseModel):
 
 
 class Parameter(BaseModel):
+    """A physical parameter of the well's model (SI units), with its uncertainty where the
+    learning method has one (``bayes``)."""
+
     value: float
     unit: str
+    std: float | None = Field(
+        default=None, description="posterior standard deviation (None without a Bayesian method)"
+    )
+    low: float | None = Field(default=None, description="lower physical bound")
+    high: float | None = Field(default=None, description="upper physical bound")
+    at_bound: bool | None = Field(
+        default=None, description="True when the value sits at a bound (the data push past it)"
+    )
 
 
 class RollingMape(BaseModel):
@@ -164,6 +186,11 @@ class PredictionOut(BaseModel):
     q_oil: float | None
     q_water: float | None
     version: int | None
+    q_total_std: float | None = Field(
+        default=None, description="predictive standard deviation, Sm3/h (methods with intervals)"
+    )
+    q_total_p05: float | None = Field(default=None, description="5 % quantile, Sm3/h")
+    q_total_p95: float | None = Field(default=None, description="95 % quantile, Sm3/h")
 
 
 class MeasurementOut(BaseModel):
@@ -209,3 +236,12 @@ class WellTestOut(BaseModel):
     version_before: int
     version_after: int
     model_changed: bool
+
+
+class RetiredOut(BaseModel):
+    well: str
+    retired: str = Field(description="when it was retired, ISO 8601 UTC")
+    purged: bool = Field(description="True: every row of the well was deleted")
+    samples: int = Field(description="samples accepted since the service started")
+    measurements: int = Field(description="measurements accepted since the service started")
+    version: int = Field(description="the model's version at retirement")

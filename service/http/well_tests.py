@@ -1,4 +1,10 @@
-"""``POST /wells/{well}/well-tests``: a well-test result, stored durably, then learned from."""
+"""``POST /wells/{well}/well-tests``: a well-test result, stored durably, then learned from.
+
+The body is read raw and checked by :func:`service.inputs.parse_measurement`, the very
+function that checks a Zenoh measurement (with the same size and depth limits), so both
+paths refuse the same inputs with the same reasons. HTTP never creates a well: a well test
+of an unknown well (a typo) answers 404.
+"""
 
 from __future__ import annotations
 
@@ -6,13 +12,13 @@ import asyncio
 from dataclasses import asdict
 from typing import Any
 
-from fastapi import APIRouter
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Request
+from fastapi.responses import Response
 
 from service.errors import Busy, ServiceError
-from service.http.deps import CountersDep, EngineDep, TokenDep, WellPath
+from service.http.deps import CountersDep, EngineDep, ServiceDep, TokenDep, WellPath
 from service.http.schemas import ErrorOut, WellTestOut
-from service.inputs import parse_measurement
+from service.inputs import Limits, parse_measurement
 from vfm_core.messages import Measurement
 
 __all__ = ["router", "WELL_TEST_WAIT_S"]
@@ -36,15 +42,31 @@ router = APIRouter(prefix="/wells", tags=["wells"])
         403: {"model": ErrorOut},
         404: {"model": ErrorOut},
         409: {"model": ErrorOut},
+        413: {"model": ErrorOut, "description": "the body is larger than http.max_body_bytes"},
         422: {"model": ErrorOut},
         503: {"model": ErrorOut},
     },
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": Measurement.model_json_schema()}},
+        }
+    },
 )
 async def post_well_test(
-    well: WellPath, test: Measurement, _: TokenDep, engine: EngineDep, counters: CountersDep
+    well: WellPath,
+    request: Request,
+    _: TokenDep,
+    engine: EngineDep,
+    counters: CountersDep,
+    service: ServiceDep,
 ) -> Any:
+    body = await request.body()
+    inputs = service.settings.inputs
     try:
-        checked = parse_measurement(test.model_dump(mode="json"))
+        checked = parse_measurement(
+            body, Limits(service.settings.http.max_body_bytes, inputs.max_json_depth)
+        )
         future = engine.submit_well_test(well, checked)
     except ServiceError as error:  # refused before reaching the worker: count it here
         if error.reason is not None:
@@ -57,5 +79,9 @@ async def post_well_test(
             f"The well test was queued but not handled within {WELL_TEST_WAIT_S:g} s; the "
             f"service is overloaded. It is still stored once handled; check GET /wells/{well}/history."
         ) from None
-    body = WellTestOut(**asdict(result)).model_dump()
-    return JSONResponse(body, status_code=200 if result.status == "learned" else 202)
+    # pydantic writes a non-finite number as null (json.dumps would refuse it: a 500)
+    return Response(
+        WellTestOut(**asdict(result)).model_dump_json(),
+        status_code=200 if result.status == "learned" else 202,
+        media_type="application/json",
+    )

@@ -1,24 +1,38 @@
-"""``GET /wells``, ``GET /wells/{well}`` and ``GET /wells/{well}/history``: reading a well."""
+"""Reading a well (``GET /wells``, ``GET /wells/{well}``, ``GET /wells/{well}/history`` and
+its CSV form ``history.csv``) and retiring one (``DELETE /wells/{well}``).
+
+Query times follow the one rule for times (:func:`vfm_core.timeutil.time_problem`): a
+time outside 1677-09-22..2262-04-10 answers 422 (``time out of range``), never 500.
+"""
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
+from fastapi.responses import StreamingResponse
 
 from service.errors import InvalidRequest, unknown_well
-from service.http.deps import KnownWell, MaybeEngineDep, StoreDep, WellPath
-from service.http.schemas import ErrorOut, HistoryOut, WellOut, WellSummary
-from vfm_core.timeutil import iso, to_ns, utc
+from service.http.deps import (
+    EngineDep,
+    KnownWell,
+    MaybeEngineDep,
+    ServiceDep,
+    StoreDep,
+    TokenDep,
+    WellPath,
+)
+from service.http.schemas import ErrorOut, HistoryOut, RetiredOut, WellOut, WellSummary
+from vfm_core.timeutil import REPRESENTABLE_MAX, REPRESENTABLE_MIN, iso, time_problem, to_ns, utc
 
 __all__ = ["router"]
 
 router = APIRouter(prefix="/wells", tags=["wells"])
 
 #: the span of int64 epoch nanoseconds, the defaults of start and end
-_EARLIEST = datetime(1677, 9, 22, tzinfo=UTC)
-_LATEST = datetime(2262, 4, 11, tzinfo=UTC)
+_EARLIEST = REPRESENTABLE_MIN
+_LATEST = REPRESENTABLE_MAX
 
 
 @router.get("", response_model=list[WellSummary], summary="All wells")
@@ -42,12 +56,15 @@ def _parse_time(value: str | None, name: str, default: datetime) -> datetime:
     if value is None:
         return default
     try:
-        t = datetime.fromisoformat(value.replace("Z", "+00:00"))
+        t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
     except ValueError:
         raise InvalidRequest(
-            f"{name}='{value}' is not an ISO 8601 time; write it like 2019-03-01T06:00:00Z.",
+            f"{name}={value[:40]!r} is not an ISO 8601 time; write it like 2019-03-01T06:00:00Z.",
             "wrong type",
         ) from None
+    problem = time_problem(t, what=name)
+    if problem is not None:
+        raise InvalidRequest(problem.rstrip(".") + "; omit it for no bound.", "time out of range")
     return utc(t)
 
 
@@ -96,6 +113,9 @@ def well_history(
             "q_oil": s.q_oil,
             "q_water": s.q_water,
             "version": s.version,
+            "q_total_std": s.q_total_std,
+            "q_total_p05": s.q_total_p05,
+            "q_total_p95": s.q_total_p95,
         }
         for s in samples
         if s.q_total is not None
@@ -123,3 +143,83 @@ def well_history(
         "measurements": m_out,
         "truncated": len(samples) >= limit or len(measurements) >= limit,
     }
+
+
+@router.get(
+    "/{well}/history.csv",
+    summary="History as CSV in the observation format (streamed)",
+    description=(
+        "One row per stored sample (choke, p_up, p_down, t_up, eta_gas, eta_oil), with the "
+        "measured q_total and its source on the row of the sample a learned measurement was "
+        "paired with (or a row of its own at the measurement's time, with the paired sample's "
+        "inputs), and the service's prediction at each sample (predicted, predicted_std, "
+        "predicted_p05, predicted_p95, version). A first line '# ...' gives the units (bar "
+        "absolute, degC, fractions, Sm3/h, UTC); comment=false leaves it out, so that vfm "
+        "evaluate and vfm diagnose read the file as it is. At most http.max_export_rows rows."
+    ),
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"text/csv": {}}},
+        404: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+    },
+)
+def well_history_csv(
+    well: KnownWell,
+    service: ServiceDep,
+    start: Annotated[str | None, Query(description="ISO 8601, inclusive")] = None,
+    end: Annotated[str | None, Query(description="ISO 8601, exclusive")] = None,
+    limit: Annotated[int | None, Query(ge=1, description="at most this many rows")] = None,
+    comment: Annotated[bool, Query(description="a first '# units' line")] = True,
+) -> StreamingResponse:
+    from service.export import connect_read_only, csv_lines
+
+    t0 = _parse_time(start, "start", _EARLIEST)
+    t1 = _parse_time(end, "end", _LATEST)
+    if t1 <= t0:
+        raise InvalidRequest(
+            f"end ({t1.isoformat()}) must be after start ({t0.isoformat()}).", "wrong type"
+        )
+    cap = service.settings.http.max_export_rows
+    con = connect_read_only(service.settings.store.path)
+    lines = csv_lines(
+        con,
+        well,
+        to_ns(t0),
+        to_ns(t1),
+        limit=min(limit or cap, cap),
+        comment=comment,
+        close=True,
+    )
+    return StreamingResponse(
+        lines,
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{well}-history.csv"'},
+    )
+
+
+@router.delete(
+    "/{well}",
+    response_model=RetiredOut,
+    summary="Retire a well: stop serving it, keep (default) or purge its data",
+    description=(
+        "After what is queued for the well, its model is checkpointed and it is no longer "
+        "served or loaded at a restart; its messages are refused as 'retired well'. Its data "
+        "(samples, predictions, measurements, checkpoints) stay in the store, readable with "
+        "vfm export, unless purge=true deletes them all, which also frees the id for a new "
+        "well. Needs the bearer token."
+    ),
+    responses={
+        401: {"model": ErrorOut},
+        403: {"model": ErrorOut},
+        404: {"model": ErrorOut},
+        503: {"model": ErrorOut},
+    },
+)
+def retire_well(
+    _: TokenDep,
+    well: KnownWell,
+    engine: EngineDep,
+    purge: Annotated[bool, Query(description="also delete every row of the well")] = False,
+) -> dict[str, Any]:
+    return engine.retire_well(well, purge=purge)

@@ -1,0 +1,139 @@
+"""A worker's queue: one FIFO per well, served round robin, each bounded.
+
+Why not one FIFO per worker: a well that floods would put thousands of messages in front
+of every other well's next sample (measured before this queue: 8 s of delay for a well
+sending once a second while another sent 5,000 samples a second). Here each well has its
+own FIFO (its messages keep their order) of at most ``well_capacity`` items, and the
+worker takes one item from each well that has any, in turn. A sample of a quiet well
+therefore waits behind at most one item per other busy well of its worker, however much
+those send.
+
+:meth:`FairQueue.put` waits while the well's FIFO (or the whole queue, ``capacity``) is
+full, at most ``timeout`` seconds, and then says which was full, so that the receiver can
+count ``well flooding`` or ``queue overflow``; ``force`` puts an item whatever the bounds
+(a model swap, which must never be dropped). :meth:`FairQueue.close` makes :meth:`get`
+answer :data:`CLOSED` once every queued item has been taken.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from typing import Any, Literal
+
+__all__ = ["FairQueue", "CLOSED"]
+
+#: what :meth:`FairQueue.get` answers once the queue is closed and empty
+CLOSED = object()
+
+
+class FairQueue:
+    """Per-well FIFOs served round robin; see the module docstring. Thread-safe."""
+
+    def __init__(self, capacity: int, well_capacity: int) -> None:
+        self.capacity = capacity
+        self.well_capacity = well_capacity
+        self._lock = threading.Lock()
+        self._has_items = threading.Condition(self._lock)
+        self._has_room = threading.Condition(self._lock)
+        self._queues: dict[str, deque[Any]] = {}
+        #: wells with queued items, in the order they are served
+        self._ring: deque[str] = deque()
+        self._size = 0
+        self._closed = False
+        self._waiting = 0
+
+    def qsize(self) -> int:
+        return self._size
+
+    def depth(self, well: str) -> int:
+        """Items queued for ``well``."""
+        q = self._queues.get(well)
+        return 0 if q is None else len(q)
+
+    def busy_wells(self) -> int:
+        """Wells with queued items."""
+        return len(self._ring)
+
+    def put(
+        self, well: str, item: Any, timeout: float | None = 0.0, *, force: bool = False
+    ) -> Literal["ok", "well", "total"]:
+        """Queue ``item`` for ``well``: ``ok``, or which bound stayed full for ``timeout`` s
+        (``well``: the well's own FIFO; ``total``: the whole queue). None waits for ever."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while not force:
+                q = self._queues.get(well)
+                if q is not None and len(q) >= self.well_capacity:
+                    full: Literal["well", "total"] = "well"
+                elif self._size >= self.capacity:
+                    full = "total"
+                else:
+                    break
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return full
+                self._waiting += 1
+                try:
+                    self._has_room.wait(remaining)
+                finally:
+                    self._waiting -= 1
+            q = self._queues.get(well)
+            if q is None:
+                q = self._queues[well] = deque()
+                self._ring.append(well)
+            q.append(item)
+            self._size += 1
+            self._has_items.notify()
+            return "ok"
+
+    def get(self, timeout: float | None = None) -> Any:
+        """The next item (round robin over wells); None after ``timeout`` s without one;
+        :data:`CLOSED` once closed and empty."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while not self._ring:
+                if self._closed:
+                    return CLOSED
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                self._has_items.wait(remaining)
+            return self._pop()
+
+    def get_nowait(self) -> Any:
+        """The next item, or None when nothing is queued (:data:`CLOSED` once closed)."""
+        with self._lock:
+            if not self._ring:
+                return CLOSED if self._closed else None
+            return self._pop()
+
+    def _pop(self) -> Any:
+        well = self._ring.popleft()
+        q = self._queues[well]
+        item = q.popleft()
+        if q:
+            self._ring.append(well)
+        else:
+            del self._queues[well]
+        self._size -= 1
+        if self._waiting:
+            self._has_room.notify_all()
+        return item
+
+    def close(self) -> None:
+        """No more items are expected: :meth:`get` answers :data:`CLOSED` once empty."""
+        with self._lock:
+            self._closed = True
+            self._has_items.notify_all()
+
+    def drain(self) -> list[Any]:
+        """Take every queued item (at a stop, to answer the callers still waiting)."""
+        with self._lock:
+            items = [item for well in self._ring for item in self._queues[well]]
+            self._queues.clear()
+            self._ring.clear()
+            self._size = 0
+            self._has_room.notify_all()
+            return items
