@@ -27,12 +27,19 @@ from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
 from vfm_core.streaming import WellLearner
 
-__all__ = ["new_learner", "load_history", "fit_history", "train_settings", "apply_budget"]
+__all__ = [
+    "new_learner",
+    "load_history",
+    "fit_history",
+    "train_settings",
+    "apply_budget",
+    "fit_budget",
+]
 
 logger = logging.getLogger("vfm.service.learning")
 
 
-def _budget(cfg: ModelSettings) -> float:
+def fit_budget(cfg: ModelSettings) -> float:
     return float(cfg.train.get("time_budget_s", cfg.retrain_budget_s))
 
 
@@ -41,14 +48,14 @@ def train_settings(cfg: ModelSettings) -> Any:
     and the wall-clock budget of one fit (``model.retrain_budget_s`` unless
     ``model.train.time_budget_s`` is given), so no retrain can keep a worker busy for long."""
     return replace(
-        settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train), time_budget_s=_budget(cfg)
+        settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train), time_budget_s=fit_budget(cfg)
     )
 
 
 def apply_budget(learner: WellLearner, cfg: ModelSettings) -> WellLearner:
     """Give a restored or refitted learner the configured retrain budget (its other
     settings stay those it was built with)."""
-    budget = _budget(cfg)
+    budget = fit_budget(cfg)
     if learner.train.time_budget_s != budget:
         learner.train = replace(learner.train, time_budget_s=budget)
     if learner.method.train.time_budget_s != budget:

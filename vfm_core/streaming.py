@@ -421,6 +421,7 @@ class WellLearner:
         method: str | None = None,
         *,
         holdout: float = 0.2,
+        time_budget_s: float | None = None,
     ) -> tuple[WellLearner, dict[str, Any]]:
         """A new learner with another model (and effects) fitted on everything this one remembers.
 
@@ -433,7 +434,9 @@ class WellLearner:
         regulariser, and early stopping on the latest fifth of a drifting history stops
         before a trend such as wear is learned (measured: wear rate 0.0015 instead of 0.33,
         held-out MAPE 13.6 % instead of 2.1 %, on a simulated eroding well). Models with a
-        network (``hem``, ``ham``, ...) keep early stopping.
+        network (``hem``, ``ham``, ...) keep early stopping. ``time_budget_s`` bounds each
+        of the three fits' wall-clock time (see ``TrainSettings.time_budget_s``) and stays
+        the new learner's budget for its retrains.
         """
         model = model or self.model_name
         effects = list(self.effects if effects is None else effects)
@@ -445,11 +448,17 @@ class WellLearner:
                 f"Well {self.well} has {n} stored measurement(s); at least 10 are needed to fit a new model."
             )
         same_base = model == self.model_name
+
+        def budgeted(train: TrainSettings) -> TrainSettings:
+            if time_budget_s is None:
+                return train
+            return replace(train, time_budget_s=time_budget_s)
+
         new = WellLearner(
             self.well,
             model,
             method,
-            train=self.train if same_base else None,
+            train=budgeted(self.train if same_base else DEFAULT_TRAIN[model]),
             online=self.online if same_base else None,
             model_kwargs=self.model_kwargs if same_base else None,
             seed=self.seed,
@@ -474,7 +483,7 @@ class WellLearner:
                     self.well,
                     spec_model,
                     "ol",
-                    train=like.train,
+                    train=budgeted(like.train),
                     online=like.online,
                     model_kwargs=like.model_kwargs,
                     seed=self.seed,

@@ -39,7 +39,7 @@ from service.engine.fairqueue import FairQueue
 from service.engine.items import Batch, ModelStep
 from service.engine.state import WellState
 from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
-from service.learning import apply_budget
+from service.learning import apply_budget, fit_budget
 from service.store import Store
 from vfm_core.errors import VFMError
 from vfm_core.streaming import WellLearner
@@ -152,7 +152,11 @@ class ModelChanges:
             )
             started = time.perf_counter()
             try:
-                new, scores = fit.run(lambda: copy.refit_as(model, effects, method))
+                new, scores = fit.run(
+                    lambda: copy.refit_as(
+                        model, effects, method, time_budget_s=fit_budget(self.settings.model)
+                    )
+                )
             except BaseException as exc:
                 self._step(st, "cancel")
                 if isinstance(exc, VFMError):
