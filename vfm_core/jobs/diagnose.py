@@ -156,6 +156,8 @@ _EFFECT_DRIVER = {
     "critical_ratio": "p_ratio",
     "mpfm_bias": "time",
 }
+#: Most drivers (those that beat chance, best first) a correction is fitted for.
+SUGGEST_TOP = 2
 #: Fewest measurements per source (before the split) for a meter-bias candidate.
 _MIN_PER_SOURCE = 5
 #: A valve curve is offered when some well's choke spans at least this (P5..P95) in training.
@@ -1063,7 +1065,12 @@ def run_diagnosis(
     drivers = rank_drivers(comp_res, shifts=shifts, seed=seed)
     eligible = [d for d in drivers if d["role"] == "driver"]
     top = eligible[0] if eligible else None
+    r_raw = np.clip(comp_res["r"].to_numpy(dtype=float), -_CLIP, _CLIP)
+    ok_r = np.isfinite(r_raw)
+    r_det = stats.detrend(comp_res[ok_r])
+    trend_share = 1.0 - float(np.var(r_det)) / max(float(np.var(r_raw[ok_r])), 1e-300)
     noise_test = {
+        "trend_share": trend_share,
         "method": "circular shifts of the detrended residual within each well and meter; "
         "p-value of the best driver against the best score any eligible driver reaches by chance",
         "shifts": shifts,
@@ -1087,10 +1094,18 @@ def run_diagnosis(
         and top is not None
         and top["name"] in SUGGEST_DRIVERS
     ):
-        x_train = stats.driver_values(_derived(frame.iloc[train_rows]), top["name"])
+        chosen = [
+            d["name"]
+            for d in eligible
+            if d["p_value"] is not None
+            and d["p_value"] < stats.ALPHA
+            and d["score"] > 0
+            and d["name"] in SUGGEST_DRIVERS
+        ][:SUGGEST_TOP]
+        rows = _derived(frame.iloc[train_rows])
         suggestion = _fit_suggestion(
-            top["name"],
-            np.asarray(x_train, dtype=float),
+            chosen,
+            {d: np.asarray(stats.driver_values(rows, d), dtype=float) for d in chosen},
             run,
             cand_method,
             cand_train,
@@ -1136,7 +1151,15 @@ def run_diagnosis(
         f"{len(comp_res):,} measurements after the split (each predicted before it is learned)"
     )
     kind, effect_name, driver_name, text = _verdict(
-        comp_mape, results, top, suggestion, floor.get("mape"), protocol, scored_on
+        comp_mape,
+        results,
+        top,
+        drivers,
+        suggestion,
+        floor.get("mape"),
+        protocol,
+        scored_on,
+        trend_share,
     )
     bar.finish(f"verdict: {kind}")
     return Diagnosis(
@@ -1201,9 +1224,26 @@ def _share(base: float, with_: float, floor: float | None) -> float:
     return (base - with_) / (base - floor)
 
 
+def _per_well_values(
+    cand: CandidateResult, cls: type[Effect], model: ChokeModel
+) -> tuple[dict[str, tuple[float, float]], dict[str, tuple[float, float]]]:
+    """Per parameter: (field median, median sd) and the shared estimate (mean, sd)."""
+    ready = model.ready.numpy()
+    median: dict[str, tuple[float, float]] = {}
+    shared: dict[str, tuple[float, float]] = {}
+    for pname in cls.parameters:
+        entry = cand.parameters[f"suggest.{pname}"]
+        v = np.array([entry["per_well"][w] for w in model.wells])[ready]
+        s = np.array([entry["per_well_sd"].get(w, np.nan) for w in model.wells])[ready]
+        shared[pname] = _shared_value(v, s)
+        sd = entry["sd"]
+        median[pname] = (float(entry["value"]), float(sd) if sd is not None else float("nan"))
+    return median, shared
+
+
 def _fit_suggestion(
-    driver: str,
-    x_train: np.ndarray,
+    drivers: Sequence[str],
+    x_train: dict[str, np.ndarray],
     run: Callable[..., RunResult],
     how: str,
     settings: TrainSettings,
@@ -1212,54 +1252,42 @@ def _fit_suggestion(
     train_batch: Callable[[RunResult], Batch | None],
     bar: _Progress,
 ) -> Suggestion:
-    """Fit the generic correction in ``driver`` (linear and log-linear, or the season; per well
-    and shared) under the comparison protocol and keep the one with the lowest BIC."""
-    spec = SUGGEST_DRIVERS[driver]
-    if driver == "day_of_year":
-        forms = ["season"]
-        heads = {"season": f"suggest:driver={driver}:form=season"}
-    else:
-        x0 = _x0(x_train, spec.scale)
-        forms = ["linear", "log"]
-        heads = {
-            f: f"suggest:driver={driver}:form={f}:x0={x0:g}:scale={spec.scale:g}" for f in forms
-        }
-    bar.add(2 * len(forms))
-    tried: list[
-        tuple[CandidateResult, bool, type[Effect], dict[str, tuple[float, float]], str]
-    ] = []
-    for form in forms:
-        cls = resolve_effect(heads[form])
-        r_ = run(f"suggest {driver} {form} per well", [cls], how, settings)
-        per_well = _score(f"suggest:{driver}", r_, [cls], base_mape, base, train_batch(r_))
-        model = r_.final_model
-        assert model is not None
-        ready = model.ready.numpy()
-        values: dict[str, tuple[float, float]] = {}
-        fixed: dict[str, float] = {}
-        for pname in cls.parameters:
-            entry = per_well.parameters[f"suggest.{pname}"]
-            v = np.array([entry["per_well"][w] for w in model.wells])[ready]
-            s = np.array([entry["per_well_sd"].get(w, np.nan) for w in model.wells])[ready]
-            fixed[pname] = _shared_value(v, s)[0]
-            values[pname] = (
-                float(entry["value"]),
-                float(entry["sd"]) if entry["sd"] is not None else float("nan"),
-            )
-        tried.append((per_well, False, cls, values, heads[form]))
-        shared_spec = heads[form] + "".join(f":{k}={v:.6g}" for k, v in fixed.items())
-        shared_cls = resolve_effect(shared_spec)
-        r_s = run(f"suggest {driver} {form} shared", [shared_cls], how, settings)
-        shared = _score(
-            f"suggest:{driver}", r_s, [shared_cls], base_mape, base, None, k_override=len(fixed)
+    """Fit the generic correction for each driver under the comparison protocol and keep the
+    one with the lowest BIC: per well, linear and log-linear (the season for the day of the
+    year); then the better form with one coefficient shared by every well (the
+    precision-weighted mean of the wells' values, fixed)."""
+    tried: list[tuple[CandidateResult, bool, type[Effect], dict[str, tuple[float, float]], str]]
+    tried = []
+    for driver in drivers:
+        spec = SUGGEST_DRIVERS[driver]
+        if driver == "day_of_year":
+            heads = {"season": f"suggest:driver={driver}:form=season"}
+        else:
+            x0 = _x0(x_train[driver], spec.scale)
+            heads = {
+                f: f"suggest:driver={driver}:form={f}:x0={x0:g}:scale={spec.scale:g}"
+                for f in ("linear", "log")
+            }
+        bar.add(len(heads) + 1)
+        fits = []
+        for form, head in heads.items():
+            cls = resolve_effect(head)
+            r_ = run(f"suggest {driver} {form} per well", [cls], how, settings)
+            cand = _score(f"suggest:{driver}", r_, [cls], base_mape, base, train_batch(r_))
+            cand.driver = driver
+            assert r_.final_model is not None
+            median, shared = _per_well_values(cand, cls, r_.final_model)
+            tried.append((cand, False, cls, median, head))
+            fits.append((cand, cls, shared, head))
+        cand, cls, shared, head = min(fits, key=lambda f: _order(f[0].delta_bic))
+        fixed_spec = head + "".join(f":{k}={v:.6g}" for k, (v, _) in shared.items())
+        fixed_cls = resolve_effect(fixed_spec)
+        r_s = run(f"suggest {driver} {cls.form} shared", [fixed_cls], how, settings)  # type: ignore[attr-defined]
+        one = _score(
+            f"suggest:{driver}", r_s, [fixed_cls], base_mape, base, None, k_override=len(shared)
         )
-        shared_values = {}
-        for pname in cls.parameters:
-            entry = per_well.parameters[f"suggest.{pname}"]
-            v = np.array([entry["per_well"][w] for w in model.wells])[ready]
-            s = np.array([entry["per_well_sd"].get(w, np.nan) for w in model.wells])[ready]
-            shared_values[pname] = _shared_value(v, s)
-        shared.parameters = {
+        one.driver = driver
+        one.parameters = {
             f"suggest.{pname}": {
                 "value": mean,
                 "sd": sd,
@@ -1267,12 +1295,13 @@ def _fit_suggestion(
                 "meaning": cls.parameters[pname].meaning,
                 "shared": True,
             }
-            for pname, (mean, sd) in shared_values.items()
+            for pname, (mean, sd) in shared.items()
         }
-        shared.meaning = shared_cls().describe({})
-        tried.append((shared, True, shared_cls, shared_values, heads[form]))
+        one.meaning = fixed_cls().describe({})
+        tried.append((one, True, fixed_cls, shared, head))
     variants = [
         {
+            "driver": c_cls.driver,  # type: ignore[attr-defined]
             "form": c_cls.form,  # type: ignore[attr-defined]
             "shared": is_shared,
             "n_parameters": cand.n_parameters,
@@ -1283,16 +1312,10 @@ def _fit_suggestion(
         }
         for cand, is_shared, c_cls, _, _ in tried
     ]
-    chosen, is_shared, cls, values, head = min(
-        tried, key=lambda t: t[0].delta_bic if math.isfinite(t[0].delta_bic) else math.inf
-    )
-    chosen.driver = driver
-    params = {
-        key.split(".", 1)[1]: {**entry, "unit": entry["unit"]}
-        for key, entry in chosen.parameters.items()
-    }
+    chosen, is_shared, cls, values, head = min(tried, key=lambda t: _order(t[0].delta_bic))
+    params = {key.split(".", 1)[1]: dict(entry) for key, entry in chosen.parameters.items()}
     return Suggestion(
-        driver=driver,
+        driver=cls.driver,  # type: ignore[attr-defined]
         form=cls.form,  # type: ignore[attr-defined]
         shared=is_shared,
         spec=chosen.spec,
@@ -1305,17 +1328,31 @@ def _fit_suggestion(
     )
 
 
+def _order(value: float) -> float:
+    return value if math.isfinite(value) else math.inf
+
+
 def _verdict(
     base_mape: float,
     candidates: list[CandidateResult],
     top: dict[str, Any] | None,
+    drivers: list[dict[str, Any]],
     suggestion: Suggestion | None,
     floor: float | None,
     protocol: str,
     bic_on: str,
+    trend_share: float = float("nan"),
 ) -> tuple[str, str | None, str | None, str]:
     """(kind, effect, driver, sentence): see the module docstring for the rule."""
     floor_text = f"; noise floor about {floor:.2f} %" if floor is not None else ""
+    if floor is not None and base_mape > 1.5 * floor:
+        what = (
+            f"is well above the noise floor ({floor:.2f} %) but follows time in each well, not any "
+            f"variable (per-well straight lines in time hold {100 * trend_share:.0f} % of its "
+            "variance): a slow drift of the wells or meters, which online learning follows"
+        )
+    else:
+        what = "is treated as measurement noise and meter drift"
     material = [c for c in candidates if c.material]
     if material:
         best = material[0]
@@ -1337,21 +1374,22 @@ def _verdict(
         return "effect", best.effect, None, text
     if top is not None and suggestion is not None and suggestion.result.material:
         s = suggestion.result
+        d = next((x for x in drivers if x["name"] == suggestion.driver), top)
         return (
             "driver",
             None,
-            top["name"],
-            f"No candidate explains the residual; it depends mostly on {top['name']} (it explains "
-            f"{100 * top['score']:.0f} % of the residual beyond per-well trends, out of sample; "
-            f"p = {top['p_value']:.3f} by circular shifts). A correction {suggestion.text} lowers "
+            d["name"],
+            f"No candidate explains the residual; it depends mostly on {d['name']} (it explains "
+            f"{100 * d['score']:.0f} % of the residual beyond per-well trends, out of sample; "
+            f"p = {d['p_value']:.3f} by circular shifts). A correction {suggestion.text} lowers "
             f"the MAPE from {base_mape:.2f} % to {s.mape:.2f} % ({protocol}{floor_text}). "
             f"Apply it with --effects {suggestion.spec}, or start your own effect from the code "
             "in the report.",
         )
     if top is not None and top["p_value"] is not None and top["p_value"] < stats.ALPHA:
         tail = (
-            f"a correction in it does not lower the held-out error materially ({base_mape:.2f} % -> "
-            f"{suggestion.mape:.2f} %, BIC {suggestion.result.delta_bic:+.0f})"
+            f"a correction in {suggestion.driver} does not lower the held-out error materially "
+            f"({base_mape:.2f} % -> {suggestion.mape:.2f} %, BIC {suggestion.result.delta_bic:+.0f})"
             if suggestion is not None
             else "it is not a variable a correction can use"
         )
@@ -1360,8 +1398,7 @@ def _verdict(
             None,
             None,
             f"No candidate explains the residual. {top['name']} correlates with it beyond chance "
-            f"(p = {top['p_value']:.3f}), but {tail}: what is left (MAPE {base_mape:.2f} %"
-            f"{floor_text}) is treated as measurement noise and meter drift.",
+            f"(p = {top['p_value']:.3f}), but {tail}: what is left (MAPE {base_mape:.2f} %) {what}.",
         )
     best_p = (
         ""
@@ -1373,8 +1410,12 @@ def _verdict(
         None,
         None,
         "No candidate explains the residual, and no variable explains more of it than chance "
-        f"would{best_p}: what is left (MAPE {base_mape:.2f} %{floor_text}) looks like measurement "
-        "noise and meter drift.",
+        f"would{best_p}: what is left (MAPE {base_mape:.2f} %"
+        + (
+            f"{floor_text}) looks like measurement noise and meter drift."
+            if what.startswith("is treated")
+            else f") {what}."
+        ),
     )
 
 

@@ -19,8 +19,9 @@ held-out block, in turn. ``raw_score`` is the same on the residual before detren
 **Chance.** Residuals and variables are both autocorrelated, so a plain permutation test
 would find "significant" drivers in pure meter drift. The test here keeps each series'
 autocorrelation: the detrended residual of every well and source is shifted circularly in
-time by a random offset (10-90 % of its length), which breaks its alignment with the
-variables and nothing else; each shift gives the best score any eligible variable reaches
+time by a random lag (10-90 % of its span, never within 45 days of a whole number of
+years, which would keep a yearly wave aligned with the season), which breaks its alignment
+with the variables and nothing else; each shift gives the best score any eligible variable reaches
 by chance. A variable's p-value is the share of shifts whose best chance score is at least
 its own (the max-statistic correction for trying many variables).
 
@@ -110,6 +111,8 @@ CLIP = 1.0
 #: Longest gap between two readings of one meter whose difference measures its noise.
 FLOOR_GAP = {"mpfm": pd.Timedelta(hours=48), "well_test": pd.Timedelta(days=14)}
 _MIN_PAIRS = 10
+#: Circular shifts avoid lags within this many days of a whole number of years.
+_YEAR_GUARD = 45.0
 _NS_PER_YEAR = 86400e9 * 365.25
 
 
@@ -191,17 +194,49 @@ class _Folds:
         return 1.0 - sse / sst if sst > 0 else 0.0
 
 
-def _shifter(res: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rows ordered by (well and source, time), each row's group, its rank in the group and
-    the group sizes: what a circular shift within every group needs."""
-    g = _groups(res)
-    t = res["time"].astype("int64").to_numpy()
-    order = np.lexsort((t, g))
-    g_sorted = g[order]
-    sizes = np.bincount(g)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    rank = np.arange(len(order)) - starts[g_sorted]
-    return order, g_sorted, rank, sizes
+class _Shifter:
+    """Circular shifts of a residual within every well and source (rows in time order).
+
+    Each group is shifted by a random time lag of 10-90 % of its span, converted to a row
+    offset. Lags within :data:`_YEAR_GUARD` of a whole number of years are redrawn: such a
+    shift keeps a yearly wave aligned with the day of the year, and would make the season
+    look like chance."""
+
+    def __init__(self, res: pd.DataFrame) -> None:
+        g = _groups(res)
+        t = res["time"].astype("int64").to_numpy() / 86400e9  # days
+        self.order = np.lexsort((t, g))
+        g_sorted = g[self.order]
+        self.sizes = np.bincount(g)
+        self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]])
+        self.g_sorted = g_sorted
+        self.rank = np.arange(len(self.order)) - self.starts[g_sorted]
+        self.times = [
+            t[self.order][a : a + n] for a, n in zip(self.starts, self.sizes, strict=True)
+        ]
+
+    def _offset(self, rng: np.random.Generator, days: np.ndarray) -> int:
+        n = len(days)
+        span = float(days[-1] - days[0]) if n > 1 else 0.0
+        if n < 3 or span <= 0:
+            return 0
+        for _ in range(20):
+            lag = span * (0.1 + 0.8 * rng.random())
+            phase = lag % 365.25
+            if min(phase, 365.25 - phase) >= _YEAR_GUARD or lag < 365.25 - _YEAR_GUARD:
+                break
+        offset = int(np.searchsorted(days, days[0] + lag))
+        return min(max(offset, 1), n - 1)
+
+    def shift(self, r: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        offsets = np.array([self._offset(rng, d) for d in self.times], dtype=int)
+        sizes = np.maximum(self.sizes, 1)
+        source = (
+            self.starts[self.g_sorted] + (self.rank + offsets[self.g_sorted]) % sizes[self.g_sorted]
+        )
+        out = np.empty_like(r)
+        out[self.order] = r[self.order][source]
+        return out
 
 
 def rank_drivers(
@@ -257,18 +292,10 @@ def rank_drivers(
     eligible = [v for v in variables if v in ELIGIBLE_DRIVERS]
     if shifts > 0 and eligible:
         rng = np.random.default_rng(seed)
-        order, g_sorted, rank, sizes = _shifter(res)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        r_sorted = r_d[order]
+        shifter = _Shifter(res)
         best = np.empty(shifts)
         for s in range(shifts):
-            lo = sizes // 10
-            offsets = lo + np.floor(rng.random(len(sizes)) * np.maximum(sizes - 2 * lo, 1)).astype(
-                int
-            )
-            source_pos = starts[g_sorted] + (rank + offsets[g_sorted]) % sizes[g_sorted]
-            shifted = np.empty_like(r_d)
-            shifted[order] = r_sorted[source_pos]
+            shifted = shifter.shift(r_d, rng)
             best[s] = max(folds.score(v, shifted) for v in eligible)
         for d in out:
             if d["name"] in eligible:
