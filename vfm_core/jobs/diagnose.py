@@ -1521,13 +1521,13 @@ def format_summary(diag: Diagnosis) -> str:
             f"  {c.effect:<24} MAPE {c.mape:6.2f} %  dMAPE {c.delta_mape:+6.2f}  dBIC {c.delta_bic:+9.1f}"
             f"  dBIC all {c.delta_bic_all:+9.1f}{flag}"
         )
-    for s in diag.skipped:
-        lines.append(f"  {s['effect']:<24} skipped: {s['reason']}")
+    for skip in diag.skipped:
+        lines.append(f"  {skip['effect']:<24} skipped: {skip['reason']}")
     if diag.suggestion is not None:
-        s = diag.suggestion
+        sug = diag.suggestion
         lines.append(
-            f"Suggested correction: {s.text}; MAPE {s.mape:.2f} % (dBIC {s.result.delta_bic:+.1f}); "
-            f"--effects {s.spec}"
+            f"Suggested correction: {sug.text}; MAPE {sug.mape:.2f} % "
+            f"(dBIC {sug.result.delta_bic:+.1f}); --effects {sug.spec}"
         )
     if diag.extended is not None:
         e = diag.extended

@@ -26,8 +26,8 @@ by chance. A variable's p-value is the share of shifts whose best chance score i
 its own (the max-statistic correction for trying many variables).
 
 **Noise floor.** What no model of the inputs can remove is the meters' own white noise.
-It is estimated from differences of the residual between consecutive readings of one
-meter on one well close in time (at most 48 h apart for an MPFM, 14 days for well tests):
+It is estimated from differences of the log residual log(measured/predicted) between
+consecutive readings of one meter on one well close in time (at most 48 h apart for an MPFM, 14 days for well tests):
 the model's error barely changes between them, the noise is independent, so the median
 absolute difference gives the noise scale (robust to the odd jump when a choke moves), and
 the floor is the mean absolute relative error of Gaussian noise of that scale (Rice 1984's
@@ -277,7 +277,7 @@ def rank_drivers(
     folds = _Folds(res, variables, blocks, bins)
     r_raw = np.clip(res["r"].to_numpy(dtype=float), -CLIP, CLIP)
     r_d = detrend(res)
-    out = []
+    out: list[dict[str, Any]] = []
     for name in variables:
         out.append(
             {
@@ -306,7 +306,15 @@ def rank_drivers(
 def noise_floor(residuals: pd.DataFrame) -> dict[str, Any]:
     """The meters' white-noise floor as a MAPE (%), overall and per source; see the module
     docstring. ``mape`` is None when no meter has enough close pairs of readings."""
-    res = residuals[np.isfinite(residuals["r"].to_numpy(dtype=float))]
+    res = residuals.copy()
+    if {"measured", "predicted"} <= set(res.columns):
+        # in logs, the meter's relative noise adds to the model's error whatever its size
+        # (in (m - p)/m it is scaled by p/q: a model that under-predicts shrinks it)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            res["r"] = np.log(
+                res["measured"].to_numpy(dtype=float) / res["predicted"].to_numpy(dtype=float)
+            )
+    res = res[np.isfinite(res["r"].to_numpy(dtype=float))]
     by_source: dict[str, dict[str, Any]] = {}
     weighted = 0.0
     rows = 0
@@ -339,7 +347,7 @@ def noise_floor(residuals: pd.DataFrame) -> dict[str, Any]:
     return {
         "mape": weighted / rows if rows else None,
         "by_source": by_source,
-        "method": "median absolute difference of the residual between consecutive readings of one "
+        "method": "median absolute difference of the log residual log(measured/predicted) between consecutive readings of one "
         "meter on one well (MPFM at most 48 h apart, well tests 14 days), as the mean absolute "
         "error of Gaussian noise of that scale; a slow meter drift is not included",
     }
