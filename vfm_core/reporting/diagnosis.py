@@ -245,6 +245,8 @@ def _per_well_drivers(res: pd.DataFrame, names: list[str]) -> Png:
             ax.axhline(0, color="k", lw=0.5)
             ax.set_ylim(-1.2 * lim, 1.2 * lim)
             ax.tick_params(labelsize=7)
+            if i == 0:
+                ax.set_title(name, fontsize=9)
             if i == len(wells) - 1:
                 _label(ax, name, UNITS.get(name, "-"))
             if j == 0:
