@@ -133,6 +133,11 @@ __all__ = [
 MATERIAL_MAPE_ABS = 0.25
 MATERIAL_MAPE_REL = 0.10
 MATERIAL_BIC = 10.0
+#: Near the noise floor a real effect has little error left to remove (real gas on a field
+#: whose refitted C_D absorbs most of Z): it is also material when it removes at least
+#: MATERIAL_SHARE of the error above the floor, and at least MATERIAL_MAPE_NEAR_FLOOR points.
+MATERIAL_SHARE = 1.0 / 3.0
+MATERIAL_MAPE_NEAR_FLOOR = 0.1
 #: the comparison protocol: fit once before the split, never update (100-year period)
 CANDIDATE_METHOD = "pbl:36500d"
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
@@ -201,7 +206,13 @@ class CandidateResult:
     @property
     def material_rule(self) -> dict[str, float]:
         """What makes a candidate material: MAPE drop (points, relative) and BIC drop."""
-        return {"mape_abs": MATERIAL_MAPE_ABS, "mape_rel": MATERIAL_MAPE_REL, "bic": MATERIAL_BIC}
+        return {
+            "mape_abs": MATERIAL_MAPE_ABS,
+            "mape_rel": MATERIAL_MAPE_REL,
+            "bic": MATERIAL_BIC,
+            "near_floor": MATERIAL_MAPE_NEAR_FLOOR,
+            "share": MATERIAL_SHARE,
+        }
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -315,7 +326,13 @@ class Diagnosis:
     @property
     def material_rule(self) -> dict[str, float]:
         """What makes a candidate material: MAPE drop (points, relative) and BIC drop."""
-        return {"mape_abs": MATERIAL_MAPE_ABS, "mape_rel": MATERIAL_MAPE_REL, "bic": MATERIAL_BIC}
+        return {
+            "mape_abs": MATERIAL_MAPE_ABS,
+            "mape_rel": MATERIAL_MAPE_REL,
+            "bic": MATERIAL_BIC,
+            "near_floor": MATERIAL_MAPE_NEAR_FLOOR,
+            "share": MATERIAL_SHARE,
+        }
 
     def residuals_of(self, run: RunResult, base: pd.DataFrame | None = None) -> pd.DataFrame:
         """The residual frame of another run on the same scored rows (``base``: the frame
@@ -689,6 +706,21 @@ def _parameter_summary(
     return out, meaning, k, _bound_warnings(model, ready)
 
 
+def _is_material(
+    delta_mape: float, base_mape: float, delta_bic: float, delta_all: float, share: float
+) -> bool:
+    """The BIC falls by more than :data:`MATERIAL_BIC` on the reference and over every
+    measurement, and the MAPE by at least max(:data:`MATERIAL_MAPE_ABS` points,
+    :data:`MATERIAL_MAPE_REL` of the baseline), or, near the noise floor, by at least
+    :data:`MATERIAL_MAPE_NEAR_FLOOR` points that are :data:`MATERIAL_SHARE` of the error above
+    the floor (``share``; nan without a floor)."""
+    if not (delta_bic < -MATERIAL_BIC and delta_all < -MATERIAL_BIC):
+        return False
+    if delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape):
+        return True
+    return bool(delta_mape <= -MATERIAL_MAPE_NEAR_FLOOR and share >= MATERIAL_SHARE)
+
+
 def _score(
     name: str,
     run: RunResult,
@@ -712,11 +744,7 @@ def _score(
     delta_all = bic(r, k, p["source"].to_numpy()) - bic(r0, 0, bp["source"].to_numpy())
     delta_mape = m - base_mape
     delta_bic = b - b0 if on == on0 else delta_all
-    material = bool(
-        delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
-        and delta_bic < -MATERIAL_BIC
-        and delta_all < -MATERIAL_BIC
-    )
+    material = _is_material(delta_mape, base_mape, delta_bic, delta_all, float("nan"))
     driver = _EFFECT_DRIVER.get(name) or ("choke" if name.startswith("valve") else None)
     return CandidateResult(
         name,
@@ -1041,6 +1069,22 @@ def run_diagnosis(
         for c in offered
     ]
     results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+    # the floor, on the best fit (model error only adds to the differences it is taken from)
+    fits = [comp_res]
+    best_fit = min((c for c in results if c.run is not None), key=lambda c: c.mape, default=None)
+    if best_fit is not None and best_fit.mape < comp_mape:
+        assert best_fit.run is not None
+        fits.append(_residuals_like(comp_res, best_fit.run))
+    floors = [stats.noise_floor(f) for f in fits]
+    floor = min(floors, key=lambda f: math.inf if f["mape"] is None else f["mape"])
+    floor["on"] = (
+        "the comparison baseline"
+        if floor is floors[0] or best_fit is None
+        else f"{model}+{best_fit.effect}"
+    )
+    for c in results:
+        _judge(c, comp_mape, floor.get("mape"))
+    results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
     # variants of the best material candidate: other forms of the same physics
     best = next((c for c in results if c.material), None)
     if best is not None and best.effect in VARIANTS:
@@ -1058,6 +1102,7 @@ def run_diagnosis(
             r_ = run(cls.name, [cls], cand_method, cand_train)
             cand = _score(cls.name, r_, [cls], comp_mape, comp, train_batch(r_))
             cand.variant_of = best.effect
+            _judge(cand, comp_mape, floor.get("mape"))
             results.append(cand)
         results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
 
@@ -1114,23 +1159,9 @@ def run_diagnosis(
             train_batch,
             bar,
         )
+    if suggestion is not None:
+        _judge(suggestion.result, comp_mape, floor.get("mape"))
     noise_test["confirmed"] = None if suggestion is None else suggestion.result.material
-
-    # the floor, on the best fit of the comparison (model error adds to the differences)
-    fits = [comp_res]
-    best_fit = min(
-        [c for c in [*results, *([suggestion.result] if suggestion else [])] if c.run is not None],
-        key=lambda c: c.mape,
-        default=None,
-    )
-    if best_fit is not None and best_fit.mape < comp_mape:
-        assert best_fit.run is not None
-        fits.append(_residuals_like(comp_res, best_fit.run))
-    floors = [stats.noise_floor(f) for f in fits]
-    floor = min(floors, key=lambda f: math.inf if f["mape"] is None else f["mape"])
-    floor["on"] = "the comparison baseline" if floor is floors[0] else f"{model}+{best_fit.effect}"  # type: ignore[union-attr]
-    for c in [*results, *([suggestion.result] if suggestion else [])]:
-        c.share_above_floor = _share(comp_mape, c.mape, floor.get("mape"))
 
     extended = None
     if ext_classes:
@@ -1215,6 +1246,14 @@ def _residuals_like(res: pd.DataFrame, run: RunResult) -> pd.DataFrame:
     out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
     out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
     return out
+
+
+def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
+    """Set a candidate's share of the error above the floor, and whether it is material."""
+    c.share_above_floor = _share(base_mape, c.mape, floor)
+    c.material = _is_material(
+        c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, c.share_above_floor
+    )
 
 
 def _share(base: float, with_: float, floor: float | None) -> float:

@@ -352,6 +352,8 @@ def build_report(diag: Diagnosis, path: Path) -> Path:
                 "mape_abs": diag.material_rule["mape_abs"],
                 "mape_rel_pct": 100 * diag.material_rule["mape_rel"],
                 "bic": diag.material_rule["bic"],
+                "near_floor": diag.material_rule.get("near_floor", 0.1),
+                "share_pct": 100 * diag.material_rule.get("share", 1 / 3),
             },
             "candidates": diag.candidates,
             "parameters": _parameter_rows(diag),
