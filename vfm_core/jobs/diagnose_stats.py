@@ -11,8 +11,10 @@ throughput, depleting pressures, rising water cut. Ranking variables on the raw 
 then names whichever of them follows the drift best (the reason ``vfm diagnose`` once
 advised an effect of ``throughput_years`` on Volve, where wear is the worst candidate).
 So the residual is first *detrended*: a straight line in time is removed per well and
-meter (source), and a variable is scored on what it explains of the rest. Its score is the
-out-of-sample R^2 of a binned-mean smoother of the variable: the scored period is cut into
+meter (source), and a variable is scored on what it explains of the rest, as a function of
+its own deviation from its per-well straight line (the Frisch-Waugh-Lovell way of
+controlling for a confounder: both sides lose what the trends explain; the time of year is
+taken as it is). Its score is the out-of-sample R^2 of a binned-mean smoother of the variable: the scored period is cut into
 consecutive time blocks, the smoother is fitted on all blocks but one and scored on the
 held-out block, in turn. ``raw_score`` is the same on the residual before detrending.
 
@@ -132,10 +134,14 @@ def _groups(res: pd.DataFrame) -> np.ndarray:
     return pd.factorize(keys.to_numpy())[0]
 
 
-def detrend(res: pd.DataFrame) -> np.ndarray:
-    """The clipped residual minus a straight line in time fitted per well and source
-    (a mean where fewer than 3 rows or no time span)."""
-    r = np.clip(res["r"].to_numpy(dtype=float), -CLIP, CLIP)
+def detrend(res: pd.DataFrame, values: np.ndarray | None = None) -> np.ndarray:
+    """The clipped residual (or ``values``) minus a straight line in time fitted per well and
+    source (a mean where fewer than 3 rows or no time span)."""
+    r = (
+        np.clip(res["r"].to_numpy(dtype=float), -CLIP, CLIP)
+        if values is None
+        else np.asarray(values, dtype=float)
+    )
     t = driver_values(res, "time")
     g = _groups(res)
     n = np.bincount(g).astype(float)
@@ -152,7 +158,9 @@ class _Folds:
     """Held-out time blocks and each variable's bins per block, fixed once so that scoring
     another residual vector (a shifted one) costs a few ``bincount`` calls."""
 
-    def __init__(self, res: pd.DataFrame, names: Sequence[str], blocks: int, bins: int) -> None:
+    def __init__(
+        self, res: pd.DataFrame, names: Sequence[str], blocks: int, bins: int, partial: bool
+    ) -> None:
         order = np.argsort(res["time"].to_numpy(), kind="stable")
         block = np.empty(len(res), dtype=int)
         block[order] = np.arange(len(res)) * blocks // len(res)
@@ -160,6 +168,10 @@ class _Folds:
         self.codes: dict[str, list[tuple[np.ndarray, np.ndarray, int]]] = {}
         for name in names:
             x = driver_values(res, name)
+            if partial and name not in CATEGORICAL and name not in ("time", "day_of_year"):
+                # Frisch-Waugh-Lovell: the variable's own per-well trend goes too, so that what
+                # is binned is the part of x that the detrended residual can depend on
+                x = detrend(res, x.astype(float))
             per_fold = []
             for test in self.tests:
                 train = ~test
@@ -274,7 +286,8 @@ def rank_drivers(
             }
             for v in variables
         ]
-    folds = _Folds(res, variables, blocks, bins)
+    folds = _Folds(res, variables, blocks, bins, partial=True)
+    raw = _Folds(res, variables, blocks, bins, partial=False)
     r_raw = np.clip(res["r"].to_numpy(dtype=float), -CLIP, CLIP)
     r_d = detrend(res)
     out: list[dict[str, Any]] = []
@@ -283,7 +296,7 @@ def rank_drivers(
             {
                 "name": name,
                 "score": folds.score(name, r_d),
-                "raw_score": folds.score(name, r_raw),
+                "raw_score": raw.score(name, r_raw),
                 "unit": UNITS.get(name, "category"),
                 "role": "driver" if name in ELIGIBLE_DRIVERS else "confounder",
                 "p_value": None,
