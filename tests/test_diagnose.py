@@ -1,33 +1,53 @@
-"""Diagnosis on fields with a known hidden effect: the right effect ranks first, nothing is
-found where nothing is hidden, and an effect outside the library is named by its driver.
+"""Diagnosis on fields with a known hidden effect: one verdict, the right one.
 
-Protocol used in every scenario (the same for baseline and candidates, to keep the file
-under a few minutes on two cores): 3 wells over 3 years from 2017, split 2019-01-01, method
-``pbl:3650d`` (fit once on the data before the split, then predict the two scored years
-without refitting; a held-out-time-blocks protocol).
+* ``effect`` with the right library effect (erosion, valve families, MPFM bias, slip), on
+  the project's simulator with other seeds, sizes and strengths too, and the effect halves
+  the error above the noise floor;
+* ``noise`` on clean fields, with no false discovery;
+* ``driver`` with the right variable on hand-made fields whose rates carry an effect
+  outside the library (a temperature-dependent discharge coefficient; a dependence on the
+  separator pressure p_down), and a suggested correction that cuts the error by at least a
+  fifth and recovers the coefficient;
+* the service's store as a data source, through the ``vfm.sources`` entry point.
+
+Protocol in every scenario (kept small for the test suite's budget): 3 wells over 3 years
+from 2017, split 2019-01-01, the online run with ``pbl:3650d`` (fit once: fast); the
+comparisons use the default protocol (fit once before the split, to convergence).
 
 "Halves the error" is measured above the noise floor: the MPFM's white noise (2-5 %) and
 its ordinary slow drift are in every measurement, so no model can go below the MAPE of
-the true rate (times the meter's own drift factor) against the measurements. The test
-asserts extended - floor <= 0.5 (baseline - floor), with the floor taken from the
-simulator's truth.
+the true rate (times the meter's own drift factor) against the measurements. The tests
+take that floor from the simulator's truth; the diagnosis estimates its own from the data
+(checked against the truth's in :func:`test_noise_floor_estimate_is_close_to_the_truth`).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
+import importlib.util
 import json
+import math
 import sys
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
-from vfm_core.data import target_mask
+from vfm_core.data import make_batch, target_mask
+from vfm_core.effects import EFFECTS, Effect, resolve_effect
+from vfm_core.errors import ConfigError
+from vfm_core.jobs import diagnose as diagnose_mod
 from vfm_core.jobs.diagnose import (
     Diagnosis,
+    _bound_warnings,
+    _laplace_sd,
+    _offer_reason,
     bic,
     format_summary,
     rank_drivers,
@@ -35,6 +55,7 @@ from vfm_core.jobs.diagnose import (
     run_diagnosis,
     write_diagnosis,
 )
+from vfm_core.jobs.diagnose_stats import detrend, noise_floor
 from vfm_core.jobs.study import mape
 from vfm_core.simulate import SimulatedField, simulate_field
 
@@ -44,42 +65,82 @@ METHOD = "pbl:3650d"
 
 
 @cache
-def _field(hidden: str) -> SimulatedField:
+def _field(hidden: str, seed: int = 1, wells: int = 3) -> SimulatedField:
     return simulate_field(
-        wells=3, years=3.0, seed=1, start="2017-01-01", hidden=[] if hidden == "none" else [hidden]
+        wells=wells,
+        years=3.0,
+        seed=seed,
+        start="2017-01-01",
+        hidden=[] if hidden == "none" else [hidden],
     )
 
 
-def _floor(field: SimulatedField, frame: pd.DataFrame) -> float:
+def _floor_of(truth_rate: pd.Series, frame: pd.DataFrame, field: SimulatedField) -> float:
     scored = target_mask(frame, "all") & (frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).to_numpy()
-    truth = field.truth_samples
-    return mape(
-        (truth["q_true"] * truth["mpfm_factor"].where(frame["source"] == "mpfm", 1.0))[scored],
-        frame["q_total"][scored],
-    )
+    meter = field.truth_samples["mpfm_factor"].where(frame["source"] == "mpfm", 1.0)
+    return mape((truth_rate * meter)[scored], frame["q_total"][scored])
+
+
+def _floor(field: SimulatedField) -> float:
+    return _floor_of(field.truth_samples["q_true"], field.observations, field)
+
+
+PROGRESS: dict[tuple[str, int, int], list[tuple[float, str]]] = {}
 
 
 @cache
-def _diagnose(hidden: str) -> Diagnosis:
-    return run_diagnosis(_field(hidden).observations, "mm", method=METHOD, split=SPLIT)
+def _diagnose(hidden: str, seed: int = 1, wells: int = 3) -> Diagnosis:
+    events: list[tuple[float, str]] = []
+    PROGRESS[(hidden, seed, wells)] = events
+    return run_diagnosis(
+        _field(hidden, seed, wells).observations,
+        "mm",
+        method=METHOD,
+        split=SPLIT,
+        progress=lambda f, text: events.append((f, text)),
+    )
 
 
-def _custom_frame() -> pd.DataFrame:
-    # Not in the library: the measured rate depends on the upstream temperature,
-    # 1.5 %/K about 60 degC (e.g. a temperature-sensitive viscosity or meter effect).
-    frame = _field("none").observations.copy()
-    frame["q_total"] = frame["q_total"] * np.exp(0.015 * (frame["t_up"] - 60.0))
-    return frame
+# --- hand-made fields: effects outside the library -------------------------------------------
+def _temperature(frame: pd.DataFrame) -> np.ndarray:
+    """A temperature-dependent discharge coefficient: C_D times 1 + 0.25 (t_up - 60 degC)/10 K."""
+    return 1.0 + 0.25 * (frame["t_up"].to_numpy() - 60.0) / 10.0
+
+
+def _separator(frame: pd.DataFrame) -> np.ndarray:
+    """The rate rises 15 % per 10 bar of separator (downstream) pressure above 25 bar."""
+    return 1.0 + 0.15 * (frame["p_down"].to_numpy() - 25.0) / 10.0
+
+
+#: name: (the driver, the rate factor of a frame)
+HANDMADE: dict[str, tuple[str, Callable[[pd.DataFrame], np.ndarray]]] = {
+    "temperature": ("t_up", _temperature),
+    "separator": ("p_down", _separator),
+}
+
+
+@cache
+def _handmade(name: str) -> tuple[pd.DataFrame, float]:
+    """The clean field's rates times the factor, and the noise floor of the truth."""
+    field = _field("none")
+    frame = field.observations.copy()
+    factor = HANDMADE[name][1](frame)
+    frame["q_total"] = frame["q_total"] * factor
+    return frame, _floor_of(field.truth_samples["q_true"] * factor, frame, field)
+
+
+@cache
+def _diagnose_handmade(name: str) -> Diagnosis:
+    return run_diagnosis(_handmade(name)[0], "mm", method=METHOD, split=SPLIT)
 
 
 # --- building blocks with known answers --------------------------------------------------------
-def test_rank_drivers_finds_the_variable_out_of_sample() -> None:
-    rng = np.random.default_rng(0)
-    n = 3000
+def _synthetic_residuals(n: int = 3000, wells: int = 2, seed: int = 0) -> pd.DataFrame:
+    rng = np.random.default_rng(seed)
     res = pd.DataFrame(
         {
             "time": pd.date_range("2020-01-01", periods=n, freq="6h", tz="UTC"),
-            "well": rng.choice(["A", "B"], n),
+            "well": rng.choice([f"W{i}" for i in range(wells)], n),
             "source": "mpfm",
             "flow_regime": "critical",
         }
@@ -93,191 +154,103 @@ def test_rank_drivers_finds_the_variable_out_of_sample() -> None:
         "eta_gas",
         "eta_oil",
         "throughput_years",
+        "water_cut",
     ):
         res[col] = rng.uniform(0, 1, n)
-    res["water_cut"] = rng.uniform(0, 1, n)
-    res["r"] = 0.05 * np.sin(6 * res["water_cut"]) + rng.normal(0, 0.02, n)
-    drivers = rank_drivers(res)
+    return res
+
+
+def test_rank_drivers_finds_the_variable_out_of_sample() -> None:
+    res = _synthetic_residuals()
+    rng = np.random.default_rng(1)
+    res["r"] = 0.05 * np.sin(6 * res["water_cut"]) + rng.normal(0, 0.02, len(res))
+    drivers = rank_drivers(res, shifts=49)
     assert drivers[0]["name"] == "water_cut" and drivers[0]["score"] > 0.5
+    assert drivers[0]["p_value"] == pytest.approx(1 / 50)  # beats every shift
     # every other variable explains nothing out of sample (and may score below 0)
     assert all(d["score"] < 0.01 for d in drivers[1:])
 
 
+def test_a_variable_that_only_moves_with_time_is_not_a_driver() -> None:
+    """Each well's meter drifts linearly and a throughput-like variable grows with time in
+    each well: on the raw residual it 'explains' much, beyond the per-well trends nothing,
+    and the chance test does not call it (the mistake the issue saw on Volve)."""
+    res = _synthetic_residuals(wells=3)
+    rng = np.random.default_rng(2)
+    years = (res["time"] - res["time"].iloc[0]).dt.total_seconds() / 3.15e7
+    slope = res["well"].map({"W0": 0.03, "W1": -0.02, "W2": 0.05})
+    offset = res["well"].map({"W0": 0.0, "W1": 0.02, "W2": -0.01})
+    res["throughput_years"] = years * res["well"].map({"W0": 1.0, "W1": 0.7, "W2": 1.3})
+    res["r"] = offset + slope * years + rng.normal(0, 0.02, len(res))
+    drivers = {d["name"]: d for d in rank_drivers(res, shifts=49)}
+    tp = drivers["throughput_years"]
+    assert tp["raw_score"] > 0.2  # the confounded ranking
+    assert tp["score"] < 0.01 and tp["p_value"] > 0.05  # beyond the per-well trends
+    assert tp["role"] == "driver" and drivers["well"]["role"] == "confounder"
+
+
+def test_chance_test_on_autocorrelated_residuals_and_drivers() -> None:
+    """Smooth random walks in the residual and in every variable, unrelated: a plain
+    permutation would call some variable a driver; circular shifts keep the autocorrelation
+    and do not (five independent draws, fixed in advance)."""
+    for seed in range(5):
+        res = _synthetic_residuals(n=2000, wells=4, seed=seed)
+        rng = np.random.default_rng(100 + seed)
+        for col in ("choke", "p_up", "p_down", "t_up", "water_cut", "eta_gas"):
+            res[col] = np.cumsum(rng.normal(0, 1, len(res)))
+        res["r"] = 0.002 * np.cumsum(rng.normal(0, 1, len(res))) + rng.normal(0, 0.02, len(res))
+        drivers = rank_drivers(res, shifts=99, seed=seed)
+        best = next(d for d in drivers if d["role"] == "driver")
+        assert best["p_value"] >= 0.01, (seed, best)
+
+
+def test_the_season_is_a_driver_across_wells_and_years() -> None:
+    """A yearly wave of the same phase in eight wells over two years: day_of_year explains
+    it out of sample and beats the circular shifts (which move each well's wave by its own
+    lag, never a whole number of years)."""
+    n = 8 * 2 * 365
+    rng = np.random.default_rng(3)
+    res = pd.DataFrame(
+        {
+            "time": pd.date_range("2019-01-01", periods=n, freq="90min", tz="UTC"),
+            "well": rng.choice([f"W{i}" for i in range(8)], n),
+            "source": "mpfm",
+        }
+    )
+    res["time"] = pd.to_datetime("2019-01-01", utc=True) + (res["time"] - res["time"].iloc[0]) * 8
+    day = res["time"].dt.day_of_year.to_numpy()
+    res["r"] = 0.03 * np.sin(2 * np.pi * day / 365.25) + rng.normal(0, 0.02, n)
+    res["t_up"] = rng.uniform(40, 80, n)
+    drivers = rank_drivers(res, ["time", "day_of_year", "t_up", "well"], shifts=99)
+    assert drivers[0]["name"] == "day_of_year" and drivers[0]["score"] > 0.3
+    assert drivers[0]["p_value"] < 0.02
+
+
+def test_detrend_removes_a_line_per_well_and_source() -> None:
+    res = _synthetic_residuals(wells=2)
+    years = (res["time"] - res["time"].iloc[0]).dt.total_seconds() / 3.15e7
+    res["r"] = np.where(res["well"] == "W0", 0.01 + 0.02 * years, -0.03 * years)
+    assert np.abs(detrend(res)).max() < 1e-9
+
+
+def test_noise_floor_of_white_noise_by_hand() -> None:
+    """White relative noise of sd 3 % on top of a slow per-well drift: the floor is the mean
+    absolute error of the noise, 3 % x sqrt(2/pi) = 2.39 %, within the estimator's spread."""
+    rng = np.random.default_rng(4)
+    res = _synthetic_residuals(n=6000, wells=3)
+    days = (res["time"] - res["time"].iloc[0]).dt.total_seconds() / 86400
+    res["r"] = 0.0002 * days * res["well"].map({"W0": 1, "W1": -1, "W2": 2}) + rng.normal(
+        0, 0.03, len(res)
+    )
+    floor = noise_floor(res)
+    assert floor["mape"] == pytest.approx(3.0 * math.sqrt(2 / math.pi), rel=0.05)
+    assert floor["by_source"]["mpfm"]["pairs"] > 5000
+
+
 def test_bic_by_hand() -> None:
     r = np.array([0.1, -0.1, 0.1, -0.1])
-    # n log(mean r^2) + k log n = 4 log(0.01) + 2 log 4; per source: two groups of two
+    # n log(mean r^2) + k log n = 4 log(0.01) + 2 log 4
     assert bic(r, 2) == pytest.approx(4 * np.log(0.01) + 2 * np.log(4))
-
-
-# --- hidden effects ------------------------------------------------------------------------------
-@pytest.mark.parametrize(
-    ("hidden", "effect"),
-    [
-        # rate 0.1 (default 0.04): the default wear is within the MPFM noise on 3 wells x 2 years
-        ("erosion:rate=0.1", "erosion"),
-        # the hidden family (equal percentage) is not the candidate's: the learned curve covers it
-        ("valve", "valve"),
-        ("valve:family=quick_opening", "valve"),
-        ("mpfm_bias", "mpfm_bias"),
-        ("slip", "slip"),
-    ],
-)
-def test_hidden_effect_ranks_first_and_halves_the_error(hidden: str, effect: str) -> None:
-    diag = _diagnose(hidden)
-    field = _field(hidden)
-    floor = _floor(field, field.observations)
-    best = diag.candidates[0]
-    print(format_summary(diag), f"floor {floor:.2f}")
-    assert best.effect == effect, format_summary(diag)
-    assert best.mape - floor <= 0.5 * (diag.baseline_mape - floor), format_summary(diag)
-
-
-def test_erosion_with_a_step_at_a_known_date() -> None:
-    """A sand event steps C_D up by 15 % on top of the wear; the operator knows its date.
-
-    ``erosion:step_at=<date>`` recovers the step and the wear rate (the simulator's truth:
-    0.15 and 0.05 per year-equivalent) and leaves a fraction of plain erosion's error."""
-    field = simulate_field(
-        wells=1, years=3.0, seed=1, start="2017-01-01", hidden=["erosion:rate=0.05:step=0.15"]
-    )
-    event = next(iter(field.truth["wells"].values()))["sand_event"]
-    split = (pd.Timestamp(event) + pd.Timedelta(days=150)).strftime("%Y-%m-%d")
-    diag = run_diagnosis(
-        field.observations, "mm", method=METHOD, split=split, effects=[f"erosion:step_at={event}"]
-    )
-    ext = diag.extended
-    assert ext is not None, format_summary(diag)
-    plain = next(c for c in diag.candidates if c.effect == "erosion")
-    assert ext.parameters["erosion.step"]["value"] == pytest.approx(0.15, abs=0.03)
-    assert ext.parameters["erosion.rate"]["value"] == pytest.approx(0.05, abs=0.015)
-    assert ext.mape < 0.5 * plain.mape < 0.5 * diag.baseline_mape, format_summary(diag)
-
-
-@pytest.mark.parametrize("effect", ["real_gas", "critical_ratio"])
-def test_effects_that_leave_no_trace_are_not_claimed(effect: str) -> None:
-    """A limit, stated plainly and checked: on this field, once mm refits C_D, A_max and its
-    constant p_cr, the hidden real-gas Z and Sachdeva's critical ratio leave almost nothing
-    behind (the baseline is within half a point of the noise floor; a constant p_cr
-    reproduces Sachdeva's ratio to about 0.02 % RMS), far below the MPFM's 2-5 % noise. No
-    diagnosis can rank what it cannot see; what it must not do is claim something else."""
-    diag = _diagnose(effect)
-    field = _field(effect)
-    floor = _floor(field, field.observations)
-    assert diag.baseline_mape - floor < 0.5, format_summary(diag)
-    assert not any(c.material for c in diag.candidates), format_summary(diag)
-    # the candidate itself stays physical: Papay's Z (strength 1) and Sachdeva's ratio (weight 1)
-    mine = next(c for c in diag.candidates if c.effect == effect)
-    value = next(iter(mine.parameters.values()))["value"]
-    assert 0.5 < value < 1.5, format_summary(diag)
-
-
-def test_nothing_hidden_no_false_discovery() -> None:
-    diag = _diagnose("none")
-    assert not any(c.material for c in diag.candidates), format_summary(diag)
-    assert "No candidate explains the residual" in diag.verdict
-    assert all(c.delta_mape > -0.25 for c in diag.candidates), format_summary(diag)
-
-
-def test_effect_outside_the_library_is_named_and_removed_by_a_user_effect(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    monkeypatch.syspath_prepend(str(EXAMPLES))
-    frame = _custom_frame()
-    diag = run_diagnosis(
-        frame, "mm", method=METHOD, split=SPLIT, effects=["my_effects:TemperatureScale"]
-    )
-    sys.modules.pop("my_effects", None)
-    summary = format_summary(diag)
-    assert not any(c.material for c in diag.candidates), summary
-    assert diag.drivers[0]["name"] == "t_up", summary
-    assert "depends mostly on t_up" in diag.verdict
-    ext = diag.extended
-    assert ext is not None and ext.material, summary
-    floor = _floor_custom(frame)
-    assert ext.mape - floor <= 0.5 * (diag.baseline_mape - floor), summary
-    assert ext.parameters["temperature_scale.k"]["value"] == pytest.approx(0.15, abs=0.05)
-
-
-def _floor_custom(frame: pd.DataFrame) -> float:
-    field = _field("none")
-    scored = target_mask(frame, "all") & (frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).to_numpy()
-    t = field.truth_samples
-    factor = t["mpfm_factor"].where(frame["source"] == "mpfm", 1.0) * np.exp(
-        0.015 * (frame["t_up"] - 60.0)
-    )
-    return mape((t["q_true"] * factor)[scored], frame["q_total"][scored])
-
-
-# --- outputs and command line ----------------------------------------------------------------------
-def test_outputs_follow_the_contract(tmp_path: Path) -> None:
-    diag = _diagnose("erosion:rate=0.1")
-    written = write_diagnosis(diag, tmp_path / "out")
-    assert sorted(p.name for p in written) == ["diagnosis.json", "report.html"]
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["diagnosis.json", "report.html"]
-    data = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
-    assert data["model"] == "mm" and data["baseline"]["mape"] == pytest.approx(diag.baseline_mape)
-    scores = [d["score"] for d in data["drivers"]]
-    assert scores == sorted(scores, reverse=True)
-    bics = [c["delta_bic"] for c in data["candidates"]]
-    assert bics == sorted(bics)
-    for c in data["candidates"]:
-        assert {"effect", "mape", "delta_mape", "delta_bic", "parameters"} <= set(c)
-    assert "erosion.rate" in data["candidates"][0]["parameters"]
-    html = (tmp_path / "out" / "report.html").read_text()
-    assert "data:image/png;base64," in html and 'src="http' not in html
-    assert "Verdict" in html
-
-
-def test_command_line_parser() -> None:
-    parser = argparse.ArgumentParser(prog="vfm")
-    register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(
-        [
-            "diagnose",
-            "f.parquet",
-            "--out",
-            "d",
-            "--effects",
-            "erosion,real_gas",
-            "--targets",
-            "well_test",
-        ]
-    )
-    assert args.model == "mm" and args.method == "ol" and args.targets == "well_test"
-    assert args.effects == ["erosion,real_gas"] and callable(args.handler)
-
-
-def test_command_line_end_to_end(tmp_path: Path) -> None:
-    from vfm_core.simulate import write_field
-
-    data = tmp_path / "f.parquet"
-    write_field(simulate_field(wells=2, years=1.5, seed=2, start="2018-01-01"), data)
-    parser = argparse.ArgumentParser(prog="vfm")
-    register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(
-        [
-            "diagnose",
-            str(data),
-            "--out",
-            str(tmp_path / "d"),
-            "--quiet",
-            "--method",
-            "pbl:182d",
-            "--candidate-method",
-            METHOD,
-            "--candidates",
-            "erosion,mpfm_bias",
-            "--effects",
-            "erosion",
-        ]
-    )
-    assert args.handler(args) == 0
-    data_json = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
-    assert sorted(c["effect"] for c in data_json["candidates"]) == ["erosion", "mpfm_bias"]
-    assert data_json["extended"]["effect"] == "erosion"
-    assert data_json["method"] == "pbl:182d" and data_json["baseline"]["candidate_method"] == METHOD
-    html = (tmp_path / "d" / "report.html").read_text()
-    assert "Before and after" in html and "MAPE after" in html
 
 
 def test_bic_per_source_by_hand() -> None:
@@ -304,3 +277,558 @@ def test_reference_bic_is_taken_on_the_well_tests_when_there_are_enough() -> Non
     assert on == "all measurements"
     n = len(p) - 1
     assert value == pytest.approx((n_wt - 1) * np.log(0.01**2) + 100 * np.log(0.1**2) + np.log(n))
+
+
+# --- the suggested correction as an effect --------------------------------------------------------
+def _inputs(**values: float) -> Any:
+    from vfm_core.effects import EffectInputs
+
+    t = {k: torch.tensor([[v]], dtype=torch.float64) for k, v in values.items()}
+    return EffectInputs(
+        u=t.get("u", torch.tensor([[0.5]], dtype=torch.float64)),
+        p_up=t.get("p_up", torch.tensor([[1e7]], dtype=torch.float64)),
+        p_down=t.get("p_down", torch.tensor([[3e6]], dtype=torch.float64)),
+        t_up=t.get("t_up", torch.tensor([[333.15]], dtype=torch.float64)),
+        eta_gas=torch.tensor([[0.1]], dtype=torch.float64),
+        eta_oil=torch.tensor([[0.6]], dtype=torch.float64),
+        theta={},
+        well_test=torch.tensor([[False]]),
+        u_ref=torch.tensor([[0.5]], dtype=torch.float64),
+        time_ns=torch.tensor([[pd.Timestamp("2021-04-01", tz="UTC").value]]),
+    )
+
+
+def test_suggest_effect_factors_by_hand() -> None:
+    k = {"k": torch.tensor([[0.1]], dtype=torch.float64)}
+    lin = resolve_effect("suggest:driver=t_up:x0=60:scale=10")()
+    # 70 degC = 343.15 K: one step of 10 K above 60 degC
+    assert float(lin.output_factor(_inputs(t_up=343.15), k)) == pytest.approx(1.1)
+    log = resolve_effect("suggest:driver=p_down:form=log:x0=30:scale=10")()
+    assert float(log.output_factor(_inputs(p_down=5e6), k)) == pytest.approx(math.exp(0.2))
+    fixed = resolve_effect("suggest:driver=t_up:x0=60:scale=10:k=0.068")
+    assert fixed.parameters == {}  # a shared, fixed coefficient: nothing learned
+    assert float(fixed().output_factor(_inputs(t_up=353.15), {})) == pytest.approx(1.136)
+    season = resolve_effect("suggest:driver=day_of_year")()
+    phase = 2 * math.pi * (pd.Timestamp("2021-04-01").day_of_year - 1 + 0.24) / 365.2425
+    ks = {"k_sin": torch.tensor([[0.02]]), "k_cos": torch.tensor([[0.0]])}
+    assert float(season.output_factor(_inputs(), ks)) == pytest.approx(
+        1 + 0.02 * math.sin(phase), abs=2e-4
+    )
+    assert "suggest" in EFFECTS
+
+
+def test_suggest_effect_errors_say_what_to_write() -> None:
+    with pytest.raises(ConfigError, match="needs a driver"):
+        resolve_effect("suggest")()
+    with pytest.raises(ConfigError, match="not one of"):
+        resolve_effect("suggest:driver=colour")
+    with pytest.raises(ConfigError, match="form=linear or form=log"):
+        resolve_effect("suggest:driver=t_up:form=season")
+    with pytest.raises(ConfigError, match="not a number"):
+        resolve_effect("suggest:driver=t_up:x0=warm")
+
+
+def test_suggest_effect_runs_in_the_streaming_learner() -> None:
+    """The service's learner takes the suggestion as it is (six inputs, standard features)."""
+    from vfm_core.effects import effect_spec
+    from vfm_core.streaming import WellLearner
+
+    for spec in (
+        "suggest:driver=t_up:x0=60:scale=10:k=0.068",
+        "suggest:driver=throughput_years",
+        "suggest:driver=day_of_year",
+    ):
+        learner = WellLearner("W01", "mm", "ol", effects=[spec])
+        assert learner.effects == [effect_spec(resolve_effect(spec))]
+
+
+# --- uncertainty and bounds --------------------------------------------------------------------
+def test_laplace_sd_agrees_with_the_spread_of_repeated_fits() -> None:
+    """One well, rates times 1 + k (t_up - 60)/10 with k = 0.2 and 2 % white noise: the
+    Laplace sd of k is the spread of k over eight independent noise draws, within a factor 2."""
+    from vfm_core.learning import DEFAULT_TRAIN, parse_method
+    from vfm_core.models import make_model
+
+    base = _field("none").observations
+    base = base[(base["well"] == base["well"].iloc[0]) & base["q_total"].notna()]
+    base = base[base["time"] < pd.Timestamp("2018-01-01", tz="UTC")].reset_index(drop=True)
+    spec = "suggest:driver=t_up:x0=60:scale=10"
+    settings = DEFAULT_TRAIN["mm"].__class__(lr=3e-2, early_stopping=False, max_iter=300)
+    ks, sds = [], []
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        frame = base.copy()
+        truth = frame["q_total"] * (1 + 0.2 * (frame["t_up"] - 60) / 10)
+        frame["q_total"] = truth * (1 + rng.normal(0, 0.02, len(frame)))
+        model = make_model("mm", [str(frame["well"].iloc[0])], effects=[spec])
+        batch = make_batch(frame, model.wells)
+        parse_method("pbl:3650d").bind(model, train=settings).fit(batch)
+        ks.append(float(model.physical_parameters()["suggest.k"][0]))
+        sds.append(float(_laplace_sd(model, batch)["suggest.k"][0]))
+    spread = float(np.std(ks, ddof=1))
+    assert 0.5 < float(np.median(sds)) / spread < 2.0, (ks, sds)
+
+
+def test_bound_warnings_name_the_parameter_and_the_wells() -> None:
+    from vfm_core.models import make_model
+
+    model = make_model("mm", ["A", "B"], effects=["erosion"])
+    model.ready[:] = True
+    block = model.effect_params["erosion"]
+    with torch.no_grad():
+        block.z[0, 0] = block.z_high[0]  # well A at the upper bound of the wear rate
+    warnings = _bound_warnings(model, model.ready.numpy())
+    assert len(warnings) == 1 and "erosion.rate" in warnings[0] and " A:" in warnings[0]
+    with torch.no_grad():
+        block.z[0, 0] = 0.0  # no wear: the prior mean, a legitimate answer, no warning
+    assert _bound_warnings(model, model.ready.numpy()) == []
+
+
+def test_candidates_are_offered_only_where_the_data_inform_them() -> None:
+    frame = _field("none").observations
+    train = frame[frame["q_total"].notna() & (frame["time"] < pd.Timestamp(SPLIT, tz="UTC"))]
+    for name in ("erosion", "valve", "real_gas", "slip", "critical_ratio", "mpfm_bias"):
+        assert _offer_reason(resolve_effect(name), train) is None, name
+    no_tests = train[train["source"] == "mpfm"]
+    assert "well test" in (_offer_reason(resolve_effect("mpfm_bias"), no_tests) or "")
+    fixed_choke = train.assign(choke=0.5)
+    assert "choke hardly moves" in (_offer_reason(resolve_effect("valve"), fixed_choke) or "")
+    assert _offer_reason(resolve_effect("valve_sigmoid"), fixed_choke) is not None
+    dry = train.assign(eta_gas=0.0)
+    assert "no gas" in (_offer_reason(resolve_effect("real_gas"), dry) or "")
+
+
+# --- hidden effects ------------------------------------------------------------------------------
+LIBRARY_CASES = [
+    # (hidden, seed, wells, the effect's family): rate 0.1 (default 0.04): the default wear is
+    # within the MPFM noise on 3 wells x 2 years
+    ("erosion:rate=0.1", 1, 3, "erosion"),
+    ("erosion:rate=0.2", 3, 4, "erosion"),
+    # the learned valve curve, then the named families: the hidden family should win
+    ("valve", 1, 3, "valve"),
+    ("valve:family=quick_opening", 1, 3, "valve"),
+    ("valve:family=convex", 2, 3, "valve"),
+    ("mpfm_bias", 1, 3, "mpfm_bias"),
+    ("slip", 1, 3, "slip"),
+]
+
+
+@pytest.mark.parametrize(("hidden", "seed", "wells", "family"), LIBRARY_CASES)
+def test_hidden_library_effect_is_the_verdict_and_halves_the_error(
+    hidden: str, seed: int, wells: int, family: str
+) -> None:
+    diag = _diagnose(hidden, seed, wells)
+    floor = _floor(_field(hidden, seed, wells))
+    summary = format_summary(diag) + f"\ntruth floor {floor:.2f}"
+    print(summary)
+    assert diag.verdict_kind == "effect", summary
+    assert diag.verdict_effect is not None and diag.verdict_effect.startswith(family), summary
+    best = diag.with_effect
+    assert best is not None and best.effect == diag.verdict_effect
+    base = diag.candidate_baseline_mape
+    assert best.mape - floor <= 0.5 * (base - floor), summary
+    if hidden.startswith("valve:family=") or hidden == "valve":
+        want = hidden.partition("=")[2] or "equal_percentage"
+        assert diag.verdict_effect == f"valve_{want}", summary
+
+
+@pytest.mark.parametrize("effect", ["real_gas", "critical_ratio"])
+def test_effects_that_leave_no_trace_are_not_claimed(effect: str) -> None:
+    """A limit, stated plainly and checked: on this field, once mm refits C_D, A_max and its
+    constant p_cr, the hidden real-gas Z and Sachdeva's critical ratio leave almost nothing
+    behind (the baseline is within half a point of the noise floor; a constant p_cr
+    reproduces Sachdeva's ratio to about 0.02 % RMS), far below the MPFM's 2-5 % noise. No
+    diagnosis can rank what it cannot see; what it must not do is claim something else."""
+    diag = _diagnose(effect)
+    floor = _floor(_field(effect))
+    assert diag.candidate_baseline_mape - floor < 0.5, format_summary(diag)
+    assert not any(c.material for c in diag.candidates), format_summary(diag)
+    assert diag.verdict_kind == "noise", format_summary(diag)
+    # the candidate itself stays physical: Papay's Z (strength 1) and Sachdeva's ratio (weight 1)
+    mine = next(c for c in diag.candidates if c.effect == effect)
+    value = next(iter(mine.parameters.values()))["value"]
+    assert 0.3 < value < 1.5, format_summary(diag)
+
+
+@pytest.mark.parametrize(("seed", "wells"), [(1, 3), (4, 4)])
+def test_clean_field_is_noise_with_no_false_discovery(seed: int, wells: int) -> None:
+    diag = _diagnose("none", seed, wells)
+    summary = format_summary(diag)
+    assert diag.verdict_kind == "noise", summary
+    assert diag.verdict_effect is None and diag.verdict_driver is None
+    assert not any(c.material for c in diag.candidates), summary
+    assert all(c.delta_mape > -0.25 for c in diag.candidates), summary
+    assert "No candidate explains the residual" in diag.verdict
+    assert diag.noise_test["p_value"] >= 0.01 or diag.noise_test["confirmed"] is False, summary
+
+
+def test_noise_floor_estimate_is_close_to_the_truth() -> None:
+    """The floor the diagnosis estimates from consecutive readings (never from the truth)
+    lies within 15 % of the truth's, which also holds the meter's slow drift."""
+    diag = _diagnose("none")
+    truth = _floor(_field("none"))
+    assert diag.floor["mape"] == pytest.approx(truth, rel=0.15), (diag.floor, truth)
+
+
+@pytest.mark.parametrize("name", list(HANDMADE))
+def test_effect_outside_the_library_gets_a_driver_verdict_and_a_correction(name: str) -> None:
+    driver = HANDMADE[name][0]
+    frame, floor = _handmade(name)
+    diag = _diagnose_handmade(name)
+    summary = format_summary(diag) + f"\ntruth floor {floor:.2f}"
+    print(summary)
+    assert not any(c.material for c in diag.candidates), summary
+    assert diag.verdict_kind == "driver" and diag.verdict_driver == driver, summary
+    assert f"depends mostly on {driver}" in diag.verdict
+    s = diag.suggestion
+    assert s is not None and s.driver == driver and s.result.material, summary
+    base = diag.candidate_baseline_mape
+    assert s.mape <= 0.8 * base, summary  # cuts the error by at least a fifth
+    assert s.mape - floor <= 0.5 * (base - floor), summary
+    # the size of the effect: the factor's change between the driver's 10th and 90th
+    # percentiles, as the suggestion has it and as the truth has it (whatever the form)
+    x = frame[driver].to_numpy()
+    lo, hi = np.percentile(x, [10, 90])
+    ends = frame.iloc[[int(np.argmin(np.abs(x - lo))), int(np.argmin(np.abs(x - hi)))]]
+    true_change = math.log(HANDMADE[name][1](ends)[1] / HANDMADE[name][1](ends)[0])
+    effect = resolve_effect(s.per_well_spec)()  # the form, with the fitted (median) k
+    k = s.parameters["k"]
+    kk = {"k": torch.tensor([[k["value"]]], dtype=torch.float64)}
+    at = [
+        _inputs(t_up=float(row["t_up"]) + 273.15, p_down=float(row["p_down"]) * 1e5)
+        for _, row in ends.iterrows()
+    ]
+    fitted_change = math.log(
+        float(effect.output_factor(at[1], kk)) / float(effect.output_factor(at[0], kk))
+    )
+    assert fitted_change == pytest.approx(true_change, rel=0.3), (fitted_change, true_change)
+    assert k["sd"] is not None and 0 < k["sd"] < abs(k["value"])
+    # the JSON contract of the suggestion and its code as a starting point
+    data = json.loads(json.dumps(diagnose_mod._json_safe(diag.to_json())))
+    assert {"driver", "form", "parameters", "mape"} <= set(data["suggestion"])
+    assert data["suggestion"]["driver"] == driver and data["verdict"]["kind"] == "driver"
+    namespace: dict[str, Any] = {}
+    exec(compile(s.code, "<suggestion>", "exec"), namespace)  # noqa: S102 - our own snippet
+    classes = [v for v in namespace.values() if isinstance(v, type) and issubclass(v, Effect)]
+    user = [c for c in classes if c is not Effect]
+    assert len(user) == 1 and resolve_effect(user[0]).parameters["k"].mean == pytest.approx(
+        k["value"], rel=0.01
+    )
+
+
+def test_the_suggestion_applies_directly_in_evaluate() -> None:
+    """``--effects <the suggestion>`` in the study lowers the error as the diagnosis said."""
+    from vfm_core.effects import add_features
+    from vfm_core.jobs.study import run_prequential
+
+    frame, _ = _handmade("temperature")
+    s = _diagnose_handmade("temperature").suggestion
+    assert s is not None
+    base = run_prequential(frame, "mm", "pbl:3650d", split=SPLIT)
+    with_it = run_prequential(
+        add_features(frame, [s.spec]), "mm", "pbl:3650d", split=SPLIT, effects=[s.spec]
+    )
+    before = mape(base.predictions["predicted"], base.predictions["measured"])
+    after = mape(with_it.predictions["predicted"], with_it.predictions["measured"])
+    assert after < 0.85 * before, (before, after)
+
+
+def test_erosion_with_a_step_at_a_known_date() -> None:
+    """A sand event steps C_D up by 15 % on top of the wear; the operator knows its date.
+
+    ``erosion:step_at=<date>`` recovers the step and the wear rate (the simulator's truth:
+    0.15 and 0.05 per year-equivalent) and leaves a fraction of plain erosion's error."""
+    field = simulate_field(
+        wells=1, years=3.0, seed=1, start="2017-01-01", hidden=["erosion:rate=0.05:step=0.15"]
+    )
+    event = next(iter(field.truth["wells"].values()))["sand_event"]
+    split = (pd.Timestamp(event) + pd.Timedelta(days=150)).strftime("%Y-%m-%d")
+    diag = run_diagnosis(
+        field.observations,
+        "mm",
+        method=METHOD,
+        split=split,
+        effects=[f"erosion:step_at={event}"],
+        candidates=["erosion"],
+        shifts=0,
+    )
+    ext = diag.extended
+    assert ext is not None, format_summary(diag)
+    plain = next(c for c in diag.candidates if c.effect == "erosion")
+    assert ext.parameters["erosion.step"]["value"] == pytest.approx(0.15, abs=0.03)
+    assert ext.parameters["erosion.rate"]["value"] == pytest.approx(0.05, abs=0.015)
+    assert ext.parameters["erosion.step"]["sd"] < 0.03
+    assert ext.mape < 0.5 * plain.mape < 0.5 * diag.baseline_mape, format_summary(diag)
+
+
+def test_a_users_own_effect_removes_what_the_driver_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The way of examples/README.md: the verdict names t_up, the user's class removes it."""
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    frame, floor = _handmade("temperature")
+    diag = run_diagnosis(
+        frame,
+        "mm",
+        method=METHOD,
+        split=SPLIT,
+        candidates=["erosion"],
+        effects=["my_effects:TemperatureScale"],
+        suggest=False,
+    )
+    sys.modules.pop("my_effects", None)
+    ext = diag.extended
+    assert ext is not None and ext.material, format_summary(diag)
+    assert ext.mape - floor <= 0.5 * (diag.baseline_mape - floor), format_summary(diag)
+    assert ext.parameters["temperature_scale.k"]["value"] == pytest.approx(0.25, rel=0.2)
+
+
+# --- outputs and command line ----------------------------------------------------------------------
+def test_progress_is_reported_as_a_fraction_with_a_text() -> None:
+    _diagnose("erosion:rate=0.1", 1, 3)
+    events = PROGRESS[("erosion:rate=0.1", 1, 3)]
+    fractions = [f for f, _ in events]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert all(text for _, text in events) and len(events) >= 8
+    assert events[-1][1] == "verdict: effect"
+
+
+def test_outputs_follow_the_contract(tmp_path: Path) -> None:
+    diag = _diagnose("erosion:rate=0.1")
+    written = write_diagnosis(diag, tmp_path / "out")
+    assert sorted(p.name for p in written) == ["diagnosis.json", "report.html"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["diagnosis.json", "report.html"]
+    data = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
+    assert data["model"] == "mm" and data["baseline"]["mape"] == pytest.approx(diag.baseline_mape)
+    scores = [d["score"] for d in data["drivers"]]
+    assert scores == sorted(scores, reverse=True)
+    bics = [c["delta_bic"] for c in data["candidates"]]
+    assert bics == sorted(bics)
+    for c in data["candidates"]:
+        assert {"effect", "mape", "delta_mape", "delta_bic", "parameters", "warnings"} <= set(c)
+    rate = data["candidates"][0]["parameters"]["erosion.rate"]
+    assert rate["sd"] > 0 and set(rate["per_well_sd"]) == set(rate["per_well"])
+    v = data["verdict"]
+    assert v["kind"] == "effect" and v["effect"] == "erosion" and v["driver"] is None
+    assert v["text"] == diag.verdict
+    h = data["headline"]
+    assert h["baseline_mape"] == pytest.approx(diag.candidate_baseline_mape)
+    assert h["with"] == "erosion" and h["with_mape"] < h["baseline_mape"]
+    assert data["floor"]["mape"] > 0 and "consecutive readings" in data["floor"]["method"]
+    assert data["noise_test"]["shifts"] > 0 and data["suggestion"] is None
+    html = (tmp_path / "out" / "report.html").read_text()
+    assert "data:image/png;base64," in html and 'src="http' not in html
+    assert "Verdict" in html and "Top candidate: the residual without and with erosion" in html
+    assert "noise floor" in html and "Fitted parameters" in html
+
+
+def test_report_of_a_driver_verdict_shows_the_correction(tmp_path: Path) -> None:
+    diag = _diagnose_handmade("temperature")
+    write_diagnosis(diag, tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    s = diag.suggestion
+    assert s is not None
+    assert "Suggested correction: t_up" in html and s.spec in html
+    assert "class TUpCorrection(Effect)" in html  # the code snippet, escaped as text
+    # before/after, per-well drivers, residual against each variable, over time per well
+    assert html.count("data:image/png;base64,") == 4
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vfm")
+    register(parser.add_subparsers(dest="command"))
+    return parser
+
+
+def test_command_line_parser() -> None:
+    args = _parser().parse_args(
+        [
+            "diagnose",
+            "f.parquet",
+            "--out",
+            "d",
+            "--effects",
+            "erosion,real_gas",
+            "--targets",
+            "well_test",
+        ]
+    )
+    assert args.model == "mm" and args.method == "ol" and args.targets == "well_test"
+    assert args.effects == ["erosion,real_gas"] and callable(args.handler)
+    args = _parser().parse_args(["diagnose", "--store", "s.sqlite", "--well", "W1", "--out", "d"])
+    assert args.data is None and args.store == "s.sqlite" and args.well == "W1"
+    with pytest.raises(ConfigError, match="either an observation file"):
+        args.handler(args.__class__(**{**vars(args), "data": "f.parquet"}))
+
+
+def test_command_line_end_to_end(tmp_path: Path) -> None:
+    from vfm_core.simulate import write_field
+
+    data = tmp_path / "f.parquet"
+    write_field(simulate_field(wells=2, years=1.5, seed=2, start="2018-01-01"), data)
+    args = _parser().parse_args(
+        [
+            "diagnose",
+            str(data),
+            "--out",
+            str(tmp_path / "d"),
+            "--quiet",
+            "--method",
+            "pbl:182d",
+            "--candidate-method",
+            METHOD,
+            "--candidates",
+            "erosion,mpfm_bias",
+            "--effects",
+            "erosion",
+        ]
+    )
+    assert args.handler(args) == 0
+    data_json = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert sorted(c["effect"] for c in data_json["candidates"]) == ["erosion", "mpfm_bias"]
+    assert data_json["extended"]["effect"] == "erosion"
+    assert data_json["method"] == "pbl:182d" and data_json["baseline"]["candidate_method"] == METHOD
+    assert data_json["verdict"]["kind"] in ("effect", "driver", "noise")
+    html = (tmp_path / "d" / "report.html").read_text()
+    assert "Before and after" in html and "MAPE after" in html
+
+
+# --- the service's store as a source ---------------------------------------------------------------
+class _FakeEntryPoint:
+    def __init__(self, loader: Callable[..., pd.DataFrame]) -> None:
+        self.name, self.value, self._loader = "store", "fake.export:load_store", loader
+
+    def load(self) -> Callable[..., pd.DataFrame]:
+        return self._loader
+
+
+def _fake_sources(
+    monkeypatch: pytest.MonkeyPatch, loader: Callable[..., pd.DataFrame] | None
+) -> None:
+    eps = [] if loader is None else [_FakeEntryPoint(loader)]
+
+    def entry_points(group: str) -> list[Any]:
+        assert group == "vfm.sources"
+        return eps
+
+    monkeypatch.setattr(diagnose_mod.importlib.metadata, "entry_points", entry_points)
+
+
+def test_store_source_through_the_entry_point(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--store PATH --well W`` asks the ``store`` source for that well's observations; the
+    service's short history gets a split of its own; the JSON says where the data came from."""
+    field = simulate_field(wells=2, years=0.8, seed=5, start="2023-03-01")
+    calls: list[tuple[str, str | None]] = []
+
+    def load_store(path: str, well: str | None) -> pd.DataFrame:
+        calls.append((path, well))
+        frame = field.observations
+        return frame if well is None else frame[frame["well"] == well]
+
+    _fake_sources(monkeypatch, load_store)
+    store = tmp_path / "store.sqlite"
+    args = _parser().parse_args(
+        [
+            "diagnose",
+            "--store",
+            str(store),
+            "--well",
+            "W02",
+            "--out",
+            str(tmp_path / "d"),
+            "--quiet",
+            "--method",
+            METHOD,
+            "--candidates",
+            "erosion",
+        ]
+    )
+    assert args.handler(args) == 0
+    assert calls == [(str(store), "W02")]
+    data = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert data["source"] == {"kind": "store", "path": str(store), "well": "W02"}
+    assert [r["region"] for r in data["regions"]["well"]] == ["W02"]
+    assert data["notes"] and "splits at" in data["notes"][0]
+    assert pd.Timestamp(data["split"]) > pd.Timestamp("2023-03-01", tz="UTC")
+
+
+def test_store_source_missing_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> None:
+    _fake_sources(monkeypatch, None)
+    with pytest.raises(ConfigError, match="No data source 'store' is installed"):
+        diagnose_mod.load_source("store", "s.sqlite")
+
+
+def _service_export_missing() -> bool:
+    try:
+        return importlib.util.find_spec("service.export") is None
+    except ImportError:
+        return True
+
+
+@pytest.mark.skipif(
+    _service_export_missing(),
+    reason="service.export (load_store, the vfm.sources 'store' source) is not in this tree yet",
+)
+@pytest.mark.timeout(300)
+def test_store_end_to_end(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real service store, filled by the service's own engine from a simulated field over
+    the in-memory transport, diagnosed through the entry point (registered by
+    pyproject.toml; taken from it here if this checkout's metadata predates it)."""
+    from replay.client import FieldClient
+    from service.app import Service
+    from service.testing import loopback_settings, wait_until
+    from service.transport import MemoryTransport
+
+    if "store" not in {ep.name for ep in importlib.metadata.entry_points(group="vfm.sources")}:
+        ep = importlib.metadata.EntryPoint(
+            name="store", value="service.export:load_store", group="vfm.sources"
+        )
+        _fake_sources(monkeypatch, ep.load())
+    rows = simulate_field(
+        wells=2, years=1.0, seed=6, start="2023-01-01", hidden=["erosion:rate=0.3"]
+    ).observations
+    settings = loopback_settings(tmp_path, model={"name": "last", "method": "ol"})
+    bus = MemoryTransport(settings.prefix)
+    service = Service(settings, bus)
+    service.start()
+    try:
+        with FieldClient(bus, settings.prefix) as client:
+            client.wait_for_service(str(rows["well"].iloc[0]))
+            client.stream(rows)
+            measured = rows.groupby("well")["q_total"].count().to_dict()
+            store = service.store
+            assert store is not None
+
+            def stored() -> bool:
+                return all(
+                    len(store.history(w, 0, 2**62, 10**6)[1]) >= n for w, n in measured.items()
+                )
+
+            wait_until(stored, 240, "every measurement in the store")
+    finally:
+        service.stop()
+    out = tmp_path / "d"
+    args = _parser().parse_args(
+        [
+            "diagnose",
+            "--store",
+            str(settings.store.path),
+            "--out",
+            str(out),
+            "--quiet",
+            "--method",
+            METHOD,
+            "--candidates",
+            "erosion,mpfm_bias",
+        ]
+    )
+    assert args.handler(args) == 0
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert data["source"]["kind"] == "store"
+    assert data["baseline"]["n"] > 100 and data["verdict"]["kind"] in ("effect", "driver", "noise")
+
+
+def test_json_is_plain_and_finite() -> None:
+    data = diagnose_mod._json_safe(_diagnose("none").to_json())
+    text = json.dumps(data, allow_nan=False)
+    assert json.loads(text)["verdict"]["kind"] == "noise"

@@ -563,3 +563,222 @@ def resolve_effects(effects: Sequence[str | type[Effect]] | str) -> list[type[Ef
     if len(set(names)) != len(names):
         raise ConfigError(f"Effects {names} name one effect twice; give each once.")
     return classes
+
+
+# --- a generic correction: what `vfm diagnose` suggests for an effect outside the library ---
+@dataclass(frozen=True)
+class SuggestDriver:
+    """A variable a :class:`Suggest` correction may depend on: its unit, the step its
+    coefficient is given per (``scale``, in ``unit``), that step in words, and its default
+    reference value (where the correction is 1)."""
+
+    unit: str
+    scale: float
+    step: str
+    x0: float
+
+
+#: The drivers a suggested correction can use: the six inputs, p_down/p_up, the water cut,
+#: the standard features (``years_on``, ``throughput_years``) and the time of year; every one
+#: of them the streaming service can compute sample by sample.
+SUGGEST_DRIVERS: dict[str, SuggestDriver] = {
+    "choke": SuggestDriver("fraction", 0.1, "0.1", 0.5),
+    "p_up": SuggestDriver("bar", 10.0, "10 bar", 100.0),
+    "p_down": SuggestDriver("bar", 10.0, "10 bar", 30.0),
+    "p_ratio": SuggestDriver("p_down/p_up", 0.1, "0.1", 0.5),
+    "t_up": SuggestDriver("degC", 10.0, "10 K", 60.0),
+    "eta_gas": SuggestDriver("-", 0.1, "0.1", 0.1),
+    "eta_oil": SuggestDriver("-", 0.1, "0.1", 0.5),
+    "water_cut": SuggestDriver("-", 0.1, "0.1", 0.3),
+    "years_on": SuggestDriver("yr", 1.0, "year", 0.0),
+    "throughput_years": SuggestDriver("yr-eq", 1.0, "year-equivalent", 0.0),
+    "day_of_year": SuggestDriver("day", 365.25, "year", 0.0),
+}
+_SUGGEST_FORMS = ("linear", "log", "season")
+_NS_PER_DAY = 86_400e9
+
+
+class Suggest(Effect):
+    """A generic multiplicative correction of the rate in one driver x (what ``vfm diagnose``
+    suggests when no library effect explains the residual):
+
+    * ``form=linear`` (default): q times 1 + k (x - x0)/scale;
+    * ``form=log``: q times exp(k (x - x0)/scale);
+    * ``form=season`` (``driver=day_of_year``): q times 1 + k_sin sin(2 pi d) + k_cos cos(2 pi d),
+      d the fraction of the year since 1 January.
+
+    Settings: ``driver`` (one of :data:`SUGGEST_DRIVERS`, required), ``form``, ``x0`` (the
+    reference value in the driver's unit, where the factor is 1; per-well levels stay with
+    C_D), ``scale`` (the step k is given per, in the driver's unit). Without ``k`` the
+    coefficients are learned per well (prior N(0, 0.1^2) per step, bounds +-1); with ``k``
+    (``k_sin``, ``k_cos`` for the season) they are fixed and shared by every well, nothing
+    is learned. Example: ``suggest:driver=t_up:x0=60:scale=10`` learns per well the relative
+    rate change per 10 K above 60 degC; ``...:k=0.068`` applies 6.8 % per 10 K to every well.
+    """
+
+    name = "suggest"
+    description = "A generic multiplicative rate correction, linear or log-linear in one driver."
+    settings = {
+        "driver": "the variable: " + ", ".join(SUGGEST_DRIVERS),
+        "form": "linear (default), log, or season (for day_of_year)",
+        "x0": "reference value of the driver, in its unit (the factor is 1 there)",
+        "scale": "the step the coefficient is given per, in the driver's unit",
+        "k": "a fixed coefficient shared by all wells (linear, log); nothing is learned",
+        "k_sin": "a fixed shared coefficient of sin(2 pi d) (season)",
+        "k_cos": "a fixed shared coefficient of cos(2 pi d) (season)",
+    }
+    driver: ClassVar[str] = ""
+    form: ClassVar[str] = "linear"
+    x0: ClassVar[float] = 0.0
+    scale: ClassVar[float] = 1.0
+    step: ClassVar[str] = ""
+    fixed: ClassVar[Mapping[str, float]] = {}
+    parameters = {"k": Prior(0.0, 0.1, -1.0, 1.0, "-", "relative rate change per step")}
+
+    @classmethod
+    def configure(cls, **values: str) -> type[Effect]:
+        unknown = sorted(set(values) - set(cls.settings))
+        if unknown:
+            return super().configure(**values)  # says which settings exist
+        driver = values.get("driver", cls.driver)
+        if driver not in SUGGEST_DRIVERS:
+            raise ConfigError(
+                f"Effect 'suggest': driver='{driver}' is not one of {', '.join(SUGGEST_DRIVERS)}; "
+                "write e.g. suggest:driver=t_up."
+            )
+        spec = SUGGEST_DRIVERS[driver]
+        form = values.get("form", "season" if driver == "day_of_year" else "linear")
+        if form not in _SUGGEST_FORMS or (form == "season") != (driver == "day_of_year"):
+            raise ConfigError(
+                f"Effect 'suggest': form='{form}' does not suit driver '{driver}'; use "
+                + ("form=season." if driver == "day_of_year" else "form=linear or form=log.")
+            )
+
+        def number(key: str, default: float) -> float:
+            text = values.get(key)
+            if text is None:
+                return default
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise ConfigError(f"Effect 'suggest': {key}='{text}' is not a number.")
+            return value
+
+        x0 = number("x0", spec.x0)
+        scale = number("scale", spec.scale)
+        if scale <= 0:
+            raise ConfigError(f"Effect 'suggest': scale must be positive, not {scale:g}.")
+        keys = ("k_sin", "k_cos") if form == "season" else ("k",)
+        given = [k for k in ("k", "k_sin", "k_cos") if k in values]
+        if given and sorted(given) != sorted(keys):
+            raise ConfigError(
+                f"Effect 'suggest' with form={form} fixes its coefficients with "
+                f"{' and '.join(keys)} (all of them), not {', '.join(given)}."
+            )
+        fixed = {k: number(k, 0.0) for k in keys} if given else {}
+        step = spec.step if scale == spec.scale else f"{scale:g} {spec.unit}"
+        unit = f"1/({step})" if form != "season" else "-"
+        meaning = (
+            f"relative rate change per {step} of {driver}"
+            if form == "linear"
+            else f"log rate change per {step} of {driver}"
+        )
+        if form == "season":
+            params = {
+                "k_sin": Prior(
+                    0.0, 0.05, -0.5, 0.5, "-", "amplitude of sin(2 pi d), d = year fraction"
+                ),
+                "k_cos": Prior(
+                    0.0, 0.05, -0.5, 0.5, "-", "amplitude of cos(2 pi d), d = year fraction"
+                ),
+            }
+        else:
+            params = {"k": Prior(0.0, 0.1, -1.0, 1.0, unit, meaning)}
+        text = f"suggest:driver={driver}:form={form}"
+        if form != "season":
+            text += f":x0={x0:g}:scale={scale:g}"
+        text += "".join(f":{k}={v:.6g}" for k, v in fixed.items())
+        extra = (driver,) if driver in ("years_on", "throughput_years") else ()
+        return type(
+            "SuggestConfigured",
+            (cls,),
+            {
+                "driver": driver,
+                "form": form,
+                "x0": x0,
+                "scale": scale,
+                "step": step,
+                "fixed": fixed,
+                "parameters": {} if fixed else params,
+                "extra_columns": extra,
+                "spec": text,
+                "__module__": cls.__module__,
+            },
+        )
+
+    def __init__(self) -> None:
+        if not self.driver:
+            raise ConfigError(
+                "The effect 'suggest' needs a driver: write e.g. suggest:driver=t_up "
+                f"(drivers: {', '.join(SUGGEST_DRIVERS)})."
+            )
+
+    def driver_value(self, inputs: EffectInputs) -> torch.Tensor:
+        """The driver in its own unit (degC, bar, fraction, years, ...), [W, N]."""
+        name = self.driver
+        if name == "choke":
+            return inputs.u
+        if name in ("p_up", "p_down"):
+            return getattr(inputs, name) / 1e5
+        if name == "p_ratio":
+            return inputs.p_down / inputs.p_up
+        if name == "t_up":
+            return inputs.t_up - 273.15
+        if name in ("eta_gas", "eta_oil"):
+            return getattr(inputs, name)
+        if name == "water_cut":
+            return inputs.water_cut
+        if name == "day_of_year":
+            if inputs.time_ns is None:
+                raise ConfigError(
+                    "Effect 'suggest' with driver=day_of_year needs each sample's time."
+                )
+            days = inputs.time_ns.to(DTYPE) / _NS_PER_DAY
+            return torch.remainder(days, 365.2425)  # 0 on 1 January (within a day)
+        return inputs.feature(name)
+
+    def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
+        values = {**{k: torch.tensor(v, dtype=DTYPE) for k, v in self.fixed.items()}, **p}
+        x = self.driver_value(inputs)
+        if self.form == "season":
+            phase = 2.0 * math.pi * x / 365.2425
+            return 1.0 + values["k_sin"] * torch.sin(phase) + values["k_cos"] * torch.cos(phase)
+        step = (x - self.x0) / self.scale
+        if self.form == "log":
+            return torch.exp(torch.clamp(values["k"] * step, -5.0, 5.0))
+        return torch.clamp(1.0 + values["k"] * step, min=0.05)
+
+    def describe(self, values: Mapping[str, float]) -> str:
+        v = {**self.fixed, **values}
+        spec, step = SUGGEST_DRIVERS[self.driver], self.step
+        if self.form == "season":
+            amp = math.hypot(v.get("k_sin", 0.0), v.get("k_cos", 0.0))
+            peak = math.atan2(v.get("k_sin", 0.0), v.get("k_cos", 0.0)) % (2 * math.pi)
+            day = peak / (2 * math.pi) * 365.2425
+            return (
+                f"The rate swings +-{100 * amp:.2g} % over the year, highest about day {day:.0f}."
+            )
+        k = v.get("k", 0.0)
+        where = f"{self.x0:g} {spec.unit}".rstrip()
+        if self.form == "log":
+            return (
+                f"The rate times exp({k:+.3g} per {step} of {self.driver} from {where}) "
+                f"({100 * math.expm1(k):+.2g} % per {step})."
+            )
+        return f"The rate times (1 {'+' if k >= 0 else '-'} {abs(k):.3g} per {step} of {self.driver} from {where})."
+
+
+EFFECTS[Suggest.name] = Suggest
+__all__ += ["Suggest", "SuggestDriver", "SUGGEST_DRIVERS"]

@@ -1,67 +1,107 @@
 """Diagnose a choke model: where it fails, which physical effect is missing, and what adding it gives.
 
-``vfm diagnose DATA --model mm --out DIR`` runs three steps on one observation file:
+``vfm diagnose DATA --model mm --out DIR`` (or ``--store PATH`` for a running service's
+data) answers with one verdict, of three kinds:
 
-1. **Compare**: learn the model prequentially (as ``vfm evaluate`` does: fit before the
-   split, then predict every target observation before learning from it) and keep the
-   relative residual r = (measured - predicted) / measured of every scored observation.
-2. **Where it fails**: the residual against time, each input, the pressure ratio, the
-   water cut and the cumulative throughput, per well, per operating region (choke-opening
-   bins, critical or subcritical flow) and per measurement source. *Drivers* are ranked
-   by how much of the residual variance a 1-D binned-mean smoother of each variable
-   explains **out of sample**: the scored period is cut into time blocks, the smoother is
-   fitted on all blocks but one and scored (R^2) on the held-out one, in turn.
-3. **Which effect is missing**: each candidate of :mod:`vfm_core.effects` is added to the
-   model and run through the *same* prequential protocol; candidates are ranked by the
-   change in BIC of the relative residuals (n log(mean r^2) + k log n, k = effect
-   parameters over all wells), and reported with their MAPE change and fitted values.
-   The BIC is taken on the **well tests** (the reference meter) when at least
-   :data:`MIN_WELL_TESTS` are scored, else on every measurement. Why: MPFM readings carry
-   a slowly drifting error of their own (the reason well tests exist), and the many,
-   autocorrelated MPFM rows otherwise reward whichever candidate's trend happens to follow
-   that drift. Measured on simulated fields (3 wells x 3 years and 5 x 4, seeds 1-3, 20
-   cases of five identifiable effects): the true effect ranked first in 18 of 20 on the
-   well tests against 15 of 20 on all rows, with no false discovery either way. A
-   candidate is *material* only if it also improves the BIC over all rows.
+* ``effect``: a library effect (:mod:`vfm_core.effects`) is missing; it is named, with the
+  error before and after adding it and its fitted parameters with their uncertainty;
+* ``driver``: no library effect explains the residual, but a variable does, beyond time,
+  well and chance; a generic correction in that variable is fitted and offered, as an
+  effect to apply (``--effects suggest:driver=...``) and as code to start one's own;
+* ``noise``: neither; what is left is measurement noise and meter drift.
 
-With ``--effects`` the report also shows the model with those effects next to the base
-model (MAPE per well, rolling error, residual against the top driver).
+How:
 
-Outputs (written atomically: staged in a hidden folder, then moved): ``DIR/diagnosis.json``
-(``{"model", "baseline": {"mape"}, "drivers": [{"name", "score"}], "candidates":
-[{"effect", "mape", "delta_mape", "delta_bic", "parameters"}]}``, drivers and candidates
-best first) and ``DIR/report.html`` (self-contained).
+1. **One protocol for every comparison** (``--candidate-method``, default
+   :data:`CANDIDATE_METHOD`): the model is fitted once on the measurements before the split
+   (the mechanistic model to convergence: its priors are its regulariser, and early
+   stopping on the latest slice of a drifting history stops before a trend such as wear is
+   learned) and scored on every measurement after it, held out. The baseline, each
+   candidate, its variants and the suggested correction all go through it; the headline
+   gives one baseline and one "with" figure under it. Online learning (``--method``, default
+   ``ol``) is run once more for *where the model fails* as it would in operation, not to
+   compare: it follows, and so hides, what a missing effect does.
+2. **Where it fails**: the relative residual r = (measured - predicted)/measured of the
+   online run by well, quarter, choke opening, flow regime and meter.
+3. **Which effect is missing**: each candidate the data can inform (a meter bias needs well
+   tests *and* MPFM readings, a valve curve a choke that moves, ...; the others are listed
+   as skipped, with the reason) is added and ranked by the change in BIC of the relative
+   residuals (n log(mean r^2) + k log n, k = effect parameters over all wells), taken on
+   the **well tests** (the reference meter) when at least :data:`MIN_WELL_TESTS` are
+   scored, else on every measurement with one noise level per meter: MPFM readings drift
+   slowly, and their many correlated rows would otherwise reward whichever candidate's
+   trend follows the meter. A candidate is *material* when it lowers the MAPE by at least
+   max(:data:`MATERIAL_MAPE_ABS` points, :data:`MATERIAL_MAPE_REL` of the baseline) and the
+   BIC by more than :data:`MATERIAL_BIC`, on the reference and over every measurement. The
+   best material candidate's variants (the valve families after the learned valve curve,
+   wear with time after wear with throughput) are then tried too: one learned form rarely
+   fits every field. Fitted parameters come with a posterior sd (a Gauss-Newton Laplace
+   approximation on the training data, see :func:`_laplace_sd`) and a warning where one
+   sits at a physical bound.
+4. **Drivers** (:mod:`vfm_core.jobs.diagnose_stats`): what each variable (the inputs, the
+   pressure ratio, water cut, throughput, the day of the year) explains of the comparison
+   baseline's residual *beyond a straight line in time per well and meter*, out of sample,
+   and whether the best of them beats chance (circular shifts, family-wise p-value).
+5. **A suggested correction**: with no material candidate and a driver that beats chance,
+   a multiplicative correction of the rate in that driver (linear, then log-linear; shared
+   by all wells or per well; chosen by BIC) is fitted under the same protocol. It makes the
+   verdict ``driver`` only if it also lowers the held-out error and BIC materially (a second,
+   held-out test); else the verdict is ``noise``.
+6. **The noise floor**: the meters' white noise, estimated from consecutive readings
+   (:func:`vfm_core.jobs.diagnose_stats.noise_floor`), so that "how much of the error above
+   the floor the effect removes" can be read.
+
+Outputs (written atomically): ``DIR/diagnosis.json`` (format ``vfm-diagnosis/2``: ``model``,
+``baseline``, ``drivers``, ``candidates`` as before, plus ``verdict`` ``{"kind", "effect",
+"driver", "text"}``, ``headline``, ``suggestion`` ``{"driver", "form", "parameters", "mape",
+...}``, ``floor``, ``noise_test``, ``skipped``, ``notes``) and ``DIR/report.html``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import math
 import os
 import shutil
+import textwrap
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
+import torch
 from tqdm import tqdm
 
-from vfm_core.data import target_mask
+from vfm_core.data import Batch, make_batch, target_mask
 from vfm_core.effects import (
     DEFAULT_CANDIDATES,
+    EFFECTS,
+    SUGGEST_DRIVERS,
+    CriticalRatio,
     Effect,
+    MeterBias,
+    RealGas,
+    Slip,
+    Valve,
+    ValveFamily,
     add_features,
+    effect_spec,
     resolve_effect,
     resolve_effects,
 )
-from vfm_core.features import standard_features
+from vfm_core.errors import ConfigError, DataError
+from vfm_core.features import STANDARD_FEATURES, standard_features
+from vfm_core.jobs import diagnose_stats as stats
+from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES, rank_drivers
 from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
-from vfm_core.learning import OnlineSettings, TrainSettings
-from vfm_core.schema import INPUT_COLUMNS, SOURCE, TIME, WELL, WELL_TEST
+from vfm_core.learning import DEFAULT_TRAIN, OnlineSettings, TrainSettings
+from vfm_core.models import ChokeModel
+from vfm_core.schema import INPUT_COLUMNS, MPFM, SOURCE, TIME, WELL, WELL_TEST
 
 __all__ = [
     "DRIVER_VARIABLES",
@@ -70,46 +110,21 @@ __all__ = [
     "MATERIAL_BIC",
     "MIN_WELL_TESTS",
     "CANDIDATE_METHOD",
+    "VARIANTS",
     "reference_bic",
     "CandidateResult",
+    "Suggestion",
     "Diagnosis",
     "residual_frame",
     "rank_drivers",
     "bic",
     "run_diagnosis",
     "write_diagnosis",
+    "format_summary",
+    "load_source",
     "register",
 ]
 
-#: Variables the residual is examined against (numeric, then categorical).
-DRIVER_VARIABLES: tuple[str, ...] = (
-    "time",
-    "choke",
-    "p_up",
-    "p_down",
-    "p_ratio",
-    "t_up",
-    "eta_gas",
-    "eta_oil",
-    "water_cut",
-    "throughput_years",
-    "well",
-    "source",
-    "flow_regime",
-)
-_CATEGORICAL = {"well", "source", "flow_regime"}
-_UNITS = {
-    "time": "date",
-    "choke": "fraction",
-    "p_up": "bar",
-    "p_down": "bar",
-    "p_ratio": "p_down/p_up",
-    "t_up": "degC",
-    "eta_gas": "-",
-    "eta_oil": "-",
-    "water_cut": "water/liquid mass",
-    "throughput_years": "year-equivalents",
-}
 #: A candidate is a *material* improvement only if it lowers the MAPE by at least
 #: max(MATERIAL_MAPE_ABS percentage points, MATERIAL_MAPE_REL x the baseline MAPE) and
 #: lowers the BIC by more than MATERIAL_BIC. Why: with nothing hidden, extra parameters
@@ -118,14 +133,46 @@ _UNITS = {
 MATERIAL_MAPE_ABS = 0.25
 MATERIAL_MAPE_REL = 0.10
 MATERIAL_BIC = 10.0
-#: the candidates' protocol: fit once before the split, never update (100-year period)
+#: Near the noise floor a real effect has little error left to remove (real gas on a field
+#: whose refitted C_D absorbs most of Z): it is also material when it removes at least
+#: MATERIAL_SHARE of the error above the floor, and at least MATERIAL_MAPE_NEAR_FLOOR points.
+MATERIAL_SHARE = 1.0 / 3.0
+MATERIAL_MAPE_NEAR_FLOOR = 0.1
+#: the comparison protocol: fit once before the split, never update (100-year period)
 CANDIDATE_METHOD = "pbl:36500d"
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
 MIN_WELL_TESTS = 20
-_CLIP = 1.0  # relative residuals are clipped to +-100 % for BIC and drivers (a diverged
-# prediction must not decide the ranking alone)
+#: Library variants tried after a material candidate: other forms of the same physics.
+VARIANTS: dict[str, tuple[str, ...]] = {
+    "valve": (
+        "valve_equal_percentage",
+        "valve_quick_opening",
+        "valve_convex",
+        "valve_sigmoid",
+    ),
+}
+#: The variable a candidate's effect acts through (for its before/after panel).
+_EFFECT_DRIVER = {
+    "erosion": "throughput_years",
+    "erosion_time": "time",
+    "valve": "choke",
+    "real_gas": "p_up",
+    "slip": "eta_gas",
+    "critical_ratio": "p_ratio",
+    "mpfm_bias": "time",
+}
+#: Most drivers (those that beat chance, best first) a correction is fitted for.
+SUGGEST_TOP = 2
+#: Fewest measurements per source (before the split) for a meter-bias candidate.
+_MIN_PER_SOURCE = 5
+#: A valve curve is offered when some well's choke spans at least this (P5..P95) in training.
+_MIN_CHOKE_SPAN = 0.05
+_CLIP = stats.CLIP
+
+ProgressFn = Callable[[float, str], None]
 
 
+# --- results --------------------------------------------------------------------------------
 @dataclass
 class CandidateResult:
     """One candidate effect (or set) under the same protocol as the baseline."""
@@ -142,6 +189,16 @@ class CandidateResult:
     run: RunResult | None = field(default=None, repr=False)
     #: the change in BIC over every scored measurement (delta_bic may be on well tests only)
     delta_bic_all: float = float("nan")
+    #: parameters at a physical bound, in words
+    warnings: list[str] = field(default_factory=list)
+    #: the candidate this one is a variant of (valve families after ``valve``), if any
+    variant_of: str | None = None
+    #: the text that adds this effect (``--effects``, ``PUT /wells/{well}/model``)
+    spec: str = ""
+    #: share of the baseline's error above the noise floor this candidate removes
+    share_above_floor: float = float("nan")
+    #: the variable the effect acts through (its before/after panel)
+    driver: str | None = None
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -153,18 +210,14 @@ class CandidateResult:
             "mape_abs": MATERIAL_MAPE_ABS,
             "mape_rel": MATERIAL_MAPE_REL,
             "bic": MATERIAL_BIC,
+            "near_floor": MATERIAL_MAPE_NEAR_FLOOR,
+            "share": MATERIAL_SHARE,
         }
-
-    def residuals_of(self, run: RunResult) -> pd.DataFrame:
-        """The residual frame of another run on the same scored rows as the diagnosis."""
-        out = self.residuals.copy()
-        out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
-        out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
-        return out
 
     def to_json(self) -> dict[str, Any]:
         return {
             "effect": self.effect,
+            "spec": self.spec or self.effect,
             "mape": self.mape,
             "delta_mape": self.delta_mape,
             "bic": self.bic,
@@ -174,6 +227,52 @@ class CandidateResult:
             "material": self.material,
             "meaning": self.meaning,
             "parameters": self.parameters,
+            "warnings": list(self.warnings),
+            "variant_of": self.variant_of,
+            "share_above_floor": self.share_above_floor,
+        }
+
+
+@dataclass
+class Suggestion:
+    """A generic correction for an effect outside the library, fitted like a candidate."""
+
+    driver: str
+    form: str
+    shared: bool
+    spec: str
+    text: str
+    parameters: dict[str, Any]
+    result: CandidateResult
+    #: every form tried: form, shared, n_parameters, mape, delta_bic
+    variants: list[dict[str, Any]]
+    #: the same correction learned per well (the spec), when the shared one was chosen
+    per_well_spec: str
+    #: a starting point for one's own Effect class
+    code: str
+
+    @property
+    def mape(self) -> float:
+        return self.result.mape
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "driver": self.driver,
+            "form": self.text,
+            "shape": self.form,
+            "shared": self.shared,
+            "parameters": self.parameters,
+            "mape": self.result.mape,
+            "delta_mape": self.result.delta_mape,
+            "delta_bic": self.result.delta_bic,
+            "delta_bic_all": self.result.delta_bic_all,
+            "material": self.result.material,
+            "share_above_floor": self.result.share_above_floor,
+            "effects": self.spec,
+            "per_well_effects": self.per_well_spec,
+            "variants": self.variants,
+            "code": self.code,
+            "warnings": list(self.result.warnings),
         }
 
 
@@ -193,6 +292,7 @@ class Diagnosis:
     regions: dict[str, list[dict[str, Any]]]
     candidates: list[CandidateResult]
     findings: list[str]
+    #: the verdict in one sentence (``verdict_kind`` etc. give it as data)
     verdict: str
     extended: CandidateResult | None = None
     runtime_s: float = 0.0
@@ -201,6 +301,24 @@ class Diagnosis:
     candidate_baseline_mape: float = float("nan")
     #: what the candidates' BIC was taken on: "well tests" or "all measurements"
     bic_on: str = "all measurements"
+    verdict_kind: str = "noise"
+    verdict_effect: str | None = None
+    verdict_driver: str | None = None
+    suggestion: Suggestion | None = None
+    #: the noise floor (see vfm_core.jobs.diagnose_stats.noise_floor)
+    floor: dict[str, Any] = field(default_factory=dict)
+    #: the chance test of the drivers: method, shifts, alpha, best driver and its p-value
+    noise_test: dict[str, Any] = field(default_factory=dict)
+    #: candidates the data cannot inform: [{"effect", "reason"}]
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    #: the comparison baseline's residual frame (drivers and panels are drawn from it)
+    comparison_residuals: pd.DataFrame | None = None
+    #: the protocol in words
+    protocol: str = ""
+    #: things the user should know (a split chosen for them, ...)
+    notes: list[str] = field(default_factory=list)
+    #: where the data came from: {"kind": "file" | "store" | "frame", "path", "well"}
+    source: dict[str, Any] = field(default_factory=dict)
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -212,22 +330,51 @@ class Diagnosis:
             "mape_abs": MATERIAL_MAPE_ABS,
             "mape_rel": MATERIAL_MAPE_REL,
             "bic": MATERIAL_BIC,
+            "near_floor": MATERIAL_MAPE_NEAR_FLOOR,
+            "share": MATERIAL_SHARE,
         }
 
-    def residuals_of(self, run: RunResult) -> pd.DataFrame:
-        """The residual frame of another run on the same scored rows as the diagnosis."""
-        out = self.residuals.copy()
+    def residuals_of(self, run: RunResult, base: pd.DataFrame | None = None) -> pd.DataFrame:
+        """The residual frame of another run on the same scored rows (``base``: the frame
+        whose rows it shares, default the online baseline's)."""
+        out = (self.residuals if base is None else base).copy()
         out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
         out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
         return out
 
+    @property
+    def with_effect(self) -> CandidateResult | None:
+        """The "with" of the headline: the verdict's effect, the suggestion, or (noise) the
+        best candidate."""
+        if self.verdict_kind == "effect":
+            return next((c for c in self.candidates if c.effect == self.verdict_effect), None)
+        if self.suggestion is not None and self.verdict_kind == "driver":
+            return self.suggestion.result
+        return self.candidates[0] if self.candidates else None
+
+    @property
+    def headline(self) -> dict[str, Any]:
+        """One baseline and one "with" figure, both under the comparison protocol."""
+        w = self.with_effect
+        return {
+            "protocol": self.protocol,
+            "method": self.candidate_method,
+            "baseline_mape": self.candidate_baseline_mape,
+            "with": None if w is None else (w.spec or w.effect),
+            "with_mape": None if w is None else w.mape,
+            "floor_mape": self.floor.get("mape"),
+            "n": int(len(self.residuals)),
+        }
+
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "format": "vfm-diagnosis/1",
+            "format": "vfm-diagnosis/2",
             "model": self.model,
             "method": self.method,
             "targets": self.targets,
             "split": self.split.isoformat(),
+            "source": self.source,
+            "protocol": self.protocol,
             "baseline": {
                 "mape": self.baseline_mape,
                 "bic": self.baseline_bic,
@@ -236,11 +383,24 @@ class Diagnosis:
                 "candidate_mape": self.candidate_baseline_mape,
                 "bic_on": self.bic_on,
             },
+            "verdict": {
+                "kind": self.verdict_kind,
+                "effect": self.verdict_effect,
+                "driver": self.verdict_driver,
+                "text": self.verdict,
+            },
+            "headline": self.headline,
+            "floor": self.floor,
             "drivers": self.drivers,
+            "drivers_on": f"the residual of {self.model} under {self.candidate_method}, "
+            "after a straight line in time per well and meter",
+            "noise_test": self.noise_test,
             "candidates": [c.to_json() for c in self.candidates],
+            "skipped": self.skipped,
+            "suggestion": None if self.suggestion is None else self.suggestion.to_json(),
             "regions": self.regions,
             "findings": self.findings,
-            "verdict": self.verdict,
+            "notes": self.notes,
             "runtime_s": self.runtime_s,
         }
         if self.extended is not None:
@@ -248,7 +408,7 @@ class Diagnosis:
         return out
 
 
-# --- residuals and drivers ------------------------------------------------------------------
+# --- residuals ------------------------------------------------------------------------------
 def residual_frame(
     frame: pd.DataFrame,
     predictions: pd.DataFrame,
@@ -280,84 +440,15 @@ def residual_frame(
     out["p_ratio"] = out["p_down"] / out["p_up"]
     out["water_cut"] = feats["water_cut"].to_numpy()
     out["throughput_years"] = feats["throughput_years"].to_numpy()
+    out["years_on"] = feats["years_on"].to_numpy()
     limits = out["well"].map(p_cr or {}).astype(float).fillna(0.55).to_numpy()
     out["flow_regime"] = np.where(out["p_ratio"].to_numpy() < limits, "critical", "subcritical")
     out["predicted"] = predictions["predicted"].to_numpy(dtype=float)
     out["measured"] = predictions["measured"].to_numpy(dtype=float)
     out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
     out["time"] = pd.to_datetime(out["time"], utc=True)
+    out["day_of_year"] = stats.driver_values(out, "day_of_year")
     return out
-
-
-def _values(res: pd.DataFrame, name: str) -> np.ndarray:
-    if name == "time":
-        return 1970.0 + res["time"].astype("int64").to_numpy() / (86400e9 * 365.25)
-    return res[name].to_numpy()
-
-
-def _binned_fit(
-    x_train: np.ndarray, r_train: np.ndarray, x_test: np.ndarray, bins: int
-) -> np.ndarray:
-    """Binned means on quantile bins of the training x; test points take their bin's mean."""
-    edges = np.unique(np.quantile(x_train, np.linspace(0, 1, bins + 1)))
-    if len(edges) < 2:
-        return np.full(len(x_test), r_train.mean())
-    idx_train = np.clip(np.searchsorted(edges, x_train, side="right") - 1, 0, len(edges) - 2)
-    sums = np.bincount(idx_train, weights=r_train, minlength=len(edges) - 1)
-    counts = np.bincount(idx_train, minlength=len(edges) - 1)
-    means = np.where(counts > 0, sums / np.maximum(counts, 1), r_train.mean())
-    idx_test = np.clip(np.searchsorted(edges, x_test, side="right") - 1, 0, len(edges) - 2)
-    return means[idx_test]
-
-
-def _group_fit(x_train: np.ndarray, r_train: np.ndarray, x_test: np.ndarray) -> np.ndarray:
-    means = pd.Series(r_train).groupby(x_train).mean()
-    return pd.Series(x_test).map(means).fillna(r_train.mean()).to_numpy()
-
-
-def rank_drivers(
-    residuals: pd.DataFrame,
-    variables: Sequence[str] = DRIVER_VARIABLES,
-    *,
-    blocks: int = 6,
-    bins: int = 10,
-) -> list[dict[str, Any]]:
-    """Out-of-sample share of the residual variance each variable explains, best first.
-
-    The scored rows are cut into ``blocks`` consecutive time blocks. For each block a
-    1-D smoother of the variable (binned means on ``bins`` quantile bins, group means for
-    categorical variables) is fitted on the other blocks; the score is the held-out R^2,
-    1 - sum (r - f(x))^2 / sum (r - mean_train)^2 over all held-out blocks. A variable
-    that does not predict the residual scores about 0 or below.
-    """
-    ok = np.isfinite(residuals["r"].to_numpy())
-    res = residuals[ok]
-    if len(res) < 2 * blocks:
-        return [{"name": v, "score": 0.0} for v in variables]
-    r = np.clip(res["r"].to_numpy(), -_CLIP, _CLIP)
-    order = np.argsort(res["time"].to_numpy(), kind="stable")
-    block = np.empty(len(res), dtype=int)
-    block[order] = np.arange(len(res)) * blocks // len(res)
-    out = []
-    for name in variables:
-        x = _values(res, name)
-        sse = sst = 0.0
-        for b in range(blocks):
-            test, train = block == b, block != b
-            if name in _CATEGORICAL:
-                fit = _group_fit(x[train], r[train], x[test])
-            else:
-                fit = _binned_fit(x[train].astype(float), r[train], x[test].astype(float), bins)
-            sse += float(((r[test] - fit) ** 2).sum())
-            sst += float(((r[test] - r[train].mean()) ** 2).sum())
-        out.append(
-            {
-                "name": name,
-                "score": 1.0 - sse / sst if sst > 0 else 0.0,
-                "unit": _UNITS.get(name, "category"),
-            }
-        )
-    return sorted(out, key=lambda d: -d["score"])
 
 
 def bic(residuals: np.ndarray, k: int, groups: np.ndarray | None = None) -> float:
@@ -454,14 +545,136 @@ def _findings(
     return out
 
 
+# --- what the data can inform -----------------------------------------------------------------
+def _offer_reason(cls: type[Effect], train: pd.DataFrame) -> str | None:
+    """Why the training rows (measured, before the split) cannot inform ``cls``; None if they can."""
+    if train.empty:
+        return "there are no measurements before the split"
+    src = train[SOURCE].to_numpy()
+    if issubclass(cls, MeterBias) or cls.uses_source:
+        n_wt, n_mpfm = int((src == WELL_TEST).sum()), int((src == MPFM).sum())
+        if n_wt < _MIN_PER_SOURCE or n_mpfm < _MIN_PER_SOURCE:
+            return (
+                f"a meter bias against well tests needs both before the split: {n_wt} well "
+                f"test(s) and {n_mpfm} MPFM reading(s) (at least {_MIN_PER_SOURCE} of each)"
+            )
+    if issubclass(cls, Valve | ValveFamily):
+        span = train.groupby(WELL)["choke"].quantile(0.95) - train.groupby(WELL)["choke"].quantile(
+            0.05
+        )
+        if float(span.max()) < _MIN_CHOKE_SPAN:
+            return (
+                f"the choke hardly moves (largest P5-P95 span {float(span.max()):.3f} in one well), "
+                "so a valve curve cannot be told from C_D"
+            )
+    gas = train["eta_gas"].to_numpy(dtype=float)
+    if issubclass(cls, RealGas | Slip | CriticalRatio) and float(np.nanmax(gas)) < 1e-3:
+        return "there is no gas in the mixture"
+    if issubclass(cls, Slip) and float(np.nanmin(gas)) > 0.999:
+        return "there is no liquid in the mixture"
+    if issubclass(cls, CriticalRatio):
+        ratio = (train["p_down"] / train["p_up"]).to_numpy(dtype=float)
+        if float(np.mean(ratio < 0.65)) < 0.02:
+            return (
+                "the flow never comes near critical (p_down/p_up below 0.65 in under 2 % of rows)"
+            )
+    return None
+
+
+def _training_rows(frame: pd.DataFrame, targets: str, split: pd.Timestamp) -> np.ndarray:
+    return np.flatnonzero(target_mask(frame, targets) & (frame[TIME] < split).to_numpy())
+
+
+# --- uncertainty --------------------------------------------------------------------------------
+def _laplace_sd(model: ChokeModel, batch: Batch) -> dict[str, np.ndarray]:
+    """Posterior sd per well (SI units) of the physical and effect parameters, keyed like
+    ``model.physical_parameters()``: a Gauss-Newton Laplace approximation at the fit.
+
+    The Jacobian of the log rate with respect to the standardised parameters z (theta =
+    mu + sigma z) is taken by central differences; the noise variance of the log residual
+    per well and meter from the fit's residuals; the prior is z ~ N(0, 1). The data's
+    precision is divided by (1 + rho)/(1 - rho), rho the lag-1 autocorrelation of each
+    well's residual (an AR(1) effective sample size: MPFM errors drift). Network weights of
+    hybrid models are held at their values (the sd is conditional on them).
+    """
+    blocks: list[tuple[str, Any]] = []
+    if getattr(model, "phys", None) is not None:
+        blocks.append(("", model.phys))
+    for name, block in getattr(model, "effect_params", {}).items():
+        blocks.append((f"{name}.", block))
+    cols = [(prefix + n, block, i) for prefix, block in blocks for i, n in enumerate(block.names)]
+    if not cols or int(batch.count().sum()) == 0:
+        return {}
+    step = 1e-4
+    with torch.no_grad():
+        q0 = model.forward_batch(batch)
+        ok = batch.mask & torch.isfinite(q0) & (q0 > 0) & (batch.y > 0)
+        r = torch.where(ok, torch.log(batch.y.clamp(min=1e-12) / q0.clamp(min=1e-12)), 0.0)
+        jac = torch.zeros(*q0.shape, len(cols), dtype=q0.dtype)
+        for j, (_, block, i) in enumerate(cols):
+            z = block.z.data
+            old = z[:, i].clone()
+            z[:, i] = old + step
+            up = torch.log(model.forward_batch(batch).clamp(min=1e-12))
+            z[:, i] = old - step
+            down = torch.log(model.forward_batch(batch).clamp(min=1e-12))
+            z[:, i] = old
+            jac[..., j] = (up - down) / (2 * step)
+        jac = torch.where(ok.unsqueeze(-1) & torch.isfinite(jac), jac, torch.zeros_like(jac))
+        assert batch.well_test is not None
+        weight = torch.zeros_like(r)
+        for meter in (batch.well_test, ~batch.well_test):
+            m = ok & meter
+            var = (r**2 * m).sum(1) / m.sum(1).clamp(min=1)
+            weight = torch.where(m, 1.0 / var.clamp(min=1e-8).unsqueeze(1), weight)
+        # lag-1 autocorrelation per well, over consecutive valid samples (time order)
+        pair = ok[:, 1:] & ok[:, :-1]
+        num = (r[:, 1:] * r[:, :-1] * pair).sum(1)
+        den = (r**2 * ok).sum(1).clamp(min=1e-30)
+        rho = (num / den).clamp(0.0, 0.95)
+        inflate = (1.0 + rho) / (1.0 - rho)
+        hess = torch.einsum("wnp,wnq->wpq", jac * weight.unsqueeze(-1), jac)
+        hess = hess / inflate.view(-1, 1, 1) + torch.eye(len(cols), dtype=hess.dtype)
+        sd_z = torch.sqrt(torch.diagonal(torch.linalg.inv(hess), dim1=1, dim2=2).clamp(min=0.0))
+    return {key: (block.sigma[i] * sd_z[:, j]).numpy() for j, (key, block, i) in enumerate(cols)}
+
+
+def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
+    """Parameters that sit at a physical bound (other than their 'no effect' prior mean)."""
+    priors = model.physical_priors() if hasattr(model, "physical_priors") else {}
+    params = model.physical_parameters()
+    out = []
+    for key, prior in priors.items():
+        if key not in params:
+            continue
+        values = params[key].numpy()
+        span = prior.high - prior.low
+        for side, bound in (("lower", prior.low), ("upper", prior.high)):
+            if abs(bound - prior.mean) < 1e-12 * max(1.0, abs(bound)):
+                continue  # the bound is "no effect" (a wear rate of 0): a legitimate answer
+            hit = ready & (np.abs(values - bound) <= 1e-3 * span)
+            if hit.any():
+                wells = [w for w, h in zip(model.wells, hit, strict=True) if h]
+                shown = ", ".join(wells[:5]) + (
+                    f" and {len(wells) - 5} more" if len(wells) > 5 else ""
+                )
+                out.append(
+                    f"{key} sits at its {side} bound {bound:g} {prior.unit} in {shown}: the data push "
+                    "it past what physics allows; read it as a sign of another effect or of bad data, "
+                    "not as a value."
+                )
+    return out
+
+
 # --- candidates -----------------------------------------------------------------------------
 def _parameter_summary(
-    run: RunResult, effects: Sequence[type[Effect]]
-) -> tuple[dict[str, Any], str, int]:
+    run: RunResult, effects: Sequence[type[Effect]], train_batch: Batch | None
+) -> tuple[dict[str, Any], str, int, list[str]]:
     model = run.final_model
     assert model is not None
     params = model.physical_parameters()
     ready = model.ready.numpy()
+    sds = _laplace_sd(model, train_batch) if train_batch is not None else {}
     out: dict[str, Any] = {}
     medians: dict[str, dict[str, float]] = {}
     k = 0
@@ -470,18 +683,42 @@ def _parameter_summary(
             key = f"{cls.name}.{pname}"
             values = params[key].numpy()
             med = float(np.median(values[ready])) if ready.any() else float("nan")
+            sd = sds.get(key)
             medians.setdefault(cls.name, {})[pname] = med
             out[key] = {
                 "value": med,
+                "sd": float(np.median(sd[ready])) if sd is not None and ready.any() else None,
                 "unit": prior.unit,
                 "meaning": prior.meaning,
                 "prior_mean": prior.mean,
                 "prior_std": prior.std,
+                "low": prior.low,
+                "high": prior.high,
                 "per_well": {w: float(v) for w, v in zip(model.wells, values, strict=True)},
+                "per_well_sd": (
+                    {w: float(v) for w, v in zip(model.wells, sd, strict=True)}
+                    if sd is not None
+                    else {}
+                ),
             }
             k += int(ready.sum())
     meaning = " ".join(cls().describe(medians.get(cls.name, {})) for cls in effects)
-    return out, meaning, k
+    return out, meaning, k, _bound_warnings(model, ready)
+
+
+def _is_material(
+    delta_mape: float, base_mape: float, delta_bic: float, delta_all: float, share: float
+) -> bool:
+    """The BIC falls by more than :data:`MATERIAL_BIC` on the reference and over every
+    measurement, and the MAPE by at least max(:data:`MATERIAL_MAPE_ABS` points,
+    :data:`MATERIAL_MAPE_REL` of the baseline), or, near the noise floor, by at least
+    :data:`MATERIAL_MAPE_NEAR_FLOOR` points that are :data:`MATERIAL_SHARE` of the error above
+    the floor (``share``; nan without a floor)."""
+    if not (delta_bic < -MATERIAL_BIC and delta_all < -MATERIAL_BIC):
+        return False
+    if delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape):
+        return True
+    return bool(delta_mape <= -MATERIAL_MAPE_NEAR_FLOOR and share >= MATERIAL_SHARE)
 
 
 def _score(
@@ -490,10 +727,15 @@ def _score(
     effects: Sequence[type[Effect]],
     base_mape: float,
     base: RunResult,
+    train_batch: Batch | None,
+    *,
+    k_override: int | None = None,
 ) -> CandidateResult:
     p = run.predictions
     r = ((p["measured"] - p["predicted"]) / p["measured"]).to_numpy(dtype=float)
-    params, meaning, k = _parameter_summary(run, effects)
+    params, meaning, k, warnings = _parameter_summary(run, effects, train_batch)
+    if k_override is not None:
+        k = k_override
     m = mape(p["predicted"], p["measured"])
     b, on = reference_bic(p, k)
     b0, on0 = reference_bic(base.predictions, 0)
@@ -502,14 +744,231 @@ def _score(
     delta_all = bic(r, k, p["source"].to_numpy()) - bic(r0, 0, bp["source"].to_numpy())
     delta_mape = m - base_mape
     delta_bic = b - b0 if on == on0 else delta_all
-    material = bool(
-        delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
-        and delta_bic < -MATERIAL_BIC
-        and delta_all < -MATERIAL_BIC
-    )
+    material = _is_material(delta_mape, base_mape, delta_bic, delta_all, float("nan"))
+    driver = _EFFECT_DRIVER.get(name) or ("choke" if name.startswith("valve") else None)
     return CandidateResult(
-        name, m, delta_mape, b, delta_bic, k, params, meaning, material, run, delta_all
+        name,
+        m,
+        delta_mape,
+        b,
+        delta_bic,
+        k,
+        params,
+        meaning,
+        material,
+        run,
+        delta_all,
+        warnings,
+        spec="+".join(effect_spec(c) for c in effects),
+        driver=driver,
     )
+
+
+# --- the suggested correction ---------------------------------------------------------------------
+def _shared_value(values: np.ndarray, sds: np.ndarray) -> tuple[float, float]:
+    """A coefficient shared by all wells from per-well estimates: the precision-weighted
+    mean, with the larger of its sd and the wells' spread over sqrt(wells)."""
+    ok = np.isfinite(values) & np.isfinite(sds) & (sds > 0)
+    if not ok.any():
+        return float(np.nanmedian(values)), float("nan")
+    w = 1.0 / sds[ok] ** 2
+    mean = float(np.sum(w * values[ok]) / np.sum(w))
+    sd = 1.0 / math.sqrt(float(np.sum(w)))
+    if ok.sum() > 1:
+        sd = max(sd, float(np.std(values[ok], ddof=1)) / math.sqrt(int(ok.sum())))
+    return mean, sd
+
+
+def _x0(values: np.ndarray, scale: float) -> float:
+    """A round reference value near the median (a multiple of half the scale step)."""
+    med = float(np.nanmedian(values)) if len(values) else 0.0
+    unit = scale / 2.0
+    return float(round(med / unit) * unit) if math.isfinite(med) else 0.0
+
+
+def _form_text(cls: type[Effect], values: dict[str, tuple[float, float]], shared: bool) -> str:
+    """The correction in words, with the fitted values and their sd."""
+    driver = SUGGEST_DRIVERS[cls.driver]  # type: ignore[attr-defined]
+    who = "the same for every well" if shared else "median over wells, learned per well"
+
+    def pm(key: str) -> str:
+        v, s = values[key]
+        return (
+            ("+ " if v >= 0 else "- ")
+            + f"{abs(v):.3g}"
+            + (f" ± {s:.2g}" if math.isfinite(s) else "")
+        )
+
+    if cls.form == "season":  # type: ignore[attr-defined]
+        return (
+            f"C_D x (1 {pm('k_sin')} sin(2 pi d) {pm('k_cos')} cos(2 pi d)), d = fraction of the "
+            f"year since 1 January ({who})"
+        )
+    x0 = f"{cls.x0:g} {driver.unit}".rstrip()  # type: ignore[attr-defined]
+    step = cls.step  # type: ignore[attr-defined]
+    if cls.form == "log":  # type: ignore[attr-defined]
+        return f"C_D x exp({pm('k').replace(' ', '', 1)} per {step} of {cls.driver} above {x0}) ({who})"  # type: ignore[attr-defined]
+    return f"C_D x (1 {pm('k')} per {step} of {cls.driver} above {x0}) ({who})"  # type: ignore[attr-defined]
+
+
+_SNIPPET_X = {
+    "choke": ("inputs.u", "fraction"),
+    "p_up": ("inputs.p_up / 1e5", "bar"),
+    "p_down": ("inputs.p_down / 1e5", "bar"),
+    "p_ratio": ("inputs.p_down / inputs.p_up", "-"),
+    "t_up": ("inputs.t_up - 273.15", "degC"),
+    "eta_gas": ("inputs.eta_gas", "-"),
+    "eta_oil": ("inputs.eta_oil", "-"),
+    "water_cut": ("inputs.water_cut", "-"),
+    "years_on": ('inputs.feature("years_on")', "yr"),
+    "throughput_years": ('inputs.feature("throughput_years")', "yr-eq"),
+}
+
+
+def _snippet(cls: type[Effect], values: dict[str, tuple[float, float]]) -> str:
+    """A starting point for one's own Effect class: the suggestion written out."""
+    driver = cls.driver  # type: ignore[attr-defined]
+    title = "".join(part.capitalize() for part in driver.split("_")) + "Correction"
+    if cls.form == "season":  # type: ignore[attr-defined]
+        s, c = values["k_sin"][0], values["k_cos"][0]
+        return textwrap.dedent(
+            f'''\
+            import math
+
+            import torch
+
+            from vfm_core.effects import Effect, EffectInputs, Prior
+
+
+            class SeasonCorrection(Effect):
+                """The rate times 1 + a sin(2 pi d) + b cos(2 pi d), d = fraction of the year."""
+
+                name = "season_correction"
+                parameters = {{
+                    "a": Prior({s:.3g}, 0.05, -0.5, 0.5, "-", "amplitude of sin(2 pi d)"),
+                    "b": Prior({c:.3g}, 0.05, -0.5, 0.5, "-", "amplitude of cos(2 pi d)"),
+                }}
+
+                def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
+                    assert inputs.time_ns is not None
+                    d = torch.remainder(inputs.time_ns.double() / 86400e9, 365.2425) / 365.2425
+                    phase = 2 * math.pi * d
+                    return 1.0 + p["a"] * torch.sin(phase) + p["b"] * torch.cos(phase)
+            '''
+        )
+    expr, unit = _SNIPPET_X[driver]
+    k, k_sd = values["k"]
+    prior_sd = max(0.1, 3 * k_sd) if math.isfinite(k_sd) else 0.1
+    x0, scale, step = cls.x0, cls.scale, cls.step  # type: ignore[attr-defined]
+    extra = (
+        f'\n    extra_columns = ("{driver}",)' if driver in ("years_on", "throughput_years") else ""
+    )
+    factor = (
+        f'torch.exp(p["k"] * (x - {x0:g}) / {scale:g})'
+        if cls.form == "log"  # type: ignore[attr-defined]
+        else f'1.0 + p["k"] * (x - {x0:g}) / {scale:g}'
+    )
+    return textwrap.dedent(
+        f'''\
+        import torch
+
+        from vfm_core.effects import Effect, EffectInputs, Prior
+
+
+        class {title}(Effect):
+            """The rate (C_D) times a factor of {driver}: fitted by vfm diagnose as a start."""
+
+            name = "{driver}_correction"
+            parameters = {{
+                "k": Prior({k:.3g}, {prior_sd:.2g}, -1.0, 1.0, "1/({step})", "rate change per {step}"),
+            }}{extra}
+
+            def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
+                x = {expr}  # {unit}
+                return {factor}
+        '''
+    )
+
+
+# --- running the protocol ----------------------------------------------------------------------
+class _Progress:
+    """Progress of the runs: a tqdm bar, or a callback ``(fraction done, short text)``."""
+
+    def __init__(self, progress: bool | ProgressFn, total: int) -> None:
+        self.callback = progress if callable(progress) else None
+        self.bar = tqdm(total=total, desc="diagnose", unit="run", disable=progress is not True)
+        self.total = total
+        self.done = 0
+        self.fraction = 0.0
+
+    def add(self, n: int) -> None:
+        self.total += n
+        self.bar.total = self.total
+        self.bar.refresh()
+
+    def start(self, text: str) -> None:
+        self.bar.set_postfix_str(text)
+        if self.callback is not None:
+            self.callback(self.fraction, text)
+
+    def step(self) -> None:
+        self.done += 1
+        self.bar.update(1)
+        self.fraction = max(self.fraction, min(self.done / max(self.total, 1), 0.99))
+
+    def finish(self, text: str) -> None:
+        self.bar.close()
+        if self.callback is not None:
+            self.callback(1.0, text)
+
+
+def _comparison_train(model: str, train: TrainSettings | None) -> TrainSettings:
+    """The comparison's batch fit: the mechanistic model to convergence (its priors are its
+    regulariser; early stopping on the latest slice of a drifting history stops before a
+    trend such as wear is learned), the hybrids with early stopping."""
+    if train is not None:
+        return train
+    base = DEFAULT_TRAIN.get(model, TrainSettings())
+    return replace(base, early_stopping=False) if model == "mm" else base
+
+
+def _choose_split(
+    frame: pd.DataFrame, targets: str, split: str | pd.Timestamp | None
+) -> tuple[pd.Timestamp, str | None]:
+    """The split, and a note when the default one did not suit the data and another was chosen.
+
+    A given split is kept. The target case's default is kept when it leaves at least 20 %
+    of the measurements on either side; otherwise (a service's store of a few months, say)
+    the split falls where 60 % of the measurements lie before it.
+    """
+    ts = resolve_split(targets, split)
+    if split is not None:
+        return ts, None
+    times = frame.loc[target_mask(frame, targets), TIME]
+    if times.empty:
+        return ts, None
+    before = float((times < ts).mean())
+    if 0.2 <= before <= 0.8:
+        return ts, None
+    chosen = pd.Timestamp(times.quantile(0.6)).floor("D")
+    chosen = chosen.tz_localize("UTC") if chosen.tzinfo is None else chosen.tz_convert("UTC")
+    if not (times.min() < chosen <= times.max()):
+        return ts, None
+    return chosen, (
+        f"The default split {ts.date()} leaves {100 * before:.0f} % of the measurements before it; "
+        f"the diagnosis splits at {chosen.date()} instead (60 % before). Give --split to choose."
+    )
+
+
+def _with_features(frame: pd.DataFrame, classes: Sequence[type[Effect]]) -> pd.DataFrame:
+    """The frame with the standard features and every column the effects need."""
+    out = add_features(frame, classes)
+    missing = [c for c in STANDARD_FEATURES if c not in out.columns]
+    if missing:
+        feats = standard_features(out)
+        for c in missing:
+            out[c] = feats[c].to_numpy()
+    return out
 
 
 def run_diagnosis(
@@ -525,79 +984,215 @@ def run_diagnosis(
     train: TrainSettings | None = None,
     online: OnlineSettings | None = None,
     seed: int = 0,
-    progress: bool = False,
+    progress: bool | ProgressFn = False,
+    suggest: bool = True,
+    shifts: int = stats.SHIFTS,
+    source: dict[str, Any] | None = None,
 ) -> Diagnosis:
     """Diagnose ``model`` (mm, hem or ham) on an observation frame; see the module docstring.
 
-    ``candidates`` are tried one at a time; ``effects`` (optional) is one extended model
-    compared side by side with the base. ``method`` gives the residuals and drivers;
-    ``candidate_method`` is the protocol of the candidate comparison, run for the baseline
-    and every candidate alike; the default :data:`CANDIDATE_METHOD` fits once before the
-    split and scores everything after it (held out), since online learning also follows
-    what a missing effect does and so hides it, most of all at the well tests that judge
-    the candidates (measured on the default field: with ``ol`` the true effect ranked first
-    for 1 of erosion, valve, slip and MPFM bias, with the fixed fit for all 4, in a sixth
-    of the time). Same split, settings, seed.
+    ``candidates`` are tried one at a time (those the data cannot inform are skipped);
+    ``effects`` (optional) is one extended model compared side by side with the base.
+    ``method`` gives the online residuals of *where it fails*; ``candidate_method`` is the
+    comparison protocol, run for the baseline, every candidate and the suggestion alike.
+    ``progress``: True for a progress bar, or a callback ``(fraction, text)`` called as each
+    run starts and once at the end with 1.0 (for a service's background job). ``suggest``:
+    fit a correction for a driver outside the library; ``shifts``: circular shifts of the
+    chance test (0: none). Same split, settings and seed everywhere.
     """
     started = time.perf_counter()
     cand_classes = [resolve_effect(c) for c in candidates]
     ext_classes = resolve_effects(list(effects)) if effects else []
-    split_ts = resolve_split(targets, split)
-    frame = add_features(frame, [*cand_classes, *ext_classes])
-    kw: dict[str, Any] = dict(
-        targets=targets,
-        split=split_ts,
-        train=train,
-        online=online,
-        seed=seed,
-        track_parameters=False,
-    )
+    split_ts, split_note = _choose_split(frame, targets, split)
+    notes = [split_note] if split_note else []
+    train_rows = _training_rows(frame, targets, split_ts)
+    train_frame = frame.iloc[train_rows]
+    offered: list[type[Effect]] = []
+    skipped: list[dict[str, str]] = []
+    for cls in cand_classes:
+        reason = _offer_reason(cls, train_frame)
+        if reason is None:
+            offered.append(cls)
+        else:
+            skipped.append({"effect": cls.name, "reason": reason})
+    frame = _with_features(frame, [*offered, *ext_classes])
     cand_method = candidate_method or CANDIDATE_METHOD
-    # (key, effects, method): the baseline, one run per candidate, the extended model
-    jobs: list[tuple[str, list[type[Effect]], str]] = [("baseline", [], method)]
-    if cand_method != method:
-        jobs.append(("__candidate_baseline__", [], cand_method))
-    jobs += [(c.name, [c], cand_method) for c in cand_classes]
+    cand_train = _comparison_train(model, train)
+    kw: dict[str, Any] = dict(targets=targets, split=split_ts, online=online, seed=seed)
+    jobs: list[tuple[str, list[type[Effect]], str, TrainSettings | None]] = [
+        ("baseline", [], method, train)
+    ]
+    jobs.append(("__comparison__", [], cand_method, cand_train))
+    jobs += [(c.name, [c], cand_method, cand_train) for c in offered]
     if ext_classes:
-        jobs.append(("__extended__", ext_classes, method))
+        jobs.append(("__extended__", ext_classes, method, train))
+    bar = _Progress(progress, len(jobs) + 1)
     runs: dict[str, RunResult] = {}
-    bar = tqdm(jobs, desc="diagnose", unit="run", disable=not progress)
-    for key, classes, how in bar:
-        bar.set_postfix_str(key.strip("_"))
-        runs[key] = run_prequential(frame, model, how, effects=classes, **kw)
+
+    def run(
+        key: str, classes: list[type[Effect]], how: str, settings: TrainSettings | None
+    ) -> RunResult:
+        bar.start(f"fitting {key.strip('_')}")
+        out = run_prequential(frame, model, how, effects=classes, train=settings, **kw)
+        bar.step()
+        return out
+
+    for key, classes, how, settings in jobs:
+        runs[key] = run(key, classes, how, settings)
     base = runs["baseline"]
     base_p = base.predictions
     base_mape = mape(base_p["predicted"], base_p["measured"])
-    assert base.final_model is not None
-    phys = base.final_model.physical_parameters()
-    p_cr = (
-        {w: float(v) for w, v in zip(base.final_model.wells, phys["p_cr"], strict=True)}
-        if "p_cr" in phys
-        else None
-    )
-    res = residual_frame(frame, base_p, targets=targets, split=split_ts, p_cr=p_cr)
+    res = residual_frame(frame, base_p, targets=targets, split=split_ts, p_cr=_p_cr(base))
     base_bic = bic(res["r"].to_numpy(), 0, res["source"].to_numpy())
-    drivers = rank_drivers(res)
     regions = _regions(res)
     findings = _findings(res, regions, base_mape)
-    cand_base = runs.get("__candidate_baseline__", base).predictions
-    cand_base_mape = mape(cand_base["predicted"], cand_base["measured"])
-    cand_run = runs.get("__candidate_baseline__", base)
-    results = [_score(c.name, runs[c.name], [c], cand_base_mape, cand_run) for c in cand_classes]
+    comp = runs["__comparison__"]
+    comp_mape = mape(comp.predictions["predicted"], comp.predictions["measured"])
+    comp_res = residual_frame(
+        frame, comp.predictions, targets=targets, split=split_ts, p_cr=_p_cr(comp)
+    )
+
+    batches: dict[tuple[str, ...], Batch] = {}
+
+    def train_batch(run_: RunResult) -> Batch | None:
+        m = run_.final_model
+        if m is None:
+            return None
+        cols = tuple(m.extra_columns)
+        if cols not in batches:
+            rows = train_rows[frame.iloc[train_rows][WELL].astype(str).isin(m.wells).to_numpy()]
+            batches[cols] = make_batch(frame, m.wells, rows=rows, extra_columns=cols)
+        return batches[cols]
+
+    results = [
+        _score(c.name, runs[c.name], [c], comp_mape, comp, train_batch(runs[c.name]))
+        for c in offered
+    ]
     results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
-    extended = (
-        _score(
+    # the floor, on the best fit (model error only adds to the differences it is taken from)
+    fits = [comp_res]
+    best_fit = min((c for c in results if c.run is not None), key=lambda c: c.mape, default=None)
+    if best_fit is not None and best_fit.mape < comp_mape:
+        assert best_fit.run is not None
+        fits.append(_residuals_like(comp_res, best_fit.run))
+    floors = [stats.noise_floor(f) for f in fits]
+    floor = min(floors, key=lambda f: math.inf if f["mape"] is None else f["mape"])
+    floor["on"] = (
+        "the comparison baseline"
+        if floor is floors[0] or best_fit is None
+        else f"{model}+{best_fit.effect}"
+    )
+    for c in results:
+        _judge(c, comp_mape, floor.get("mape"))
+    results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+    # variants of the best material candidate: other forms of the same physics
+    best = next((c for c in results if c.material), None)
+    if best is not None and best.effect in VARIANTS:
+        tried = {c.effect for c in results} | {s["effect"] for s in skipped}
+        extra = []
+        for name in VARIANTS[best.effect]:
+            if name in tried or name not in EFFECTS:
+                continue
+            cls = resolve_effect(name)
+            if _offer_reason(cls, train_frame) is None:
+                extra.append(cls)
+        frame = _with_features(frame, extra)
+        bar.add(len(extra))
+        for cls in extra:
+            r_ = run(cls.name, [cls], cand_method, cand_train)
+            cand = _score(cls.name, r_, [cls], comp_mape, comp, train_batch(r_))
+            cand.variant_of = best.effect
+            _judge(cand, comp_mape, floor.get("mape"))
+            results.append(cand)
+        results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+
+    bar.start("ranking drivers")
+    drivers = rank_drivers(comp_res, shifts=shifts, seed=seed)
+    eligible = [d for d in drivers if d["role"] == "driver"]
+    top = eligible[0] if eligible else None
+    r_raw = np.clip(comp_res["r"].to_numpy(dtype=float), -_CLIP, _CLIP)
+    ok_r = np.isfinite(r_raw)
+    r_det = stats.detrend(comp_res[ok_r])
+    trend_share = 1.0 - float(np.var(r_det)) / max(float(np.var(r_raw[ok_r])), 1e-300)
+    noise_test = {
+        "trend_share": trend_share,
+        "method": "circular shifts of the detrended residual within each well and meter; "
+        "p-value of the best driver against the best score any eligible driver reaches by chance",
+        "shifts": shifts,
+        "alpha": stats.ALPHA,
+        "driver": None if top is None else top["name"],
+        "score": None if top is None else top["score"],
+        "p_value": None if top is None else top["p_value"],
+    }
+    material = [c for c in results if c.material]
+    significant = (
+        top is not None
+        and top["p_value"] is not None
+        and top["p_value"] < stats.ALPHA
+        and top["score"] > 0
+    )
+    suggestion = None
+    if (
+        suggest
+        and not material
+        and significant
+        and top is not None
+        and top["name"] in SUGGEST_DRIVERS
+    ):
+        chosen = [
+            d["name"]
+            for d in eligible
+            if d["p_value"] is not None
+            and d["p_value"] < stats.ALPHA
+            and d["score"] > 0
+            and d["name"] in SUGGEST_DRIVERS
+        ][:SUGGEST_TOP]
+        rows = _derived(frame.iloc[train_rows])
+        suggestion = _fit_suggestion(
+            chosen,
+            {d: np.asarray(stats.driver_values(rows, d), dtype=float) for d in chosen},
+            run,
+            cand_method,
+            cand_train,
+            comp_mape,
+            comp,
+            train_batch,
+            bar,
+        )
+    if suggestion is not None:
+        _judge(suggestion.result, comp_mape, floor.get("mape"))
+    noise_test["confirmed"] = None if suggestion is None else suggestion.result.material
+
+    extended = None
+    if ext_classes:
+        extended = _score(
             "+".join(c.name for c in ext_classes),
             runs["__extended__"],
             ext_classes,
             base_mape,
             base,
+            train_batch(runs["__extended__"]),
         )
-        if ext_classes
-        else None
+    scored_on = reference_bic(comp.predictions, 0)[1]
+    protocol = (
+        f"fitted once on the measurements before {split_ts.date()} and scored on the "
+        f"{len(comp_res):,} measurements after it, never updated ({cand_method})"
+        if cand_method == CANDIDATE_METHOD
+        else f"learned with {cand_method} from {split_ts.date()} on, scored on the "
+        f"{len(comp_res):,} measurements after the split (each predicted before it is learned)"
     )
-    scored_on = reference_bic(cand_run.predictions, 0)[1]
-    verdict = _verdict(cand_base_mape, results, drivers)
+    kind, effect_name, driver_name, text = _verdict(
+        comp_mape,
+        results,
+        top,
+        drivers,
+        suggestion,
+        floor.get("mape"),
+        protocol,
+        scored_on,
+        trend_share,
+    )
+    bar.finish(f"verdict: {kind}")
     return Diagnosis(
         model,
         str(method),
@@ -611,40 +1206,284 @@ def run_diagnosis(
         regions,
         results,
         findings,
-        verdict,
+        text,
         extended,
         time.perf_counter() - started,
         cand_method,
-        cand_base_mape,
+        comp_mape,
         scored_on,
+        kind,
+        effect_name,
+        driver_name,
+        suggestion,
+        floor,
+        noise_test,
+        skipped,
+        comp_res,
+        protocol,
+        notes,
+        source or {"kind": "frame"},
     )
+
+
+def _derived(frame: pd.DataFrame) -> pd.DataFrame:
+    """Observation rows with the pressure ratio (the features are already columns)."""
+    return frame.assign(p_ratio=frame["p_down"] / frame["p_up"])
+
+
+def _p_cr(run: RunResult) -> dict[str, float] | None:
+    m = run.final_model
+    if m is None:
+        return None
+    phys = m.physical_parameters()
+    if "p_cr" not in phys:
+        return None
+    return {w: float(v) for w, v in zip(m.wells, phys["p_cr"], strict=True)}
+
+
+def _residuals_like(res: pd.DataFrame, run: RunResult) -> pd.DataFrame:
+    out = res.copy()
+    out["predicted"] = run.predictions["predicted"].to_numpy(dtype=float)
+    out["r"] = (out["measured"] - out["predicted"]) / out["measured"]
+    return out
+
+
+def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
+    """Set a candidate's share of the error above the floor, and whether it is material."""
+    c.share_above_floor = _share(base_mape, c.mape, floor)
+    c.material = _is_material(
+        c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, c.share_above_floor
+    )
+
+
+def _share(base: float, with_: float, floor: float | None) -> float:
+    """Share of the error above the floor that ``with_`` removes (nan without a floor)."""
+    if floor is None or not math.isfinite(floor) or base - floor <= 1e-9:
+        return float("nan")
+    return (base - with_) / (base - floor)
+
+
+def _per_well_values(
+    cand: CandidateResult, cls: type[Effect], model: ChokeModel
+) -> tuple[dict[str, tuple[float, float]], dict[str, tuple[float, float]]]:
+    """Per parameter: (field median, median sd) and the shared estimate (mean, sd)."""
+    ready = model.ready.numpy()
+    median: dict[str, tuple[float, float]] = {}
+    shared: dict[str, tuple[float, float]] = {}
+    for pname in cls.parameters:
+        entry = cand.parameters[f"suggest.{pname}"]
+        v = np.array([entry["per_well"][w] for w in model.wells])[ready]
+        s = np.array([entry["per_well_sd"].get(w, np.nan) for w in model.wells])[ready]
+        shared[pname] = _shared_value(v, s)
+        sd = entry["sd"]
+        median[pname] = (float(entry["value"]), float(sd) if sd is not None else float("nan"))
+    return median, shared
+
+
+def _fit_suggestion(
+    drivers: Sequence[str],
+    x_train: dict[str, np.ndarray],
+    run: Callable[..., RunResult],
+    how: str,
+    settings: TrainSettings,
+    base_mape: float,
+    base: RunResult,
+    train_batch: Callable[[RunResult], Batch | None],
+    bar: _Progress,
+) -> Suggestion:
+    """Fit the generic correction for each driver under the comparison protocol and keep the
+    one with the lowest BIC: per well, linear and log-linear (the season for the day of the
+    year); then the better form with one coefficient shared by every well (the
+    precision-weighted mean of the wells' values, fixed)."""
+    tried: list[tuple[CandidateResult, bool, type[Effect], dict[str, tuple[float, float]], str]]
+    tried = []
+    for driver in drivers:
+        spec = SUGGEST_DRIVERS[driver]
+        if driver == "day_of_year":
+            heads = {"season": f"suggest:driver={driver}:form=season"}
+        else:
+            x0 = _x0(x_train[driver], spec.scale)
+            heads = {
+                f: f"suggest:driver={driver}:form={f}:x0={x0:g}:scale={spec.scale:g}"
+                for f in ("linear", "log")
+            }
+        bar.add(len(heads) + 1)
+        fits = []
+        for form, head in heads.items():
+            cls = resolve_effect(head)
+            r_ = run(f"suggest {driver} {form} per well", [cls], how, settings)
+            cand = _score(f"suggest:{driver}", r_, [cls], base_mape, base, train_batch(r_))
+            cand.driver = driver
+            assert r_.final_model is not None
+            median, shared = _per_well_values(cand, cls, r_.final_model)
+            tried.append((cand, False, cls, median, head))
+            fits.append((cand, cls, shared, head))
+        cand, cls, shared, head = min(fits, key=lambda f: _order(f[0].delta_bic))
+        fixed_spec = head + "".join(f":{k}={v:.6g}" for k, (v, _) in shared.items())
+        fixed_cls = resolve_effect(fixed_spec)
+        r_s = run(f"suggest {driver} {cls.form} shared", [fixed_cls], how, settings)  # type: ignore[attr-defined]
+        one = _score(
+            f"suggest:{driver}", r_s, [fixed_cls], base_mape, base, None, k_override=len(shared)
+        )
+        one.driver = driver
+        one.parameters = {
+            f"suggest.{pname}": {
+                "value": mean,
+                "sd": sd,
+                "unit": cls.parameters[pname].unit,
+                "meaning": cls.parameters[pname].meaning,
+                "shared": True,
+            }
+            for pname, (mean, sd) in shared.items()
+        }
+        one.meaning = fixed_cls().describe({})
+        tried.append((one, True, fixed_cls, shared, head))
+    variants = [
+        {
+            "driver": c_cls.driver,  # type: ignore[attr-defined]
+            "form": c_cls.form,  # type: ignore[attr-defined]
+            "shared": is_shared,
+            "n_parameters": cand.n_parameters,
+            "mape": cand.mape,
+            "delta_bic": cand.delta_bic,
+            "delta_bic_all": cand.delta_bic_all,
+            "effects": cand.spec,
+        }
+        for cand, is_shared, c_cls, _, _ in tried
+    ]
+    chosen, is_shared, cls, values, head = min(tried, key=lambda t: _order(t[0].delta_bic))
+    params = {key.split(".", 1)[1]: dict(entry) for key, entry in chosen.parameters.items()}
+    return Suggestion(
+        driver=cls.driver,  # type: ignore[attr-defined]
+        form=cls.form,  # type: ignore[attr-defined]
+        shared=is_shared,
+        spec=chosen.spec,
+        text=_form_text(cls, values, is_shared),
+        parameters=params,
+        result=chosen,
+        variants=variants,
+        per_well_spec=head,
+        code=_snippet(cls, values),
+    )
+
+
+def _order(value: float) -> float:
+    return value if math.isfinite(value) else math.inf
 
 
 def _verdict(
-    base_mape: float, candidates: list[CandidateResult], drivers: list[dict[str, Any]]
-) -> str:
+    base_mape: float,
+    candidates: list[CandidateResult],
+    top: dict[str, Any] | None,
+    drivers: list[dict[str, Any]],
+    suggestion: Suggestion | None,
+    floor: float | None,
+    protocol: str,
+    bic_on: str,
+    trend_share: float = float("nan"),
+) -> tuple[str, str | None, str | None, str]:
+    """(kind, effect, driver, sentence): see the module docstring for the rule."""
+    floor_text = f"; noise floor about {floor:.2f} %" if floor is not None else ""
+    if floor is not None and base_mape > 1.5 * floor:
+        what = (
+            f"is well above the noise floor ({floor:.2f} %) but follows time in each well, not any "
+            f"variable (per-well straight lines in time hold {100 * trend_share:.0f} % of its "
+            "variance): a slow drift of the wells or meters, which online learning follows"
+        )
+    else:
+        what = "is treated as measurement noise and meter drift"
     material = [c for c in candidates if c.material]
-    top = drivers[0] if drivers else None
     if material:
         best = material[0]
+        share = (
+            f", {100 * best.share_above_floor:.0f} % of the error above the noise floor ({floor:.2f} %)"
+            if floor is not None and math.isfinite(best.share_above_floor)
+            else ""
+        )
         text = (
-            f"The missing effect is most likely {best.effect}: adding it lowers the MAPE from "
-            f"{base_mape:.2f} % to {best.mape:.2f} % (BIC {best.delta_bic:+.0f}). {best.meaning}"
+            f"The missing effect is most likely {best.effect}: {protocol}, the MAPE falls from "
+            f"{base_mape:.2f} % to {best.mape:.2f} % with it{share} (BIC {best.delta_bic:+.0f} on the "
+            f"{bic_on}). {best.meaning}"
         )
         if len(material) > 1:
-            others = ", ".join(f"{c.effect} ({c.mape:.2f} %)" for c in material[1:])
+            others = ", ".join(f"{c.effect} ({c.mape:.2f} %)" for c in material[1:4])
             text += f" Also material, but weaker: {others}."
-        return text
-    if top is not None and top["score"] >= 0.02:
+        if best.warnings:
+            text += " Check its parameters: " + best.warnings[0]
+        return "effect", best.effect, None, text
+    if top is not None and suggestion is not None and suggestion.result.material:
+        s = suggestion.result
+        d = next((x for x in drivers if x["name"] == suggestion.driver), top)
         return (
-            f"No candidate explains the residual; it depends mostly on {top['name']} "
-            f"({100 * top['score']:.0f} % of its variance explained out of sample). Write an effect "
-            f"of {top['name']} (see examples/README.md) and diagnose again with --effects."
+            "driver",
+            None,
+            d["name"],
+            f"No candidate explains the residual; it depends mostly on {d['name']} (it explains "
+            f"{100 * d['score']:.0f} % of the residual beyond per-well trends, out of sample; "
+            f"p = {d['p_value']:.3f} by circular shifts). A correction {suggestion.text} lowers "
+            f"the MAPE from {base_mape:.2f} % to {s.mape:.2f} % ({protocol}{floor_text}). "
+            f"Apply it with --effects {suggestion.spec}, or start your own effect from the code "
+            "in the report.",
         )
-    return (
-        "No candidate explains the residual, and no variable predicts it out of sample: what is "
-        f"left (MAPE {base_mape:.2f} %) looks like measurement noise."
+    if top is not None and top["p_value"] is not None and top["p_value"] < stats.ALPHA:
+        tail = (
+            f"a correction in {suggestion.driver} does not lower the held-out error materially "
+            f"({base_mape:.2f} % -> {suggestion.mape:.2f} %, BIC {suggestion.result.delta_bic:+.0f})"
+            if suggestion is not None
+            else "it is not a variable a correction can use"
+        )
+        return (
+            "noise",
+            None,
+            None,
+            f"No candidate explains the residual. {top['name']} correlates with it beyond chance "
+            f"(p = {top['p_value']:.3f}), but {tail}: what is left (MAPE {base_mape:.2f} %) {what}.",
+        )
+    best_p = (
+        ""
+        if top is None or top["p_value"] is None
+        else f" (best: {top['name']}, p = {top['p_value']:.2f} by circular shifts)"
     )
+    return (
+        "noise",
+        None,
+        None,
+        "No candidate explains the residual, and no variable explains more of it than chance "
+        f"would{best_p}: what is left (MAPE {base_mape:.2f} %"
+        + (
+            f"{floor_text}) looks like measurement noise and meter drift."
+            if what.startswith("is treated")
+            else f") {what}."
+        ),
+    )
+
+
+# --- data sources -------------------------------------------------------------------------------
+def load_source(kind: str, path: str, well: str | None = None) -> pd.DataFrame:
+    """Observations from a source registered under the entry-point group ``vfm.sources``
+    (``store``: a service's SQLite store, ``load_store(path, well)``), checked like a file."""
+    from vfm_core.observations import validate_frame
+
+    found = {ep.name: ep for ep in importlib.metadata.entry_points(group="vfm.sources")}
+    if kind not in found:
+        raise ConfigError(
+            f"No data source '{kind}' is installed (entry point group vfm.sources has "
+            f"{sorted(found) or 'none'}); install the project with its service package "
+            "(pip install -e .) to read a service's store, or export the store to a file."
+        )
+    try:
+        loader = found[kind].load()
+    except ImportError as exc:
+        raise ConfigError(
+            f"The data source '{kind}' ({found[kind].value}) cannot be imported: {exc}."
+        ) from None
+    frame = loader(path, well)
+    if not isinstance(frame, pd.DataFrame):
+        raise DataError(f"The data source '{kind}' returned {type(frame).__name__}, not a frame.")
+    if frame.empty:
+        which = f" for well {well}" if well else ""
+        raise DataError(f"The store {path} holds no observations{which}.")
+    return validate_frame(frame, name=f"{kind} {path}").frame
 
 
 # --- outputs --------------------------------------------------------------------------------
@@ -692,18 +1531,25 @@ def write_diagnosis(
 
 
 def format_summary(diag: Diagnosis) -> str:
-    lines = [
-        f"Baseline {diag.model} ({diag.method}, {diag.targets}): MAPE {diag.baseline_mape:.2f} % "
-        f"on {len(diag.residuals):,} observations."
-    ]
-    if diag.candidate_method != diag.method:
-        lines.append(
-            f"Candidates compared with {diag.candidate_method}: baseline MAPE "
-            f"{diag.candidate_baseline_mape:.2f} %."
-        )
+    h = diag.headline
+    lines = [f"Verdict ({diag.verdict_kind}): {diag.verdict}"]
+    with_text = f"; with {h['with']}: {h['with_mape']:.2f} %" if h["with_mape"] is not None else ""
+    floor = f"; noise floor {h['floor_mape']:.2f} %" if h["floor_mape"] is not None else ""
     lines.append(
-        "Drivers (out-of-sample R^2 of the residual): "
-        + ", ".join(f"{d['name']} {d['score']:.2f}" for d in diag.drivers[:5])
+        f"Headline ({diag.candidate_method}): baseline {diag.model} MAPE "
+        f"{diag.candidate_baseline_mape:.2f} %{with_text}{floor}."
+    )
+    lines.append(
+        f"Online ({diag.method}, {diag.targets}): MAPE {diag.baseline_mape:.2f} % on "
+        f"{len(diag.residuals):,} observations (where it fails in operation)."
+    )
+    lines.append(
+        "Drivers beyond per-well trends (out-of-sample R^2, p): "
+        + ", ".join(
+            f"{d['name']} {d['score']:.3f}"
+            + (f" (p {d['p_value']:.3f})" if d["p_value"] is not None else "")
+            for d in diag.drivers[:5]
+        )
     )
     lines.append(
         f"Candidates (dBIC on the {diag.bic_on}; dBIC all on every measurement; * material):"
@@ -711,19 +1557,26 @@ def format_summary(diag: Diagnosis) -> str:
     for c in diag.candidates:
         flag = " *" if c.material else ""
         lines.append(
-            f"  {c.effect:<16} MAPE {c.mape:6.2f} %  dMAPE {c.delta_mape:+6.2f}  dBIC {c.delta_bic:+9.1f}"
+            f"  {c.effect:<24} MAPE {c.mape:6.2f} %  dMAPE {c.delta_mape:+6.2f}  dBIC {c.delta_bic:+9.1f}"
             f"  dBIC all {c.delta_bic_all:+9.1f}{flag}"
+        )
+    for skip in diag.skipped:
+        lines.append(f"  {skip['effect']:<24} skipped: {skip['reason']}")
+    if diag.suggestion is not None:
+        sug = diag.suggestion
+        lines.append(
+            f"Suggested correction: {sug.text}; MAPE {sug.mape:.2f} % "
+            f"(dBIC {sug.result.delta_bic:+.1f}); --effects {sug.spec}"
         )
     if diag.extended is not None:
         e = diag.extended
         lines.append(
             f"With --effects {e.effect}: MAPE {e.mape:.2f} % (dMAPE {e.delta_mape:+.2f}, dBIC {e.delta_bic:+.1f})."
         )
-    lines.append(diag.verdict)
+    lines += diag.notes
     return "\n".join(lines)
 
 
-# --- the report (drawn by vfm_core.reporting.diagnosis) ------------------------------------
 # --- command line ---------------------------------------------------------------------------
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from vfm_core.observations import load_observations
@@ -731,6 +1584,10 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     def split_list(values: Sequence[str] | None) -> list[str]:
         return [x.strip() for v in values or [] for x in v.split(",") if x.strip()]
 
+    if (args.data is None) == (args.store is None):
+        raise ConfigError(
+            "Give either an observation file (DATA) or --store PATH, not both or neither."
+        )
     candidates = split_list(args.candidates) or list(DEFAULT_CANDIDATES)
     if candidates == ["none"]:
         candidates = []
@@ -739,10 +1596,21 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     resolve_effects(effects)
     for c in candidates:
         resolve_effect(c)
-    loaded = load_observations(args.data)
-    print(loaded.summary())
+    if args.store is not None:
+        frame = load_source("store", args.store, args.well)
+        source = {"kind": "store", "path": str(args.store), "well": args.well}
+        print(f"{args.store}: {len(frame):,} rows from the service's store.")
+    else:
+        loaded = load_observations(args.data)
+        print(loaded.summary())
+        frame = loaded.frame
+        source = {"kind": "file", "path": str(args.data), "well": args.well}
+        if args.well is not None:
+            frame = frame[frame[WELL].astype(str) == args.well].reset_index(drop=True)
+            if frame.empty:
+                raise DataError(f"The file {args.data} has no rows of well {args.well}.")
     diag = run_diagnosis(
-        loaded.frame,
+        frame,
         args.model,
         method=args.method,
         candidate_method=args.candidate_method,
@@ -752,6 +1620,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         effects=effects,
         seed=args.seed,
         progress=not args.quiet,
+        source=source,
     )
     written = write_diagnosis(diag, args.out, report=not args.no_report)
     print(format_summary(diag))
@@ -764,27 +1633,43 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="find where a model fails and which physical effect is missing",
-        description="Learn the model prequentially, rank what its residual depends on, try each "
-        "candidate effect under the same protocol and report the verdict.",
+        description="Fit the model once before the split and score it after; try each candidate "
+        "effect under the same protocol; rank what the residual depends on beyond time and well; "
+        "suggest a correction for an effect outside the library; give one verdict.",
     )
-    p.add_argument("data", help="observation file (.parquet or .csv)")
+    p.add_argument("data", nargs="?", default=None, help="observation file (.parquet or .csv)")
+    p.add_argument(
+        "--store",
+        default=None,
+        metavar="PATH",
+        help="a service's SQLite store instead of a file (read through the vfm.sources entry point)",
+    )
+    p.add_argument("--well", default=None, help="diagnose this well only")
     p.add_argument("--out", required=True, help="output folder (diagnosis.json, report.html)")
     p.add_argument(
         "--model", default="mm", choices=["mm", "hem", "ham"], help="base model (default mm)"
     )
     p.add_argument(
-        "--method", default="ol", help="learning method: ol or pbl:<period> (default ol)"
+        "--method",
+        default="ol",
+        help="learning method of the online run (where it fails in operation): ol or "
+        "pbl:<period> (default ol)",
     )
     p.add_argument(
         "--candidate-method",
         default=CANDIDATE_METHOD,
-        help=f"protocol of the candidate comparison (default {CANDIDATE_METHOD}: fit once "
+        help=f"protocol of every comparison (default {CANDIDATE_METHOD}: fit once "
         "before the split, score the rest; online learning would hide a missing effect)",
     )
     p.add_argument(
         "--targets", default="all", choices=["all", "well_test"], help="target case (default all)"
     )
-    p.add_argument("--split", default=None, help="first day scored (default as vfm evaluate)")
+    p.add_argument(
+        "--split",
+        default=None,
+        help="first day scored (default as vfm evaluate, or where 60 %% of the data lie before "
+        "it when that leaves too little on one side)",
+    )
     p.add_argument(
         "--candidates",
         action="append",
@@ -795,8 +1680,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--effects",
         action="append",
-        help="effects to add to the model and compare side by side, e.g. erosion,real_gas "
-        "or mypkg.effects:Scale",
+        help="effects to add to the model and compare side by side, e.g. erosion,real_gas, "
+        "suggest:driver=t_up or mypkg.effects:Scale",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
