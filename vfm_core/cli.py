@@ -86,6 +86,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             track_parameters=args.track_parameters,
             params=params,
             effects=_split_list(args.effects),
+            outages=_split_list(args.outages),
+            outage_fractions=args.outage_fractions,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -160,6 +162,19 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="physical effects to add to mm/hem/ham (shown beside the plain model), "
         "e.g. erosion,real_gas or mypkg.effects:Scale",
+    )
+    p.add_argument(
+        "--outages",
+        action="append",
+        help="also score the outage protocol: hide measurement windows of these lengths in "
+        "the test period from learning and score inside them, e.g. 7d,30d,90d",
+    )
+    p.add_argument(
+        "--outage-fractions",
+        choices=("held", "measured"),
+        default="held",
+        help="phase fractions inside an outage window: held at the last measurement before "
+        "it (default, as with a failed MPFM) or as measured in the file",
     )
     p.add_argument(
         "--track-parameters",
