@@ -9,8 +9,9 @@ import pandas as pd
 import pytest
 import torch
 
+from vfm_core.errors import DataError
 from vfm_core.jobs.evaluate import run_study, summarise, write_study
-from vfm_core.jobs.study import mape, metrics_records, run_prequential
+from vfm_core.jobs.study import mape, metrics_records, resolve_split, run_prequential
 from vfm_core.learning import METHODS, Forecast, LearningMethod, register
 from vfm_core.simulate import simulate_field
 
@@ -258,3 +259,21 @@ def test_a_new_method_with_intervals_gets_coverage_and_width(band_method, tmp_pa
     write_study(result, tmp_path)
     html = (tmp_path / "report.html").read_text()
     assert "Predictive intervals: calibration" in html and "90&nbsp;% predictive interval" in html
+
+
+def test_default_split_follows_the_data_when_the_cases_date_does_not_split_it() -> None:
+    frame = simulate_field(wells=2, years=1.0, seed=2, start="2012-01-01").observations
+    # 2019-01-01 lies after every measurement: two thirds of them, by month, instead
+    split = resolve_split("all", None, frame)
+    times = frame.loc[frame["q_total"].notna(), "time"].sort_values()
+    at = times.iloc[int((len(times) - 1) * 2 / 3)]
+    assert split == pd.Timestamp(year=at.year, month=at.month, day=1, tz="UTC")
+    assert times.iloc[0] < split < times.iloc[-1]
+    # the paper's date where it splits the data, and a given split, are kept
+    assert resolve_split("all", None, simulate_field(wells=1, years=4.0).observations) == (
+        pd.Timestamp("2019-01-01", tz="UTC")
+    )
+    assert resolve_split("all", "2012-03-01", frame) == pd.Timestamp("2012-03-01", tz="UTC")
+    with pytest.raises(DataError, match="choose an earlier --split"):
+        run_prequential(frame, "last", "ol", split="2019-01-01")
+    assert len(run_prequential(frame, "last", "ol").predictions) > 100

@@ -194,7 +194,7 @@ def run_study(
     Where the data have the phase rates, every run also scores them.
     """
     _check_names(models, methods)
-    split_ts = resolve_split(targets, split)
+    split_ts = resolve_split(targets, split, frame)
     asked = [outages] if isinstance(outages, str) else list(outages)
     lengths = parse_outages(asked) if any(str(a).strip() for a in asked) else []
     if outage_fractions not in OUTAGE_FRACTIONS:
