@@ -52,7 +52,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_import_volve(args: argparse.Namespace) -> int:
     from vfm_core.volve import import_volve
 
-    report = import_volve(args.src, args.out)
+    report = import_volve(args.src, args.out, min_choke_dp_bar=args.min_choke_dp)
     print(report.summary())
     return 0
 
@@ -128,6 +128,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import-volve", help="convert Equinor's Volve daily production CSV")
     p.add_argument("src", help="volve_daily_production.csv")
     p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
+    p.add_argument(
+        "--min-choke-dp",
+        type=float,
+        default=0.0,
+        metavar="BAR",
+        help="leave out days with less than this pressure drop across the choke, where it "
+        "does not restrict the flow (default 0: keep every day)",
+    )
     p.set_defaults(handler=_cmd_import_volve)
 
     p = sub.add_parser("evaluate", help="run the study: models x learning methods, prequentially")
