@@ -4,6 +4,12 @@ Prints figures; asserts nothing (these machines are shared and noisy: compare ra
 within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
+        [--outages 7d,30d,90d]
+
+With ``--outages`` each case runs twice, without and with the outage protocol, and the
+ratio of the wall times is printed: the protocol adds one prequential run per model,
+method and outage length (the initial fit is shared), so the ratio should stay near
+1 + the number of lengths, whatever the number of windows.
 
 River (a benchmark-only extra: ``pip install -e '.[bench]'``) gives a reference: its
 ``LinearRegression.learn_one`` on the same stream.
@@ -72,6 +78,7 @@ def main() -> None:
     parser.add_argument("--models", default=",".join(MODELS))
     parser.add_argument("--methods", default="ol,pbl:14d,pbl:182d")
     parser.add_argument("--cases", default="all,well_test")
+    parser.add_argument("--outages", default="", help="e.g. 7d,30d,90d (also time the protocol)")
     parser.add_argument("--skip-study", action="store_true")
     parser.add_argument("--out", default=None, help="also write each case's outputs (report) here")
     args = parser.parse_args()
@@ -109,6 +116,24 @@ def main() -> None:
         print(format_summary(result))
         per = result.predictions.groupby(["model", "method"]).size()
         print(f"case {case}: {result.runtime_s:.1f} s for {len(per)} model x method runs")
+        if args.outages:
+            with_outages = run_study(
+                frame,
+                models=models,
+                methods=args.methods.split(","),
+                targets=case,
+                progress=False,
+                outages=args.outages,
+            )
+            total += with_outages.runtime_s
+            lengths = len(with_outages.outages)
+            windows = len(with_outages.outage_windows)
+            print(format_summary(with_outages))
+            print(
+                f"case {case} with outages {args.outages} ({windows} windows): "
+                f"{with_outages.runtime_s:.1f} s, {with_outages.runtime_s / result.runtime_s:.2f} x "
+                f"the ordinary study (1 + {lengths} lengths = {1 + lengths})"
+            )
     print(f"\nfull study: {total:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB")
 
 

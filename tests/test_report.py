@@ -12,7 +12,7 @@ import pytest
 
 from vfm_core.jobs.evaluate import StudyResult, summarise
 from vfm_core.jobs.study import metrics_records
-from vfm_core.reporting.study import build_report
+from vfm_core.reporting.study import build_report, calibration_curve
 
 SPLIT = pd.Timestamp("2019-01-01", tz="UTC")
 WELLS = ("<b>W1</b>", "W2", "W3")
@@ -274,3 +274,83 @@ def test_file_stays_small_for_a_long_study(tmp_path: Path) -> None:
     page = build_report(make_result(preds), tmp_path / "r.html")
     assert page.stat().st_size < 2_000_000
     assert re.search(r"at most \d+ points per series", page.read_text(encoding="utf-8"))
+
+
+# --------------------------------------------------------------------------- phases, outages, intervals
+
+
+def with_oil(preds: pd.DataFrame, factor: float = 2.0) -> pd.DataFrame:
+    """Oil at 1 % of the total, its error ``factor`` times the total's (same sign)."""
+    rel = (preds["predicted"] - preds["measured"]) / preds["measured"]
+    return preds.assign(
+        measured_q_oil=preds["measured"] * 0.01,
+        predicted_q_oil=preds["measured"] * 0.01 * (1.0 + factor * rel),
+    )
+
+
+def make_outage_predictions() -> pd.DataFrame:
+    """Inside 30-day windows: every error three times the ordinary one; 0-29 days since."""
+    errors = {k: tuple(3.0 * e for e in v) for k, v in ERRORS.items()}
+    preds = make_predictions(errors, days=30)
+    since = np.tile(np.arange(120) / 4.0, len(preds) // 120)
+    return preds.assign(outage="30d", days_since=since)
+
+
+@pytest.fixture
+def protocol_page(tmp_path: Path) -> str:
+    preds = with_oil(make_predictions(ERRORS))
+    outage = make_outage_predictions()
+    records = metrics_records(preds) + metrics_records(outage)
+    windows = pd.DataFrame(
+        {
+            "outage": "30d",
+            "well": list(WELLS) * 2,
+            "start": SPLIT,
+            "end": SPLIT + pd.Timedelta(days=30),
+            "rows": 60,
+        }
+    )
+    result = make_result(
+        preds,
+        records=records,
+        summary=summarise(records),
+        outage_predictions=outage,
+        outage_windows=windows,
+        outages=["30d"],
+        phases=["q_oil"],
+    )
+    return build_report(result, tmp_path / "r.html").read_text(encoding="utf-8")
+
+
+def test_protocol_table_holds_hand_computed_scores(protocol_page: str) -> None:
+    table = table_after(protocol_page, "Total and phases, ordinary and outage protocol")
+    assert table[0] == ["Protocol", "Target", "lr", "mm", "last (benchmark)", "beats benchmark"]
+    rows = {(r[0], r[1]): r[2:] for r in table[1:]}
+    # each model at its best method (ol); oil errors twice the total's, outages three times
+    assert rows["ordinary", "total"] == ["2.0ol", "6.0ol", "50.0ol", "✓"]
+    assert rows["ordinary", "oil"] == ["4.0ol", "12.0ol", "100.0ol", "✓"]
+    assert rows["30d", "total"] == ["6.0ol", "18.0ol", "150.0ol", "✓"]
+    assert len(rows) == 3
+    # the paper's tables stay those of the total under the ordinary protocol
+    mean = table_after(protocol_page, "Mean MAPE across wells")
+    assert {r[0]: r[1:] for r in mean[1:]}["ol"] == ["2.0", "6.0", "4.0", "50.0"]
+
+
+def test_outage_figure_and_its_windows(protocol_page: str) -> None:
+    section = protocol_page[protocol_page.index("Standing in for a failed meter") :]
+    assert "30d: 6 windows in 3 wells, 360 hidden measurements" in section
+    assert "held at the last measurement before it" in section
+    # the seven of the default page, plus the outage figure and the phase grid
+    assert image_count(protocol_page) == 8
+    assert "<h2>Phase rates: lr (ol)</h2>" in protocol_page
+
+
+def test_calibration_curve_by_hand() -> None:
+    # sd 0.1 in log space (p95 = q e^(1.6449 * 0.1)); measurements at z = 0, 0.5, 1, 2 sd
+    predicted = np.full(4, 100.0)
+    p95 = predicted * np.exp(1.6448536269514722 * 0.1)
+    measured = predicted * np.exp(0.1 * np.array([0.0, -0.5, 1.0, 2.0]))
+    cov = calibration_curve(predicted, measured, p95, levels=(0.1, 0.5, 0.8, 0.95, 0.99))
+    # central-interval half widths in sd: 0.126, 0.674, 1.282, 1.960, 2.576
+    np.testing.assert_allclose(cov, [0.25, 0.5, 0.75, 0.75, 1.0])
+    assert np.isnan(calibration_curve(predicted, measured, np.full(4, np.nan))).all()

@@ -9,8 +9,10 @@ import pandas as pd
 import pytest
 import torch
 
+from vfm_core.errors import DataError
 from vfm_core.jobs.evaluate import run_study, summarise, write_study
-from vfm_core.jobs.study import mape, metrics_records, run_prequential
+from vfm_core.jobs.study import mape, metrics_records, resolve_split, run_prequential
+from vfm_core.learning import METHODS, Forecast, LearningMethod, register
 from vfm_core.simulate import simulate_field
 
 
@@ -110,3 +112,168 @@ def test_evaluate_outputs_follow_the_contract(tmp_path) -> None:
     # every scored observation is after the split, predicted before being learned from
     assert (preds["time"] >= pd.Timestamp("2019-01-01", tz="UTC")).all()
     assert not list(tmp_path.glob(".staging-*"))
+
+
+# --------------------------------------------------------------------------- phases
+
+#: Gas density at standard conditions (101325 Pa, 288.15 K) of the prior's molar mass
+#: 0.0205 kg/mol, kg/m3: p M / (R T) = 101325 * 0.0205 / (8.314462618 * 288.15) = 0.86699.
+RHO_GAS_SC = 101325.0 * 0.0205 / (8.314462618 * 288.15)
+
+
+def _hand_frame() -> pd.DataFrame:
+    """One well, a measurement a day: 3 days before the split, 3 after, fixed fractions."""
+    times = pd.date_range("2018-12-29 12:00", periods=6, freq="D", tz="UTC")
+    q_total = np.array([1000.0, 1100.0, 1200.0, 1300.0, 1250.0, 1150.0])
+    return pd.DataFrame(
+        {
+            "time": times,
+            "well": "A",
+            "choke": 0.5,
+            "p_up": 100.0,
+            "p_down": 30.0,
+            "t_up": 60.0,
+            "eta_gas": 0.1,
+            "eta_oil": 0.6,
+            "q_total": q_total,
+            "source": "mpfm",
+            # measured phases: gas and water as the total's shares, oil 5 % off from day 5 on
+            "q_gas": q_total * 0.95,
+            "q_oil": np.array([6.0, 6.6, 7.2, 7.8, 7.5, 6.9]) * np.array([1, 1, 1, 1, 1.05, 1.05]),
+            "q_water": q_total * 0.01,
+        }
+    )
+
+
+def test_phase_split_of_the_benchmark_by_hand() -> None:
+    """``last`` predicts yesterday's total; the split uses the prior densities (840, 1017.5
+    kg/m3, 0.0205 kg/mol): with eta_gas 0.1, eta_oil 0.6 the oil share of the standard
+    volume is (0.6/840) / (0.1/0.86699 + 0.6/840 + 0.3/1017.5) = 0.61391 %."""
+    frame = _hand_frame()
+    run = run_prequential(frame, "last", "ol", split="2019-01-01", phases=True)
+    p = run.predictions
+    np.testing.assert_allclose(p["predicted"], [1200.0, 1300.0, 1250.0])
+    volumes = np.array([0.1 / RHO_GAS_SC, 0.6 / 840.0, 0.3 / 1017.5])
+    shares = volumes / volumes.sum()
+    assert shares[1] == pytest.approx(0.0061391, rel=1e-4)
+    for name, share in zip(("q_gas", "q_oil", "q_water"), shares, strict=True):
+        np.testing.assert_allclose(p[f"predicted_{name}"], p["predicted"] * share, rtol=1e-12)
+        np.testing.assert_allclose(p[f"measured_{name}"], frame[name].iloc[3:], rtol=0)
+    # the records: the total as before, then one per phase, MAPEs by hand
+    records = metrics_records(p)
+    assert [r.get("target") for r in records] == [None, "q_gas", "q_oil", "q_water"]
+    assert set(records[0]) == {"model", "method", "well", "mape", "n"}
+    total = np.mean([100 / 1300, 50 / 1250, 100 / 1150]) * 100
+    assert records[0]["mape"] == pytest.approx(total)
+    oil_pred = np.array([1200.0, 1300.0, 1250.0]) * shares[1]
+    oil_meas = np.array([7.8, 7.5 * 1.05, 6.9 * 1.05])
+    assert records[2]["mape"] == pytest.approx(
+        np.mean(np.abs(oil_pred - oil_meas) / oil_meas) * 100
+    )
+    assert records[2]["n"] == 3
+    (row,) = [s for s in summarise(records) if s.get("target") == "q_oil"]
+    assert row["mean_mape"] == pytest.approx(records[2]["mape"]) and row["wells"] == 1
+
+
+def test_phase_split_uses_the_models_learned_densities() -> None:
+    frame = simulate_field(wells=2, years=1.2, seed=3, start="2018-03-01").observations
+    # a physics model never retrained in the test period: its final densities are the ones used
+    run = run_prequential(frame, "mm", "pbl:3650d", split="2019-01-01", phases=True)
+    params = run.final_model.physical_parameters()
+    p = run.predictions
+    assert not np.allclose(params["rho_oil"].numpy(), 840.0)  # it did learn them
+    for j, well in enumerate(run.final_model.wells):
+        g = p[p["well"] == well]
+        rows = frame.loc[
+            (frame["well"] == well) & frame["q_total"].notna(), ["time", "eta_gas", "eta_oil"]
+        ]
+        rows = rows.set_index("time").loc[g["time"]]
+        rho_g = 101325.0 * float(params["m_gas"][j]) / (8.314462618 * 288.15)
+        gas = rows["eta_gas"].to_numpy() / rho_g
+        oil = rows["eta_oil"].to_numpy() / float(params["rho_oil"][j])
+        wat = (1 - rows["eta_gas"].to_numpy() - rows["eta_oil"].to_numpy()) / float(
+            params["rho_wat"][j]
+        )
+        share = oil / (gas + oil + wat)
+        np.testing.assert_allclose(g["predicted_q_oil"], g["predicted"] * share, rtol=1e-9)
+    # the three phases add up to the total
+    np.testing.assert_allclose(
+        p[["predicted_q_gas", "predicted_q_oil", "predicted_q_water"]].sum(axis=1),
+        p["predicted"],
+        rtol=1e-12,
+    )
+
+
+# --------------------------------------------------------------------------- intervals
+
+
+class _FixedBand(LearningMethod):
+    """A test-only method with a predictive interval: the model's rate with a log-normal
+    spread of fixed sd 0.1 in log space; it never learns (its model keeps the initial fit)."""
+
+    key = "test-band"
+    kind = "test"
+    summary = "test only: a fixed 10 % log-normal band"
+    example = "test-band"
+    intervals = True
+
+    def _learn(self, batch, memory):  # noqa: ANN001, ANN202
+        return torch.zeros(batch.n_wells, dtype=torch.bool)
+
+    def predict(self, batch):  # noqa: ANN001, ANN202
+        mean = self.model.predict_batch(batch)
+        z = 1.6448536269514722 * 0.1
+        return Forecast(mean, 0.1 * mean, mean * np.exp(-z), mean * np.exp(z))
+
+
+@pytest.fixture
+def band_method():
+    register(_FixedBand)
+    try:
+        yield _FixedBand.key
+    finally:
+        METHODS.pop(_FixedBand.key, None)
+
+
+def test_a_new_method_with_intervals_gets_coverage_and_width(band_method, tmp_path) -> None:
+    frame = simulate_field(wells=2, years=1.2, seed=5, start="2018-06-01").observations
+    result = run_study(
+        frame, models=["lr"], methods=[band_method, "ol"], progress=False, outages="30d"
+    )
+    p = result.predictions
+    band = p[p["method"] == band_method]
+    assert {"predicted_std", "predicted_p05", "predicted_p95"} <= set(band.columns)
+    plain = [r for r in result.records if r["method"] == "ol"]
+    assert plain and all("coverage90" not in r for r in plain)
+    for r in result.records:
+        if r["method"] != band_method or "target" in r:
+            continue
+        source = result.outage_predictions if "outage" in r else band
+        g = source[(source["well"] == r["well"]) & (source["method"] == band_method)]
+        # by hand: inside the band when |log(measured/predicted)| <= 1.6449 * 0.1
+        inside = np.abs(np.log(g["measured"] / g["predicted"])) <= 1.6448536269514722 * 0.1 + 1e-12
+        assert r["coverage90"] == pytest.approx(inside.mean())
+        # (e^z - e^-z) * 100 = 200 sinh(0.16449)
+        assert r["width90"] == pytest.approx(33.0456, abs=1e-3)
+    assert any("outage" in r and "coverage90" in r for r in result.records)
+    write_study(result, tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    assert "Predictive intervals: calibration" in html and "90&nbsp;% predictive interval" in html
+
+
+def test_default_split_follows_the_data_when_the_cases_date_does_not_split_it() -> None:
+    frame = simulate_field(wells=2, years=1.0, seed=2, start="2012-01-01").observations
+    # 2019-01-01 lies after every measurement: two thirds of them, by month, instead
+    split = resolve_split("all", None, frame)
+    times = frame.loc[frame["q_total"].notna(), "time"].sort_values()
+    at = times.iloc[int((len(times) - 1) * 2 / 3)]
+    assert split == pd.Timestamp(year=at.year, month=at.month, day=1, tz="UTC")
+    assert times.iloc[0] < split < times.iloc[-1]
+    # the paper's date where it splits the data, and a given split, are kept
+    assert resolve_split("all", None, simulate_field(wells=1, years=4.0).observations) == (
+        pd.Timestamp("2019-01-01", tz="UTC")
+    )
+    assert resolve_split("all", "2012-03-01", frame) == pd.Timestamp("2012-03-01", tz="UTC")
+    with pytest.raises(DataError, match="choose an earlier --split"):
+        run_prequential(frame, "last", "ol", split="2019-01-01")
+    assert len(run_prequential(frame, "last", "ol").predictions) > 100

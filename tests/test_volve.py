@@ -24,6 +24,7 @@ from vfm_core.volve import (
     RHO_OIL,
     RHO_WAT,
     convert_volve,
+    field_notes,
     import_volve,
     read_volve_csv,
 )
@@ -140,9 +141,9 @@ def test_mapping_by_hand() -> None:
     assert a["q_gas"] == pytest.approx(0.0)
     assert a["q_water"] == pytest.approx(20.0)  # 480 Sm3 / 24 h
     assert a[schema.TARGET] == pytest.approx(30.0)
-    # No gas: oil 240 * 860 = 206,400 kg, water 480 * 1025 = 492,000 kg.
+    # No gas: oil 240 * 840 = 201,600 kg, water 480 * 1017.5 = 488,400 kg.
     assert a["eta_gas"] == pytest.approx(0.0)
-    assert a["eta_oil"] == pytest.approx(206_400.0 / (206_400.0 + 492_000.0))
+    assert a["eta_oil"] == pytest.approx(201_600.0 / (201_600.0 + 488_400.0))
     assert a[schema.SOURCE] == "mpfm"
 
     assert b[schema.TIME] == pd.Timestamp("2014-10-26T12:00:00Z")
@@ -156,14 +157,15 @@ def test_mapping_by_hand() -> None:
     # Standard gas density p M / (R T) at 101325 Pa, 288.15 K, M = 0.0205 kg/mol.
     rho_gas = 101_325.0 * 0.0205 / (8.314462618 * 288.15)
     assert rho_gas == pytest.approx(0.867, abs=1e-3)
-    mass_oil, mass_gas = 100.0 * 860.0, 15_000.0 * rho_gas
+    mass_oil, mass_gas = 100.0 * 840.0, 15_000.0 * rho_gas
     assert b["eta_gas"] == pytest.approx(mass_gas / (mass_oil + mass_gas))
     assert b["eta_oil"] == pytest.approx(mass_oil / (mass_oil + mass_gas))
 
 
 def test_constants() -> None:
-    assert RHO_OIL == 860.0
-    assert RHO_WAT == 1025.0
+    # the project's prior means, so that the phase split at prior densities inverts the import
+    assert RHO_OIL == 840.0
+    assert RHO_WAT == 1017.5
     assert RHO_GAS_SC == pytest.approx(101_325.0 * 0.0205 / (8.314462618 * 288.15))
     assert MIN_ON_STREAM_HOURS == 23.9
 
@@ -177,8 +179,50 @@ def test_every_removal_counted_under_its_reason() -> None:
         if prefix is not None:
             expected[reason_named(prefix)] += 1
     assert removed == expected
-    assert all(n > 0 for n in removed.values()), "every reason is exercised by a case"
+    low_dp = reason_named("choke pressure drop below")
+    assert all(n > 0 for r, n in removed.items() if r != low_dp), "every reason has a case"
+    assert removed[low_dp] == 0  # kept unless asked for
     assert len(frame) + sum(removed.values()) == len(raw)
+
+
+def test_days_without_a_restricting_choke_are_removed_when_asked() -> None:
+    raw = synthetic_raw()
+    # X-A has 10 bar across its choke, X-B 2 bar: a 5-bar minimum removes X-B's day only
+    frame, removed = convert_volve(raw, min_choke_dp_bar=5.0)
+    assert frame[schema.WELL].tolist() == ["X-A"]
+    assert removed[reason_named("choke pressure drop below")] == 1
+    assert len(frame) + sum(removed.values()) == len(raw)
+    with pytest.raises(DataError, match="--min-choke-dp 1"):
+        convert_volve(raw, min_choke_dp_bar=-1.0)
+
+
+def test_field_notes_find_allocation_and_an_open_choke() -> None:
+    days = pd.date_range("2015-01-01 12:00", periods=40, freq="D", tz="UTC")
+    rows = []
+    for k, t in enumerate(days):
+        gor = 150.0 + k % 5  # the field's GOR of the day, the same for both wells
+        for well, oil, choke, dp in (("A", 20.0, 0.5, 10.0), ("B", 30.0, 1.0, 0.4)):
+            rows.append(
+                {
+                    "time": t,
+                    "well": well,
+                    "choke": choke,
+                    "p_up": 30.0,
+                    "p_down": 30.0 - dp,
+                    "q_oil": oil,
+                    "q_gas": oil * gor,
+                    "q_water": 10.0,
+                    "q_total": oil * (1 + gor) + 10.0,
+                }
+            )
+    notes = field_notes(pd.DataFrame(rows))
+    assert notes[0].startswith("On 100 % of the well-days") and "allocated" in notes[0]
+    assert notes[1].startswith("Gas is 99 % of q_total")
+    (open_choke,) = [n for n in notes if n.startswith("B:")]
+    assert (
+        "fully open on 100 %" in open_choke and "less than 1 bar across it on 100 %" in open_choke
+    )
+    assert not [n for n in notes if n.startswith("A:")]
 
 
 def test_duplicate_keeps_the_first() -> None:

@@ -53,7 +53,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_import_volve(args: argparse.Namespace) -> int:
     from vfm_core.volve import import_volve
 
-    report = import_volve(args.src, args.out)
+    report = import_volve(args.src, args.out, min_choke_dp_bar=args.min_choke_dp)
     print(report.summary())
     return 0
 
@@ -87,6 +87,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             track_parameters=args.track_parameters,
             params=params,
             effects=_split_list(args.effects),
+            outages=_split_list(args.outages),
+            outage_fractions=args.outage_fractions,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -133,6 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import-volve", help="convert Equinor's Volve daily production CSV")
     p.add_argument("src", help="volve_daily_production.csv")
     p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
+    p.add_argument(
+        "--min-choke-dp",
+        type=float,
+        default=0.0,
+        metavar="BAR",
+        help="leave out days with less than this pressure drop across the choke, where it "
+        "does not restrict the flow (default 0: keep every day)",
+    )
     p.set_defaults(handler=_cmd_import_volve)
 
     p = sub.add_parser("evaluate", help="run the study: models x learning methods, prequentially")
@@ -167,6 +177,19 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="physical effects to add to mm/hem/ham (shown beside the plain model), "
         "e.g. erosion,real_gas or mypkg.effects:Scale",
+    )
+    p.add_argument(
+        "--outages",
+        action="append",
+        help="also score the outage protocol: hide measurement windows of these lengths in "
+        "the test period from learning and score inside them, e.g. 7d,30d,90d",
+    )
+    p.add_argument(
+        "--outage-fractions",
+        choices=("held", "measured"),
+        default="held",
+        help="phase fractions inside an outage window: held at the last measurement before "
+        "it (default, as with a failed MPFM) or as measured in the file",
     )
     p.add_argument(
         "--track-parameters",

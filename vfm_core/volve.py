@@ -41,6 +41,25 @@ BORE_WAT_VOL*RHO_WAT`` (kg per day; only the ratios matter). The densities are a
 not data from the file (see the constants). The daily volumes are allocated from facility
 totals and well tests rather than metered per well; they are labelled ``mpfm`` because they
 play the part of a multiphase-meter target, with an error of their own.
+
+What the data are, seen by an engineer (:func:`field_notes` prints it at import):
+
+- **Allocation.** On nearly every day with more than one well producing, every well's
+  gas-oil ratio is the same (the field's, within 0.04 % at the median): the gas, 98 % of
+  ``q_total`` at standard conditions, is the allocated oil times a field-wide GOR, not a
+  per-well measurement. ``q_total`` is therefore (1 + field GOR) times the allocated oil
+  plus the water; no well-level input explains the field GOR's day-to-day moves.
+- **Densities.** The file has volumes only; the mass fractions need densities, which are
+  assumptions. They are the project's prior means (:data:`vfm_core.physics.PRIORS`), so
+  that the phase split of :func:`vfm_core.streaming.phase_split` at those densities (what
+  every model without learned densities uses) gives back exactly the day's phase shares:
+  with other densities the split would carry a bias of their ratio into the phases.
+- **The choke wide open.** Some wells spend most of their late life with the choke fully
+  open and well under 1 bar across it (15/9-F-12 from mid 2015, 15/9-F-5 throughout):
+  the choke does not restrict the flow there, the rate is set by the reservoir and the
+  tubing, and a choke model that reads the rate from a pressure drop at the resolution of
+  the gauges cannot work. ``min_choke_dp_bar`` (``vfm import-volve --min-choke-dp 1``)
+  removes such days, counted under their own reason; by default they are kept.
 """
 
 from __future__ import annotations
@@ -65,16 +84,18 @@ __all__ = [
     "NEEDED_COLUMNS",
     "REMOVAL_REASONS",
     "ImportReport",
+    "field_notes",
     "read_volve_csv",
     "convert_volve",
     "import_volve",
 ]
 
-#: Assumed stock-tank oil density, kg/m3: a light North Sea crude like Volve's. An
-#: assumption (the file carries no densities); it sets only the mass fractions.
-RHO_OIL = 860.0
-#: Assumed produced-water density, kg/m3 (saline formation water / seawater).
-RHO_WAT = 1025.0
+#: Assumed stock-tank oil density, kg/m3: the project's prior mean, a light North Sea crude.
+#: An assumption (the file carries no densities); it sets only the mass fractions, and
+#: matching the prior makes the phase split at prior densities return the day's shares.
+RHO_OIL = physics.PRIORS["rho_oil"].mean
+#: Assumed produced-water density, kg/m3: the project's prior mean (saline water).
+RHO_WAT = physics.PRIORS["rho_wat"].mean
 #: Assumed gas molar mass, kg/mol: the mean of the project's prior.
 M_GAS = physics.PRIORS["m_gas"].mean
 #: Gas density at standard conditions (101325 Pa, 288.15 K) for :data:`M_GAS`, kg/m3.
@@ -117,6 +138,10 @@ _NO_VOLUME = "no produced volume"
 _P_DOWN_NONPOSITIVE = "p_down <= 0 (DP_CHOKE_SIZE exceeds the absolute wellhead pressure)"
 _P_DOWN_NOT_BELOW = "p_down >= p_up (DP_CHOKE_SIZE not positive)"
 _DUPLICATE = "duplicate well and day (the first is kept)"
+_LOW_DP = (
+    "choke pressure drop below the minimum asked for (--min-choke-dp): the choke does not "
+    "restrict the flow"
+)
 
 #: Why rows are removed, in the order they are tested; a row counts under the first that applies.
 REMOVAL_REASONS: tuple[str, ...] = (
@@ -133,6 +158,7 @@ REMOVAL_REASONS: tuple[str, ...] = (
     _P_DOWN_NONPOSITIVE,
     _P_DOWN_NOT_BELOW,
     _DUPLICATE,
+    _LOW_DP,
 )
 
 
@@ -199,14 +225,23 @@ def read_volve_csv(path: str | Path) -> pd.DataFrame:
     return raw
 
 
-def convert_volve(raw: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, int]]:
+def convert_volve(
+    raw: pd.DataFrame, *, min_choke_dp_bar: float = 0.0
+) -> tuple[pd.DataFrame, dict[str, int]]:
     """Turn raw Volve rows into observations (see the module table for the mapping).
 
     Returns the observation frame (sorted by time, then well, with the optional ``q_gas``,
     ``q_oil`` and ``q_water`` columns) and, for every reason in :data:`REMOVAL_REASONS`,
     how many rows were removed for it (zero included), so that ``len(raw) ==
-    len(frame) + sum(removed.values())``. ``raw`` is not modified.
+    len(frame) + sum(removed.values())``. ``raw`` is not modified. ``min_choke_dp_bar``
+    (bar, default 0: keep every day) removes the days whose choke pressure drop is below
+    it, where the choke does not restrict the flow (see the module docstring).
     """
+    if not (np.isfinite(min_choke_dp_bar) and min_choke_dp_bar >= 0):
+        raise DataError(
+            f"The minimum choke pressure drop {min_choke_dp_bar!r} bar is not a number of at "
+            "least 0; give e.g. --min-choke-dp 1."
+        )
     _require_columns(raw, "The Volve frame")
     num = _numeric_columns(raw, "The Volve frame")
     well = raw[_WELL].astype("string").str.strip()
@@ -252,6 +287,9 @@ def convert_volve(raw: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, int]]:
     )
     removed[_DUPLICATE] = int(duplicate.sum())
     keep &= ~duplicate
+    low_dp = keep & (num[_DP] < min_choke_dp_bar)
+    removed[_LOW_DP] = int(low_dp.sum())
+    keep &= ~low_dp
 
     kept_hours = hours[keep]
     oil, gas, wat = (volumes.loc[keep, c] for c in _VOLUMES)
@@ -291,6 +329,8 @@ class ImportReport:
     removed: dict[str, int]
     wells: dict[str, int]
     out: Path
+    #: what an engineer should know about these data (see :func:`field_notes`)
+    notes: tuple[str, ...] = ()
 
     def summary(self) -> str:
         """A short human-readable account, one fact per line."""
@@ -302,18 +342,83 @@ class ImportReport:
         lines += [f"  {n:>7,}  {reason}" for reason, n in self.removed.items() if n]
         lines.append("Rows per well:")
         lines += [f"  {n:>7,}  {name}" for name, n in self.wells.items()]
+        if self.notes:
+            lines.append("Before you model these data:")
+            lines += [f"  - {note}" for note in self.notes]
         return "\n".join(lines)
 
 
-def import_volve(src: str | Path, out: str | Path) -> ImportReport:
+#: A well's GOR counts as the field's when within this relative distance of the day's median.
+_SAME_GOR = 0.005
+#: Below this choke pressure drop (bar) the choke hardly restricts the flow.
+_LOW_DP_BAR = 1.0
+
+
+def field_notes(frame: pd.DataFrame) -> tuple[str, ...]:
+    """What the converted observations say about how they were made (plain sentences).
+
+    The share of days (with more than one well on stream and some oil) on which a well's
+    gas-oil ratio equals the day's field median within 0.5 % (allocation by a field GOR);
+    the gas share of ``q_total``; and per well the share of days with the choke fully
+    open (>= 99 %) and with less than 1 bar across it.
+    """
+    notes: list[str] = []
+    if frame.empty:
+        return ()
+    oil = frame["q_oil"].to_numpy(dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gor = pd.Series(frame["q_gas"].to_numpy(dtype=float) / oil, index=frame.index)
+    gor = gor.where(oil > 0)
+    day = frame[schema.TIME]
+    several = gor.groupby(day).transform("count") > 1
+    field = gor.groupby(day).transform("median")
+    same = ((gor / field - 1.0).abs() <= _SAME_GOR)[several & gor.notna()]
+    if len(same):
+        notes.append(
+            f"On {same.mean() * 100:.0f} % of the well-days with other wells on stream, the "
+            f"well's gas-oil ratio is the field's of that day (within {_SAME_GOR * 100:g} %): "
+            "the gas is allocated from the oil with a field-wide GOR, not measured per well."
+        )
+    gas_share = float(np.median(frame["q_gas"] / frame[schema.TARGET]))
+    notes.append(
+        f"Gas is {gas_share * 100:.0f} % of q_total (standard conditions, median): score "
+        "q_oil and q_water too (vfm evaluate does, where the data have them)."
+    )
+    dp = frame["p_up"] - frame["p_down"]
+    for well, g in frame.groupby(schema.WELL, sort=True):
+        full = g["choke"] >= 0.99
+        low = float((dp[g.index] < _LOW_DP_BAR).mean())
+        if full.mean() < 0.25 and low < 0.1:
+            continue
+        text = f"{well}: choke fully open on {full.mean() * 100:.0f} % of its days"
+        if full.any():
+            text += f" (median {float(dp[g.index][full].median()):.1f} bar across it then)"
+        if low >= 0.1:
+            text += (
+                f", less than {_LOW_DP_BAR:g} bar across it on {low * 100:.0f} %: there the "
+                "choke does not restrict the flow, and a choke model has nothing to read the "
+                "rate from"
+            )
+        else:
+            text += (
+                ": a linear valve characteristic is unlikely to hold up to full opening; "
+                "check it with vfm diagnose (candidate valve)"
+            )
+        notes.append(text + ".")
+    return tuple(notes)
+
+
+def import_volve(
+    src: str | Path, out: str | Path, *, min_choke_dp_bar: float = 0.0
+) -> ImportReport:
     """Read the Volve CSV at ``src``, convert it and write observations to ``out``.
 
     ``out`` ends in ``.csv`` or ``.parquet``. The output is derived from licensed data:
     keep it outside the repository (or ignored by git). Raises :class:`DataError` when the
-    source cannot be used.
+    source cannot be used. ``min_choke_dp_bar``: see :func:`convert_volve`.
     """
     raw = read_volve_csv(src)
-    frame, removed = convert_volve(raw)
+    frame, removed = convert_volve(raw, min_choke_dp_bar=min_choke_dp_bar)
     written = save_observations(frame, out)
     per_well = frame[schema.WELL].value_counts().sort_index()
     return ImportReport(
@@ -322,4 +427,5 @@ def import_volve(src: str | Path, out: str | Path) -> ImportReport:
         removed=removed,
         wells={str(name): int(n) for name, n in per_well.items()},
         out=Path(written),
+        notes=field_notes(frame),
     )

@@ -7,8 +7,19 @@ nothing half-written):
   "summary": [{model, method, mean_mape, median_mape, wells}], "runtime_s", ...}``. MAPE in
   percent. This schema is a public contract.
 - ``DIR/predictions.parquet``: every scored observation (time, well, model, method, source,
-  predicted, measured; Sm3/h).
+  predicted, measured; Sm3/h). Where the data have ``q_gas``, ``q_oil`` and ``q_water``,
+  also ``predicted_q_gas`` ... ``measured_q_water`` (Sm3/h); for methods with intervals,
+  ``predicted_std``, ``predicted_p05``, ``predicted_p95``.
+- ``DIR/outage_predictions.parquet`` (with ``outages``): the same columns for the rows
+  inside the outage windows, plus ``outage`` (the length, e.g. ``30d``) and ``days_since``
+  (days since the well's last measurement learned from).
 - ``DIR/report.html``: one self-contained page with the paper's tables and figures.
+
+Records of ``metrics.json`` beyond ``{model, method, well, mape, n}`` (extensions, never
+renames): ``"target": "q_oil"`` (etc.) for a phase's score (absent for the total, which
+stays the default record), ``"outage": "30d"`` for the outage protocol's score (absent for
+the ordinary one), and ``coverage90`` (fraction 0..1) and ``width90`` (%) on the total's
+records of methods with predictive intervals. The summary carries the same keys.
 """
 
 from __future__ import annotations
@@ -29,7 +40,16 @@ from tqdm import tqdm
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
-from vfm_core.jobs.study import metrics_records, resolve_split, run_prequential
+from vfm_core.jobs.study import (
+    OUTAGE_FRACTIONS,
+    PHASES,
+    has_phases,
+    metrics_records,
+    parse_outages,
+    plan_outages,
+    resolve_split,
+    run_prequential,
+)
 from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
@@ -56,9 +76,19 @@ class StudyResult:
     #: physical parameter traces (time, well, model, method, name, value), may be empty
     parameters: pd.DataFrame = field(default_factory=pd.DataFrame)
     data_path: str = ""
+    #: the outage protocol's scored rows (inside the windows), with ``outage`` and
+    #: ``days_since``; empty without outages
+    outage_predictions: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: every outage window (outage, well, start, end, rows); empty without outages
+    outage_windows: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: the outage lengths as asked (``["7d", "30d"]``) and how the fractions were taken
+    outages: list[str] = field(default_factory=list)
+    outage_fractions: str = "held"
+    #: the phase rates scored beside the total (empty when the data have none)
+    phases: list[str] = field(default_factory=list)
 
     def metrics(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "data": self.data_path,
             "split": self.split.isoformat(),
             "targets": self.targets,
@@ -66,25 +96,61 @@ class StudyResult:
             "summary": self.summary,
             "runtime_s": round(self.runtime_s, 3),
         }
+        if self.phases:
+            out["phases"] = list(self.phases)
+        if self.outages:
+            out["outages"] = list(self.outages)
+            out["outage_fractions"] = self.outage_fractions
+            windows = self.outage_windows
+            out["outage_windows"] = [
+                {
+                    "outage": str(r.outage),
+                    "well": str(r.well),
+                    "start": pd.Timestamp(r.start).isoformat(),
+                    "end": pd.Timestamp(r.end).isoformat(),
+                    "rows": int(r.rows),
+                }
+                for r in windows.itertuples()
+            ]
+        return out
+
+
+#: record keys that tell apart scores of the same model and method (absent = the default)
+_SCORE_KEYS: tuple[str, ...] = ("target", "outage")
 
 
 def summarise(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Mean (and median) MAPE across wells per model and method (the paper's Tables 2 and 3)."""
+    """Mean (and median) MAPE across wells per model and method (the paper's Tables 2 and 3).
+
+    Records with a ``target`` (phase) or ``outage`` key are summarised apart and their
+    summary rows carry the same keys; the default rows (total, ordinary protocol) are exactly
+    as before. With intervals, ``coverage90`` is the mean across wells (fraction) and
+    ``width90`` the median across wells (%).
+    """
     df = pd.DataFrame(records)
     if df.empty:
         return []
+    extra = [k for k in _SCORE_KEYS if k in df.columns]
+    # "" stands for an absent key while grouping (NaN would drop the rows)
+    filled = df.assign(**{k: df[k].fillna("").astype(str) for k in extra})
     out = []
-    for (model, method), g in df.groupby(["model", "method"], sort=False):
+    for key, g in filled.groupby(["model", "method", *extra], sort=False):
+        model, method = key[0], key[1]
         values = g["mape"].dropna()
-        out.append(
-            {
-                "model": model,
-                "method": method,
-                "mean_mape": float(values.mean()) if len(values) else float("nan"),
-                "median_mape": float(values.median()) if len(values) else float("nan"),
-                "wells": int(len(values)),
-            }
-        )
+        row: dict[str, Any] = {
+            "model": model,
+            "method": method,
+            "mean_mape": float(values.mean()) if len(values) else float("nan"),
+            "median_mape": float(values.median()) if len(values) else float("nan"),
+            "wells": int(len(values)),
+        }
+        for name, value in zip(extra, key[2:], strict=True):
+            if value:
+                row[name] = value
+        if "coverage90" in g.columns and g["coverage90"].notna().any():
+            row["coverage90"] = float(g["coverage90"].dropna().mean())
+            row["width90"] = float(g["width90"].dropna().median())
+        out.append(row)
     return out
 
 
@@ -110,18 +176,37 @@ def run_study(
     run_kwargs: dict[str, Any] | None = None,
     params: dict[str, Any] | None = None,
     effects: Sequence[str] = (),
+    outages: str | Sequence[str] = (),
+    outage_fractions: str = "held",
 ) -> StudyResult:
     """Run every model with every method prequentially on one target case.
 
     ``params`` (from ``vfm tune``'s params.json) overrides the default settings per model
     and method. ``effects`` adds, for each of ``mm``, ``hem`` and ``ham``, a run of the model
     extended with those physical effects, labelled e.g. ``mm+erosion``, beside the plain one.
+
+    ``outages`` (``"7d,30d,90d"`` or a list) adds the outage protocol: for each length, the
+    windows of :func:`vfm_core.jobs.study.plan_outages` (seeded by ``seed``), and one more
+    prequential run per model and method in which they are hidden from learning (one run
+    per length, whatever the number of windows; the initial fit is shared with the ordinary
+    run). ``outage_fractions``: ``held`` (the phase fractions inside a window are those of
+    the last measurement before it, as with a failed MPFM) or ``measured`` (the file's).
+    Where the data have the phase rates, every run also scores them.
     """
     _check_names(models, methods)
-    split_ts = resolve_split(targets, split)
+    split_ts = resolve_split(targets, split, frame)
+    asked = [outages] if isinstance(outages, str) else list(outages)
+    lengths = parse_outages(asked) if any(str(a).strip() for a in asked) else []
+    if outage_fractions not in OUTAGE_FRACTIONS:
+        raise ConfigError(
+            f"Unknown outage fractions '{outage_fractions}'; choose one of "
+            f"{', '.join(OUTAGE_FRACTIONS)}."
+        )
     started = time.perf_counter()
     is_target = target_mask(frame, targets)
-    n_test = int((is_target & (frame[TIME] >= split_ts).to_numpy()).sum())
+    test_mask = is_target & (frame[TIME] >= split_ts).to_numpy()
+    n_test = int(test_mask.sum())
+    phases = has_phases(frame, np.flatnonzero(test_mask))
     effect_label = ""
     if effects:
         from vfm_core.effects import add_features, resolve_effects
@@ -134,8 +219,20 @@ def run_study(
             combos.append((m, meth, m))
             if effects and m in ("mm", "hem", "ham"):
                 combos.append((m, meth, f"{m}+{effect_label}"))
+    plans = [
+        plan_outages(
+            frame,
+            span,
+            targets=targets,
+            split=split_ts,
+            seed=seed,
+            fractions=outage_fractions,
+            label=label,
+        )
+        for label, span in lengths
+    ]
     bar = tqdm(
-        total=n_test * len(combos),
+        total=n_test * len(combos) * (1 + len(plans)),
         disable=not progress,
         unit="obs",
         desc=f"evaluate [{targets}]",
@@ -143,45 +240,59 @@ def run_study(
         mininterval=0.5,
     )
     predictions = []
+    outage_predictions = []
     parameters = []
     updates: dict[str, list[pd.Timestamp]] = {}
     initial_fits: dict[Any, Any] = {}
+    from vfm_core.jobs.tune import settings_for
+
     try:
         for model, meth, label in combos:
-            bar.set_postfix_str(f"{label} {meth}")
-            base = bar.n
-
-            def report(done: int, total: int, base: int = base) -> None:
-                bar.update(base + done - bar.n)
-
-            from vfm_core.jobs.tune import settings_for
-
             extended = label != model
-            result = run_prequential(
-                frame,
-                model,
-                meth,
-                targets=targets,
-                split=split_ts,
-                seed=seed,
-                progress=report,
-                track_parameters=track_parameters,
-                initial_fits=initial_fits,
-                effects=list(effects) if extended else (),
-                **settings_for(params, model, meth),
-                **(run_kwargs or {}),
-            )
-            if extended:
-                result.predictions["model"] = label
-            bar.update(base + n_test - bar.n)
-            predictions.append(result.predictions)
-            updates[meth] = result.updates
-            if track_parameters and not result.parameters.empty:
-                parameters.append(result.parameters.assign(model=label, method=meth))
+            for plan in [None, *plans]:
+                what = f"{label} {meth}" + ("" if plan is None else f" outage {plan.label}")
+                bar.set_postfix_str(what)
+                base = bar.n
+
+                def report(done: int, total: int, base: int = base) -> None:
+                    bar.update(base + done - bar.n)
+
+                result = run_prequential(
+                    frame,
+                    model,
+                    meth,
+                    targets=targets,
+                    split=split_ts,
+                    seed=seed,
+                    progress=report,
+                    track_parameters=track_parameters and plan is None,
+                    initial_fits=initial_fits,
+                    effects=list(effects) if extended else (),
+                    outage=plan,
+                    phases=phases,
+                    **settings_for(params, model, meth),
+                    **(run_kwargs or {}),
+                )
+                if extended:
+                    result.predictions["model"] = label
+                bar.update(base + n_test - bar.n)
+                if plan is not None:
+                    inside = result.predictions["in_outage"].to_numpy(dtype=bool)
+                    outage_predictions.append(result.predictions[inside].drop(columns="in_outage"))
+                    continue
+                predictions.append(result.predictions)
+                updates[meth] = result.updates
+                if track_parameters and not result.parameters.empty:
+                    parameters.append(result.parameters.assign(model=label, method=meth))
     finally:
         bar.close()
     preds = pd.concat(predictions, ignore_index=True)
     records = metrics_records(preds)
+    outage_preds = (
+        pd.concat(outage_predictions, ignore_index=True) if outage_predictions else pd.DataFrame()
+    )
+    if not outage_preds.empty:
+        records += metrics_records(outage_preds)
     tests = frame[frame[SOURCE] == WELL_TEST]
     well_tests = {str(w): list(g[TIME]) for w, g in tests.groupby(WELL, sort=False)}
     return StudyResult(
@@ -195,6 +306,13 @@ def run_study(
         runtime_s=time.perf_counter() - started,
         parameters=pd.concat(parameters, ignore_index=True) if parameters else pd.DataFrame(),
         data_path=data_path,
+        outage_predictions=outage_preds,
+        outage_windows=(
+            pd.concat([p.windows for p in plans], ignore_index=True) if plans else pd.DataFrame()
+        ),
+        outages=[label for label, _ in lengths],
+        outage_fractions=outage_fractions,
+        phases=list(PHASES) if phases else [],
     )
 
 
@@ -234,6 +352,10 @@ def write_study(
         metrics = _clean(result.metrics())
         (staging / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
         result.predictions.to_parquet(staging / "predictions.parquet", index=False)
+        if not result.outage_predictions.empty:
+            result.outage_predictions.to_parquet(
+                staging / "outage_predictions.parquet", index=False
+            )
         if not result.parameters.empty:
             result.parameters.to_parquet(staging / "parameters.parquet", index=False)
         if report:
@@ -250,10 +372,43 @@ def write_study(
 
 
 def format_summary(result: StudyResult) -> str:
-    """The mean MAPE across wells as a model x method table (text)."""
+    """The mean MAPE across wells as a model x method table (text); with phases or outages,
+    a second table: per protocol and target, each model's best method."""
     df = pd.DataFrame(result.summary)
     if df.empty:
         return "(no scored observations)"
+    extra = [k for k in _SCORE_KEYS if k in df.columns]
+    default = df[df[extra].isna().all(axis=1)] if extra else df
+    text = _format_default(result, default)
+    if extra:
+        text += "\n\n" + _format_protocols(df)
+    return text
+
+
+def _format_protocols(df: pd.DataFrame) -> str:
+    """Mean MAPE across wells (%) per protocol and target, each model at its best method."""
+    df = df.assign(
+        protocol=df["outage"].fillna("ordinary") if "outage" in df.columns else "ordinary",
+        target=df["target"].fillna("q_total") if "target" in df.columns else "q_total",
+    )
+    df = df[np.isfinite(df["mean_mape"].to_numpy(dtype=float))]
+    best = df.loc[df.groupby(["protocol", "target", "model"], sort=False)["mean_mape"].idxmin()]
+    cells = [f"{v:6.1f} {m}" for v, m in zip(best["mean_mape"], best["method"], strict=True)]
+    table = best.assign(cell=cells).pivot(
+        index=["protocol", "target"], columns="model", values="cell"
+    )
+    table = table.reindex(columns=list(dict.fromkeys(df["model"])))
+    index = pd.MultiIndex.from_product(
+        [list(dict.fromkeys(df["protocol"])), list(dict.fromkeys(df["target"]))],
+        names=["protocol", "target"],
+    )
+    table = table.reindex(index).dropna(how="all")
+    lines = ["Mean MAPE across wells (%) at each model's best method, per protocol and target"]
+    lines.append(table.fillna("-").to_string())
+    return "\n".join(lines)
+
+
+def _format_default(result: StudyResult, df: pd.DataFrame) -> str:
     table = df.pivot(index="method", columns="model", values="mean_mape")
     table = table.reindex(
         index=list(dict.fromkeys(df["method"])), columns=list(dict.fromkeys(df["model"]))

@@ -3,12 +3,29 @@
 :func:`run_prequential` runs one model with one learning method on one target case and
 returns every scored prediction; :func:`mape` and :func:`metrics_records` turn those into
 the numbers of the paper's tables.
+
+Two extensions of the ordinary protocol:
+
+- **Outages** (:func:`plan_outages`, ``run_prequential(..., outage=plan)``): windows of a
+  given length in the test period in which the well's measurements are hidden, as when its
+  multiphase meter has failed. Inside a window every measurement is predicted (and scored)
+  but nothing learns from it: no online step, no retrain reads it, and ``last`` keeps the
+  value from before the window. Since a failed MPFM gives no phase fractions either, the
+  inputs ``eta_gas`` and ``eta_oil`` are by default held at the well's last measured row
+  before the window (``fractions="held"``); ``"measured"`` keeps the file's values.
+- **Phases** (``run_prequential(..., phases=True)``): the predicted total at standard
+  conditions split into gas, oil and water by the sample's mass fractions and the model's
+  densities (:func:`vfm_core.streaming.phase_split`: learned ``rho_oil``, ``rho_wat``,
+  ``m_gas`` of a physics model at the time of the prediction, else the prior means),
+  scored against the file's ``q_gas``, ``q_oil``, ``q_water``.
 """
 
 from __future__ import annotations
 
 import copy
+import re
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,9 +46,34 @@ from vfm_core.learning import (
     parse_method,
 )
 from vfm_core.models import ChokeModel, make_model
-from vfm_core.schema import SOURCE, TARGET, TIME, WELL
+from vfm_core.schema import INPUT_COLUMNS, OPTIONAL_RATE_COLUMNS, SOURCE, TARGET, TIME, WELL
+from vfm_core.streaming import phase_split
 
-__all__ = ["RunResult", "run_prequential", "mape", "metrics_records", "resolve_split", "wells_of"]
+__all__ = [
+    "PHASES",
+    "OUTAGE_FRACTIONS",
+    "Outage",
+    "RunResult",
+    "run_prequential",
+    "mape",
+    "metrics_records",
+    "interval_scores",
+    "parse_outages",
+    "plan_outages",
+    "has_phases",
+    "resolve_split",
+    "DEFAULT_TRAIN_SHARE",
+    "wells_of",
+]
+
+#: The phase rates scored beside the total (optional columns of the observation format), Sm3/h.
+PHASES: tuple[str, ...] = OPTIONAL_RATE_COLUMNS
+#: How the phase-fraction inputs are taken inside an outage window (see the module docstring).
+OUTAGE_FRACTIONS: tuple[str, ...] = ("held", "measured")
+#: Nominal level of the central predictive interval whose coverage the records give.
+_Z95 = 1.6448536269514722
+#: The parameters the phase split reads from a physics model (kg/m3, kg/m3, kg/mol).
+_DENSITIES: tuple[str, ...] = ("rho_oil", "rho_wat", "m_gas")
 
 Progress = Callable[[int, int], None]
 
@@ -59,8 +101,21 @@ def wells_of(frame: pd.DataFrame) -> list[str]:
     return list(dict.fromkeys(frame[WELL].astype(str)))
 
 
-def resolve_split(targets: str, split: str | pd.Timestamp | None) -> pd.Timestamp:
-    """The split date (UTC): the given one or the target case's default."""
+#: Share of a case's measurements before the data-derived default split (see resolve_split).
+DEFAULT_TRAIN_SHARE = 2.0 / 3.0
+
+
+def resolve_split(
+    targets: str, split: str | pd.Timestamp | None, frame: pd.DataFrame | None = None
+) -> pd.Timestamp:
+    """The split date (UTC): the given one or the target case's default.
+
+    The case's default (2019-01-01 for ``all``, 2020-01-01 for ``well_test``, the paper's)
+    is kept whenever it has measurements of the case on both sides. Given the ``frame``, a
+    default that does not (data from other years, such as Volve's 2008-2016) is replaced by
+    the first day of the month in which two thirds of the case's measurements have been
+    taken, so that every command runs on any field without a ``--split``.
+    """
     if targets not in TARGET_CASES:
         raise ConfigError(f"Unknown target case '{targets}'; choose one of {sorted(TARGET_CASES)}.")
     value = TARGET_CASES[targets][1] if split is None else split
@@ -68,7 +123,195 @@ def resolve_split(targets: str, split: str | pd.Timestamp | None) -> pd.Timestam
         ts = pd.Timestamp(value)
     except (ValueError, TypeError):
         raise ConfigError(f"The split '{value}' is not a date; write it like 2019-01-01.") from None
-    return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+    ts = ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+    if split is not None or frame is None:
+        return ts
+    times = pd.DatetimeIndex(pd.to_datetime(frame[TIME], utc=True))[target_mask(frame, targets)]
+    if len(times) < 2 or ((times < ts).any() and (times >= ts).any()):
+        return ts
+    at = times.sort_values()[int(DEFAULT_TRAIN_SHARE * (len(times) - 1))]
+    month = pd.Timestamp(year=at.year, month=at.month, day=1, tz="UTC")
+    return month if month > times.min() else ts
+
+
+def has_phases(frame: pd.DataFrame, rows: np.ndarray | None = None) -> bool:
+    """True when ``frame`` has every phase column (:data:`PHASES`) with some measured value
+    (on ``rows``, positional, when given)."""
+    if not all(c in frame.columns for c in PHASES):
+        return False
+    sub = frame[list(PHASES)] if rows is None else frame[list(PHASES)].iloc[rows]
+    return bool(np.isfinite(sub.to_numpy(dtype=float)).any())
+
+
+def parse_outages(text: str | Sequence[str]) -> list[tuple[str, pd.Timedelta]]:
+    """Outage lengths from ``7d,30d,90d`` (or a list of such texts): ``[(label, span)]``.
+
+    A label is kept as written (``30d``); a length must be a positive span of at least a
+    day (the meters behind this protocol read at most daily). Duplicates are dropped.
+    """
+    parts = [text] if isinstance(text, str) else list(text)
+    labels = [x.strip() for part in parts for x in str(part).split(",") if x.strip()]
+    out: dict[str, pd.Timedelta] = {}
+    for label in labels:
+        # pandas deprecates the lower-case day and week units; accept them as users write them
+        normalised = re.sub(r"(?<=\d)([dw])\b", lambda m: m[1].upper(), label)
+        try:
+            span = pd.Timedelta(normalised)
+        except ValueError:
+            span = None
+        if span is None or pd.isna(span) or span < pd.Timedelta(days=1):
+            raise ConfigError(
+                f"The outage length '{label}' is not a span of a day or more; "
+                "write the lengths like 7d,30d,90d."
+            )
+        out.setdefault(label, span)
+    if not out:
+        raise ConfigError("No outage length given; write the lengths like 7d,30d,90d.")
+    return list(out.items())
+
+
+@dataclass(frozen=True)
+class Outage:
+    """Where the hidden measurement windows of one outage length fall (see :func:`plan_outages`).
+
+    ``windows``: one row per window (``outage``, ``well``, ``start``, ``end`` UTC, ``rows``:
+    target measurements inside). ``hidden``: [len(frame)] True on the target rows inside a
+    window (predicted and scored, never learned from). ``fractions``: ``held`` or ``measured``
+    (how the phase-fraction inputs are taken inside a window).
+    """
+
+    label: str
+    length: pd.Timedelta
+    windows: pd.DataFrame
+    hidden: np.ndarray
+    fractions: str = "held"
+    seed: int = 0
+
+
+def plan_outages(
+    frame: pd.DataFrame,
+    length: str | pd.Timedelta,
+    *,
+    targets: str = "all",
+    split: str | pd.Timestamp | None = None,
+    seed: int = 0,
+    fractions: str = "held",
+    label: str | None = None,
+) -> Outage:
+    """Seeded, non-overlapping windows of ``length`` in each well's test period.
+
+    A well's test period runs from its first to its last ``targets`` measurement on or after
+    the split. It is cut into ``n = floor(span / (3 length))`` equal slots, and one window
+    is placed in each slot at a random offset such that at least ``length`` of the slot
+    lies before the window: windows never overlap, the first starts at least one ``length``
+    after the well's first test measurement, and between two windows the meter reads for
+    at least one ``length``, so the models relearn before the next outage. A well whose test
+    period is shorter than ``3 length`` gets no window. The offsets come from ``seed``, the
+    well's name and the length alone: the same inputs give the same windows, and adding a
+    well or another length moves nobody else's.
+    """
+    if fractions not in OUTAGE_FRACTIONS:
+        raise ConfigError(
+            f"Unknown outage fractions '{fractions}'; choose one of {', '.join(OUTAGE_FRACTIONS)}."
+        )
+    if isinstance(length, str):
+        ((label_parsed, span),) = parse_outages(length)
+        label = label or label_parsed
+    else:
+        span = pd.Timedelta(length)
+        if span < pd.Timedelta(days=1):
+            raise ConfigError(f"The outage length {span} is shorter than a day; use 1d or more.")
+        label = label or f"{span / pd.Timedelta(days=1):g}d"
+    split_ts = resolve_split(targets, split, frame)
+    is_target = target_mask(frame, targets)
+    time_ns = pd.DatetimeIndex(frame[TIME]).as_unit("ns").asi8
+    test = is_target & (time_ns >= split_ts.value)
+    hidden = np.zeros(len(frame), dtype=bool)
+    wells = frame[WELL].astype(str).to_numpy()
+    step = int(span.value)
+    step_s = step // 10**9
+    rows: list[dict[str, Any]] = []
+    for well in wells_of(frame.iloc[np.flatnonzero(test)]):
+        mine = test & (wells == well)
+        t = time_ns[mine]
+        # whole seconds, so that the windows read the same in metrics.json as here
+        first, last = -(-int(t.min()) // 10**9), int(t.max()) // 10**9
+        n = (last - first) // (3 * step_s)
+        if n < 1:
+            continue
+        rng = np.random.default_rng([seed, zlib.crc32(well.encode()), step_s])
+        slot = (last - first) // n
+        for k in range(n):
+            lo = first + k * slot + step_s
+            hi = first + (k + 1) * slot - step_s
+            start = (lo + int(rng.integers(0, hi - lo + 1))) * 10**9
+            end = start + step
+            inside = mine & (time_ns >= start) & (time_ns < end)
+            hidden |= inside
+            rows.append(
+                {
+                    "outage": label,
+                    "well": well,
+                    "start": pd.Timestamp(start, tz="UTC"),
+                    "end": pd.Timestamp(end, tz="UTC"),
+                    "rows": int(inside.sum()),
+                }
+            )
+    windows = pd.DataFrame(rows, columns=["outage", "well", "start", "end", "rows"])
+    return Outage(label, span, windows, hidden, fractions, seed)
+
+
+def _held_fractions(frame: pd.DataFrame, learned: np.ndarray, hidden: np.ndarray) -> pd.DataFrame:
+    """``frame`` with ``eta_gas`` and ``eta_oil`` of every ``hidden`` row replaced by those of
+    the same well's latest ``learned`` row before it (unchanged where the well has none)."""
+    eta = list(INPUT_COLUMNS[4:6])
+    held = frame[eta].where(pd.Series(learned, index=frame.index))
+    held = held.groupby(frame[WELL].astype(str).to_numpy(), sort=False).ffill()
+    out = frame.copy()
+    take = hidden & held.notna().all(axis=1).to_numpy()
+    out.loc[take, eta] = held.loc[take, eta].to_numpy()
+    return out
+
+
+def _days_since(frame: pd.DataFrame, learned: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Days from each of ``rows`` back to the same well's latest ``learned`` row strictly
+    before it (NaN where there is none)."""
+    time_ns = pd.DatetimeIndex(frame[TIME]).as_unit("ns").asi8
+    wells = frame[WELL].astype(str).to_numpy()
+    out = np.full(len(rows), np.nan)
+    for well in dict.fromkeys(wells[rows]):
+        seen = np.sort(time_ns[learned & (wells == well)])
+        here = np.flatnonzero(wells[rows] == well)
+        t = time_ns[rows[here]]
+        k = np.searchsorted(seen, t, side="left") - 1
+        ok = k >= 0
+        out[here[ok]] = (t[ok] - seen[k[ok]]) / 86_400e9
+    return out
+
+
+class _StudyMemory(FrameMemory):
+    """:class:`FrameMemory` that answers an empty batch when nothing was measured in the
+    span asked for (a retrain window inside a long outage or shut-in), instead of failing
+    in :func:`vfm_core.data.make_batch`, which needs at least one row."""
+
+    def batch(self, until_ns: int, window_ns: int | None = None) -> Batch:
+        keep = self._rows & (self._time_ns < until_ns)
+        if window_ns is not None:
+            keep &= self._time_ns >= until_ns - window_ns
+        if keep.any():
+            return super().batch(until_ns, window_ns)
+        w, k = len(self.wells), len(self.extra_columns)
+        return Batch(
+            list(self.wells),
+            torch.zeros(w, 0, len(INPUT_COLUMNS), dtype=torch.float64),
+            torch.zeros(w, 0, dtype=torch.float64),
+            torch.zeros(w, 0, dtype=torch.bool),
+            torch.zeros(w, 0, dtype=torch.int64),
+            torch.zeros(w, 0, dtype=torch.int64),
+            torch.zeros(w, 0, dtype=torch.bool),
+            torch.zeros(w, 0, k, dtype=torch.float64),
+            self.extra_columns,
+        )
 
 
 def _param_rows(
@@ -102,6 +345,8 @@ def run_prequential(
     progress: Progress | None = None,
     track_parameters: bool = False,
     initial_fits: dict[Any, Any] | None = None,
+    outage: Outage | None = None,
+    phases: bool = False,
 ) -> RunResult:
     """Fit on data before ``split``, then predict-then-learn every target observation after it.
 
@@ -116,10 +361,17 @@ def run_prequential(
     methods that learn per measurement see the test observations in rounds, one per well
     (one day of the field for a shared model); the others have their predictions between
     two scheduled retrains made in one call.
+
+    ``outage`` (from :func:`plan_outages` on the same frame, targets and split) hides its
+    windows' measurements from learning; the predictions then carry ``outage`` (the
+    label), ``in_outage`` (True inside a window: the rows the outage protocol scores) and
+    ``days_since`` (days since the well's latest measurement learned from). ``phases``
+    adds ``predicted_q_gas`` ... ``measured_q_water`` (Sm3/h) when the frame has the phase
+    columns.
     """
     started = time.perf_counter()
     meth = parse_method(method)
-    split_ts = resolve_split(targets, split)
+    split_ts = resolve_split(targets, split, frame)
     torch.manual_seed(seed)
     is_target = target_mask(frame, targets)
     times = frame[TIME]
@@ -131,10 +383,18 @@ def run_prequential(
             "choose an earlier --split."
         )
     wells = wells_of(frame.iloc[np.flatnonzero(is_target)])
+    hidden = np.zeros(len(frame), dtype=bool)
+    if outage is not None:
+        if len(outage.hidden) != len(frame):
+            raise ValueError("The outage plan belongs to another frame; plan it on this one.")
+        hidden = np.asarray(outage.hidden, dtype=bool) & is_target & ~before
+    learned = is_target & ~hidden
     model = make_model(model_name, wells, seed=seed, effects=effects, **(model_kwargs or {}))
     train_settings = train or DEFAULT_TRAIN.get(model_name, TrainSettings())
     meth.bind(model, train=train_settings, online=online)
-    memory = FrameMemory(frame, is_target, wells, model.extra_columns)
+    # retrains read only what was learned from: hidden measurements never enter the memory
+    memory = _StudyMemory(frame, learned, wells, model.extra_columns)
+    with_phases = phases and has_phases(frame, test_rows)
     window = None if meth.window is None else int(meth.window.value)
     initial = memory.batch(split_ts.value, window)
 
@@ -162,7 +422,12 @@ def run_prequential(
     spread = np.full(len(frame), np.nan)
     low = np.full(len(frame), np.nan)
     high = np.full(len(frame), np.nan)
-    test = make_batch(frame, wells, extra_columns=model.extra_columns, rows=test_rows)
+    split_rates = {p: np.full(len(frame), np.nan) for p in PHASES} if with_phases else {}
+    seen = frame
+    if outage is not None and outage.fractions == "held" and hidden.any():
+        seen = _held_fractions(frame, learned, hidden)
+    test = make_batch(seen, wells, extra_columns=model.extra_columns, rows=test_rows)
+    hidden_t = torch.from_numpy(hidden)
     total = len(test_rows)
     done = 0
 
@@ -175,6 +440,21 @@ def run_prequential(
         if forecast.p05 is not None and forecast.p95 is not None:
             low[rows] = forecast.p05[where].numpy()
             high[rows] = forecast.p95[where].numpy()
+        if split_rates:
+            # the densities the model holds now (a physics model's learned ones, else priors)
+            params = model.physical_parameters()
+            theta = {k: v.unsqueeze(1) for k, v in params.items() if k in _DENSITIES}
+            for name, q in phase_split(forecast.mean, batch.x, theta or None).items():
+                split_rates[name][rows] = q[where].numpy()
+
+    def learn(batch: Batch) -> None:
+        if hidden.any():
+            keep = batch.mask & ~hidden_t[batch.row.clamp(min=0)]
+            if not bool(keep.any()):
+                return  # every measurement of this round is hidden: nothing arrives
+            if not bool(keep.eq(batch.mask).all()):
+                batch = batch.select(keep)
+        meth.on_measurement(batch, memory)
 
     if meth.per_measurement or model.gradient_free:
         rounds: list[Batch]
@@ -194,7 +474,7 @@ def run_prequential(
                 now = torch.full_like(now, int(now.min()))
             meth.retrain_due(memory, now)
             record(rb, rb.mask)
-            meth.on_measurement(rb, memory)
+            learn(rb)
             if track_parameters:
                 param_rows += _param_rows(
                     model,
@@ -242,6 +522,13 @@ def run_prequential(
         predictions["predicted_std"] = spread[test_rows]
         predictions["predicted_p05"] = low[test_rows]
         predictions["predicted_p95"] = high[test_rows]
+    for name, values in split_rates.items():
+        predictions[f"predicted_{name}"] = values[test_rows]
+        predictions[f"measured_{name}"] = scored[name].to_numpy(dtype=float)
+    if outage is not None:
+        predictions["outage"] = outage.label
+        predictions["in_outage"] = hidden[test_rows]
+        predictions["days_since"] = _days_since(frame, learned, test_rows)
     predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
     return RunResult(
         model=model.name,
@@ -264,22 +551,75 @@ def mape(predicted: np.ndarray | pd.Series, measured: np.ndarray | pd.Series) ->
     return float(np.mean(np.abs(p[ok] - m[ok]) / np.abs(m[ok])) * 100.0)
 
 
+def interval_scores(
+    predicted: np.ndarray | pd.Series,
+    measured: np.ndarray | pd.Series,
+    p05: np.ndarray | pd.Series,
+    p95: np.ndarray | pd.Series,
+) -> tuple[float, float]:
+    """How well a central 90 % predictive interval does: ``(coverage90, width90)``.
+
+    ``coverage90``: the fraction (0..1) of measurements inside [p05, p95]; ``width90``: the
+    median of (p95 - p05) / predicted, in percent. Over rows where all four are finite
+    (and the prediction positive, for the width); NaN when there are none.
+    """
+    q = np.asarray(predicted, dtype=float)
+    m = np.asarray(measured, dtype=float)
+    lo = np.asarray(p05, dtype=float)
+    hi = np.asarray(p95, dtype=float)
+    ok = np.isfinite(q) & np.isfinite(m) & np.isfinite(lo) & np.isfinite(hi)
+    if not ok.any():
+        return float("nan"), float("nan")
+    coverage = float(np.mean((m[ok] >= lo[ok]) & (m[ok] <= hi[ok])))
+    pos = ok & (q > 0)
+    width = float(np.median((hi[pos] - lo[pos]) / q[pos]) * 100.0) if pos.any() else float("nan")
+    return coverage, width
+
+
 def metrics_records(predictions: pd.DataFrame) -> list[dict[str, Any]]:
     """MAPE per model, method and well: ``[{model, method, well, mape, n}]``.
 
     ``n`` counts the scored observations (finite prediction); observations predicted
     before a well had any model (no data yet) are not scored.
+
+    Extensions, each only where the predictions carry what it needs (so the records of an
+    ordinary run are exactly as before):
+
+    - ``outage`` column (an outage run): every record gains ``"outage": "<label>"`` and is
+      scored on the rows inside the windows only (``in_outage``).
+    - interval columns ``predicted_p05``/``predicted_p95`` with values: the total's record
+      gains ``coverage90`` (fraction 0..1) and ``width90`` (%), see :func:`interval_scores`.
+    - phase columns ``predicted_q_oil``/``measured_q_oil`` etc.: after each total record,
+      one record per phase with ``"target": "q_oil"`` (MAPE against the measured phase
+      rate; ``n`` counts rows with a finite prediction and a nonzero measured phase rate).
     """
+    cols = set(predictions.columns)
+    outage = "outage" in cols
+    if outage and "in_outage" in cols:
+        predictions = predictions[predictions["in_outage"].to_numpy(dtype=bool)]
+    phases = [p for p in PHASES if f"predicted_{p}" in cols and f"measured_{p}" in cols]
+    intervals = {"predicted_p05", "predicted_p95"} <= cols
+    keys = ["model", "method", "well"] + (["outage"] if outage else [])
     records = []
-    for (model, method, well), g in predictions.groupby(["model", "method", "well"], sort=False):
-        ok = np.isfinite(g["predicted"].to_numpy())
-        records.append(
-            {
-                "model": model,
-                "method": method,
-                "well": well,
-                "mape": mape(g["predicted"], g["measured"]),
-                "n": int(ok.sum()),
-            }
-        )
+    for key, g in predictions.groupby(keys, sort=False):
+        model, method, well = key[:3]
+        ok = np.isfinite(g["predicted"].to_numpy(dtype=float))
+        base: dict[str, Any] = {"model": model, "method": method, "well": well}
+        if outage:
+            base["outage"] = key[3]
+        total = {**base, "mape": mape(g["predicted"], g["measured"]), "n": int(ok.sum())}
+        if intervals and np.isfinite(g["predicted_p05"].to_numpy(dtype=float)).any():
+            coverage, width = interval_scores(
+                g["predicted"], g["measured"], g["predicted_p05"], g["predicted_p95"]
+            )
+            total["coverage90"] = coverage
+            total["width90"] = width
+        records.append(total)
+        for phase in phases:
+            q = g[f"predicted_{phase}"].to_numpy(dtype=float)
+            m = g[f"measured_{phase}"].to_numpy(dtype=float)
+            scored = np.isfinite(q) & np.isfinite(m) & (m != 0)
+            if not (np.isfinite(m) & (m != 0)).any():
+                continue
+            records.append({**base, "target": phase, "mape": mape(q, m), "n": int(scored.sum())})
     return records

@@ -34,7 +34,7 @@ from vfm_core.reporting.page import Png
 if TYPE_CHECKING:
     from vfm_core.jobs.evaluate import StudyResult
 
-__all__ = ["build_report", "BENCHMARK"]
+__all__ = ["build_report", "calibration_curve", "BENCHMARK"]
 
 #: The benchmark model: it repeats the most recent measured rate (the paper's Benchmark).
 BENCHMARK = "last"
@@ -186,6 +186,40 @@ def _date_axes_below(axes: np.ndarray, n_panels: int) -> None:
 
 # --------------------------------------------------------------------------- data shaping
 
+#: Keys of a record that mark a score other than the default one (total, ordinary protocol).
+_SCORE_KEYS: tuple[str, ...] = ("target", "outage")
+#: The total's name in the target column of the protocol tables.
+_TOTAL = "q_total"
+_TARGET_LABELS: dict[str, str] = {
+    "q_total": "total",
+    "q_gas": "gas",
+    "q_oil": "oil",
+    "q_water": "water",
+}
+
+
+def _default_rows(frame: pd.DataFrame) -> pd.DataFrame:
+    """The rows of a records or summary frame without ``target`` (or with the total) and
+    without ``outage``: the ordinary protocol on the total rate."""
+    keep = np.ones(len(frame), dtype=bool)
+    if "target" in frame.columns:
+        target = frame["target"]
+        keep &= (target.isna() | (target.astype(str) == _TOTAL)).to_numpy()
+    if "outage" in frame.columns:
+        keep &= frame["outage"].isna().to_numpy()
+    return frame[keep].reset_index(drop=True)
+
+
+def _protocol_frame(frame: pd.DataFrame) -> pd.DataFrame:
+    """Records or summary rows with explicit ``protocol`` (``ordinary`` or the outage
+    length) and ``target`` (``q_total`` for the total) columns."""
+    outage = frame["outage"] if "outage" in frame.columns else pd.Series(np.nan, frame.index)
+    target = frame["target"] if "target" in frame.columns else pd.Series(np.nan, frame.index)
+    return frame.assign(
+        protocol=outage.fillna("ordinary").astype(str),
+        target=target.fillna(_TOTAL).astype(str),
+    )
+
 
 class _Study:
     """The result's tables in the shapes the report needs (no subsampling)."""
@@ -204,6 +238,9 @@ class _Study:
         records = pd.DataFrame(list(result.records or []))
         if records.empty:
             records = pd.DataFrame(columns=["model", "method", "well", "mape", "n"])
+        # phase and outage records have their own sections; the paper's tables are the total's
+        self.all_records = records
+        records = _default_rows(records)
         records = records.assign(
             model=records["model"].astype(str),
             method=records["method"].astype(str),
@@ -214,6 +251,7 @@ class _Study:
         summary = pd.DataFrame(list(result.summary or []))
         if summary.empty:
             summary = pd.DataFrame(columns=["model", "method", "mean_mape", "median_mape", "wells"])
+        summary = _default_rows(summary)
         summary = summary.assign(
             model=summary["model"].astype(str),
             method=summary["method"].astype(str),
@@ -808,6 +846,7 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     n_series = len(study.methods) + 1
     per_series = max(200, _MAX_POINTS_PER_PANEL // n_series)
     any_clipped = False
+    banded = False
     for ax, well in zip(axes.flat, wells, strict=False):
         meas = measured[measured["well"] == well]
         meas_q = pd.to_numeric(meas["measured"], errors="coerce").to_numpy(dtype=float)
@@ -846,6 +885,22 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
             times = _naive_utc(g["time"]).to_numpy()[ok]
             q = q[ok]
             idx = _thin_index(len(q), per_series)
+            if {"predicted_p05", "predicted_p95"} <= set(g.columns):
+                lo = pd.to_numeric(g["predicted_p05"], errors="coerce").to_numpy(dtype=float)[ok]
+                hi = pd.to_numeric(g["predicted_p95"], errors="coerce").to_numpy(dtype=float)[ok]
+                if np.isfinite(lo).any() and np.isfinite(hi).any():
+                    band_t, band_lo = _break_gaps(times[idx], lo[idx])
+                    _, band_hi = _break_gaps(times[idx], hi[idx])
+                    ax.fill_between(
+                        band_t,
+                        band_lo,
+                        band_hi,
+                        color=study.colours[meth],
+                        alpha=0.18,
+                        linewidth=0,
+                        zorder=2,
+                    )
+                    banded = True
             line_t, line_q = _break_gaps(times[idx], q[idx])
             ax.plot(
                 line_t,
@@ -895,6 +950,8 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
         Line2D([], [], color=study.colours[m], linewidth=2, label=f"predicted, {m}")
         for m in study.methods
     ]
+    if banded:
+        handles.append(Patch(facecolor="#888", alpha=0.3, label="90 % predictive interval"))
     fig.suptitle(f"Predicted and measured total rate per well, model {model}", fontsize=12)
     fig.legend(
         handles=handles,
@@ -912,6 +969,7 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
         "png": page.png(fig),
         "per_series": per_series,
         "clipped": any_clipped,
+        "banded": banded,
     }
 
 
@@ -992,6 +1050,304 @@ def _parameter_section(study: _Study) -> Png | None:
     return page.png(fig)
 
 
+# --------------------------------------------------------------------------- phases, outages, intervals
+
+
+def _protocol_table(study: _Study) -> dict[str, Any] | None:
+    """Mean MAPE across wells per protocol (ordinary, each outage length) and target (total
+    and phases): one cell per model at its best method, the benchmark last. ``None`` when
+    the study has neither phases nor outages."""
+    summary = pd.DataFrame(list(study.result.summary or []))
+    if summary.empty or not any(k in summary.columns for k in _SCORE_KEYS):
+        return None
+    df = _protocol_frame(summary)
+    df = df.assign(mean_mape=[_to_float(v) for v in df["mean_mape"]])
+    df = df[np.isfinite(df["mean_mape"].to_numpy(dtype=float))]
+    if df.empty:
+        return None
+    protocols = list(dict.fromkeys(["ordinary", *df["protocol"]]))
+    targets = [t for t in _TARGET_LABELS if (df["target"] == t).any()]
+    models = [m for m in study.all_models if (df["model"] == m).any()]
+    rows = []
+    for protocol in protocols:
+        for target in targets:
+            sel = df[(df["protocol"] == protocol) & (df["target"] == target)]
+            if sel.empty:
+                continue
+            best = sel.loc[sel.groupby("model")["mean_mape"].idxmin()].set_index("model")
+            contenders = [m for m in models if m != BENCHMARK and m in best.index]
+            low = min((float(best.loc[m, "mean_mape"]) for m in contenders), default=math.nan)
+            bench = float(best.loc[BENCHMARK, "mean_mape"]) if BENCHMARK in best.index else math.nan
+            cells = []
+            for m in models:
+                if m not in best.index:
+                    cells.append((math.nan, "", ""))
+                    continue
+                value = float(best.loc[m, "mean_mape"])
+                classes = []
+                if m != BENCHMARK and value == low:
+                    classes.append("best")
+                if m == BENCHMARK:
+                    classes.append("sep")
+                cells.append((value, str(best.loc[m, "method"]), " ".join(classes)))
+            rows.append(
+                {
+                    "protocol": protocol,
+                    "target": _TARGET_LABELS.get(target, target),
+                    "cells": cells,
+                    "beats": bool(np.isfinite(bench) and np.isfinite(low) and low < bench),
+                }
+            )
+    columns = [(m if m != BENCHMARK else f"{m} (benchmark)", m == BENCHMARK) for m in models]
+    return {"columns": columns, "rows": rows, "has_benchmark": BENCHMARK in models}
+
+
+#: Edges (days since the last measurement) of the outage figure's bins.
+_SINCE_EDGES: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, 7.0, 14.0, 30.0, 60.0, 90.0, 180.0, 365.0)
+
+
+def _outage_section(study: _Study) -> dict[str, Any] | None:
+    """Error against days since the last measurement, inside the outage windows, per model
+    (panels) and method (lines), with the benchmark's curve on every panel."""
+    preds = study.result.outage_predictions
+    if preds is None or not isinstance(preds, pd.DataFrame) or preds.empty:
+        return None
+    if not {"days_since", "predicted", "measured", "model", "method"} <= set(preds.columns):
+        return None
+    q = pd.to_numeric(preds["predicted"], errors="coerce").to_numpy(dtype=float)
+    m = pd.to_numeric(preds["measured"], errors="coerce").to_numpy(dtype=float)
+    since = pd.to_numeric(preds["days_since"], errors="coerce").to_numpy(dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ape = np.abs(q - m) / np.abs(m) * 100.0
+    ok = np.isfinite(ape) & np.isfinite(since)
+    if not ok.any():
+        return None
+    data = pd.DataFrame(
+        {
+            "model": preds["model"].astype(str).to_numpy()[ok],
+            "method": preds["method"].astype(str).to_numpy()[ok],
+            "since": since[ok],
+            "ape": ape[ok],
+        }
+    )
+    top_days = float(data["since"].max())
+    edges = [e for e in _SINCE_EDGES if e < top_days] + [top_days + 1e-9]
+    data["bin"] = pd.cut(data["since"], bins=edges, right=False, labels=False)
+    mids = np.array([(a + b) / 2 for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    curves = data.groupby(["model", "method", "bin"])["ape"].agg(["mean", "size"]).reset_index()
+    curves = curves[curves["size"] >= 5]  # a bin of a handful of points says little
+    panels = [mdl for mdl in study.models if (curves["model"] == mdl).any()]
+    bench = curves[curves["model"] == BENCHMARK]
+    if bench.empty and not panels:
+        return None
+    if not panels:
+        panels = [BENCHMARK]
+    ncols = 1 if len(panels) == 1 else 2
+    nrows = math.ceil(len(panels) / ncols)
+    fig = Figure(figsize=(7.2 * ncols, 2.9 * nrows + 0.7))
+    axes = fig.subplots(nrows, ncols, sharex=True, sharey=True, squeeze=False)
+    top = _axis_top(curves["mean"], curves.groupby("model")["mean"].median())
+    for ax, model in zip(axes.flat, panels, strict=False):
+        for meth in study.methods:
+            g = curves[(curves["model"] == model) & (curves["method"] == meth)]
+            if g.empty:
+                continue
+            ax.plot(
+                mids[g["bin"].to_numpy(dtype=int)],
+                g["mean"],
+                color=study.colours.get(meth, "#555"),
+                marker="o",
+                markersize=3,
+                linewidth=1.3,
+            )
+        if model != BENCHMARK and not bench.empty:
+            b = bench.groupby("bin")["mean"].min()
+            ax.plot(
+                mids[b.index.to_numpy(dtype=int)],
+                b.to_numpy(dtype=float),
+                color="black",
+                linestyle="--",
+                linewidth=1.2,
+            )
+        ax.set_title(model if model != BENCHMARK else f"{model} (benchmark)", fontsize=10)
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.grid(alpha=0.3)
+        ax.set_ylabel("MAPE in the bin (%)")
+    for ax in axes.flat[len(panels) :]:
+        ax.set_visible(False)
+    for ax in axes[-1, :]:
+        ax.set_xlabel("days since the last measurement learned from")
+    if top is not None:
+        axes.flat[0].set_ylim(0, top)
+    handles = [
+        Line2D([], [], color=study.colours[m], marker="o", markersize=3, label=m)
+        for m in study.methods
+    ]
+    if not bench.empty and panels != [BENCHMARK]:
+        handles.append(
+            Line2D([], [], color="black", linestyle="--", label=f"{BENCHMARK} (benchmark)")
+        )
+    fig.suptitle("Error inside the outage windows against the time without a measurement")
+    fig.legend(
+        handles=handles,
+        loc="lower center",
+        ncol=min(len(handles), 5),
+        fontsize=8,
+        bbox_to_anchor=(0.5, -0.01),
+        frameon=False,
+    )
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    windows = study.result.outage_windows
+    counts: list[tuple[str, int, int, int]] = []
+    if isinstance(windows, pd.DataFrame) and not windows.empty:
+        for label, g in windows.groupby("outage", sort=False):
+            counts.append((str(label), len(g), int(g["well"].nunique()), int(g["rows"].sum())))
+    return {
+        "png": page.png(fig),
+        "windows": counts,
+        "fractions": str(study.result.outage_fractions),
+        "edges": [int(e) if float(e).is_integer() else e for e in edges[1:-1]],
+    }
+
+
+def _phase_grid(study: _Study) -> dict[str, Any] | None:
+    """Predicted against measured phase rates per well (rows) and phase (columns), for the
+    best model at its best method."""
+    p = study.preds
+    phases = [ph for ph in ("q_gas", "q_oil", "q_water") if f"predicted_{ph}" in p.columns]
+    phases = [ph for ph in phases if f"measured_{ph}" in p.columns]
+    model = study.best_model()
+    if not phases or model is None:
+        return None
+    col = study.mean[model].dropna() if model in study.mean.columns else pd.Series(dtype=float)
+    if col.empty:
+        return None
+    method = str(col.idxmin())
+    sub = p[(p["model"] == model) & (p["method"] == method)]
+    sub = sub.assign(time=pd.to_datetime(sub["time"], utc=True), well=sub["well"].astype(str))
+    wells = [w for w in study.wells if (sub["well"] == w).any()]
+    if not wells:
+        return None
+    fig = Figure(figsize=(4.6 * len(phases), 2.1 * len(wells) + 0.8))
+    axes = fig.subplots(len(wells), len(phases), sharex=True, squeeze=False)
+    for i, well in enumerate(wells):
+        g = sub[sub["well"] == well].sort_values("time")
+        times = _naive_utc(g["time"]).to_numpy()
+        idx = _thin_index(len(g), 600)
+        for k, phase in enumerate(phases):
+            ax = axes[i, k]
+            meas = pd.to_numeric(g[f"measured_{phase}"], errors="coerce").to_numpy(dtype=float)
+            pred = pd.to_numeric(g[f"predicted_{phase}"], errors="coerce").to_numpy(dtype=float)
+            ax.plot(
+                times[idx], meas[idx], linestyle="none", marker=".", markersize=2.5, color="#9a9a9a"
+            )
+            line_t, line_q = _break_gaps(times[idx], pred[idx])
+            ax.plot(line_t, line_q, color=study.colours.get(method, "#1f77b4"), linewidth=0.9)
+            finite = meas[np.isfinite(meas)]
+            y_lo, y_hi = _rate_limits(finite, pd.Series(pred))
+            if np.isfinite(y_lo) and np.isfinite(y_hi) and y_hi > y_lo:
+                ax.set_ylim(y_lo, y_hi)
+            ax.grid(alpha=0.3)
+            if i == 0:
+                ax.set_title(f"{_TARGET_LABELS[phase]} (Sm3/h)", fontsize=10)
+            if k == 0:
+                ax.set_ylabel(well, fontsize=9)
+    for ax in axes[-1, :]:
+        ax.set_xlabel("time (UTC)")
+        page.date_axis(ax)
+    handles = [
+        Line2D(
+            [], [], linestyle="none", marker=".", markersize=6, color="#9a9a9a", label="measured"
+        ),
+        Line2D([], [], color=study.colours.get(method, "#1f77b4"), label=f"predicted, {method}"),
+    ]
+    fig.suptitle(f"Phase rates per well, model {model} with {method}", fontsize=12)
+    fig.legend(
+        handles=handles,
+        loc="lower center",
+        ncol=2,
+        fontsize=8,
+        bbox_to_anchor=(0.5, -0.005),
+        frameon=False,
+    )
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+    return {"png": page.png(fig), "model": model, "method": method}
+
+
+#: Nominal levels of the calibration plot's central intervals.
+_LEVELS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
+
+
+def calibration_curve(
+    predicted: np.ndarray, measured: np.ndarray, p95: np.ndarray, levels: Sequence[float] = _LEVELS
+) -> np.ndarray:
+    """Observed coverage of central intervals at each nominal level, for a log-normal
+    predictive distribution with median ``predicted`` whose 95 % quantile is ``p95``
+    (sd in log space ``log(p95 / predicted) / 1.6449``). NaN where nothing is scored."""
+    from statistics import NormalDist
+
+    q = np.asarray(predicted, dtype=float)
+    m = np.asarray(measured, dtype=float)
+    hi = np.asarray(p95, dtype=float)
+    ok = np.isfinite(q) & np.isfinite(m) & np.isfinite(hi) & (q > 0) & (m > 0) & (hi > q)
+    if not ok.any():
+        return np.full(len(levels), np.nan)
+    sd = np.log(hi[ok] / q[ok]) / NormalDist().inv_cdf(0.95)
+    z = np.abs(np.log(m[ok] / q[ok])) / sd
+    return np.array([float(np.mean(z <= NormalDist().inv_cdf(0.5 + lv / 2))) for lv in levels])
+
+
+def _calibration_section(study: _Study) -> dict[str, Any] | None:
+    """Observed against nominal coverage of the predictive intervals, per model and method
+    (ordinary protocol solid, outage protocol dashed)."""
+    frames = [("ordinary", study.preds)]
+    outage = study.result.outage_predictions
+    if isinstance(outage, pd.DataFrame) and not outage.empty:
+        frames.append(("outage", outage))
+    curves = []
+    for protocol, frame in frames:
+        if not {"predicted_p95", "predicted"} <= set(frame.columns):
+            continue
+        for (model, meth), g in frame.groupby(["model", "method"], sort=False):
+            cov = calibration_curve(
+                g["predicted"].to_numpy(dtype=float),
+                g["measured"].to_numpy(dtype=float),
+                g["predicted_p95"].to_numpy(dtype=float),
+            )
+            if np.isfinite(cov).any():
+                curves.append((protocol, str(model), str(meth), cov))
+    if not curves:
+        return None
+    fig = Figure(figsize=(6.4, 5.4))
+    ax = fig.subplots()
+    levels = np.array(_LEVELS) * 100
+    ax.plot([0, 100], [0, 100], color="#888", linewidth=1, linestyle=":")
+    markers = "osD^v<>ph*"
+    pairs = list(dict.fromkeys((mdl, meth) for _, mdl, meth, _ in curves))
+    rows = []
+    for protocol, model, meth, cov in curves:
+        k = pairs.index((model, meth))
+        ax.plot(
+            levels,
+            cov * 100,
+            color=study.colours.get(meth, "#555"),
+            marker=markers[k % len(markers)],
+            markersize=4,
+            linestyle="-" if protocol == "ordinary" else "--",
+            label=f"{model}, {meth}" + ("" if protocol == "ordinary" else " (outages)"),
+        )
+        rows.append((model, meth, protocol, float(cov[_LEVELS.index(0.9)]) * 100))
+    ax.set_xlim(0, 100)
+    ax.set_ylim(0, 100)
+    ax.set_xlabel("nominal coverage of the central interval (%)")
+    ax.set_ylabel("observed coverage (%)")
+    ax.set_title("Calibration of the predictive intervals")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    return {"png": page.png(fig), "rows": rows}
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -1018,5 +1374,9 @@ def build_report(result: StudyResult, path: Path) -> Path:
             "well_tests": _well_test_section(study),
             "rates": _rates_section(study),
             "c_d": _parameter_section(study),
+            "protocols": _protocol_table(study),
+            "outages": _outage_section(study),
+            "phases": _phase_grid(study),
+            "calibration": _calibration_section(study),
         }
     return page.write_page(path, page.render("study.html.j2", **context))
