@@ -18,7 +18,7 @@ from vfm_core.data import Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import run_prequential, wells_of
 from vfm_core.learning import METHODS, NEVER, FrameMemory, LearningMethod, parse_method
-from vfm_core.models import make_model
+from vfm_core.models import MODELS, make_model
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 from vfm_core.streaming import WellLearner
@@ -93,6 +93,17 @@ def test_predict_before_fit_is_nan_and_after_finite(text: str, field) -> None:
         assert forecast.std is not None and (forecast.std[test.mask] > 0).all()
     else:
         assert forecast.std is None
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+@pytest.mark.parametrize("text", EXAMPLES)
+def test_every_method_runs_every_model(text: str, model: str, field) -> None:
+    """Every method binds to every registered model, including one without parameters to
+    filter (the benchmark ``last``), predicts, and learns without error."""
+    method, memory, test = _setup(field, text, model=model)
+    out = _stream(method, memory, test, 0, min(5, test.time_ns.shape[1]))
+    for k, pred in enumerate(out):
+        assert torch.isfinite(pred[test.mask[:, k]]).all()
 
 
 @pytest.mark.parametrize("text", EXAMPLES)

@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
 from vfm_core.cli import main
 from vfm_core.jobs.tune import load_params, run_tuning, settings_for, trial_grid
+from vfm_core.simulate import simulate_field
 
 
 @pytest.fixture(scope="module")
@@ -179,3 +181,19 @@ def test_every_method_has_something_to_tune_and_bayes_its_drift() -> None:
     params = {"models": {"mm": {"bayes": {"text": "bayes:drift=2"}}}}
     assert method_for(params, "mm", "bayes") == "bayes:drift=2"
     assert method_for(params, "ham", "bayes") == "bayes"
+
+
+def test_evaluate_runs_the_method_options_a_params_file_chose() -> None:
+    """params.json's ``text`` (e.g. ``bayes:drift=4``) is the method the study runs for
+    that model; the records keep the method's name, so a table reads the same."""
+    from vfm_core.jobs.evaluate import run_study
+
+    frame = simulate_field(wells=2, years=1.2, seed=5, start="2018-06-01").observations
+    runs = {}
+    for text in ("bayes", "bayes:drift=4"):
+        params = {"models": {"mm": {"bayes": {"text": text}}}}
+        result = run_study(frame, models=["mm"], methods=["bayes"], progress=False, params=params)
+        assert set(result.predictions["method"]) == {"bayes"}
+        runs[text] = result.predictions["predicted"].to_numpy()
+    # four times the drift lets the filter move further: the predictions differ
+    assert not np.allclose(runs["bayes"], runs["bayes:drift=4"])

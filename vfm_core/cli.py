@@ -152,8 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--methods",
         action="append",
-        help="comma-separated methods: ol, pbl:<period>[:window=<span>] "
-        "(default: ol,pbl:14d,pbl:182d)",
+        help="comma-separated methods: ol, pbl:<period>[:window=<span>], pbl:auto, "
+        "bayes[:option=value...] (default: ol,pbl:14d,pbl:182d)",
     )
     p.add_argument(
         "--targets",
@@ -163,7 +163,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--split",
         default=None,
-        help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test)",
+        help="first day scored (default 2019-01-01 for all, 2020-01-01 for well_test, or, "
+        "where that date does not fall inside the data, the first day of the month by which "
+        "two thirds of the case's measurements were taken)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")

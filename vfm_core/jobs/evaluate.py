@@ -244,7 +244,7 @@ def run_study(
     parameters = []
     updates: dict[str, list[pd.Timestamp]] = {}
     initial_fits: dict[Any, Any] = {}
-    from vfm_core.jobs.tune import settings_for
+    from vfm_core.jobs.tune import method_for, settings_for
 
     try:
         for model, meth, label in combos:
@@ -257,10 +257,11 @@ def run_study(
                 def report(done: int, total: int, base: int = base) -> None:
                     bar.update(base + done - bar.n)
 
+                text = method_for(params, model, meth)  # with the options `vfm tune` chose
                 result = run_prequential(
                     frame,
                     model,
-                    meth,
+                    text,
                     targets=targets,
                     split=split_ts,
                     seed=seed,
@@ -275,6 +276,8 @@ def run_study(
                 )
                 if extended:
                     result.predictions["model"] = label
+                if text != meth:
+                    result.predictions["method"] = meth
                 bar.update(base + n_test - bar.n)
                 if plan is not None:
                     inside = result.predictions["in_outage"].to_numpy(dtype=bool)

@@ -444,7 +444,9 @@ class BayesianFilter(LearningMethod):
                 f"its filtered parameters are {', '.join(labels) or 'none'}."
             )
         self._blocks = blocks
-        keep = torch.tensor([not self.params or label in self.params for label in labels])
+        keep = torch.tensor(
+            [not self.params or label in self.params for label in labels], dtype=torch.bool
+        )
         self._labels = labels
         self._keep = keep
         prior_var = torch.cat([b.prior_var for b in blocks]) if blocks else torch.zeros(0)
