@@ -1652,8 +1652,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--method",
         default="ol",
-        help="learning method of the online run (where it fails in operation): ol or "
-        "pbl:<period> (default ol)",
+        help="learning method of the online run (where it fails in operation): ol, "
+        "pbl:<period>, bayes, ... (default ol)",
     )
     p.add_argument(
         "--candidate-method",
