@@ -105,8 +105,14 @@ def test_evaluate_outputs_follow_the_contract(tmp_path) -> None:
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["targets"] == "all" and metrics["split"].startswith("2019-01-01")
     assert {r["model"] for r in metrics["records"]} == {"last", "mm"}
-    for r in metrics["records"]:
+    total = [r for r in metrics["records"] if "target" not in r]
+    assert total  # the total rate's records keep exactly the keys they always had
+    for r in total:
         assert set(r) == {"model", "method", "well", "mape", "n"} and r["n"] > 0 and r["mape"] > 0
+    # with phases in the data, each phase gets records of its own, marked by "target"
+    phases = {r["target"] for r in metrics["records"] if "target" in r}
+    assert phases == {"q_gas", "q_oil", "q_water"}
+    assert len(metrics["records"]) == 4 * len(total)
     preds = pd.read_parquet(tmp_path / "predictions.parquet")
     assert set(preds.columns) >= {"time", "well", "model", "method", "predicted", "measured"}
     # every scored observation is after the split, predicted before being learned from
