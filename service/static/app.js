@@ -468,9 +468,9 @@ function showDiagnosis(j) {
   }
   $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="6" class="hint">No candidate could be tried.</td></tr>`;
   $("#diag-candidates-table").hidden = false;
-  const drivers = (d.drivers || []).slice(0, 4).map((x) => `${x.name} (${x.role}, score ${fmt(x.score, 3)}` +
-    (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 3)})`));
-  $("#diag-drivers").textContent = drivers.length ? "What the residual depends on (strongest first): " + drivers.join(", ") : "";
+  const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
+    .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
+  $("#diag-drivers").textContent = drivers.length ? "Inputs the residual depends on, strongest first (a p above 0.05 is within chance): " + drivers.join(", ") : "";
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
 }
 
