@@ -187,7 +187,8 @@ class Observer:
 
     def _learned(self, op: MarkLearned, live: bool) -> None:
         q = self._measured.pop((op.well, op.source, op.time_ns), None)
-        interval = self._intervals.get(op.well, {}).get(op.sample.time_ns)
+        kept = self._intervals.get(op.well)
+        interval = kept.get(op.sample.time_ns) if kept is not None else None
         if q is not None and interval is not None:
             cover = self._coverage.setdefault(op.well, deque(maxlen=self.window))
             cover.append(interval[0] <= q <= interval[1])
