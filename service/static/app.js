@@ -470,7 +470,10 @@ function showDiagnosis(j) {
   $("#diag-candidates-table").hidden = false;
   const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
     .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
-  $("#diag-drivers").textContent = drivers.length ? "Inputs the residual depends on, strongest first (a p above 0.05 is within chance): " + drivers.join(", ") : "";
+  const real = (d.drivers || []).filter((x) => x.role === "driver" && x.score > 0 && x.p_value != null && x.p_value < 0.05);
+  $("#diag-drivers").textContent = !drivers.length ? "" : real.length
+    ? "Inputs the residual depends on beyond chance: " + real.map((x) => `${x.name} (p ${fmt(x.p_value, 3)})`).join(", ") + "."
+    : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".";
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
 }
 
