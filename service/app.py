@@ -26,6 +26,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from service.config import Settings
+from service.diagnosis import DiagnosisJobs
 from service.engine import Engine
 from service.http import create_app
 from service.inputs import Counters
@@ -44,6 +45,7 @@ class Service:
     def __init__(self, settings: Settings, transport: Transport | None = None) -> None:
         self.settings = settings
         self.counters = Counters()
+        self.diagnoses = DiagnosisJobs(settings)
         self._transport = transport
         self.store: Store | None = None
         self.engine: Engine | None = None
@@ -88,6 +90,7 @@ class Service:
 
     def stop(self) -> None:
         self.ready = False
+        self.diagnoses.stop()
         try:
             if self.transport is not None:
                 self.transport.stop_receiving()
@@ -191,7 +194,14 @@ def _uvicorn_server(app: Any, settings: Settings) -> Any:
         limit_concurrency=settings.http.max_connections,
         timeout_graceful_shutdown=settings.http.shutdown_grace_s,
     )
-    return uvicorn.Server(config)
+
+    class _Server(uvicorn.Server):
+        async def shutdown(self, sockets: Any = None) -> None:
+            # live streams (GET /events) end now, not after http.shutdown_grace_s
+            app.state.closing.set()
+            await super().shutdown(sockets)
+
+    return _Server(config)
 
 
 def _url(sock: socket.socket) -> str:

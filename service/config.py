@@ -290,6 +290,12 @@ class HttpSettings(_Section):
     max_export_rows: int = Field(
         default=1_000_000, ge=1, description="most rows GET /wells/{well}/history.csv returns"
     )
+    diagnosis_budget_s: float = Field(
+        default=900.0,
+        gt=0,
+        description="wall-clock budget of one diagnosis started over HTTP (POST "
+        "/wells/{well}/diagnosis); it is stopped and reported as failed beyond it, s",
+    )
 
     @model_validator(mode="after")
     def _loopback(self) -> HttpSettings:

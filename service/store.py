@@ -34,15 +34,18 @@ code knows is refused with a sentence.
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
 from vfm_core.errors import ConfigError
+
+logger = logging.getLogger("vfm.service.store")
 
 __all__ = [
     "Store",
@@ -483,6 +486,9 @@ class Store:
         elif row[0] != SCHEMA_VERSION:
             self._migrate(str(row[0]))
         self._readers: list[sqlite3.Connection] = []
+        #: called with the ops of every successful commit, on the writing thread (the
+        #: engine's :class:`~service.engine.observe.Observer`); it must not block
+        self.on_commit: Callable[[Sequence[Op]], None] | None = None
 
     def _migrate(self, version: str) -> None:
         """Bring an older store to :data:`SCHEMA_VERSION` in place, one version at a time."""
@@ -533,6 +539,11 @@ class Store:
             except BaseException:
                 con.execute("ROLLBACK")
                 raise
+        if self.on_commit is not None:
+            try:
+                self.on_commit(ops)
+            except Exception as exc:  # pragma: no cover - what is committed stays committed
+                logger.warning("The commit observer failed: %s", exc)
         return counts
 
     def close(self) -> None:

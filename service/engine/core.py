@@ -34,6 +34,7 @@ from service.engine.intake import Intake, worker_of
 from service.engine.items import RetireStep
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
+from service.engine.observe import Observer
 from service.engine.pairing import Pairing
 from service.engine.recovery import Recovery
 from service.engine.registry import Registry
@@ -69,6 +70,9 @@ class Engine:
             FairQueue(q.worker_capacity, q.well_capacity) for _ in range(q.workers)
         ]
         self._stopping = threading.Event()
+        #: live events and monitoring numbers from every commit (``GET /events``, ``/metrics``)
+        self.observer = Observer(settings.rolling_window)
+        store.on_commit = self.observer.committed
         self._registry = Registry(settings, self._wells)
         self._checkpoints = Checkpoints(settings)
         self._learning = Learning(settings, counters, self._checkpoints)
@@ -119,6 +123,7 @@ class Engine:
         fitting is waited for (at most 10 s) and then abandoned. True when everything ended
         in time; the checkpoints are written either way, of the wells whose worker ended."""
         self._stopping.set()
+        self.observer.close()
         fits_done = self._model_changes.wait(min(10.0, timeout))
         ended = self._workers.stop(timeout)
         if ended:
@@ -147,7 +152,10 @@ class Engine:
         method: str | None = None,
     ) -> dict[str, Any]:
         """Replace a well's model (see :mod:`service.engine.model_change`); blocks until done."""
-        return self._model_changes.change(well, model, effects, method)
+        change = self._model_changes.change(well, model, effects, method)
+        st = self._wells.get(well)
+        self.observer.model_changed(well, change, st.last_time_ns if st is not None else None)
+        return change
 
     def retire_well(self, well: str, purge: bool = False, timeout: float = 30.0) -> dict[str, Any]:
         """Stop serving a well (``DELETE /wells/{well}``) after what is queued for it: its

@@ -15,6 +15,13 @@
                                          :mod:`.model_changes`)
 ``DELETE /wells/{well}``                 retire a well, keeping or purging its data (bearer
                                          token; :mod:`.wells`)
+``POST /wells/{well}/diagnosis``         start a diagnosis of the well's stored history
+                                         (bearer token; :mod:`.diagnosis`)
+``GET /diagnosis/{job}``                 its state, progress and, once done, the diagnosis
+``GET /events``                          live events, server-sent (:mod:`.events`)
+``GET /metrics``                         Prometheus text format (:mod:`.metrics`)
+``GET /``, ``/docs``, ``/static/...``    the workbench page and the API docs, with every
+                                         asset from the package (:mod:`.workbench`)
 =======================================  =====================================================
 
 Errors answer ``{"detail": "<a sentence>", "reason": "<counter key>"}`` with the status
@@ -24,10 +31,22 @@ of :data:`service.http.errors.STATUS`; a body above ``http.max_body_bytes`` gets
 
 from __future__ import annotations
 
+import threading
+
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
 from service.errors import REASONS
-from service.http import health, model_changes, well_tests, wells
+from service.http import (
+    diagnosis,
+    events,
+    health,
+    metrics,
+    model_changes,
+    well_tests,
+    wells,
+    workbench,
+)
 from service.http.deps import ServiceView
 from service.http.errors import BodyLimit, install_error_handlers
 
@@ -44,8 +63,14 @@ def create_app(service: ServiceView) -> FastAPI:
             "HTTP. Units: bar absolute, degC, fractions 0..1, Sm3/h; times ISO 8601 UTC. "
             "Rejection reasons: " + "; ".join(f"'{k}': {v}" for k, v in REASONS.items()) + "."
         ),
+        # served from the package by workbench.docs (the default loads Swagger UI from a CDN)
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.service = service
+    app.state.metrics = metrics.registry_for(service)
+    #: set when the HTTP server begins to shut down: live streams end at once
+    app.state.closing = threading.Event()
     install_error_handlers(app)
 
     def count(message: str, where: str) -> None:
@@ -56,4 +81,9 @@ def create_app(service: ServiceView) -> FastAPI:
     app.include_router(wells.router)
     app.include_router(model_changes.router)
     app.include_router(well_tests.router)
+    app.include_router(diagnosis.router)
+    app.include_router(events.router)
+    app.include_router(metrics.router)
+    app.include_router(workbench.router)
+    app.mount("/static", StaticFiles(directory=workbench.STATIC), name="static")
     return app

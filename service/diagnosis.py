@@ -1,0 +1,318 @@
+"""Diagnoses started over HTTP (``POST /wells/{well}/diagnosis``): background jobs with progress.
+
+A job runs ``vfm diagnose --store <the service's store> --well W`` in a process of its own
+(``python -m service.diagnosis``, never a fork after Zenoh opened), so it never holds the
+engine's workers or the GIL: the child reads the well's stored history through
+:func:`service.export.load_store` (a read-only connection), runs
+:func:`vfm_core.jobs.diagnose.run_diagnosis` with a progress callback, and writes
+``diagnosis.json`` and ``report.html`` with
+:func:`~vfm_core.jobs.diagnose.write_diagnosis` into ``<store folder>/diagnoses/<job>/``.
+Progress comes back as JSON lines on its stdout; its stderr goes to ``diagnose.log`` there.
+
+One diagnosis runs at a time (a second request is refused with
+:class:`~service.errors.Conflict`), and each has a wall-clock budget
+(``http.diagnosis_budget_s``) after which its process is stopped and the job fails with a
+sentence saying so. The last :data:`KEEP_JOBS` jobs are remembered (in memory; their
+folders stay on disk).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import secrets
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from service.config import Settings
+from service.engine.model_change import effect_module
+from service.errors import Conflict, InvalidRequest, NotAllowed, Stopping
+from vfm_core.errors import VFMError
+
+__all__ = ["DiagnosisJobs", "Job", "MODELS", "KEEP_JOBS"]
+
+logger = logging.getLogger("vfm.service.diagnosis")
+
+#: base models the diagnosis takes
+MODELS = ("mm", "hem", "ham")
+#: jobs remembered for GET /diagnosis/{job}
+KEEP_JOBS = 20
+
+
+@dataclass
+class Job:
+    """One diagnosis: its request, state (queued, running, done, failed), progress, result."""
+
+    id: str
+    well: str
+    request: dict[str, Any]
+    folder: Path
+    state: str = "queued"
+    fraction: float = 0.0
+    text: str = "starting"
+    error: str | None = None
+    started: float = field(default_factory=time.time)
+    finished: float | None = None
+
+    def view(self) -> dict[str, Any]:
+        """What ``GET /diagnosis/{job}`` answers (with the diagnosis once done)."""
+        out: dict[str, Any] = {
+            "job": self.id,
+            "well": self.well,
+            "request": self.request,
+            "state": self.state,
+            "progress": round(self.fraction, 4),
+            "progress_text": self.text,
+            "error": self.error,
+            "elapsed_s": round((self.finished or time.time()) - self.started, 2),
+            "diagnosis": None,
+            "report": None,
+        }
+        if self.state == "done":
+            out["diagnosis"] = json.loads((self.folder / "diagnosis.json").read_text("utf-8"))
+            if (self.folder / "report.html").is_file():
+                out["report"] = f"/diagnosis/{self.id}/report.html"
+        return out
+
+
+def _child(request: dict[str, Any]) -> None:
+    """The job's process: load the well's history, diagnose, write; one JSON line per step."""
+
+    def say(kind: str, fraction: float, text: str) -> None:
+        print(json.dumps([kind, fraction, text]), flush=True)
+
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+        from service.export import load_store
+        from vfm_core.jobs.diagnose import run_diagnosis, write_diagnosis
+
+        say("progress", 0.0, "reading the stored history")
+        frame = load_store(request["store"], request["well"])
+        diag = run_diagnosis(
+            frame,
+            request["model"],
+            method=request["method"],
+            split=request["split"],
+            candidates=request["candidates"],
+            suggest=request["suggest"],
+            progress=lambda fraction, text: say("progress", float(fraction), str(text)),
+            source={"kind": "store", "path": request["store"], "well": request["well"]},
+        )
+        say("progress", 0.99, "writing diagnosis.json and report.html")
+        write_diagnosis(diag, request["folder"], report=request["report"])
+        say("done", 1.0, diag.verdict)
+    except VFMError as exc:
+        say("failed", 0.0, str(exc))
+    except Exception as exc:  # pragma: no cover - a bug: say what it was
+        say("failed", 0.0, f"The diagnosis failed unexpectedly: {type(exc).__name__}: {exc}")
+
+
+def _read(stream: IO[str], lines: queue.Queue[tuple[str, float, str]]) -> None:
+    for line in stream:
+        try:
+            kind, fraction, text = json.loads(line)
+        except (ValueError, TypeError):
+            continue  # not ours (a library printing)
+        lines.put((str(kind), float(fraction), str(text)))
+
+
+class DiagnosisJobs:
+    """The service's diagnosis jobs; see the module docstring."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.folder = Path(settings.store.path).resolve().parent / "diagnoses"
+        self.budget_s = settings.http.diagnosis_budget_s
+        self._lock = threading.Lock()
+        self._jobs: dict[str, Job] = {}
+        self._running: Job | None = None
+        self._stopping = threading.Event()
+
+    def get(self, job_id: str) -> Job | None:
+        return self._jobs.get(job_id)
+
+    def check(
+        self, model: str, candidates: list[str] | None, split: str | None
+    ) -> list[str] | None:
+        """Refuse a bad request before any work (an unknown model or effect, a module not allowed)."""
+        if model not in MODELS:
+            raise InvalidRequest(
+                f"The diagnosis takes the model mm, hem or ham, not '{model}'; the effects "
+                "found are then added to it (PUT /wells/{well}/model)."
+            )
+        if candidates is None:
+            return None
+        from vfm_core.effects import resolve_effect
+
+        allowed = set(self.settings.model.effect_modules)
+        for text in candidates:
+            module = effect_module(text)
+            if module is not None and module not in allowed:
+                raise NotAllowed(
+                    f"The candidate '{text}' names the module '{module}', which is not in "
+                    "model.effect_modules; over HTTP only the library's effects and classes "
+                    "from those modules can be tried."
+                )
+            try:
+                resolve_effect(text)
+            except VFMError as exc:
+                raise InvalidRequest(str(exc)) from None
+        if split is not None:
+            import pandas as pd
+
+            try:
+                pd.Timestamp(split)
+            except ValueError:
+                raise InvalidRequest(
+                    f"split={split[:40]!r} is not a date; write it like 2019-01-01, or leave it "
+                    "out for the default."
+                ) from None
+        return candidates
+
+    def start(
+        self,
+        well: str,
+        model: str = "mm",
+        method: str = "ol",
+        candidates: list[str] | None = None,
+        split: str | None = None,
+        suggest: bool = True,
+        report: bool = True,
+    ) -> Job:
+        """Start a diagnosis of ``well``'s stored history; Conflict while another runs."""
+        checked = self.check(model, candidates, split)
+        if self._stopping.is_set():
+            raise Stopping("The service is stopping; retry after it restarts.")
+        with self._lock:
+            busy = self._running
+            if busy is not None:
+                raise Conflict(
+                    f"A diagnosis is already running (job {busy.id} of {busy.well}, "
+                    f"{busy.fraction:.0%}: {busy.text}); one runs at a time, so wait for it "
+                    f"(GET /diagnosis/{busy.id}) and start this one after."
+                )
+            job_id = secrets.token_hex(6)
+            folder = self.folder / job_id
+            request = {
+                "model": model,
+                "method": method,
+                "candidates": checked,
+                "split": split,
+                "suggest": suggest,
+            }
+            job = Job(job_id, well, request, folder)
+            self._jobs[job_id] = job
+            while len(self._jobs) > KEEP_JOBS:
+                self._jobs.pop(next(iter(self._jobs)))
+            self._running = job
+        child_request = {
+            **request,
+            "candidates": checked if checked is not None else _default_candidates(),
+            "store": str(self.settings.store.path),
+            "well": well,
+            "folder": str(folder),
+            "report": report,
+        }
+        threading.Thread(
+            target=self._watch,
+            args=(job, child_request),
+            name=f"vfm-diagnosis-{job_id}",
+            daemon=True,
+        ).start()
+        return job
+
+    def _watch(self, job: Job, request: dict[str, Any]) -> None:
+        job.folder.mkdir(parents=True, exist_ok=True)
+        lines: queue.Queue[tuple[str, float, str]] = queue.Queue()
+        proc: subprocess.Popen[str] | None = None
+        try:
+            with (job.folder / "diagnose.log").open("w", encoding="utf-8") as log:
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "service.diagnosis", json.dumps(request)],
+                    stdout=subprocess.PIPE,
+                    stderr=log,
+                    stdin=subprocess.DEVNULL,
+                    text=True,
+                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                )
+            assert proc.stdout is not None
+            threading.Thread(target=_read, args=(proc.stdout, lines), daemon=True).start()
+            job.state = "running"
+            deadline = time.monotonic() + self.budget_s
+            while True:
+                try:
+                    kind, fraction, text = lines.get(timeout=0.2)
+                except queue.Empty:
+                    if self._stopping.is_set():
+                        job.error = "The service stopped before the diagnosis finished."
+                        break
+                    if time.monotonic() > deadline:
+                        job.error = (
+                            f"The diagnosis took longer than its budget of {self.budget_s:g} s "
+                            "(http.diagnosis_budget_s) and was stopped; give fewer candidates "
+                            "or raise the budget."
+                        )
+                        break
+                    if proc.poll() is not None and lines.empty():
+                        job.error = (
+                            f"The diagnosis process ended without an answer (exit code "
+                            f"{proc.returncode}); see {job.folder / 'diagnose.log'}."
+                        )
+                        break
+                    continue
+                if kind == "progress":
+                    job.fraction, job.text = fraction, text
+                    continue
+                if kind == "done":
+                    job.fraction, job.text = 1.0, "done"
+                    job.state = "done"
+                else:
+                    job.error = text
+                break
+        except Exception as exc:  # pragma: no cover - spawning failed
+            job.error = f"The diagnosis could not start: {exc}"
+        finally:
+            if job.state != "done":
+                job.state = "failed"
+                logger.warning("Diagnosis %s of %s failed: %s", job.id, job.well, job.error)
+            else:
+                logger.info("Diagnosis %s of %s done.", job.id, job.well)
+            job.finished = time.time()
+            if proc is not None:
+                if proc.poll() is None:
+                    proc.terminate()
+                try:
+                    proc.wait(5)
+                except subprocess.TimeoutExpired:  # pragma: no cover
+                    proc.kill()
+                    proc.wait(5)
+                if proc.stdout is not None:
+                    proc.stdout.close()
+            with self._lock:
+                self._running = None
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """The service stops: end a running diagnosis."""
+        self._stopping.set()
+        deadline = time.monotonic() + timeout
+        while self._running is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
+def _default_candidates() -> list[str]:
+    from vfm_core.jobs.diagnose import DEFAULT_CANDIDATES
+
+    return [c if isinstance(c, str) else c.name for c in DEFAULT_CANDIDATES]
+
+
+if __name__ == "__main__":  # the job's process: python -m service.diagnosis '<request JSON>'
+    _child(json.loads(sys.argv[1]))

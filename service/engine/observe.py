@@ -1,0 +1,228 @@
+"""What the committed writes tell the outside: live events for the page, and numbers for /metrics.
+
+The store calls :meth:`Observer.committed` with the ops of every successful commit, on the
+worker thread that wrote them, so only what is durable is ever shown. The observer must
+never make a worker wait: it only appends to bounded in-memory structures under one short
+lock, and never serializes, sends or sleeps.
+
+* **Live events** (``GET /events``, server-sent events): each subscriber has a bounded
+  queue (:class:`Subscription`); when a slow client lets it fill up the oldest event is
+  dropped and counted (``dropped``), the worker never blocks on a client. Events:
+  ``prediction`` (a stored sample with its prediction, Sm3/h, and interval),
+  ``measurement`` (an MPFM reading or well test stored), ``learned`` (a measurement
+  learned from: the prediction made at its sample, the measured rate, the version after),
+  ``drift`` (a confirmed drift) and ``model`` (a model change over HTTP).
+* **Numbers** the per-well state does not keep: the interval coverage (share of learned
+  measurements inside the 90 % interval p05..p95 predicted at their sample, over the last
+  ``rolling_window`` that had an interval), drift events and model changes since start,
+  and the latency from a sample's arrival to its stored prediction (a histogram, seconds).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, OrderedDict, deque
+from collections.abc import Sequence
+from typing import Any
+
+from prometheus_client import Histogram
+
+from service.store import InsertDriftEvent, InsertMeasurement, InsertSample, MarkLearned, Op
+from vfm_core.timeutil import iso
+
+__all__ = ["Observer", "Subscription", "LATENCY_BUCKETS_S"]
+
+#: buckets of the prediction latency histogram, s (arrival to stored prediction)
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+#: intervals remembered per well for the coverage (sample time -> p05, p95)
+_INTERVALS_KEPT = 4096
+#: measured rates remembered until learned (all wells)
+_MEASURED_KEPT = 8192
+
+
+class Subscription:
+    """One live client's bounded queue of events; drop-oldest when full (see ``dropped``)."""
+
+    def __init__(self, well: str | None, capacity: int) -> None:
+        self.well = well
+        self.events: deque[dict[str, Any]] = deque(maxlen=capacity)
+        self.dropped = 0
+        self._lock = threading.Lock()
+
+    def put(self, event: dict[str, Any]) -> bool:
+        """Queue an event; False when the oldest one had to be dropped for it."""
+        with self._lock:
+            full = len(self.events) == self.events.maxlen
+            self.events.append(event)
+            if full:
+                self.dropped += 1
+            return not full
+
+    def take(self) -> tuple[list[dict[str, Any]], int]:
+        """Everything queued, and how many were dropped since the last take."""
+        with self._lock:
+            out = list(self.events)
+            self.events.clear()
+            dropped, self.dropped = self.dropped, 0
+            return out, dropped
+
+
+class Observer:
+    """Turns committed store writes into live events and monitoring numbers."""
+
+    def __init__(self, window: int = 100, client_capacity: int = 1000) -> None:
+        self.window = window
+        self.client_capacity = client_capacity
+        self._lock = threading.Lock()
+        self._subscribers: set[Subscription] = set()
+        self._intervals: dict[str, OrderedDict[int, tuple[float, float]]] = {}
+        self._measured: OrderedDict[tuple[str, str, int], float] = OrderedDict()
+        self._coverage: dict[str, deque[bool]] = {}
+        self.drift_events: Counter[str] = Counter()
+        self.model_changes: Counter[str] = Counter()
+        self.dropped = 0
+        self.closed = threading.Event()
+        self.latency = Histogram(
+            "vfm_prediction_latency_seconds",
+            "Time from a sensor sample's arrival to its stored prediction, s.",
+            buckets=LATENCY_BUCKETS_S,
+            registry=None,
+        )
+
+    # -- subscribers --------------------------------------------------------------------
+    def subscribe(self, well: str | None = None) -> Subscription:
+        """A live queue of the events of ``well`` (all wells with None)."""
+        sub = Subscription(well, self.client_capacity)
+        with self._lock:
+            self._subscribers.add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            self._subscribers.discard(sub)
+
+    @property
+    def subscribers(self) -> int:
+        return len(self._subscribers)
+
+    def close(self) -> None:
+        """The service is stopping: live streams end."""
+        self.closed.set()
+
+    def _emit(self, event: dict[str, Any]) -> None:  # under self._lock
+        for sub in self._subscribers:
+            if sub.well is None or sub.well == event["well"]:
+                if not sub.put(event):
+                    self.dropped += 1
+
+    # -- what the engine reports ----------------------------------------------------------
+    def committed(self, ops: Sequence[Op]) -> None:
+        """The ops of one successful commit (called on the worker thread; never blocks long)."""
+        now_ns = time.time_ns()
+        with self._lock:
+            live = bool(self._subscribers)
+            for op in ops:
+                if isinstance(op, InsertSample):
+                    self._sample(op, now_ns, live)
+                elif isinstance(op, InsertMeasurement):
+                    key = (op.well, op.source, op.time_ns)
+                    self._measured[key] = op.q_total
+                    if len(self._measured) > _MEASURED_KEPT:
+                        self._measured.popitem(last=False)
+                    if live:
+                        self._emit(
+                            {
+                                "type": "measurement",
+                                "well": op.well,
+                                "time": iso(op.time_ns),
+                                "source": op.source,
+                                "q_total": op.q_total,
+                                "via": op.via,
+                            }
+                        )
+                elif isinstance(op, MarkLearned):
+                    self._learned(op, live)
+                elif isinstance(op, InsertDriftEvent):
+                    self.drift_events[op.well] += 1
+                    if live:
+                        self._emit(
+                            {
+                                "type": "drift",
+                                "well": op.well,
+                                "time": iso(op.time_ns),
+                                "statistic": op.statistic,
+                                "p_value": op.p_value,
+                                "action": op.action,
+                            }
+                        )
+
+    def _sample(self, op: InsertSample, now_ns: int, live: bool) -> None:
+        if op.q_total is None:
+            return
+        if op.received_ns > 0 and now_ns >= op.received_ns:
+            self.latency.observe((now_ns - op.received_ns) / 1e9)
+        if op.q_total_p05 is not None and op.q_total_p95 is not None:
+            kept = self._intervals.setdefault(op.well, OrderedDict())
+            kept[op.time_ns] = (op.q_total_p05, op.q_total_p95)
+            if len(kept) > _INTERVALS_KEPT:
+                kept.popitem(last=False)
+        if live:
+            choke, p_up, p_down, t_up = op.inputs[:4]
+            self._emit(
+                {
+                    "type": "prediction",
+                    "well": op.well,
+                    "time": iso(op.time_ns),
+                    "q_total": op.q_total,
+                    "q_total_p05": op.q_total_p05,
+                    "q_total_p95": op.q_total_p95,
+                    "version": op.version,
+                    "choke": choke,
+                    "p_up": p_up,
+                    "p_down": p_down,
+                    "t_up": t_up,
+                }
+            )
+
+    def _learned(self, op: MarkLearned, live: bool) -> None:
+        q = self._measured.pop((op.well, op.source, op.time_ns), None)
+        kept = self._intervals.get(op.well)
+        interval = kept.get(op.sample.time_ns) if kept is not None else None
+        if q is not None and interval is not None:
+            cover = self._coverage.setdefault(op.well, deque(maxlen=self.window))
+            cover.append(interval[0] <= q <= interval[1])
+        if live:
+            self._emit(
+                {
+                    "type": "learned",
+                    "well": op.well,
+                    "time": iso(op.time_ns),
+                    "source": op.source,
+                    "q_total": q,
+                    "predicted": op.sample.predicted,
+                    "sample_time": iso(op.sample.time_ns),
+                    "version_after": op.version_after,
+                }
+            )
+
+    def model_changed(self, well: str, change: dict[str, Any], data_time_ns: int | None) -> None:
+        """A model change over HTTP is done (``data_time_ns``: the well's latest sample then)."""
+        with self._lock:
+            self.model_changes[well] += 1
+            self._emit(
+                {
+                    "type": "model",
+                    "well": well,
+                    "time": iso(data_time_ns) if data_time_ns is not None else change.get("time"),
+                    "model_before": change.get("model_before"),
+                    "model_after": change.get("model_after"),
+                    "version_after": change.get("version_after"),
+                }
+            )
+
+    # -- what /metrics reads ----------------------------------------------------------------
+    def coverage(self) -> dict[str, tuple[float, int]]:
+        """Per well: the share of recent learned measurements inside p05..p95, and how many."""
+        with self._lock:
+            return {w: (sum(c) / len(c), len(c)) for w, c in self._coverage.items() if c}

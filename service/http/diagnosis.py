@@ -1,0 +1,129 @@
+"""Diagnosis from the service: ``POST /wells/{well}/diagnosis`` starts one (bearer token),
+``GET /diagnosis/{job}`` follows it, ``GET /diagnosis/{job}/report.html`` is its report.
+
+The job (:mod:`service.diagnosis`) runs ``vfm diagnose`` on the well's stored history in a
+process of its own; one runs at a time (409 for a second) within
+``http.diagnosis_budget_s``. Once done, the answer carries the diagnosis JSON (the fields
+``vfm diagnose`` writes to diagnosis.json) and a link to its report; each candidate's
+``spec`` is what ``PUT /wells/{well}/model`` takes as an effect.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Path
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.diagnosis import KEEP_JOBS, DiagnosisJobs, Job
+from service.errors import Starting
+from service.http.deps import KnownWell, ServiceDep, TokenDep
+from service.http.schemas import ErrorOut
+
+__all__ = ["router", "DiagnosisIn"]
+
+router = APIRouter(tags=["diagnosis"])
+
+
+class DiagnosisIn(BaseModel):
+    """What to diagnose: the base model, the candidate effects, the split."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: str = Field(default="mm", description="base model: mm, hem or ham")
+    method: str = Field(
+        default="ol",
+        description="learning method of the online run (where it fails): ol or pbl:<period>",
+    )
+    candidates: list[str] | None = Field(
+        default=None,
+        max_length=50,
+        description="candidate effects (library names, e.g. erosion); default: the library's set",
+    )
+    split: str | None = Field(default=None, description="first day scored, e.g. 2019-01-01")
+    suggest: bool = Field(
+        default=True, description="fit a generic correction for a driver outside the library"
+    )
+
+
+def get_jobs(service: ServiceDep) -> DiagnosisJobs:
+    jobs = getattr(service, "diagnoses", None)
+    if jobs is None:
+        raise Starting("The service is starting; retry in a few seconds.")
+    return jobs  # type: ignore[no-any-return]
+
+
+JobsDep = Annotated[DiagnosisJobs, Depends(get_jobs)]
+
+
+def _job(job: str, jobs: DiagnosisJobs) -> Job:
+    found = jobs.get(job)
+    if found is None:
+        raise HTTPException(
+            404,
+            f"No diagnosis job '{job[:40]}' is known (the last {KEEP_JOBS} are kept until a "
+            "restart); start one with POST /wells/{well}/diagnosis.",
+        )
+    return found
+
+
+JobPath = Annotated[str, Path(max_length=64, description="the job id POST answered with")]
+
+
+@router.post(
+    "/wells/{well}/diagnosis",
+    status_code=202,
+    summary="Start a diagnosis of the well's stored history (background job)",
+    description=(
+        "Runs vfm diagnose on the well's history in the service's store, off the engine's "
+        "workers; answers at once with the job (follow it with GET /diagnosis/{job}). One "
+        "runs at a time: a second answers 409. Needs the bearer token."
+    ),
+    responses={
+        401: {"model": ErrorOut},
+        403: {"model": ErrorOut},
+        404: {"model": ErrorOut},
+        409: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+    },
+)
+def start_diagnosis(
+    well: KnownWell, _: TokenDep, jobs: JobsDep, body: DiagnosisIn | None = None
+) -> dict[str, Any]:
+    body = body or DiagnosisIn()
+    job = jobs.start(
+        well,
+        model=body.model,
+        method=body.method,
+        candidates=body.candidates,
+        split=body.split,
+        suggest=body.suggest,
+    )
+    return job.view() | {"status": f"/diagnosis/{job.id}"}
+
+
+@router.get(
+    "/diagnosis/{job}",
+    summary="A diagnosis job: state, progress, and the diagnosis once done",
+    responses={404: {"model": ErrorOut}},
+)
+def diagnosis_job(job: JobPath, jobs: JobsDep) -> dict[str, Any]:
+    return _job(job, jobs).view()
+
+
+@router.get(
+    "/diagnosis/{job}/report.html",
+    summary="The diagnosis report (HTML)",
+    response_class=FileResponse,
+    responses={200: {"content": {"text/html": {}}}, 404: {"model": ErrorOut}},
+)
+def diagnosis_report(job: JobPath, jobs: JobsDep) -> FileResponse:
+    found = _job(job, jobs)
+    page = found.folder / "report.html"
+    if found.state != "done" or not page.is_file():
+        raise HTTPException(
+            404,
+            f"The diagnosis {found.id} has no report (state {found.state}); wait until it is done.",
+        )
+    return FileResponse(page, media_type="text/html")

@@ -1,0 +1,160 @@
+"""``GET /metrics``: the service's numbers in the Prometheus text format.
+
+Each app has its own :class:`~prometheus_client.CollectorRegistry` (never the global one,
+so several services in one process, as in the tests, do not collide). One collector reads
+the service at scrape time, so the numbers are always those of ``GET /health`` and
+``GET /wells/{well}``:
+
+===========================================  ================================================
+``vfm_well_rolling_mape_percent{well}``      MAPE of the predictions at the last paired
+                                             measurements (``rolling_window``), %
+``vfm_well_interval_coverage_ratio{well}``   share of those measurements inside the 90 %
+                                             interval p05..p95 (methods with intervals only)
+``vfm_well_model_version{well,model,method}``  the model's version (1 per series)
+``vfm_well_drift_events_total{well}``        confirmed drifts since the service started
+``vfm_well_model_changes_total{well}``       model changes over HTTP since the start
+``vfm_well_samples_total{well}``             samples handled since the start (per well)
+``vfm_inputs_accepted_total{kind}``          accepted sensors / measurements / well_tests
+``vfm_inputs_rejected_total{reason}``        refused inputs by reason (``GET /health``)
+``vfm_events_total{event}``                  other events (learned, overflow, drifts, ...)
+``vfm_queue_depth{worker}``                  items waiting per worker queue
+``vfm_queue_capacity``                       capacity of each worker queue
+``vfm_wells``                                wells served
+``vfm_live_clients`` / ``vfm_live_events_dropped_total``  ``GET /events`` clients, and
+                                             events dropped for slow ones
+``vfm_prediction_latency_seconds``           histogram: sample arrival to stored prediction
+===========================================  ================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+__all__ = ["router", "registry_for", "ServiceCollector"]
+
+router = APIRouter(tags=["health"])
+
+
+class ServiceCollector(Collector):
+    """Reads a running service (its engine, counters, observer) at every scrape."""
+
+    def __init__(self, service: Any) -> None:
+        self.service = service
+
+    def collect(self) -> Iterator[Metric]:
+        service = self.service
+        snap = service.counters.snapshot()
+        accepted = CounterMetricFamily(
+            "vfm_inputs_accepted", "Inputs accepted, by kind.", labels=["kind"]
+        )
+        for kind, n in sorted(snap["accepted"].items()):
+            accepted.add_metric([kind], n)
+        yield accepted
+        rejected = CounterMetricFamily(
+            "vfm_inputs_rejected", "Inputs refused, by reason (see GET /health).", labels=["reason"]
+        )
+        for reason, n in sorted(snap["rejected"].items()):
+            rejected.add_metric([reason], n)
+        yield rejected
+        events = CounterMetricFamily(
+            "vfm_events", "Other events of the engine, by name.", labels=["event"]
+        )
+        for name, n in sorted(snap["events"].items()):
+            events.add_metric([name], n)
+        yield events
+
+        engine = service.engine
+        if engine is None:
+            return
+        depth = GaugeMetricFamily(
+            "vfm_queue_depth", "Items waiting in each worker's queue.", labels=["worker"]
+        )
+        for i, n in enumerate(engine.queue_depths()):
+            depth.add_metric([str(i)], n)
+        yield depth
+        yield GaugeMetricFamily(
+            "vfm_queue_capacity",
+            "Capacity of each worker queue (queues.worker_capacity).",
+            value=service.settings.queues.worker_capacity,
+        )
+        wells = dict(engine.wells)
+        yield GaugeMetricFamily("vfm_wells", "Wells served.", value=len(wells))
+
+        obs = engine.observer
+        coverage = obs.coverage()
+        mape = GaugeMetricFamily(
+            "vfm_well_rolling_mape_percent",
+            "MAPE of the predictions at the well's last paired measurements, %.",
+            labels=["well"],
+        )
+        cover = GaugeMetricFamily(
+            "vfm_well_interval_coverage_ratio",
+            "Share of the well's recent learned measurements inside the predicted p05..p95 "
+            "(only for methods that give intervals).",
+            labels=["well"],
+        )
+        version = GaugeMetricFamily(
+            "vfm_well_model_version",
+            "The well's model version (the series' labels name its model and method).",
+            labels=["well", "model", "method"],
+        )
+        drifts = CounterMetricFamily(
+            "vfm_well_drift_events", "Confirmed drifts since the start.", labels=["well"]
+        )
+        changes = CounterMetricFamily(
+            "vfm_well_model_changes", "Model changes over HTTP since the start.", labels=["well"]
+        )
+        samples = CounterMetricFamily(
+            "vfm_well_samples", "Sensor samples handled since the start.", labels=["well"]
+        )
+        for well, st in sorted(wells.items()):
+            rolling = st.rolling_mape()
+            if rolling["value"] is not None:
+                mape.add_metric([well], rolling["value"])
+            if well in coverage:
+                cover.add_metric([well], coverage[well][0])
+            s = st.snapshot
+            version.add_metric(
+                [well, str(s.get("model")), str(s.get("method"))], s.get("version", 0)
+            )
+            drifts.add_metric([well], obs.drift_events.get(well, 0))
+            changes.add_metric([well], obs.model_changes.get(well, 0))
+            samples.add_metric([well], st.samples)
+        yield from (mape, cover, version, drifts, changes, samples)
+        yield GaugeMetricFamily(
+            "vfm_live_clients", "Clients of GET /events.", value=obs.subscribers
+        )
+        yield CounterMetricFamily(
+            "vfm_live_events_dropped",
+            "Live events dropped because a client read too slowly.",
+            value=obs.dropped,
+        )
+        yield from obs.latency.collect()
+
+
+def registry_for(service: Any) -> CollectorRegistry:
+    """A registry of its own for one service's app."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(ServiceCollector(service))
+    return registry
+
+
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    description="The service's numbers in the Prometheus text format (per-well rolling MAPE, "
+    "interval coverage, model version, drift events; accepted and refused inputs; queue "
+    "depths; the prediction latency histogram). docker/prometheus.yml scrapes it.",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}}},
+)
+def metrics(request: Request) -> Response:
+    registry: CollectorRegistry = request.app.state.metrics
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

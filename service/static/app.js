@@ -1,0 +1,535 @@
+/* The vfm workbench: field view, well view, live updates (server-sent events), diagnosis.
+ * Plain JavaScript, no build step; charts with uPlot (vendored). The API token typed on the
+ * page is kept in this script's memory only (never stored). Units: Sm3/h, bar a, degC, UTC. */
+"use strict";
+
+const state = {
+  token: "",
+  wells: {},            // well -> row of the field table (summary + view)
+  latest: {},           // well -> latest prediction event (for the interval width)
+  sort: { key: "well", dir: 1 },
+  well: null,           // the well shown in the well view
+  preds: [],            // [{t, q, lo, hi, version, choke, p_up, p_down, t_up}]
+  meas: [],             // [{t, q, source, predicted, status, inputs}]
+  markers: [],          // [{t, kind, label}]
+  view: null,           // GET /wells/{well}
+  charts: {},
+  dirty: false,
+  zoomed: false,
+  diagJob: null,
+  received: 0,
+};
+window.vfm = state;     // for the browser tests and for curious users
+
+const $ = (sel) => document.querySelector(sel);
+const fmt = (v, d = 1) => (v === null || v === undefined || !isFinite(v) ? "\u2013" : Number(v).toFixed(d));
+const secs = (iso) => (iso ? Date.parse(iso) / 1000 : null);
+const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+
+async function api(method, path, body) {
+  const headers = {};
+  if (body !== undefined) headers["content-type"] = "application/json";
+  if (state.token) headers["authorization"] = "Bearer " + state.token;
+  const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  let data = null;
+  try { data = await r.json(); } catch (e) { data = null; }
+  if (!r.ok) {
+    const msg = (data && data.detail) ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : r.statusText;
+    const err = new Error(msg); err.status = r.status; throw err;
+  }
+  return data;
+}
+
+function needToken(out) {
+  if (state.token) return false;
+  out.textContent = "Type the service's API token at the top right first (it stays in this page's memory only).";
+  out.className = "result error";
+  return true;
+}
+
+/* ---------------------------------------------------------------- field view */
+function alarmsOf(v) {
+  const out = [];
+  if (!v) return out;
+  if (v.drift && v.drift.active) out.push("drift");
+  for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
+  if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
+  if (!v.ready) out.push("no model yet");
+  return out;
+}
+
+function widthOf(well) {
+  const p = state.latest[well];
+  if (!p || p.q_total_p05 == null || p.q_total_p95 == null || !p.q_total) return null;
+  return 100 * (p.q_total_p95 - p.q_total_p05) / p.q_total;
+}
+
+function fieldRow(well) {
+  const v = state.wells[well] || {};
+  const drift = v.drift ? (v.drift.active ? "active" : (v.drift.detected ? "seen" : (v.drift.enabled ? "none" : "off"))) : "";
+  return {
+    well, model: v.model, method: v.method, version: v.version, last_update: v.last_update || "",
+    mape: v.rolling_mape ? v.rolling_mape.value : null, mape_n: v.rolling_mape ? v.rolling_mape.n : 0,
+    width: widthOf(well), drift, alarms: alarmsOf(v),
+  };
+}
+
+function renderField() {
+  const rows = Object.keys(state.wells).map(fieldRow);
+  const { key, dir } = state.sort;
+  rows.sort((a, b) => {
+    let x = a[key], y = b[key];
+    if (Array.isArray(x)) { x = x.length; y = y.length; }
+    if (x == null) return 1; if (y == null) return -1;
+    return (x < y ? -1 : x > y ? 1 : 0) * dir;
+  });
+  const body = $("#field-table tbody");
+  body.innerHTML = rows.map((r) => `<tr data-well="${esc(r.well)}">
+    <td><a href="#well=${encodeURIComponent(r.well)}">${esc(r.well)}</a></td><td>${esc(r.model)}</td>
+    <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
+    <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
+    <td class="${r.drift === "active" ? "alarm" : r.drift === "seen" ? "warn" : ""}">${esc(r.drift)}</td>
+    <td class="${r.alarms.length ? "alarm" : "ok"}">${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}</td></tr>`).join("");
+  document.querySelectorAll("#field-table th").forEach((th) => {
+    th.classList.toggle("sorted", th.dataset.key === key);
+    th.classList.toggle("asc", th.dataset.key === key && dir > 0);
+    th.classList.toggle("desc", th.dataset.key === key && dir < 0);
+  });
+  $("#field-summary").textContent = `${rows.length} well(s)`;
+}
+
+async function refreshField() {
+  try {
+    const list = await api("GET", "/wells");
+    const views = await Promise.all(list.map((w) => api("GET", "/wells/" + encodeURIComponent(w.well)).catch(() => w)));
+    const next = {};
+    for (const v of views) next[v.well] = v;
+    state.wells = next;
+    const health = await api("GET", "/health");
+    const rej = Object.entries(health.rejected || {}).filter(([, n]) => n > 0);
+    $("#inputs-summary").textContent = `Inputs accepted: ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}. ` +
+      `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.`;
+    const banner = $("#banner");
+    if (rej.length) {
+      banner.hidden = false;
+      banner.textContent = "Refused inputs since the start: " + rej.map(([k, n]) => `${k} (${n})`).join(", ") + ". GET /health gives the reasons.";
+    } else banner.hidden = true;
+    renderField();
+    if (state.well && state.wells[state.well]) { state.view = state.wells[state.well]; renderWellHeader(); renderParams(); }
+  } catch (e) {
+    $("#field-summary").textContent = "(cannot reach the service: " + e.message + ")";
+  }
+}
+
+/* ---------------------------------------------------------------- charts */
+function wheelZoomPlugin() {
+  return {
+    hooks: {
+      ready: (u) => {
+        u.over.addEventListener("wheel", (e) => {
+          e.preventDefault();
+          const { left } = u.cursor; const x = u.posToVal(left, "x");
+          const min = u.scales.x.min, max = u.scales.x.max, f = e.deltaY < 0 ? 0.8 : 1.25;
+          u.setScale("x", { min: x - (x - min) * f, max: x + (max - x) * f });
+          state.zoomed = true;
+        }, { passive: false });
+        let drag = null;
+        u.over.addEventListener("mousedown", (e) => {
+          if (!e.shiftKey) return;
+          e.stopPropagation(); e.preventDefault();
+          drag = { x: e.clientX, min: u.scales.x.min, max: u.scales.x.max };
+        }, true);
+        window.addEventListener("mousemove", (e) => {
+          if (!drag) return;
+          const dx = (e.clientX - drag.x) / u.over.clientWidth * (drag.max - drag.min);
+          u.setScale("x", { min: drag.min - dx, max: drag.max - dx });
+          state.zoomed = true;
+        });
+        window.addEventListener("mouseup", () => { drag = null; });
+        u.over.addEventListener("dblclick", () => { state.zoomed = false; });
+      },
+      setSelect: (u) => { if (u.select.width > 0) state.zoomed = true; },
+    },
+  };
+}
+
+const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a" };
+
+function markersPlugin() {
+  return {
+    hooks: {
+      draw: (u) => {
+        const ctx = u.ctx; const { top, height } = u.bbox;
+        for (const m of state.markers) {
+          if (m.t < u.scales.x.min || m.t > u.scales.x.max) continue;
+          const x = Math.round(u.valToPos(m.t, "x", true));
+          ctx.save();
+          ctx.strokeStyle = MARK_COLORS[m.kind] || "#000";
+          ctx.lineWidth = m.kind === "retrain" ? 1 : 2 * devicePixelRatio;
+          if (m.kind === "retrain") ctx.setLineDash([4, 4]);
+          ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + height); ctx.stroke();
+          if (m.kind !== "retrain") {
+            ctx.fillStyle = MARK_COLORS[m.kind];
+            ctx.font = `${11 * devicePixelRatio}px system-ui`;
+            ctx.fillText(m.label, x + 4, top + 12 * devicePixelRatio);
+          }
+          ctx.restore();
+        }
+      },
+    },
+  };
+}
+
+function chartWidth(el) { return Math.max(320, el.clientWidth || el.parentElement.clientWidth - 24); }
+
+function makeCharts() {
+  for (const c of Object.values(state.charts)) c.destroy();
+  state.charts = {};
+  const rateEl = $("#rate-chart");
+  rateEl.innerHTML = "";
+  const pts = (size, fill, shape) => ({ show: true, size, fill, stroke: fill, ...(shape ? { shape } : {}) });
+  state.charts.rate = new uPlot({
+    width: chartWidth(rateEl), height: 330,
+    scales: { x: { time: true } },
+    series: [
+      { label: "time (UTC)", value: "{YYYY}-{MM}-{DD} {HH}:{mm}" },
+      { label: "p05", stroke: "rgba(31,78,121,0.35)", width: 1, spanGaps: true, value: (u, v) => fmt(v, 0) },
+      { label: "p95", stroke: "rgba(31,78,121,0.35)", width: 1, spanGaps: true, value: (u, v) => fmt(v, 0) },
+      { label: "predicted", stroke: "#1f4e79", width: 1.5, spanGaps: true, value: (u, v) => fmt(v, 0) },
+      { label: "MPFM", stroke: "#2e9e44", paths: () => null, points: pts(5, "#2e9e44"), value: (u, v) => fmt(v, 0) },
+      { label: "well test", stroke: "#d1495b", paths: () => null, points: pts(9, "#d1495b"), value: (u, v) => fmt(v, 0) },
+    ],
+    bands: [{ series: [2, 1], fill: "rgba(31,78,121,0.13)" }],
+    axes: [{}, { label: "Sm3/h", size: 70 }],
+    cursor: { sync: { key: "vfm-x", setSeries: false } },
+    plugins: [wheelZoomPlugin(), markersPlugin()],
+  }, [[], [], [], [], [], []], rateEl);
+
+  const errEl = $("#error-chart");
+  errEl.innerHTML = "";
+  state.charts.error = new uPlot({
+    width: chartWidth(errEl), height: 220,
+    scales: { x: { time: true } },
+    series: [
+      { label: "time (UTC)", value: "{YYYY}-{MM}-{DD} {HH}:{mm}" },
+      { label: "error MPFM %", stroke: "#2e9e44", paths: () => null, points: pts(4, "#2e9e44"), value: (u, v) => fmt(v, 1) },
+      { label: "error well test %", stroke: "#d1495b", paths: () => null, points: pts(7, "#d1495b"), value: (u, v) => fmt(v, 1) },
+      { label: "rolling |error| %", stroke: "#444", width: 1.5, spanGaps: true, value: (u, v) => fmt(v, 1) },
+    ],
+    axes: [{}, { label: "%", size: 60 }],
+    cursor: { sync: { key: "vfm-x", setSeries: false } },
+    plugins: [wheelZoomPlugin(), markersPlugin()],
+  }, [[], [], [], []], errEl);
+
+  const resEl = $("#residual-chart");
+  resEl.innerHTML = "";
+  state.charts.residual = new uPlot({
+    width: chartWidth(resEl), height: 230,
+    scales: { x: { time: false } },
+    series: [
+      { label: $("#residual-input").value },
+      { label: "error %", stroke: "#1f4e79", paths: () => null, points: pts(4, "#1f4e79"), value: (u, v) => fmt(v, 1) },
+    ],
+    axes: [{ label: $("#residual-input").selectedOptions[0].textContent }, { label: "%", size: 50 }],
+  }, [[], []], resEl);
+}
+
+/* Align predictions and measurements on one time axis (uPlot wants one x array). */
+function rateData() {
+  const rows = new Map();
+  const row = (t) => { let r = rows.get(t); if (!r) { r = [t, null, null, null, null, null]; rows.set(t, r); } return r; };
+  for (const p of state.preds) { const r = row(p.t); r[1] = p.lo; r[2] = p.hi; r[3] = p.q; }
+  for (const m of state.meas) { const r = row(m.t); r[m.source === "well_test" ? 5 : 4] = m.q; }
+  const all = Array.from(rows.values()).sort((a, b) => a[0] - b[0]);
+  return [0, 1, 2, 3, 4, 5].map((i) => all.map((r) => r[i]));
+}
+
+function errorRows() {
+  return state.meas.filter((m) => m.predicted != null && m.q).map((m) => ({ ...m, err: 100 * (m.predicted - m.q) / m.q }))
+    .sort((a, b) => a.t - b.t);
+}
+
+function errorData() {
+  const rows = errorRows();
+  const window = Math.max(5, (state.view && state.view.rolling_mape && state.view.rolling_mape.window) || 50);
+  const out = [[], [], [], []]; let sum = 0; const q = [];
+  for (const r of rows) {
+    q.push(Math.abs(r.err)); sum += Math.abs(r.err);
+    if (q.length > window) sum -= q.shift();
+    out[0].push(r.t); out[1].push(r.source === "well_test" ? null : r.err);
+    out[2].push(r.source === "well_test" ? r.err : null); out[3].push(sum / q.length);
+  }
+  return out;
+}
+
+function residualData() {
+  const key = $("#residual-input").value;
+  const pts = errorRows().filter((r) => r.inputs).map((r) => [key === "dp" ? r.inputs.p_up - r.inputs.p_down : r.inputs[key], r.err])
+    .filter((p) => p[0] != null && isFinite(p[0])).sort((a, b) => a[0] - b[0]);
+  return [pts.map((p) => p[0]), pts.map((p) => p[1])];
+}
+
+function draw() {
+  if (!state.dirty || !state.charts.rate) return;
+  state.dirty = false;
+  const keep = state.zoomed;
+  state.charts.rate.setData(rateData(), !keep);
+  state.charts.error.setData(errorData(), !keep);
+  if (keep) {  // the zoom stays, the other chart follows it
+    const { min, max } = state.charts.rate.scales.x;
+    state.charts.error.setScale("x", { min, max });
+  }
+  state.charts.residual.setData(residualData());
+  const learned = state.meas.filter((m) => m.predicted != null).length;
+  $("#well-stats").textContent = `${state.preds.length} predictions, ${state.meas.length} measurements (${learned} learned), ` +
+    `${state.markers.length} marker(s)`;
+}
+setInterval(draw, 500);
+
+/* ---------------------------------------------------------------- well view */
+function renderWellHeader() {
+  const v = state.view || {};
+  $("#well-title").textContent = state.well;
+  $("#well-model").textContent = `${v.model || ""} \u00b7 ${v.method || ""} \u00b7 version ${v.version ?? ""} \u00b7 rolling MAPE ` +
+    `${fmt(v.rolling_mape && v.rolling_mape.value, 2)} % over ${(v.rolling_mape && v.rolling_mape.n) || 0}`;
+  $("#well-model").dataset.model = v.model || "";
+}
+
+function renderParams() {
+  const params = (state.view && state.view.parameters) || {};
+  $("#params tbody").innerHTML = Object.entries(params).map(([name, p]) => `<tr><td>${esc(name)}</td>
+    <td class="num">${fmt(p.value, 4)}</td><td class="num">${p.std == null ? "\u2013" : fmt(p.std, 4)}</td><td>${esc(p.unit)}</td>
+    <td>${p.low == null ? "" : fmt(p.low, 3) + " .. " + fmt(p.high, 3)}</td>
+    <td class="${p.at_bound ? "alarm" : ""}">${p.at_bound ? "at bound" : ""}</td></tr>`).join("") ||
+    `<tr><td colspan="6" class="hint">No physical parameters (the model is not physical, or not ready).</td></tr>`;
+}
+
+function markersFromView(v) {
+  const out = [];
+  for (const d of (v.drift && v.drift.events) || []) out.push({ t: secs(d.time), kind: "drift", label: "drift" });
+  for (const c of v.model_changes || []) {
+    // the change's own time is the wall clock; place it at the first prediction of its version
+    const first = state.preds.find((p) => p.version != null && p.version >= c.version_after);
+    const t = first ? first.t : secs(v.last_sample_time);
+    if (t) out.push({ t, kind: "model", label: "\u2192 " + c.model_after, version: c.version_after });
+  }
+  if ((v.method || "").startsWith("pbl")) {
+    let prev = null;
+    for (const p of state.preds) {
+      if (prev !== null && p.version != null && p.version > prev) out.push({ t: p.t, kind: "retrain", label: "retrain" });
+      if (p.version != null) prev = p.version;
+    }
+  }
+  return out;
+}
+
+async function loadWell(well) {
+  state.well = well; state.preds = []; state.meas = []; state.markers = []; state.zoomed = false;
+  $("#field-view").hidden = true; $("#well-view").hidden = false;
+  $("#csv-link").href = `/wells/${encodeURIComponent(well)}/history.csv`;
+  $("#csv-link").setAttribute("download", `${well}-history.csv`);
+  $("#diag-verdict").textContent = ""; $("#diag-status").textContent = "";
+  $("#diag-candidates-table").hidden = true; $("#change-result").textContent = ""; $("#wt-result").textContent = "";
+  makeCharts();
+  try {
+    const v = await api("GET", "/wells/" + encodeURIComponent(well));
+    state.view = v; renderWellHeader(); renderParams();
+    const days = Number($("#span").value);
+    let query = "?limit=100000";
+    if (days > 0 && v.last_sample_time) {
+      const start = new Date(Date.parse(v.last_sample_time) - days * 86400e3).toISOString();
+      query += "&start=" + encodeURIComponent(start);
+    }
+    const h = await api("GET", `/wells/${encodeURIComponent(well)}/history${query}`);
+    if (state.well !== well) return;
+    const byTime = new Map(h.samples.map((s) => [s.time, s]));
+    state.preds = h.predictions.map((p) => {
+      const s = byTime.get(p.time) || {};
+      return { t: secs(p.time), q: p.q_total, lo: p.q_total_p05, hi: p.q_total_p95, version: p.version,
+        inputs: { choke: s.choke, p_up: s.p_up, p_down: s.p_down, t_up: s.t_up } };
+    });
+    state.meas = h.measurements.map((m) => {
+      const s = m.paired_sample_time ? byTime.get(m.paired_sample_time) : null;
+      return { t: secs(m.time), q: m.q_total, source: m.source, status: m.status, predicted: m.predicted,
+        inputs: s ? { choke: s.choke, p_up: s.p_up, p_down: s.p_down, t_up: s.t_up } : null };
+    });
+    if (!$("#wt-time").value && v.last_sample_time) $("#wt-time").value = v.last_sample_time.replace("+00:00", "Z");
+    state.markers = markersFromView(v);
+    if (h.truncated) $("#well-stats").textContent = "(only the first 100000 rows of the window are shown)";
+    state.dirty = true; draw();
+  } catch (e) {
+    $("#well-stats").textContent = "Cannot load " + well + ": " + e.message;
+  }
+}
+
+/* ---------------------------------------------------------------- live */
+function onEvent(type, ev) {
+  state.received += 1;
+  if (type === "prediction") state.latest[ev.well] = ev;
+  if (ev.well !== state.well) return;
+  const t = secs(ev.time);
+  if (type === "prediction") {
+    state.preds.push({ t, q: ev.q_total, lo: ev.q_total_p05, hi: ev.q_total_p95, version: ev.version,
+      inputs: { choke: ev.choke, p_up: ev.p_up, p_down: ev.p_down, t_up: ev.t_up } });
+    const n = state.preds.length;
+    if ((state.view && (state.view.method || "").startsWith("pbl")) && n > 1 && ev.version > (state.preds[n - 2].version ?? ev.version))
+      state.markers.push({ t, kind: "retrain", label: "retrain" });
+  } else if (type === "measurement") {
+    state.meas.push({ t, q: ev.q_total, source: ev.source, status: "pending", predicted: null, inputs: null });
+  } else if (type === "learned") {
+    const m = state.meas.find((x) => x.t === t && x.source === ev.source);
+    const s = state.preds.find((p) => p.t === secs(ev.sample_time));
+    const inputs = s ? s.inputs : null;
+    if (m) { m.predicted = ev.predicted; m.status = "learned"; m.inputs = inputs; }
+    else state.meas.push({ t, q: ev.q_total, source: ev.source, status: "learned", predicted: ev.predicted, inputs });
+  } else if (type === "drift") {
+    state.markers.push({ t, kind: "drift", label: "drift" });
+  } else if (type === "model") {
+    state.markers.push({ t, kind: "model", label: "\u2192 " + ev.model_after, version: ev.version_after });
+    refreshField();
+  }
+  state.dirty = true;
+}
+
+function connect() {
+  const live = $("#live");
+  const es = new EventSource("/events");
+  es.onopen = () => { live.textContent = "live"; live.className = "live on"; };
+  es.onerror = () => { live.textContent = "live: reconnecting"; live.className = "live off"; };
+  for (const type of ["prediction", "measurement", "learned", "drift", "model"]) {
+    es.addEventListener(type, (e) => onEvent(type, JSON.parse(e.data)));
+  }
+  es.addEventListener("dropped", (e) => {
+    live.textContent = `live (${JSON.parse(e.data).dropped} event(s) dropped: reload for all)`;
+  });
+}
+
+/* ---------------------------------------------------------------- well test */
+async function postWellTest(e) {
+  e.preventDefault();
+  const out = $("#wt-result");
+  if (needToken(out)) return;
+  out.className = "result"; out.textContent = "posting...";
+  try {
+    const r = await api("POST", `/wells/${encodeURIComponent(state.well)}/well-tests`,
+      { time: $("#wt-time").value.trim(), q_total: Number($("#wt-rate").value) });
+    const b = r.before && r.before.q_total, a = r.after && r.after.q_total;
+    out.textContent = `${r.message}\nPrediction at ${r.paired_sample_time || r.time}: before ${fmt(b, 0)} Sm3/h` +
+      (r.status === "learned" ? `, after ${fmt(a, 0)} Sm3/h (measured ${fmt(r.q_total, 0)}); version ${r.version_before} \u2192 ${r.version_after}.` : ".");
+    refreshField();
+  } catch (err) { out.className = "result error"; out.textContent = err.message; }
+}
+
+/* ---------------------------------------------------------------- diagnosis */
+async function runDiagnosis(e) {
+  e.preventDefault();
+  const status = $("#diag-status");
+  if (needToken(status)) return;
+  status.className = "hint";
+  const cands = $("#diag-candidates").value.split(",").map((s) => s.trim()).filter(Boolean);
+  const body = { model: $("#diag-model").value, suggest: $("#diag-suggest").checked };
+  if (cands.length) body.candidates = cands;
+  $("#diag-run").disabled = true; $("#diag-verdict").textContent = ""; $("#diag-candidates-table").hidden = true;
+  try {
+    const job = await api("POST", `/wells/${encodeURIComponent(state.well)}/diagnosis`, body);
+    state.diagJob = job.job;
+    await followDiagnosis(job.job);
+  } catch (err) { status.className = "hint error"; status.textContent = err.message; }
+  finally { $("#diag-run").disabled = false; }
+}
+
+async function followDiagnosis(id) {
+  const bar = $("#diag-progress"), status = $("#diag-status");
+  bar.hidden = false;
+  for (;;) {
+    const j = await api("GET", "/diagnosis/" + id);
+    bar.value = j.progress;
+    status.textContent = `${j.state}: ${Math.round(100 * j.progress)} % \u00b7 ${j.progress_text} \u00b7 ${fmt(j.elapsed_s, 0)} s`;
+    if (j.state === "done") { bar.hidden = true; showDiagnosis(j); return; }
+    if (j.state === "failed") { bar.hidden = true; status.className = "hint error"; status.textContent = j.error; return; }
+    await new Promise((r) => setTimeout(r, 700));
+  }
+}
+
+function showDiagnosis(j) {
+  const d = j.diagnosis;
+  $("#diag-verdict").textContent = d.verdict.text;
+  $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % ` +
+    `(${esc(d.headline ? d.headline.protocol : "")}) ` +
+    (j.report ? `\u00b7 <a href="${j.report}" target="_blank">full report (residual panels)</a>` : "");
+  const rows = (d.candidates || []).map((c, i) => `<tr><td>${esc(c.effect)}</td><td class="num">${fmt(c.mape, 2)}</td>
+    <td class="num">${fmt(c.delta_mape, 2)}</td><td class="num">${fmt(c.delta_bic, 1)}</td><td>${esc(c.meaning)}${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.join("; ")) + "</span>" : ""}</td>
+    <td><button class="apply" data-spec="${esc(c.spec || c.effect)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(c.spec || c.effect)}]">apply</button></td></tr>`);
+  if (d.suggestion) {
+    const s = d.suggestion;
+    rows.push(`<tr><td>suggested: ${esc(s.form)}</td><td class="num">${fmt(s.mape, 2)}</td><td class="num">${fmt(s.delta_mape, 2)}</td>
+      <td class="num">${fmt(s.delta_bic, 1)}</td><td>a correction outside the library (${esc(s.driver)})</td>
+      <td><button class="apply" data-spec="${esc(s.effects)}">apply</button></td></tr>`);
+  }
+  $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="6" class="hint">No candidate could be tried.</td></tr>`;
+  $("#diag-candidates-table").hidden = false;
+  const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
+    .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
+  const real = (d.drivers || []).filter((x) => x.role === "driver" && x.score > 0 && x.p_value != null && x.p_value < 0.05);
+  $("#diag-drivers").textContent = !drivers.length ? "" : real.length
+    ? "Inputs the residual depends on beyond chance: " + real.map((x) => `${x.name} (p ${fmt(x.p_value, 3)})`).join(", ") + "."
+    : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".";
+  document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
+}
+
+async function applyEffect(button) {
+  const out = $("#change-result");
+  if (needToken(out)) return;
+  const spec = button.dataset.spec;
+  out.className = "result"; out.textContent = `fitting ${state.view.model} with ${spec} on the stored history...`;
+  document.querySelectorAll("button.apply").forEach((b) => { b.disabled = true; });
+  try {
+    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, { effects: [spec] });
+    const h = c.holdout || {};
+    out.textContent = `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
+      `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after. ` +
+      `Watch the error-over-time chart right of the red marker.`;
+    const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
+    state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams();
+    if (!state.markers.some((m) => m.kind === "model" && m.version === c.version_after)) {
+      state.markers.push(...markersFromView(v).filter((m) => m.kind === "model" && m.version === c.version_after));
+    }
+    state.dirty = true;
+  } catch (err) { out.className = "result error"; out.textContent = err.message; }
+  finally { document.querySelectorAll("button.apply").forEach((b) => { b.disabled = false; }); }
+}
+
+/* ---------------------------------------------------------------- routing */
+function route() {
+  const m = location.hash.match(/^#well=(.+)$/);
+  if (m) loadWell(decodeURIComponent(m[1]));
+  else { state.well = null; $("#well-view").hidden = true; $("#field-view").hidden = false; renderField(); }
+}
+
+function init() {
+  $("#token").addEventListener("input", (e) => { state.token = e.target.value.trim(); });
+  document.querySelectorAll("#field-table th").forEach((th) => th.addEventListener("click", () => {
+    const key = th.dataset.key;
+    state.sort = { key, dir: state.sort.key === key ? -state.sort.dir : 1 };
+    renderField();
+  }));
+  $("#field-table tbody").addEventListener("click", (e) => {
+    const tr = e.target.closest("tr[data-well]");
+    if (tr) location.hash = "well=" + encodeURIComponent(tr.dataset.well);
+  });
+  $("#span").addEventListener("change", () => state.well && loadWell(state.well));
+  $("#residual-input").addEventListener("change", () => { if (state.well) { makeCharts(); state.dirty = true; draw(); } });
+  $("#well-test-form").addEventListener("submit", postWellTest);
+  $("#diag-form").addEventListener("submit", runDiagnosis);
+  window.addEventListener("hashchange", route);
+  window.addEventListener("resize", () => {
+    for (const [name, c] of Object.entries(state.charts)) {
+      const el = $("#" + name + "-chart"); if (el) c.setSize({ width: chartWidth(el), height: c.height });
+    }
+  });
+  connect();
+  refreshField().then(route);
+  setInterval(refreshField, 5000);
+}
+
+init();

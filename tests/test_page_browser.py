@@ -1,0 +1,254 @@
+"""The workbench page in a real browser: Playwright for Python driving Debian's chromium.
+
+A real ``vfm serve`` (a subprocess: Zenoh on a free loopback port, HTTP on another, a
+temporary store) is fitted on the first months of a small simulated field (three wells, an
+eroding choke on W01) and fed the rest by a replay over Zenoh while the page is open. The
+page is checked as a user would use it: the field view lists every well, the well chart
+gains points as the replay streams, a diagnosis runs from the page and shows its verdict,
+applying the effect it found changes the model shown and puts a marker on the chart,
+``/docs`` renders its operations with every non-loopback request blocked, ``/metrics``
+parses, and the browser's console stays free of errors throughout.
+
+Screenshots go to ``$VFM_SCREENSHOTS`` (default ``tests/artifacts/``, ignored by git).
+Skipped, with the reason, when ``/usr/bin/chromium`` or the ``playwright`` package is
+missing (``.ci/run`` installs chromium; ``make test`` installs playwright with the dev
+extra). Never run ``playwright install``: it downloads a browser build of its own.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pandas as pd
+import pytest
+
+from replay.replayer import ReplayResult, replay_frame
+from service.testing import ServeProcess
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+CHROMIUM = Path("/usr/bin/chromium")
+try:
+    from playwright.sync_api import Page, sync_playwright
+except ImportError:  # pragma: no cover - depends on the machine
+    sync_playwright = None  # type: ignore[assignment]
+
+pytestmark = [
+    pytest.mark.timeout(300),
+    pytest.mark.skipif(
+        not CHROMIUM.exists(),
+        reason="the browser tests need /usr/bin/chromium (apt-get install -y chromium)",
+    ),
+    pytest.mark.skipif(
+        sync_playwright is None,
+        reason="the browser tests need Playwright for Python (pip install -e '.[dev]')",
+    ),
+]
+
+SPLIT = "2016-02-01"
+MID = "2016-09-01"
+END = "2016-12-01"
+TOKEN = "browser-test-token-0123456789"
+#: wall time the replay of SPLIT..MID takes, s (the page is watched meanwhile)
+REPLAY_S = 25.0
+SHOTS = Path(os.environ.get("VFM_SCREENSHOTS", Path(__file__).parent / "artifacts"))
+
+
+@dataclass
+class Served:
+    proc: ServeProcess
+    frame: pd.DataFrame
+    replay: list[ReplayResult] = field(default_factory=list)
+    thread: threading.Thread | None = None
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    folder = tmp_path_factory.mktemp("page")
+    sim = simulate_field(wells=3, years=1.0, seed=4, hidden=["erosion:rate=0.5"])
+    frame = validate_frame(sim.observations).frame
+    frame = frame[frame["time"] < pd.Timestamp(END, tz="UTC")].reset_index(drop=True)
+    data = folder / "field.parquet"
+    frame.to_parquet(data)
+    config = folder / "vfm.toml"
+    config.write_text(
+        f"""
+[model]
+name = "mm"
+method = "ol"
+history = "{data}"
+history_until = "{SPLIT}"
+[zenoh]
+listen = ["tcp/127.0.0.1:0"]
+[http]
+port = 0
+token = "{TOKEN}"
+[store]
+path = "{folder / "store.sqlite"}"
+synchronous = "normal"
+"""
+    )
+    proc = ServeProcess(config, folder / "serve.log").start(timeout=180)
+    try:
+        yield Served(proc, frame)
+    finally:
+        proc.stop()
+
+
+def _replay(served: Served, frame: pd.DataFrame, speed: float | None) -> None:
+    served.replay.append(
+        replay_frame(
+            frame,
+            connect=[served.proc.zenoh],
+            start=SPLIT,
+            speed=speed,
+            progress=False,
+            idle_timeout=3.0,
+        )
+    )
+
+
+def _start_replay(served: Served) -> None:
+    """SPLIT..MID in about REPLAY_S seconds, on a thread of its own."""
+    first = served.frame[served.frame["time"] < pd.Timestamp(MID, tz="UTC")]
+    span_s = (pd.Timestamp(MID, tz="UTC") - pd.Timestamp(SPLIT, tz="UTC")).total_seconds()
+
+    def run() -> None:
+        _replay(served, first, span_s / REPLAY_S)
+
+    served.thread = threading.Thread(target=run, name="replay", daemon=True)
+    served.thread.start()
+
+
+@pytest.fixture(scope="module")
+def browser_page(served: Served) -> Iterator[tuple[Page, list[str]]]:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    assert sync_playwright is not None
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors: list[str] = []
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.set_default_timeout(30_000)
+        yield page, errors
+        browser.close()
+
+
+def _points(page: Page) -> int:
+    return int(page.evaluate("window.vfm.preds.length"))
+
+
+def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, list[str]]) -> None:
+    page, errors = browser_page
+    url = served.proc.http_url
+    _start_replay(served)
+
+    # the field view lists every well, with its model
+    page.goto(url + "/")
+    wells = sorted(served.frame["well"].unique())
+    for well in wells:
+        page.wait_for_selector(f'#field-table tr[data-well="{well}"]')
+    assert page.locator("#field-table tbody tr").count() == len(wells)
+    assert "mm" in page.locator('#field-table tr[data-well="W01"]').inner_text()
+    page.wait_for_function("document.querySelector('#live').classList.contains('on')")
+    page.screenshot(path=str(SHOTS / "field.png"), full_page=True)
+
+    # the well chart gains points as the replay streams
+    page.click('#field-table tr[data-well="W01"] a')
+    page.wait_for_selector("#rate-chart canvas")
+    page.wait_for_function("window.vfm.preds.length > 0")
+    first = _points(page)
+    page.wait_for_function(f"window.vfm.preds.length > {first + 5}", timeout=30_000)
+    drawn = page.evaluate("window.vfm.charts.rate.data[0].length")
+    assert drawn > first, (drawn, first)
+    page.screenshot(path=str(SHOTS / "well.png"), full_page=True)
+    assert served.thread is not None
+    served.thread.join(120)  # the diagnosis reads the history stored so far
+
+    # a diagnosis runs from the page (token typed, kept in memory) and shows its verdict
+    page.fill("#token", TOKEN)
+    page.fill("#diag-candidates", "erosion")
+    page.uncheck("#diag-suggest")
+    page.click("#diag-run")
+    page.wait_for_function(
+        "document.querySelector('#diag-verdict').textContent.length > 20", timeout=120_000
+    )
+    verdict = page.locator("#diag-verdict").inner_text()
+    assert "erosion" in verdict, verdict
+    assert page.locator("#diag-candidates-table button.apply").count() >= 1
+    page.screenshot(path=str(SHOTS / "diagnosis.png"), full_page=True)
+
+    # applying it changes the model shown and puts a marker on the chart
+    page.locator('#diag-candidates-table button.apply[data-spec="erosion"]').click()
+    page.wait_for_function(
+        "document.querySelector('#well-model').dataset.model === 'mm+erosion'", timeout=120_000
+    )
+    page.wait_for_function("window.vfm.markers.some(m => m.kind === 'model')")
+    assert "mm+erosion" in page.locator("#change-result").inner_text()
+
+    # the rest of the field streams in: errors of the new model right of the marker
+    marker = page.evaluate("window.vfm.markers.find(m => m.kind === 'model').t")
+    _replay(served, served.frame[served.frame["time"] >= pd.Timestamp(MID, tz="UTC")], None)
+    page.wait_for_function(
+        f"window.vfm.meas.filter(m => m.predicted != null && m.t > {marker}).length >= 10"
+    )
+    page.wait_for_timeout(1200)  # one redraw
+    page.screenshot(path=str(SHOTS / "change.png"), full_page=True)
+    assert errors == [], errors
+
+    # the field view shows the new model too
+    page.goto(url + "/#")
+    page.wait_for_function(
+        "document.querySelector('#field-table tr[data-well=\"W01\"]')"
+        " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('mm+erosion')"
+    )
+
+    # nothing of the replay was lost on the way (a well that starts after the split has no
+    # model until its first measurement: its first sample alone goes unanswered)
+    missing = [r.missing for r in served.replay]
+    assert missing[0] <= len(wells) and missing[1] == 0, (missing, served.replay)
+    assert errors == [], errors
+
+
+def test_docs_render_offline(served: Served, browser_page: tuple[Page, list[str]]) -> None:
+    page, errors = browser_page
+    outside: list[str] = []
+
+    def only_loopback(route: Any) -> None:
+        if route.request.url.startswith(("http://127.0.0.1", "data:", "blob:")):
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort()
+
+    page.route("**/*", only_loopback)
+    try:
+        page.goto(served.proc.http_url + "/docs")
+        page.wait_for_selector(".opblock", timeout=30_000)
+        assert page.locator(".opblock").count() >= 10
+        assert page.get_by_text("/wells/{well}/diagnosis").count() >= 1
+        page.screenshot(path=str(SHOTS / "docs.png"), full_page=False)
+    finally:
+        page.unroute("**/*")
+    assert outside == [], outside
+    assert errors == [], errors
+
+
+def test_metrics_parse(served: Served) -> None:
+    from prometheus_client.parser import text_string_to_metric_families
+
+    text = httpx.get(served.proc.http_url + "/metrics", timeout=10).text
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    mape = {s.labels["well"]: s.value for s in families["vfm_well_rolling_mape_percent"].samples}
+    assert set(mape) == set(served.frame["well"].unique())
+    assert all(0 <= v < 100 for v in mape.values()), mape
+    latency = families["vfm_prediction_latency_seconds"]
+    count = next(s.value for s in latency.samples if s.name.endswith("_count"))
+    assert count > 0
