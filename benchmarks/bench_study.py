@@ -4,7 +4,11 @@ Prints figures; asserts nothing (these machines are shared and noisy: compare ra
 within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
-        [--outages 7d,30d,90d]
+        [--outages 7d,30d,90d] [--data field.parquet | --hidden erosion] [--per-run]
+
+With ``--per-run`` the study is timed one model x method run at a time (as ``vfm evaluate``
+runs them, the initial fit shared between methods with the same window), per case, with
+the slowest run's time over the median run's: no model or method should crawl.
 
 With ``--outages`` each case runs twice, without and with the outage protocol, and the
 ratio of the wall times is printed: the protocol adds one prequential run per model,
@@ -26,10 +30,10 @@ import torch
 
 from vfm_core.data import make_batch, target_mask
 from vfm_core.jobs.evaluate import format_summary, run_study
-from vfm_core.jobs.study import wells_of
+from vfm_core.jobs.study import run_prequential, wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
-from vfm_core.observations import validate_frame
+from vfm_core.observations import load_observations, validate_frame
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 
@@ -70,6 +74,27 @@ def river_cost(frame, n: int = 2000) -> float | None:
     return (time.perf_counter() - started) / len(xs) * 1e6
 
 
+def per_run_times(frame, models: list[str], methods: list[str], case: str) -> None:
+    """Seconds of each model x method run of one case, and the slowest over the median."""
+    initial_fits: dict = {}
+    times: dict[tuple[str, str], float] = {}
+    for model in models:
+        for method in methods:
+            started = time.perf_counter()
+            run_prequential(
+                frame, model, method, targets=case, initial_fits=initial_fits, phases=True
+            )
+            times[model, method] = time.perf_counter() - started
+            print(f"  {case:<9} {model:<5} {method:<10} {times[model, method]:8.1f} s", flush=True)
+    values = sorted(times.values())
+    median = float(np.median(values))
+    slowest = max(times, key=times.__getitem__)
+    print(
+        f"case {case}: {sum(values):.1f} s in {len(values)} runs; median {median:.1f} s, "
+        f"slowest {' '.join(slowest)} {times[slowest]:.1f} s = {times[slowest] / median:.1f} x median"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--wells", type=int, default=10)
@@ -81,13 +106,28 @@ def main() -> None:
     parser.add_argument("--outages", default="", help="e.g. 7d,30d,90d (also time the protocol)")
     parser.add_argument("--skip-study", action="store_true")
     parser.add_argument("--out", default=None, help="also write each case's outputs (report) here")
+    parser.add_argument("--data", default=None, help="an observation file instead of simulating")
+    parser.add_argument("--hidden", default="", help="hidden effects of the simulated field")
+    parser.add_argument("--per-run", action="store_true", help="time each model x method run")
     args = parser.parse_args()
     models = args.models.split(",")
+    torch.set_num_threads(1)  # small tensors: a second thread only costs (see vfm_core.cli)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
     started = time.perf_counter()
-    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed)
-    frame = validate_frame(field.observations).frame
-    print(f"simulate: {len(frame):,} rows in {time.perf_counter() - started:.2f} s")
+    if args.data:
+        frame = load_observations(args.data).frame
+    else:
+        hidden = [h for h in args.hidden.split(",") if h]
+        field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=hidden)
+        frame = validate_frame(field.observations).frame
+    print(f"field: {len(frame):,} rows in {time.perf_counter() - started:.2f} s")
+    if args.per_run:
+        for case in args.cases.split(","):
+            per_run_times(frame, models, args.methods.split(","), case)
+        print(
+            f"\nall runs: {time.perf_counter() - started:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB"
+        )
+        return
 
     print("\none online update (one well, one observation, E steps), microseconds:")
     for name in models:

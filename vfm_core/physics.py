@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -177,6 +178,37 @@ def choke_mass_flux(
     specific volume with Simpson's slip ratio s = (rho_L/rho_g2)^(1/6):
     v = (x/rho_g2 + s (1-x)/rho_L)(x + (1-x)/s), which is 1/rho_2 for s = 1.
     """
+    params = (rho_oil, rho_wat, kappa, m_gas, p_cr, z)
+    inputs = (p_up, p_down, t_up, eta_gas, eta_oil)
+    if (
+        not slip
+        and torch.is_grad_enabled()
+        and not any(isinstance(v, torch.Tensor) and v.requires_grad for v in inputs)
+        and any(isinstance(v, torch.Tensor) and v.requires_grad for v in params)
+    ):
+        # learning: the same flux, with its gradient in closed form (one autograd node
+        # instead of some forty, see _FluxFunction)
+        return _FluxFunction.apply(*(_t(v) for v in inputs + params))
+    return _flux(
+        p_up, p_down, t_up, eta_gas, eta_oil, rho_oil, rho_wat, kappa, m_gas, p_cr, z, slip
+    )[0]
+
+
+def _flux(
+    p_up: Tensorish,
+    p_down: Tensorish,
+    t_up: Tensorish,
+    eta_gas: Tensorish,
+    eta_oil: Tensorish,
+    rho_oil: Tensorish,
+    rho_wat: Tensorish,
+    kappa: Tensorish,
+    m_gas: Tensorish,
+    p_cr: Tensorish,
+    z: Tensorish,
+    slip: bool,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`choke_mass_flux`, kg/(m2 s), and the intermediates its gradient needs."""
     p1 = _t(p_up)
     p_ratio = torch.maximum(_t(p_down) / p1, _t(p_cr))
     k = _t(kappa)
@@ -196,7 +228,108 @@ def choke_mass_flux(
             liquid_fraction > 1e-9, simpson_slip(rho_liquid, rho_g2), torch.ones_like(v_mix)
         )
         v_mix = (x / rho_g2 + s * v_liq) * (x + liquid_fraction / s)
-    return torch.sqrt(torch.clamp(2.0 * p1 * energy, min=0.0)) / v_mix
+    head = 2.0 * p1 * energy
+    flux = torch.sqrt(torch.clamp(head, min=0.0)) / v_mix
+    parts = dict(
+        p_ratio=p_ratio,
+        k=k,
+        x=x,
+        rho_g1=rho_g1,
+        v_liq=v_liq,
+        expansion=expansion,
+        energy=energy,
+        v_mix=v_mix,
+        head=head,
+    )
+    return flux, parts
+
+
+class _FluxFunction(torch.autograd.Function):
+    """The homogeneous (no-slip) choke mass flux with its gradient in closed form with
+    respect to the fluid parameters (rho_oil, rho_wat, kappa, m_gas, p_cr, z); the
+    measured inputs (pressures, temperature, fractions) carry no gradient here.
+
+    With E the energy bracket, v the liquid volume per kg of mixture, rho_g1 the upstream
+    gas density, p_r the pressure ratio and v_mix = x p_r^(-1/k) / rho_g1 + v,
+    G = sqrt(2 p1 E) / v_mix, so d log G = dE / (2 E) - d v_mix / v_mix, with
+    dE/dv = 1 - p_r, dE/drho_g1 = -x k/(k-1) (1 - p_r^a) / rho_g1^2 (a = (k-1)/k),
+    dE/dp_r = -v - x p_r^(a-1) / rho_g1,
+    dE/dk = -x [(1 - p_r^a)/(k-1)^2 + p_r^a ln(p_r) / (k (k-1))] / rho_g1, and
+    v_mix's: 1, -g/rho_g1, -g/(k p_r), g ln(p_r)/k^2 with g = x p_r^(-1/k) / rho_g1;
+    then v through the densities, rho_g1 through M_gas (rho_g1/M) and Z (-rho_g1/Z), p_r
+    through p_cr where p_cr is above p_down/p_up. Zero where the bracket is not positive
+    (no flow), as the clamp gives.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        p_up: torch.Tensor,
+        p_down: torch.Tensor,
+        t_up: torch.Tensor,
+        eta_gas: torch.Tensor,
+        eta_oil: torch.Tensor,
+        rho_oil: torch.Tensor,
+        rho_wat: torch.Tensor,
+        kappa: torch.Tensor,
+        m_gas: torch.Tensor,
+        p_cr: torch.Tensor,
+        z: torch.Tensor,
+    ) -> torch.Tensor:
+        flux, parts = _flux(
+            p_up, p_down, t_up, eta_gas, eta_oil, rho_oil, rho_wat, kappa, m_gas, p_cr, z, False
+        )
+        ctx.save_for_backward(p_up, p_down, eta_oil, rho_oil, rho_wat, m_gas, p_cr, z, flux)
+        ctx.parts = parts
+        return flux
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
+        p_up, p_down, eta_oil, rho_oil, rho_wat, m_gas, p_cr, z, flux = ctx.saved_tensors
+        parts = ctx.parts
+        pr, k, x = parts["p_ratio"], parts["k"], parts["x"]
+        rho_g1, v, energy, v_mix = parts["rho_g1"], parts["v_liq"], parts["energy"], parts["v_mix"]
+        flowing = parts["head"] > 0
+        # dG = G (dE / 2E - dv_mix / v_mix), G's factor per unit of E and of v_mix
+        safe_e = torch.where(flowing, energy, torch.ones_like(energy))
+        g_e = torch.where(flowing, grad * flux * 0.5 / safe_e, torch.zeros_like(flux))
+        g_m = torch.where(flowing, -grad * flux / v_mix, torch.zeros_like(flux))
+        pra = 1.0 - parts["expansion"]  # p_r^a
+        gas = x * pr ** (-1.0 / k) / rho_g1  # x / rho_g2
+        log_pr = torch.log(pr)
+        d_v = g_e * (1.0 - pr) + g_m
+        d_rho_g1 = g_e * (-x * k / (k - 1.0) * parts["expansion"] / rho_g1**2) - g_m * gas / rho_g1
+        d_pr = g_e * (-v - x * pra / pr / rho_g1) - g_m * gas / (k * pr)
+        d_k = (
+            g_e
+            * (-x * (parts["expansion"] / (k - 1.0) ** 2 + pra * log_pr / (k * (k - 1.0))) / rho_g1)
+            + g_m * gas * log_pr / k**2
+        )
+
+        def reduce(value: torch.Tensor, like: torch.Tensor, needed: bool) -> torch.Tensor | None:
+            return value.sum_to_size(like.shape) if needed else None
+
+        need = ctx.needs_input_grad
+        eta_wat = 1.0 - x - eta_oil
+        ratio = p_down / p_up
+        at_cr = torch.where(
+            p_cr > ratio,
+            torch.ones_like(d_pr),
+            torch.where(p_cr == ratio, torch.full_like(d_pr, 0.5), torch.zeros_like(d_pr)),
+        )
+        return (
+            None,
+            None,
+            None,
+            None,
+            None,
+            reduce(d_v * (-eta_oil / rho_oil**2), rho_oil, need[5]),
+            reduce(d_v * (-eta_wat / rho_wat**2), rho_wat, need[6]),
+            reduce(d_k, k, need[7]),
+            reduce(d_rho_g1 * rho_g1 / m_gas, m_gas, need[8]),
+            reduce(d_pr * at_cr, p_cr, need[9]),
+            reduce(d_rho_g1 * (-rho_g1 / z), z, need[10]),
+        )
 
 
 def choke_mass_flow(area: Tensorish, *args: Tensorish, **kwargs: Tensorish | bool) -> torch.Tensor:

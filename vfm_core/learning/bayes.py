@@ -662,23 +662,35 @@ class BayesianFilter(LearningMethod):
         model, blocks = self.model, self._blocks
         n = one.n_wells
         saved = _flat(blocks, n)
+        if torch.equal(theta, saved):
+            # at the current parameters (the first Kalman iteration): nothing to set or
+            # restore, the parameters are kept within their bounds
+            return self._log_rate_and_gradient(one, live)
         _assign(blocks, theta, live)
         model.project_()
         try:
-            with torch.enable_grad():
-                log_h = _log_rate(model, one)[:, 0]
-                total = torch.where(live, log_h, torch.zeros_like(log_h)).sum()
-                grads = torch.autograd.grad(total, [b.param for b in blocks], allow_unused=True)
-            H = torch.cat(
-                [
-                    (g if g is not None else torch.zeros_like(b.param)).reshape(n, -1)
-                    for g, b in zip(grads, blocks, strict=True)
-                ],
-                dim=1,
-            )
-            return log_h.detach(), H.detach()
+            return self._log_rate_and_gradient(one, live)
         finally:
             _assign(blocks, saved, torch.ones(n, dtype=torch.bool))
+
+    def _log_rate_and_gradient(
+        self, one: Batch, live: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """log h [W] and its gradient [W, D] at the model's parameters (one sample per well)."""
+        model, blocks = self.model, self._blocks
+        n = one.n_wells
+        with torch.enable_grad():
+            log_h = _log_rate(model, one)[:, 0]
+            total = torch.where(live, log_h, torch.zeros_like(log_h)).sum()
+            grads = torch.autograd.grad(total, [b.param for b in blocks], allow_unused=True)
+        H = torch.cat(
+            [
+                (g if g is not None else torch.zeros_like(b.param)).reshape(n, -1)
+                for g, b in zip(grads, blocks, strict=True)
+            ],
+            dim=1,
+        )
+        return log_h.detach(), H.detach()
 
     # -- tuning -----------------------------------------------------------------------------------
     def tuning(self, grid: str) -> list[dict[str, Any]]:

@@ -13,10 +13,17 @@ from typing import Any
 
 import torch
 
-from vfm_core.data import Batch
+from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
-from vfm_core.learning.training import clip_per_well_, make_optimizer, per_well_loss
+from vfm_core.learning.training import (
+    clip_per_well_,
+    make_optimizer,
+    optimizer_step_,
+    per_well_loss,
+    split_parameters,
+    zero_grad_,
+)
 from vfm_core.models import ChokeModel
 
 __all__ = ["OnlineSettings", "DEFAULT_ONLINE", "OnlineLearning"]
@@ -64,6 +71,10 @@ class OnlineLearning(LearningMethod):
         self.online = OnlineSettings()
         self._opt: torch.optim.Optimizer | None = None
         self._sched: Any = None
+        #: the optimiser's parameters, and the model's per-well and shared ones (cached
+        #: with the optimiser: an update takes E steps and must not walk the model each time)
+        self._params: list[torch.nn.Parameter] = []
+        self._groups: tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]] = ([], [])
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -82,6 +93,8 @@ class OnlineLearning(LearningMethod):
             params = [p for p in self.model.parameters() if p.requires_grad]
             s = self.online
             self._opt, self._sched = make_optimizer(params, s.optimizer, s.lr, s.schedule_power)
+            self._params = params
+            self._groups = split_parameters(self.model)
         return self._opt
 
     def _learn(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
@@ -91,20 +104,24 @@ class OnlineLearning(LearningMethod):
         ready = model.ready & (batch.count() > 0)
         if not bool(ready.any()):
             return ready
-        batch = batch.select(batch.mask & ready.unsqueeze(1))
+        if bool((batch.mask & ~ready.unsqueeze(1)).any()):
+            batch = batch.select(batch.mask & ready.unsqueeze(1))
         # Adam's momentum would move wells that have no new measurement: hold them still.
         idle = ~ready
-        held = [(p, p.detach()[idle].clone()) for p in model.per_well_parameters()]
-        for _ in range(self.online.steps):
-            opt.zero_grad()
-            loss = per_well_loss(model, batch, self.online.noise, physical_only=True).sum()
+        any_idle = bool(idle.any())
+        held = [(p, p.detach()[idle].clone()) for p in self._groups[0]] if any_idle else []
+        # the same batch for every step: its counts once
+        n = batch.count().to(DTYPE)
+        s = self.online
+        for _ in range(s.steps):
+            zero_grad_(self._params)
+            loss = per_well_loss(model, batch, s.noise, physical_only=True, n=n).sum()
             loss.backward()
-            clip_per_well_(model, self.online.max_grad_norm)
-            opt.step()
+            clip_per_well_(model, s.max_grad_norm, self._groups)
+            optimizer_step_(opt)
             model.project_()
-            if bool(idle.any()):
-                for p, before in held:
-                    p.data[idle] = before
+            for p, before in held:
+                p.data[idle] = before
         if self._sched is not None:
             self._sched.step()
         self.updates += 1

@@ -206,8 +206,14 @@ class Mechanistic(ChokeModel):
 
     def theta(self) -> dict[str, torch.Tensor]:
         """The mechanistic parameters [W] in SI units (prior means for those not learned)."""
-        values = self._prior_theta()
-        values.update(self.phys.values())
+        learned = self.phys.values()
+        if len(learned) == len(PHYSICAL_NAMES):
+            return learned
+        n = len(self.wells)
+        values = {
+            k: learned[k] if k in learned else torch.full((n,), ph.PRIORS[k].mean, dtype=DTYPE)
+            for k in PHYSICAL_NAMES
+        }
         return values
 
     def effect_values(self) -> dict[str, dict[str, torch.Tensor]]:

@@ -1,0 +1,210 @@
+"""The cost of one online update and one prediction, side by side in one run (issue 16).
+
+Prints the median cost per call (microseconds) of:
+
+(a) a naive per-sample PyTorch loop: a linear model, one prediction and 10 Adam steps on
+    the sample (the optimiser made once);
+(b) river's ``StandardScaler | LinearRegression``, ``predict_one`` + ``learn_one`` (an
+    optional benchmark dependency, ``pip install -e '.[bench]'``; skipped with the reason
+    when it is not installed);
+(c) one ``ol`` update (the method's defaults per model, ``DEFAULT_ONLINE``) and one
+    prediction of ``mm``, ``hem`` and ``ham``, one well;
+(d) one ``bayes`` update and one prediction of ``mm`` and ``ham``, one well;
+(e) the same update of N wells in one batched call (the study's rounds, a service's batch),
+    as the cost per well-update;
+
+and each one's ratio to (a). Read the ratios: the machine may be shared. Each figure is
+the median over ``--calls`` calls on a simulated well's stream after a short fit (every
+call learns from the next measurement, as in the study), after ``--warmup`` calls.
+
+    python benchmarks/bench_speed.py [--wells 10,100] [--calls 300] [--models mm,hem,ham]
+
+One torch thread (as the ``vfm`` command and the service run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from vfm_core.data import Batch, make_batch, target_mask
+from vfm_core.jobs.study import wells_of
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
+from vfm_core.models import make_model
+from vfm_core.observations import validate_frame
+from vfm_core.schema import INPUT_COLUMNS, TARGET
+from vfm_core.simulate import simulate_field
+
+#: samples per well the model is fitted on before the timed stream
+HISTORY = 200
+
+
+def _median_us(calls: list[Callable[[], object]], warmup: int) -> float:
+    """Median wall time of each call, microseconds (the first ``warmup`` not counted)."""
+    times = []
+    gc.disable()
+    try:
+        for i, call in enumerate(calls):
+            t0 = time.perf_counter()
+            call()
+            dt = time.perf_counter() - t0
+            if i >= warmup:
+                times.append(dt)
+    finally:
+        gc.enable()
+    return statistics.median(times) * 1e6
+
+
+def naive_torch(xs: np.ndarray, ys: np.ndarray, warmup: int) -> float:
+    """(a) a linear model in float32, predict then 10 Adam steps on each sample."""
+    x = torch.tensor((xs - xs.mean(0)) / (xs.std(0) + 1e-9), dtype=torch.float32)
+    y = torch.tensor(ys / np.median(ys), dtype=torch.float32)
+    model = torch.nn.Linear(x.shape[1], 1)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+
+    def step(i: int) -> None:
+        with torch.no_grad():
+            model(x[i : i + 1])
+        for _ in range(10):
+            opt.zero_grad()
+            loss = ((model(x[i : i + 1]).squeeze(-1) - y[i : i + 1]) ** 2).mean()
+            loss.backward()
+            opt.step()
+
+    return _median_us([lambda i=i: step(i) for i in range(len(x))], warmup)
+
+
+def river_cost(xs: np.ndarray, ys: np.ndarray, warmup: int) -> float | str:
+    """(b) river's scaled linear regression, predict_one + learn_one; the reason if absent."""
+    try:
+        from river import linear_model, preprocessing
+    except ImportError:
+        return "river is not installed (pip install -e '.[bench]')"
+    model = preprocessing.StandardScaler() | linear_model.LinearRegression()
+    dicts = [dict(zip(INPUT_COLUMNS, map(float, row), strict=True)) for row in xs]
+
+    def step(i: int) -> None:
+        model.predict_one(dicts[i])
+        model.learn_one(dicts[i], float(ys[i]))
+
+    return _median_us([lambda i=i: step(i) for i in range(len(dicts))], warmup)
+
+
+def _tile(batch: Batch, n_wells: int) -> Batch:
+    """``batch``'s wells repeated (renamed) until there are ``n_wells``."""
+    reps = -(-n_wells // batch.n_wells)
+
+    def rep(t: torch.Tensor) -> torch.Tensor:
+        return t.repeat(reps, *([1] * (t.dim() - 1)))[:n_wells]
+
+    assert batch.well_test is not None and batch.extra is not None
+    names = [f"{w}_{k}" for k in range(reps) for w in batch.wells][:n_wells]
+    return Batch(
+        names,
+        rep(batch.x),
+        rep(batch.y),
+        rep(batch.mask),
+        rep(batch.time_ns),
+        rep(batch.row),
+        rep(batch.well_test),
+        rep(batch.extra),
+        batch.extra_names,
+    )
+
+
+def _stream(frame, n_wells: int, calls: int) -> tuple[Batch, list[Batch]]:
+    """A history batch (``HISTORY`` samples per well) and ``calls`` one-sample columns after
+    it, for ``n_wells`` wells (the simulated wells, repeated under new names)."""
+    wells = wells_of(frame)
+    rows = np.flatnonzero(target_mask(frame, "all"))
+    batch = _tile(make_batch(frame, wells, rows), n_wells)
+    rank = torch.cumsum(batch.mask.long(), 1)
+    history = batch.select(rank <= HISTORY)
+    cols = [batch.select(rank == HISTORY + 1 + k) for k in range(calls)]
+    return history, cols
+
+
+def learner_cost(
+    model_name: str, method_text: str, history: Batch, cols: list[Batch], warmup: int
+) -> tuple[float, float]:
+    """Median cost of one update and of one prediction (every well of the batch), us."""
+    model = make_model(model_name, history.wells)
+    method = parse_method(method_text)
+    train = replace(DEFAULT_TRAIN[model_name], max_iter=100, early_stopping=False)
+    method.bind(model, train=train, online=DEFAULT_ONLINE[model_name])
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    predict = _median_us([lambda c=c: method.predict(c) for c in cols], warmup)
+    update = _median_us([lambda c=c: method.on_measurement(c) for c in cols], warmup)
+    return update, predict
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--wells", default="10,100", help="batched well counts, e.g. 10,100")
+    parser.add_argument("--calls", type=int, default=300, help="timed calls per figure")
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--models", default="mm,hem,ham", help="models run with ol")
+    parser.add_argument("--bayes-models", default="mm,ham", help="models run with bayes")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
+    field = simulate_field(wells=10, years=2.0, seed=args.seed)
+    frame = validate_frame(field.observations).frame
+    one = frame[(frame["well"] == wells_of(frame)[0]) & frame[TARGET].notna()]
+    n_calls = args.calls + args.warmup
+    xs = one[list(INPUT_COLUMNS)].to_numpy(dtype=float)[:n_calls]
+    ys = one[TARGET].to_numpy(dtype=float)[:n_calls]
+
+    rows: list[tuple[str, float, float | None]] = []  # (what, update us, predict us)
+    naive = naive_torch(xs, ys, args.warmup)
+    rows.append(("(a) naive torch loop: linear, predict + 10 Adam steps", naive, None))
+    river = river_cost(xs, ys, args.warmup)
+    if isinstance(river, str):
+        print(f"(b) river: skipped, {river}")
+    else:
+        rows.append(("(b) river LinearRegression predict_one + learn_one", river, None))
+
+    history, cols = _stream(frame, 1, n_calls)
+    jobs = [(m, "ol") for m in args.models.split(",") if m] + [
+        (m, "bayes") for m in args.bayes_models.split(",") if m
+    ]
+    for model_name, method_text in jobs:
+        update, predict = learner_cost(model_name, method_text, history, cols, args.warmup)
+        steps = f", E={DEFAULT_ONLINE[model_name].steps}" if method_text == "ol" else ""
+        label = "(c)" if method_text == "ol" else "(d)"
+        rows.append((f"{label} {model_name} {method_text}{steps}, 1 well", update, predict))
+    for n_wells in [int(w) for w in args.wells.split(",") if w]:
+        history_n, cols_n = _stream(frame, n_wells, n_calls)
+        for model_name, method_text in jobs:
+            update, predict = learner_cost(model_name, method_text, history_n, cols_n, args.warmup)
+            rows.append(
+                (
+                    f"(e) {model_name} {method_text}, {n_wells} wells in one call, per well",
+                    update / n_wells,
+                    predict / n_wells,
+                )
+            )
+
+    print(f"\nmedian of {args.calls} calls, microseconds; ratio = (a) / this (higher is cheaper)")
+    print(f"{'':<62} {'update us':>10} {'(a)/update':>10} {'predict us':>11}")
+    for what, update, predict in rows:
+        pred = "" if predict is None else f"{predict:11.1f}"
+        print(f"{what:<62} {update:10.1f} {naive / update:10.2f} {pred:>11}")
+    if not isinstance(river, str):
+        print(f"\nriver predict+learn: {river:.1f} us; prediction / that, per row above:")
+        for what, _, predict in rows:
+            if predict is not None:
+                print(f"  {what:<60} {predict / river:8.1f} x")
+
+
+if __name__ == "__main__":
+    main()

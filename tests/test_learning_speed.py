@@ -1,0 +1,174 @@
+"""The faster learning paths compute what the plain ones do (issue 16).
+
+- the choke mass flux's closed-form gradient equals autograd's through the same formula;
+- the learners' optimiser step equals torch.optim's to the bit, state included;
+- one online (and one Bayesian) update of several wells in one call equals each well's
+  own update, so batching wells changes nothing but the cost.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from vfm_core import physics as ph
+from vfm_core.data import DTYPE, Batch, make_batch, target_mask
+from vfm_core.jobs.study import wells_of
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
+from vfm_core.learning.training import optimizer_step_, zero_grad_
+from vfm_core.models import make_model
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+
+def _flux_case(seed: int = 0) -> tuple[tuple[torch.Tensor, ...], list[torch.Tensor]]:
+    gen = torch.Generator().manual_seed(seed)
+    w, n = 4, 7
+
+    def rand(*lo_hi: float) -> torch.Tensor:
+        lo, hi = lo_hi
+        return lo + (hi - lo) * torch.rand(w, n, generator=gen, dtype=DTYPE)
+
+    p_up = rand(20e5, 70e5)  # Pa
+    p_down = p_up * rand(0.05, 0.95)  # both sides of the critical ratio
+    t_up = rand(300.0, 350.0)  # K
+    eta_gas = rand(0.0, 0.3)
+    eta_gas[0, 0] = 0.0  # no gas at all
+    eta_oil = (1.0 - eta_gas) * rand(0.0, 1.0)
+    means = (840.0, 1017.5, 1.28, 0.0205, 0.55)
+    params = [
+        torch.full((w, 1), v, dtype=DTYPE)
+        + 0.01 * v * torch.randn(w, 1, generator=gen, dtype=DTYPE)
+        for v in means
+    ]
+    params.append(rand(0.9, 1.1))  # gas Z per sample
+    return (p_up, p_down, t_up, eta_gas, eta_oil), [p.requires_grad_() for p in params]
+
+
+def test_flux_gradient_in_closed_form_equals_autograd_through_the_formula():
+    inputs, params = _flux_case()
+    weights = torch.rand(inputs[0].shape, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
+    names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "z")
+    flux = ph.choke_mass_flux(*inputs, **dict(zip(names, params, strict=True)))
+    assert type(flux.grad_fn).__name__.startswith("_FluxFunction")
+    closed = torch.autograd.grad((flux * weights).sum(), params)
+    plain_params = [p.detach().clone().requires_grad_() for p in params]
+    plain, _ = ph._flux(*inputs, *plain_params, False)
+    assert torch.equal(flux.detach(), plain.detach())  # the same forward, to the bit
+    auto = torch.autograd.grad((plain * weights).sum(), plain_params)
+    for name, c, a in zip(names, closed, auto, strict=True):
+        assert c.shape == a.shape, name
+        assert torch.allclose(c, a, rtol=1e-12, atol=0.0), name
+        assert bool((a != 0).any()), name  # every parameter matters somewhere here
+
+
+def test_flux_gradient_passes_gradcheck():
+    inputs, params = _flux_case(seed=2)
+    names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "z")
+
+    def flux(*values: torch.Tensor) -> torch.Tensor:
+        return ph.choke_mass_flux(*inputs, **dict(zip(names, values, strict=True)))
+
+    assert torch.autograd.gradcheck(flux, tuple(params))
+
+
+def test_flux_without_parameter_gradients_keeps_autograd_for_the_inputs():
+    inputs, params = _flux_case()
+    p_up = inputs[0].clone().requires_grad_()
+    names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "z")
+    flux = ph.choke_mass_flux(p_up, *inputs[1:], **dict(zip(names, params, strict=True)))
+    (g,) = torch.autograd.grad(flux.sum(), [p_up])
+    assert bool((g != 0).any())
+
+
+@pytest.mark.parametrize("kind", ["adam", "sgd"])
+def test_optimizer_step_equals_torch_optim_to_the_bit(kind: str):
+    gen = torch.Generator().manual_seed(0)
+    a = [torch.nn.Parameter(torch.randn(3, 4, generator=gen, dtype=DTYPE)) for _ in range(2)]
+    b = [torch.nn.Parameter(p.detach().clone()) for p in a]
+    make = torch.optim.Adam if kind == "adam" else torch.optim.SGD
+    opt_a, opt_b = make(a, lr=1e-2), make(b, lr=1e-2)
+    for _ in range(25):
+        grads = [torch.randn(3, 4, generator=gen, dtype=DTYPE) for _ in a]
+        opt_a.zero_grad()
+        zero_grad_(b)
+        for p, q, g in zip(a, b, grads, strict=True):
+            p.grad, q.grad = g.clone(), g.clone()
+        opt_a.step()
+        optimizer_step_(opt_b)
+    for p, q in zip(a, b, strict=True):
+        assert torch.equal(p, q)
+        assert not torch.equal(p, torch.zeros_like(p))
+    sa, sb = opt_a.state_dict(), opt_b.state_dict()
+    assert sa["param_groups"] == sb["param_groups"]
+    for k in sa["state"]:
+        for name, value in sa["state"][k].items():
+            assert torch.equal(value, sb["state"][k][name]), name
+
+
+def _field_batches() -> tuple[Batch, list[Batch]]:
+    frame = validate_frame(simulate_field(wells=3, years=1.0, seed=4).observations).frame
+    wells = wells_of(frame)
+    batch = make_batch(frame, wells, np.flatnonzero(target_mask(frame, "all")))
+    rank = torch.cumsum(batch.mask.long(), 1)
+    history = batch.select(rank <= 60)
+    return history, [batch.select(rank == 61 + k) for k in range(5)]
+
+
+def _one_well(batch: Batch, j: int) -> Batch:
+    assert batch.well_test is not None and batch.extra is not None
+    s = slice(j, j + 1)
+    return Batch(
+        batch.wells[s],
+        batch.x[s],
+        batch.y[s],
+        batch.mask[s],
+        batch.time_ns[s],
+        batch.row[s],
+        batch.well_test[s],
+        batch.extra[s],
+        batch.extra_names,
+    )
+
+
+@pytest.mark.parametrize(
+    ("model_name", "method_text"), [("mm", "ol"), ("ham", "ol"), ("mm", "bayes")]
+)
+def test_an_update_of_every_well_in_one_call_equals_each_wells_own(model_name, method_text):
+    history, columns = _field_batches()
+    train = DEFAULT_TRAIN[model_name]
+    field = make_model(model_name, history.wells)
+    method = parse_method(method_text).bind(field, train=train, online=DEFAULT_ONLINE[model_name])
+    # the batch fit once, then every method (the field's and each well's) starts from it
+    iterations = fit_batch(field, history, train)["iterations"]
+    fitted = copy.deepcopy(field.state_dict())
+    method.adopt(history, iterations)
+    singles = []
+    for j, well in enumerate(history.wells):
+        model = make_model(model_name, [well])
+        shapes = {k: v.shape for k, v in model.state_dict().items()}
+        state = {
+            k: v[j : j + 1].clone() if v.shape != shapes[k] else v.clone()
+            for k, v in fitted.items()
+        }
+        model.load_state_dict(state)
+        one = parse_method(method_text).bind(model, train=train, online=DEFAULT_ONLINE[model_name])
+        one.adopt(_one_well(history, j), iterations[j : j + 1])
+        singles.append(one)
+    before = {k: v.clone() for k, v in field.state_dict().items()}
+    for column in columns:
+        method.on_measurement(column)
+        for j, one in enumerate(singles):
+            one.on_measurement(_one_well(column, j))
+    moved = False
+    for name, value in field.state_dict().items():
+        if value.shape == singles[0].model.state_dict()[name].shape:
+            continue  # not per well (prior constants)
+        for j, one in enumerate(singles):
+            own = one.model.state_dict()[name][0]
+            assert torch.allclose(value[j], own, rtol=1e-10, atol=1e-12), (name, j)
+        moved |= not torch.equal(value, before[name])
+    assert moved  # the updates did something
