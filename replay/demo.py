@@ -218,6 +218,7 @@ def _run_demo(args: argparse.Namespace) -> int:
                 f"--methods {args.method},pbl:182d --split {split}"
             )
         if args.keep_serving:
+            print(f"  workbench  {http_url}/  (the page: every well, charts, diagnose and apply)")
             print(f"  API        {http_url}/docs  (e.g. curl {http_url}/wells/W01)")
             print(f"             POST well tests with: -H 'Authorization: Bearer {token}'")
             print(
