@@ -234,6 +234,7 @@ class DiagnosisJobs:
         job.folder.mkdir(parents=True, exist_ok=True)
         lines: queue.Queue[tuple[str, float, str]] = queue.Queue()
         proc: subprocess.Popen[str] | None = None
+        finished_ok = False
         try:
             with (job.folder / "diagnose.log").open("w", encoding="utf-8") as log:
                 proc = subprocess.Popen(
@@ -274,19 +275,15 @@ class DiagnosisJobs:
                     continue
                 if kind == "done":
                     job.fraction, job.text = 1.0, "done"
-                    job.state = "done"
+                    finished_ok = True
                 else:
                     job.error = text
                 break
         except Exception as exc:  # pragma: no cover - spawning failed
             job.error = f"The diagnosis could not start: {exc}"
         finally:
-            if job.state != "done":
-                job.state = "failed"
-                logger.warning("Diagnosis %s of %s failed: %s", job.id, job.well, job.error)
-            else:
-                logger.info("Diagnosis %s of %s done.", job.id, job.well)
-            job.finished = time.time()
+            # the process goes first; then, in one step, the job shows its end and frees the
+            # slot, so a client that sees "done" may start the next diagnosis at once
             if proc is not None:
                 if proc.poll() is None:
                     proc.terminate()
@@ -298,7 +295,13 @@ class DiagnosisJobs:
                 if proc.stdout is not None:
                     proc.stdout.close()
             with self._lock:
+                job.finished = time.time()
+                job.state = "done" if finished_ok else "failed"
                 self._running = None
+            if finished_ok:
+                logger.info("Diagnosis %s of %s done.", job.id, job.well)
+            else:
+                logger.warning("Diagnosis %s of %s failed: %s", job.id, job.well, job.error)
 
     def stop(self, timeout: float = 10.0) -> None:
         """The service stops: end a running diagnosis."""
