@@ -48,6 +48,7 @@ __all__ = [
     "InputSettings",
     "QueueSettings",
     "DriftSettings",
+    "AlarmSettings",
     "load_settings",
     "is_loopback_host",
     "endpoint_host",
@@ -325,6 +326,15 @@ class StoreSettings(_Section):
         description="checkpoint after this many model updates (a restart re-learns the rest)",
     )
     keep_checkpoints: int = Field(default=3, ge=1, description="checkpoints kept per well")
+    parameters_every: int = Field(
+        default=10,
+        ge=1,
+        description="record a well's physical parameters (GET /wells/{well}/parameters) after "
+        "this many model updates, and at every model change",
+    )
+    parameters_kept: int = Field(
+        default=5000, ge=10, description="parameter rows kept per well (the oldest are pruned)"
+    )
 
 
 class InputSettings(_Section):
@@ -449,6 +459,23 @@ class DriftSettings(_Section):
     on_drift: Literal["record", "retrain"] = "record"
 
 
+class AlarmSettings(_Section):
+    """When the service raises a well's alarms (GET /wells/{well}, the workbench)."""
+
+    mpfm_well_test_rel: float = Field(
+        default=0.1,
+        ge=0,
+        description="alarm when the median of a well's MPFM readings near a well test differs "
+        "from the well test by more than this fraction of it (0: off)",
+    )
+    mpfm_well_test_window_s: float = Field(
+        default=86_400.0,
+        gt=0,
+        description="the MPFM readings compared with a well test lie within this many seconds "
+        "of it, either side",
+    )
+
+
 class Settings(BaseSettings):
     """Everything ``vfm serve`` can be told; see the module docstring for the sources."""
 
@@ -464,6 +491,7 @@ class Settings(BaseSettings):
     inputs: InputSettings = Field(default_factory=InputSettings)
     queues: QueueSettings = Field(default_factory=QueueSettings)
     drift: DriftSettings = Field(default_factory=DriftSettings)
+    alarms: AlarmSettings = Field(default_factory=AlarmSettings)
     rolling_window: int = Field(
         default=50, ge=1, description="paired measurements in the rolling MAPE"
     )

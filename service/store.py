@@ -17,6 +17,12 @@ What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures ba
   and plain values, read back with ``weights_only``; never pickle), with the
   ``learn_seq`` they include and a JSON side-car (drift detector state).
 - ``drift_events``: confirmed drifts per well.
+- ``parameter_history``: a well's physical parameters over time (``parameters``: JSON
+  ``{name: {value, std, unit, low, high, at_bound}}``, SI units), with the data time of the
+  measurement they follow (``time_ns``), the model version and name; written in the same
+  transaction as the learning it follows, thinned to one row per
+  ``store.parameters_every`` model updates (and one at each model change), at most
+  ``store.parameters_kept`` rows per well (the oldest pruned).
 
 Reads return typed rows (:class:`SampleRow`, :class:`LearnedRow`, :class:`CheckpointRow`,
 ...), filled by column name. Writes are typed operations, one small frozen dataclass per
@@ -29,7 +35,8 @@ WAL lets them read while the writer writes.
 Schema versions (``meta.schema``): 1, the first; 2 adds the interval columns of
 ``samples`` and ``wells.retired_ns``. A version-1 store is migrated in place when the
 service opens it (columns added, nothing rewritten); a store of a later version than this
-code knows is refused with a sentence.
+code knows is refused with a sentence. 3 adds ``parameter_history`` (a table, nothing
+rewritten).
 """
 
 from __future__ import annotations
@@ -57,6 +64,7 @@ __all__ = [
     "ErrorRow",
     "CheckpointRow",
     "DriftEventRow",
+    "ParameterRow",
     "HistorySample",
     "HistoryMeasurement",
     # writes
@@ -69,6 +77,8 @@ __all__ = [
     "InsertCheckpoint",
     "PruneCheckpoints",
     "InsertDriftEvent",
+    "InsertParameters",
+    "PruneParameters",
     "RetireWell",
     "DeleteWellRows",
     "purge_ops",
@@ -116,9 +126,16 @@ CREATE TABLE IF NOT EXISTS drift_events (
     well TEXT NOT NULL, time_ns INTEGER NOT NULL, statistic REAL, p_value REAL, action TEXT NOT NULL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS drift_events_key ON drift_events (well, time_ns);
+CREATE TABLE IF NOT EXISTS parameter_history (
+    id INTEGER PRIMARY KEY,
+    well TEXT NOT NULL, time_ns INTEGER NOT NULL, version INTEGER NOT NULL,
+    model TEXT NOT NULL, parameters TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS parameter_history_time ON parameter_history (well, time_ns);
+CREATE INDEX IF NOT EXISTS parameter_history_id ON parameter_history (well, id);
 """
 
-SCHEMA_VERSION = "2"
+SCHEMA_VERSION = "3"
 
 #: the statements that bring a store of the key's version to the next one
 _MIGRATIONS: dict[str, list[str]] = {
@@ -127,6 +144,15 @@ _MIGRATIONS: dict[str, list[str]] = {
         "ALTER TABLE samples ADD COLUMN q_total_p05 REAL",
         "ALTER TABLE samples ADD COLUMN q_total_p95 REAL",
         "ALTER TABLE wells ADD COLUMN retired_ns INTEGER",
+    ],
+    # the table and its indexes are created by the schema script on opening; named here
+    # too so that the step says what it brings
+    "2": [
+        "CREATE TABLE IF NOT EXISTS parameter_history (id INTEGER PRIMARY KEY,"
+        " well TEXT NOT NULL, time_ns INTEGER NOT NULL, version INTEGER NOT NULL,"
+        " model TEXT NOT NULL, parameters TEXT NOT NULL)",
+        "CREATE INDEX IF NOT EXISTS parameter_history_time ON parameter_history (well, time_ns)",
+        "CREATE INDEX IF NOT EXISTS parameter_history_id ON parameter_history (well, id)",
     ],
 }
 
@@ -171,6 +197,15 @@ class DriftEventRow(NamedTuple):
     statistic: float | None
     p_value: float | None
     action: str
+
+
+class ParameterRow(NamedTuple):
+    """A well's physical parameters after learning up to ``time_ns`` (data time, epoch ns)."""
+
+    time_ns: int
+    version: int
+    model: str
+    parameters: str  # JSON {name: {value, std, unit, low, high, at_bound}}, SI units
 
 
 class HistorySample(NamedTuple):
@@ -397,6 +432,36 @@ class InsertDriftEvent(Op):
 
 
 @dataclass(frozen=True, slots=True)
+class InsertParameters(Op):
+    """A well's physical parameters at a data time (see ``parameter_history``)."""
+
+    well: str
+    time_ns: int
+    version: int
+    model: str
+    parameters: str  # JSON
+
+    SQL: ClassVar[str] = (
+        "INSERT INTO parameter_history (well, time_ns, version, model, parameters)"
+        " VALUES (:well, :time_ns, :version, :model, :parameters)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class PruneParameters(Op):
+    """Keep only the well's latest ``keep`` parameter rows."""
+
+    well: str
+    keep: int
+
+    SQL: ClassVar[str] = (
+        "DELETE FROM parameter_history WHERE well = :well AND id <="
+        " (SELECT id FROM parameter_history WHERE well = :well ORDER BY id DESC"
+        " LIMIT 1 OFFSET :keep)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class RetireWell(Op):
     """Mark a well retired: its data stay, the service no longer loads or serves it."""
 
@@ -407,7 +472,14 @@ class RetireWell(Op):
 
 
 #: the tables that hold a well's rows, as :class:`DeleteWellRows` may name them
-_WELL_TABLES = ("samples", "measurements", "checkpoints", "drift_events", "wells")
+_WELL_TABLES = (
+    "samples",
+    "measurements",
+    "checkpoints",
+    "drift_events",
+    "parameter_history",
+    "wells",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -744,9 +816,54 @@ class Store:
             )
         return samples, measurements
 
+    def parameter_history(
+        self, well: str, start_ns: int, end_ns: int, limit: int
+    ) -> tuple[list[ParameterRow], bool]:
+        """The well's latest ``limit`` parameter rows in [start, end), in time order, and
+        whether more rows lay in the window (the older ones left out)."""
+        with self.reader() as con:
+            rows = _fetch(
+                con.execute(
+                    "SELECT time_ns, version, model, parameters FROM parameter_history"
+                    " WHERE well = ? AND time_ns >= ? AND time_ns < ?"
+                    " ORDER BY time_ns DESC, id DESC LIMIT ?",
+                    (well, start_ns, end_ns, limit + 1),
+                ),
+                ParameterRow,
+            )
+        more = len(rows) > limit
+        return rows[:limit][::-1], more
+
+    def mpfm_near(self, well: str, time_ns: int, window_ns: int) -> list[float]:
+        """The q_total (Sm3/h) of the well's MPFM readings within ``window_ns`` of ``time_ns``."""
+        with self.reader() as con:
+            rows = con.execute(
+                "SELECT q_total FROM measurements WHERE well = ? AND source = 'mpfm'"
+                " AND time_ns >= ? AND time_ns <= ?",
+                (well, time_ns - window_ns, time_ns + window_ns),
+            ).fetchall()
+        return [float(r[0]) for r in rows]
+
+    def latest_well_test(self, well: str) -> tuple[int, float] | None:
+        """The time (epoch ns) and q_total (Sm3/h) of the well's latest stored well test."""
+        with self.reader() as con:
+            row = con.execute(
+                "SELECT time_ns, q_total FROM measurements WHERE well = ? AND source = 'well_test'"
+                " AND status != 'unpaired' ORDER BY time_ns DESC LIMIT 1",
+                (well,),
+            ).fetchone()
+        return (int(row[0]), float(row[1])) if row is not None else None
+
     def counts(self) -> dict[str, int]:
         with self.reader() as con:
             return {
                 table: int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])  # noqa: S608
-                for table in ("wells", "samples", "measurements", "checkpoints", "drift_events")
+                for table in (
+                    "wells",
+                    "samples",
+                    "measurements",
+                    "checkpoints",
+                    "drift_events",
+                    "parameter_history",
+                )
             }

@@ -177,6 +177,19 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
         ".length / window.vfm.preds.length"
     )
     assert band > 0.9, band
+    # the parameter chart: c_d over time, every point inside its band value +- 2 sd
+    page.wait_for_function(
+        "window.vfm.paramName === 'c_d' && window.vfm.charts.param"
+        " && window.vfm.charts.param.data[0].length >= 3",
+        timeout=30_000,
+    )
+    points, banded = page.evaluate(
+        "(() => { const d = window.vfm.charts.param.data; let b = 0;"
+        " for (let i = 0; i < d[0].length; i++)"
+        "   if (d[2][i] != null && d[2][i] < d[1][i] && d[1][i] < d[3][i]) b++;"
+        " return [d[0].length, b]; })()"
+    )
+    assert banded == points >= 3, (points, banded)
     page.screenshot(path=str(SHOTS / "well.png"), full_page=True)
     assert served.thread is not None
     served.thread.join(120)  # the diagnosis reads the history stored so far
@@ -201,6 +214,12 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     )
     page.wait_for_function("window.vfm.markers.some(m => m.kind === 'model')")
     assert "mm+erosion" in page.locator("#change-result").inner_text()
+    # the parameter history marks the change, and the effect's parameter appears
+    page.wait_for_function(
+        "window.vfm.params && window.vfm.params.model_changes.length >= 1"
+        " && [...document.querySelectorAll('#param-name option')].some(o => o.value === 'erosion.rate')",
+        timeout=30_000,
+    )
 
     # the rest of the field streams in: errors of the new model right of the marker
     marker = page.evaluate("window.vfm.markers.find(m => m.kind === 'model').t")
@@ -212,12 +231,30 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     page.screenshot(path=str(SHOTS / "change.png"), full_page=True)
     assert errors == [], errors
 
-    # the field view shows the new model too
+    # a well test far below the MPFM readings near it, posted from the page: an alarm
+    mpfm = served.frame[(served.frame["well"] == "W01") & (served.frame["source"] == "mpfm")]
+    last = mpfm["time"].iloc[-1]
+    near = mpfm[(mpfm["time"] - last).abs() <= pd.Timedelta("24h")]["q_total"].median()
+    page.fill("#wt-time", last.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    page.fill("#wt-rate", f"{0.7 * near:.1f}")
+    page.click("#well-test-form button")
+    page.wait_for_function(
+        "document.querySelector('#wt-result').textContent.includes('Prediction')"
+    )
+    page.wait_for_function(
+        "document.querySelector('#well-alarms').textContent.includes('MPFM reads 43 % above')",
+        timeout=15_000,
+    )
+
+    # the field view shows the new model and the alarm too
     page.goto(url + "/#")
     page.wait_for_function(
         "document.querySelector('#field-table tr[data-well=\"W01\"]')"
         " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('mm+erosion')"
+        " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('MPFM reads')"
     )
+    assert "MPFM reads" not in page.locator('#field-table tr[data-well="W02"]').inner_text()
+    page.screenshot(path=str(SHOTS / "field-alarm.png"), full_page=True)
 
     # nothing of the replay was lost on the way (a well that starts after the split has no
     # model until its first measurement: its first sample alone goes unanswered)

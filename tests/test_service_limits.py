@@ -30,7 +30,7 @@ from service.engine.state import WellState
 from service.errors import REASONS, InvalidRequest, UnknownWell
 from service.inputs import Counters, Limits, parse_measurement, parse_sensor, printable
 from service.learning import new_learner
-from service.store import SCHEMA_VERSION, Store
+from service.store import SCHEMA_VERSION, AddWell, InsertParameters, Store
 from service.testing import loopback_settings, wait_until
 from service.transport import MemoryTransport
 from vfm_core.errors import ConfigError
@@ -415,6 +415,8 @@ def test_a_schema_1_store_is_migrated_in_place_and_keeps_working(tmp_path: Path)
         assert samples[0].q_total == 1000 and samples[0].q_total_std is None
         assert measurements[0].status == "learned"
         assert store.wells() == ["W01"] and store.retired_wells() == {}
+        assert store.counts()["parameter_history"] == 0  # schema 3's table, empty
+        assert store.parameter_history("W01", 0, 2**62, 10) == ([], False)
     finally:
         store.close()
     con = sqlite3.connect(path)
@@ -443,6 +445,31 @@ def test_a_schema_1_store_is_migrated_in_place_and_keeps_working(tmp_path: Path)
             assert client.wait_for_prediction("W01", T0 + timedelta(minutes=2), 20) == 1010.0
     finally:
         service.stop()
+
+
+def test_a_schema_2_store_gains_the_parameter_history(tmp_path: Path) -> None:
+    path = tmp_path / "two.sqlite"
+    store = Store(path)
+    store.write([AddWell("W01", 1, "history")])
+    store.close()
+    con = sqlite3.connect(path)  # as the service of schema 2 left it: no parameter_history
+    con.execute("DROP TABLE parameter_history")
+    con.execute("UPDATE meta SET value = '2' WHERE key = 'schema'")
+    con.commit()
+    con.close()
+    store = Store(path)
+    try:
+        store.write([InsertParameters("W01", 5, 1, "mm", '{"c_d": {"value": 0.8}}')])
+        rows, _ = store.parameter_history("W01", 0, 10, 10)
+        assert [(r.time_ns, r.model) for r in rows] == [(5, "mm")]
+        assert store.wells() == ["W01"]
+    finally:
+        store.close()
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()[0] == "3"
+    indexes = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'index'")}
+    assert {"parameter_history_time", "parameter_history_id"} <= indexes
+    con.close()
 
 
 def test_a_store_of_a_newer_schema_is_refused_with_a_sentence(tmp_path: Path) -> None:

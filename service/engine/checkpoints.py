@@ -1,4 +1,5 @@
-"""Checkpoints of each well's model, written in the same transactions as the data.
+"""Checkpoints of each well's model (and its parameter history), written in the same
+transactions as the data.
 
 A checkpoint is :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors and
 plain values, never pickle) with a JSON side-car: the drift detector's state and
@@ -21,6 +22,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from service.config import Settings
+from service.engine.parameters import ParameterHistory
 from service.engine.state import WellState
 from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
 from vfm_core.effects import effect_spec, resolve_effects
@@ -73,6 +75,7 @@ class Checkpoints:
     def __init__(self, settings: Settings) -> None:
         self.every = settings.store.checkpoint_every
         self.keep = settings.store.keep_checkpoints
+        self.parameters = ParameterHistory(settings)
 
     def ops(self, st: WellState) -> list[Op]:
         """The writes of a checkpoint of the well's model now (and of pruning older ones)."""
@@ -99,11 +102,15 @@ class Checkpoints:
             PruneCheckpoints(well=st.well, keep=self.keep),
         ]
 
-    def changed(self, st: WellState, ops: list[Op]) -> None:
-        """The model's version moved: checkpoint when due, refresh what the API shows."""
+    def changed(self, st: WellState, ops: list[Op], time_ns: int | None = None) -> None:
+        """The model's version moved: checkpoint when due, refresh what the API shows, and
+        record the parameters at data time ``time_ns`` when due (see
+        :mod:`service.engine.parameters`)."""
         if st.learner.version - st.checkpoint_version >= self.every:
             ops.extend(self.ops(st))
         st.refresh()
+        if time_ns is not None:
+            self.parameters.maybe(st, time_ns, ops)
 
     def final_ops(self, wells: Iterable[WellState]) -> list[Op]:
         """Checkpoints of every well whose model moved since its last one (at a clean stop)."""

@@ -28,6 +28,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from service.config import Settings
+from service.engine.alarms import MpfmCheck
 from service.engine.checkpoints import Checkpoints
 from service.engine.fairqueue import FairQueue
 from service.engine.intake import Intake, worker_of
@@ -76,7 +77,9 @@ class Engine:
         self._registry = Registry(settings, self._wells)
         self._checkpoints = Checkpoints(settings)
         self._learning = Learning(settings, counters, self._checkpoints)
-        self._pairing = Pairing(settings, store, counters, self._learning)
+        #: the MPFM against well tests alarm (service.engine.alarms)
+        self.mpfm_check = MpfmCheck(settings, store)
+        self._pairing = Pairing(settings, store, counters, self._learning, self.mpfm_check)
         self._intake = Intake(settings, counters, self._registry, self._queues)
         self._model_changes = ModelChanges(
             settings,
@@ -113,6 +116,8 @@ class Engine:
         """Restore every known well from the store, or fit it on the history; re-learn the rest."""
         self._registry.retired.update(self.store.retired_wells())
         self._wells.update(self._recovery.load(set(self._registry.retired)))
+        for st in self._wells.values():
+            self.mpfm_check.load(st)
 
     def start(self) -> None:
         """Start the worker threads."""
@@ -190,7 +195,7 @@ class Engine:
 
     def well_summaries(self) -> list[dict[str, Any]]:
         """Every well's model, method, readiness, version and updates."""
-        return [dict(st.snapshot) for st in list(self._wells.values())]
+        return [{**st.snapshot, "mpfm_check": st.mpfm_check} for st in list(self._wells.values())]
 
     def well_view(self, well: str) -> dict[str, Any]:
         """One well's full state: the summary, parameters, rolling MAPE, drift, changes."""
@@ -206,6 +211,7 @@ class Engine:
             last_sample_time=iso(st.last_time_ns),
             pending_measurements=len(st.pending),
             model_changes=list(st.model_changes),
+            mpfm_check=st.mpfm_check,
         )
         return out
 

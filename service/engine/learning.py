@@ -116,7 +116,7 @@ class Learning:
         before = learner.predict(list(sample.inputs)) if p.future is not None else {}
         self.apply(st, sample, p.q_total, p.time_ns, b.ops, p.source)
         st.learn_seq += 1
-        self.checkpoints.changed(st, b.ops)
+        self.checkpoints.changed(st, b.ops, p.time_ns)
         b.ops.append(
             MarkLearned(
                 well=st.well,

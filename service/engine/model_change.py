@@ -246,11 +246,17 @@ class ModelChanges:
         saved_version = st.checkpoint_version
         st.learner = new
         st.model_changes.append(change)
+        st.refresh()
+        when = st.last_time_ns if st.last_time_ns is not None else time.time_ns()
         try:
-            self.store.write(self.checkpoints.ops(st))
+            self.store.write(
+                [*self.checkpoints.ops(st), *self.checkpoints.parameters.ops(st, when)]
+            )
         except Exception:
             st.learner, st.checkpoint_version = old, saved_version
             st.model_changes.pop()
+            st.params_version = None  # the next learning step records the old one again
+            st.refresh()
             raise
         st.errors.clear()  # the rolling error from now on is the new model's
         st.refresh()

@@ -7,7 +7,8 @@ store. If no sample at or after its time has arrived yet it waits, stored as ``p
 is settled when a later sample arrives or the wait runs out: learned from if a sample
 lies within the tolerance, else marked ``unpaired``. A rate far from the well's recent
 ones (:meth:`~service.engine.state.WellState.rate_problem`) is refused before anything
-is stored (``implausible rate``). A sample is always predicted before
+is stored (``implausible rate``). A stored well test is compared with the MPFM readings
+near it (:mod:`service.engine.alarms`). A sample is always predicted before
 the measurement at its time is learned from (prequential order, as in ``vfm evaluate``).
 """
 
@@ -17,6 +18,7 @@ import time
 from collections import deque
 
 from service.config import Settings
+from service.engine.alarms import MpfmCheck
 from service.engine.items import Batch, MeasurementItem, refuse
 from service.engine.learning import Learning
 from service.engine.state import Pending, Sample, WellState, WellTestResult
@@ -47,9 +49,15 @@ class Pairing:
     """Measurements in: duplicates refused, paired at once, or kept pending for their sample."""
 
     def __init__(
-        self, settings: Settings, store: Store, counters: Counters, learning: Learning
+        self,
+        settings: Settings,
+        store: Store,
+        counters: Counters,
+        learning: Learning,
+        alarms: MpfmCheck | None = None,
     ) -> None:
         self.store = store
+        self.alarms = alarms
         self.counters = counters
         self.learning = learning
         self.tolerance_s = settings.inputs.pair_tolerance_s
@@ -122,6 +130,11 @@ class Pairing:
             # stored durably first, then learned from
             self.store.write(b.ops)
             b.ops.clear()
+        if self.alarms is not None:  # once per well test; a cheap comparison per reading
+            if item.source == "well_test":
+                self.alarms.on_well_test(st, t, m.q_total, b.ops)
+            else:
+                self.alarms.on_mpfm(st, t, b.ops)
         p = Pending(t, item.source, m.q_total, item.via, time.monotonic(), item.future)
         if sample is not None:
             self.learning.learn_paired(st, p, sample, b)

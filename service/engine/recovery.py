@@ -34,6 +34,7 @@ from service.store import AddWell, CheckpointRow, Op, Store
 from vfm_core.errors import VFMError
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.streaming import WellLearner
+from vfm_core.timeutil import to_ns
 
 __all__ = ["Recovery"]
 
@@ -120,6 +121,9 @@ class Recovery:
                 ops.extend(self.checkpoints.ops(st))
             self._load_recent(st)
             st.refresh()
+            last = st.learner.last_update
+            if well in fitted and last is not None:  # the parameter history starts at the fit
+                ops.extend(self.checkpoints.parameters.ops(st, to_ns(last)))
             wells[well] = st
             restored += row is not None
             relearned_total += relearned

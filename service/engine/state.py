@@ -103,6 +103,13 @@ class WellState:
         self.catch_up: list[CatchUp] | None = None
         self.samples = 0
         self.measurements = 0
+        # the parameter history: version and model of the well's last recorded row
+        self.params_version: int | None = None
+        self.params_model: str | None = None
+        # the latest well test against the MPFM readings near it (service.engine.alarms),
+        # replaced whole; and a well test to compare again once its window has passed
+        self.mpfm_check: dict[str, Any] | None = None
+        self.mpfm_recheck: tuple[int, float] | None = None
         inputs = settings.inputs
         self._rate_factor = inputs.rate_factor
         self._rate_min = inputs.rate_min_history

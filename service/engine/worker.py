@@ -272,7 +272,7 @@ class Workers:
         learner = st.learner
         rates = self.learning.predict(st, inputs, sample.time)
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
-            self.checkpoints.changed(st, b.ops)
+            self.checkpoints.changed(st, b.ops, t)
         q_total = rates["q_total"] if rates else None
         interval = {k: (rates or {}).get(k) for k in ("q_total_std", "q_total_p05", "q_total_p95")}
         st.recent.append(Sample(t, inputs, q_total))

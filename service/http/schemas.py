@@ -15,8 +15,12 @@ __all__ = [
     "HealthOut",
     "Parameter",
     "RollingMape",
+    "MpfmCheckOut",
     "WellSummary",
     "WellOut",
+    "ParameterSeries",
+    "ModelMarkOut",
+    "ParameterHistoryOut",
     "ModelChangeIn",
     "HoldoutOut",
     "ModelChangeOut",
@@ -90,6 +94,20 @@ class RollingMape(BaseModel):
     unit: str = "%"
 
 
+class MpfmCheckOut(BaseModel):
+    """The well's latest well test against its MPFM readings near it (``alarms.*``)."""
+
+    well_test_time: str
+    well_test_q_total: float = Field(description="Sm3/h")
+    mpfm_median: float = Field(description="median of the MPFM readings in the window, Sm3/h")
+    mpfm_readings: int
+    window_s: float = Field(description="the readings lie within this many s of the well test")
+    relative_difference: float = Field(description="(MPFM median - well test) / well test")
+    threshold: float = Field(description="alarms.mpfm_well_test_rel")
+    agrees: bool
+    alarm: str | None = Field(description="the alarm's sentence while they disagree, else None")
+
+
 class WellSummary(BaseModel):
     well: str
     model: str
@@ -98,6 +116,11 @@ class WellSummary(BaseModel):
     version: int
     n_updates: int
     last_update: str | None
+    mpfm_check: MpfmCheckOut | None = Field(
+        default=None,
+        description="the latest well test against the MPFM readings near it (None: no well "
+        "test with MPFM readings near it yet, or the check is off)",
+    )
 
 
 class ModelChangeIn(BaseModel):
@@ -166,6 +189,39 @@ class WellOut(WellSummary):
     measurements: int = Field(description="measurements accepted since start")
     last_sample_time: str | None
     pending_measurements: int
+
+
+class ParameterSeries(BaseModel):
+    """One physical parameter over time (SI units), oldest first."""
+
+    unit: str
+    low: float | None = Field(default=None, description="lower physical bound")
+    high: float | None = Field(default=None, description="upper physical bound")
+    time: list[str] = Field(description="data time of the measurement learned before, UTC")
+    value: list[float | None]
+    std: list[float | None] = Field(
+        description="posterior standard deviation (None without a Bayesian method)"
+    )
+    version: list[int]
+
+
+class ModelMarkOut(BaseModel):
+    time: str
+    model_before: str
+    model_after: str
+
+
+class ParameterHistoryOut(BaseModel):
+    well: str
+    since: str
+    until: str
+    rows: int = Field(description="recorded rows returned")
+    truncated: bool = Field(description="more rows lay in the window; the latest are returned")
+    parameters: dict[str, ParameterSeries]
+    model_changes: list[ModelMarkOut] = Field(
+        description="where the recorded model's name changes between two rows (its parameters "
+        "change too: an effect adds its own)"
+    )
 
 
 class SampleOut(BaseModel):

@@ -1,5 +1,6 @@
 """Reading a well (``GET /wells``, ``GET /wells/{well}``, ``GET /wells/{well}/history`` and
-its CSV form ``history.csv``) and retiring one (``DELETE /wells/{well}``).
+its CSV form ``history.csv``, ``GET /wells/{well}/parameters``) and retiring one
+(``DELETE /wells/{well}``).
 
 Query times follow the one rule for times (:func:`vfm_core.timeutil.time_problem`): a
 time outside 1677-09-22..2262-04-10 answers 422 (``time out of range``), never 500.
@@ -7,6 +8,7 @@ time outside 1677-09-22..2262-04-10 answers 422 (``time out of range``), never 5
 
 from __future__ import annotations
 
+import json
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -23,7 +25,14 @@ from service.http.deps import (
     TokenDep,
     WellPath,
 )
-from service.http.schemas import ErrorOut, HistoryOut, RetiredOut, WellOut, WellSummary
+from service.http.schemas import (
+    ErrorOut,
+    HistoryOut,
+    ParameterHistoryOut,
+    RetiredOut,
+    WellOut,
+    WellSummary,
+)
 from vfm_core.timeutil import REPRESENTABLE_MAX, REPRESENTABLE_MIN, iso, time_problem, to_ns, utc
 
 __all__ = ["router"]
@@ -142,6 +151,84 @@ def well_history(
         "predictions": p_out,
         "measurements": m_out,
         "truncated": len(samples) >= limit or len(measurements) >= limit,
+    }
+
+
+#: the most parameter rows one request returns
+MAX_PARAMETER_ROWS = 10_000
+
+
+@router.get(
+    "/{well}/parameters",
+    response_model=ParameterHistoryOut,
+    summary="The physical parameters over time, with their uncertainty",
+    description=(
+        "The recorded rows of the well's physical parameters (store table parameter_history: "
+        "one row per store.parameters_every model updates and one at each model change, the "
+        "latest store.parameters_kept per well), per parameter as series of time, value and "
+        "std (SI units; std only with a Bayesian method such as bayes), with its unit and "
+        "bounds. A model change changes the names (an effect adds e.g. erosion.rate): a "
+        "parameter's series holds the rows that have it; model_changes says where. The latest "
+        "`limit` rows in [since, until) are returned, oldest first."
+    ),
+    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
+def well_parameters(
+    well: KnownWell,
+    store: StoreDep,
+    since: Annotated[
+        str | None, Query(description="ISO 8601, inclusive (default: the beginning)")
+    ] = None,
+    until: Annotated[str | None, Query(description="ISO 8601, exclusive (default: no end)")] = None,
+    limit: Annotated[
+        int,
+        Query(ge=1, le=MAX_PARAMETER_ROWS, description="at most this many rows (the latest)"),
+    ] = 2000,
+) -> dict[str, Any]:
+    t0 = _parse_time(since, "since", _EARLIEST)
+    t1 = _parse_time(until, "until", _LATEST)
+    if t1 <= t0:
+        raise InvalidRequest(
+            f"until ({t1.isoformat()}) must be after since ({t0.isoformat()}).", "wrong type"
+        )
+    rows, more = store.parameter_history(well, to_ns(t0), to_ns(t1), limit)
+    series: dict[str, dict[str, Any]] = {}
+    changes: list[dict[str, Any]] = []
+    previous: str | None = None
+    for row in rows:
+        try:
+            params = json.loads(row.parameters)
+        except ValueError:  # pragma: no cover - written by this service as JSON
+            continue
+        when = iso(row.time_ns)
+        if previous is not None and row.model != previous:
+            changes.append({"time": when, "model_before": previous, "model_after": row.model})
+        previous = row.model
+        for name, p in params.items():
+            s = series.setdefault(
+                name,
+                {
+                    "unit": p.get("unit") or "",
+                    "low": p.get("low"),
+                    "high": p.get("high"),
+                    "time": [],
+                    "value": [],
+                    "std": [],
+                    "version": [],
+                },
+            )
+            s["time"].append(when)
+            s["value"].append(p.get("value"))
+            s["std"].append(p.get("std"))
+            s["version"].append(row.version)
+    return {
+        "well": well,
+        "since": t0.isoformat(),
+        "until": t1.isoformat(),
+        "rows": len(rows),
+        "truncated": more,
+        "parameters": series,
+        "model_changes": changes,
     }
 
 

@@ -18,6 +18,8 @@ const state = {
   zoomed: false,
   diagJob: null,
   received: 0,
+  params: null,         // GET /wells/{well}/parameters
+  paramName: null,      // the parameter charted
 };
 window.vfm = state;     // for the browser tests and for curious users
 
@@ -55,6 +57,7 @@ function alarmsOf(v) {
   for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
   if (!v.ready) out.push("no model yet");
+  if (v.mpfm_check && v.mpfm_check.alarm) out.push(v.mpfm_check.alarm);
   return out;
 }
 
@@ -115,7 +118,9 @@ async function refreshField() {
       banner.textContent = "Refused inputs since the start: " + rej.map(([k, n]) => `${k} (${n})`).join(", ") + ". GET /health gives the reasons.";
     } else banner.hidden = true;
     renderField();
-    if (state.well && state.wells[state.well]) { state.view = state.wells[state.well]; renderWellHeader(); renderParams(); }
+    if (state.well && state.wells[state.well]) {
+      state.view = state.wells[state.well]; renderWellHeader(); renderParams(); loadParams(state.well, false);
+    }
   } catch (e) {
     $("#field-summary").textContent = "(cannot reach the service: " + e.message + ")";
   }
@@ -155,12 +160,12 @@ function wheelZoomPlugin() {
 
 const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a" };
 
-function markersPlugin() {
+function markersPlugin(source = () => state.markers) {
   return {
     hooks: {
       draw: (u) => {
         const ctx = u.ctx; const { top, height } = u.bbox;
-        for (const m of state.markers) {
+        for (const m of source()) {
           if (m.t < u.scales.x.min || m.t > u.scales.x.max) continue;
           const x = Math.round(u.valToPos(m.t, "x", true));
           ctx.save();
@@ -183,8 +188,8 @@ function markersPlugin() {
 function chartWidth(el) { return Math.max(320, el.clientWidth || el.parentElement.clientWidth - 24); }
 
 function makeCharts() {
-  for (const c of Object.values(state.charts)) c.destroy();
-  state.charts = {};
+  for (const [name, c] of Object.entries(state.charts)) if (name !== "param") c.destroy();
+  state.charts = state.charts.param ? { param: state.charts.param } : {};
   const rateEl = $("#rate-chart");
   rateEl.innerHTML = "";
   const pts = (size, fill, shape) => ({ show: true, size, fill, stroke: fill, ...(shape ? { shape } : {}) });
@@ -234,6 +239,106 @@ function makeCharts() {
   }, [[], []], resEl);
 }
 
+/* The parameter chart: value, value -/+ 2 sd (the band), the bounds dashed. */
+function paramSeries() {
+  const h = state.params;
+  return (h && state.paramName && h.parameters[state.paramName]) || null;
+}
+
+function paramMarkers() {
+  const h = state.params;
+  return ((h && h.model_changes) || []).map((c) => ({ t: secs(c.time), kind: "model", label: "\u2192 " + c.model_after }));
+}
+
+function paramRange(u, dmin, dmax) {
+  const p = paramSeries();
+  if (!p || !p.value.length) return [dmin, dmax];
+  const lo = [], hi = [];
+  p.value.forEach((v, i) => {
+    if (v == null) return;
+    const sd = p.std[i] || 0; lo.push(v - 2 * sd); hi.push(v + 2 * sd);
+  });
+  let min = Math.min(...lo), max = Math.max(...hi);
+  let span = max - min || Math.abs(max) * 0.01 || 1;
+  const all = $("#param-bounds").checked;
+  // a bound near the values is drawn in view; far ones only when asked for
+  if (p.low != null && (all || p.low >= min - span)) min = Math.min(min, p.low);
+  if (p.high != null && (all || p.high <= max + span)) max = Math.max(max, p.high);
+  span = max - min || 1;
+  return [min - 0.08 * span, max + 0.08 * span];
+}
+
+function paramData() {
+  const p = paramSeries();
+  if (!p) return [[], [], [], [], [], []];
+  const t = p.time.map(secs);
+  const band = (k) => p.value.map((v, i) => (v == null || p.std[i] == null ? null : v + k * 2 * p.std[i]));
+  return [t, p.value, band(-1), band(1), t.map(() => p.low), t.map(() => p.high)];
+}
+
+function makeParamChart() {
+  if (state.charts.param) state.charts.param.destroy();
+  const el = $("#param-chart");
+  el.innerHTML = "";
+  const p = paramSeries();
+  const unit = p ? p.unit : "";
+  const f = (u, v) => (v == null ? "\u2013" : Math.abs(v) >= 1000 || (Math.abs(v) < 0.01 && v !== 0) ? Number(v).toPrecision(4) : fmt(v, 4));
+  state.charts.param = new uPlot({
+    width: chartWidth(el), height: 240,
+    scales: { x: { time: true }, y: { range: paramRange } },
+    series: [
+      { label: "time (UTC)", value: "{YYYY}-{MM}-{DD} {HH}:{mm}" },
+      { label: (state.paramName || "value") + (unit && unit !== "-" ? " (" + unit + ")" : ""), stroke: "#1f4e79", width: 1.5,
+        points: { show: true, size: 4, fill: "#1f4e79" }, value: f },
+      { label: "\u2212 2 sd", stroke: "rgba(31,78,121,0.35)", width: 1, value: f },
+      { label: "+ 2 sd", stroke: "rgba(31,78,121,0.35)", width: 1, value: f },
+      { label: "low bound", stroke: "#7a7a7a", width: 1, dash: [6, 4], value: f },
+      { label: "high bound", stroke: "#7a7a7a", width: 1, dash: [6, 4], value: f },
+    ],
+    bands: [{ series: [3, 2], fill: "rgba(31,78,121,0.15)" }],
+    axes: [{}, { label: unit && unit !== "-" ? unit : "(dimensionless)", size: 80 }],
+    cursor: { sync: { key: "vfm-x", setSeries: false } },
+    plugins: [wheelZoomPlugin(), markersPlugin(paramMarkers)],
+  }, paramData(), el);
+}
+
+function renderParamChoice() {
+  const h = state.params;
+  const names = h ? Object.keys(h.parameters) : [];
+  const sel = $("#param-name");
+  if (!names.includes(state.paramName)) state.paramName = names.includes("c_d") ? "c_d" : (names[0] || null);
+  const want = names.join("|");
+  if (sel.dataset.names !== want) {
+    sel.innerHTML = names.map((n) => `<option value="${esc(n)}">${esc(n)}${h.parameters[n].unit && h.parameters[n].unit !== "-" ? " (" + esc(h.parameters[n].unit) + ")" : ""}</option>`).join("");
+    sel.dataset.names = want;
+  }
+  if (state.paramName) sel.value = state.paramName;
+  const p = paramSeries();
+  const sd = p ? p.std.filter((v) => v != null).length : 0;
+  $("#param-stats").textContent = !h ? "" : !names.length ? "No parameters recorded yet (a model without physical parameters, or no learning step since the start)."
+    : `${h.rows} recorded row(s)${h.truncated ? " (the latest " + h.rows + ")" : ""}` +
+      (p ? ` \u00b7 ${state.paramName}: ${p.value.length} point(s), ${sd ? "with sd" : "no sd (the method keeps none)"}` +
+        (p.low != null ? `, bounds ${fmt(p.low, 3)} .. ${fmt(p.high, 3)}` : "") : "");
+}
+
+async function loadParams(well, rebuild) {
+  try {
+    const h = await api("GET", `/wells/${encodeURIComponent(well)}/parameters?limit=2000`);
+    if (state.well !== well) return;
+    const before = state.paramName;
+    state.params = h;
+    renderParamChoice();
+    if (rebuild || !state.charts.param || before !== state.paramName) makeParamChart();
+    else state.charts.param.setData(paramData(), !state.zoomed);
+    if (state.zoomed && state.charts.rate) {
+      const { min, max } = state.charts.rate.scales.x;
+      state.charts.param.setScale("x", { min, max });
+    }
+  } catch (e) {
+    $("#param-stats").textContent = "Cannot load the parameter history: " + e.message;
+  }
+}
+
 /* Align predictions and measurements on one time axis (uPlot wants one x array). */
 function rateData() {
   const rows = new Map();
@@ -275,9 +380,10 @@ function draw() {
   const keep = state.zoomed;
   state.charts.rate.setData(rateData(), !keep);
   state.charts.error.setData(errorData(), !keep);
-  if (keep) {  // the zoom stays, the other chart follows it
+  if (keep) {  // the zoom stays, the other charts follow it
     const { min, max } = state.charts.rate.scales.x;
     state.charts.error.setScale("x", { min, max });
+    if (state.charts.param) state.charts.param.setScale("x", { min, max });
   }
   state.charts.residual.setData(residualData());
   const learned = state.meas.filter((m) => m.predicted != null).length;
@@ -293,6 +399,9 @@ function renderWellHeader() {
   $("#well-model").textContent = `${v.model || ""} \u00b7 ${v.method || ""} \u00b7 version ${v.version ?? ""} \u00b7 rolling MAPE ` +
     `${fmt(v.rolling_mape && v.rolling_mape.value, 2)} % over ${(v.rolling_mape && v.rolling_mape.n) || 0}`;
   $("#well-model").dataset.model = v.model || "";
+  const alarms = alarmsOf(v);
+  $("#well-alarms").hidden = !alarms.length;
+  $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
 }
 
 function renderParams() {
@@ -324,7 +433,7 @@ function markersFromView(v) {
 }
 
 async function loadWell(well) {
-  state.well = well; state.preds = []; state.meas = []; state.markers = []; state.zoomed = false;
+  state.well = well; state.preds = []; state.meas = []; state.markers = []; state.zoomed = false; state.params = null;
   $("#field-view").hidden = true; $("#well-view").hidden = false;
   $("#csv-link").href = `/wells/${encodeURIComponent(well)}/history.csv`;
   $("#csv-link").setAttribute("download", `${well}-history.csv`);
@@ -334,6 +443,7 @@ async function loadWell(well) {
   try {
     const v = await api("GET", "/wells/" + encodeURIComponent(well));
     state.view = v; renderWellHeader(); renderParams();
+    loadParams(well, true);
     const days = Number($("#span").value);
     let query = "?limit=100000";
     if (days > 0 && v.last_sample_time) {
@@ -387,6 +497,7 @@ function onEvent(type, ev) {
   } else if (type === "model") {
     state.markers.push({ t, kind: "model", label: "\u2192 " + ev.model_after, version: ev.version_after });
     refreshField();
+    loadParams(state.well, false);
   }
   state.dirty = true;
 }
@@ -491,6 +602,7 @@ async function applyEffect(button) {
       `Watch the error-over-time chart right of the red marker.`;
     const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
     state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams();
+    loadParams(state.well, false);
     if (!state.markers.some((m) => m.kind === "model" && m.version === c.version_after)) {
       state.markers.push(...markersFromView(v).filter((m) => m.kind === "model" && m.version === c.version_after));
     }
@@ -519,6 +631,8 @@ function init() {
   });
   $("#span").addEventListener("change", () => state.well && loadWell(state.well));
   $("#residual-input").addEventListener("change", () => { if (state.well) { makeCharts(); state.dirty = true; draw(); } });
+  $("#param-name").addEventListener("change", (e) => { state.paramName = e.target.value; renderParamChoice(); makeParamChart(); });
+  $("#param-bounds").addEventListener("change", () => state.charts.param && makeParamChart());
   $("#well-test-form").addEventListener("submit", postWellTest);
   $("#diag-form").addEventListener("submit", runDiagnosis);
   window.addEventListener("hashchange", route);
