@@ -239,11 +239,14 @@ class Counters:
     """Thread-safe counts of accepted inputs, rejections by reason and other events."""
 
     LOG_EVERY_S = 60.0
+    #: wells whose rejections are also counted per well (bounded: ids come from outside)
+    MAX_WELLS = 10_000
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        self.rejected_by_well: dict[str, Counter[str]] = {}
         self.events: Counter[str] = Counter()
         self._last_log: dict[str, float] = {}
         self._since_log: Counter[str] = Counter()
@@ -256,11 +259,18 @@ class Counters:
         with self._lock:
             self.events[name] += n
 
-    def reject(self, reason: str, message: str, where: str = "") -> None:
-        """Count a rejection; log the first of each reason, then at most once a minute."""
+    def reject(self, reason: str, message: str, where: str = "", well: str | None = None) -> None:
+        """Count a rejection (also under ``well`` when given, for the first MAX_WELLS wells);
+        log the first of each reason, then at most once a minute."""
         now = time.monotonic()
         with self._lock:
             self.rejected[reason] += 1
+            if well is not None:
+                per_well = self.rejected_by_well.get(well)
+                if per_well is None and len(self.rejected_by_well) < self.MAX_WELLS:
+                    per_well = self.rejected_by_well[well] = Counter()
+                if per_well is not None:
+                    per_well[reason] += 1
             self._since_log[reason] += 1
             last = self._last_log.get(reason)
             if last is not None and now - last < self.LOG_EVERY_S:
@@ -279,6 +289,16 @@ class Counters:
                 where,
                 message,
             )
+
+    def rejected_of(self, well: str) -> dict[str, int]:
+        """The rejections counted for one well, by reason."""
+        with self._lock:
+            return dict(self.rejected_by_well.get(well, {}))
+
+    def forget(self, well: str) -> None:
+        """Drop a well's own counts (it was retired)."""
+        with self._lock:
+            self.rejected_by_well.pop(well, None)
 
     def snapshot(self) -> dict[str, dict[str, int]]:
         with self._lock:

@@ -473,6 +473,9 @@ def test_zenoh_corpus(rig: Rig) -> None:
     _zenoh_case(
         rig, "the same measurement again", m, {"time": t.isoformat(), "q_total": q}, "duplicate"
     )
+    # the well's own refusals are counted under it, for its alarm on the workbench
+    own = rig.http.get(f"/wells/{SENTINEL}").json()["rejected"]
+    assert own.get("implausible rate", 0) >= 3 and own.get("duplicate", 0) >= 2, own
     _zenoh_case(
         rig,
         "a measurement with no sample near it",

@@ -498,3 +498,23 @@ def test_every_reason_is_documented() -> None:
     readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
     missing = [r for r in REASONS if f"`{r}`" not in readme]
     assert not missing, f"README.md does not list the reasons {missing}"
+
+
+def test_refusals_are_counted_per_well_within_a_bound() -> None:
+    counters = Counters()
+    counters.MAX_WELLS = 2  # type: ignore[misc]
+    counters.reject("duplicate", "again", well="W01")
+    counters.reject("duplicate", "again", well="W01")
+    counters.reject("implausible rate", "far", well="W02")
+    counters.reject("implausible rate", "far", well="W03")  # beyond the bound: total only
+    counters.reject("unparseable key", "bad")  # no well
+    assert counters.rejected_of("W01") == {"duplicate": 2}
+    assert counters.rejected_of("W02") == {"implausible rate": 1}
+    assert counters.rejected_of("W03") == {}
+    assert counters.snapshot()["rejected"] == {
+        "duplicate": 2,
+        "implausible rate": 2,
+        "unparseable key": 1,
+    }
+    counters.forget("W01")
+    assert counters.rejected_of("W01") == {}

@@ -177,7 +177,9 @@ class Engine:
         q = self._queues[worker_of(well, len(self._queues))]
         q.put(well, RetireStep(well, purge, when, fut), force=True)
         try:
-            return fut.result(timeout)
+            result = fut.result(timeout)
+            self.counters.forget(well)
+            return result
         except TimeoutError:
             raise Busy(
                 f"The retirement of {well} is queued but did not run within {timeout:g} s; "
@@ -195,7 +197,14 @@ class Engine:
 
     def well_summaries(self) -> list[dict[str, Any]]:
         """Every well's model, method, readiness, version and updates."""
-        return [{**st.snapshot, "mpfm_check": st.mpfm_check} for st in list(self._wells.values())]
+        return [
+            {
+                **st.snapshot,
+                "mpfm_check": st.mpfm_check,
+                "rejected": self.counters.rejected_of(st.well),
+            }
+            for st in list(self._wells.values())
+        ]
 
     def well_view(self, well: str) -> dict[str, Any]:
         """One well's full state: the summary, parameters, rolling MAPE, drift, changes."""
@@ -212,6 +221,7 @@ class Engine:
             pending_measurements=len(st.pending),
             model_changes=list(st.model_changes),
             mpfm_check=st.mpfm_check,
+            rejected=self.counters.rejected_of(well),
         )
         return out
 

@@ -76,6 +76,7 @@ class Intake:
 
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
         """One inbound message: check, then queue for the well's worker (never learns)."""
+        well: str | None = None
         try:
             well, kind, source = route_key(self.settings.prefix, key)
             if kind == "prediction":
@@ -96,7 +97,8 @@ class Intake:
             self.registry.quota(well)
         except ServiceError as error:  # every refusal here is of an input: it has a reason
             if error.reason is not None:
-                self.counters.reject(error.reason, error.message, where=key)
+                known = well if well is not None and self.registry.known(well) else None
+                self.counters.reject(error.reason, error.message, where=key, well=known)
             return
         except Exception as exc:  # a bug must not end reception, and must be counted
             self.counters.event("internal errors")

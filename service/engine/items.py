@@ -100,5 +100,5 @@ def refuse(
 ) -> None:
     """Count a refused input under its reason and answer its caller (if one waits)."""
     if error.reason is not None:
-        counters.reject(error.reason, error.message, where=where)
+        counters.reject(error.reason, error.message, where=where, well=where)
     batch.answer(future, error)

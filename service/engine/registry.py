@@ -122,6 +122,10 @@ class Registry:
                 "well flooding",
             )
 
+    def known(self, well: str) -> bool:
+        """Whether ``well`` is served (or being created): its refusals are counted per well."""
+        return well in self.wells or well in self.creating
+
     def expected(self, well: str) -> bool:
         """Whether a message of ``well`` may create it on its worker (it was admitted as new)."""
         with self._lock:

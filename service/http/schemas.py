@@ -121,6 +121,10 @@ class WellSummary(BaseModel):
         description="the latest well test against the MPFM readings near it (None: no well "
         "test with MPFM readings near it yet, or the check is off)",
     )
+    rejected: dict[str, int] = Field(
+        default_factory=dict,
+        description="this well's refused inputs by reason, since the service started",
+    )
 
 
 class ModelChangeIn(BaseModel):

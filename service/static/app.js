@@ -58,6 +58,11 @@ function alarmsOf(v) {
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
   if (!v.ready) out.push("no model yet");
   if (v.mpfm_check && v.mpfm_check.alarm) out.push(v.mpfm_check.alarm);
+  const bad = Object.entries(v.rejected || {});
+  if (bad.length) {
+    const n = bad.reduce((a, [, k]) => a + k, 0);
+    out.push(n + " bad input(s): " + bad.map(([r, k]) => r + " " + k).join(", "));
+  }
   return out;
 }
 
