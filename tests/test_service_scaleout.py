@@ -8,6 +8,7 @@ opened), and one replay of a small simulated field feeds them all through the ro
 from __future__ import annotations
 
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -119,6 +120,23 @@ def test_a_message_of_another_instances_well_is_refused_and_counted(tmp_path: Pa
     assert sum(last["accepted"].values()) >= 1
 
 
+def test_the_compose_instances_have_valid_disjoint_wells(monkeypatch: pytest.MonkeyPatch) -> None:
+    root = Path(__file__).resolve().parents[1]
+    compose = (root / "docker" / "compose.yaml").read_text()
+    sets = [json.loads(v) for v in re.findall(r"VFM_ZENOH__WELLS: '(.*)'", compose)]
+    stores = re.findall(r"VFM_STORE__PATH: (\S+)", compose)
+    assert len(sets) == 2 and len(set(stores)) == 2  # two instances, a store each
+    assert overlapping(sets[0], sets[1]) is None
+    monkeypatch.setenv("VFM_HTTP__TOKEN", "a-token-for-the-container-0123")
+    for wells, store in zip(sets, stores, strict=True):
+        monkeypatch.setenv("VFM_ZENOH__WELLS", json.dumps(wells))
+        monkeypatch.setenv("VFM_STORE__PATH", store)
+        s = load_settings(root / "docker" / "vfm.toml")
+        assert s.zenoh.wells == wells and str(s.store.path) == store
+    owners = [[w for w in ("W01", "W02", "W03", "W04", "W05") if w in WellSet(s)] for s in sets]
+    assert sorted(owners[0] + owners[1]) == ["W01", "W02", "W03", "W04", "W05"]
+
+
 # -- two instances behind a router --------------------------------------------------------------
 def _config(folder: Path, data: Path, router: int, wells: list[str]) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
@@ -141,6 +159,10 @@ path = "{folder / "store.sqlite"}"
 synchronous = "normal"
 """)
     return cfg
+
+
+def _updates(http: str) -> dict[str, int]:
+    return {w["well"]: w["n_updates"] for w in httpx.get(f"{http}/wells", timeout=10).json()}
 
 
 def _published(http: str) -> int:
@@ -210,6 +232,8 @@ def test_two_instances_share_a_field_and_one_keeps_serving_when_the_other_dies(
             )
 
         # B dies (SIGKILL): its wells go unanswered, A keeps serving its own
+        b_updates = _updates(b.http_url)
+        assert all(n > 0 for n in b_updates.values())  # it learned from the replay's MPFM
         b.kill9()
         with _client(port) as session:
             wait_until(lambda: len(list_instances(session, "vfm", timeout=1.0)) == 1, 20, "B gone")
@@ -232,8 +256,7 @@ def test_two_instances_share_a_field_and_one_keeps_serving_when_the_other_dies(
             line for line in (tmp_path / "b.log").read_text().splitlines() if READY.search(line)
         ]
         assert ready[-1].endswith("owns=*2,*4")
-        wells = httpx.get(f"{b.http_url}/wells", timeout=10).json()
-        assert sorted(w["well"] for w in wells) == ["W02", "W04"]
+        assert _updates(b.http_url) == b_updates
     finally:
         for proc in (a, b):
             if proc is not None:
