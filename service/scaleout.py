@@ -57,7 +57,7 @@ def pattern_problem(pattern: str) -> str | None:
         )
     if well_id_problem(pattern.replace("*", "x")) is not None:
         return (
-            f"The well pattern {pattern[:WELL_ID_MAX + 8]!r} is not a well id in which * stands "
+            f"The well pattern {pattern[: WELL_ID_MAX + 8]!r} is not a well id in which * stands "
             f"for any characters (printable, at most {WELL_ID_MAX} characters, no '/', '$', '?', "
             "'#'); write it like W0* or *-north."
         )
@@ -209,17 +209,19 @@ class _OwnerCache:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._at = 0.0
+        self._of: tuple[str, str] = ("", "")
         self._claims: list[InstanceClaim] = []
 
     def claims(self, session: Any, prefix: str) -> list[InstanceClaim]:
+        of = (str(session.zid()), prefix)
         with self._lock:
-            if time.monotonic() - self._at > 1.0:
+            if of != self._of or time.monotonic() - self._at > 1.0:
                 try:
                     self._claims = list_instances(session, prefix, timeout=1.0)
                 except Exception:  # the network is only a hint here
                     logger.debug("Listing the instances failed.", exc_info=True)
                     self._claims = []
-                self._at = time.monotonic()
+                self._at, self._of = time.monotonic(), of
             return list(self._claims)
 
 
