@@ -67,14 +67,17 @@ def _cmd_instances(args: argparse.Namespace) -> int:
         raise ConfigError(problem)
     try:
         zs = ZenohSettings(mode=args.mode, connect=args.connect, listen=[])
-    except ValueError as exc:
-        raise ConfigError(f"--connect/--mode: {exc}") from None
+    except ValueError:
+        raise ConfigError(
+            f"--connect {' '.join(args.connect)} is not a Zenoh endpoint list; write it like "
+            "tcp/127.0.0.1:7447."
+        ) from None
     try:
         session = zenoh.open(zenoh_config(zs, admin=False))
     except zenoh.ZError as exc:
         raise ConfigError(
-            f"Zenoh could not connect to {', '.join(args.connect)}: {exc}. Check that the "
-            "router runs there (--connect tcp/HOST:7447)."
+            f"Zenoh could not connect to {', '.join(args.connect)}: {str(exc).rstrip('.')}. "
+            "Check that the router runs there (--connect tcp/HOST:7447)."
         ) from None
     try:
         claims = list_instances(session, prefix, timeout=args.timeout)

@@ -137,6 +137,17 @@ def test_the_compose_instances_have_valid_disjoint_wells(monkeypatch: pytest.Mon
     assert sorted(owners[0] + owners[1]) == ["W01", "W02", "W03", "W04", "W05"]
 
 
+def test_vfm_instances_says_what_is_wrong_with_its_arguments(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from vfm_core.cli import main
+
+    assert main(["instances", "--connect", "nonsense"]) == 2
+    assert "--connect nonsense is not a Zenoh endpoint list" in capsys.readouterr().err
+    assert main(["instances", "--well", "W/1"]) == 2
+    assert "cannot be used in a key expression" in capsys.readouterr().err
+
+
 # -- two instances behind a router --------------------------------------------------------------
 def _config(folder: Path, data: Path, router: int, wells: list[str]) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
