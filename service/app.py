@@ -30,6 +30,13 @@ from service.diagnosis import DiagnosisJobs
 from service.engine import Engine
 from service.http import create_app
 from service.inputs import Counters
+from service.scaleout import (
+    InstanceClaim,
+    WellSet,
+    check_no_overlap,
+    declare_claim,
+    owner_sentence,
+)
 from service.store import Store
 from service.transport import MemoryTransport, Transport, ZenohTransport
 from vfm_core.errors import ConfigError
@@ -54,6 +61,8 @@ class Service:
         self.http_url: str | None = None
         self.started_at = time.time()
         self.ready = False
+        self.own = WellSet(settings.zenoh.wells)
+        self._claim: Any = None
 
     def start(self) -> None:
         import torch
@@ -66,6 +75,14 @@ class Service:
                 zt = ZenohTransport(s.zenoh, s.prefix, s.queues.receive_capacity)
                 zt.open()
                 self._transport = zt
+            if isinstance(self._transport, ZenohTransport):
+                # claim the wells first, then look for another claim: two instances started
+                # together see each other (both refuse) instead of neither
+                self._claim = declare_claim(self._transport.session, s.prefix, self.claim)
+                if s.zenoh.instance_check_s > 0:
+                    check_no_overlap(
+                        self._transport.session, s.prefix, s.zenoh.wells, s.zenoh.instance_check_s
+                    )
             self.transport = self._transport
             self.engine = Engine(s, self.store, self.counters, self.transport.publish)
             self.engine.load()
@@ -77,8 +94,9 @@ class Service:
             raise
         self.ready = True
         logger.info(
-            "Serving %d well(s) with %s/%s on %s under '%s/**'; store %s.",
+            "Serving %d well(s) (of %s) with %s/%s on %s under '%s/**'; store %s.",
             len(self.engine.wells),
+            self.own.describe(),
             s.model.name,
             s.model.method,
             "an in-memory transport"
@@ -98,6 +116,9 @@ class Service:
                 self.engine.stop()
         finally:
             try:
+                if self._claim is not None:
+                    self._claim.undeclare()
+                    self._claim = None
                 if self.transport is not None:
                     self.transport.close()
             finally:
@@ -105,6 +126,30 @@ class Service:
                 if self.store is not None:
                     self.store.close()
                     self.store = None
+
+    # -- scale-out ----------------------------------------------------------------------
+    def claim(self) -> InstanceClaim:
+        """What this instance answers on ``<prefix>/@instances/<zid>`` (see service.scaleout)."""
+        transport = self.transport or self._transport
+        session = getattr(transport, "session", None) if transport is not None else None
+        return InstanceClaim(
+            zid=str(session.zid()) if session is not None else "-",
+            prefix=self.settings.prefix,
+            wells=list(self.own.patterns),
+            http=self.http_url,
+            locators=list(self.locators),
+            started_at=self.started_at,
+        )
+
+    def foreign_well(self, well: str) -> str | None:
+        """For a well another instance owns: the sentence of the HTTP 404 (names the owner
+        if it answers on Zenoh); None for a well of this instance."""
+        if well in self.own:
+            return None
+        session = None
+        if isinstance(self.transport, ZenohTransport):
+            session = self.transport.session
+        return owner_sentence(session, self.settings.prefix, self.own, well)
 
     # -- what the API shows ---------------------------------------------------------------
     def _limits(self) -> dict[str, Any]:
@@ -140,7 +185,9 @@ class Service:
                 "locators": self.locators,
                 "connect": self.settings.zenoh.connect,
                 "prefix": self.settings.prefix,
+                "wells": list(self.own.patterns),
             },
+            "owned_wells": self.own.describe(),
             "store": str(self.settings.store.path),
         }
 

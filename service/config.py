@@ -242,6 +242,41 @@ class ZenohSettings(_Section):
     #: a BLOCK put that has waited this long closes the link (zenoh's default is 5 s)
     block_wait_before_close_ms: int = Field(default=60_000, ge=1)
     allow_remote: bool = Field(default=False, description="allow listen endpoints outside loopback")
+    wells: list[str] = Field(
+        default_factory=list,
+        description="scale-out: the wells this instance owns, as well ids with * for any "
+        "characters (e.g. ['W0*', 'W1*']); empty: every well. It subscribes only to these "
+        "wells' key expressions; a well must never belong to two instances",
+    )
+    instance_check_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="at start, how long to wait for other instances to say which wells they "
+        "own (an overlap stops this one), s; 0: no check",
+    )
+
+    @field_validator("wells", mode="before")
+    @classmethod
+    def _well_list(cls, v: Any) -> Any:
+        return [w.strip() for w in v.split(",") if w.strip()] if isinstance(v, str) else v
+
+    @field_validator("wells")
+    @classmethod
+    def _patterns(cls, v: list[str]) -> list[str]:
+        from service.scaleout import overlapping, pattern_problem
+
+        for pattern in v:
+            problem = pattern_problem(pattern)
+            if problem is not None:
+                raise ValueError(problem[0].lower() + problem[1:].rstrip("."))
+        for i, a in enumerate(v):
+            pair = overlapping([a], v[i + 1 :]) if v[i + 1 :] else None
+            if pair is not None:
+                raise ValueError(
+                    f"the patterns '{pair[0]}' and '{pair[1]}' match the same well ids; "
+                    "merge them or make them disjoint, so that each message arrives once"
+                )
+        return v
 
     @model_validator(mode="after")
     def _loopback(self) -> ZenohSettings:
@@ -507,6 +542,19 @@ class Settings(BaseSettings):
             return validate_prefix(v)
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
+
+    @model_validator(mode="after")
+    def _own_wells(self) -> Settings:
+        from service.scaleout import WellSet
+
+        own = WellSet(self.zenoh.wells)
+        outside = [w for w in self.inputs.wells if w not in own]
+        if outside:
+            raise ValueError(
+                f"inputs.wells names {', '.join(outside[:5])}, outside this instance's wells "
+                f"(zenoh.wells = {self.zenoh.wells}); list only the wells it owns"
+            )
+        return self
 
     @classmethod
     def settings_customise_sources(

@@ -67,6 +67,8 @@ REASONS: dict[str, str] = {
     "duplicate": "the same sample or measurement arrived before",
     "unknown well": "the well is not known and inputs.unknown_wells = 'reject' (or, over HTTP, "
     "the well is not known: HTTP never creates a well)",
+    "well of another instance": "the well is outside this instance's zenoh.wells (scale-out: "
+    "another instance owns it)",
     "retired well": "the well was retired with DELETE /wells/{well}; purge it to reuse the id",
     "too many wells": "the service holds inputs.max_wells wells; a new one is not created",
     "too many new wells": "new wells appear faster than inputs.new_wells_per_s (burst "

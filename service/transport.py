@@ -4,7 +4,8 @@
 ``deliver(key, payload, received_ns)`` on a receiver thread), publish a prediction,
 stop. Two implementations share that path:
 
-:class:`ZenohTransport` subscribes to ``<prefix>/**`` with a FifoChannel (never a
+:class:`ZenohTransport` subscribes to ``<prefix>/**`` (with ``zenoh.wells`` set, to
+``<prefix>/<pattern>/**`` per pattern: see :mod:`service.scaleout`) with a FifoChannel (never a
 callback: a slow callback would stall every subscriber of the session) and hands each
 message to ``deliver(key, payload, received_ns)`` on its own receiver thread. Predictions
 go out on ``<prefix>/<well>/prediction`` with BLOCK congestion control (DROP would lose
@@ -37,6 +38,7 @@ from typing import Protocol
 import zenoh
 
 from service.config import ZenohSettings
+from service.scaleout import WellSet
 from vfm_core.errors import ConfigError
 from vfm_core.messages import prediction_key
 
@@ -121,6 +123,9 @@ class ZenohTransport:
         self._stop_token = secrets.token_bytes(16)
         self._control_key = f"{prefix}/_vfm-control/stop"
         self.received = 0
+        self._pattern_subs: list[zenoh.Subscriber] = []
+        self._pattern_threads: list[threading.Thread] = []
+        self._count_lock = threading.Lock()
 
     def open(self) -> None:
         try:
@@ -139,6 +144,32 @@ class ZenohTransport:
         return self._session
 
     def start(self, deliver: Deliver) -> None:
+        keys = WellSet(self.settings.wells).key_exprs(self.prefix)
+        if len(keys) == 1 and keys[0] == f"{self.prefix}/**":
+            self._start_all(deliver)
+            return
+        # scale-out: one subscriber per well pattern (the patterns are disjoint, so each
+        # message arrives once), each with its FifoChannel and receiver thread; stopped by
+        # undeclaring the subscriber, after which its channel is drained and its loop ends
+        for i, key in enumerate(keys):
+            sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(self.capacity))
+            self._pattern_subs.append(sub)
+
+            def receive(sub: zenoh.Subscriber = sub) -> None:
+                for sample in sub:
+                    with self._count_lock:
+                        self.received += 1
+                    key = str(sample.key_expr)
+                    try:
+                        deliver(key, sample.payload.to_bytes(), time.time_ns())
+                    except Exception:  # a bug in one message must not end reception
+                        logger.exception("Delivering %r failed", key[:200])
+
+            thread = threading.Thread(target=receive, name=f"vfm-zenoh-receiver-{i}", daemon=True)
+            self._pattern_threads.append(thread)
+            thread.start()
+
+    def _start_all(self, deliver: Deliver) -> None:
         sub = self.session.declare_subscriber(
             f"{self.prefix}/**", zenoh.handlers.FifoChannel(self.capacity)
         )
@@ -182,6 +213,14 @@ class ZenohTransport:
 
     def stop_receiving(self, timeout: float = 10.0) -> None:
         """End the receiver thread (a local control message: recv cannot be interrupted)."""
+        for sub in self._pattern_subs:
+            sub.undeclare()
+        for thread in self._pattern_threads:
+            thread.join(timeout)
+            if thread.is_alive():  # pragma: no cover - receiver stuck in deliver
+                logger.warning("A Zenoh receiver thread did not stop within %.0f s.", timeout)
+        self._pattern_subs.clear()
+        self._pattern_threads.clear()
         if self._thread is None or self._session is None:
             return
         self._session.put(

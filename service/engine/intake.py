@@ -11,7 +11,8 @@ then slows the publisher), then drops the message and counts ``well flooding`` o
 ``queue overflow``. Well tests posted over HTTP enter here too
 (:meth:`Intake.submit_well_test`).
 
-A well not seen before is admitted by the :class:`~service.engine.registry.Registry`
+A well outside this instance's ``zenoh.wells`` (scale-out: another instance owns it) is
+refused as ``well of another instance``. A well not seen before is admitted by the :class:`~service.engine.registry.Registry`
 (``inputs.unknown_wells``, ``inputs.max_wells``, ``inputs.new_wells_per_s``) if its id
 passes :func:`vfm_core.messages.well_id_problem`, the one rule for well ids; its worker
 creates it.
@@ -44,6 +45,7 @@ from service.inputs import (
     printable,
     route_key,
 )
+from service.scaleout import WellSet
 from vfm_core.messages import Measurement, well_id_problem
 from vfm_core.timeutil import time_problem, to_ns
 
@@ -73,6 +75,8 @@ class Intake:
         self.queues = queues
         self.limits = Limits(settings.inputs.max_payload_bytes, settings.inputs.max_json_depth)
         self._future_ns = int(settings.inputs.max_future_s * 1e9)
+        #: the wells this instance owns (scale-out, ``zenoh.wells``)
+        self.own = WellSet(settings.zenoh.wells)
 
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
         """One inbound message: check, then queue for the well's worker (never learns)."""
@@ -83,6 +87,14 @@ class Intake:
                 # outputs, e.g. of another service instance: not ours to take in
                 self.counters.event("outputs ignored")
                 return
+            if well not in self.own:
+                raise InvalidRequest(
+                    f"The well {well} is not one of this instance's wells ("
+                    f"zenoh.wells = {self.own.describe()}); another instance owns it. The "
+                    "message was not taken in: check that the sender and this instance "
+                    "share a router and that the instances' zenoh.wells are disjoint.",
+                    "well of another instance",
+                )
             item: SensorItem | MeasurementItem
             if kind == "sensors":
                 sample = parse_sensor(payload, self.limits)

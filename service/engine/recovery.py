@@ -1,7 +1,7 @@
 """Start-up: every known well restored from its checkpoint or fitted on the history, then caught up.
 
 The wells are those of the config (``inputs.wells``), of the store and of the history
-file, but not those retired over HTTP (``DELETE /wells/{well}``; purge one to reuse its
+file that this instance owns (``zenoh.wells``, see :mod:`service.scaleout`), but not those retired over HTTP (``DELETE /wells/{well}``; purge one to reuse its
 id). For each well:
 
 1. its latest checkpoint is restored if it holds the configured model (or one chosen over
@@ -30,6 +30,7 @@ from service.engine.checkpoints import Checkpoints, configured_spec, usable
 from service.engine.learning import Learning
 from service.engine.state import RECENT_SAMPLES, Pending, WellState
 from service.learning import apply_budget, fit_history, load_history, new_learner
+from service.scaleout import WellSet
 from service.store import AddWell, CheckpointRow, Op, Store
 from vfm_core.errors import VFMError
 from vfm_core.schema import INPUT_COLUMNS
@@ -76,6 +77,17 @@ class Recovery:
                 ]
             )
         )
+        own = WellSet(cfg.zenoh.wells)
+        foreign = [w for w in names if w not in own]
+        if foreign:
+            logger.info(
+                "%d well(s) of the store or the history are outside this instance's wells (%s) "
+                "and not loaded: %s.",
+                len(foreign),
+                own.describe(),
+                ", ".join(foreign[:10]) + (" ..." if len(foreign) > 10 else ""),
+            )
+            names = [w for w in names if w in own]
         skipped = [w for w in names if w in (retired or set())]
         if skipped:
             logger.info(

@@ -7,7 +7,8 @@ The statuses (the engine knows none of them):
 error                  status  when
 =====================  ======  ==================================================
 ``InvalidRequest``     422     a bad value (payload, time, model, effect, method)
-``UnknownWell``        404     the well is not known to this service
+``UnknownWell``        404     the well is not known to this service (a well of
+                               another instance: the sentence names its owner)
 ``Duplicate``          409     the same sample or measurement arrived before
 ``Conflict``           409     a model change of the well is already running
 ``NotAllowed``         403     no API token configured; an effect module not allowed
@@ -33,6 +34,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.errors import (
@@ -80,8 +82,14 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
     async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if isinstance(exc, NotAuthenticated) else None
+        message = exc.message
+        well = request.path_params.get("well")
+        foreign = getattr(get_service(request), "foreign_well", None)
+        if isinstance(exc, UnknownWell) and isinstance(well, str) and foreign is not None:
+            # scale-out: a well of another instance; name it (a Zenoh query, off the loop)
+            message = await run_in_threadpool(foreign, well) or message
         return JSONResponse(
-            {"detail": exc.message, "reason": exc.reason},
+            {"detail": message, "reason": exc.reason},
             status_code=status_of(exc),
             headers=headers,
         )

@@ -67,6 +67,10 @@ class HealthOut(BaseModel):
     )
     pending_measurements: int
     events: dict[str, int]
+    owned_wells: str = Field(
+        default="*",
+        description="the wells this instance owns (zenoh.wells, comma-separated; * every well)",
+    )
     zenoh: dict[str, Any]
     store: str
 
