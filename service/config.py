@@ -33,6 +33,7 @@ from pydantic import (
     model_validator,
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings.exceptions import SettingsError
 
 from vfm_core.errors import ConfigError
 from vfm_core.messages import validate_prefix, well_id_problem
@@ -637,5 +638,11 @@ def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Se
     except ValidationError as exc:
         problems = [_describe(e) for e in exc.errors(include_url=False)]  # type: ignore[arg-type]
         raise ConfigError(" ".join(problems)) from None
+    except SettingsError as exc:  # an environment variable that is not the JSON it must be
+        raise ConfigError(
+            f"{exc}. Environment variables set a list or a table as JSON, e.g. "
+            """VFM_ZENOH__CONNECT='["tcp/router:7447"]' or VFM_ZENOH__WELLS='["W0*"]'; """
+            "check the VFM_* variables of this shell."
+        ) from None
     finally:
         _CONFIG_FILE.reset(token)

@@ -133,7 +133,8 @@ class ZenohTransport:
         except zenoh.ZError as exc:
             where = ", ".join(self.settings.connect or self.settings.listen)
             raise ConfigError(
-                f"Zenoh could not start in {self.settings.mode} mode on {where}: {exc}. Check that the "
+                f"Zenoh could not start in {self.settings.mode} mode on {where}: "
+                f"{str(exc).rstrip('. ')}. Check that the "
                 "listen port is free (zenoh.listen) and, for a client, that the router runs (zenoh.connect)."
             ) from None
 

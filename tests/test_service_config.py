@@ -100,3 +100,11 @@ def test_token_is_masked() -> None:
     s = load_settings(None, http={"token": "t" * 20})
     assert s.public_dict()["http"]["token"] == "***"
     assert "tttt" not in repr(s)
+
+
+def test_a_list_in_the_environment_that_is_not_json_gets_a_sentence(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("VFM_ZENOH__CONNECT", "tcp/router:7447")
+    with pytest.raises(ConfigError, match="as JSON"):
+        load_settings(None)
