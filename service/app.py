@@ -84,7 +84,13 @@ class Service:
                         self._transport.session, s.prefix, s.zenoh.wells, s.zenoh.instance_check_s
                     )
             self.transport = self._transport
-            self.engine = Engine(s, self.store, self.counters, self.transport.publish)
+            self.engine = Engine(
+                s,
+                self.store,
+                self.counters,
+                self.transport.publish,
+                getattr(self.transport, "forget", None),
+            )
             self.engine.load()
             self.engine.start()
             self.transport.start(self.engine.deliver)

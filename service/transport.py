@@ -209,6 +209,16 @@ class ZenohTransport:
                     self._publishers[well] = pub
         pub.put(payload)
 
+    def forget(self, well: str) -> None:
+        """A retired well: undeclare its prediction publisher (declared again if it returns)."""
+        with self._pub_lock:
+            pub = self._publishers.pop(well, None)
+        if pub is not None:
+            try:
+                pub.undeclare()
+            except zenoh.ZError as exc:  # the session is closing: nothing left to free
+                logger.debug("Undeclaring the publisher of %s: %s", well, exc)
+
     def locators(self) -> list[str]:
         return session_locators(self.session)
 
@@ -276,6 +286,8 @@ class MemoryTransport:
         self.prefix = prefix
         self.received = 0
         self.published: deque[tuple[str, bytes]] = deque(maxlen=keep)
+        #: wells the engine let go of (retired), in order
+        self.forgotten: list[str] = []
         self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(capacity)  # None: stop
         self._thread: threading.Thread | None = None
         self._receiving = threading.Event()
@@ -299,6 +311,9 @@ class MemoryTransport:
         self._thread = threading.Thread(target=receive, name="vfm-memory-receiver", daemon=True)
         self._receiving.set()
         self._thread.start()
+
+    def forget(self, well: str) -> None:
+        self.forgotten.append(well)
 
     def publish(self, well: str, payload: bytes) -> None:
         key = prediction_key(self.prefix, well)

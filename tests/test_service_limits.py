@@ -316,6 +316,7 @@ def test_new_wells_are_built_by_their_worker_and_capped(tmp_path: Path) -> None:
             # a retired well stops being served; a purged one frees its id
             result = engine.retire_well("N1")
             assert result["purged"] is False and "N1" not in engine.wells
+            assert bus.forgotten == ["N1"]  # the transport let go of its publisher
             assert "N1" not in service.store.wells()  # type: ignore[union-attr]
             client.send_sample("N1", sample_of(T0 + timedelta(minutes=1), INPUTS))
             wait_until(
@@ -518,3 +519,22 @@ def test_refusals_are_counted_per_well_within_a_bound() -> None:
     }
     counters.forget("W01")
     assert counters.rejected_of("W01") == {}
+
+
+def test_a_retired_wells_publisher_is_undeclared(tmp_path: Path) -> None:
+    from service.transport import ZenohTransport
+
+    settings = loopback_settings(tmp_path)
+    bus = ZenohTransport(settings.zenoh, settings.prefix)
+    bus.open()
+    try:
+        bus.publish("W01", b"{}")
+        bus.publish("W02", b"{}")
+        assert set(bus._publishers) == {"W01", "W02"}
+        bus.forget("W01")
+        bus.forget("W09")  # never published: nothing to do
+        assert set(bus._publishers) == {"W02"}
+        bus.publish("W01", b"{}")  # a well that returns gets a publisher again
+        assert set(bus._publishers) == {"W01", "W02"}
+    finally:
+        bus.close()

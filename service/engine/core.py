@@ -61,7 +61,10 @@ class Engine:
         store: Store,
         counters: Counters,
         publish: Callable[[str, bytes], None],
+        forget: Callable[[str], None] | None = None,
     ) -> None:
+        """``forget(well)``: the transport lets go of what it holds for a retired well (its
+        prediction publisher)."""
         self.settings = settings
         self.store = store
         self.counters = counters
@@ -71,6 +74,7 @@ class Engine:
             FairQueue(q.worker_capacity, q.well_capacity) for _ in range(q.workers)
         ]
         self._stopping = threading.Event()
+        self._forget = forget
         #: live events and monitoring numbers from every commit (``GET /events``, ``/metrics``)
         self.observer = Observer(settings.rolling_window)
         store.on_commit = self.observer.committed
@@ -179,6 +183,8 @@ class Engine:
         try:
             result = fut.result(timeout)
             self.counters.forget(well)
+            if self._forget is not None:
+                self._forget(well)
             return result
         except TimeoutError:
             raise Busy(
