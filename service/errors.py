@@ -77,7 +77,6 @@ REASONS: dict[str, str] = {
     "or its well id is not valid",
     "unknown source": "the measurement source is not mpfm or well_test",
     "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
-    "too many pending measurements": "more than inputs.pending_max measurements wait for samples",
     "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
     "well flooding": "the well sends faster than its share: its own queue (queues.well_capacity) "
     "stayed full for queues.block_s, or it exceeded inputs.well_rate_hz",
