@@ -164,6 +164,21 @@ def table(
     return Markup(render("table.html.j2", rows=list(rows), columns=list(columns), caption=caption))
 
 
+def bottom_legend(fig: Figure, handles: Sequence[Any], **kwargs: Any) -> None:
+    """One legend for the whole figure, centred below the panels (up to five columns), and
+    the panels laid out to leave room for it."""
+    fig.legend(
+        handles=handles,
+        loc="lower center",
+        ncol=min(len(handles), 5),
+        fontsize=8,
+        bbox_to_anchor=(0.5, -0.01),
+        frameon=False,
+        **kwargs,
+    )
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+
+
 def date_axis(ax: Axes) -> None:
     """Date ticks that do not overlap: a few ticks, each labelled only with what changes
     (``ConciseDateFormatter``: 'Apr', 'Jul', then '2020' at the year)."""

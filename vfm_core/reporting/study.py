@@ -720,15 +720,7 @@ def _rolling_plot(study: _Study, scored: pd.DataFrame) -> dict[str, Any] | None:
         for m in study.methods
     ] + extra
     fig.suptitle("14-day rolling absolute percentage error across wells, by model", fontsize=12)
-    fig.legend(
-        handles=handles,
-        loc="lower center",
-        ncol=min(len(handles), 5),
-        fontsize=8,
-        bbox_to_anchor=(0.5, -0.01),
-        frameon=False,
-    )
-    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    page.bottom_legend(fig, handles)
     return {"png": page.png(fig), "top": top}
 
 
@@ -953,15 +945,7 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     if banded:
         handles.append(Patch(facecolor="#888", alpha=0.3, label="90 % predictive interval"))
     fig.suptitle(f"Predicted and measured total rate per well, model {model}", fontsize=12)
-    fig.legend(
-        handles=handles,
-        loc="lower center",
-        ncol=min(len(handles), 5),
-        fontsize=8,
-        bbox_to_anchor=(0.5, -0.01),
-        frameon=False,
-    )
-    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    page.bottom_legend(fig, handles)
     return {
         "model": model,
         "label": _model_label(model),
@@ -1036,17 +1020,7 @@ def _parameter_section(study: _Study) -> Png | None:
     fig.suptitle(
         "Discharge coefficient C_D of the mechanistic model mm after each update", fontsize=12
     )
-    fig.legend(
-        handles=handles,
-        loc="lower center",
-        ncol=min(len(handles), 5),
-        fontsize=8,
-        title="learning method",
-        title_fontsize=8,
-        bbox_to_anchor=(0.5, -0.01),
-        frameon=False,
-    )
-    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    page.bottom_legend(fig, handles, title="learning method", title_fontsize=8)
     return page.png(fig)
 
 
@@ -1188,15 +1162,7 @@ def _outage_section(study: _Study) -> dict[str, Any] | None:
             Line2D([], [], color="black", linestyle="--", label=f"{BENCHMARK} (benchmark)")
         )
     fig.suptitle("Error inside the outage windows against the time without a measurement")
-    fig.legend(
-        handles=handles,
-        loc="lower center",
-        ncol=min(len(handles), 5),
-        fontsize=8,
-        bbox_to_anchor=(0.5, -0.01),
-        frameon=False,
-    )
-    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    page.bottom_legend(fig, handles)
     windows = study.result.outage_windows
     counts: list[tuple[str, int, int, int]] = []
     if isinstance(windows, pd.DataFrame) and not windows.empty:
