@@ -89,7 +89,7 @@ class Service:
                 self.store,
                 self.counters,
                 self.transport.publish,
-                getattr(self.transport, "forget", None),
+                self.transport.forget,
             )
             self.engine.load()
             self.engine.start()
