@@ -96,7 +96,9 @@ class ModelSettings(_Section):
     """The per-well model and its learning method (see ``vfm evaluate``)."""
 
     name: str = Field(
-        default="mm", description="model: lr, nn, mm, hem, ham or last (mtl is field-wide)"
+        default="mm",
+        description="model: lr, nn, mm, hem, ham, last, or mtl (field-wide: one network shared "
+        "by every well this instance serves, learning in day rounds; needs queues.workers = 1)",
     )
     method: str = Field(default="ol", description="ol or pbl:<period>[:window=<span>]")
     effects: list[str] = Field(
@@ -148,13 +150,15 @@ class ModelSettings(_Section):
 
         if v not in MODELS:
             raise ValueError(f"unknown model '{v}'; choose one of {', '.join(MODELS)}")
-        if MODELS[v].shared:
-            per_well = [m for m, c in MODELS.items() if not c.shared]
-            raise ValueError(
-                f"model '{v}' shares parameters across the field and cannot run per well; "
-                f"choose one of {', '.join(per_well)}"
-            )
         return v
+
+    @property
+    def field_wide(self) -> bool:
+        """True for a model whose parameters are shared by the wells (``mtl``): the service
+        runs one :class:`vfm_core.field_learner.FieldLearner` for all the wells it serves."""
+        from vfm_core.models import MODELS
+
+        return bool(MODELS[self.name].shared)
 
     @field_validator("method")
     @classmethod
@@ -192,6 +196,11 @@ class ModelSettings(_Section):
         if problem is not None:
             raise ValueError(f"model.method: {problem[0].lower()}{problem[1:]}".rstrip("."))
 
+        if self.effects and self.field_wide:
+            raise ValueError(
+                f"model.effects: effects extend the physics models (mm, hem, ham), not the "
+                f"field-wide '{self.name}'; remove model.effects or choose one of those models"
+            )
         if self.effects:
             from vfm_core.streaming import WellLearner
 
@@ -543,6 +552,16 @@ class Settings(BaseSettings):
             return validate_prefix(v)
         except ConfigError as exc:
             raise ValueError(str(exc).rstrip(".")) from None
+
+    @model_validator(mode="after")
+    def _field_wide_on_one_worker(self) -> Settings:
+        if self.model.field_wide and self.queues.workers > 1:
+            raise ValueError(
+                f"model.name = '{self.model.name}' is field-wide: one model learns from every well "
+                "in time order, on one worker; set queues.workers = 1 (it is "
+                f"{self.queues.workers}), or choose a per-well model to use more workers"
+            )
+        return self
 
     @model_validator(mode="after")
     def _own_wells(self) -> Settings:

@@ -5,11 +5,20 @@ but ``mtl`` keeps its own parameters per well, so this is the same as fitting ea
 alone, only faster), exactly as :func:`vfm_core.jobs.study.run_prequential` fits before its
 split; that is what lets a replay through the service reproduce ``vfm evaluate``. Each
 well's slice of the fitted model is then loaded into its :class:`WellLearner`.
+
+A field-wide model (``mtl``, ``model.field_wide``) runs as one
+:class:`vfm_core.field_learner.FieldLearner` per engine for all the wells it serves; each
+well's learner is that field's :class:`~vfm_core.field_learner.FieldWell` facade.
+:func:`new_field` starts the engine's field (at start-up), :func:`new_learner` adds a well
+to it (a well first seen live grows the model by a task vector at its prior), and
+:func:`fit_history` fits the whole field at once, exactly as the study does before its
+split.
 """
 
 from __future__ import annotations
 
 import logging
+import weakref
 from dataclasses import replace
 from datetime import datetime
 from typing import Any
@@ -21,6 +30,7 @@ import torch
 from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
 from vfm_core.features import FeatureTracker, standard_features
+from vfm_core.field_learner import FieldLearner, FieldWell
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
@@ -28,7 +38,10 @@ from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
 from vfm_core.streaming import WellLearner
 
 __all__ = [
+    "Learner",
     "new_learner",
+    "new_field",
+    "field_of",
     "load_history",
     "fit_history",
     "train_settings",
@@ -37,6 +50,13 @@ __all__ = [
 ]
 
 logger = logging.getLogger("vfm.service.learning")
+
+#: what serves one well: its own learner, or its facade on the field-wide model
+Learner = WellLearner | FieldWell
+
+#: the field-wide learner of each live ModelSettings object (one engine each), by id; an
+#: entry goes when its settings do
+_FIELDS: dict[int, FieldLearner] = {}
 
 
 def fit_budget(cfg: ModelSettings) -> float:
@@ -52,7 +72,7 @@ def train_settings(cfg: ModelSettings) -> Any:
     )
 
 
-def apply_budget(learner: WellLearner, cfg: ModelSettings) -> WellLearner:
+def apply_budget(learner: Learner, cfg: ModelSettings) -> Learner:
     """Give a restored or refitted learner the configured retrain budget (its other
     settings stay those it was built with)."""
     budget = fit_budget(cfg)
@@ -63,8 +83,36 @@ def apply_budget(learner: WellLearner, cfg: ModelSettings) -> WellLearner:
     return learner
 
 
-def new_learner(well: str, cfg: ModelSettings) -> WellLearner:
-    """A learner for ``well`` with the configured model, method and settings (priors only)."""
+def new_field(cfg: ModelSettings, field: FieldLearner | None = None) -> FieldLearner:
+    """The engine's field-wide learner for ``cfg`` from now on: ``field`` (one restored from a
+    checkpoint) or a new one with no wells, priors only. Called once at start-up."""
+    if field is None:
+        field = FieldLearner(
+            cfg.name,
+            cfg.method,
+            train=train_settings(cfg),
+            online=settings_from_dict(DEFAULT_ONLINE[cfg.name], cfg.online),
+            model_kwargs=cfg.model_kwargs,
+            seed=cfg.seed,
+        )
+    key = id(cfg)
+    if key not in _FIELDS:
+        weakref.finalize(cfg, _FIELDS.pop, key, None)
+    _FIELDS[key] = field
+    return field
+
+
+def field_of(cfg: ModelSettings) -> FieldLearner:
+    """The engine's field-wide learner for ``cfg`` (a new one if none was started)."""
+    field = _FIELDS.get(id(cfg))
+    return field if field is not None else new_field(cfg)
+
+
+def new_learner(well: str, cfg: ModelSettings) -> Learner:
+    """A learner for ``well`` with the configured model, method and settings (priors only);
+    for a field-wide model, the well's facade on the engine's field (added at its prior)."""
+    if cfg.field_wide:
+        return field_of(cfg).well(well)
     return WellLearner(
         well,
         cfg.name,
@@ -118,7 +166,7 @@ def _slice_state(
 
 
 def fit_history(
-    learners: dict[str, WellLearner], history: pd.DataFrame, cfg: ModelSettings
+    learners: dict[str, Learner], history: pd.DataFrame, cfg: ModelSettings
 ) -> list[str]:
     """Fit the learners of the wells in ``history`` (one batched fit); returns the wells fitted."""
     if history.empty:
@@ -127,6 +175,8 @@ def fit_history(
     wells = [w for w in dict.fromkeys(measured[WELL].astype(str)) if w in learners]
     if not wells:
         return []
+    if cfg.field_wide:
+        return _fit_field(learners, measured, wells, cfg)
     trackers = {
         w: FeatureTracker.from_frame(g)[0]
         for w, g in history[history[WELL].isin(wells)].groupby(WELL, sort=False)
@@ -161,6 +211,32 @@ def fit_history(
                 x, y, t, well_test=_well_tests(own), features=_features(own), tracker=trackers[well]
             )
             learners[well] = fresh
+    return wells
+
+
+def _fit_field(
+    learners: dict[str, Learner], measured: pd.DataFrame, wells: list[str], cfg: ModelSettings
+) -> list[str]:
+    """The field-wide model fitted on every well's history at once, as ``vfm evaluate`` fits
+    it before its split: the same rows, wells in the same order (first appearance), the
+    same settings, and retrains on split + k periods (the split: ``model.history_until``)."""
+    facades = [learners[w] for w in wells]
+    fields = {id(f.field): f.field for f in facades if isinstance(f, FieldWell)}
+    if (
+        len(fields) != 1
+        or len(facades) != len(wells)
+        or not all(isinstance(f, FieldWell) for f in facades)
+    ):  # pragma: no cover - the engine builds every learner of the field from one field
+        raise ValueError("the wells of a field-wide model must share one FieldLearner")
+    (field,) = fields.values()
+    rows = {}
+    for well in wells:
+        own = measured[measured[WELL] == well]
+        x, y, t = _tensors(own)
+        rows[well] = (x, y, t, _well_tests(own))
+    field.fit_history(
+        rows, cfg.history_until, settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
+    )
     return wells
 
 
@@ -204,7 +280,7 @@ def _adopt_fit(
     )
 
 
-def describe(learner: WellLearner) -> dict[str, Any]:
+def describe(learner: Learner) -> dict[str, Any]:
     """The learner's public state, for the API."""
     last: datetime | None = learner.last_update
     return {

@@ -48,7 +48,11 @@ def test_json_file(tmp_path) -> None:
     ("overrides", "expected"),
     [
         ({"model": {"name": "hamx"}}, ["model.name", "'hamx'", "last", "ham"]),
-        ({"model": {"name": "mtl"}}, ["mtl", "per well"]),
+        (
+            {"model": {"name": "mtl"}, "queues": {"workers": 2}},
+            ["mtl", "field-wide", "queues.workers = 1"],
+        ),
+        ({"model": {"name": "mtl", "effects": ["erosion"]}}, ["model.effects", "mtl"]),
         ({"model": {"method": "pbl:xx"}}, ["model.method", "14d"]),
         ({"store": {"synchronous": "fast"}}, ["store.synchronous", "'fast'", "'full' or 'normal'"]),
         ({"inputs": {"unknown_wells": "maybe"}}, ["inputs.unknown_wells", "'create' or 'reject'"]),

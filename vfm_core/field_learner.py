@@ -245,6 +245,29 @@ class FieldLearner:
         self.method.start(t_max if base is None else int(base.value))
         self._bump(pd.Timestamp(t_max, tz="UTC").to_pydatetime())
 
+    def remember(
+        self,
+        well: str,
+        x: Any,
+        y: Any,
+        time_ns: Any,
+        well_test: Any = None,
+    ) -> None:
+        """Keep measured rows of ``well`` for later retrains without learning from them now
+        (inputs [N, 6], rates [N] Sm3/h, times [N] epoch ns, well-test flags [N]); e.g. the
+        history of a well added to a field that has already learned."""
+        self.well(well)
+        xt = torch.as_tensor(x, dtype=DTYPE).reshape(-1, 6)
+        n = int(xt.shape[0])
+        wt = torch.zeros(n, dtype=torch.bool) if well_test is None else torch.as_tensor(well_test)
+        self.memories[well].append(
+            xt,
+            torch.as_tensor(y, dtype=DTYPE).reshape(n),
+            torch.as_tensor(time_ns, dtype=torch.int64).reshape(n),
+            wt.reshape(n).bool(),
+            torch.zeros(n, len(FeatureTracker.names), dtype=DTYPE),
+        )
+
     # -- streaming ------------------------------------------------------------------------------
     def advance(self, t_ns: int) -> bool:
         """The field's clock reaches ``t_ns``: close the open round if its day has ended, and

@@ -11,6 +11,14 @@ transaction as the data, the store never holds a model that is ahead of its data
 
 On start, :func:`usable` says whether a well's latest checkpoint may be restored under
 the configured model (see :mod:`service.engine.recovery`).
+
+A well of a field-wide model (``mtl``) checkpoints the whole field: its blob is the
+:meth:`vfm_core.field_learner.FieldLearner.checkpoint` snapshot (every well's part, the
+shared network, the method, the round still open and how many measurements of each well
+it holds). Since every step of the shared model moves every well's version, a snapshot
+is due when the *field* has moved ``store.checkpoint_every`` versions since its last
+one, and it is written once, in the row of the well whose message made it due (at a
+clean stop, once for the field); recovery restores the newest one.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import weakref
 from collections.abc import Iterable
 from typing import Any
 
@@ -27,6 +36,7 @@ from service.engine.state import WellState
 from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
 from vfm_core.effects import effect_spec, resolve_effects
 from vfm_core.errors import VFMError
+from vfm_core.field_learner import FieldLearner, FieldWell
 
 __all__ = ["Checkpoints", "configured_spec", "usable"]
 
@@ -76,10 +86,32 @@ class Checkpoints:
         self.every = settings.store.checkpoint_every
         self.keep = settings.store.keep_checkpoints
         self.parameters = ParameterHistory(settings)
+        #: per field-wide learner, the version of its latest snapshot
+        self._field_saved: weakref.WeakKeyDictionary[FieldLearner, int] = (
+            weakref.WeakKeyDictionary()
+        )
+
+    def saved_version(self, st: WellState) -> int:
+        """The version the well's model had at its last checkpoint (for a field-wide model,
+        the field's at its last snapshot, whichever well's row holds it)."""
+        learner = st.learner
+        if isinstance(learner, FieldWell):
+            return self._field_saved.get(learner.field, st.checkpoint_version)
+        return st.checkpoint_version
+
+    def once(self, st: WellState) -> list[Op]:
+        """:meth:`ops` of a well whose model was built at start-up; for a field-wide model
+        only the first of its wells writes (one snapshot holds the whole field)."""
+        learner = st.learner
+        if isinstance(learner, FieldWell) and learner.field in self._field_saved:
+            return []
+        return self.ops(st)
 
     def ops(self, st: WellState) -> list[Op]:
         """The writes of a checkpoint of the well's model now (and of pruning older ones)."""
         learner = st.learner
+        if isinstance(learner, FieldWell):
+            self._field_saved[learner.field] = learner.version
         extra = {
             "drift": st.detector.state_dict() if st.detector is not None else None,
             "learned_inputs": [list(x) for x in st.learned_inputs],
@@ -106,7 +138,7 @@ class Checkpoints:
         """The model's version moved: checkpoint when due, refresh what the API shows, and
         record the parameters at data time ``time_ns`` when due (see
         :mod:`service.engine.parameters`)."""
-        if st.learner.version - st.checkpoint_version >= self.every:
+        if st.learner.version - self.saved_version(st) >= self.every:
             ops.extend(self.ops(st))
         st.refresh()
         if time_ns is not None:
@@ -116,7 +148,7 @@ class Checkpoints:
         """Checkpoints of every well whose model moved since its last one (at a clean stop)."""
         ops: list[Op] = []
         for st in wells:
-            if st.learner.version != st.checkpoint_version:
+            if st.learner.version != self.saved_version(st):
                 ops.extend(self.ops(st))
         return ops
 

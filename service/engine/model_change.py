@@ -14,7 +14,9 @@ goes unanswered and no measurement is skipped:
 4. *swap*: the worker commits what its batch holds, then the new model's checkpoint, and
    only then swaps it in with a higher version; the rolling error restarts with it.
 
-A failed or abandoned fit sends a *cancel* step instead. The method is checked by the
+A failed or abandoned fit sends a *cancel* step instead. A change to or from a
+field-wide model (``mtl``) is refused (:class:`~service.errors.InvalidRequest`): its
+network is shared by every well, so it is chosen for all of them in the config. The method is checked by the
 same rule as the config (:func:`service.config.method_problem`: a registered method the
 streaming learner runs, with a retrain period of at least ``model.min_retrain_period_s``).
 Refusals are domain errors: :class:`~service.errors.UnknownWell`,
@@ -39,9 +41,11 @@ from service.engine.fairqueue import FairQueue
 from service.engine.items import Batch, ModelStep
 from service.engine.state import WellState
 from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
-from service.learning import apply_budget, fit_budget
+from service.learning import Learner, apply_budget, fit_budget
 from service.store import Store
 from vfm_core.errors import VFMError
+from vfm_core.field_learner import FieldWell
+from vfm_core.models import MODELS
 from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import from_ns, iso
 
@@ -88,6 +92,26 @@ class ModelChanges:
             thread.join(max(0.0, deadline - time.monotonic()))
         return not any(t.is_alive() for t in self._fits)
 
+    @staticmethod
+    def _field_wide_problem(well: str, learner: Learner, model: str | None) -> str | None:
+        """Why a change to or from a field-wide model (``mtl``) cannot be made for one well,
+        as a sentence; None when the change is per well. Its network is shared by every well
+        of the field and learns from them in time order: one well cannot leave or join it
+        alone without changing the others' predictions."""
+        if isinstance(learner, FieldWell):
+            return (
+                f"Well {well} is served by the field-wide model {learner.name}, whose network is "
+                "shared with every other well of this service; its model cannot be changed for "
+                "one well. Set model.name in the config (it applies to every well) and restart."
+            )
+        if model is not None and model in MODELS and MODELS[model].shared:
+            return (
+                f"The model '{model}' is field-wide: one network shared by every well, learning "
+                "from them in time order; it cannot be chosen for one well. Set model.name = "
+                f"'{model}' in the config (it applies to every well) and restart."
+            )
+        return None
+
     # -- the caller's side (an HTTP thread) -----------------------------------------------
     def change(
         self,
@@ -105,6 +129,9 @@ class ModelChanges:
         st = self.wells.get(well)
         if st is None:
             raise unknown_well(well)
+        field_problem = self._field_wide_problem(well, st.learner, model)
+        if field_problem is not None:
+            raise InvalidRequest(field_problem)
         effects = list(effects or [])
         allowed = set(self.settings.model.effect_modules)
         for text in effects:

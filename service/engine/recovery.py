@@ -14,14 +14,27 @@ id). For each well:
    bit; the rolling error is refilled from the store;
 4. the recent samples (for pairing) and the measurements still pending are loaded.
 
+A field-wide model (``mtl``) is one :class:`vfm_core.field_learner.FieldLearner` for all
+the wells: its latest snapshot (the newest usable checkpoint row of any of its wells: each
+holds the whole field) is restored, and each well then re-learns what it learned after
+that snapshot (the snapshot says how many of each well's measurements it holds), all
+wells merged in time order, as they were learned live, so that the day rounds and the
+numbers come back the same. Without a snapshot the whole field is fitted on the history
+at once. A well the snapshot does not know is added at its prior (its history rows, if
+any, are remembered for the next retrain but not fitted: fitting the field again would
+discard what it learned).
+
 What this changes (new wells, checkpoints of refitted models) is written in one commit.
 """
 
 from __future__ import annotations
 
+import heapq
+import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import replace
 
 import pandas as pd
 
@@ -29,11 +42,21 @@ from service.config import Settings
 from service.engine.checkpoints import Checkpoints, configured_spec, usable
 from service.engine.learning import Learning
 from service.engine.state import RECENT_SAMPLES, Pending, WellState
-from service.learning import apply_budget, fit_history, load_history, new_learner
+from service.learning import (
+    Learner,
+    apply_budget,
+    fit_history,
+    load_history,
+    new_field,
+    new_learner,
+    train_settings,
+)
 from service.scaleout import WellSet
-from service.store import AddWell, CheckpointRow, Op, Store
+from service.store import AddWell, CheckpointRow, LearnedRow, Op, Store
+from vfm_core.data import target_mask
 from vfm_core.errors import VFMError
-from vfm_core.schema import INPUT_COLUMNS
+from vfm_core.field_learner import FieldLearner
+from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
 from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import to_ns
 
@@ -96,10 +119,16 @@ class Recovery:
                 ", ".join(skipped[:10]) + (" ..." if len(skipped) > 10 else ""),
             )
             names = [w for w in names if w not in (retired or set())]
-        learners, checkpoints = self._restore(names)
+        field_wide = cfg.model.field_wide
+        if field_wide:
+            learners, checkpoints = self._restore_field(names)
+        else:
+            learners, checkpoints = self._restore(names)
         fresh = [w for w in names if w not in checkpoints]
         fitted: list[str] = []
-        if history is not None and fresh:
+        if field_wide and checkpoints and history is not None and fresh:
+            self._remember_history(learners, fresh, history)
+        elif history is not None and fresh:
             started = time.perf_counter()
             fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
             if fitted:
@@ -127,16 +156,20 @@ class Recovery:
                 self.checkpoints.restore_side_car(st, row.extra)
             elif well in fitted and by_well:
                 self._seed_drift_reference(st, by_well[well])
-            relearned = self._relearn(st, ops)
+            wells[well] = st
+        # a field-wide model re-learns its wells' measurements merged in time order
+        counts = self._relearn_all(list(wells.values()), ops, merged=field_wide)
+        for well, st in wells.items():
+            row = checkpoints.get(well)
+            relearned = counts[well]
             st.seed_rates()
             if well in fitted or (row is None and relearned):
-                ops.extend(self.checkpoints.ops(st))
+                ops.extend(self.checkpoints.once(st))
             self._load_recent(st)
             st.refresh()
             last = st.learner.last_update
             if well in fitted and last is not None:  # the parameter history starts at the fit
                 ops.extend(self.checkpoints.parameters.ops(st, to_ns(last)))
-            wells[well] = st
             restored += row is not None
             relearned_total += relearned
         self.store.write(ops)
@@ -150,10 +183,104 @@ class Recovery:
         )
         return wells
 
-    def _restore(self, names: list[str]) -> tuple[dict[str, WellLearner], dict[str, CheckpointRow]]:
+    def _restore_field(
+        self, names: list[str]
+    ) -> tuple[dict[str, Learner], dict[str, CheckpointRow]]:
+        """The field-wide learner from its newest usable snapshot (or a new one), a facade per
+        well, and per well restored a checkpoint row whose ``learn_seq`` is what the snapshot
+        holds of that well (its side-car from the well's own latest row, if usable)."""
+        cfg = self.settings
+        configured = cfg.model.full_name
+        spec = configured_spec(cfg)
+        rows: dict[str, CheckpointRow] = {}
+        for well in names:
+            row = self.store.latest_checkpoint(well)
+            ok, why = usable(row, spec, configured) if row else (False, "")
+            if why:
+                logger.info("%s: %s", well, why)
+            if row is not None and ok:
+                rows[well] = row
+            elif row is not None:
+                logger.warning(
+                    "The store holds a %s/%s model for %s but the config asks for %s/%s; building "
+                    "the field-wide model from the history and every stored measurement.",
+                    row.model,
+                    row.method,
+                    well,
+                    configured,
+                    cfg.model.method,
+                )
+        field: FieldLearner | None = None
+        for row in sorted(rows.values(), key=lambda r: r.created_ns, reverse=True):
+            try:
+                field = FieldLearner.restore(row.blob, train=train_settings(cfg.model))
+                logger.info(
+                    "Field-wide %s restored from the snapshot in the checkpoint of %s "
+                    "(version %d, %d well(s)).",
+                    field.name,
+                    row.well,
+                    field.version,
+                    len(field.wells),
+                )
+                break
+            except VFMError as exc:
+                logger.warning(
+                    "Field snapshot in the checkpoint of %s unusable (%s); trying an older one.",
+                    row.well,
+                    exc,
+                )
+        new_field(cfg.model, field)
+        known = set() if field is None else set(field.wells)
+        learners: dict[str, Learner] = {w: new_learner(w, cfg.model) for w in names}
+        checkpoints: dict[str, CheckpointRow] = {}
+        if field is None:
+            return learners, checkpoints
+        base = max(rows.values(), key=lambda r: r.created_ns)
+        for well in names:
+            if well not in known:
+                continue
+            own = rows.get(well)
+            checkpoints[well] = replace(
+                base,
+                well=well,
+                learn_seq=field.n_learned.get(well, 0),
+                extra=own.extra if own is not None else json.dumps({}),
+            )
+        return learners, checkpoints
+
+    def _remember_history(
+        self, learners: dict[str, Learner], wells: list[str], history: pd.DataFrame
+    ) -> None:
+        """Wells a restored field does not know: their history rows are remembered (for the
+        next retrain) but not fitted, since a fit of the field would discard what it learned."""
+        measured = history.loc[target_mask(history, "all")]
+        added = []
+        for well in wells:
+            own = measured[measured[WELL].astype(str) == well]
+            learner = learners[well]
+            if own.empty or isinstance(learner, WellLearner):
+                continue
+            learner.field.remember(
+                well,
+                own[list(INPUT_COLUMNS)].to_numpy(dtype=float),
+                own[TARGET].to_numpy(dtype=float),
+                pd.DatetimeIndex(own[TIME]).as_unit("ns").asi8,
+                (own[SOURCE] == WELL_TEST).to_numpy(),
+            )
+            added.append(well)
+        if added:
+            logger.warning(
+                "%d well(s) of the history are new to the restored field-wide model (%s): they "
+                "start at its prior; their history is kept for the next retrain. Delete the "
+                "store to fit the whole field on the history again.",
+                len(added),
+                ", ".join(added[:10]),
+            )
+
+    def _restore(self, names: list[str]) -> tuple[dict[str, Learner], dict[str, CheckpointRow]]:
         """A learner per well: from a usable checkpoint, else a new one (priors only)."""
         cfg = self.settings
-        learners: dict[str, WellLearner] = {}
+        learners: dict[str, Learner] = {}
         checkpoints: dict[str, CheckpointRow] = {}
         configured = cfg.model.full_name
         spec = configured_spec(cfg)
@@ -188,17 +315,29 @@ class Recovery:
         measured = own[own["q_total"].notna()]
         self.learning.seed_reference(st, measured[list(INPUT_COLUMNS)].to_numpy(dtype=float))
 
-    def _relearn(self, st: WellState, ops: list[Op]) -> int:
-        """Re-learn what the store learned after the well's checkpoint; refill the rolling error."""
-        rows = self.store.learned_after(st.well, st.learn_seq)
-        for row in rows:
+    def _relearn_all(
+        self, states: list[WellState], ops: list[Op], merged: bool = False
+    ) -> dict[str, int]:
+        """Re-learn what the store learned after each well's checkpoint (well by well, or
+        with ``merged`` every well's rows in time order, each well's in its learning order);
+        refill the rolling errors. Returns how many were re-learned per well."""
+        todo = [(st, self.store.learned_after(st.well, st.learn_seq)) for st in states]
+        lists = [[(st, r) for r in rows] for st, rows in todo]
+        steps: Iterable[tuple[WellState, LearnedRow]] = (
+            # by time across the wells; each well's rows keep their learning order
+            heapq.merge(*lists, key=lambda step: step[1].time_ns)
+            if merged
+            else (step for rows in lists for step in rows)
+        )
+        for st, row in steps:
             self.learning.apply(st, row.sample, row.q_total, row.time_ns, ops, row.source)
             st.learn_seq = row.learn_seq
-        since = int(st.model_changes[-1]["version_after"]) if st.model_changes else None
-        for err in self.store.recent_errors(st.well, self.settings.rolling_window, since):
-            if err.predicted is not None and err.measured:
-                st.errors.append(abs(err.predicted - err.measured) / abs(err.measured))
-        return len(rows)
+        for st in states:
+            since = int(st.model_changes[-1]["version_after"]) if st.model_changes else None
+            for err in self.store.recent_errors(st.well, self.settings.rolling_window, since):
+                if err.predicted is not None and err.measured:
+                    st.errors.append(abs(err.predicted - err.measured) / abs(err.measured))
+        return {st.well: len(rows) for st, rows in todo}
 
     def _load_recent(self, st: WellState) -> None:
         st.recent.extend(self.store.recent_samples(st.well, RECENT_SAMPLES))

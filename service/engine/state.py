@@ -20,10 +20,9 @@ from typing import Any
 import numpy as np
 
 from service.config import Settings
-from service.learning import describe
+from service.learning import Learner, describe
 from service.store import SampleRow
 from vfm_core.drift import StreamingHotelling
-from vfm_core.streaming import WellLearner
 
 __all__ = [
     "RECENT_SAMPLES",
@@ -77,7 +76,7 @@ class Pending:
 class WellState:
     """One well: its learner and what the service needs to feed it (owned by one worker)."""
 
-    def __init__(self, well: str, learner: WellLearner, settings: Settings, worker: int) -> None:
+    def __init__(self, well: str, learner: Learner, settings: Settings, worker: int) -> None:
         self.well = well
         self.learner = learner
         self.worker = worker
