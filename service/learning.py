@@ -189,7 +189,7 @@ def fit_history(
         summary = fit_batch(model, batch, train)
         full = model.state_dict()
         for j, well in enumerate(wells):
-            learner = learners[well]
+            learner = _per_well(learners[well])
             learner.model.load_state_dict(
                 _slice_state(full, learner.model.state_dict(), j, len(wells))
             )
@@ -205,13 +205,19 @@ def fit_history(
         logger.warning("Batched history fit unavailable (%s); fitting well by well.", exc)
         for well in wells:
             own = frame[frame[WELL] == well]
-            fresh = new_learner(well, cfg)
+            fresh = _per_well(new_learner(well, cfg))
             x, y, t = _tensors(own)
             fresh.fit_history(
                 x, y, t, well_test=_well_tests(own), features=_features(own), tracker=trackers[well]
             )
             learners[well] = fresh
     return wells
+
+
+def _per_well(learner: Learner) -> WellLearner:
+    if not isinstance(learner, WellLearner):  # pragma: no cover - the config decides for all
+        raise TypeError(f"{learner.well} has a field-wide learner among per-well ones.")
+    return learner
 
 
 def _fit_field(

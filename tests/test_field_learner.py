@@ -182,3 +182,28 @@ def test_refusals_say_what_to_do() -> None:
         field.well("W01").refit_as("mm")
     with pytest.raises(ConfigError, match="field checkpoint cannot be read"):
         FieldLearner.restore(torch.zeros(1).numpy().tobytes())
+
+
+@pytest.mark.parametrize("method", ["ol", "pbl:7d"])
+def test_a_field_without_history_starts_on_its_first_measurements(
+    frame: pd.DataFrame, method: str
+) -> None:
+    """No history fit: ``ol`` sets the field up on its first day's round, ``pbl`` starts its
+    calendar at its first measurement and fits the field at its first retrain; both then
+    answer."""
+    field = FieldLearner("mtl", method, train=TRAIN)
+    live = _live(frame)
+    streamed = _stream(field, live.head(150))
+    assert field.well("W01").ready and field.version >= 1
+    if method != "ol":
+        first = int(live["time"].iloc[0].value)
+        week = 7 * 86_400 * 10**9
+        assert field.method.retrains[:2] == [first + week, first + 2 * week]
+    rows = live.head(150)[target_mask(live.head(150), "all")]
+    got = np.array(
+        [streamed[(w, t.value)] for w, t in zip(rows["well"], rows["time"], strict=True)],
+        dtype=float,
+    )
+    answered = np.isfinite(got)
+    assert answered[-30:].all()
+    assert mape(got[-30:], rows["q_total"].iloc[-30:]) < 50.0

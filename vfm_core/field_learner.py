@@ -19,7 +19,9 @@ How it learns, as the study does, so that a replay reproduces ``vfm evaluate``:
 - **Periodic batch learning** (``pbl:<period>``) keeps every measurement and retrains the
   whole field when the first message at or after the next scheduled retrain arrives, on
   everything measured before that time (the study's calendar: ``start`` + k periods).
-  As in the study, a well with no model yet starts predicting at the next retrain.
+  As in the study, a well with no model yet starts predicting at the next retrain. A field
+  with no history fit starts its calendar at its first measurement and predicts from its
+  first retrain.
 
 A well first seen live gets a new task vector at its prior (the model grows by one well;
 the method's per-well state grows with it, the new well taking the field's retrain
@@ -383,6 +385,11 @@ class FieldLearner:
         self.n_learned[well] = self.n_learned.get(well, 0) + 1
         if self.rounds:
             self._held.append((j, x, float(q_total), t, well_test))
+        elif self.method.next_due() is None:
+            # no history fit, so no calendar: it starts at the first measurement, and the first
+            # retrain fits the field on what came until then (a fit on one measurement would
+            # take the shared input normalisation from a single row)
+            self.method.start(t)
         return changed
 
     def retrain(self, now: datetime | pd.Timestamp) -> None:

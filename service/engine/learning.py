@@ -48,6 +48,18 @@ logger = logging.getLogger("vfm.service.engine")
 Rates = dict[str, float | None]
 
 
+def _kept(learner: Any) -> str:
+    """What became of a measurement the model did not learn from at once, as a sentence."""
+    if getattr(learner, "field", None) is not None and learner.method.per_measurement:
+        return (
+            "Stored; the field-wide model learns it with the other wells' measurements of its "
+            "day when the day ends."
+        )
+    return (
+        f"Stored; the model keeps it for its next periodic retrain (method {learner.method.text})."
+    )
+
+
 class Learning:
     """Prediction, learning, rolling error and drift for the wells of the workers."""
 
@@ -139,10 +151,7 @@ class Learning:
                 iso(p.time_ns) or "",
                 p.q_total,
                 "learned",
-                "Stored and learned from: the model was updated."
-                if changed
-                else "Stored; the model keeps it for its next periodic retrain (method "
-                f"{learner.method.text}).",
+                "Stored and learned from: the model was updated." if changed else _kept(learner),
                 paired_sample_time=iso(sample.time_ns),
                 before=before,
                 after=after,
