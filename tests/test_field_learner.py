@@ -78,7 +78,7 @@ def _live(frame: pd.DataFrame) -> pd.DataFrame:
     return frame[frame["time"] >= SPLIT].reset_index(drop=True)
 
 
-@pytest.mark.parametrize("method", ["ol", "pbl:30d"])
+@pytest.mark.parametrize("method", ["ol", "pbl:30d", "bayes"])
 def test_the_stream_reproduces_the_study(frame: pd.DataFrame, method: str) -> None:
     study = run_prequential(frame, "mtl", method, split=SPLIT, train=TRAIN).predictions
     field = _fitted(frame, method)
@@ -90,7 +90,7 @@ def test_the_stream_reproduces_the_study(frame: pd.DataFrame, method: str) -> No
     assert mape(got, study["measured"]) == pytest.approx(
         mape(study["predicted"], study["measured"]), rel=1e-9
     )
-    if method == "ol":  # one version per day round, after the history fit
+    if method != "pbl:30d":  # one version per day round, after the history fit
         days = pd.DatetimeIndex(study["time"]).normalize().nunique()
         assert field.version in (days, days + 1)  # the last day's round may still be open
     else:
@@ -207,3 +207,17 @@ def test_a_field_without_history_starts_on_its_first_measurements(
     answered = np.isfinite(got)
     assert answered[-30:].all()
     assert mape(got[-30:], rows["q_total"].iloc[-30:]) < 50.0
+
+
+def test_one_well_alone_predicts_what_the_whole_field_does(frame: pd.DataFrame) -> None:
+    """The fast path (one well's parameters with the shared ones) = the field's batch."""
+    field = _fitted(frame, "ol")
+    _stream(field, _live(frame).head(30))
+    live = _live(frame).head(30)
+    for _, row in live.iterrows():
+        j = field.wells.index(row["well"])
+        x = torch.tensor(row[list(INPUT_COLUMNS)].tolist(), dtype=torch.float64)
+        whole = field.model.predict(x.reshape(1, 1, 6).expand(len(field.wells), 1, 6))[j, 0]
+        alone = field._one_well(j, x)
+        assert alone is not None
+        assert alone == pytest.approx(float(whole), rel=1e-12)
