@@ -57,6 +57,7 @@ from vfm_core.learning import (
     OnlineSettings,
     TrainSettings,
     WellMemory,
+    fit_batch,
     parse_method,
 )
 from vfm_core.models import MODELS, ChokeModel, make_model
@@ -74,15 +75,6 @@ _PAD = (0.5, 100.0, 30.0, 60.0, 0.1, 0.6)
 #: the buffers of every model that hold one row per well (ChokeModel's)
 _PER_WELL_BUFFERS = ("ready", "y_scale", "x_mean", "x_std")
 _OUTPUTS = ("q_total", "q_gas", "q_oil", "q_water", "q_total_std", "q_total_p05", "q_total_p95")
-
-
-def is_checkpoint(blob: bytes) -> bool:
-    """True when ``blob`` is a :meth:`FieldLearner.checkpoint` (read without running code)."""
-    try:
-        p = torch.load(io.BytesIO(blob), weights_only=True)
-    except Exception:
-        return False
-    return isinstance(p, dict) and p.get("format") == FIELD_CHECKPOINT_FORMAT
 
 
 class FieldLearner:
@@ -137,8 +129,7 @@ class FieldLearner:
         self.version = 0
         self.n_updates = 0
         self.last_update: datetime | None = None
-        for w in wells:
-            self.well(w)
+        self.add(wells)
 
     # -- what it is ---------------------------------------------------------------------------
     @property
@@ -162,6 +153,11 @@ class FieldLearner:
                 self._grow([well])
             facade = self._facades[well] = FieldWell(self, well)
         return facade
+
+    def add(self, wells: Sequence[str]) -> None:
+        """Add the wells not in the field yet, each at its prior, in one step (adding a
+        thousand wells one by one would rebuild the model a thousand times)."""
+        self._grow(list(dict.fromkeys(str(w) for w in wells)))
 
     def _grow(self, new: Sequence[str]) -> None:
         """Add wells: a model over the larger field holding the same shared parameters and
@@ -242,8 +238,6 @@ class FieldLearner:
         until_ns = t_max + 1 if base is None else int(base.value)
         window = None if self.method.window is None else int(self.method.window.value)
         initial = self.batch(until_ns, window)
-        from vfm_core.learning import fit_batch
-
         summary = fit_batch(self.model, initial, train or self.train)
         self.method.adopt(initial, summary["iterations"])
         self.method.start(t_max if base is None else int(base.value))

@@ -229,11 +229,12 @@ class Recovery:
                     row.well,
                     exc,
                 )
-        new_field(cfg.model, field)
-        known = set() if field is None else set(field.wells)
+        field = new_field(cfg.model, field)
+        known = set(field.wells)
+        field.add(names)
         learners: dict[str, Learner] = {w: new_learner(w, cfg.model) for w in names}
         checkpoints: dict[str, CheckpointRow] = {}
-        if field is None:
+        if not rows or not known:
             return learners, checkpoints
         base = max(rows.values(), key=lambda r: r.created_ns)
         for well in names:
