@@ -141,6 +141,11 @@ class FieldLearner:
         """True when the method learns per measurement, in day rounds (else at retrains only)."""
         return bool(self.method.per_measurement or self.model.gradient_free)
 
+    def is_ready(self, well: str) -> bool:
+        """True once ``well`` has been learned from (before, the model cannot answer for it)."""
+        ready: torch.Tensor = self.model.ready  # type: ignore[assignment]
+        return bool(ready[self._index[well]])
+
     def __contains__(self, well: object) -> bool:
         return well in self._index
 
@@ -322,7 +327,7 @@ class FieldLearner:
             self.advance(int(utc_timestamp(when).value))
         out: dict[str, float | None] = dict.fromkeys(_OUTPUTS)
         j = self._index[well]
-        if not bool(self.model.ready[j]):
+        if not self.is_ready(well):
             return out
         x = torch.as_tensor(inputs, dtype=DTYPE).reshape(6)
         fast = self._one_well(j, x)
@@ -580,7 +585,7 @@ class FieldWell:
 
     @property
     def ready(self) -> bool:
-        return bool(self.field.model.ready[self.field._index[self.well]])
+        return self.field.is_ready(self.well)
 
     # -- streaming ---------------------------------------------------------------------------------
     def predict(

@@ -19,7 +19,8 @@ so far replaces the missed ones, keeping the calendar's phase (the missed ones w
 train on the same data). Steps slower than a second are counted (``slow learning steps``)
 and logged.
 
-This module uses only the public surface of :class:`vfm_core.streaming.WellLearner`.
+This module uses only the public surface of :class:`vfm_core.streaming.WellLearner`, which
+:class:`vfm_core.field_learner.FieldWell` (a well of the field-wide ``mtl``) also has.
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ from service.engine.checkpoints import Checkpoints
 from service.engine.items import Batch
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
+from service.learning import Learner
 from service.store import InsertDriftEvent, MarkLearned, Op
-from vfm_core.streaming import WellLearner
+from vfm_core.field_learner import FieldWell
 from vfm_core.timeutil import from_ns, iso, to_ns
 
 __all__ = ["Learning"]
@@ -48,9 +50,9 @@ logger = logging.getLogger("vfm.service.engine")
 Rates = dict[str, float | None]
 
 
-def _kept(learner: Any) -> str:
+def _kept(learner: Learner) -> str:
     """What became of a measurement the model did not learn from at once, as a sentence."""
-    if getattr(learner, "field", None) is not None and learner.method.per_measurement:
+    if isinstance(learner, FieldWell) and learner.method.per_measurement:
         return (
             "Stored; the field-wide model learns it with the other wells' measurements of its "
             "day when the day ends."
@@ -70,7 +72,7 @@ class Learning:
         self.max_catch_up = settings.model.max_catch_up_retrains
         self._last_slow_log = 0.0
 
-    def catch_up(self, learner: WellLearner, time_ns: int) -> bool:
+    def catch_up(self, learner: Learner, time_ns: int) -> bool:
         """Before a step at ``time_ns``: one retrain instead of more than
         ``model.max_catch_up_retrains`` missed ones (see the module docstring). True if it ran."""
         method = learner.method
