@@ -112,7 +112,7 @@ def new_learner(well: str, cfg: ModelSettings) -> Learner:
     """A learner for ``well`` with the configured model, method and settings (priors only);
     for a field-wide model, the well's facade on the engine's field (added at its prior)."""
     if cfg.field_wide:
-        return field_of(cfg).well(well)
+        return field_of(cfg).fresh(well)
     return WellLearner(
         well,
         cfg.name,

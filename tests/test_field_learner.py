@@ -221,3 +221,24 @@ def test_one_well_alone_predicts_what_the_whole_field_does(frame: pd.DataFrame) 
         alone = field._one_well(j, x)
         assert alone is not None
         assert alone == pytest.approx(float(whole), rel=1e-12)
+
+
+def test_a_well_used_again_starts_afresh(frame: pd.DataFrame) -> None:
+    """An id the field knew (purged in the service, then seen again) starts at its prior with
+    nothing remembered; the other wells keep what they learned."""
+    field = _fitted(frame, "ol")
+    live = _live(frame)
+    _stream(field, live.head(40))
+    probe = live[live["well"] == "W01"].iloc[0][list(INPUT_COLUMNS)].tolist()
+    before = field.well("W01").predict(probe)["q_total"]
+    assert field.well("W02").ready and field.n_learned["W02"] > 0
+    again = field.fresh("W02")
+    assert not again.ready and again.remembered == 0 and field.n_learned["W02"] == 0
+    assert float(field.model.beta.detach()[1].abs().sum()) == 0.0  # type: ignore[operator]
+    assert all(h[0] != 1 for h in field._held)
+    assert field.well("W01").predict(probe)["q_total"] == before
+    rest = _stream(field, live.iloc[40:120])
+    later = live.iloc[40:120]
+    w2 = later[(later["well"] == "W02") & target_mask(later, "all")]
+    assert again.ready and again.remembered == len(w2)
+    assert rest[("W02", w2["time"].iloc[-1].value)] is not None

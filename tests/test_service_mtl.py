@@ -242,3 +242,39 @@ def test_mtl_predicts_a_well_first_seen_live_after_its_first_day(
         assert not any(("W03", t.value) in client.predictions for t in w3["time"][first_day])
         got = [client.predictions[("W03", t.value)] for t in w3["time"][~first_day]]
     assert mape(got, w3["q_total"][~first_day]) < 20.0
+
+
+def test_a_purged_well_used_again_starts_afresh_and_survives_a_restart(
+    tmp_path: Path, field: tuple[Path, pd.DataFrame], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """W03 is purged (DELETE /wells/W03?purge=true) and its id used again: it starts at its
+    prior with nothing remembered, and a restart (without a final checkpoint, so the store's
+    rows are re-learned) gives back what it has learned since."""
+    data, frame = field
+    live = _live(frame)
+    days = live["time"].dt.floor("D")
+    first, second, third = (
+        days < days.unique()[10],
+        (days >= days.unique()[10]) & (days < days.unique()[30]),
+        days >= days.unique()[30],
+    )
+    settings = _settings(tmp_path, data, "ol", store={"checkpoint_every": 5})
+    with _serving(settings) as (service, client):
+        engine = service.engine
+        assert engine is not None
+        _feed(service, client, live[first])
+        engine.retire_well("W03", purge=True)
+        _feed(service, client, live[second])
+        w3 = live[second & (live["well"] == "W03").to_numpy() & target_mask(live, "all")]
+        view = engine.well_view("W03")
+        assert view["measurements_remembered"] == len(w3) and view["ready"]
+        monkeypatch.setattr(Checkpoints, "final_ops", lambda self, wells: [])
+    monkeypatch.undo()
+    with _serving(settings) as (service, client):
+        engine = service.engine
+        assert engine is not None
+        again = engine.well_view("W03")
+        assert again["measurements_remembered"] == len(w3)
+        assert again["version"] == view["version"]
+        _feed(service, client, live[third].head(30))
+        assert engine.well_view("W03")["ready"]

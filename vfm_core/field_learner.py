@@ -159,6 +159,55 @@ class FieldLearner:
             facade = self._facades[well] = FieldWell(self, well)
         return facade
 
+    def fresh(self, well: str) -> FieldWell:
+        """The facade of ``well`` at its prior, with nothing learned or remembered: a well new
+        to the field is added; one the field knew (its id purged and used again) is reset
+        (its own parameters and the method's state for it as a new well's; the shared
+        network keeps what it learned)."""
+        if well in self._index:
+            self._reset(well)
+        return self.well(well)
+
+    def _reset(self, well: str) -> None:
+        j, n = self._index[well], len(self.wells)
+        model = make_model(self.model_name, self.wells, seed=self.seed, **self.model_kwargs)
+        own = {id(p) for p in self.model.per_well_parameters()}
+        rows = {k for k, p in self.model.named_parameters() if id(p) in own}
+        rows |= set(_PER_WELL_BUFFERS)
+        state, prior = self.model.state_dict(), model.state_dict()
+        with torch.no_grad():
+            for key in rows & set(state):
+                state[key][j] = prior[key][j]
+        self.model.load_state_dict(state)
+        method = parse_method(self.method_text).bind(model, train=self.train, online=self.online)
+        current, start = self.method.state_dict(), method.state_dict()
+        others = torch.arange(n) != j
+        pairs = [(v, start.get(k)) for k, v in current.items() if k != "optimizer"]
+        pairs += [
+            (v, start[k].get(kk))
+            for k, sub in current.items()
+            if k != "optimizer" and isinstance(sub, dict) and isinstance(start.get(k), dict)
+            for kk, v in sub.items()
+        ]
+        for value, initial in pairs:
+            if isinstance(value, torch.Tensor) and isinstance(initial, torch.Tensor):
+                if value.dim() >= 1 and value.shape[0] == n and initial.shape == value.shape:
+                    value[j] = initial[j]
+        for key, pick in (("iterations", torch.max), ("next", torch.min)):
+            value = current.get(key)
+            if isinstance(value, torch.Tensor) and bool(others.any()):
+                value[j] = pick(value[others])
+        positions = _per_well_indices(self.model)
+        for idx, entry in (current.get("optimizer") or {}).get("state", {}).items():
+            if int(idx) in positions:
+                for value in entry.values():
+                    if isinstance(value, torch.Tensor) and value.dim() >= 1 and value.shape[0] == n:
+                        value[j] = 0
+        self.method.load_state_dict(current)
+        self.memories[well] = WellMemory(well, FeatureTracker.names, self.model.extra_columns)
+        self.n_learned[well] = 0
+        self._held = [h for h in self._held if h[0] != j]
+
     def add(self, wells: Sequence[str]) -> None:
         """Add the wells not in the field yet, each at its prior, in one step (adding a
         thousand wells one by one would rebuild the model a thousand times)."""

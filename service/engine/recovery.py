@@ -232,7 +232,7 @@ class Recovery:
         field = new_field(cfg.model, field)
         known = set(field.wells)
         field.add(names)
-        learners: dict[str, Learner] = {w: new_learner(w, cfg.model) for w in names}
+        learners: dict[str, Learner] = {w: field.well(w) for w in names}
         checkpoints: dict[str, CheckpointRow] = {}
         if not rows or not known:
             return learners, checkpoints
