@@ -35,6 +35,7 @@ from service.transport import MemoryTransport
 from vfm_core.data import target_mask
 from vfm_core.jobs.study import mape, run_prequential
 from vfm_core.learning import DEFAULT_TRAIN
+from vfm_core.messages import Measurement
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -201,11 +202,20 @@ def test_a_model_change_to_or_from_mtl_is_refused(
     tmp_path: Path, field: tuple[Path, pd.DataFrame]
 ) -> None:
     data, frame = field
-    with _serving(_settings(tmp_path / "mtl", data, "ol")) as (service, _):
+    with _serving(_settings(tmp_path / "mtl", data, "ol")) as (service, client):
         engine: Engine | None = service.engine
         assert engine is not None
         with pytest.raises(InvalidRequest, match="field-wide model mtl"):
             engine.change_model("W01", model="mm")
+        # a well test is stored and held with its day's round (the answer says so)
+        day = _live(frame).head(6)
+        _feed(service, client, day)
+        at = day[day["well"] == "W01"]["time"].iloc[-1]
+        result = engine.submit_well_test(
+            "W01", Measurement(time=at.to_pydatetime(), q_total=float(day["q_total"].iloc[0]))
+        ).result(30)
+        assert (result.status, result.model_changed) == ("learned", False)
+        assert "when the day ends" in result.message
     per_well = loopback_settings(
         tmp_path / "mm",
         model={"name": "mm", "method": "ol", "history": str(data), "history_until": SPLIT},
