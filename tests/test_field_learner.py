@@ -242,3 +242,44 @@ def test_a_well_used_again_starts_afresh(frame: pd.DataFrame) -> None:
     w2 = later[(later["well"] == "W02") & target_mask(later, "all")]
     assert again.ready and again.remembered == len(w2)
     assert rest[("W02", w2["time"].iloc[-1].value)] is not None
+
+
+def test_a_measurement_late_for_its_round_is_learned_with_it(frame: pd.DataFrame) -> None:
+    """W02's measurement of one day arrives after W01's first row of the next day (the wells'
+    queues out of time order): the round that closed without it is learned again with it,
+    so every later prediction is that of the stream in time order; only the predictions
+    made in between differ."""
+    live = _live(frame).head(90).reset_index(drop=True)
+    in_order = _stream(_fitted(frame, "ol"), live)
+    days = live["time"].dt.floor("D")
+    measured = target_mask(live, "all")
+    day = days.unique()[5]
+    w2 = int(np.flatnonzero((days == day).to_numpy() & (live["well"] == "W02").to_numpy())[-1])
+    nxt = int(np.flatnonzero((days > day).to_numpy() & (live["well"] == "W01").to_numpy())[0])
+    assert measured[w2]
+    order = [i for i in range(len(live)) if i != w2]
+    order.insert(order.index(nxt) + 1, w2)
+    # W02's sample is answered in its place; its measurement comes after W01's next-day row
+    field = _fitted(frame, "ol")
+    out: dict[tuple[str, int], float | None] = {}
+    for i in order:
+        row = live.iloc[i]
+        inputs = row[list(INPUT_COLUMNS)].tolist()
+        facade = field.well(row["well"])
+        if i != w2:
+            out[(row["well"], row["time"].value)] = facade.predict(inputs, row["time"])["q_total"]
+        else:
+            out[(row["well"], row["time"].value)] = in_order[(row["well"], row["time"].value)]
+        if measured[i]:
+            facade.learn(inputs, row["q_total"], row["time"], row["source"])
+    # the predictions from the next day's first message to the late measurement's arrival
+    # used the round without it; every later one is the in-order stream's
+    start = int(np.flatnonzero((days > day).to_numpy())[0])
+    between = {(live.iloc[i]["well"], live.iloc[i]["time"].value) for i in range(start, nxt + 1)}
+    assert all(out[k] != in_order[k] for k in between)
+    rest = [k for k in in_order if k not in between]
+    np.testing.assert_allclose(
+        np.array([out[k] for k in rest], dtype=float),
+        np.array([in_order[k] for k in rest], dtype=float),
+        rtol=1e-12,
+    )

@@ -15,7 +15,10 @@ How it learns, as the study does, so that a replay reproduces ``vfm evaluate``:
   a later day), and the day's measurements of every well are then learned together in
   one call. Predictions inside a day therefore use the parameters of the previous day's
   end. A measurement that arrives after its day has been closed (messages of different
-  wells out of time order) joins the round still open.
+  wells out of time order) is learned with its round all the same when that round is the
+  one closed last (the model goes back to the state before it and learns it again: only
+  the predictions made meanwhile used the round without it); one later still joins the
+  round still open.
 - **Periodic batch learning** (``pbl:<period>``) keeps every measurement and retrains the
   whole field when the first message at or after the next scheduled retrain arrives, on
   everything measured before that time (the study's calendar: ``start`` + k periods).
@@ -126,6 +129,9 @@ class FieldLearner:
         #: the open round (per-measurement methods): its UTC day and its measurements
         self._day: int | None = None
         self._held: list[tuple[int, list[float], float, int, bool]] = []
+        #: the round closed last: its day, its measurements, and the model's and the method's
+        #: state before it (None after any other change of the model)
+        self._undo: tuple[int, list[Any], dict[str, Any], dict[str, Any]] | None = None
         self.version = 0
         self.n_updates = 0
         self.last_update: datetime | None = None
@@ -169,6 +175,7 @@ class FieldLearner:
         return self.well(well)
 
     def _reset(self, well: str) -> None:
+        self._undo = None
         j, n = self._index[well], len(self.wells)
         model = make_model(self.model_name, self.wells, seed=self.seed, **self.model_kwargs)
         own = {id(p) for p in self.model.per_well_parameters()}
@@ -219,6 +226,7 @@ class FieldLearner:
         new = [w for w in new if w not in self._index]
         if not new:
             return
+        self._undo = None  # a state of fewer wells
         old_n = len(self.wells)
         wells = [*self.wells, *new]
         model = make_model(self.model_name, wells, seed=self.seed, **self.model_kwargs)
@@ -333,6 +341,8 @@ class FieldLearner:
         before = self.method.n_retrains
         self.method.retrain_due(self, torch.full((len(self.wells),), t_ns, dtype=torch.int64))
         new = self.method.n_retrains - before
+        if new > 0:
+            self._undo = None
         for until in self.method.retrains[-new:] if new > 0 else []:
             self._bump(pd.Timestamp(until, tz="UTC").to_pydatetime(warn=False))
             changed = True
@@ -343,15 +353,28 @@ class FieldLearner:
         return self._close_round()
 
     def _close_round(self) -> bool:
-        """Learn the held measurements of every well in one call (the study's round)."""
+        """Learn the held measurements of every well in one call (the study's round), keeping
+        the state from before, so that a measurement of this day that arrives late can
+        still be learned with its round (:meth:`learn`)."""
         if not self._held:
             return False
         held, self._held = self._held, []
+        day = held[0][3] // DAY_NS if self._day is None else self._day
+        self._undo = (
+            day,
+            held,
+            copy.deepcopy(self.model.state_dict()),
+            copy.deepcopy(self.method.state_dict()),
+        )
+        return self._learn_round(held)
+
+    def _learn_round(self, held: list[tuple[int, list[float], float, int, bool]]) -> bool:
         per_well: list[list[tuple[list[float], float, int, bool]]] = [[] for _ in self.wells]
         for j, x, y, t, wt in held:
             per_well[j].append((x, y, t, wt))
         rows = []
         for items in per_well:
+            items.sort(key=lambda item: item[2])  # a well's rows in time order, as in the study
             n = len(items)
             rows.append(
                 (
@@ -367,6 +390,17 @@ class FieldLearner:
             self._bump(pd.Timestamp(max(h[3] for h in held), tz="UTC").to_pydatetime(warn=False))
             return True
         return False
+
+    def _relearn_round(self, item: tuple[int, list[float], float, int, bool]) -> bool:
+        """A measurement of the round that closed last arrived late: back to the state before
+        that round, and learn the round again with it."""
+        assert self._undo is not None
+        day, held, model_state, method_state = self._undo
+        self.model.load_state_dict(model_state)
+        self.method.load_state_dict(method_state)
+        held = [*held, item]
+        self._undo = (day, held, copy.deepcopy(model_state), copy.deepcopy(method_state))
+        return self._learn_round(held)
 
     def predict(
         self, well: str, inputs: Sequence[float] | torch.Tensor, when: datetime | None = None
@@ -461,7 +495,13 @@ class FieldLearner:
         )
         self.n_learned[well] = self.n_learned.get(well, 0) + 1
         if self.rounds:
-            self._held.append((j, x, float(q_total), t, well_test))
+            item = (j, x, float(q_total), t, well_test)
+            day = t // DAY_NS
+            late = self._day is not None and day < self._day
+            if late and self._undo is not None and self._undo[0] == day:
+                changed |= self._relearn_round(item)
+            else:  # this day's round, or (later than one round) the round still open
+                self._held.append(item)
         elif self.method.next_due() is None:
             # no history fit, so no calendar: it starts at the first measurement, and the first
             # retrain fits the field on what came until then (a fit on one measurement would
@@ -473,6 +513,7 @@ class FieldLearner:
         """Retrain the whole field now on everything remembered up to ``now`` (e.g. after a
         confirmed drift on one of its wells); scheduled retrains count from ``now``."""
         ts = utc_timestamp(now)
+        self._undo = None
         self.method.retrain(self, int(ts.value) + 1)
         self.method.start(int(ts.value))
         self._bump(ts.to_pydatetime(warn=False))
