@@ -81,6 +81,8 @@ class Recovery:
         self.learning = learning
         self.checkpoints = checkpoints
         self.worker_of = worker_of
+        #: a field-wide model was restored from a snapshot (it is not fitted on the history)
+        self._field_restored = False
 
     def load(self, retired: set[str] | None = None) -> dict[str, WellState]:
         """Every known well (but the ``retired``), restored or fitted and caught up, in a
@@ -126,7 +128,7 @@ class Recovery:
             learners, checkpoints = self._restore(names)
         fresh = [w for w in names if w not in checkpoints]
         fitted: list[str] = []
-        if field_wide and checkpoints and history is not None and fresh:
+        if field_wide and self._field_restored and history is not None and fresh:
             self._remember_history(learners, fresh, history)
         elif history is not None and fresh:
             started = time.perf_counter()
@@ -229,6 +231,7 @@ class Recovery:
                     row.well,
                     exc,
                 )
+        self._field_restored = field is not None
         field = new_field(cfg.model, field)
         known = set(field.wells)
         field.add(names)
