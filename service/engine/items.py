@@ -75,12 +75,16 @@ Item = SensorItem | MeasurementItem | ModelStep | RetireStep
 class Batch:
     """What one worker batch writes, publishes and answers (after one commit)."""
 
-    __slots__ = ("ops", "outbox", "answers")
+    __slots__ = ("ops", "outbox", "answers", "samples", "sample_wells")
 
     def __init__(self) -> None:
         self.ops: list[Op] = []
         self.outbox: list[tuple[str, bytes]] = []  # (well, prediction JSON)
         self.answers: list[tuple[Future[Any], Any]] = []  # (future, result or exception)
+        #: sensor samples admitted and waiting for the batch's one prediction call:
+        #: (well state, item, time ns, inputs), at most one per well
+        self.samples: list[tuple[Any, SensorItem, int, tuple[float, ...]]] = []
+        self.sample_wells: set[str] = set()
 
     def answer(self, future: Future[Any] | None, result: Any) -> None:
         """Answer ``future`` (if any) with a result or an exception, once the batch is committed."""

@@ -131,6 +131,7 @@ class Workers:
                 if n >= self.batch_max or time.monotonic() - began > self.batch_s:
                     break
                 item = q.get_nowait()
+            self._predict_samples(b)
             now = time.monotonic()
             if now - last_expiry > 0.5:
                 last_expiry = now
@@ -140,6 +141,10 @@ class Workers:
             self.flush(b)
 
     def _handle(self, item: Item, b: Batch) -> None:
+        if not isinstance(item, SensorItem) or item.well in b.sample_wells:
+            # the samples taken so far are predicted first: this item may change their
+            # wells' models (a measurement, a model change), or is the next sample of one
+            self._predict_samples(b)
         try:
             if isinstance(item, ModelStep):
                 self.model_changes.on_step(item, b, self.flush)
@@ -151,7 +156,7 @@ class Workers:
             if st is None:
                 return
             if isinstance(item, SensorItem):
-                self._on_sample(st, item, b)
+                self._admit_sample(st, item, b)
             else:
                 self.pairing.on_measurement(st, item, b)
         except Exception as exc:  # one bad message must not stop the worker
@@ -162,7 +167,9 @@ class Workers:
             b.answer(getattr(item, "future", None), exc)
 
     def flush(self, b: Batch) -> None:
-        """Commit the batch, then publish its predictions and answer its callers."""
+        """Predict the samples taken, commit the batch, then publish its predictions and
+        answer its callers."""
+        self._predict_samples(b)
         try:
             self.store.write(b.ops)
         except Exception as exc:
@@ -252,7 +259,9 @@ class Workers:
         )
 
     # -- samples ----------------------------------------------------------------------------
-    def _on_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
+    def _admit_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
+        """First pass: refuse a sample that is not after the well's previous one, else keep
+        it for the batch's one prediction call (:meth:`_predict_samples`)."""
         sample = item.sample
         t = to_ns(sample.time)
         inputs = tuple(sample.inputs())
@@ -269,8 +278,45 @@ class Workers:
                 )
             refuse(self.counters, error, item.well, b)
             return
+        b.samples.append((st, item, t, inputs))
+        b.sample_wells.add(item.well)
+
+    def _predict_samples(self, b: Batch) -> None:
+        """Second pass: predict every admitted sample of the batch in one call (at most one
+        per well: a well's next sample waits for the call), then store and publish each."""
+        if not b.samples:
+            return
+        taken = b.samples
+        b.samples, b.sample_wells = [], set()
+        try:
+            answers = self.learning.predict_many(
+                [st for st, _, _, _ in taken],
+                [inputs for _, _, _, inputs in taken],
+                [item.sample.time for _, item, _, _ in taken],
+            )
+        except Exception as exc:  # pragma: no cover - predict_many answers errors in place
+            answers = [exc] * len(taken)
+        for (st, item, t, inputs), rates in zip(taken, answers, strict=True):
+            try:
+                if isinstance(rates, BaseException):
+                    raise rates
+                self._on_sample(st, item, t, inputs, rates, b)
+            except Exception as exc:  # one bad message must not stop the worker
+                logger.exception("Unexpected error on SensorItem of %s: %s", item.well, exc)
+                self.counters.event("internal errors")
+
+    def _on_sample(
+        self,
+        st: WellState,
+        item: SensorItem,
+        t: int,
+        inputs: tuple[float, ...],
+        rates: dict[str, float | None] | None,
+        b: Batch,
+    ) -> None:
+        """Third pass, per sample: store it with its prediction, publish, settle what waited."""
+        sample = item.sample
         learner = st.learner
-        rates = self.learning.predict(st, inputs, sample.time)
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
         q_total = rates["q_total"] if rates else None
