@@ -89,6 +89,23 @@ def phase_split(
     }
 
 
+#: one prepared sample: its six inputs, its time (epoch ns) and the model's feature columns
+_Row = tuple[list[float], int, list[float]]
+
+
+def _six(inputs: Sequence[float] | torch.Tensor) -> list[float]:
+    """A sample's six inputs as floats (the same numbers ``torch.as_tensor`` would hold)."""
+    try:
+        values = inputs.reshape(-1).tolist() if isinstance(inputs, torch.Tensor) else inputs
+        x = [float(v) for v in values]
+    except (TypeError, ValueError):
+        x = []
+    if len(x) != 6:  # the tensor's own error says what is wrong
+        torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 1, 6)
+        raise ValueError(f"A sample needs six inputs; got {inputs!r}.")
+    return x
+
+
 def _single(
     x: torch.Tensor,
     y: float,
@@ -298,51 +315,56 @@ class WellLearner:
         retrain retrains first (on everything learned before that time), so the calendar of
         retrains matches ``vfm evaluate``.
         """
-        out, batch, x = self._prepare(inputs, when)
-        if batch is None:
+        out, row = self._prepare(inputs, when)
+        if row is None:
             return out
-        return self._answer(out, self.method.predict(batch), x, 0)
+        return self._answer(out, self.method.predict(self._batch_of(row)), row[0], 0)
 
     def _prepare(
-        self, inputs: list[float] | torch.Tensor, when: datetime | None
-    ) -> tuple[dict[str, float | None], Batch | None, torch.Tensor]:
+        self, inputs: Sequence[float] | torch.Tensor, when: datetime | None
+    ) -> tuple[dict[str, float | None], _Row | None]:
         """The side effects of :meth:`predict` before the model runs, in its order: the
-        sample's features, then the retrains due. Returns the answer to fill, the one-sample
-        batch to predict (None while the model is not ready) and the inputs [1, 1, 6]."""
-        x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 1, 6)
+        sample's features, then the retrains due. Returns the answer to fill and the sample
+        as plain numbers (None while the model is not ready): inputs, time (ns, 0 for
+        none) and the model's feature columns."""
+        x = _six(inputs)
         ts = None if when is None else utc_timestamp(when)
         # the sample's features (a sample without a time sits at the latest one)
         at = self.features.last_ns if ts is None else ts.value
-        eta = x[0, 0, 4:6].tolist()
         feats = (
             [0.0] * len(FeatureTracker.names)
             if at is None
-            else self.features.advance(int(at), float(eta[0]), float(eta[1]))
+            else self.features.advance(int(at), x[4], x[5])
         )
-        if ts is not None:
-            self._retrains_due(ts)
+        if ts is not None and type(self.method).retrain_due is not LearningMethod.retrain_due:
+            self._retrains_due(ts)  # (the base method never retrains: nothing to run)
         out: dict[str, float | None] = dict.fromkeys(_ANSWER_KEYS)
         if not self.ready:
-            return out, None, x
+            return out, None
         # the best estimate of the true rate: the sample as if a well test measured it
-        batch = _single(
-            x,
+        return out, (x, 0 if at is None else int(at), [feats[c] for c in self._cols])
+
+    def _batch_of(self, row: _Row) -> Batch:
+        """One prepared sample as a one-well batch (as a well test, see :meth:`predict`)."""
+        x, at, extra = row
+        return _single(
+            torch.tensor(x, dtype=DTYPE),
             0.0,
-            0 if at is None else int(at),
+            at,
             True,
-            torch.tensor(feats, dtype=DTYPE)[self._cols],
+            torch.tensor(extra, dtype=DTYPE),
             tuple(self.model.extra_columns),
         )
-        return out, batch, x
 
     @staticmethod
     def _answer(
-        out: dict[str, float | None], forecast: Forecast, x: torch.Tensor, row: int
+        out: dict[str, float | None], forecast: Forecast, x: list[float], row: int
     ) -> dict[str, float | None]:
-        """Fill ``out`` from row ``row`` of ``forecast`` ([W, 1]) for inputs ``x`` [1, 1, 6]."""
+        """Fill ``out`` from row ``row`` of ``forecast`` ([W, 1]) for the sample's inputs ``x``."""
         q = forecast.mean[row : row + 1]
+        xt = torch.tensor(x, dtype=DTYPE).reshape(1, 1, 6)
         out["q_total"] = float(q[0, 0])
-        out.update({k: float(v[0, 0]) for k, v in phase_split(q, x).items()})
+        out.update({k: float(v[0, 0]) for k, v in phase_split(q, xt).items()})
         if forecast.std is not None:
             out["q_total_std"] = float(forecast.std[row, 0])
         if forecast.p05 is not None and forecast.p95 is not None:
@@ -613,6 +635,9 @@ class WellLearner:
 # -- many wells' predictions in one call ----------------------------------------------------------
 Rates = dict[str, float | None]
 
+#: a sample waiting for its group's model call: its place, learner, answer and row
+_Waiting = tuple[int, "WellLearner", Rates, _Row]
+
 #: the per-well state of ``bayes`` its predictions read (leading dimension: the well)
 _BAYES_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 
@@ -649,7 +674,7 @@ def predict_many(
             f"{len(inputs)} input rows and {'no' if whens is None else len(whens)} times."
         )
     results: list[Rates | BaseException | None] = [None] * n
-    waiting: list[tuple[int, WellLearner, Rates, Batch, torch.Tensor]] = []
+    waiting: list[_Waiting] = []
     seen: set[int] = set()
     for i, learner in enumerate(learners):
         when = None if whens is None else whens[i]
@@ -658,11 +683,11 @@ def predict_many(
             waiting, seen = [], set()
         try:
             if isinstance(learner, WellLearner):
-                out, batch, x = learner._prepare(inputs[i], when)
-                if batch is None:
+                out, row = learner._prepare(inputs[i], when)
+                if row is None:
                     results[i] = out
                 else:
-                    waiting.append((i, learner, out, batch, x))
+                    waiting.append((i, learner, out, row))
                     seen.add(id(learner))
             else:
                 results[i] = learner.predict(inputs[i], when=when)
@@ -679,12 +704,12 @@ def predict_many(
 
 
 def _run_waiting(
-    waiting: list[tuple[int, WellLearner, Rates, Batch, torch.Tensor]],
+    waiting: list[_Waiting],
     results: list[Rates | BaseException | None],
 ) -> None:
     """Predict the prepared samples, one model call per group of stackable learners."""
     groups: dict[tuple[Any, ...], list[int]] = {}
-    for k, (_, learner, _, _, _) in enumerate(waiting):
+    for k, (_, learner, _, _) in enumerate(waiting):
         key = _group_key(learner)
         groups.setdefault(("alone", k) if key is None else key, []).append(k)
     for key, members in groups.items():
@@ -695,9 +720,10 @@ def _run_waiting(
             except Exception:  # noqa: S112 - the one-by-one path below says what failed
                 pass
         for k in members:
-            i, learner, out, batch, x = waiting[k]
+            i, learner, out, row = waiting[k]
             try:
-                results[i] = learner._answer(out, learner.method.predict(batch), x, 0)
+                forecast = learner.method.predict(learner._batch_of(row))
+                results[i] = learner._answer(out, forecast, row[0], 0)
             except Exception as exc:
                 results[i] = exc
 
@@ -810,10 +836,7 @@ def _stacked(learner: WellLearner, key: tuple[Any, ...]) -> _Stacked | None:
     return cache[key[:5]]
 
 
-def _predict_group(
-    members: list[tuple[int, WellLearner, Rates, Batch, torch.Tensor]],
-    results: list[Rates | BaseException | None],
-) -> None:
+def _predict_group(members: list[_Waiting], results: list[Rates | BaseException | None]) -> None:
     """One model call for learners of one group (see :func:`_group_key`)."""
     first = members[0][1]
     key = _group_key(first)
@@ -821,18 +844,19 @@ def _predict_group(
     stacked = _stacked(first, key)
     if stacked is None:
         raise ValueError(f"The model {first.name} cannot be stacked.")
-    batches = [m[3] for m in members]
-    b0 = batches[0]
+    k = len(members)
+    rows = [m[3] for m in members]
+    # as the one-sample batches of WellLearner._batch_of, one row per well
     batch = Batch(
         [m[1].well for m in members],
-        torch.cat([b.x for b in batches], 0),
-        torch.cat([b.y for b in batches], 0),
-        torch.cat([b.mask for b in batches], 0),
-        torch.cat([b.time_ns for b in batches], 0),
-        torch.cat([b.row for b in batches], 0),
-        torch.cat([b.well_test for b in batches], 0),  # type: ignore[misc]
-        torch.cat([b.extra for b in batches], 0),  # type: ignore[misc]
-        b0.extra_names,
+        torch.tensor([[r[0]] for r in rows], dtype=DTYPE),
+        torch.zeros(k, 1, dtype=DTYPE),
+        torch.ones(k, 1, dtype=torch.bool),
+        torch.tensor([[r[1]] for r in rows], dtype=torch.int64),
+        torch.zeros(k, 1, dtype=torch.int64),
+        torch.ones(k, 1, dtype=torch.bool),
+        torch.tensor([[r[2]] for r in rows], dtype=DTYPE).reshape(k, 1, -1),
+        tuple(first.model.extra_columns),
     )
     state = stacked.state_of([m[1].model for m in members])
     stacked.model.wells = batch.wells
@@ -849,13 +873,13 @@ def _predict_group(
     x = batch.x
     split = phase_split(forecast.mean, x)
     columns = {"q_total": forecast.mean[:, 0].tolist()}
-    columns.update({k: v[:, 0].tolist() for k, v in split.items()})
+    columns.update({name: v[:, 0].tolist() for name, v in split.items()})
     if forecast.std is not None:
         columns["q_total_std"] = forecast.std[:, 0].tolist()
     if forecast.p05 is not None and forecast.p95 is not None:
         columns["q_total_p05"] = forecast.p05[:, 0].tolist()
         columns["q_total_p95"] = forecast.p95[:, 0].tolist()
-    for row, (i, _, out, _, _) in enumerate(members):
-        for k, values in columns.items():
-            out[k] = values[row]
+    for row, (i, _, out, _) in enumerate(members):
+        for name, values in columns.items():
+            out[name] = values[row]
         results[i] = out
