@@ -729,7 +729,19 @@ def _run_waiting(
 
 
 def _group_key(learner: WellLearner) -> tuple[Any, ...] | None:
-    """What learners must share to be predicted in one call; None: never stacked."""
+    """What learners must share to be predicted in one call; None: never stacked (kept
+    on the learner while its model and method objects stay the same)."""
+    method, model = learner.method, learner.model
+    q = getattr(method, "_q", None)  # bayes: the drift its intervals use
+    cached = learner.__dict__.get("_group")
+    if cached is not None and cached[0] is method and cached[1] is model and cached[2] is q:
+        return cached[3]  # type: ignore[no-any-return]
+    key = _compute_group_key(learner)
+    learner.__dict__["_group"] = (method, model, q, key)
+    return key
+
+
+def _compute_group_key(learner: WellLearner) -> tuple[Any, ...] | None:
     method, model = learner.method, learner.model
     predict = type(method).predict
     if predict is LearningMethod.predict:

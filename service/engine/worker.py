@@ -296,14 +296,17 @@ class Workers:
             )
         except Exception as exc:  # pragma: no cover - predict_many answers errors in place
             answers = [exc] * len(taken)
+        accepted = 0
         for (st, item, t, inputs), rates in zip(taken, answers, strict=True):
             try:
                 if isinstance(rates, BaseException):
                     raise rates
                 self._on_sample(st, item, t, inputs, rates, b)
+                accepted += 1
             except Exception as exc:  # one bad message must not stop the worker
                 logger.exception("Unexpected error on SensorItem of %s: %s", item.well, exc)
                 self.counters.event("internal errors")
+        self.counters.accept("sensors", accepted)  # once per call: the counters take a lock
 
     def _on_sample(
         self,
@@ -324,7 +327,6 @@ class Workers:
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
-        self.counters.accept("sensors")
         b.ops.append(
             InsertSample(
                 well=item.well,
