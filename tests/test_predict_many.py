@@ -193,3 +193,33 @@ def test_other_learners_answer_through_their_own_predict_and_errors_stay_in_plac
         predict_many([learners[1]], [[1.0, 2.0]], [when])
     with pytest.raises(ValueError, match="one input row and one time per learner"):
         predict_many([learners[0], learners[1]], [x], [when])
+
+
+@pytest.mark.parametrize("method", ["ol", "bayes"])
+def test_a_wells_consecutive_samples_share_one_call_when_its_model_cannot_change(
+    field: pd.DataFrame, method: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A flooding well: with no scheduled retrains its samples are predicted together."""
+    one = _fitted(field, "mm", ("erosion",), method)
+    many = copy.deepcopy(one)
+    stacked_calls: list[int] = []
+    group = streaming._predict_group
+
+    def counted(members: list[Any], results: list[Any]) -> None:
+        group(members, results)
+        stacked_calls.append(len(members))
+
+    monkeypatch.setattr(streaming, "_predict_group", counted)
+    rows = _rows(field, "W01").iloc[HISTORY : HISTORY + 5]
+    xs = [r[list(INPUT_COLUMNS)].tolist() for _, r in rows.iterrows()]
+    whens = list(rows["time"])
+    expected = [one[0].predict(x, when=w) for x, w in zip(xs, whens, strict=True)]
+    got = predict_many([many[0]] * 5, xs, whens)
+    assert stacked_calls == [5]
+    for a, b in zip(expected, got, strict=True):
+        assert isinstance(b, dict)
+        _close(a, b)
+    # the features moved sample by sample (cumulative throughput at each sample's time)
+    assert one[0].features.state() == many[0].features.state()
+    assert streaming.model_fixed_when_predicting(many[0])
+    assert not streaming.model_fixed_when_predicting(_fitted(field, "mm", (), "pbl:14d")[0])

@@ -49,7 +49,14 @@ from vfm_core.learning import (
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
 
-__all__ = ["WellLearner", "predict_many", "phase_split", "PARAMETER_UNITS", "CHECKPOINT_FORMATS"]
+__all__ = [
+    "WellLearner",
+    "predict_many",
+    "model_fixed_when_predicting",
+    "phase_split",
+    "PARAMETER_UNITS",
+    "CHECKPOINT_FORMATS",
+]
 
 PARAMETER_UNITS: dict[str, str] = {name: p.unit for name, p in ph.PRIORS.items()} | {"a_max": "m2"}
 #: the checkpoint formats :meth:`WellLearner.restore` reads (the first writes today's)
@@ -658,10 +665,11 @@ def predict_many(
     hyperparameters, and whose method predicts with the model alone (``ol``, ``pbl``,
     ``pbl:auto``) or is ``bayes`` with the same settings, then share one model call: their
     per-well parameters are stacked into one multi-well state. The answers equal the
-    one-by-one answers (to rounding, 1e-12 relative). A learner seen again in the same
-    call first gets the predictions of everything before it (its model may change at its
-    next sample); anything else that is not a :class:`WellLearner` (or cannot be stacked)
-    answers through its own ``predict``.
+    one-by-one answers (to rounding, 1e-12 relative). A learner may come more than once
+    (a well's consecutive samples): if its next sample may change its model (a scheduled
+    retrain, see :func:`model_fixed_when_predicting`), what waits is predicted first.
+    Anything else that is not a :class:`WellLearner` (or cannot be stacked) answers
+    through its own ``predict``.
 
     ``inputs``: each sample's six inputs in file units; ``whens``: each sample's time (or
     None). With ``return_exceptions`` a learner that fails gets its exception in its place
@@ -678,7 +686,8 @@ def predict_many(
     seen: set[int] = set()
     for i, learner in enumerate(learners):
         when = None if whens is None else whens[i]
-        if id(learner) in seen:  # its next sample may change its model: answer the others
+        if id(learner) in seen and not model_fixed_when_predicting(learner):
+            # its next sample may retrain it: answer what is waiting first
             _run_waiting(waiting, results)
             waiting, seen = [], set()
         try:
@@ -701,6 +710,16 @@ def predict_many(
             if isinstance(r, BaseException):
                 raise r
     return results  # type: ignore[return-value]
+
+
+def model_fixed_when_predicting(learner: Any) -> bool:
+    """True when predicting cannot change ``learner``'s model: a :class:`WellLearner` whose
+    method has no scheduled retrains (``ol``, ``bayes``). Several samples of such a well
+    can then be predicted in one call (:func:`predict_many`); with ``pbl`` a sample may
+    first retrain the model, so each sample waits for the one before."""
+    return isinstance(learner, WellLearner) and (
+        type(learner.method).retrain_due is LearningMethod.retrain_due
+    )
 
 
 def _run_waiting(

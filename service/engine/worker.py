@@ -41,6 +41,7 @@ from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import Prediction
+from vfm_core.streaming import model_fixed_when_predicting
 from vfm_core.timeutil import iso, to_ns
 
 __all__ = ["Workers"]
@@ -141,9 +142,12 @@ class Workers:
             self.flush(b)
 
     def _handle(self, item: Item, b: Batch) -> None:
-        if not isinstance(item, SensorItem) or item.well in b.sample_wells:
+        if not isinstance(item, SensorItem) or (
+            item.well in b.sample_wells and not b.sample_wells[item.well]
+        ):
             # the samples taken so far are predicted first: this item may change their
-            # wells' models (a measurement, a model change), or is the next sample of one
+            # wells' models (a measurement, a model change), or is the next sample of a
+            # well whose model may change at its next sample (a scheduled retrain)
             self._predict_samples(b)
         try:
             if isinstance(item, ModelStep):
@@ -265,29 +269,36 @@ class Workers:
         sample = item.sample
         t = to_ns(sample.time)
         inputs = tuple(sample.inputs())
-        if st.last_time_ns is not None and t <= st.last_time_ns:
-            if t == st.last_time_ns and inputs == st.last_inputs:
+        # the well's previous sample: one taken in this batch, else the last one stored
+        last_ns, last_inputs = b.sample_last.get(item.well, (st.last_time_ns, st.last_inputs))
+        if last_ns is not None and t <= last_ns:
+            if t == last_ns and inputs == last_inputs:
                 error: ServiceError = Duplicate(
                     f"The sample of {item.well} at {iso(t)} arrived before.", "duplicate"
                 )
             else:
                 error = InvalidRequest(
                     f"The sample of {item.well} at {iso(t)} is not after the well's previous sample at "
-                    f"{iso(st.last_time_ns)}; samples of a well must arrive in time order.",
+                    f"{iso(last_ns)}; samples of a well must arrive in time order.",
                     "time going backwards",
                 )
             refuse(self.counters, error, item.well, b)
             return
         b.samples.append((st, item, t, inputs))
-        b.sample_wells.add(item.well)
+        # another sample of the well may join the call unless its model can change first:
+        # a scheduled retrain (pbl), or a measurement this sample settles and learns
+        b.sample_wells[item.well] = not st.pending and model_fixed_when_predicting(st.learner)
+        b.sample_last[item.well] = (t, inputs)
 
     def _predict_samples(self, b: Batch) -> None:
-        """Second pass: predict every admitted sample of the batch in one call (at most one
-        per well: a well's next sample waits for the call), then store and publish each."""
+        """Second pass: predict every admitted sample of the batch in one call, then store
+        and publish each in order. A well may have several (its model cannot change while
+        predicting, ``ol`` or ``bayes``); with scheduled retrains (``pbl``) a well's next
+        sample waits for this call."""
         if not b.samples:
             return
         taken = b.samples
-        b.samples, b.sample_wells = [], set()
+        b.samples, b.sample_wells, b.sample_last = [], {}, {}
         try:
             answers = self.learning.predict_many(
                 [st for st, _, _, _ in taken],
