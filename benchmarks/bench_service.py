@@ -428,9 +428,11 @@ def run_engine(
                 if not bus.matching(f"{settings.prefix}/{names[0]}/sensors", 30.0):
                     raise RuntimeError("The engine does not receive.")
                 unsubscribe = bus.subscribe(f"{settings.prefix}/**", on_prediction)
-                t0_wall = datetime.now(UTC).replace(microsecond=0) - timedelta(hours=2)
                 # the payloads are made before the clock starts: this measures the service
                 per_well = max(1, burst // wells)
+                t0_wall = datetime.now(UTC).replace(microsecond=0) - timedelta(
+                    seconds=per_well + 3600
+                )
                 total[0] = per_well * len(names)
                 messages: list[tuple[str, bytes]] = []
                 for step in range(per_well):
@@ -455,7 +457,9 @@ def run_engine(
                     main_prof.enable()
                 for key, payload in messages:
                     bus.put(key, payload)
-                done.wait(600)
+                seen = -1
+                while not done.wait(10.0) and got[0] != seen:  # stop when nothing moves
+                    seen = got[0]
                 elapsed = time.perf_counter() - t1
                 if profile:
                     main_prof.disable()
