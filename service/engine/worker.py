@@ -14,7 +14,13 @@ waited too long for their sample.
 A sensor sample is handled here: refused if it is not after the well's previous one
 (``duplicate`` or ``time going backwards``), else predicted, stored with its prediction
 (and its interval, with a method that gives one), published, and the measurements waiting
-for it are settled. The first message of a new well builds the well here, on its worker
+for it are settled. The samples of a batch are predicted together: each is checked as it
+is taken, then all those taken are predicted in one call
+(:func:`vfm_core.streaming.predict_many`: the wells' models stacked into one model call),
+then each is stored and published in arrival order. Anything else (a measurement, a model
+change, a retirement) first has the samples before it predicted, and so does a well's next
+sample when its model may change at that sample (a scheduled retrain, or a measurement
+waiting for the sample before); so each well sees exactly the order of one-by-one handling. The first message of a new well builds the well here, on its worker
 (never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
 well after everything queued for it before (``DELETE /wells/{well}``).
 """
