@@ -191,6 +191,17 @@ def test_other_learners_answer_through_their_own_predict_and_errors_stay_in_plac
     assert isinstance(got[2], RuntimeError)  # two inputs instead of six
     with pytest.raises(RuntimeError):
         predict_many([learners[1]], [[1.0, 2.0]], [when])
+
+    # a subclass with its own predict answers through it (e.g. an interval added)
+    class Wrapped(WellLearner):
+        def predict(self, inputs: Any, when: datetime | None = None) -> dict[str, float | None]:
+            return {**super().predict(inputs, when), "q_total_std": 1.0}
+
+    wrapped = Wrapped("W01", "mm", "ol")
+    wrapped.__dict__.update(copy.deepcopy(learners[0]).__dict__)
+    (answer,) = predict_many([wrapped], [x], [when])
+    assert isinstance(answer, dict) and answer["q_total_std"] == 1.0
+    assert not streaming.model_fixed_when_predicting(wrapped)
     with pytest.raises(ValueError, match="one input row and one time per learner"):
         predict_many([learners[0], learners[1]], [x], [when])
 

@@ -639,6 +639,10 @@ class WellLearner:
         return learner
 
 
+#: :meth:`WellLearner.predict` as defined here (a subclass may answer its own way)
+_WELL_PREDICT = WellLearner.predict
+
+
 # -- many wells' predictions in one call ----------------------------------------------------------
 Rates = dict[str, float | None]
 
@@ -668,8 +672,8 @@ def predict_many(
     one-by-one answers (to rounding, 1e-12 relative). A learner may come more than once
     (a well's consecutive samples): if its next sample may change its model (a scheduled
     retrain, see :func:`model_fixed_when_predicting`), what waits is predicted first.
-    Anything else that is not a :class:`WellLearner` (or cannot be stacked) answers
-    through its own ``predict``.
+    Anything else (not a :class:`WellLearner`, a subclass with its own ``predict``, a
+    model that cannot be stacked) answers through its own ``predict``.
 
     ``inputs``: each sample's six inputs in file units; ``whens``: each sample's time (or
     None). With ``return_exceptions`` a learner that fails gets its exception in its place
@@ -691,7 +695,7 @@ def predict_many(
             _run_waiting(waiting, results)
             waiting, seen = [], set()
         try:
-            if isinstance(learner, WellLearner):
+            if _batchable(learner):
                 out, row = learner._prepare(inputs[i], when)
                 if row is None:
                     results[i] = out
@@ -717,9 +721,13 @@ def model_fixed_when_predicting(learner: Any) -> bool:
     method has no scheduled retrains (``ol``, ``bayes``). Several samples of such a well
     can then be predicted in one call (:func:`predict_many`); with ``pbl`` a sample may
     first retrain the model, so each sample waits for the one before."""
-    return isinstance(learner, WellLearner) and (
-        type(learner.method).retrain_due is LearningMethod.retrain_due
-    )
+    return _batchable(learner) and (type(learner.method).retrain_due is LearningMethod.retrain_due)
+
+
+def _batchable(learner: Any) -> bool:
+    """A :class:`WellLearner` that predicts with :meth:`WellLearner.predict` itself (not a
+    subclass's own, nor a replacement): its steps can be split around one model call."""
+    return isinstance(learner, WellLearner) and type(learner).predict is _WELL_PREDICT
 
 
 def _run_waiting(
