@@ -18,10 +18,17 @@ a second) -- or, with ``--flood-kind names``, a stream of new well names. Figure
 good well's latency (send to prediction) before and during the flood, p50 / p99 / max, and
 what the flood got (sent, accepted, refused by reason).
 
+In-process (``--scenario engine``): the engine with the in-memory transport in this one
+process, no Zenoh and no second process: ``--burst`` samples of ``--wells`` wells (and
+their measurements) put as fast as the receive queue takes them; the rate at which their
+predictions are published is the process's own cost per sample. ``--profile N`` prints the
+N most expensive functions of every thread (cProfile per thread).
+
 Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--wells 100,1000] [--seconds 30] [--burst 20000]
     .venv/bin/python benchmarks/bench_service.py --scenario flood [--flood-kind samples|names]
+    .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 [--profile 30]
 """
 
 from __future__ import annotations
@@ -362,6 +369,130 @@ synchronous = "normal"
     }
 
 
+def run_engine(
+    wells: int, burst: int, measure_every_s: float, history_rows: int, profile: int, queues: str
+) -> dict[str, Any]:
+    """The engine in this process with the in-memory transport (see the module docstring)."""
+    import cProfile
+    import io
+    import pstats
+    import threading
+
+    from service.app import Service
+    from service.testing import loopback_settings
+    from service.transport import MemoryTransport
+
+    try:
+        import tomllib
+
+        extra_queues = tomllib.loads(queues) if queues else {}
+    except Exception as exc:  # pragma: no cover - a typo in --queues
+        raise SystemExit(f"--queues is not TOML: {exc}") from None
+    with tempfile.TemporaryDirectory(prefix="vfm-bench-engine-") as tmp:
+        folder = Path(tmp)
+        history, inputs = make_history(folder, wells, history_rows)
+        settings = loopback_settings(
+            folder,
+            model={"name": "mm", "method": "ol", "history": str(history)},
+            queues=extra_queues,
+        )
+        bus = MemoryTransport(settings.prefix, capacity=4096, keep=16)
+        service = Service(settings, bus)
+        profiles: list[cProfile.Profile] = []
+
+        def start_profile(*_: Any) -> None:  # each new thread profiles itself
+            prof = cProfile.Profile()
+            profiles.append(prof)
+            prof.enable()
+
+        if profile:
+            threading.setprofile(start_profile)
+        started = time.perf_counter()
+        service.start()
+        startup = time.perf_counter() - started
+        names = sorted(inputs)
+        got = [0]
+        done = threading.Event()
+        lock = threading.Lock()
+
+        def on_prediction(key: str, payload: bytes) -> None:
+            with lock:
+                got[0] += 1
+                if got[0] >= total[0]:
+                    done.set()
+
+        total = [burst]
+
+        try:
+            if True:  # no field client: its own parsing of predictions would run on the worker
+                if not bus.matching(f"{settings.prefix}/{names[0]}/sensors", 30.0):
+                    raise RuntimeError("The engine does not receive.")
+                unsubscribe = bus.subscribe(f"{settings.prefix}/**", on_prediction)
+                # the payloads are made before the clock starts: this measures the service
+                per_well = max(1, burst // wells)
+                t0_wall = datetime.now(UTC).replace(microsecond=0) - timedelta(
+                    seconds=per_well + 3600
+                )
+                total[0] = per_well * len(names)
+                messages: list[tuple[str, bytes]] = []
+                for step in range(per_well):
+                    when = t0_wall + timedelta(seconds=step)
+                    for j, name in enumerate(names):
+                        row = inputs[name][step % len(inputs[name])]
+                        sample = sample_of(when, row[:6])
+                        messages.append(
+                            (f"{settings.prefix}/{name}/sensors", sample.model_dump_json().encode())
+                        )
+                        if (step + j) % int(measure_every_s) == 0:
+                            m = Measurement(time=when, q_total=float(row[6]))
+                            messages.append(
+                                (
+                                    f"{settings.prefix}/{name}/measurements/mpfm",
+                                    m.model_dump_json().encode(),
+                                )
+                            )
+                t1 = time.perf_counter()
+                if profile:
+                    main_prof = cProfile.Profile()
+                    main_prof.enable()
+                for key, payload in messages:
+                    bus.put(key, payload)
+                seen = -1
+                while not done.wait(10.0) and got[0] != seen:  # stop when nothing moves
+                    seen = got[0]
+                elapsed = time.perf_counter() - t1
+                if profile:
+                    main_prof.disable()
+                    threading.setprofile(None)  # type: ignore[arg-type]
+                unsubscribe()
+        finally:
+            service.stop()
+        snap = service.counters.snapshot()
+    out: dict[str, Any] = {
+        "wells": wells,
+        "startup_s": startup,
+        "sent": total[0],
+        "received": got[0],
+        "elapsed_s": elapsed,
+        "rate": got[0] / elapsed,
+        "accepted": snap["accepted"],
+        "rejected": snap["rejected"],
+    }
+    if profile:
+        buf = io.StringIO()
+        stats = pstats.Stats(main_prof, stream=buf)
+        for prof in profiles:
+            try:
+                prof.disable()
+            except Exception:  # noqa: S110 - a thread that ended
+                pass
+            stats.add(prof)
+        stats.sort_stats("tottime").print_stats(profile)
+        stats.sort_stats("cumulative").print_stats(profile)
+        out["profile"] = buf.getvalue()
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -377,13 +508,38 @@ def main() -> None:
     parser.add_argument(
         "--history-rows", type=int, default=60, help="history rows per well for the initial fit"
     )
-    parser.add_argument("--scenario", default="load", choices=["load", "flood"])
+    parser.add_argument("--scenario", default="load", choices=["load", "flood", "engine"])
+    parser.add_argument(
+        "--profile", type=int, default=0, help="engine: print the N costliest functions"
+    )
     parser.add_argument("--flood-kind", default="samples", choices=["samples", "names"])
     parser.add_argument("--flood-seconds", type=float, default=10.0)
     parser.add_argument(
         "--queues", default="", help="TOML lines for [queues], e.g. 'receive_capacity = 256'"
     )
     args = parser.parse_args()
+    if args.scenario == "engine":
+        print(
+            "vfm engine in this process (in-memory transport, no Zenoh): mm + ol, "
+            f"{args.burst:,} samples put as fast as the receive queue takes them."
+        )
+        for wells in [int(w) for w in args.wells.split(",")]:
+            r = run_engine(
+                wells,
+                args.burst,
+                args.measure_every,
+                args.history_rows,
+                args.profile,
+                args.queues,
+            )
+            print(
+                f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s): {r['sent']:,} samples, "
+                f"{r['received']:,} predictions published in {r['elapsed_s']:.2f} s = "
+                f"{r['rate']:,.0f} samples/s; accepted {r['accepted']}, refused {r['rejected']}"
+            )
+            if "profile" in r:
+                print(r["profile"])
+        return
     if args.scenario == "flood":
         f = run_flood(args.flood_kind, 5.0, args.flood_seconds, 0.05, args.queues)
         print(

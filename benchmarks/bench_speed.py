@@ -12,12 +12,15 @@ Prints the median cost per call (microseconds) of:
 (d) one ``bayes`` update and one prediction of ``mm`` and ``ham``, one well;
 (e) the same update of N wells in one batched call (the study's rounds, a service's batch),
     as the cost per well-update;
+(f) the service's prediction path: ``WellLearner.predict`` of one well (features, retrains
+    due, the model), and ``predict_many`` of N wells' learners in one call, per well;
 
 and each one's ratio to (a). Read the ratios: the machine may be shared. Each figure is
 the median over ``--calls`` calls on a simulated well's stream after a short fit (every
 call learns from the next measurement, as in the study), after ``--warmup`` calls.
 
     python benchmarks/bench_speed.py [--wells 10,100] [--calls 300] [--models mm,hem,ham]
+        [--streaming-wells 100,1000]
 
 One torch thread (as the ``vfm`` command and the service run).
 """
@@ -146,6 +149,54 @@ def learner_cost(
     return update, predict
 
 
+def streaming_cost(
+    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
+) -> tuple[float, float]:
+    """Median cost of ``WellLearner.predict`` (one well) and of ``predict_many`` over
+    ``n_wells`` learners, per well, us (every call one sample later)."""
+    import copy
+
+    import pandas as pd
+
+    from vfm_core.streaming import WellLearner, predict_many
+
+    wells = wells_of(frame)
+    rows = frame[(frame["well"] == wells[0]) & frame[TARGET].notna()]
+    hist = rows.iloc[:HISTORY]
+    learner = WellLearner(
+        "W",
+        model_name,
+        method_text,
+        train=replace(DEFAULT_TRAIN[model_name], max_iter=100, early_stopping=False),
+    )
+    learner.fit_history(
+        torch.tensor(hist[list(INPUT_COLUMNS)].to_numpy(dtype=float)),
+        torch.tensor(hist[TARGET].to_numpy(dtype=float)),
+        torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
+    )
+    live = rows.iloc[HISTORY:]
+    xs = live[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
+    t0 = pd.Timestamp(hist["time"].max())
+
+    def when(k: int) -> pd.Timestamp:
+        return t0 + pd.Timedelta(seconds=k + 1)
+
+    one = _median_us(
+        [lambda k=k: learner.predict(xs[k % len(xs)], when=when(k)) for k in range(calls)],
+        warmup,
+    )
+    many = [copy.deepcopy(learner) for _ in range(n_wells)]
+    per_call = max(5, calls // 10)  # a call covers every well: fewer calls
+    batched = _median_us(
+        [
+            lambda k=k: predict_many(many, [xs[k % len(xs)]] * n_wells, [when(calls + k)] * n_wells)
+            for k in range(per_call + 2)
+        ],
+        2,
+    )
+    return one, batched / n_wells
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--wells", default="10,100", help="batched well counts, e.g. 10,100")
@@ -154,6 +205,9 @@ def main() -> None:
     parser.add_argument("--models", default="mm,hem,ham", help="models run with ol")
     parser.add_argument("--bayes-models", default="mm,ham", help="models run with bayes")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--streaming-wells", default="100,1000", help="(f): wells per predict_many call"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
@@ -194,11 +248,24 @@ def main() -> None:
                 )
             )
 
+    streaming = []
+    for model_name, method_text in jobs:
+        for n_wells in [int(w) for w in args.streaming_wells.split(",") if w]:
+            one_us, many_us = streaming_cost(
+                frame, model_name, method_text, n_wells, n_calls, args.warmup
+            )
+            streaming.append((model_name, method_text, n_wells, one_us, many_us))
+
     print(f"\nmedian of {args.calls} calls, microseconds; ratio = (a) / this (higher is cheaper)")
     print(f"{'':<62} {'update us':>10} {'(a)/update':>10} {'predict us':>11}")
     for what, update, predict in rows:
         pred = "" if predict is None else f"{predict:11.1f}"
         print(f"{what:<62} {update:10.1f} {naive / update:10.2f} {pred:>11}")
+    print("\n(f) the service's prediction path, microseconds per sample")
+    print(f"{'':<40} {'predict, 1 well':>16} {'predict_many, per well':>24} {'ratio':>7}")
+    for model_name, method_text, n_wells, one_us, many_us in streaming:
+        label = f"{model_name} {method_text}, {n_wells} wells per call"
+        print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
     if not isinstance(river, str):
         print(f"\nriver predict+learn: {river:.1f} us; prediction / that, per row above:")
         for what, _, predict in rows:

@@ -596,17 +596,33 @@ class Store:
         return con
 
     # -- writing ------------------------------------------------------------------------
-    def write(self, ops: Sequence[Op]) -> list[int]:
-        """Run the operations in one transaction; rowcounts per op."""
+    def write(self, ops: Sequence[Op]) -> int:
+        """Run the operations in one transaction, in order; the number of rows they changed.
+
+        Consecutive operations of the same statement (a batch's samples) run as one
+        ``executemany``: the same rows, without a call per row."""
         if not ops:
-            return []
-        counts: list[int] = []
+            return 0
+        changed = 0
         with self._lock:
             con = self._writer
             con.execute("BEGIN IMMEDIATE")
             try:
-                for op in ops:
-                    counts.append(con.execute(op.statement(), op.params()).rowcount)
+                i, n = 0, len(ops)
+                while i < n:
+                    statement = ops[i].statement()
+                    j = i + 1
+                    while (
+                        j < n and type(ops[j]) is type(ops[i]) and ops[j].statement() == statement
+                    ):
+                        j += 1
+                    if j - i == 1:
+                        changed += con.execute(statement, ops[i].params()).rowcount
+                    else:
+                        changed += con.executemany(
+                            statement, [op.params() for op in ops[i:j]]
+                        ).rowcount
+                    i = j
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
@@ -616,7 +632,7 @@ class Store:
                 self.on_commit(ops)
             except Exception as exc:  # pragma: no cover - what is committed stays committed
                 logger.warning("The commit observer failed: %s", exc)
-        return counts
+        return changed
 
     def close(self) -> None:
         with self._lock:

@@ -19,8 +19,10 @@ that :meth:`WellLearner.restore` reads back with ``torch.load(weights_only=True)
 
 from __future__ import annotations
 
+import copy
 import io
 import json
+import threading
 from collections.abc import Sequence
 from dataclasses import replace
 from datetime import datetime
@@ -36,6 +38,8 @@ from vfm_core.features import FeatureTracker
 from vfm_core.learning import (
     DEFAULT_ONLINE,
     DEFAULT_TRAIN,
+    BayesianFilter,
+    Forecast,
     LearningMethod,
     OnlineSettings,
     TrainSettings,
@@ -45,11 +49,20 @@ from vfm_core.learning import (
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
 
-__all__ = ["WellLearner", "phase_split", "PARAMETER_UNITS", "CHECKPOINT_FORMATS"]
+__all__ = [
+    "WellLearner",
+    "predict_many",
+    "model_fixed_when_predicting",
+    "phase_split",
+    "PARAMETER_UNITS",
+    "CHECKPOINT_FORMATS",
+]
 
 PARAMETER_UNITS: dict[str, str] = {name: p.unit for name, p in ph.PRIORS.items()} | {"a_max": "m2"}
 #: the checkpoint formats :meth:`WellLearner.restore` reads (the first writes today's)
 CHECKPOINT_FORMATS = ("vfm-well-learner/3", "vfm-well-learner/2", "vfm-well-learner/1")
+#: the keys of :meth:`WellLearner.predict`'s answer, in order
+_ANSWER_KEYS = ("q_total", "q_gas", "q_oil", "q_water", "q_total_std", "q_total_p05", "q_total_p95")
 
 
 def phase_split(
@@ -81,6 +94,23 @@ def phase_split(
         "q_oil": q_total * oil / total,
         "q_water": q_total * wat / total,
     }
+
+
+#: one prepared sample: its six inputs, its time (epoch ns) and the model's feature columns
+_Row = tuple[list[float], int, list[float]]
+
+
+def _six(inputs: Sequence[float] | torch.Tensor) -> list[float]:
+    """A sample's six inputs as floats (the same numbers ``torch.as_tensor`` would hold)."""
+    try:
+        values = inputs.reshape(-1).tolist() if isinstance(inputs, torch.Tensor) else inputs
+        x = [float(v) for v in values]
+    except (TypeError, ValueError):
+        x = []
+    if len(x) != 6:  # the tensor's own error says what is wrong
+        torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 1, 6)
+        raise ValueError(f"A sample needs six inputs; got {inputs!r}.")
+    return x
 
 
 def _single(
@@ -292,41 +322,61 @@ class WellLearner:
         retrain retrains first (on everything learned before that time), so the calendar of
         retrains matches ``vfm evaluate``.
         """
-        x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 1, 6)
+        out, row = self._prepare(inputs, when)
+        if row is None:
+            return out
+        return self._answer(out, self.method.predict(self._batch_of(row)), row[0], 0)
+
+    def _prepare(
+        self, inputs: Sequence[float] | torch.Tensor, when: datetime | None
+    ) -> tuple[dict[str, float | None], _Row | None]:
+        """The side effects of :meth:`predict` before the model runs, in its order: the
+        sample's features, then the retrains due. Returns the answer to fill and the sample
+        as plain numbers (None while the model is not ready): inputs, time (ns, 0 for
+        none) and the model's feature columns."""
+        x = _six(inputs)
         ts = None if when is None else utc_timestamp(when)
         # the sample's features (a sample without a time sits at the latest one)
         at = self.features.last_ns if ts is None else ts.value
-        eta = x[0, 0, 4:6].tolist()
         feats = (
             [0.0] * len(FeatureTracker.names)
             if at is None
-            else self.features.advance(int(at), float(eta[0]), float(eta[1]))
+            else self.features.advance(int(at), x[4], x[5])
         )
-        if ts is not None:
-            self._retrains_due(ts)
-        out: dict[str, float | None] = dict.fromkeys(
-            ("q_total", "q_gas", "q_oil", "q_water", "q_total_std", "q_total_p05", "q_total_p95")
-        )
+        if ts is not None and type(self.method).retrain_due is not LearningMethod.retrain_due:
+            self._retrains_due(ts)  # (the base method never retrains: nothing to run)
+        out: dict[str, float | None] = dict.fromkeys(_ANSWER_KEYS)
         if not self.ready:
-            return out
+            return out, None
         # the best estimate of the true rate: the sample as if a well test measured it
-        batch = _single(
-            x,
+        return out, (x, 0 if at is None else int(at), [feats[c] for c in self._cols])
+
+    def _batch_of(self, row: _Row) -> Batch:
+        """One prepared sample as a one-well batch (as a well test, see :meth:`predict`)."""
+        x, at, extra = row
+        return _single(
+            torch.tensor(x, dtype=DTYPE),
             0.0,
-            0 if at is None else int(at),
+            at,
             True,
-            torch.tensor(feats, dtype=DTYPE)[self._cols],
+            torch.tensor(extra, dtype=DTYPE),
             tuple(self.model.extra_columns),
         )
-        forecast = self.method.predict(batch)
-        q = forecast.mean
+
+    @staticmethod
+    def _answer(
+        out: dict[str, float | None], forecast: Forecast, x: list[float], row: int
+    ) -> dict[str, float | None]:
+        """Fill ``out`` from row ``row`` of ``forecast`` ([W, 1]) for the sample's inputs ``x``."""
+        q = forecast.mean[row : row + 1]
+        xt = torch.tensor(x, dtype=DTYPE).reshape(1, 1, 6)
         out["q_total"] = float(q[0, 0])
-        out.update({k: float(v[0, 0]) for k, v in phase_split(q, x).items()})
+        out.update({k: float(v[0, 0]) for k, v in phase_split(q, xt).items()})
         if forecast.std is not None:
-            out["q_total_std"] = float(forecast.std[0, 0])
+            out["q_total_std"] = float(forecast.std[row, 0])
         if forecast.p05 is not None and forecast.p95 is not None:
-            out["q_total_p05"] = float(forecast.p05[0, 0])
-            out["q_total_p95"] = float(forecast.p95[0, 0])
+            out["q_total_p05"] = float(forecast.p05[row, 0])
+            out["q_total_p95"] = float(forecast.p95[row, 0])
         return out
 
     def learn(
@@ -587,3 +637,288 @@ class WellLearner:
             learner.memory.load({"x": x, "y": y, "t": t, "w": w, "e": e})
             learner.features = tracker
         return learner
+
+
+#: :meth:`WellLearner.predict` as defined here (a subclass may answer its own way)
+_WELL_PREDICT = WellLearner.predict
+
+
+# -- many wells' predictions in one call ----------------------------------------------------------
+Rates = dict[str, float | None]
+
+#: a sample waiting for its group's model call: its place, learner, answer and row
+_Waiting = tuple[int, "WellLearner", Rates, _Row]
+
+#: the per-well state of ``bayes`` its predictions read (leading dimension: the well)
+_BAYES_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
+
+
+def predict_many(
+    learners: Sequence[Any],
+    inputs: Sequence[Sequence[float] | torch.Tensor],
+    whens: Sequence[datetime | None] | None = None,
+    *,
+    return_exceptions: bool = False,
+) -> list[Rates | BaseException]:
+    """``[learner.predict(x, when) for ...]``, with the models of many wells run in one call.
+
+    For a service that answers samples of many wells that arrive together. Each
+    learner's side effects run as in :meth:`WellLearner.predict`, in the order given: the
+    sample's features, then the retrains due (a ``pbl`` retrain due at a sample runs
+    before its prediction). The learners whose models have the same class and
+    hyperparameters, and whose method predicts with the model alone (``ol``, ``pbl``,
+    ``pbl:auto``) or is ``bayes`` with the same settings, then share one model call: their
+    per-well parameters are stacked into one multi-well state. The answers equal the
+    one-by-one answers (to rounding, 1e-12 relative). A learner may come more than once
+    (a well's consecutive samples): if its next sample may change its model (a scheduled
+    retrain, see :func:`model_fixed_when_predicting`), what waits is predicted first.
+    Anything else (not a :class:`WellLearner`, a subclass with its own ``predict``, a
+    model that cannot be stacked) answers through its own ``predict``.
+
+    ``inputs``: each sample's six inputs in file units; ``whens``: each sample's time (or
+    None). With ``return_exceptions`` a learner that fails gets its exception in its place
+    in the list (the others are still answered); otherwise the first error is raised.
+    """
+    n = len(learners)
+    if len(inputs) != n or (whens is not None and len(whens) != n):
+        raise ValueError(
+            f"predict_many needs one input row and one time per learner; got {n} learners, "
+            f"{len(inputs)} input rows and {'no' if whens is None else len(whens)} times."
+        )
+    results: list[Rates | BaseException | None] = [None] * n
+    waiting: list[_Waiting] = []
+    seen: set[int] = set()
+    for i, learner in enumerate(learners):
+        when = None if whens is None else whens[i]
+        if id(learner) in seen and not model_fixed_when_predicting(learner):
+            # its next sample may retrain it: answer what is waiting first
+            _run_waiting(waiting, results)
+            waiting, seen = [], set()
+        try:
+            if _batchable(learner):
+                out, row = learner._prepare(inputs[i], when)
+                if row is None:
+                    results[i] = out
+                else:
+                    waiting.append((i, learner, out, row))
+                    seen.add(id(learner))
+            else:
+                results[i] = learner.predict(inputs[i], when=when)
+        except Exception as exc:
+            if not return_exceptions:
+                raise
+            results[i] = exc
+    _run_waiting(waiting, results)
+    if not return_exceptions:
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+    return results  # type: ignore[return-value]
+
+
+def model_fixed_when_predicting(learner: Any) -> bool:
+    """True when predicting cannot change ``learner``'s model: a :class:`WellLearner` whose
+    method has no scheduled retrains (``ol``, ``bayes``). Several samples of such a well
+    can then be predicted in one call (:func:`predict_many`); with ``pbl`` a sample may
+    first retrain the model, so each sample waits for the one before."""
+    return _batchable(learner) and (type(learner.method).retrain_due is LearningMethod.retrain_due)
+
+
+def _batchable(learner: Any) -> bool:
+    """A :class:`WellLearner` that predicts with :meth:`WellLearner.predict` itself (not a
+    subclass's own, nor a replacement): its steps can be split around one model call."""
+    return isinstance(learner, WellLearner) and type(learner).predict is _WELL_PREDICT
+
+
+def _run_waiting(
+    waiting: list[_Waiting],
+    results: list[Rates | BaseException | None],
+) -> None:
+    """Predict the prepared samples, one model call per group of stackable learners."""
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for k, (_, learner, _, _) in enumerate(waiting):
+        key = _group_key(learner)
+        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    for key, members in groups.items():
+        if len(members) > 1 and key[0] != "alone":
+            try:
+                _predict_group([waiting[k] for k in members], results)
+                continue
+            except Exception:  # noqa: S112 - the one-by-one path below says what failed
+                pass
+        for k in members:
+            i, learner, out, row = waiting[k]
+            try:
+                forecast = learner.method.predict(learner._batch_of(row))
+                results[i] = learner._answer(out, forecast, row[0], 0)
+            except Exception as exc:
+                results[i] = exc
+
+
+def _group_key(learner: WellLearner) -> tuple[Any, ...] | None:
+    """What learners must share to be predicted in one call; None: never stacked (kept
+    on the learner while its model and method objects stay the same)."""
+    method, model = learner.method, learner.model
+    q = getattr(method, "_q", None)  # bayes: the drift its intervals use
+    cached = learner.__dict__.get("_group")
+    if cached is not None and cached[0] is method and cached[1] is model and cached[2] is q:
+        return cached[3]  # type: ignore[no-any-return]
+    key = _compute_group_key(learner)
+    learner.__dict__["_group"] = (method, model, q, key)
+    return key
+
+
+def _compute_group_key(learner: WellLearner) -> tuple[Any, ...] | None:
+    method, model = learner.method, learner.model
+    predict = type(method).predict
+    if predict is LearningMethod.predict:
+        how: tuple[Any, ...] = ("model",)
+    elif isinstance(method, BayesianFilter) and predict is BayesianFilter.predict:
+        if model.gradient_free or method._dim == 0:
+            how = ("model",)
+        else:
+            how = ("bayes", method.text, tuple(method._q.tolist()))
+    else:
+        return None
+    return (
+        type(model),
+        learner.model_name,
+        json.dumps(learner.effects),
+        json.dumps(learner.model_kwargs, sort_keys=True, default=str),
+        tuple(model.extra_columns),
+        *how,
+    )
+
+
+class _Stacked(torch.nn.Module):
+    """A model of the group's class for many wells, called with the wells' stacked tensors."""
+
+    def __init__(self, learner: WellLearner) -> None:
+        super().__init__()
+        one = learner.model
+        self.model = make_model(
+            learner.model_name,
+            ["well 1", "well 2"],
+            seed=learner.seed,
+            effects=list(learner.effects),
+            **learner.model_kwargs,
+        )
+        mine = dict(one.named_parameters()) | dict(one.named_buffers())
+        two = dict(self.model.named_parameters()) | dict(self.model.named_buffers())
+        if set(mine) != set(two):
+            raise ValueError(f"The model {one.name} cannot be rebuilt with the same tensors.")
+        #: tensors with a leading well dimension: (name, path to their module, attribute)
+        self.per_well: list[tuple[str, tuple[str, ...], str, bool]] = []
+        #: tensors shared by every well of the model (e.g. the priors), taken from the first
+        self.shared: list[tuple[str, tuple[str, ...], str, bool]] = []
+        params = dict(one.named_parameters())
+        for name, t in mine.items():
+            t2 = two[name]
+            *path, attr = name.split(".")
+            where = (name, tuple(path), attr, name in params)
+            if t.dim() > 0 and t.shape[0] == 1 and t2.shape[0] == 2 and t.shape[1:] == t2.shape[1:]:
+                self.per_well.append(where)
+            elif t.shape == t2.shape:
+                self.shared.append(where)
+            else:
+                raise ValueError(f"The tensor {name} of {one.name} has no well dimension.")
+
+    @staticmethod
+    def _tensor(model: torch.nn.Module, path: tuple[str, ...], attr: str, is_param: bool) -> Any:
+        for p in path:
+            model = model._modules[p]  # type: ignore[assignment]
+        return model._parameters[attr] if is_param else model._buffers[attr]
+
+    def state_of(self, models: list[ChokeModel]) -> dict[str, torch.Tensor]:
+        """The models' tensors stacked along the well dimension (shared ones from the first)."""
+        get = self._tensor
+        state = {
+            f"model.{name}": torch.cat([get(m, path, attr, is_param) for m in models], 0)
+            for name, path, attr, is_param in self.per_well
+        }
+        for name, path, attr, is_param in self.shared:
+            state[f"model.{name}"] = get(models[0], path, attr, is_param)
+        return state
+
+    def forward(self, batch: Batch) -> torch.Tensor:
+        return self.model.predict_batch(batch)
+
+
+class _Mean:
+    """Stands in for a model inside a stacked ``bayes``: the mean is already computed."""
+
+    gradient_free = False
+
+    def __init__(self, mean: torch.Tensor) -> None:
+        self.mean = mean
+
+    def predict_batch(self, batch: Batch) -> torch.Tensor:
+        return self.mean
+
+
+_local = threading.local()
+
+
+def _stacked(learner: WellLearner, key: tuple[Any, ...]) -> _Stacked | None:
+    """The cached multi-well model for a group (one per thread: calls swap its tensors);
+    None for a model that cannot be rebuilt for many wells."""
+    cache: dict[tuple[Any, ...], _Stacked | None] | None = getattr(_local, "stacked", None)
+    if cache is None:
+        cache = _local.stacked = {}
+    if key[:5] not in cache:
+        if len(cache) >= 64:  # many model specifications in one process: start again
+            cache.clear()
+        try:
+            cache[key[:5]] = _Stacked(learner)
+        except Exception:
+            cache[key[:5]] = None
+    return cache[key[:5]]
+
+
+def _predict_group(members: list[_Waiting], results: list[Rates | BaseException | None]) -> None:
+    """One model call for learners of one group (see :func:`_group_key`)."""
+    first = members[0][1]
+    key = _group_key(first)
+    assert key is not None
+    stacked = _stacked(first, key)
+    if stacked is None:
+        raise ValueError(f"The model {first.name} cannot be stacked.")
+    k = len(members)
+    rows = [m[3] for m in members]
+    # as the one-sample batches of WellLearner._batch_of, one row per well
+    batch = Batch(
+        [m[1].well for m in members],
+        torch.tensor([[r[0]] for r in rows], dtype=DTYPE),
+        torch.zeros(k, 1, dtype=DTYPE),
+        torch.ones(k, 1, dtype=torch.bool),
+        torch.tensor([[r[1]] for r in rows], dtype=torch.int64),
+        torch.zeros(k, 1, dtype=torch.int64),
+        torch.ones(k, 1, dtype=torch.bool),
+        torch.tensor([[r[2]] for r in rows], dtype=DTYPE).reshape(k, 1, -1),
+        tuple(first.model.extra_columns),
+    )
+    state = stacked.state_of([m[1].model for m in members])
+    stacked.model.wells = batch.wells
+    with torch.no_grad():
+        mean = torch.func.functional_call(stacked, state, (batch,), strict=False)
+    if key[5] == "bayes":
+        method = copy.copy(first.method)
+        for attr in _BAYES_STATE:
+            setattr(method, attr, torch.cat([getattr(m[1].method, attr) for m in members], 0))
+        method._model = _Mean(mean)  # type: ignore[assignment]
+        forecast = method.predict(batch)
+    else:
+        forecast = Forecast(mean)
+    x = batch.x
+    split = phase_split(forecast.mean, x)
+    columns = {"q_total": forecast.mean[:, 0].tolist()}
+    columns.update({name: v[:, 0].tolist() for name, v in split.items()})
+    if forecast.std is not None:
+        columns["q_total_std"] = forecast.std[:, 0].tolist()
+    if forecast.p05 is not None and forecast.p95 is not None:
+        columns["q_total_p05"] = forecast.p05[:, 0].tolist()
+        columns["q_total_p95"] = forecast.p95[:, 0].tolist()
+    for row, (i, _, out, _) in enumerate(members):
+        for name, values in columns.items():
+            out[name] = values[row]
+        results[i] = out

@@ -25,6 +25,7 @@ the span the VFM represents, not before ``inputs.earliest_time``, at most
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 import zlib
@@ -52,6 +53,11 @@ from vfm_core.timeutil import time_problem, to_ns
 __all__ = ["Intake", "worker_of"]
 
 logger = logging.getLogger("vfm.service.engine")
+
+
+#: the keys seen lately and their (well, kind, source): checking a key's well id costs more
+#: than looking it up; a bad key raises and is never kept
+_route = functools.lru_cache(maxsize=16_384)(route_key)
 
 
 def worker_of(well: str, workers: int) -> int:
@@ -82,7 +88,7 @@ class Intake:
         """One inbound message: check, then queue for the well's worker (never learns)."""
         well: str | None = None
         try:
-            well, kind, source = route_key(self.settings.prefix, key)
+            well, kind, source = _route(self.settings.prefix, key)
             if kind == "prediction":
                 # outputs, e.g. of another service instance: not ours to take in
                 self.counters.event("outputs ignored")

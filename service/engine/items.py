@@ -75,12 +75,19 @@ Item = SensorItem | MeasurementItem | ModelStep | RetireStep
 class Batch:
     """What one worker batch writes, publishes and answers (after one commit)."""
 
-    __slots__ = ("ops", "outbox", "answers")
+    __slots__ = ("ops", "outbox", "answers", "samples", "sample_wells", "sample_last")
 
     def __init__(self) -> None:
         self.ops: list[Op] = []
         self.outbox: list[tuple[str, bytes]] = []  # (well, prediction JSON)
         self.answers: list[tuple[Future[Any], Any]] = []  # (future, result or exception)
+        #: sensor samples admitted and waiting for the batch's one prediction call:
+        #: (well state, item, time ns, inputs), in arrival order
+        self.samples: list[tuple[Any, SensorItem, int, tuple[float, ...]]] = []
+        #: the wells among them -> whether another sample of the well may join the call
+        self.sample_wells: dict[str, bool] = {}
+        #: each of those wells' latest admitted sample: (time ns, inputs), for the order check
+        self.sample_last: dict[str, tuple[int, tuple[float, ...]]] = {}
 
     def answer(self, future: Future[Any] | None, result: Any) -> None:
         """Answer ``future`` (if any) with a result or an exception, once the batch is committed."""

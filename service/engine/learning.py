@@ -41,6 +41,7 @@ from service.inputs import Counters
 from service.learning import Learner
 from service.store import InsertDriftEvent, MarkLearned, Op
 from vfm_core.field_learner import FieldWell
+from vfm_core.streaming import predict_many
 from vfm_core.timeutil import from_ns, iso, to_ns
 
 __all__ = ["Learning"]
@@ -122,6 +123,40 @@ class Learning:
         if q_total is None or not math.isfinite(q_total):
             return None
         return rates
+
+    def predict_many(
+        self, states: list[WellState], inputs: list[tuple[float, ...]], whens: list[datetime]
+    ) -> list[Rates | None | BaseException]:
+        """:meth:`predict` for samples of different wells in one model call (see
+        :func:`vfm_core.streaming.predict_many`); a well whose step failed gets its
+        exception in its place."""
+        started = time.monotonic()
+        out: list[Rates | None | BaseException] = [None] * len(states)
+        go: list[int] = []
+        for i, (st, when) in enumerate(zip(states, whens, strict=True)):
+            try:
+                self.catch_up(st.learner, to_ns(when))
+                go.append(i)
+            except Exception as exc:
+                out[i] = exc
+        answers = predict_many(
+            [states[i].learner for i in go],
+            [list(inputs[i]) for i in go],
+            [whens[i] for i in go],
+            return_exceptions=True,
+        )
+        if states:
+            what = (
+                f"A batch of {len(states)} prediction(s) (with their scheduled retrains), the first"
+            )
+            self._timed(states[0], started, what)
+        for i, rates in zip(go, answers, strict=True):
+            if isinstance(rates, BaseException):
+                out[i] = rates
+                continue
+            q_total = rates.get("q_total")
+            out[i] = None if q_total is None or not math.isfinite(q_total) else rates
+        return out
 
     def learn_paired(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
         """Learn from a measurement paired with ``sample``; record it; answer its caller."""

@@ -14,7 +14,13 @@ waited too long for their sample.
 A sensor sample is handled here: refused if it is not after the well's previous one
 (``duplicate`` or ``time going backwards``), else predicted, stored with its prediction
 (and its interval, with a method that gives one), published, and the measurements waiting
-for it are settled. The first message of a new well builds the well here, on its worker
+for it are settled. The samples of a batch are predicted together: each is checked as it
+is taken, then all those taken are predicted in one call
+(:func:`vfm_core.streaming.predict_many`: the wells' models stacked into one model call),
+then each is stored and published in arrival order. Anything else (a measurement, a model
+change, a retirement) first has the samples before it predicted, and so does a well's next
+sample when its model may change at that sample (a scheduled retrain, or a measurement
+waiting for the sample before); so each well sees exactly the order of one-by-one handling. The first message of a new well builds the well here, on its worker
 (never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
 well after everything queued for it before (``DELETE /wells/{well}``).
 """
@@ -41,6 +47,7 @@ from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import Prediction
+from vfm_core.streaming import model_fixed_when_predicting
 from vfm_core.timeutil import iso, to_ns
 
 __all__ = ["Workers"]
@@ -131,6 +138,7 @@ class Workers:
                 if n >= self.batch_max or time.monotonic() - began > self.batch_s:
                     break
                 item = q.get_nowait()
+            self._predict_samples(b)
             now = time.monotonic()
             if now - last_expiry > 0.5:
                 last_expiry = now
@@ -140,6 +148,13 @@ class Workers:
             self.flush(b)
 
     def _handle(self, item: Item, b: Batch) -> None:
+        if not isinstance(item, SensorItem) or (
+            item.well in b.sample_wells and not b.sample_wells[item.well]
+        ):
+            # the samples taken so far are predicted first: this item may change their
+            # wells' models (a measurement, a model change), or is the next sample of a
+            # well whose model may change at its next sample (a scheduled retrain)
+            self._predict_samples(b)
         try:
             if isinstance(item, ModelStep):
                 self.model_changes.on_step(item, b, self.flush)
@@ -151,7 +166,7 @@ class Workers:
             if st is None:
                 return
             if isinstance(item, SensorItem):
-                self._on_sample(st, item, b)
+                self._admit_sample(st, item, b)
             else:
                 self.pairing.on_measurement(st, item, b)
         except Exception as exc:  # one bad message must not stop the worker
@@ -162,7 +177,9 @@ class Workers:
             b.answer(getattr(item, "future", None), exc)
 
     def flush(self, b: Batch) -> None:
-        """Commit the batch, then publish its predictions and answer its callers."""
+        """Predict the samples taken, commit the batch, then publish its predictions and
+        answer its callers."""
+        self._predict_samples(b)
         try:
             self.store.write(b.ops)
         except Exception as exc:
@@ -252,25 +269,74 @@ class Workers:
         )
 
     # -- samples ----------------------------------------------------------------------------
-    def _on_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
+    def _admit_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
+        """First pass: refuse a sample that is not after the well's previous one, else keep
+        it for the batch's one prediction call (:meth:`_predict_samples`)."""
         sample = item.sample
         t = to_ns(sample.time)
         inputs = tuple(sample.inputs())
-        if st.last_time_ns is not None and t <= st.last_time_ns:
-            if t == st.last_time_ns and inputs == st.last_inputs:
+        # the well's previous sample: one taken in this batch, else the last one stored
+        last_ns, last_inputs = b.sample_last.get(item.well, (st.last_time_ns, st.last_inputs))
+        if last_ns is not None and t <= last_ns:
+            if t == last_ns and inputs == last_inputs:
                 error: ServiceError = Duplicate(
                     f"The sample of {item.well} at {iso(t)} arrived before.", "duplicate"
                 )
             else:
                 error = InvalidRequest(
                     f"The sample of {item.well} at {iso(t)} is not after the well's previous sample at "
-                    f"{iso(st.last_time_ns)}; samples of a well must arrive in time order.",
+                    f"{iso(last_ns)}; samples of a well must arrive in time order.",
                     "time going backwards",
                 )
             refuse(self.counters, error, item.well, b)
             return
+        b.samples.append((st, item, t, inputs))
+        # another sample of the well may join the call unless its model can change first:
+        # a scheduled retrain (pbl), or a measurement this sample settles and learns
+        b.sample_wells[item.well] = not st.pending and model_fixed_when_predicting(st.learner)
+        b.sample_last[item.well] = (t, inputs)
+
+    def _predict_samples(self, b: Batch) -> None:
+        """Second pass: predict every admitted sample of the batch in one call, then store
+        and publish each in order. A well may have several (its model cannot change while
+        predicting, ``ol`` or ``bayes``); with scheduled retrains (``pbl``) a well's next
+        sample waits for this call."""
+        if not b.samples:
+            return
+        taken = b.samples
+        b.samples, b.sample_wells, b.sample_last = [], {}, {}
+        try:
+            answers = self.learning.predict_many(
+                [st for st, _, _, _ in taken],
+                [inputs for _, _, _, inputs in taken],
+                [item.sample.time for _, item, _, _ in taken],
+            )
+        except Exception as exc:  # pragma: no cover - predict_many answers errors in place
+            answers = [exc] * len(taken)
+        accepted = 0
+        for (st, item, t, inputs), rates in zip(taken, answers, strict=True):
+            try:
+                if isinstance(rates, BaseException):
+                    raise rates
+                self._on_sample(st, item, t, inputs, rates, b)
+                accepted += 1
+            except Exception as exc:  # one bad message must not stop the worker
+                logger.exception("Unexpected error on SensorItem of %s: %s", item.well, exc)
+                self.counters.event("internal errors")
+        self.counters.accept("sensors", accepted)  # once per call: the counters take a lock
+
+    def _on_sample(
+        self,
+        st: WellState,
+        item: SensorItem,
+        t: int,
+        inputs: tuple[float, ...],
+        rates: dict[str, float | None] | None,
+        b: Batch,
+    ) -> None:
+        """Third pass, per sample: store it with its prediction, publish, settle what waited."""
+        sample = item.sample
         learner = st.learner
-        rates = self.learning.predict(st, inputs, sample.time)
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
         q_total = rates["q_total"] if rates else None
@@ -278,7 +344,6 @@ class Workers:
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
-        self.counters.accept("sensors")
         b.ops.append(
             InsertSample(
                 well=item.well,
