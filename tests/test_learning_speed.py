@@ -3,12 +3,14 @@
 - the choke mass flux's closed-form gradient equals autograd's through the same formula;
 - the learners' optimiser step equals torch.optim's to the bit, state included;
 - one online (and one Bayesian) update of several wells in one call equals each well's
-  own update, so batching wells changes nothing but the cost.
+  own update, so batching wells changes nothing but the cost;
+- every model's closed-form gradient (no autograd) equals autograd's through its forward.
 """
 
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,7 +20,12 @@ from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
-from vfm_core.learning.training import optimizer_step_, zero_grad_
+from vfm_core.learning.training import (
+    map_gradients_,
+    optimizer_step_,
+    scaled_errors,
+    zero_grad_,
+)
 from vfm_core.models import make_model
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
@@ -172,3 +179,51 @@ def test_an_update_of_every_well_in_one_call_equals_each_wells_own(model_name, m
             assert torch.allclose(value[j], own, rtol=1e-10, atol=1e-12), (name, j)
         moved |= not torch.equal(value, before[name])
     assert moved  # the updates did something
+
+
+@pytest.mark.parametrize("model_name", ["lr", "nn", "mtl", "mm", "hem", "ham"])
+@pytest.mark.parametrize("physical_only", [True, False])
+def test_closed_form_gradients_equal_autograd(model_name, physical_only):
+    """Every model's closed-form gradient (``rate_vjp`` + ``prior_gradients``) is autograd's
+    through its own forward, wells with and without data, mini-batch weighting included."""
+    history, _ = _field_batches()
+    model = make_model(model_name, history.wells)
+    fit_batch(model, history, replace(DEFAULT_TRAIN[model_name], max_iter=20, patience=3))
+    with torch.no_grad():  # away from the prior means, so that every term counts
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(3)))
+    assert model.rate_vjp(history) is not None
+    params = [p for p in model.parameters() if p.requires_grad]
+    keep = torch.rand(history.mask.shape, generator=torch.Generator().manual_seed(2)) < 0.5
+    batch = history.select(keep)
+    n = batch.count().to(DTYPE) + 3.0
+    n[1] = 0.0  # a well that does not count
+    closed_loss = map_gradients_(
+        model, params, batch, 0.05, physical_only, n, batch.count().to(DTYPE)
+    )
+    closed = [p.grad.clone() for p in params]
+    zero_grad_(params)
+    e = scaled_errors(model, batch)
+    mse = (e**2).sum(1) / batch.count().clamp(min=1).to(DTYPE)
+    prior = model.prior_penalty(physical_only) * 0.05**2 / n.clamp(min=1.0)
+    loss = torch.where(n > 0, mse + prior, torch.zeros_like(mse))
+    loss.sum().backward()
+    assert torch.allclose(closed_loss, loss.detach(), rtol=1e-12, atol=1e-15)
+    nonzero = 0
+    for p, g in zip(params, closed, strict=True):
+        assert torch.allclose(g, p.grad, rtol=1e-9, atol=1e-12 * float(p.grad.abs().max()) + 1e-300)
+        nonzero += int(g.abs().gt(0).any())
+    assert nonzero >= 1
+
+
+def test_models_with_effects_or_subclasses_fall_back_to_autograd():
+    """A closed form belongs to its exact class: effects or a subclass change the rate."""
+    history, _ = _field_batches()
+
+    class Shifted(type(make_model("mm", ["W"]))):  # a user's variant of the rate
+        def forward_batch(self, batch: Batch) -> torch.Tensor:
+            return super().forward_batch(batch) + 1.0
+
+    assert Shifted(history.wells).rate_vjp(history) is None
+    frame_model = make_model("mm", history.wells, effects=["slip"])
+    assert frame_model.rate_vjp(history) is None

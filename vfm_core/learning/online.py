@@ -19,10 +19,9 @@ from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
     clip_per_well_,
     make_optimizer,
+    map_gradients_,
     optimizer_step_,
-    per_well_loss,
     split_parameters,
-    zero_grad_,
 )
 from vfm_core.models import ChokeModel
 
@@ -114,9 +113,7 @@ class OnlineLearning(LearningMethod):
         n = batch.count().to(DTYPE)
         s = self.online
         for _ in range(s.steps):
-            zero_grad_(self._params)
-            loss = per_well_loss(model, batch, s.noise, physical_only=True, n=n).sum()
-            loss.backward()
+            map_gradients_(model, self._params, batch, s.noise, True, n)
             clip_per_well_(model, s.max_grad_norm, self._groups)
             optimizer_step_(opt)
             model.project_()

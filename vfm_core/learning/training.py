@@ -5,7 +5,8 @@ sigma_eps^2 / N (paper eq. objective-function), with Adam or SGD on mini-batches
 early stopping on the latest slice of each well's data: a first pass on all but that
 slice finds the best number of iterations per well, a second pass from the same start on
 all the data runs exactly that many (so the newest data are learned from, not only used
-to stop). Wells stay independent: losses, gradient clipping and iteration counts are per
+to stop). A periodic retrain, warm-started from the current parameters, runs the initial
+fit's count at most and stops a well earlier once its objective has converged. Wells stay independent: losses, gradient clipping and iteration counts are per
 well; only a shared model (``mtl``) couples them.
 """
 
@@ -32,6 +33,7 @@ __all__ = [
     "zero_grad_",
     "scaled_errors",
     "per_well_loss",
+    "map_gradients_",
     "clip_per_well_",
     "split_parameters",
     "well_generators",
@@ -57,6 +59,14 @@ class TrainSettings:
     #: a periodic retrain (warm start) runs the initial fit's early-stopped iteration
     #: count per well, at most this many
     retrain_max_iter: int = 150
+    #: a retrain also stops a well once its objective has converged: the mean mini-batch
+    #: objective of a block of ``retrain_check`` iterations has not fallen below the best
+    #: block's by this relative amount for two blocks in a row (0: no convergence stop,
+    #: every retrain runs its full count). A warm-started retrain on a few more days of
+    #: data is usually converged within a few blocks; running on only costs time.
+    retrain_tol: float = 1e-3
+    #: iterations per block of the retrain's convergence test
+    retrain_check: int = 10
     #: per-well cap on the gradient norm: inputs that drifted far from the training
     #: statistics must not blow a step up
     max_grad_norm: float = 10.0
@@ -206,6 +216,55 @@ def per_well_loss(
     return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
 
 
+def map_gradients_(
+    model: ChokeModel,
+    params: list[torch.nn.Parameter],
+    batch: Batch,
+    noise: float,
+    physical_only: bool,
+    n: torch.Tensor,
+    n_data: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The per-well MAP objective [W] (no graph), with every parameter's ``.grad`` set to
+    the gradient of its sum: the mean squared scaled error over ``n_data`` samples (default
+    ``n``, as floats) plus the prior penalty weighted by sigma^2 / ``n``; zero for a well
+    with ``n`` = 0.
+
+    A model with closed-form gradients (``model.rate_vjp``) is stepped without autograd,
+    whose per-call machinery costs more than the arithmetic on these small tensors; any
+    other model goes through autograd (:func:`per_well_loss`'s objective): the same numbers
+    up to rounding either way.
+    """
+    n_data = n if n_data is None else n_data
+    closed = model.rate_vjp(batch)
+    if closed is None:
+        zero_grad_(params)
+        e = scaled_errors(model, batch)
+        mse = (e**2).sum(1) / n_data.clamp(min=1.0)
+        prior = model.prior_penalty(physical_only=physical_only) * noise**2 / n.clamp(min=1.0)
+        loss = torch.where(n > 0, mse + prior, torch.zeros_like(mse))
+        loss.sum().backward()
+        return loss.detach()
+    q, pullback = closed
+    with torch.no_grad():
+        scale = model.y_scale.unsqueeze(1)
+        e = (q - batch.y) / scale
+        e = torch.where(batch.mask, e, torch.zeros_like(e))
+        has = n > 0
+        n_safe = n_data.clamp(min=1.0)
+        weight = torch.where(has, noise**2 / n.clamp(min=1.0), torch.zeros_like(n))
+        loss = (e**2).sum(1) / n_safe + model.prior_penalty(physical_only=physical_only) * weight
+        loss = torch.where(has, loss, torch.zeros_like(loss))
+        d_rate = torch.where(has.unsqueeze(1), 2.0 * e / (scale * n_safe.unsqueeze(1)), 0.0)
+        grads = pullback(d_rate)
+        for pid, g in model.prior_gradients(weight, physical_only).items():
+            grads[pid] = grads[pid] + g if pid in grads else g
+        for p in params:
+            g = grads.get(id(p))
+            p.grad = torch.zeros_like(p) if g is None else g.reshape(p.shape)
+    return loss
+
+
 def well_generators(wells: list[str], seed: int) -> list[torch.Generator]:
     """One random stream per well, keyed by its name: a well's mini-batches are the same
     whether it is trained alone (the service) or with the whole field (the study)."""
@@ -247,16 +306,18 @@ def _minibatch(batch: Batch, size: int, gens: list[torch.Generator]) -> tuple[Ba
     ), counts
 
 
-def _map_loss(
-    model: ChokeModel, batch: Batch, settings: TrainSettings, gens: list[torch.Generator]
+def _map_step_gradients(
+    model: ChokeModel,
+    params: list[torch.nn.Parameter],
+    batch: Batch,
+    settings: TrainSettings,
+    gens: list[torch.Generator],
 ) -> torch.Tensor:
-    """Summed per-well MAP objective on a mini-batch; the prior is weighted by the full count."""
+    """Per-well MAP objective [W] on a mini-batch, gradients set (:func:`map_gradients_`);
+    the prior is weighted by the full count."""
     mb, counts = _minibatch(batch, settings.batch_size, gens)
     n = counts.to(DTYPE)
-    e = scaled_errors(model, mb)
-    mse = (e**2).sum(1) / mb.count().clamp(min=1).to(DTYPE)
-    prior = model.prior_penalty(physical_only=False) * settings.noise**2 / n.clamp(min=1.0)
-    return torch.where(n > 0, mse + prior, torch.zeros_like(mse)).sum()
+    return map_gradients_(model, params, mb, settings.noise, False, n, n_data=mb.count().to(DTYPE))
 
 
 def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
@@ -303,6 +364,10 @@ def clip_per_well_(
         torch.nn.utils.clip_grad_norm_(shared, max_norm)
 
 
+#: blocks in a row without improvement that end a retrain (see ``TrainSettings.retrain_tol``)
+_RETRAIN_PATIENCE = 2
+
+
 def fit_batch(
     model: ChokeModel,
     batch: Batch,
@@ -313,7 +378,9 @@ def fit_batch(
     """MAP-train ``model`` on ``batch`` from its current parameters (a warm start).
 
     With ``iterations`` [W] given (a periodic retrain), early stopping is skipped and each
-    well runs that many iterations (capped by ``retrain_max_iter``). ``wells`` [W] (bool)
+    well runs that many iterations (capped by ``retrain_max_iter``), or fewer once its
+    objective has converged (``retrain_tol``: the warm start is usually close to the new
+    optimum, and a full count only costs time). ``wells`` [W] (bool)
     retrains only those wells (the others keep their parameters; shared parameters always
     train). Returns a summary with ``iterations``, the count per well, for later retrains.
     """
@@ -340,6 +407,7 @@ def fit_batch(
         settings = replace(
             settings, retrain_max_iter=max(settings.retrain_max_iter, settings.max_iter)
         )
+    retrain = iterations is not None
     if iterations is not None:
         fallback = torch.full_like(iterations, settings.default_iter)
         best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
@@ -354,9 +422,7 @@ def fit_batch(
         best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
         since = torch.zeros(n_w, dtype=torch.int64)
         for k in range(1, settings.max_iter + 1):
-            zero_grad_(params)
-            loss = _map_loss(model, train, settings, gens)
-            loss.backward()
+            _map_step_gradients(model, params, train, settings, gens)
             clip_per_well_(model, settings.max_grad_norm, groups)
             optimizer_step_(opt)
             if sched is not None:
@@ -389,15 +455,33 @@ def fit_batch(
     opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
     final = _snapshot(params)
     total_iter = int(best_iter.max())
+    # a retrain (warm start) also stops each well once its objective has converged
+    check = max(int(settings.retrain_check), 1)
+    converge = retrain and settings.retrain_tol > 0 and total_iter > 2 * check
+    block = torch.zeros(n_w, dtype=DTYPE)
+    best_block = torch.full((n_w,), float("inf"), dtype=DTYPE)
+    stale = torch.zeros(n_w, dtype=torch.int64)
     for k in range(1, total_iter + 1):
-        zero_grad_(params)
-        loss = _map_loss(model, batch, settings, gens)
-        loss.backward()
+        per_well_loss_k = _map_step_gradients(model, params, batch, settings, gens)
         clip_per_well_(model, settings.max_grad_norm, groups)
         optimizer_step_(opt)
         if sched is not None:
             sched.step()
         model.project_()
+        if converge:
+            block += per_well_loss_k.detach()
+            if k % check == 0 and k < total_iter:
+                mean = block / check
+                if model.shared:  # one decision for shared parameters, as in early stopping
+                    mean = torch.full_like(mean, float(mean.sum()))
+                improved = mean < best_block * (1.0 - settings.retrain_tol)
+                best_block = torch.minimum(best_block, mean)
+                stale = torch.where(improved, torch.zeros_like(stale), stale + 1)
+                stop = (stale >= _RETRAIN_PATIENCE) & (best_iter > k)
+                if bool(stop.any()):
+                    best_iter = torch.where(stop, torch.full_like(best_iter, k), best_iter)
+                    total_iter = int(best_iter.max())
+                block.zero_()
         if deadline is not None and time.monotonic() > deadline and k < total_iter:
             # out of time: every well still running stops here, where it is
             timed_out = True
