@@ -510,7 +510,10 @@ def run_prequential(
             end = NEVER if due is None else max(int(due), start + 1)
             in_period = (test.time_ns >= start) & (test.time_ns < end) & test.mask
             if bool(in_period.any()):
-                record(test, in_period)
+                # only the period's samples: predicting the whole test span at every
+                # retrain made a run's predictions cost (retrains x test samples)
+                period = test.select(in_period)
+                record(period, period.mask)
                 done += int(in_period.sum())
                 if progress is not None:
                     progress(done, total)

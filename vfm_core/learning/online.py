@@ -17,9 +17,9 @@ from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
+    MapObjective,
     clip_per_well_,
     make_optimizer,
-    map_gradients_,
     optimizer_step_,
     split_parameters,
 )
@@ -112,8 +112,9 @@ class OnlineLearning(LearningMethod):
         # the same batch for every step: its counts once
         n = batch.count().to(DTYPE)
         s = self.online
+        objective = MapObjective(model, batch, s.noise, True, n)
         for _ in range(s.steps):
-            map_gradients_(model, self._params, batch, s.noise, True, n)
+            objective.gradients_(self._params)
             clip_per_well_(model, s.max_grad_norm, self._groups)
             optimizer_step_(opt)
             model.project_()

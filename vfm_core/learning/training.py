@@ -34,6 +34,7 @@ __all__ = [
     "scaled_errors",
     "per_well_loss",
     "map_gradients_",
+    "MapObjective",
     "clip_per_well_",
     "split_parameters",
     "well_generators",
@@ -167,29 +168,47 @@ def optimizer_step_(opt: torch.optim.Optimizer) -> None:
         adam = isinstance(opt, torch.optim.Adam)
         for group in opt.param_groups:
             lr = group["lr"]
-            for p in group["params"]:
-                grad = p.grad
-                if grad is None:
-                    continue
-                if not adam:
-                    p.add_(grad, alpha=-lr)
-                    continue
-                beta1, beta2 = group["betas"]
-                state = opt.state[p]
+            params = [p for p in group["params"] if p.grad is not None]
+            if not params:
+                continue
+            grads = [p.grad for p in params]
+            if not adam:
+                torch._foreach_add_(params, grads, alpha=-lr)
+                continue
+            # torch's single-tensor Adam, elementwise, on every parameter at once (the
+            # _foreach ops do the same arithmetic per element: the same bits)
+            beta1, beta2 = group["betas"]
+            states = [opt.state[p] for p in params]
+            for p, state in zip(params, states, strict=True):
                 if len(state) == 0:
                     state["step"] = torch.tensor(0.0, dtype=_torch_optimizer._get_scalar_dtype())
                     state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                     state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                step_t, exp_avg, exp_avg_sq = state["step"], state["exp_avg"], state["exp_avg_sq"]
-                step_t += 1
-                exp_avg.lerp_(grad, 1 - beta1)
-                exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-                step = step_t.item()
+            steps = [st["step"] for st in states]
+            exp_avgs = [st["exp_avg"] for st in states]
+            exp_avg_sqs = [st["exp_avg_sq"] for st in states]
+            torch._foreach_add_(steps, 1.0)
+            torch._foreach_lerp_(exp_avgs, grads, 1 - beta1)
+            torch._foreach_mul_(exp_avg_sqs, beta2)
+            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, value=1 - beta2)
+            counts = [t.item() for t in steps]
+            if len(set(counts)) == 1:
+                groups_by_step = [(counts[0], list(range(len(params))))]
+            else:  # parameters that missed steps (no gradient then): each its own count
+                groups_by_step = [
+                    (c, [i for i, v in enumerate(counts) if v == c]) for c in set(counts)
+                ]
+            for step, idx in groups_by_step:
                 bias_correction1 = 1 - beta1**step
                 bias_correction2 = 1 - beta2**step
                 step_size = lr / bias_correction1
-                denom = (exp_avg_sq.sqrt() / bias_correction2**0.5).add_(group["eps"])
-                p.addcdiv_(exp_avg, denom, value=-step_size)
+                sqs = [exp_avg_sqs[i] for i in idx]
+                denom = torch._foreach_sqrt(sqs)
+                torch._foreach_div_(denom, bias_correction2**0.5)
+                torch._foreach_add_(denom, group["eps"])
+                torch._foreach_addcdiv_(
+                    [params[i] for i in idx], [exp_avgs[i] for i in idx], denom, value=-step_size
+                )
 
 
 def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
@@ -217,6 +236,66 @@ def per_well_loss(
     return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
 
 
+class MapObjective:
+    """The per-well MAP objective of ``model`` on one batch, ready to be differentiated many
+    times (the E steps of an online update are on one measurement): the mean squared scaled
+    error over ``n_data`` samples (default ``n``, as floats) plus the prior penalty weighted
+    by sigma^2 / ``n``; zero for a well with ``n`` = 0.
+
+    A model with closed-form gradients (``model.rate_vjp``) is stepped without autograd,
+    whose per-call machinery costs more than the arithmetic on these small tensors, and
+    what depends on the batch alone is taken once here; any other model goes through
+    autograd (:func:`per_well_loss`'s objective): the same numbers up to rounding.
+    """
+
+    def __init__(
+        self,
+        model: ChokeModel,
+        batch: Batch,
+        noise: float,
+        physical_only: bool,
+        n: torch.Tensor,
+        n_data: torch.Tensor | None = None,
+    ) -> None:
+        self.model, self.batch, self.noise, self.physical_only = model, batch, noise, physical_only
+        self.n = n
+        self.n_data = n if n_data is None else n_data
+        with torch.no_grad():
+            self.has = n > 0
+            self.scale = model.y_scale.unsqueeze(1)
+            self.n_safe = self.n_data.clamp(min=1.0)
+            self.weight = torch.where(self.has, noise**2 / n.clamp(min=1.0), 0.0)
+            # d loss / d rate = e * this (e the scaled error, zero where padded)
+            self.d_factor = torch.where(self.has, 2.0 / self.n_safe, 0.0).unsqueeze(1) / self.scale
+
+    def gradients_(self, params: list[torch.nn.Parameter]) -> torch.Tensor:
+        """Set every parameter's ``.grad`` to the gradient of the objective's sum; returns
+        the objective per well [W] (no graph)."""
+        model, batch = self.model, self.batch
+        closed = model.rate_vjp(batch)
+        if closed is None:
+            zero_grad_(params)
+            e = scaled_errors(model, batch)
+            mse = (e**2).sum(1) / self.n_safe
+            prior = model.prior_penalty(physical_only=self.physical_only) * self.weight
+            loss = torch.where(self.has, mse + prior, torch.zeros_like(mse))
+            loss.sum().backward()
+            return loss.detach()
+        q, pullback = closed
+        with torch.no_grad():
+            e = torch.where(batch.mask, (q - batch.y) / self.scale, 0.0)
+            loss = (e * e).sum(1) / self.n_safe
+            loss = loss + model.prior_penalty(physical_only=self.physical_only) * self.weight
+            loss = torch.where(self.has, loss, 0.0)
+            grads = pullback(e * self.d_factor)
+            for pid, g in model.prior_gradients(self.weight, self.physical_only).items():
+                grads[pid] = grads[pid] + g if pid in grads else g
+            for p in params:
+                g = grads.get(id(p))
+                p.grad = torch.zeros_like(p) if g is None else g.reshape(p.shape)
+        return loss
+
+
 def map_gradients_(
     model: ChokeModel,
     params: list[torch.nn.Parameter],
@@ -226,44 +305,9 @@ def map_gradients_(
     n: torch.Tensor,
     n_data: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The per-well MAP objective [W] (no graph), with every parameter's ``.grad`` set to
-    the gradient of its sum: the mean squared scaled error over ``n_data`` samples (default
-    ``n``, as floats) plus the prior penalty weighted by sigma^2 / ``n``; zero for a well
-    with ``n`` = 0.
-
-    A model with closed-form gradients (``model.rate_vjp``) is stepped without autograd,
-    whose per-call machinery costs more than the arithmetic on these small tensors; any
-    other model goes through autograd (:func:`per_well_loss`'s objective): the same numbers
-    up to rounding either way.
-    """
-    n_data = n if n_data is None else n_data
-    closed = model.rate_vjp(batch)
-    if closed is None:
-        zero_grad_(params)
-        e = scaled_errors(model, batch)
-        mse = (e**2).sum(1) / n_data.clamp(min=1.0)
-        prior = model.prior_penalty(physical_only=physical_only) * noise**2 / n.clamp(min=1.0)
-        loss = torch.where(n > 0, mse + prior, torch.zeros_like(mse))
-        loss.sum().backward()
-        return loss.detach()
-    q, pullback = closed
-    with torch.no_grad():
-        scale = model.y_scale.unsqueeze(1)
-        e = (q - batch.y) / scale
-        e = torch.where(batch.mask, e, torch.zeros_like(e))
-        has = n > 0
-        n_safe = n_data.clamp(min=1.0)
-        weight = torch.where(has, noise**2 / n.clamp(min=1.0), torch.zeros_like(n))
-        loss = (e**2).sum(1) / n_safe + model.prior_penalty(physical_only=physical_only) * weight
-        loss = torch.where(has, loss, torch.zeros_like(loss))
-        d_rate = torch.where(has.unsqueeze(1), 2.0 * e / (scale * n_safe.unsqueeze(1)), 0.0)
-        grads = pullback(d_rate)
-        for pid, g in model.prior_gradients(weight, physical_only).items():
-            grads[pid] = grads[pid] + g if pid in grads else g
-        for p in params:
-            g = grads.get(id(p))
-            p.grad = torch.zeros_like(p) if g is None else g.reshape(p.shape)
-    return loss
+    """``MapObjective(model, batch, noise, physical_only, n, n_data).gradients_(params)``:
+    the per-well MAP objective [W] (no graph), every parameter's ``.grad`` set."""
+    return MapObjective(model, batch, noise, physical_only, n, n_data).gradients_(params)
 
 
 def well_generators(wells: list[str], seed: int) -> list[torch.Generator]:
@@ -354,12 +398,16 @@ def clip_per_well_(
     ``parameters``: :func:`split_parameters` of the model, when the caller steps often."""
     per_well, shared_all = split_parameters(model) if parameters is None else parameters
     grads = [p.grad for p in per_well if p.grad is not None]
-    if not grads:
-        return
-    sq = sum((g.reshape(g.shape[0], -1) ** 2).sum(1) for g in grads)
-    scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
+    if grads:
+        n_w = grads[0].shape[0]
+        flat = (
+            grads[0].reshape(n_w, -1)
+            if len(grads) == 1
+            else torch.cat([g.reshape(n_w, -1) for g in grads], dim=1)
+        )
+        sq = (flat * flat).sum(1)
+        scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
+        torch._foreach_mul_(grads, [scale.reshape(-1, *([1] * (g.dim() - 1))) for g in grads])
     shared = [p for p in shared_all if p.grad is not None]
     if shared:
         torch.nn.utils.clip_grad_norm_(shared, max_norm)
