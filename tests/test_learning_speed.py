@@ -4,7 +4,9 @@
 - the learners' optimiser step equals torch.optim's to the bit, state included;
 - one online (and one Bayesian) update of several wells in one call equals each well's
   own update, so batching wells changes nothing but the cost;
-- every model's closed-form gradient (no autograd) equals autograd's through its forward.
+- every model's closed-form gradient (no autograd) equals autograd's through its forward;
+- the study's rounds and retrain batches, cut from rows packed once, hold what packing
+  them anew holds.
 """
 
 from __future__ import annotations
@@ -13,12 +15,13 @@ import copy
 from dataclasses import replace
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch, make_batch, target_mask
-from vfm_core.jobs.study import wells_of
+from vfm_core.jobs.study import _day_rounds, _StudyMemory, wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.learning.training import (
     map_gradients_,
@@ -227,3 +230,37 @@ def test_models_with_effects_or_subclasses_fall_back_to_autograd():
     assert Shifted(history.wells).rate_vjp(history) is None
     frame_model = make_model("mm", history.wells, effects=["slip"])
     assert frame_model.rate_vjp(history) is None
+
+
+def _same_samples(a: Batch, b: Batch) -> None:
+    """The same samples in the same places (padding, masked, may differ)."""
+    assert torch.equal(a.mask, b.mask) and torch.equal(a.row, b.row)
+    m = a.mask
+    assert torch.equal(a.x[m], b.x[m]) and torch.equal(a.y[m], b.y[m])
+    assert torch.equal(a.time_ns[m], b.time_ns[m]) and torch.equal(a.extra[m], b.extra[m])
+    assert torch.equal(a.well_test, b.well_test)
+
+
+def test_study_rounds_and_memory_cut_from_packed_rows_equal_packing_anew():
+    """The study's day rounds (shared models) and its retrain memory select from rows packed
+    once; they hold exactly what a per-day select and a fresh make_batch hold."""
+    frame = validate_frame(simulate_field(wells=3, years=1.0, seed=4).observations).frame
+    t0 = pd.Timestamp(frame["time"].iloc[len(frame) // 2])
+    gap = (frame["well"] == frame["well"].iloc[0]) & frame["time"].between(
+        t0, t0 + pd.Timedelta("40D")
+    )
+    frame = frame[~gap].reset_index(drop=True)  # a well without measurements for 40 days
+    wells = wells_of(frame)
+    is_target = target_mask(frame, "all")
+    test = make_batch(frame, wells, np.flatnonzero(is_target))
+    day = torch.div(test.time_ns, 86_400 * 10**9, rounding_mode="floor")
+    days = torch.unique(day[test.mask])
+    rounds = _day_rounds(test)
+    assert len(rounds) == len(days) > 100
+    for d, got in zip(days, rounds, strict=True):
+        _same_samples(test.select(day == d), got)
+    memory = _StudyMemory(frame, is_target, wells)
+    t = pd.DatetimeIndex(frame["time"]).as_unit("ns").asi8
+    for until, window in [(t[len(t) // 3], None), (t[-1], 30 * 86_400 * 10**9), (t[-1] + 1, None)]:
+        keep = is_target & (t < until) & (t >= (until - window if window else t.min()))
+        _same_samples(make_batch(frame, wells, np.flatnonzero(keep)), memory.batch(until, window))

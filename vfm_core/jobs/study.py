@@ -329,6 +329,49 @@ class _StudyMemory(FrameMemory):
         )
 
 
+def _day_rounds(test: Batch) -> list[Batch]:
+    """One batch per calendar day (UTC) of ``test``, holding every well's samples of that
+    day in time order: what ``test.select(day == d)`` gives for each day, cut by index
+    ranges (each well's samples are in time order, so a day is a contiguous run), so the
+    cost grows with the samples and not with days x samples."""
+    day = torch.div(test.time_ns, 86_400 * 10**9, rounding_mode="floor")
+    day = torch.where(test.mask, day, torch.full_like(day, NEVER))
+    days = torch.unique(day[test.mask])
+    if len(days) == 0:
+        return []
+    wide = days.unsqueeze(0).expand(test.n_wells, -1).contiguous()
+    lo = torch.searchsorted(day, wide)
+    counts = torch.searchsorted(day, wide, right=True) - lo
+    n_max = test.x.shape[1]
+    assert test.well_test is not None and test.extra is not None
+    rounds = []
+    for k, n in enumerate(counts.max(dim=0).values.tolist()):
+        steps = torch.arange(n)
+        keep = steps < counts[:, k : k + 1]
+        idx = (lo[:, k : k + 1] + steps).clamp(max=n_max - 1)
+        keep &= torch.gather(test.mask, 1, idx)
+        x = torch.gather(test.x, 1, idx.unsqueeze(-1).expand(-1, -1, test.x.shape[-1]))
+        ex = torch.gather(test.extra, 1, idx.unsqueeze(-1).expand(-1, -1, test.extra.shape[-1]))
+        t = torch.gather(test.time_ns, 1, idx)
+        r = torch.gather(test.row, 1, idx)
+        rounds.append(
+            Batch(
+                test.wells,
+                torch.where(keep.unsqueeze(-1), x, test.x[:, :1].expand_as(x)),
+                torch.where(
+                    keep, torch.gather(test.y, 1, idx), torch.zeros(idx.shape, dtype=test.y.dtype)
+                ),
+                keep,
+                torch.where(keep, t, torch.full_like(t, NEVER)),
+                torch.where(keep, r, torch.full_like(r, -1)),
+                torch.gather(test.well_test, 1, idx) & keep,
+                torch.where(keep.unsqueeze(-1), ex, test.extra[:, :1].expand_as(ex)),
+                test.extra_names,
+            )
+        )
+    return rounds
+
+
 def _param_rows(
     model: ChokeModel, when: pd.Timestamp | Sequence[pd.Timestamp], active: torch.Tensor
 ) -> list[dict[str, Any]]:
@@ -476,9 +519,7 @@ def run_prequential(
         if model.shared:
             # Shared parameters must see the field in time order: one round per day,
             # holding every well's measurements of that day.
-            day = torch.div(test.time_ns, 86_400 * 10**9, rounding_mode="floor")
-            days = torch.unique(day[test.mask])
-            rounds = [test.select(day == d) for d in days]
+            rounds = _day_rounds(test)
         else:
             rounds = [test.column(k) for k in range(test.x.shape[1])]
         for rb in rounds:
