@@ -24,9 +24,12 @@ from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.jobs.study import _day_rounds, _StudyMemory, wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.learning.training import (
+    _minibatch,
+    _Sampler,
     map_gradients_,
     optimizer_step_,
     scaled_errors,
+    well_generators,
     zero_grad_,
 )
 from vfm_core.models import make_model
@@ -264,3 +267,25 @@ def test_study_rounds_and_memory_cut_from_packed_rows_equal_packing_anew():
     for until, window in [(t[len(t) // 3], None), (t[-1], 30 * 86_400 * 10**9), (t[-1] + 1, None)]:
         keep = is_target & (t < until) & (t >= (until - window if window else t.min()))
         _same_samples(make_batch(frame, wells, np.flatnonzero(keep)), memory.batch(until, window))
+
+
+def test_chunked_sampler_draws_the_mini_batches_of_one_draw_per_iteration():
+    """The retrains' sampler draws ahead a chunk of iterations at a time; its mini-batches
+    are _minibatch's, and after ``finish`` every well's random stream is where taking the
+    same iterations one at a time leaves it."""
+    history, _ = _field_batches()
+    size = 16
+    assert int(history.count().min()) > size
+    gens_a = well_generators(history.wells, 0)
+    gens_b = well_generators(history.wells, 0)
+    sampler = _Sampler(history, size, gens_a)
+    taken = sampler.chunk + 3  # a chunk and part of the next
+    for _ in range(taken):
+        got, counts = sampler.next()
+        want, want_counts = _minibatch(history, size, gens_b)
+        assert torch.equal(counts, want_counts)
+        for f in ("x", "y", "mask", "time_ns", "row", "well_test", "extra"):
+            assert torch.equal(getattr(got, f), getattr(want, f)), f
+    sampler.finish()
+    for a, b in zip(gens_a, gens_b, strict=True):
+        assert torch.equal(torch.rand(5, generator=a), torch.rand(5, generator=b))

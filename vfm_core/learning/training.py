@@ -351,16 +351,90 @@ def _minibatch(batch: Batch, size: int, gens: list[torch.Generator]) -> tuple[Ba
     ), counts
 
 
+class _Sampler:
+    """:func:`_minibatch` for many iterations, drawn and gathered a chunk of iterations at a
+    time: the same random numbers in the same order (a well's stream drawn in one call is
+    its draws one at a time, concatenated), so the same mini-batches, at a fraction of the
+    per-iteration calls. :meth:`finish` leaves every generator where :func:`_minibatch`
+    would have after the iterations taken, so a later pass continues the same streams."""
+
+    #: samples per chunk and well at most, summed over wells (bounds the chunk's memory)
+    _CHUNK_SAMPLES = 1 << 20
+
+    def __init__(self, batch: Batch, size: int, gens: list[torch.Generator]) -> None:
+        self.batch, self.size, self.gens = batch, size, gens
+        self.counts = batch.count()
+        self.full = size <= 0 or int(self.counts.max()) <= size
+        self.draws = [j for j in range(len(gens)) if int(self.counts[j]) > size]
+        self.start = {j: gens[j].get_state() for j in self.draws} if not self.full else {}
+        self.chunk = max(1, min(16, self._CHUNK_SAMPLES // max(batch.n_wells * size, 1)))
+        self.taken = 0
+        self._queue: list[Batch] = []
+
+    def _refill(self) -> None:
+        size, c, batch, counts = self.size, self.chunk, self.batch, self.counts
+        rows = []
+        for j, gen in enumerate(self.gens):
+            if int(counts[j]) > size:
+                u = torch.rand(size * c, generator=gen, dtype=DTYPE)
+                rows.append(torch.floor(u * float(counts[j])).to(torch.int64))
+            else:
+                rows.append(torch.arange(size, dtype=torch.int64).repeat(c))
+        idx = torch.stack(rows)
+        has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
+        idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
+        assert batch.well_test is not None and batch.extra is not None
+        x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
+        ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
+        y = torch.gather(batch.y, 1, idx)
+        t = torch.gather(batch.time_ns, 1, idx)
+        r = torch.gather(batch.row, 1, idx)
+        wt = torch.gather(batch.well_test, 1, idx)
+        for i in range(c):
+            sl = slice(i * size, (i + 1) * size)
+            self._queue.append(
+                Batch(
+                    batch.wells,
+                    x[:, sl],
+                    y[:, sl],
+                    has[:, sl],
+                    t[:, sl],
+                    r[:, sl],
+                    wt[:, sl],
+                    ex[:, sl],
+                    batch.extra_names,
+                )
+            )
+        self._queue.reverse()
+
+    def next(self) -> tuple[Batch, torch.Tensor]:
+        """The next iteration's mini-batch and the full counts per well."""
+        if self.full:
+            return self.batch, self.counts
+        if not self._queue:
+            self._refill()
+        self.taken += 1
+        return self._queue.pop(), self.counts
+
+    def finish(self) -> None:
+        """Rewind the generators to just after the iterations taken (the chunk drew ahead)."""
+        for j in self.draws:
+            gen = self.gens[j]
+            gen.set_state(self.start[j])
+            if self.taken:
+                torch.rand(self.size * self.taken, generator=gen, dtype=DTYPE)
+        self._queue = []
+
+
 def _map_step_gradients(
     model: ChokeModel,
     params: list[torch.nn.Parameter],
-    batch: Batch,
+    sampler: _Sampler,
     settings: TrainSettings,
-    gens: list[torch.Generator],
 ) -> torch.Tensor:
-    """Per-well MAP objective [W] on a mini-batch, gradients set (:func:`map_gradients_`);
-    the prior is weighted by the full count."""
-    mb, counts = _minibatch(batch, settings.batch_size, gens)
+    """Per-well MAP objective [W] on the next mini-batch, gradients set
+    (:func:`map_gradients_`); the prior is weighted by the full count."""
+    mb, counts = sampler.next()
     n = counts.to(DTYPE)
     return map_gradients_(model, params, mb, settings.noise, False, n, n_data=mb.count().to(DTYPE))
 
@@ -470,8 +544,9 @@ def fit_batch(
         )
         best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
         since = torch.zeros(n_w, dtype=torch.int64)
+        sampler = _Sampler(train, settings.batch_size, gens)
         for k in range(1, settings.max_iter + 1):
-            _map_step_gradients(model, params, train, settings, gens)
+            _map_step_gradients(model, params, sampler, settings)
             clip_per_well_(model, settings.max_grad_norm, groups)
             optimizer_step_(opt)
             if sched is not None:
@@ -491,6 +566,7 @@ def fit_batch(
             if deadline is not None and time.monotonic() > deadline:
                 timed_out = True
                 break
+        sampler.finish()  # pass 2 continues each well's random stream
         best_iter = torch.where(
             has_val, best_iter, torch.full_like(best_iter, settings.default_iter)
         )
@@ -510,8 +586,9 @@ def fit_batch(
     block = torch.zeros(n_w, dtype=DTYPE)
     best_block = torch.full((n_w,), float("inf"), dtype=DTYPE)
     stale = torch.zeros(n_w, dtype=torch.int64)
+    sampler = _Sampler(batch, settings.batch_size, gens)
     for k in range(1, total_iter + 1):
-        per_well_loss_k = _map_step_gradients(model, params, batch, settings, gens)
+        per_well_loss_k = _map_step_gradients(model, params, sampler, settings)
         clip_per_well_(model, settings.max_grad_norm, groups)
         optimizer_step_(opt)
         if sched is not None:
