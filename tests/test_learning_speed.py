@@ -289,3 +289,35 @@ def test_chunked_sampler_draws_the_mini_batches_of_one_draw_per_iteration():
     sampler.finish()
     for a, b in zip(gens_a, gens_b, strict=True):
         assert torch.equal(torch.rand(5, generator=a), torch.rand(5, generator=b))
+
+
+def test_a_retrain_stops_once_converged_where_running_on_gains_little():
+    """A warm-started retrain stops each well once its objective has converged: fewer
+    iterations than the full count, the objective still lowered from the warm start (the
+    new data learned) and within a few percent of what the full count reaches."""
+    history, _ = _field_batches()
+    train = DEFAULT_TRAIN["mm"]
+    rank = torch.cumsum(history.mask.long(), 1)
+    model = make_model("mm", history.wells)
+    fit_batch(model, history.select(rank <= 40), train)
+    start = copy.deepcopy(model.state_dict())
+    # a bias the retrain has to learn away: the newer data read 10 % high
+    newer = history.select(rank > 0)
+    newer.y = torch.where(rank[:, : newer.y.shape[1]] > 40, newer.y * 1.1, newer.y)
+    cap = torch.full((newer.n_wells,), 150, dtype=torch.int64)
+    params = [p for p in model.parameters() if p.requires_grad]
+
+    def objective() -> float:
+        n = newer.count().to(DTYPE)
+        return float(map_gradients_(model, params, newer, train.noise, False, n).sum())
+
+    before = objective()
+    full = fit_batch(model, newer, replace(train, retrain_tol=0.0), cap)["iterations"]
+    reached_full = objective()
+    model.load_state_dict(start)
+    stopped = fit_batch(model, newer, train, cap)["iterations"]
+    reached = objective()
+    assert torch.equal(full, cap)
+    assert bool((stopped < cap).all()) and int(stopped.min()) >= 3 * train.retrain_check
+    assert reached < 0.8 * before
+    assert reached < 1.02 * reached_full
