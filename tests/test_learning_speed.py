@@ -326,3 +326,8 @@ def test_a_retrain_stops_once_converged_where_running_on_gains_little():
     model.load_state_dict(start)
     noisy = fit_batch(model, newer, replace(train, batch_size=16), cap)["iterations"]
     assert torch.equal(noisy, cap)
+    # an initial fit without early stopping ("to convergence", as the diagnosis fits mm)
+    # is no retrain: it runs max_iter in full
+    model.load_state_dict(start)
+    whole = fit_batch(model, newer, replace(train, early_stopping=False, max_iter=120))
+    assert bool((whole["iterations"] == 120).all())

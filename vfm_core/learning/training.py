@@ -527,12 +527,14 @@ def fit_batch(
     n_w = batch.n_wells
     best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
 
+    # a periodic retrain (warm start, the iteration counts given) may stop on convergence;
+    # an initial fit without early stopping runs its max_iter in full ("to convergence")
+    retrain = iterations is not None
     if iterations is None and not settings.early_stopping:
         iterations = torch.full((n_w,), settings.max_iter, dtype=torch.int64)
         settings = replace(
             settings, retrain_max_iter=max(settings.retrain_max_iter, settings.max_iter)
         )
-    retrain = iterations is not None
     if iterations is not None:
         fallback = torch.full_like(iterations, settings.default_iter)
         best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
