@@ -93,6 +93,15 @@ def per_run_times(frame, models: list[str], methods: list[str], case: str) -> No
         f"case {case}: {sum(values):.1f} s in {len(values)} runs; median {median:.1f} s, "
         f"slowest {' '.join(slowest)} {times[slowest]:.1f} s = {times[slowest] / median:.1f} x median"
     )
+    # per model, its methods together (a model's share of the study)
+    per_model = {m: sum(times[m, k] for k in methods) for m in models}
+    model_median = float(np.median(list(per_model.values())))
+    heaviest = max(per_model, key=per_model.__getitem__)
+    print(
+        f"case {case} per model (its {len(methods)} methods): median {model_median:.1f} s, "
+        f"slowest {heaviest} {per_model[heaviest]:.1f} s = "
+        f"{per_model[heaviest] / max(model_median, 1e-9):.1f} x median"
+    )
 
 
 def main() -> None:

@@ -286,50 +286,75 @@ class _FluxFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
         p_up, p_down, eta_oil, rho_oil, rho_wat, m_gas, p_cr, z, flux = ctx.saved_tensors
-        parts = ctx.parts
-        pr, k, x = parts["p_ratio"], parts["k"], parts["x"]
-        rho_g1, v, energy, v_mix = parts["rho_g1"], parts["v_liq"], parts["energy"], parts["v_mix"]
-        flowing = parts["head"] > 0
-        # dG = G (dE / 2E - dv_mix / v_mix), G's factor per unit of E and of v_mix
-        safe_e = torch.where(flowing, energy, torch.ones_like(energy))
-        g_e = torch.where(flowing, grad * flux * 0.5 / safe_e, torch.zeros_like(flux))
-        g_m = torch.where(flowing, -grad * flux / v_mix, torch.zeros_like(flux))
-        pra = 1.0 - parts["expansion"]  # p_r^a
-        gas = x * pr ** (-1.0 / k) / rho_g1  # x / rho_g2
-        log_pr = torch.log(pr)
-        d_v = g_e * (1.0 - pr) + g_m
-        d_rho_g1 = g_e * (-x * k / (k - 1.0) * parts["expansion"] / rho_g1**2) - g_m * gas / rho_g1
-        d_pr = g_e * (-v - x * pra / pr / rho_g1) - g_m * gas / (k * pr)
-        d_k = (
-            g_e
-            * (-x * (parts["expansion"] / (k - 1.0) ** 2 + pra * log_pr / (k * (k - 1.0))) / rho_g1)
-            + g_m * gas * log_pr / k**2
-        )
+        d = flux_vjp(ctx.parts, grad, flux, p_up, p_down, eta_oil, rho_oil, rho_wat, m_gas, p_cr, z)
 
         def reduce(value: torch.Tensor, like: torch.Tensor, needed: bool) -> torch.Tensor | None:
             return value.sum_to_size(like.shape) if needed else None
 
         need = ctx.needs_input_grad
-        eta_wat = 1.0 - x - eta_oil
-        ratio = p_down / p_up
-        at_cr = torch.where(
-            p_cr > ratio,
-            torch.ones_like(d_pr),
-            torch.where(p_cr == ratio, torch.full_like(d_pr, 0.5), torch.zeros_like(d_pr)),
-        )
         return (
             None,
             None,
             None,
             None,
             None,
-            reduce(d_v * (-eta_oil / rho_oil**2), rho_oil, need[5]),
-            reduce(d_v * (-eta_wat / rho_wat**2), rho_wat, need[6]),
-            reduce(d_k, k, need[7]),
-            reduce(d_rho_g1 * rho_g1 / m_gas, m_gas, need[8]),
-            reduce(d_pr * at_cr, p_cr, need[9]),
-            reduce(d_rho_g1 * (-rho_g1 / z), z, need[10]),
+            reduce(d["rho_oil"], rho_oil, need[5]),
+            reduce(d["rho_wat"], rho_wat, need[6]),
+            reduce(d["kappa"], ctx.parts["k"], need[7]),
+            reduce(d["m_gas"], m_gas, need[8]),
+            reduce(d["p_cr"], p_cr, need[9]),
+            reduce(d["z"], z, need[10]),
         )
+
+
+def flux_vjp(
+    parts: dict[str, torch.Tensor],
+    grad: torch.Tensor,
+    flux: torch.Tensor,
+    p_up: torch.Tensor,
+    p_down: torch.Tensor,
+    eta_oil: torch.Tensor,
+    rho_oil: torch.Tensor,
+    rho_wat: torch.Tensor,
+    m_gas: torch.Tensor,
+    p_cr: torch.Tensor,
+    z: torch.Tensor | float,
+) -> dict[str, torch.Tensor]:
+    """``grad`` (d loss / d flux, per sample) times the flux's closed-form derivatives
+    (see :class:`_FluxFunction`): d loss / d rho_oil, rho_wat, kappa, m_gas, p_cr, z, per
+    sample (not yet summed to the parameters' shapes). ``parts``: :func:`_flux`'s."""
+    pr, k, x = parts["p_ratio"], parts["k"], parts["x"]
+    rho_g1, v, energy, v_mix = parts["rho_g1"], parts["v_liq"], parts["energy"], parts["v_mix"]
+    flowing = parts["head"] > 0
+    # dG = G (dE / 2E - dv_mix / v_mix), G's factor per unit of E and of v_mix
+    safe_e = torch.where(flowing, energy, torch.ones_like(energy))
+    g_e = torch.where(flowing, grad * flux * 0.5 / safe_e, torch.zeros_like(flux))
+    g_m = torch.where(flowing, -grad * flux / v_mix, torch.zeros_like(flux))
+    pra = 1.0 - parts["expansion"]  # p_r^a
+    gas = x * pr ** (-1.0 / k) / rho_g1  # x / rho_g2
+    log_pr = torch.log(pr)
+    d_v = g_e * (1.0 - pr) + g_m
+    d_rho_g1 = g_e * (-x * k / (k - 1.0) * parts["expansion"] / rho_g1**2) - g_m * gas / rho_g1
+    d_pr = g_e * (-v - x * pra / pr / rho_g1) - g_m * gas / (k * pr)
+    d_k = (
+        g_e * (-x * (parts["expansion"] / (k - 1.0) ** 2 + pra * log_pr / (k * (k - 1.0))) / rho_g1)
+        + g_m * gas * log_pr / k**2
+    )
+    eta_wat = 1.0 - x - eta_oil
+    ratio = p_down / p_up
+    at_cr = torch.where(
+        p_cr > ratio,
+        torch.ones_like(d_pr),
+        torch.where(p_cr == ratio, torch.full_like(d_pr, 0.5), torch.zeros_like(d_pr)),
+    )
+    return {
+        "rho_oil": d_v * (-eta_oil / rho_oil**2),
+        "rho_wat": d_v * (-eta_wat / rho_wat**2),
+        "kappa": d_k,
+        "m_gas": d_rho_g1 * rho_g1 / m_gas,
+        "p_cr": d_pr * at_cr,
+        "z": d_rho_g1 * (-rho_g1 / z),
+    }
 
 
 def choke_mass_flow(area: Tensorish, *args: Tensorish, **kwargs: Tensorish | bool) -> torch.Tensor:

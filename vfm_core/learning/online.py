@@ -17,12 +17,11 @@ from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
+    MapObjective,
     clip_per_well_,
     make_optimizer,
     optimizer_step_,
-    per_well_loss,
     split_parameters,
-    zero_grad_,
 )
 from vfm_core.models import ChokeModel
 
@@ -113,10 +112,9 @@ class OnlineLearning(LearningMethod):
         # the same batch for every step: its counts once
         n = batch.count().to(DTYPE)
         s = self.online
+        objective = MapObjective(model, batch, s.noise, True, n)
         for _ in range(s.steps):
-            zero_grad_(self._params)
-            loss = per_well_loss(model, batch, s.noise, physical_only=True, n=n).sum()
-            loss.backward()
+            objective.gradients_(self._params)
             clip_per_well_(model, s.max_grad_norm, self._groups)
             optimizer_step_(opt)
             model.project_()

@@ -5,7 +5,9 @@ sigma_eps^2 / N (paper eq. objective-function), with Adam or SGD on mini-batches
 early stopping on the latest slice of each well's data: a first pass on all but that
 slice finds the best number of iterations per well, a second pass from the same start on
 all the data runs exactly that many (so the newest data are learned from, not only used
-to stop). Wells stay independent: losses, gradient clipping and iteration counts are per
+to stop). A periodic retrain, warm-started from the current parameters, runs the initial
+fit's count at most and, on data that fit in one batch, stops a well earlier once its
+objective has converged. Wells stay independent: losses, gradient clipping and iteration counts are per
 well; only a shared model (``mtl``) couples them.
 """
 
@@ -32,6 +34,8 @@ __all__ = [
     "zero_grad_",
     "scaled_errors",
     "per_well_loss",
+    "map_gradients_",
+    "MapObjective",
     "clip_per_well_",
     "split_parameters",
     "well_generators",
@@ -57,6 +61,16 @@ class TrainSettings:
     #: a periodic retrain (warm start) runs the initial fit's early-stopped iteration
     #: count per well, at most this many
     retrain_max_iter: int = 150
+    #: a retrain also stops a well once its objective has converged: the mean objective
+    #: of a block of ``retrain_check`` iterations has not fallen below the best block's by
+    #: this relative amount for two blocks in a row (0: no convergence stop, every retrain
+    #: runs its full count). 1 % of the objective is half a percent of the root-mean-square
+    #: error. Only a retrain whose data fit in one batch (``batch_size`` per well) stops so:
+    #: there the objective is exact, while on mini-batches their noise would stop it before
+    #: it has converged (a warm-started retrain of ``lr`` then lost 0.1 pp of MAPE)
+    retrain_tol: float = 1e-2
+    #: iterations per block of the retrain's convergence test
+    retrain_check: int = 10
     #: per-well cap on the gradient norm: inputs that drifted far from the training
     #: statistics must not blow a step up
     max_grad_norm: float = 10.0
@@ -156,29 +170,47 @@ def optimizer_step_(opt: torch.optim.Optimizer) -> None:
         adam = isinstance(opt, torch.optim.Adam)
         for group in opt.param_groups:
             lr = group["lr"]
-            for p in group["params"]:
-                grad = p.grad
-                if grad is None:
-                    continue
-                if not adam:
-                    p.add_(grad, alpha=-lr)
-                    continue
-                beta1, beta2 = group["betas"]
-                state = opt.state[p]
+            params = [p for p in group["params"] if p.grad is not None]
+            if not params:
+                continue
+            grads = [p.grad for p in params]
+            if not adam:
+                torch._foreach_add_(params, grads, alpha=-lr)
+                continue
+            # torch's single-tensor Adam, elementwise, on every parameter at once (the
+            # _foreach ops do the same arithmetic per element: the same bits)
+            beta1, beta2 = group["betas"]
+            states = [opt.state[p] for p in params]
+            for p, state in zip(params, states, strict=True):
                 if len(state) == 0:
                     state["step"] = torch.tensor(0.0, dtype=_torch_optimizer._get_scalar_dtype())
                     state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                     state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                step_t, exp_avg, exp_avg_sq = state["step"], state["exp_avg"], state["exp_avg_sq"]
-                step_t += 1
-                exp_avg.lerp_(grad, 1 - beta1)
-                exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-                step = step_t.item()
+            steps = [st["step"] for st in states]
+            exp_avgs = [st["exp_avg"] for st in states]
+            exp_avg_sqs = [st["exp_avg_sq"] for st in states]
+            torch._foreach_add_(steps, 1.0)
+            torch._foreach_lerp_(exp_avgs, grads, 1 - beta1)
+            torch._foreach_mul_(exp_avg_sqs, beta2)
+            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, value=1 - beta2)
+            counts = [t.item() for t in steps]
+            if len(set(counts)) == 1:
+                groups_by_step = [(counts[0], list(range(len(params))))]
+            else:  # parameters that missed steps (no gradient then): each its own count
+                groups_by_step = [
+                    (c, [i for i, v in enumerate(counts) if v == c]) for c in set(counts)
+                ]
+            for step, idx in groups_by_step:
                 bias_correction1 = 1 - beta1**step
                 bias_correction2 = 1 - beta2**step
                 step_size = lr / bias_correction1
-                denom = (exp_avg_sq.sqrt() / bias_correction2**0.5).add_(group["eps"])
-                p.addcdiv_(exp_avg, denom, value=-step_size)
+                sqs = [exp_avg_sqs[i] for i in idx]
+                denom = torch._foreach_sqrt(sqs)
+                torch._foreach_div_(denom, bias_correction2**0.5)
+                torch._foreach_add_(denom, group["eps"])
+                torch._foreach_addcdiv_(
+                    [params[i] for i in idx], [exp_avgs[i] for i in idx], denom, value=-step_size
+                )
 
 
 def scaled_errors(model: ChokeModel, batch: Batch) -> torch.Tensor:
@@ -204,6 +236,80 @@ def per_well_loss(
     mse = (e**2).sum(1) / n_safe
     prior = model.prior_penalty(physical_only=physical_only) * noise**2 / n_safe
     return torch.where(n > 0, mse + prior, torch.zeros_like(mse))
+
+
+class MapObjective:
+    """The per-well MAP objective of ``model`` on one batch, ready to be differentiated many
+    times (the E steps of an online update are on one measurement): the mean squared scaled
+    error over ``n_data`` samples (default ``n``, as floats) plus the prior penalty weighted
+    by sigma^2 / ``n``; zero for a well with ``n`` = 0.
+
+    A model with closed-form gradients (``model.rate_vjp``) is stepped without autograd,
+    whose per-call machinery costs more than the arithmetic on these small tensors, and
+    what depends on the batch alone is taken once here; any other model goes through
+    autograd (:func:`per_well_loss`'s objective): the same numbers up to rounding.
+    """
+
+    def __init__(
+        self,
+        model: ChokeModel,
+        batch: Batch,
+        noise: float,
+        physical_only: bool,
+        n: torch.Tensor,
+        n_data: torch.Tensor | None = None,
+    ) -> None:
+        self.model, self.batch, self.noise, self.physical_only = model, batch, noise, physical_only
+        self.n = n
+        self.n_data = n if n_data is None else n_data
+        with torch.no_grad():
+            self.has = n > 0
+            self.scale = model.y_scale.unsqueeze(1)
+            self.n_safe = self.n_data.clamp(min=1.0)
+            self.weight = torch.where(self.has, noise**2 / n.clamp(min=1.0), 0.0)
+            # d loss / d rate = e * this (e the scaled error, zero where padded)
+            self.d_factor = torch.where(self.has, 2.0 / self.n_safe, 0.0).unsqueeze(1) / self.scale
+
+    def gradients_(self, params: list[torch.nn.Parameter]) -> torch.Tensor:
+        """Set every parameter's ``.grad`` to the gradient of the objective's sum; returns
+        the objective per well [W] (no graph)."""
+        model, batch = self.model, self.batch
+        closed = model.rate_vjp(batch)
+        if closed is None:
+            zero_grad_(params)
+            e = scaled_errors(model, batch)
+            mse = (e**2).sum(1) / self.n_safe
+            prior = model.prior_penalty(physical_only=self.physical_only) * self.weight
+            loss = torch.where(self.has, mse + prior, torch.zeros_like(mse))
+            loss.sum().backward()
+            return loss.detach()
+        q, pullback = closed
+        with torch.no_grad():
+            e = torch.where(batch.mask, (q - batch.y) / self.scale, 0.0)
+            loss = (e * e).sum(1) / self.n_safe
+            loss = loss + model.prior_penalty(physical_only=self.physical_only) * self.weight
+            loss = torch.where(self.has, loss, 0.0)
+            grads = pullback(e * self.d_factor)
+            for pid, g in model.prior_gradients(self.weight, self.physical_only).items():
+                grads[pid] = grads[pid] + g if pid in grads else g
+            for p in params:
+                g = grads.get(id(p))
+                p.grad = torch.zeros_like(p) if g is None else g.reshape(p.shape)
+        return loss
+
+
+def map_gradients_(
+    model: ChokeModel,
+    params: list[torch.nn.Parameter],
+    batch: Batch,
+    noise: float,
+    physical_only: bool,
+    n: torch.Tensor,
+    n_data: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``MapObjective(model, batch, noise, physical_only, n, n_data).gradients_(params)``:
+    the per-well MAP objective [W] (no graph), every parameter's ``.grad`` set."""
+    return MapObjective(model, batch, noise, physical_only, n, n_data).gradients_(params)
 
 
 def well_generators(wells: list[str], seed: int) -> list[torch.Generator]:
@@ -247,16 +353,92 @@ def _minibatch(batch: Batch, size: int, gens: list[torch.Generator]) -> tuple[Ba
     ), counts
 
 
-def _map_loss(
-    model: ChokeModel, batch: Batch, settings: TrainSettings, gens: list[torch.Generator]
+class _Sampler:
+    """:func:`_minibatch` for many iterations, drawn and gathered a chunk of iterations at a
+    time: the same random numbers in the same order (a well's stream drawn in one call is
+    its draws one at a time, concatenated), so the same mini-batches, at a fraction of the
+    per-iteration calls. :meth:`finish` leaves every generator where :func:`_minibatch`
+    would have after the iterations taken, so a later pass continues the same streams."""
+
+    #: samples per chunk and well at most, summed over wells (bounds the chunk's memory)
+    _CHUNK_SAMPLES = 1 << 20
+
+    def __init__(self, batch: Batch, size: int, gens: list[torch.Generator]) -> None:
+        self.batch, self.size, self.gens = batch, size, gens
+        self.counts = batch.count()
+        self.full = size <= 0 or int(self.counts.max()) <= size
+        self.draws = [j for j in range(len(gens)) if int(self.counts[j]) > size]
+        self.start = {j: gens[j].get_state() for j in self.draws} if not self.full else {}
+        self.chunk = max(1, min(16, self._CHUNK_SAMPLES // max(batch.n_wells * size, 1)))
+        self.taken = 0
+        self._queue: list[Batch] = []
+
+    def _refill(self) -> None:
+        size, c, batch, counts = self.size, self.chunk, self.batch, self.counts
+        rows = []
+        for j, gen in enumerate(self.gens):
+            if int(counts[j]) > size:
+                u = torch.rand(size * c, generator=gen, dtype=DTYPE)
+                rows.append(torch.floor(u * float(counts[j])).to(torch.int64))
+            else:
+                rows.append(torch.arange(size, dtype=torch.int64).repeat(c))
+        idx = torch.stack(rows)
+        has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
+        idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
+        assert batch.well_test is not None and batch.extra is not None
+        x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
+        ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
+        y = torch.gather(batch.y, 1, idx)
+        t = torch.gather(batch.time_ns, 1, idx)
+        r = torch.gather(batch.row, 1, idx)
+        wt = torch.gather(batch.well_test, 1, idx)
+        for i in range(c):
+            sl = slice(i * size, (i + 1) * size)
+            self._queue.append(
+                Batch(
+                    batch.wells,
+                    x[:, sl],
+                    y[:, sl],
+                    has[:, sl],
+                    t[:, sl],
+                    r[:, sl],
+                    wt[:, sl],
+                    ex[:, sl],
+                    batch.extra_names,
+                )
+            )
+        self._queue.reverse()
+
+    def next(self) -> tuple[Batch, torch.Tensor]:
+        """The next iteration's mini-batch and the full counts per well."""
+        if self.full:
+            return self.batch, self.counts
+        if not self._queue:
+            self._refill()
+        self.taken += 1
+        return self._queue.pop(), self.counts
+
+    def finish(self) -> None:
+        """Rewind the generators to just after the iterations taken (the chunk drew ahead)."""
+        for j in self.draws:
+            gen = self.gens[j]
+            gen.set_state(self.start[j])
+            if self.taken:
+                torch.rand(self.size * self.taken, generator=gen, dtype=DTYPE)
+        self._queue = []
+
+
+def _map_step_gradients(
+    model: ChokeModel,
+    params: list[torch.nn.Parameter],
+    sampler: _Sampler,
+    settings: TrainSettings,
 ) -> torch.Tensor:
-    """Summed per-well MAP objective on a mini-batch; the prior is weighted by the full count."""
-    mb, counts = _minibatch(batch, settings.batch_size, gens)
+    """Per-well MAP objective [W] on the next mini-batch, gradients set
+    (:func:`map_gradients_`); the prior is weighted by the full count."""
+    mb, counts = sampler.next()
     n = counts.to(DTYPE)
-    e = scaled_errors(model, mb)
-    mse = (e**2).sum(1) / mb.count().clamp(min=1).to(DTYPE)
-    prior = model.prior_penalty(physical_only=False) * settings.noise**2 / n.clamp(min=1.0)
-    return torch.where(n > 0, mse + prior, torch.zeros_like(mse)).sum()
+    return map_gradients_(model, params, mb, settings.noise, False, n, n_data=mb.count().to(DTYPE))
 
 
 def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
@@ -292,15 +474,23 @@ def clip_per_well_(
     ``parameters``: :func:`split_parameters` of the model, when the caller steps often."""
     per_well, shared_all = split_parameters(model) if parameters is None else parameters
     grads = [p.grad for p in per_well if p.grad is not None]
-    if not grads:
-        return
-    sq = sum((g.reshape(g.shape[0], -1) ** 2).sum(1) for g in grads)
-    scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
+    if grads:
+        n_w = grads[0].shape[0]
+        flat = (
+            grads[0].reshape(n_w, -1)
+            if len(grads) == 1
+            else torch.cat([g.reshape(n_w, -1) for g in grads], dim=1)
+        )
+        sq = (flat * flat).sum(1)
+        scale = (max_norm / (torch.sqrt(sq) + 1e-12)).clamp(max=1.0)
+        torch._foreach_mul_(grads, [scale.reshape(-1, *([1] * (g.dim() - 1))) for g in grads])
     shared = [p for p in shared_all if p.grad is not None]
     if shared:
         torch.nn.utils.clip_grad_norm_(shared, max_norm)
+
+
+#: blocks in a row without improvement that end a retrain (see ``TrainSettings.retrain_tol``)
+_RETRAIN_PATIENCE = 2
 
 
 def fit_batch(
@@ -313,7 +503,9 @@ def fit_batch(
     """MAP-train ``model`` on ``batch`` from its current parameters (a warm start).
 
     With ``iterations`` [W] given (a periodic retrain), early stopping is skipped and each
-    well runs that many iterations (capped by ``retrain_max_iter``). ``wells`` [W] (bool)
+    well runs that many iterations (capped by ``retrain_max_iter``), or, when the data fit
+    in one batch, fewer once its objective has converged (``retrain_tol``: running on only
+    costs time). ``wells`` [W] (bool)
     retrains only those wells (the others keep their parameters; shared parameters always
     train). Returns a summary with ``iterations``, the count per well, for later retrains.
     """
@@ -335,6 +527,9 @@ def fit_batch(
     n_w = batch.n_wells
     best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
 
+    # a periodic retrain (warm start, the iteration counts given) may stop on convergence;
+    # an initial fit without early stopping runs its max_iter in full ("to convergence")
+    retrain = iterations is not None
     if iterations is None and not settings.early_stopping:
         iterations = torch.full((n_w,), settings.max_iter, dtype=torch.int64)
         settings = replace(
@@ -353,10 +548,9 @@ def fit_batch(
         )
         best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
         since = torch.zeros(n_w, dtype=torch.int64)
+        sampler = _Sampler(train, settings.batch_size, gens)
         for k in range(1, settings.max_iter + 1):
-            zero_grad_(params)
-            loss = _map_loss(model, train, settings, gens)
-            loss.backward()
+            _map_step_gradients(model, params, sampler, settings)
             clip_per_well_(model, settings.max_grad_norm, groups)
             optimizer_step_(opt)
             if sched is not None:
@@ -376,6 +570,7 @@ def fit_batch(
             if deadline is not None and time.monotonic() > deadline:
                 timed_out = True
                 break
+        sampler.finish()  # pass 2 continues each well's random stream
         best_iter = torch.where(
             has_val, best_iter, torch.full_like(best_iter, settings.default_iter)
         )
@@ -389,15 +584,35 @@ def fit_batch(
     opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
     final = _snapshot(params)
     total_iter = int(best_iter.max())
+    # a retrain (warm start) also stops each well once its objective has converged
+    check = max(int(settings.retrain_check), 1)
+    sampler = _Sampler(batch, settings.batch_size, gens)
+    # on mini-batches the blocks' means are noisy: only an exact objective stops a retrain
+    converge = retrain and settings.retrain_tol > 0 and total_iter > 2 * check and sampler.full
+    block = torch.zeros(n_w, dtype=DTYPE)
+    best_block = torch.full((n_w,), float("inf"), dtype=DTYPE)
+    stale = torch.zeros(n_w, dtype=torch.int64)
     for k in range(1, total_iter + 1):
-        zero_grad_(params)
-        loss = _map_loss(model, batch, settings, gens)
-        loss.backward()
+        per_well_loss_k = _map_step_gradients(model, params, sampler, settings)
         clip_per_well_(model, settings.max_grad_norm, groups)
         optimizer_step_(opt)
         if sched is not None:
             sched.step()
         model.project_()
+        if converge:
+            block += per_well_loss_k.detach()
+            if k % check == 0 and k < total_iter:
+                mean = block / check
+                if model.shared:  # one decision for shared parameters, as in early stopping
+                    mean = torch.full_like(mean, float(mean.sum()))
+                improved = mean < best_block * (1.0 - settings.retrain_tol)
+                best_block = torch.minimum(best_block, mean)
+                stale = torch.where(improved, torch.zeros_like(stale), stale + 1)
+                stop = (stale >= _RETRAIN_PATIENCE) & (best_iter > k)
+                if bool(stop.any()):
+                    best_iter = torch.where(stop, torch.full_like(best_iter, k), best_iter)
+                    total_iter = int(best_iter.max())
+                block.zero_()
         if deadline is not None and time.monotonic() > deadline and k < total_iter:
             # out of time: every well still running stops here, where it is
             timed_out = True

@@ -22,12 +22,18 @@ updates every well at once and independently. The protocol:
   their prior variances, their drift per year and their SI scale (:class:`FilterBlock`).
 - ``state_dict()`` / ``load_state_dict()`` hold tensors only; hyperparameters are the
   constructor's keyword arguments (``model.hyper``, JSON). No pickle anywhere.
+- Optional, for speed: ``rate_vjp(batch)`` gives the rate with its gradient in closed form
+  (a pullback from d loss / d rate to every parameter's gradient) and
+  ``prior_gradients(weight, physical_only)`` the prior penalty's; the learners then step
+  without autograd (:func:`vfm_core.learning.training.map_gradients_`). A model without
+  them (the default ``None``), or with effects, is differentiated by autograd, the same
+  numbers up to rounding (``tests/test_learning_speed.py`` checks every model).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -37,7 +43,21 @@ from torch import nn
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
 
-__all__ = ["ChokeModel", "WellMLP", "PhysicalParameters", "FilterBlock", "make_block", "N_INPUTS"]
+__all__ = [
+    "ChokeModel",
+    "WellMLP",
+    "PhysicalParameters",
+    "FilterBlock",
+    "make_block",
+    "N_INPUTS",
+    "Gradients",
+    "Pullback",
+]
+
+#: parameter gradients by ``id(parameter)`` (a parameter absent has gradient zero)
+Gradients = dict[int, torch.Tensor]
+#: from d loss / d rate [W, N] (per sample, Sm3/h) to the parameters' gradients
+Pullback = Callable[[torch.Tensor], Gradients]
 
 #: the six inputs of every model, in vfm_core.schema.INPUT_COLUMNS order
 N_INPUTS = 6
@@ -187,6 +207,24 @@ class ChokeModel(nn.Module):
         model without per-well parameters (the ``last`` benchmark) has none."""
         return []
 
+    # -- closed-form gradients (optional) -------------------------------------------------
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        """The rate of :meth:`forward_batch` [W, N] (Sm3/h, computed without a graph) and
+        its pullback, or None when the model has no closed form (autograd is used).
+
+        Only the exact class that implements it may answer: a subclass that changes the
+        rate must not inherit its parent's gradient (see :meth:`_own_closed_form`)."""
+        return None
+
+    def prior_gradients(self, weight: torch.Tensor, physical_only: bool) -> Gradients:
+        """Gradients of ``sum_j weight[j] prior_penalty(physical_only)[j]`` by parameter id
+        (needed only by a model whose :meth:`rate_vjp` answers)."""
+        return {}
+
+    def _own_closed_form(self, cls: type) -> bool:
+        """True when this model is exactly ``cls`` (its closed form applies)."""
+        return type(self) is cls
+
 
 class WellMLP(nn.Module):
     """One ReLU multilayer perceptron per well, evaluated in one batched call.
@@ -213,6 +251,43 @@ class WellMLP(nn.Module):
             if i < n - 1:
                 z = torch.relu(z)
         return z.squeeze(-1)
+
+    def forward_cached(self, z: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """:meth:`forward` [W, N] and what :meth:`pullback` needs (each layer's input and
+        pre-activation)."""
+        n = len(self.weights)
+        cache = []
+        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            a = torch.baddbmm(b.unsqueeze(1), z, w)
+            cache += [z, a]
+            z = torch.relu(a) if i < n - 1 else a
+        return z.squeeze(-1), cache
+
+    def pullback(self, cache: list[torch.Tensor], grad: torch.Tensor) -> Gradients:
+        """Gradients of every weight and bias from d loss / d output [W, N] (backpropagation
+        written out: the same numbers as autograd's, without its per-call machinery)."""
+        out: Gradients = {}
+        delta = grad.unsqueeze(-1)
+        for i in range(len(self.weights) - 1, -1, -1):
+            z, a = cache[2 * i], cache[2 * i + 1]
+            if i < len(self.weights) - 1:
+                delta = torch.ops.aten.threshold_backward(delta, a, 0.0)  # ReLU's, as autograd
+            w = self.weights[i]
+            out[id(w)] = torch.bmm(z.transpose(1, 2), delta)
+            out[id(self.biases[i])] = delta.sum(1)
+            if i > 0:
+                delta = torch.bmm(delta, w.transpose(1, 2))
+        return out
+
+    def prior_gradients(self, weight: torch.Tensor) -> Gradients:
+        """Gradients of ``sum_j weight[j] prior_penalty()[j]``."""
+        out: Gradients = {}
+        k = weight.reshape(-1, 1, 1)
+        for w, b in zip(self.weights, self.biases, strict=True):
+            he_var = 2.0 / w.shape[1]
+            out[id(w)] = (2.0 / he_var) * k * w.detach()
+            out[id(b)] = 2.0 * weight.unsqueeze(1) * b.detach()
+        return out
 
     def head_blocks(self, prefix: str = "head") -> list[FilterBlock]:
         """The output layer as filter blocks: its weights (prior variance 2/fan_in, He) and
@@ -277,6 +352,10 @@ class PhysicalParameters(nn.Module):
 
     def penalty(self) -> torch.Tensor:
         return (self.z**2).sum(dim=1)
+
+    def penalty_gradients(self, weight: torch.Tensor) -> Gradients:
+        """Gradient of ``sum_j weight[j] penalty()[j]``."""
+        return {id(self.z): 2.0 * weight.unsqueeze(1) * self.z.detach()}
 
     def project_(self) -> None:
         with torch.no_grad():

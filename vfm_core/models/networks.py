@@ -19,6 +19,8 @@ from vfm_core.models.base import (
     HEAD_DRIFT_WEIGHT,
     ChokeModel,
     FilterBlock,
+    Gradients,
+    Pullback,
     WellMLP,
     make_block,
 )
@@ -76,6 +78,29 @@ class LinearRegression(ChokeModel):
             return super().prior_penalty()
         return (self.w**2).sum(1) + (self.b - 1.0) ** 2
 
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if not self._own_closed_form(LinearRegression):
+            return None
+        with torch.no_grad():
+            z = self.normalise(batch.x)
+            scale = self.y_scale.unsqueeze(1)
+            q = scale * ((z * self.w.unsqueeze(1)).sum(-1) + self.b.unsqueeze(1))
+
+        def pullback(grad: torch.Tensor) -> Gradients:
+            g = grad * scale
+            return {id(self.w): (g.unsqueeze(-1) * z).sum(1), id(self.b): g.sum(1)}
+
+        return q, pullback
+
+    def prior_gradients(self, weight: torch.Tensor, physical_only: bool) -> Gradients:
+        if physical_only:
+            return {}
+        k = 2.0 * weight
+        return {
+            id(self.w): k.unsqueeze(1) * self.w.detach(),
+            id(self.b): k * (self.b.detach() - 1.0),
+        }
+
     def filter_blocks(self) -> list[FilterBlock]:
         """Slopes and level, in units of the well's median rate (prior variance 1)."""
         return [
@@ -101,6 +126,18 @@ class NeuralNet(ChokeModel):
 
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return super().prior_penalty() if physical_only else self.net.prior_penalty()
+
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if not self._own_closed_form(NeuralNet):
+            return None
+        with torch.no_grad():
+            out, cache = self.net.forward_cached(self.normalise(batch.x))
+            scale = self.y_scale.unsqueeze(1)
+            q = scale * (1.0 + out)
+        return q, lambda grad: self.net.pullback(cache, grad * scale)
+
+    def prior_gradients(self, weight: torch.Tensor, physical_only: bool) -> Gradients:
+        return {} if physical_only else self.net.prior_gradients(weight)
 
     def filter_blocks(self) -> list[FilterBlock]:
         """The output layer (last-layer Bayesian learning; the layers below stay as fitted)."""
@@ -186,6 +223,59 @@ class MultiTask(ChokeModel):
 
     def per_well_parameters(self) -> list[torch.nn.Parameter]:
         return [self.beta]
+
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if not self._own_closed_form(MultiTask):
+            return None
+        with torch.no_grad():
+            z = self.normalise(batch.x)
+            beta = self.beta.unsqueeze(1).expand(-1, z.shape[1], -1)
+            inp = torch.cat([z, beta], dim=-1)
+            h = inp @ self.w_in + self.b_in
+            cache = []
+            for w1, b1, w2, b2 in zip(self.w1, self.b1, self.w2, self.b2, strict=True):
+                u = torch.relu(h) @ w1 + b1
+                cache.append((h, u))
+                h = h + torch.relu(u) @ w2 + b2
+            scale = self.y_scale.unsqueeze(1)
+            q = scale * (1.0 + (h @ self.w_out).squeeze(-1) + self.b_out)
+
+        def pullback(grad: torch.Tensor) -> Gradients:
+            g = (grad * scale).unsqueeze(-1)  # d loss / d out [W, N, 1]
+            width = h.shape[-1]
+            out: Gradients = {
+                id(self.w_out): h.reshape(-1, width).T @ g.reshape(-1, 1),
+                id(self.b_out): g.sum().reshape(1),
+            }
+            dh = g @ self.w_out.detach().T
+            blocks = list(zip(self.w1, self.b1, self.w2, self.b2, strict=True))
+            for (w1, b1, w2, b2), (h_in, u) in zip(blocks[::-1], cache[::-1], strict=True):
+                flat = dh.reshape(-1, width)
+                out[id(w2)] = torch.relu(u).reshape(-1, width).T @ flat
+                out[id(b2)] = flat.sum(0)
+                du = (dh @ w2.detach().T) * (u > 0)
+                du_flat = du.reshape(-1, width)
+                out[id(w1)] = torch.relu(h_in).reshape(-1, width).T @ du_flat
+                out[id(b1)] = du_flat.sum(0)
+                dh = dh + (du @ w1.detach().T) * (h_in > 0)
+            flat = dh.reshape(-1, width)
+            out[id(self.w_in)] = inp.reshape(-1, inp.shape[-1]).T @ flat
+            out[id(self.b_in)] = flat.sum(0)
+            out[id(self.beta)] = (dh @ self.w_in.detach()[z.shape[-1] :].T).sum(1)
+            return out
+
+        return q, pullback
+
+    def prior_gradients(self, weight: torch.Tensor, physical_only: bool) -> Gradients:
+        if physical_only:
+            return {}
+        out: Gradients = {id(self.beta): 2.0 * weight.unsqueeze(1) * self.beta.detach()}
+        shared = weight.sum() / len(self.wells)  # each well carries 1/W of the shared prior
+        for w in [self.w_in, *self.w1, *self.w2, self.w_out]:
+            out[id(w)] = (2.0 * shared / (2.0 / w.shape[0])) * w.detach()
+        for b in [self.b_in, *self.b1, *self.b2, self.b_out]:
+            out[id(b)] = 2.0 * shared * b.detach()
+        return out
 
     def filter_blocks(self) -> list[FilterBlock]:
         """Each well's task vector beta_j (the shared network stays as fitted)."""

@@ -14,7 +14,7 @@ parameters in SI (kg/m3, -, kg/mol); rates in Sm3/h.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -24,7 +24,14 @@ from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
 from vfm_core.effects import Effect, EffectInputs, effect_spec, resolve_effects
 from vfm_core.errors import ConfigError
-from vfm_core.models.base import ChokeModel, FilterBlock, PhysicalParameters, WellMLP
+from vfm_core.models.base import (
+    ChokeModel,
+    FilterBlock,
+    Gradients,
+    PhysicalParameters,
+    Pullback,
+    WellMLP,
+)
 from vfm_core.units import bar_to_pa, degc_to_k
 
 __all__ = ["PHYSICAL_NAMES", "Mechanistic", "HybridError", "HybridArea", "mechanistic_rate"]
@@ -135,6 +142,65 @@ def mechanistic_rate(
     area C_D A_2 in m2.
     """
     return _sachdeva_rate(_si_inputs(_plain_batch(x), theta, None), area, (), {})
+
+
+def _sachdeva_vjp(
+    batch: Batch, theta: dict[str, torch.Tensor], area: torch.Tensor
+) -> tuple[torch.Tensor, Callable[[torch.Tensor], tuple[dict[str, torch.Tensor], torch.Tensor]]]:
+    """:func:`_sachdeva_rate` without effects [W, N] (Sm3/h, no graph) and its pullback:
+    from d loss / d rate [W, N] to d loss / d theta [W] (SI, by name) and d loss / d area
+    [W, N], in closed form (the flux's derivatives are :func:`vfm_core.physics.flux_vjp`)."""
+    i = _si_inputs(batch, theta, None)
+    th = i.theta
+    p_cr = th["p_cr"]
+    p_cr_used = torch.clamp(p_cr, 0.05, 0.99)
+    flux, parts = ph._flux(
+        i.p_up,
+        i.p_down,
+        i.t_up,
+        i.eta_gas,
+        i.eta_oil,
+        th["rho_oil"],
+        th["rho_wat"],
+        th["kappa"],
+        th["m_gas"],
+        p_cr_used,
+        1.0,
+        False,
+    )
+    gas_sc = i.eta_gas / ph.gas_density_standard(th["m_gas"])  # Sm3 of gas per kg
+    per_kg = gas_sc + ph.liquid_specific_volume(i.eta_gas, i.eta_oil, th["rho_oil"], th["rho_wat"])
+    unit = flux * per_kg * _SECONDS_PER_HOUR
+    q = area * flux * per_kg * _SECONDS_PER_HOUR  # in _sachdeva_rate's order: the same numbers
+
+    def pullback(grad: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        g_flux = grad * area * per_kg * _SECONDS_PER_HOUR
+        d = ph.flux_vjp(
+            parts,
+            g_flux,
+            flux,
+            i.p_up,
+            i.p_down,
+            i.eta_oil,
+            th["rho_oil"],
+            th["rho_wat"],
+            th["m_gas"],
+            p_cr_used,
+            1.0,
+        )
+        g_kg = grad * area * flux * _SECONDS_PER_HOUR
+        eta_wat = 1.0 - i.eta_gas - i.eta_oil
+        inside = ((p_cr >= 0.05) & (p_cr <= 0.99)).to(DTYPE)  # the clamp's gradient
+        d_theta = {
+            "rho_oil": (d["rho_oil"] - g_kg * i.eta_oil / th["rho_oil"] ** 2).sum(1),
+            "rho_wat": (d["rho_wat"] - g_kg * eta_wat / th["rho_wat"] ** 2).sum(1),
+            "kappa": d["kappa"].sum(1),
+            "m_gas": (d["m_gas"] - g_kg * gas_sc / th["m_gas"]).sum(1),
+            "p_cr": (d["p_cr"] * inside).sum(1),
+        }
+        return d_theta, grad * unit
+
+    return q, pullback
 
 
 class Mechanistic(ChokeModel):
@@ -315,6 +381,33 @@ class Mechanistic(ChokeModel):
             blocks += self.net.head_blocks("head")
         return blocks
 
+    # -- closed-form gradients (no effects) ---------------------------------------------
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if self.effects or not self._own_closed_form(Mechanistic):
+            return None
+        with torch.no_grad():
+            theta = self.theta()
+            unit_area = self.a_max.unsqueeze(1) * batch.x[..., 0]  # A_max u, m2
+            q, pull = _sachdeva_vjp(batch, theta, theta["c_d"].unsqueeze(1) * unit_area)
+
+        def pullback(grad: torch.Tensor) -> Gradients:
+            d_theta, d_area = pull(grad)
+            d_theta["c_d"] = (d_area * unit_area).sum(1)
+            return self._phys_gradients(d_theta)
+
+        return q, pullback
+
+    def _phys_gradients(self, d_theta: dict[str, torch.Tensor]) -> Gradients:
+        """d loss / d z of the standardised parameters from d loss / d theta (SI)."""
+        grads = torch.stack([d_theta[n] for n in self.phys.names], dim=1)
+        return {id(self.phys.z): grads * self.phys.sigma}
+
+    def prior_gradients(self, weight: torch.Tensor, physical_only: bool) -> Gradients:
+        out = self.phys.penalty_gradients(weight)
+        if self.net is not None and not physical_only:
+            out.update(self.net.prior_gradients(weight))
+        return out
+
     def physical_priors(self) -> dict[str, ph.Prior]:
         """The prior (mean, sd, bounds, unit) of every learned physical parameter, by the
         names of :meth:`physical_parameters` (``a_max`` is set, not learned: absent)."""
@@ -348,6 +441,28 @@ class HybridError(Mechanistic):
             self.normalise(batch.x)
         )
 
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if self.effects or not self._own_closed_form(HybridError):
+            return None
+        net = self.net
+        assert net is not None
+        with torch.no_grad():
+            theta = self.theta()
+            unit_area = self.a_max.unsqueeze(1) * batch.x[..., 0]
+            q_mm, pull = _sachdeva_vjp(batch, theta, theta["c_d"].unsqueeze(1) * unit_area)
+            out, cache = net.forward_cached(self.normalise(batch.x))
+            scale = self.y_scale.unsqueeze(1)
+            q = q_mm + scale * out
+
+        def pullback(grad: torch.Tensor) -> Gradients:
+            d_theta, d_area = pull(grad)
+            d_theta["c_d"] = (d_area * unit_area).sum(1)
+            grads = self._phys_gradients(d_theta)
+            grads.update(net.pullback(cache, grad * scale))
+            return grads
+
+        return q, pullback
+
 
 class HybridArea(Mechanistic):
     """Hybrid area model: A_2 = A_max u C_D0 exp(MLP(x)), the network replacing C_D (paper 'HAM').
@@ -374,3 +489,23 @@ class HybridArea(Mechanistic):
         assert self.net is not None
         factor = torch.exp(self.net(self.normalise(x)))
         return (ph.PRIORS["c_d"].mean * self.a_max).unsqueeze(1) * x[..., 0] * factor
+
+    def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
+        if self.effects or not self._own_closed_form(HybridArea):
+            return None
+        net = self.net
+        assert net is not None
+        with torch.no_grad():
+            theta = self.theta()
+            out, cache = net.forward_cached(self.normalise(batch.x))
+            area = (ph.PRIORS["c_d"].mean * self.a_max).unsqueeze(1) * batch.x[..., 0]
+            area = area * torch.exp(out)
+            q, pull = _sachdeva_vjp(batch, theta, area)
+
+        def pullback(grad: torch.Tensor) -> Gradients:
+            d_theta, d_area = pull(grad)
+            grads = self._phys_gradients(d_theta)
+            grads.update(net.pullback(cache, d_area * area))
+            return grads
+
+        return q, pullback
