@@ -154,8 +154,9 @@ class WellLearner:
             raise ConfigError(f"Unknown model '{model}'; choose one of {', '.join(MODELS)}.")
         if MODELS[model].shared:
             raise ConfigError(
-                f"Model '{model}' shares parameters across the whole field and cannot run per well "
-                "in the service; use it with `vfm evaluate`, or choose a per-well model."
+                f"Model '{model}' shares parameters across the whole field, so a one-well learner "
+                "cannot hold it; use vfm_core.field_learner.FieldLearner (the service does so when "
+                "model.name is mtl), or choose a per-well model."
             )
         self.well = well
         self.model_name = model
