@@ -1,7 +1,8 @@
 """Predicting and learning for one well, on its worker thread, and the drift test.
 
-* :meth:`Learning.predict`: the rates for a sensor sample (with ``pbl``, a retrain that is
-  due runs first, on the calendar of ``vfm evaluate``), or None while the model cannot answer.
+* :meth:`Learning.predict_many`: the rates for the sensor samples of a batch, many wells in
+  one model call (with ``pbl``, a retrain that is due runs first, on the calendar of
+  ``vfm evaluate``); None for a well whose model cannot answer yet.
 * :meth:`Learning.learn_paired`: learn from a measurement paired with its sample, record
   it as learned (its place in the learning order, the sample, the prediction made there)
   and answer a waiting well-test caller with the prediction before and after.
@@ -113,23 +114,12 @@ class Learning:
                 took,
             )
 
-    def predict(self, st: WellState, inputs: tuple[float, ...], when: datetime) -> Rates | None:
-        """Rates (Sm3/h) at one sample, or None while the model has no (finite) answer."""
-        started = time.monotonic()
-        self.catch_up(st.learner, to_ns(when))
-        rates = st.learner.predict(list(inputs), when=when)
-        self._timed(st, started, "A prediction (with its scheduled retrains)")
-        q_total = rates.get("q_total")
-        if q_total is None or not math.isfinite(q_total):
-            return None
-        return rates
-
     def predict_many(
         self, states: list[WellState], inputs: list[tuple[float, ...]], whens: list[datetime]
     ) -> list[Rates | None | BaseException]:
-        """:meth:`predict` for samples of different wells in one model call (see
-        :func:`vfm_core.streaming.predict_many`); a well whose step failed gets its
-        exception in its place."""
+        """Rates (Sm3/h) for samples of different wells in one model call (see
+        :func:`vfm_core.streaming.predict_many`), or None while a well's model has no
+        (finite) answer; a well whose step failed gets its exception in its place."""
         started = time.monotonic()
         out: list[Rates | None | BaseException] = [None] * len(states)
         go: list[int] = []
