@@ -243,6 +243,8 @@ class FieldClient:
     ``predictions`` maps (well, sample time in epoch ns) to the predicted q_total (Sm3/h);
     ``latest`` holds the latest answered sample time per well; with ``track_latency``,
     ``latency_s`` holds the seconds from sending each sample to receiving its prediction.
+    ``wells`` (one key chunk, default ``*``) limits the predictions collected to those wells,
+    so a client timing one well does not also parse every other well's answers.
     Close it to end the prediction subscription (the bus stays open: its owner closes it).
     """
 
@@ -253,7 +255,13 @@ class FieldClient:
         *,
         match_timeout: float = 30.0,
         track_latency: bool = False,
+        wells: str = "*",
     ) -> None:
+        if not wells or "/" in wells:
+            raise ConfigError(
+                f"wells = {wells!r}: one key chunk naming the wells whose predictions to collect "
+                "(a well id, or a pattern such as 'W0*'; '*' for all)."
+            )
         self.bus = bus
         self.prefix = validate_prefix(prefix)
         self.match_timeout = match_timeout
@@ -268,7 +276,7 @@ class FieldClient:
         self._lock = threading.Lock()
         self._n_prefix = len(prefix) + 1
         self._unsubscribe: Callable[[], None] | None = bus.subscribe(
-            f"{prefix}/*/prediction", self._on_prediction
+            f"{prefix}/{wells}/prediction", self._on_prediction
         )
 
     # -- receiving --------------------------------------------------------------------------

@@ -16,6 +16,7 @@ service and never imports this module.
 
 from __future__ import annotations
 
+import gc
 import logging
 import signal
 import socket
@@ -236,7 +237,22 @@ def bind_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
-def _uvicorn_server(app: Any, settings: Settings) -> Any:
+def freeze_loaded_objects() -> int:
+    """Exclude every object alive now from Python's cyclic garbage collector; returns how many.
+
+    Called once the service is up (``queues.gc_freeze``). What is alive then is mostly the
+    code of torch, pandas, pydantic, uvicorn and zenoh (some 400,000 functions, tuples and
+    dicts): a full collection walks all of it and, measured under load on this 2-core
+    machine, paused the workers 150-250 ms every 2 s (``benchmarks/bench_service.py
+    --scenario flood``). Frozen objects are still freed by reference counting; only cycles
+    among them are no longer looked for, and code and start-up state form none that end.
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
+def _uvicorn_server(app: Any, settings: Settings, *, freeze_gc: bool = False) -> Any:
     import uvicorn
 
     config = uvicorn.Config(
@@ -249,6 +265,16 @@ def _uvicorn_server(app: Any, settings: Settings) -> Any:
     )
 
     class _Server(uvicorn.Server):
+        async def startup(self, sockets: Any = None) -> None:
+            await super().startup(sockets)
+            if freeze_gc and self.started:  # uvicorn's own imports are done by now
+                frozen = freeze_loaded_objects()
+                logger.info(
+                    "%d objects loaded at start-up left out of garbage collection "
+                    "(queues.gc_freeze).",
+                    frozen,
+                )
+
         async def shutdown(self, sockets: Any = None) -> None:
             # live streams (GET /events) end now, not after http.shutdown_grace_s
             app.state.closing.set()
@@ -284,7 +310,7 @@ def serve(settings: Settings, on_ready: Callable[[Service], None] | None = None)
     try:
         service.start()
         service.http_url = _url(sock)
-        server = _uvicorn_server(create_app(service), settings)
+        server = _uvicorn_server(create_app(service), settings, freeze_gc=settings.queues.gc_freeze)
         if on_ready is not None:
             on_ready(service)
         server.run(sockets=[sock])

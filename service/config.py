@@ -491,6 +491,12 @@ class QueueSettings(_Section):
     batch_ms: float = Field(
         default=20.0, gt=0, description="commit and publish at least this often while busy, ms"
     )
+    gc_freeze: bool = Field(
+        default=True,
+        description="`vfm serve`: once started, leave the objects loaded so far (the code of "
+        "torch, pandas, ...) out of Python's cyclic garbage collector, whose full passes over "
+        "them paused the workers 150-250 ms every few seconds under load",
+    )
 
 
 class DriftSettings(_Section):

@@ -83,6 +83,14 @@ def _depth_exceeds(data: Any, limit: int) -> bool:
     return False
 
 
+def _openings(payload: bytes | str) -> int:
+    """How many ``{`` and ``[`` the payload holds: JSON cannot nest deeper than that, so
+    a payload with no more than the limit skips the walk of :func:`_depth_exceeds`."""
+    if isinstance(payload, str):
+        return payload.count("{") + payload.count("[")
+    return payload.count(b"{") + payload.count(b"[")
+
+
 def _loads(payload: bytes | str, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:
     size = len(payload)
     if size > limits.max_bytes:
@@ -103,7 +111,7 @@ def _loads(payload: bytes | str, limits: Limits = DEFAULT_LIMITS) -> dict[str, A
         raise InvalidRequest(
             f"The payload is not valid JSON ({printable(exc, 120)}).", "malformed JSON"
         ) from None
-    if _depth_exceeds(data, limits.max_depth):
+    if _openings(payload) > limits.max_depth and _depth_exceeds(data, limits.max_depth):
         raise InvalidRequest(
             f"The payload nests JSON deeper than {limits.max_depth} levels; a sample or "
             "measurement is one flat object.",

@@ -292,6 +292,8 @@ class MemoryTransport:
         self.published: deque[tuple[str, bytes]] = deque(maxlen=keep)
         #: wells the engine let go of (retired), in order
         self.forgotten: list[str] = []
+        #: each well's prediction key (made once: the well id is checked when it is made)
+        self._keys: dict[str, str] = {}
         self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(capacity)  # None: stop
         self._thread: threading.Thread | None = None
         self._receiving = threading.Event()
@@ -320,7 +322,11 @@ class MemoryTransport:
         self.forgotten.append(well)
 
     def publish(self, well: str, payload: bytes) -> None:
-        key = prediction_key(self.prefix, well)
+        key = self._keys.get(well)
+        if key is None:
+            key = prediction_key(self.prefix, well)
+            if len(self._keys) < 65_536:
+                self._keys[well] = key
         self.published.append((key, payload))
         with self._sub_lock:
             subscribers = list(self._subscribers.values())

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from service.config import endpoint_host, is_loopback_host, load_settings
+from service.config import Settings, endpoint_host, is_loopback_host, load_settings
 from vfm_core.errors import ConfigError
 
 pytestmark = pytest.mark.timeout(60)
@@ -112,3 +112,22 @@ def test_a_list_in_the_environment_that_is_not_json_gets_a_sentence(
     monkeypatch.setenv("VFM_ZENOH__CONNECT", "tcp/router:7447")
     with pytest.raises(ConfigError, match="as JSON"):
         load_settings(None)
+
+
+def test_freeze_loaded_objects_leaves_them_out_of_collection() -> None:
+    """`vfm serve` freezes what start-up loaded (queues.gc_freeze, on by default): a full
+    collection then walks only what came after."""
+    import gc
+
+    from service.app import freeze_loaded_objects
+
+    assert Settings().queues.gc_freeze is True
+    assert Settings(queues={"gc_freeze": False}).queues.gc_freeze is False
+    try:
+        frozen = freeze_loaded_objects()
+        assert frozen == gc.get_freeze_count() > 10_000  # torch, pandas, ... at least
+        tracked_after = len(gc.get_objects())
+        assert tracked_after < frozen  # the objects a full collection still walks
+    finally:
+        gc.unfreeze()
+    assert gc.get_freeze_count() == 0

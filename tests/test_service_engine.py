@@ -177,3 +177,25 @@ def test_a_well_test_is_stored_then_learned(tmp_path: Path) -> None:
         r.client.send_sample("W01", sample_of(T0 + timedelta(hours=1, minutes=2), INPUTS))
         r.client.send_sample("W01", sample_of(T0 + timedelta(hours=2), INPUTS))
         assert r.client.wait_for_prediction("W01", T0 + timedelta(hours=2)) == pytest.approx(1200.0)
+
+
+def test_a_field_client_collects_only_the_wells_it_names(tmp_path: Path) -> None:
+    """``FieldClient(wells=...)`` subscribes to those wells' predictions only (a plant timing
+    one well need not parse every other well's answers)."""
+    from vfm_core.errors import ConfigError
+
+    with rig(tmp_path) as r:
+        with pytest.raises(ConfigError, match="one key chunk"):
+            FieldClient(r.bus, "vfm", wells="W01/x")
+        with FieldClient(r.bus, "vfm", wells="W02") as only:
+            for well, q in (("W01", 1000.0), ("W02", 2000.0)):
+                r.client.send_measurement(well, "mpfm", Measurement(time=T0, q_total=q))
+                r.client.send_sample(well, sample_of(T0, INPUTS))
+            later = T0 + timedelta(minutes=10)
+            for well in ("W01", "W02"):
+                r.client.send_sample(well, sample_of(later, INPUTS))
+            assert r.client.wait_for_prediction("W01", later) == pytest.approx(1000.0)
+            assert r.client.wait_for_prediction("W02", later) == pytest.approx(2000.0)
+            assert only.wait_for_prediction("W02", later) == pytest.approx(2000.0)
+            assert only.prediction("W01", later) is None
+            assert {w for w, _ in only.predictions} == {"W02"}

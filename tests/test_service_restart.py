@@ -145,6 +145,12 @@ def test_kill9_and_restart_keep_state_and_data(
     # -- 1. stream part A, post two well tests, wait until handled, kill -9 ----------------------
     s1 = ServeProcess(cfg, log).start()
     procs.append(s1)
+    # once up, the start-up objects leave the garbage collector (queues.gc_freeze)
+    wait_until(
+        lambda: "left out of garbage collection" in log.read_text(encoding="utf-8"),
+        60,
+        "the start-up objects to be frozen",
+    )
     link = Link(s1.zenoh)
     try:
         link.stream(part_a)

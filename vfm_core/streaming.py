@@ -203,7 +203,15 @@ class WellLearner:
     @property
     def ready(self) -> bool:
         """True once the model has seen enough data to predict (priors alone give no scale)."""
-        return bool(self.model.ready[0])
+        # asked on every sample: read the flag once per change of its tensor (an in-place
+        # change bumps the tensor's version; a new model brings a new tensor)
+        flag = self.model.ready
+        cached = self.__dict__.get("_ready")
+        if cached is not None and cached[0] is flag and cached[1] == flag._version:
+            return bool(cached[2])
+        value = bool(flag[0])
+        self.__dict__["_ready"] = (flag, flag._version, value)
+        return value
 
     # -- history --------------------------------------------------------------------------
     def fit_history(
