@@ -59,6 +59,10 @@ def _pump(stream: IO[str], lines: queue.Queue[str], log: IO[str]) -> None:
         lines.put(line)
 
 
+#: the checkout (or installed location) this package is imported from
+_TREE = str(Path(__file__).resolve().parents[1])
+
+
 class ServeProcess:
     """``vfm serve --config FILE`` in a subprocess; ``http_url`` and ``zenoh`` once ready."""
 
@@ -75,10 +79,21 @@ class ServeProcess:
         self._pump: threading.Thread | None = None
 
     def start(self, timeout: float = 120.0) -> ServeProcess:
-        cmd = [sys.executable, "-m", "vfm_core.cli", "serve", "--config", str(self.config)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "vfm_core.cli",
+            "serve",
+            "--config",
+            str(self.config.resolve()),
+        ]
         log = self._log = self.log_path.open("a", encoding="utf-8")
         self.proc = subprocess.Popen(
             cmd,
+            # ``-m`` imports from the working directory first: run from the tree this code
+            # comes from, so the child serves the same code as its parent (a benchmark of
+            # another checkout, say), whatever directory the parent runs in
+            cwd=_TREE,
             stdout=subprocess.PIPE,
             stderr=log,
             text=True,
