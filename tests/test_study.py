@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from vfm_core.errors import DataError
-from vfm_core.jobs.evaluate import run_study, summarise, write_study
+from vfm_core.jobs.evaluate import run_study, slow_runs, summarise, write_study
 from vfm_core.jobs.study import mape, metrics_records, resolve_split, run_prequential
 from vfm_core.learning import METHODS, Forecast, LearningMethod, register
 from vfm_core.simulate import simulate_field
@@ -118,6 +118,31 @@ def test_evaluate_outputs_follow_the_contract(tmp_path) -> None:
     # every scored observation is after the split, predicted before being learned from
     assert (preds["time"] >= pd.Timestamp("2019-01-01", tz="UTC")).all()
     assert not list(tmp_path.glob(".staging-*"))
+    # each run's cost: its time and, for periodic learning, its retrains (every 60 days of
+    # the ~5 months after the split: at least two; online learning never retrains)
+    runs = {(r["model"], r["method"]): r for r in metrics["runs"]}
+    assert set(runs) == {(m, meth) for m in ("last", "mm") for meth in ("ol", "pbl:60d")}
+    assert all(r["runtime_s"] > 0 for r in runs.values())
+    assert runs[("mm", "ol")]["retrains"] == 0 and runs[("mm", "pbl:60d")]["retrains"] >= 2
+    assert runs[("mm", "pbl:60d")]["retrains"] == len(result.updates["pbl:60d"])
+
+
+def test_slow_runs_are_named_with_their_reason() -> None:
+    runs = [
+        {"model": m, "method": "ol", "runtime_s": t, "retrains": 0}
+        for m, t in (("lr", 2.0), ("mm", 2.5), ("hem", 3.0))
+    ]
+    assert slow_runs(runs) == []  # none above 3x the median
+    runs.append({"model": "nn", "method": "pbl:14d", "runtime_s": 20.0, "retrains": 130})
+    runs.append({"model": "ham", "method": "ol", "runtime_s": 9.0, "retrains": 0})
+    # the median of 2, 2.5, 3, 9, 20 is 3 s: nn (6.7x) and ham (3x, not above) ...
+    (nn,) = slow_runs(runs)
+    assert nn.startswith("nn pbl:14d took 20.0 s, 6.7 times the median run (3.0 s)")
+    assert "retrained 130 times" in nn and "pbl:auto" in nn
+    # ... and a run under 5 s is never named, however far above a tiny median
+    tiny = [{"model": "a", "method": "ol", "runtime_s": t, "retrains": 0} for t in (0.1, 0.1, 4)]
+    assert slow_runs(tiny) == []
+    assert slow_runs(runs[:2]) == []  # too few runs to speak of a median
 
 
 # --------------------------------------------------------------------------- phases

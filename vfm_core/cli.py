@@ -60,7 +60,13 @@ def _cmd_import_volve(args: argparse.Namespace) -> int:
 
 # --- evaluate -----------------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from vfm_core.jobs.evaluate import DEFAULT_METHODS, format_summary, run_study, write_study
+    from vfm_core.jobs.evaluate import (
+        DEFAULT_METHODS,
+        format_summary,
+        run_study,
+        slow_runs,
+        write_study,
+    )
     from vfm_core.models import MODELS
     from vfm_core.observations import load_observations
 
@@ -93,6 +99,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
         print(format_summary(result))
+        for sentence in slow_runs(result.runs):
+            print(f"Slow run: {sentence}")
         print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
     return 0
 

@@ -20,6 +20,11 @@ renames): ``"target": "q_oil"`` (etc.) for a phase's score (absent for the total
 stays the default record), ``"outage": "30d"`` for the outage protocol's score (absent for
 the ordinary one), and ``coverage90`` (fraction 0..1) and ``width90`` (%) on the total's
 records of methods with predictive intervals. The summary carries the same keys.
+
+``metrics.json`` also has ``"runs"``: one entry per model and method run, ``{model, method,
+runtime_s, retrains}`` (plus ``outage`` for a run of the outage protocol), so the cost of
+each run can be seen and compared; :func:`slow_runs` names the runs that took more than
+three times the median run and says why, and ``vfm evaluate`` prints it.
 """
 
 from __future__ import annotations
@@ -54,7 +59,14 @@ from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
 
-__all__ = ["StudyResult", "run_study", "write_study", "summarise", "DEFAULT_METHODS"]
+__all__ = [
+    "StudyResult",
+    "run_study",
+    "write_study",
+    "summarise",
+    "slow_runs",
+    "DEFAULT_METHODS",
+]
 
 DEFAULT_METHODS: tuple[str, ...] = ("ol", "pbl:14d", "pbl:182d")
 
@@ -86,6 +98,8 @@ class StudyResult:
     outage_fractions: str = "held"
     #: the phase rates scored beside the total (empty when the data have none)
     phases: list[str] = field(default_factory=list)
+    #: per run: model, method, (outage,) runtime_s, retrains
+    runs: list[dict[str, Any]] = field(default_factory=list)
 
     def metrics(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -95,6 +109,7 @@ class StudyResult:
             "records": self.records,
             "summary": self.summary,
             "runtime_s": round(self.runtime_s, 3),
+            "runs": [{**r, "runtime_s": round(float(r["runtime_s"]), 3)} for r in self.runs],
         }
         if self.phases:
             out["phases"] = list(self.phases)
@@ -243,6 +258,7 @@ def run_study(
     outage_predictions = []
     parameters = []
     updates: dict[str, list[pd.Timestamp]] = {}
+    runs: list[dict[str, Any]] = []
     initial_fits: dict[Any, Any] = {}
     from vfm_core.jobs.tune import method_for, settings_for
 
@@ -273,6 +289,15 @@ def run_study(
                     phases=phases,
                     **settings_for(params, model, meth),
                     **(run_kwargs or {}),
+                )
+                runs.append(
+                    {
+                        "model": label,
+                        "method": meth,
+                        **({} if plan is None else {"outage": plan.label}),
+                        "runtime_s": result.runtime_s,
+                        "retrains": len(result.updates),
+                    }
                 )
                 if extended:
                     result.predictions["model"] = label
@@ -316,7 +341,43 @@ def run_study(
         outages=[label for label, _ in lengths],
         outage_fractions=outage_fractions,
         phases=list(PHASES) if phases else [],
+        runs=runs,
     )
+
+
+#: a run this many times the median run's time is named by :func:`slow_runs`
+SLOW_FACTOR = 3.0
+#: ... when it also took at least this long, s (a run of half a second is never worth a word)
+SLOW_MIN_S = 5.0
+
+
+def slow_runs(runs: Sequence[dict[str, Any]]) -> list[str]:
+    """Sentences naming the runs that took more than :data:`SLOW_FACTOR` times the median
+    run (and at least :data:`SLOW_MIN_S` s), slowest first, with what made them slow."""
+    times = [float(r["runtime_s"]) for r in runs]
+    if len(times) < 3:
+        return []
+    median = float(np.median(times))
+    out = []
+    for r in sorted(runs, key=lambda r: -float(r["runtime_s"])):
+        took = float(r["runtime_s"])
+        if took < SLOW_MIN_S or took <= SLOW_FACTOR * median:
+            continue
+        what = f"{r['model']} {r['method']}" + (
+            f" (outage {r['outage']})" if r.get("outage") else ""
+        )
+        why = (
+            f"it retrained {r['retrains']} times, each on all the measurements so far (or "
+            "its window); a longer period (e.g. pbl:30d), a window (pbl:14d:window=365d) or "
+            "pbl:auto (retrain on drift) costs less"
+            if r.get("retrains")
+            else "it learned from every measurement in turn"
+        )
+        out.append(
+            f"{what} took {took:.1f} s, {took / median:.1f} times the median run "
+            f"({median:.1f} s): {why}."
+        )
+    return out
 
 
 def _json_default(value: Any) -> Any:
