@@ -30,6 +30,7 @@ from typing import Any
 
 import pandas as pd
 import torch
+import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
@@ -41,17 +42,20 @@ from vfm_core.learning import (
     BayesianFilter,
     Forecast,
     LearningMethod,
+    OnlineLearning,
     OnlineSettings,
     TrainSettings,
     WellMemory,
     parse_method,
 )
+from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
 
 __all__ = [
     "WellLearner",
     "predict_many",
+    "learn_many",
     "model_fixed_when_predicting",
     "phase_split",
     "PARAMETER_UNITS",
@@ -394,6 +398,19 @@ class WellLearner:
         that are due run first; the method then learns now or keeps the measurement for
         its next retrain. Returns True when the model changed.
         """
+        ts, changed, batch = self._take(inputs, q_total, when, source)
+        return self._learned(batch, ts, changed)
+
+    def _take(
+        self,
+        inputs: Sequence[float] | torch.Tensor,
+        q_total: float,
+        when: datetime,
+        source: str,
+    ) -> tuple[pd.Timestamp, bool, Batch]:
+        """The side effects of :meth:`learn` before the method learns, in its order: the
+        retrains due, the features, the memory. Returns the measurement's time, whether a
+        retrain changed the model, and the measurement as a one-well batch."""
         ts = utc_timestamp(when)
         changed = self._retrains_due(ts)
         x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 6)
@@ -417,6 +434,11 @@ class WellLearner:
             feats[0, self._cols],
             tuple(self.model.extra_columns),
         )
+        return ts, changed, batch
+
+    def _learned(self, batch: Batch, ts: pd.Timestamp, changed: bool) -> bool:
+        """The rest of :meth:`learn`: the method learns from the measurement taken by
+        :meth:`_take`; a new version if the model changed."""
         if bool(self.method.on_measurement(batch, self.memory).any()):
             self._bump(ts.to_pydatetime(warn=False))
             changed = True
@@ -923,3 +945,282 @@ def _predict_group(members: list[_Waiting], results: list[Rates | BaseException 
         for name, values in columns.items():
             out[name] = values[row]
         results[i] = out
+
+
+# -- many wells' online updates in one call -------------------------------------------------------
+#: :meth:`WellLearner.learn` as defined here (a subclass may learn its own way)
+_WELL_LEARN = WellLearner.learn
+
+#: a measurement taken and waiting for its group's update: its place, learner, the
+#: measurement as a one-well batch, its time, and whether a retrain already changed the model
+_Taken = tuple[int, "WellLearner", Batch, pd.Timestamp, bool]
+
+
+def learn_many(
+    learners: Sequence[Any],
+    inputs: Sequence[Sequence[float] | torch.Tensor],
+    q_totals: Sequence[float],
+    whens: Sequence[datetime],
+    sources: Sequence[str] | None = None,
+    *,
+    return_exceptions: bool = False,
+) -> list[bool | BaseException]:
+    """``[learner.learn(x, q, when, source) for ...]``, with many wells' online updates in one call.
+
+    For a service that learns from measurements of many wells that arrive together. Each
+    learner's side effects run as in :meth:`WellLearner.learn`, in the order given (the
+    retrains due, the features, the memory); then the learners whose models have the same
+    class and hyperparameters (as in :func:`predict_many`) and whose method is ``ol`` with
+    the same settings and a plain Adam or SGD (no learning-rate schedule) take their E
+    optimiser steps together: their parameters and optimiser states (Adam's moments and
+    each well's own step count, so its own bias correction) are stacked into one
+    multi-well model, stepped, and written back into each learner's own model and
+    optimiser. Each well keeps its own gradient clipping and projection; the parameters,
+    optimiser states and later predictions equal one-by-one learning (to rounding, 1e-12
+    relative). A learner that comes twice waits for its first measurement to be learned.
+    Anything else (``pbl``, whose learn only stores the measurement; ``bayes``; a
+    subclass with its own ``learn``; a field-wide model's well; a model that cannot be
+    stacked) learns through its own ``learn``, in order.
+
+    ``inputs``: each measurement's six inputs in file units; ``q_totals``: the measured
+    total rates, Sm3/h; ``whens``: their times; ``sources``: ``mpfm`` (the default) or
+    ``well_test`` each. Returns, per learner, True when its model changed. With
+    ``return_exceptions`` a learner that fails gets its exception in its place (the
+    others still learn); otherwise the first error is raised once every measurement
+    taken before it has been learned.
+    """
+    n = len(learners)
+    if (
+        len(inputs) != n
+        or len(q_totals) != n
+        or len(whens) != n
+        or (sources is not None and len(sources) != n)
+    ):
+        raise ValueError(
+            f"learn_many needs one input row, rate and time (and source, if given) per "
+            f"learner; got {n} learners, {len(inputs)} input rows, {len(q_totals)} rates, "
+            f"{len(whens)} times and {'no' if sources is None else len(sources)} sources."
+        )
+    results: list[bool | BaseException | None] = [None] * n
+    waiting: list[_Taken] = []
+    seen: set[int] = set()
+    for i, learner in enumerate(learners):
+        source = "mpfm" if sources is None else sources[i]
+        if id(learner) in seen:  # its earlier measurement is learned first
+            _learn_waiting(waiting, results)
+            waiting, seen = [], set()
+        try:
+            if _learn_batchable(learner):
+                ts, changed, batch = learner._take(inputs[i], q_totals[i], whens[i], source)
+                waiting.append((i, learner, batch, ts, changed))
+                seen.add(id(learner))
+            else:
+                results[i] = learner.learn(inputs[i], q_totals[i], whens[i], source)
+        except Exception as exc:
+            if not return_exceptions:
+                _learn_waiting(waiting, results)
+                raise
+            results[i] = exc
+    _learn_waiting(waiting, results)
+    if not return_exceptions:
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+    return results  # type: ignore[return-value]
+
+
+def _learn_batchable(learner: Any) -> bool:
+    """A :class:`WellLearner` learning with :meth:`WellLearner.learn` itself and ``ol``
+    exactly (whose update :func:`_learn_group` reproduces), with a gradient model."""
+    return (
+        isinstance(learner, WellLearner)
+        and type(learner).learn is _WELL_LEARN
+        and type(learner.method) is OnlineLearning
+        and not learner.model.gradient_free
+    )
+
+
+def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
+    """What learners must share to take their online steps in one call: the model (as
+    :func:`_group_key`), the online settings and the optimiser's hyperparameters; None:
+    never stacked (a schedule, an optimiser :func:`optimizer_step_` would not step itself,
+    more than one parameter group)."""
+    key = _group_key(learner)
+    method = learner.method
+    if key is None or not isinstance(method, OnlineLearning):
+        return None
+    s = method.online
+    opt = method._optimiser()
+    if s.schedule_power != 0 or method._sched is not None or len(opt.param_groups) != 1:
+        return None
+    if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not _plain(opt):
+        return None
+    group = opt.param_groups[0]
+    if isinstance(opt, torch.optim.Adam):
+        hyper = ("adam", group["lr"], tuple(group["betas"]), group["eps"])
+    else:
+        hyper = ("sgd", group["lr"], None, None)
+    # the last four: the optimiser, its rate, Adam's betas and epsilon (see _learn_group)
+    return (*key[:5], "ol", s.steps, s.noise, s.max_grad_norm, *hyper)
+
+
+def _learn_waiting(waiting: list[_Taken], results: list[bool | BaseException | None]) -> None:
+    """Learn the taken measurements, one multi-well update per group of stackable learners."""
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for k, (_, learner, _, _, _) in enumerate(waiting):
+        try:
+            key = _learn_key(learner)
+        except Exception:
+            key = None
+        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    for key, members in groups.items():
+        if len(members) > 1 and key[0] != "alone":
+            try:
+                rest = _learn_group([waiting[k] for k in members], key, results)
+            except Exception:  # the one-by-one path below says what failed
+                rest = [waiting[k] for k in members]
+        else:
+            rest = [waiting[k] for k in members]
+        for i, learner, batch, ts, changed in rest:
+            try:
+                results[i] = learner._learned(batch, ts, changed)
+            except Exception as exc:
+                results[i] = exc
+
+
+def _learn_group(
+    members: list[_Taken], key: tuple[Any, ...], results: list[bool | BaseException | None]
+) -> list[_Taken]:
+    """The online updates of one group's learners (see :func:`_learn_key`) in one multi-well
+    update; returns the members left to learn one by one (those not ready yet, or all
+    when fewer than two are ready). Nothing of a learner changes until every step has
+    run, so a failure leaves the group to the one-by-one path."""
+    first = members[0][1]
+    stacked = _stacked(first, _group_key(first))  # type: ignore[arg-type]
+    if stacked is None:
+        raise ValueError(f"The model {first.name} cannot be stacked.")
+    model = stacked.model
+    ready: list[_Taken] = []
+    rest: list[_Taken] = []
+    for m in members:
+        learner, batch = m[1], m[2]
+        # what OnlineLearning._learn does first: set-up statistics, its optimiser
+        learner.model.setup(batch)
+        learner.method._optimiser()
+        (ready if bool(learner.model.ready[0]) and int(batch.count()[0]) > 0 else rest).append(m)
+    if len(ready) < 2:
+        return rest + ready
+    params_named = [w for w in stacked.per_well if w[3]]
+    trainable = [w for w in params_named if stacked._tensor(model, w[1], w[2], True).requires_grad]
+    if any(w[3] for w in stacked.shared) or not trainable:
+        raise ValueError(f"The model {first.name} has parameters shared by its wells.")
+    learners = [m[1] for m in ready]
+    models = [lrn.model for lrn in learners]
+    get = stacked._tensor
+    k = len(ready)
+    with torch.no_grad():
+        for name, path, attr, is_param in stacked.per_well + stacked.shared:
+            if (name, path, attr, is_param) in stacked.shared:
+                value = get(models[0], path, attr, is_param)
+            else:
+                value = torch.cat([get(mo, path, attr, is_param) for mo in models], 0)
+            if is_param:
+                get(model, path, attr, True).data = value.detach().clone()
+            else:
+                target: torch.nn.Module = model
+                for p in path:
+                    target = target._modules[p]  # type: ignore[assignment]
+                target._buffers[attr] = value
+    model.wells = [lrn.well for lrn in learners]
+    batches = [m[2] for m in ready]
+    batch = Batch(
+        model.wells,
+        torch.cat([b.x for b in batches], 0),
+        torch.cat([b.y for b in batches], 0),
+        torch.cat([b.mask for b in batches], 0),
+        torch.cat([b.time_ns for b in batches], 0),
+        torch.cat([b.row for b in batches], 0),
+        torch.cat([b.well_test for b in batches], 0),  # type: ignore[misc]
+        torch.cat([b.extra for b in batches], 0),  # type: ignore[misc]
+        batches[0].extra_names,
+    )
+    opts = [lrn.method._optimiser() for lrn in learners]
+    kind, lr, betas, eps = key[-4:]
+    adam = kind == "adam"
+    # the stacked parameters and, per parameter, the wells' Adam states and step counts
+    params: list[torch.nn.Parameter] = []
+    own: list[list[torch.nn.Parameter]] = []  # per stacked parameter: each learner's own
+    moments: list[tuple[torch.Tensor, torch.Tensor] | None] = []
+    steps: list[list[float]] = []
+    for _, path, attr, _ in trainable:
+        p = get(model, path, attr, True)
+        mine = [get(mo, path, attr, True) for mo in models]
+        params.append(p)
+        own.append(mine)
+        if not adam:
+            moments.append(None)
+            steps.append([])
+            continue
+        states = [opt.state.get(q) or {} for opt, q in zip(opts, mine, strict=True)]
+        pairs = list(zip(states, mine, strict=True))
+        moments.append(
+            (
+                torch.cat([st["exp_avg"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+                torch.cat([st["exp_avg_sq"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+            )
+        )
+        steps.append([float(st["step"]) if st else 0.0 for st in states])
+    stepped = [False] * len(params)
+    s = first.method.online
+    groups = split_parameters(model)
+    objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
+    factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
+    for _ in range(s.steps):
+        objective.gradients_(params)
+        clip_per_well_(model, s.max_grad_norm, groups)
+        with torch.no_grad():
+            for j, p in enumerate(params):
+                g = p.grad
+                if g is None:  # no gradient this step: torch's Adam skips the parameter
+                    continue
+                stepped[j] = True
+                if not adam:
+                    p.add_(g, alpha=-lr)
+                    continue
+                beta1, beta2 = betas
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                counts = steps[j] = [c + 1.0 for c in steps[j]]
+                exp_avg.lerp_(g, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+                fk = (p.dim(), *counts)
+                if fk not in factors:  # each well's bias correction, as torch's Adam's
+                    shape = (k, *([1] * (p.dim() - 1)))
+                    size = [-(lr / (1 - beta1**c)) for c in counts]
+                    root = [(1 - beta2**c) ** 0.5 for c in counts]
+                    factors[fk] = (
+                        torch.tensor(size, dtype=p.dtype).reshape(shape),
+                        torch.tensor(root, dtype=p.dtype).reshape(shape),
+                    )
+                neg_step_size, bias_correction2_sqrt = factors[fk]
+                # torch: param.addcdiv_(exp_avg, denom, value=-step_size), per well here
+                denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
+                p.addcdiv_(exp_avg * neg_step_size, denom)
+        model.project_()
+    # every step ran: write each well's parameters and optimiser state back
+    scalar = _torch_optimizer._get_scalar_dtype()
+    with torch.no_grad():
+        for j, p in enumerate(params):
+            p.grad = None
+            for w, (q, opt) in enumerate(zip(own[j], opts, strict=True)):
+                q.copy_(p[w : w + 1])
+                if adam and stepped[j]:
+                    exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                    st = opt.state[q]
+                    st["step"] = torch.tensor(steps[j][w], dtype=scalar)
+                    st["exp_avg"] = exp_avg[w : w + 1].clone()
+                    st["exp_avg_sq"] = exp_avg_sq[w : w + 1].clone()
+    for i, learner, _, ts, _ in ready:
+        learner.method.updates += 1
+        learner._bump(ts.to_pydatetime(warn=False))
+        results[i] = True
+    return rest
