@@ -1170,7 +1170,7 @@ def _learn_group(
             )
         )
         steps.append([float(st["step"]) if st else 0.0 for st in states])
-    stepped = [False] * len(params)
+    stepped = [0] * len(params)  # steps each parameter took (torch's Adam skips no-gradient ones)
     s = first.method.online
     groups = split_parameters(model)
     objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
@@ -1183,7 +1183,7 @@ def _learn_group(
                 g = p.grad
                 if g is None:  # no gradient this step: torch's Adam skips the parameter
                     continue
-                stepped[j] = True
+                stepped[j] += 1
                 if not adam:
                     p.add_(g, alpha=-lr)
                     continue
@@ -1206,19 +1206,26 @@ def _learn_group(
                 denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
                 p.addcdiv_(exp_avg * neg_step_size, denom)
         model.project_()
-    # every step ran: write each well's parameters and optimiser state back
+    # every step ran: write each well's parameters and optimiser state back, in place (one
+    # call per parameter for all wells; the learners' tensors stay their own, not views)
     scalar = _torch_optimizer._get_scalar_dtype()
     with torch.no_grad():
         for j, p in enumerate(params):
             p.grad = None
-            for w, (q, opt) in enumerate(zip(own[j], opts, strict=True)):
-                q.copy_(p[w : w + 1])
-                if adam and stepped[j]:
-                    exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
-                    st = opt.state[q]
-                    st["step"] = torch.tensor(steps[j][w], dtype=scalar)
-                    st["exp_avg"] = exp_avg[w : w + 1].clone()
-                    st["exp_avg_sq"] = exp_avg_sq[w : w + 1].clone()
+            torch._foreach_copy_(own[j], list(p.split(1, 0)))
+            if not (adam and stepped[j]):
+                continue
+            exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+            states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
+            for st, q in zip(states, own[j], strict=True):
+                if not st:  # its first step: the state torch's Adam would create
+                    st["step"] = torch.tensor(0.0, dtype=scalar)
+                    st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                    st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+            # (integer step counts: adding them at once is adding one per step)
+            torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
+            torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
+            torch._foreach_copy_([st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0)))
     for i, learner, _, ts, _ in ready:
         learner.method.updates += 1
         learner._bump(ts.to_pydatetime(warn=False))
