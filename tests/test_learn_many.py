@@ -1,12 +1,13 @@
-"""Many wells' online updates in one call (``learn_many``) equal one-by-one learning.
+"""Many wells' updates in one call (``learn_many``) equal one-by-one learning.
 
 Two identical sets of learners are fitted, then fed the same measurements in rounds: one
 learns each with ``WellLearner.learn``, the other each round's with ``learn_many``. The
 wells have different histories and different numbers of earlier updates (so Adam's step
 counts, hence its bias corrections, differ between the wells of one call). Every per-well
-model, with effects, with Adam and with SGD, must leave the same parameters, optimiser
-states, versions and later predictions, to 1e-12 relative; and the stacked update must
-really have run (its calls are counted).
+model, with effects, with ``ol`` (Adam and SGD) and with ``bayes``, must leave the same
+parameters, optimiser or filter states, versions and later predictions (with their
+intervals), to 1e-12 relative; and the stacked update must really have run (its calls
+are counted).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ SPECS: list[tuple[str, tuple[str, ...]]] = [
     *((m, ()) for m in MODELS if not MODELS[m].shared and not MODELS[m].gradient_free),
     ("mm", ("erosion",)),
 ]
-OPTIMIZERS = ["adam", "sgd"]
+#: ``ol`` with Adam, ``ol`` with SGD, and ``bayes``
+SETTINGS = ["adam", "sgd", "bayes"]
 
 
 @pytest.fixture(scope="module")
@@ -128,6 +130,21 @@ def _same_learner(a: WellLearner, b: WellLearner) -> None:
             _close_tensors(value, b.memory.state()[key], f"{a.well} memory {key}")
 
 
+def _same_filter(a: WellLearner, b: WellLearner) -> None:
+    """``bayes``: the filter's state (covariance, noise, calibration, counters) equal."""
+    sa, sb = a.method.state_dict(), b.method.state_dict()
+    assert sa.keys() == sb.keys()
+    # the covariance to 1e-12 of its largest entry: a network's batched matrix products
+    # round in the last bits by batch size, and an entry near zero is a cancellation
+    scale = float(sa["P"].abs().max())
+    torch.testing.assert_close(sb["P"], sa["P"], rtol=0, atol=1e-12 * scale, msg=f"{a.well} P")
+    for key in ("last", "noise", "h", "started", "run", "scale"):
+        _close_tensors(sa[key], sb[key], f"{a.well} bayes {key}")
+    assert sa["counts"].keys() == sb["counts"].keys()
+    for key in sa["counts"]:
+        _close_tensors(sa["counts"][key], sb["counts"][key], f"{a.well} bayes count {key}")
+
+
 def _close(a: dict[str, float | None], b: dict[str, float | None]) -> None:
     assert a.keys() == b.keys()
     for key in a:
@@ -154,22 +171,28 @@ def stacked_sizes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     return sizes
 
 
-@pytest.mark.parametrize("optimizer", OPTIMIZERS)
+@pytest.mark.parametrize("setting", SETTINGS)
 @pytest.mark.parametrize(("model", "effects"), SPECS, ids=["+".join([m, *e]) for m, e in SPECS])
 def test_learn_many_equals_one_by_one(
     field: pd.DataFrame,
     model: str,
     effects: tuple[str, ...],
-    optimizer: str,
+    setting: str,
     stacked_sizes: list[int],
 ) -> None:
-    one = _fitted(field, model, effects, online=_online(model, optimizer))
+    if setting == "bayes":
+        one = _fitted(field, model, effects, method="bayes")
+    else:
+        one = _fitted(field, model, effects, online=_online(model, setting))
     many = copy.deepcopy(one)
-    steps = [
-        [float(s["step"]) for s in lrn.method.state_dict()["optimizer"].get("state", {}).values()]
-        for lrn in one
-    ]
-    if optimizer == "adam":  # the wells' Adam step counts differ going in
+    if setting == "adam":  # the wells' Adam step counts differ going in
+        steps = [
+            [
+                float(s["step"])
+                for s in lrn.method.state_dict()["optimizer"].get("state", {}).values()
+            ]
+            for lrn in one
+        ]
         assert len({tuple(s) for s in steps}) == WELLS
     streams = [_stream(field, j) for j in range(WELLS)]
     for r in range(ROUNDS):
@@ -194,10 +217,15 @@ def test_learn_many_equals_one_by_one(
         assert got == expected
         for a, b in zip(one, many, strict=True):
             _same_learner(a, b)
+            if setting == "bayes":
+                _same_filter(a, b)
         later = [streams[j].iloc[2 * r + 2] for j in range(WELLS)]
         for j in range(WELLS):
             x, when = later[j][list(INPUT_COLUMNS)].tolist(), later[j]["time"]
             _close(one[j].predict(x, when), many[j].predict(x, when))
+    if setting == "bayes" and one[0].method._dim == 0:  # nothing to filter: one by one
+        assert stacked_sizes == []
+        return
     assert stacked_sizes and max(stacked_sizes) == WELLS
     assert sum(stacked_sizes) >= ROUNDS * 2
 

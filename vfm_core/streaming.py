@@ -1030,24 +1030,32 @@ def learn_many(
 
 
 def _learn_batchable(learner: Any) -> bool:
-    """A :class:`WellLearner` learning with :meth:`WellLearner.learn` itself and ``ol``
-    exactly (whose update :func:`_learn_group` reproduces), with a gradient model."""
+    """A :class:`WellLearner` learning with :meth:`WellLearner.learn` itself, a gradient
+    model, and ``ol`` or ``bayes`` exactly (whose updates :func:`_learn_group` runs for many
+    wells at once)."""
     return (
         isinstance(learner, WellLearner)
         and type(learner).learn is _WELL_LEARN
-        and type(learner.method) is OnlineLearning
+        and type(learner.method) in (OnlineLearning, BayesianFilter)
         and not learner.model.gradient_free
     )
 
 
 def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
-    """What learners must share to take their online steps in one call: the model (as
-    :func:`_group_key`), the online settings and the optimiser's hyperparameters; None:
-    never stacked (a schedule, an optimiser :func:`optimizer_step_` would not step itself,
-    more than one parameter group)."""
+    """What learners must share to learn in one call: the model (as :func:`_group_key`)
+    and the method's settings: for ``ol`` its online settings and the optimiser's
+    hyperparameters, for ``bayes`` its text (every option); None: never stacked (``ol``
+    with a schedule, an optimiser :func:`optimizer_step_` would not step itself, more than
+    one parameter group; ``bayes`` on a model with nothing to filter)."""
     key = _group_key(learner)
     method = learner.method
-    if key is None or not isinstance(method, OnlineLearning):
+    if key is None:
+        return None
+    if isinstance(method, BayesianFilter):
+        if method._dim == 0:
+            return None
+        return (*key[:5], "bayes", method.text)
+    if not isinstance(method, OnlineLearning):
         return None
     s = method.online
     opt = method._optimiser()
@@ -1060,7 +1068,7 @@ def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
         hyper = ("adam", group["lr"], tuple(group["betas"]), group["eps"])
     else:
         hyper = ("sgd", group["lr"], None, None)
-    # the last four: the optimiser, its rate, Adam's betas and epsilon (see _learn_group)
+    # the last four: the optimiser, its rate, Adam's betas and epsilon (see _online_steps)
     return (*key[:5], "ol", s.steps, s.noise, s.max_grad_norm, *hyper)
 
 
@@ -1091,33 +1099,32 @@ def _learn_waiting(waiting: list[_Taken], results: list[bool | BaseException | N
 def _learn_group(
     members: list[_Taken], key: tuple[Any, ...], results: list[bool | BaseException | None]
 ) -> list[_Taken]:
-    """The online updates of one group's learners (see :func:`_learn_key`) in one multi-well
+    """The updates of one group's learners (see :func:`_learn_key`) as one multi-well
     update; returns the members left to learn one by one (those not ready yet, or all
-    when fewer than two are ready). Nothing of a learner changes until every step has
-    run, so a failure leaves the group to the one-by-one path."""
+    when fewer than two are ready). No learner's parameters or method state change until
+    the whole update has run, so a failure leaves the group to the one-by-one path."""
     first = members[0][1]
     stacked = _stacked(first, _group_key(first))  # type: ignore[arg-type]
     if stacked is None:
         raise ValueError(f"The model {first.name} cannot be stacked.")
     model = stacked.model
+    online = key[5] == "ol"
     ready: list[_Taken] = []
     rest: list[_Taken] = []
     for m in members:
         learner, batch = m[1], m[2]
-        # what OnlineLearning._learn does first: set-up statistics, its optimiser
+        # what the method's _learn does first: set-up statistics (and ol's optimiser)
         learner.model.setup(batch)
-        learner.method._optimiser()
+        if online:
+            learner.method._optimiser()
         (ready if bool(learner.model.ready[0]) and int(batch.count()[0]) > 0 else rest).append(m)
     if len(ready) < 2:
         return rest + ready
-    params_named = [w for w in stacked.per_well if w[3]]
-    trainable = [w for w in params_named if stacked._tensor(model, w[1], w[2], True).requires_grad]
-    if any(w[3] for w in stacked.shared) or not trainable:
+    if any(w[3] for w in stacked.shared):
         raise ValueError(f"The model {first.name} has parameters shared by its wells.")
     learners = [m[1] for m in ready]
     models = [lrn.model for lrn in learners]
     get = stacked._tensor
-    k = len(ready)
     with torch.no_grad():
         for name, path, attr, is_param in stacked.per_well + stacked.shared:
             if (name, path, attr, is_param) in stacked.shared:
@@ -1144,18 +1151,52 @@ def _learn_group(
         torch.cat([b.extra for b in batches], 0),  # type: ignore[misc]
         batches[0].extra_names,
     )
-    opts = [lrn.method._optimiser() for lrn in learners]
+    params = [w for w in stacked.per_well if w[3]]
+    if online:
+        finish = _online_steps(stacked, learners, batch, key)
+        changed = [True] * len(ready)
+    else:
+        finish, changed = _bayes_update(stacked, learners, batch)
+    # every step ran: write each well's parameters back, in place (one call per parameter
+    # for all wells), then the method's state
+    with torch.no_grad():
+        for _, path, attr, _ in params:
+            p = get(model, path, attr, True)
+            p.grad = None
+            torch._foreach_copy_([get(mo, path, attr, True) for mo in models], list(p.split(1, 0)))
+    finish()
+    for (i, learner, _, ts, was), moved in zip(ready, changed, strict=True):
+        if moved:
+            if online:
+                learner.method.updates += 1  # type: ignore[attr-defined]
+            learner._bump(ts.to_pydatetime(warn=False))
+        results[i] = was or moved
+    return rest
+
+
+def _online_steps(
+    stacked: _Stacked, learners: list[WellLearner], batch: Batch, key: tuple[Any, ...]
+) -> Any:
+    """``ol``'s E optimiser steps (``OnlineLearning._learn``) on the stacked model, each well
+    with its own Adam moments and step count (its own bias correction), its own gradient
+    clipping and projection. Returns what writes the optimiser states back."""
+    model, get = stacked.model, stacked._tensor
+    models = [lrn.model for lrn in learners]
+    trainable = [w for w in stacked.per_well if w[3] and get(model, w[1], w[2], True).requires_grad]
+    if not trainable:
+        raise ValueError("The model has no parameters to learn.")
+    opts = [lrn.method._optimiser() for lrn in learners]  # type: ignore[attr-defined]
     kind, lr, betas, eps = key[-4:]
     adam = kind == "adam"
+    k = len(learners)
     # the stacked parameters and, per parameter, the wells' Adam states and step counts
     params: list[torch.nn.Parameter] = []
     own: list[list[torch.nn.Parameter]] = []  # per stacked parameter: each learner's own
     moments: list[tuple[torch.Tensor, torch.Tensor] | None] = []
     steps: list[list[float]] = []
     for _, path, attr, _ in trainable:
-        p = get(model, path, attr, True)
         mine = [get(mo, path, attr, True) for mo in models]
-        params.append(p)
+        params.append(get(model, path, attr, True))
         own.append(mine)
         if not adam:
             moments.append(None)
@@ -1171,7 +1212,7 @@ def _learn_group(
         )
         steps.append([float(st["step"]) if st else 0.0 for st in states])
     stepped = [0] * len(params)  # steps each parameter took (torch's Adam skips no-gradient ones)
-    s = first.method.online
+    s = learners[0].method.online  # type: ignore[attr-defined]
     groups = split_parameters(model)
     objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
     factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
@@ -1206,28 +1247,63 @@ def _learn_group(
                 denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
                 p.addcdiv_(exp_avg * neg_step_size, denom)
         model.project_()
-    # every step ran: write each well's parameters and optimiser state back, in place (one
-    # call per parameter for all wells; the learners' tensors stay their own, not views)
-    scalar = _torch_optimizer._get_scalar_dtype()
-    with torch.no_grad():
-        for j, p in enumerate(params):
-            p.grad = None
-            torch._foreach_copy_(own[j], list(p.split(1, 0)))
-            if not (adam and stepped[j]):
-                continue
-            exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
-            states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
-            for st, q in zip(states, own[j], strict=True):
-                if not st:  # its first step: the state torch's Adam would create
-                    st["step"] = torch.tensor(0.0, dtype=scalar)
-                    st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
-                    st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
-            # (integer step counts: adding them at once is adding one per step)
-            torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
-            torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
-            torch._foreach_copy_([st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0)))
-    for i, learner, _, ts, _ in ready:
-        learner.method.updates += 1
-        learner._bump(ts.to_pydatetime(warn=False))
-        results[i] = True
-    return rest
+
+    def finish() -> None:
+        """Each well's optimiser state, in place (the learners' tensors stay their own)."""
+        if not adam:
+            return
+        scalar = _torch_optimizer._get_scalar_dtype()
+        with torch.no_grad():
+            for j in range(len(params)):
+                if not stepped[j]:
+                    continue
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
+                for st, q in zip(states, own[j], strict=True):
+                    if not st:  # its first step: the state torch's Adam would create
+                        st["step"] = torch.tensor(0.0, dtype=scalar)
+                        st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                        st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                # (integer step counts: adding them at once is adding one per step)
+                torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
+                torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
+                torch._foreach_copy_(
+                    [st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0))
+                )
+
+    return finish
+
+
+#: the per-well state of ``bayes`` its updates change (leading dimension: the well)
+_BAYES_LEARN_STATE = (*_BAYES_STATE, "_run")
+
+
+def _bayes_update(
+    stacked: _Stacked, learners: list[WellLearner], batch: Batch
+) -> tuple[Any, list[bool]]:
+    """``bayes``'s Kalman step (``BayesianFilter._learn``, written for many wells) on the
+    stacked model with the wells' filter states stacked. Returns what writes the states
+    back, and which wells' models changed."""
+    first = learners[0].method
+    assert isinstance(first, BayesianFilter)
+    method = copy.copy(first)
+    method._model = stacked.model
+    method._rebind(stacked.model)  # its filter blocks: the stacked model's parameters
+    methods: list[BayesianFilter] = [lrn.method for lrn in learners]  # type: ignore[misc]
+    for attr in _BAYES_LEARN_STATE:
+        setattr(method, attr, torch.cat([getattr(m, attr) for m in methods], 0))
+    method._counts = {
+        name: torch.cat([m._counts[name] for m in methods], 0) for name in first._counts
+    }
+    changed = method._learn(batch, None)
+
+    def finish() -> None:
+        for attr in _BAYES_LEARN_STATE:
+            rows = getattr(method, attr).split(1, 0)
+            for m, row in zip(methods, rows, strict=True):
+                setattr(m, attr, row.clone())
+        for name, value in method._counts.items():
+            for m, row in zip(methods, value.split(1, 0), strict=True):
+                m._counts[name] = row.clone()
+
+    return finish, [bool(c) for c in changed.tolist()]
