@@ -13,6 +13,10 @@ the standard features they use (years on stream, cumulative throughput, water cu
 kept up to date sample by sample by a :class:`vfm_core.features.FeatureTracker`.
 :meth:`WellLearner.refit_as` builds a different model on the same remembered history.
 
+:func:`predict_many` and :func:`learn_many` do the same for many wells' samples and
+measurements at once (the service's worker batches), with the wells' models stacked into
+one multi-well model call; each well's results equal its own ``predict`` and ``learn``.
+
 State is tensors and plain values only: :meth:`WellLearner.checkpoint` returns bytes
 that :meth:`WellLearner.restore` reads back with ``torch.load(weights_only=True)``.
 """
@@ -965,22 +969,29 @@ def learn_many(
     *,
     return_exceptions: bool = False,
 ) -> list[bool | BaseException]:
-    """``[learner.learn(x, q, when, source) for ...]``, with many wells' online updates in one call.
+    """``[learner.learn(x, q, when, source) for ...]``, with many wells' updates in one call.
 
     For a service that learns from measurements of many wells that arrive together. Each
     learner's side effects run as in :meth:`WellLearner.learn`, in the order given (the
     retrains due, the features, the memory); then the learners whose models have the same
-    class and hyperparameters (as in :func:`predict_many`) and whose method is ``ol`` with
-    the same settings and a plain Adam or SGD (no learning-rate schedule) take their E
-    optimiser steps together: their parameters and optimiser states (Adam's moments and
-    each well's own step count, so its own bias correction) are stacked into one
-    multi-well model, stepped, and written back into each learner's own model and
-    optimiser. Each well keeps its own gradient clipping and projection; the parameters,
-    optimiser states and later predictions equal one-by-one learning (to rounding, 1e-12
-    relative). A learner that comes twice waits for its first measurement to be learned.
-    Anything else (``pbl``, whose learn only stores the measurement; ``bayes``; a
-    subclass with its own ``learn``; a field-wide model's well; a model that cannot be
-    stacked) learns through its own ``learn``, in order.
+    class and hyperparameters (as in :func:`predict_many`) and the same method settings
+    learn together, their per-well parameters stacked into one multi-well model:
+
+    - ``ol`` with a plain Adam or SGD (no learning-rate schedule): the E optimiser steps,
+      with the wells' optimiser states stacked (Adam's moments and each well's own step
+      count, so its own bias correction); each well keeps its own gradient clipping and
+      projection;
+    - ``bayes``: the filter's Kalman step, with the wells' filter states stacked (as the
+      study updates a field's wells in one call).
+
+    The parameters and method states are then written back into each learner's own model
+    and method, so its checkpoint and later one-by-one calls are what learning one by one
+    leaves: the parameters, optimiser and filter states and later predictions equal it to
+    rounding (1e-12 relative; a filter's covariance to 1e-12 of its largest entry). A
+    learner that comes twice waits for its first measurement to be learned. Anything else
+    (``pbl``, whose learn only stores the measurement; a subclass with its own ``learn``;
+    a field-wide model's well; a model that cannot be stacked) learns through its own
+    ``learn``, in order.
 
     ``inputs``: each measurement's six inputs in file units; ``q_totals``: the measured
     total rates, Sm3/h; ``whens``: their times; ``sources``: ``mpfm`` (the default) or
