@@ -8,8 +8,8 @@
   and answer a waiting well-test caller with the prediction before and after. The
   learning step of a :class:`~vfm_core.streaming.WellLearner` is deferred to the end of
   the worker's batch (:meth:`Learning.run_deferred`), where the batch's learns of all
-  wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' online updates
-  stacked into one multi-well update, each well's result what its own ``learn`` gives);
+  wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' ``ol`` or
+  ``bayes`` updates stacked into one multi-well update, each well's result what its own ``learn`` gives);
   the worker runs them earlier whenever anything else of such a well comes (its next
   sample, another measurement, a model change), so each well sees the order of
   one-by-one handling.
