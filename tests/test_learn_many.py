@@ -270,9 +270,10 @@ class _Facade:
 def test_a_mix_of_groups_and_learners_that_learn_one_by_one(
     field: pd.DataFrame, stacked_sizes: list[int]
 ) -> None:
-    """Two stackable groups (mm, ham), and learners that must learn through their own
-    ``learn``: other methods (pbl, bayes), a learning-rate schedule, a subclass, a facade;
-    a bad input gets its error in its place, and the others still learn."""
+    """Two stackable groups (mm, with a learner never fitted; ham), and learners that must
+    learn through their own ``learn``: another method (pbl), a method alone in its group
+    (bayes), a learning-rate schedule, a subclass, a facade; a bad input gets its error in
+    its place, and the others still learn."""
 
     class Wrapped(WellLearner):
         def learn(self, *args: Any, **kwargs: Any) -> bool:
@@ -286,7 +287,8 @@ def test_a_mix_of_groups_and_learners_that_learn_one_by_one(
     scheduled = _fitted(field, "mm", online=replace(DEFAULT_ONLINE["mm"], schedule_power=0.5))[:2]
     wrapped = Wrapped("W01", "mm", "ol")
     wrapped.__dict__.update(copy.deepcopy(mm[0]).__dict__)
-    one: list[Any] = [*mm, *ham, *pbl, *bayes, *scheduled, wrapped]
+    fresh = WellLearner("W02", "mm", "ol")  # never fitted: its first measurement sets it up
+    one: list[Any] = [*mm, fresh, *ham, *pbl, *bayes, *scheduled, wrapped]
     many = copy.deepcopy(one)
     one.append(_Facade())
     many.append(_Facade())
@@ -313,8 +315,9 @@ def test_a_mix_of_groups_and_learners_that_learn_one_by_one(
             _same_learner(a, b)
     assert many[-1].calls == one[-1].calls and len(many[-1].calls) == 4
     assert many[-2].wrapped_calls == 4
-    # one stacked call per round for mm and one for ham; nothing else stacked
-    assert stacked_sizes == [WELLS, WELLS] * 4
+    # one stacked call per round for mm (with the fresh learner) and one for ham
+    assert stacked_sizes == [WELLS + 1, WELLS] * 4
+    assert many[WELLS].ready and many[WELLS].method.updates == 4
     with pytest.raises(RuntimeError):
         learn_many([many[0], many[bad]], [xs[0], [1.0, 2.0]], qs[:2], whens[:2])
     with pytest.raises(ValueError, match="one input row, rate and time"):
