@@ -1075,6 +1075,7 @@ def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
     if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not _plain(opt):
         return None
     group = opt.param_groups[0]
+    hyper: tuple[Any, ...]
     if isinstance(opt, torch.optim.Adam):
         hyper = ("adam", group["lr"], tuple(group["betas"]), group["eps"])
     else:
@@ -1127,8 +1128,8 @@ def _learn_group(
         # what the method's _learn does first: set-up statistics (and ol's optimiser)
         learner.model.setup(batch)
         if online:
-            learner.method._optimiser()
-        (ready if bool(learner.model.ready[0]) and int(batch.count()[0]) > 0 else rest).append(m)
+            learner.method._optimiser()  # type: ignore[attr-defined]
+        (ready if learner.ready and int(batch.count()[0]) > 0 else rest).append(m)
     if len(ready) < 2:
         return rest + ready
     if any(w[3] for w in stacked.shared):
