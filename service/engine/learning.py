@@ -9,10 +9,10 @@
   learning step of a :class:`~vfm_core.streaming.WellLearner` is deferred to the end of
   the worker's batch (:meth:`Learning.run_deferred`), where the batch's learns of all
   wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' ``ol`` or
-  ``bayes`` updates stacked into one multi-well update, each well's result what its own ``learn`` gives);
-  the worker runs them earlier whenever anything else of such a well comes (its next
-  sample, another measurement, a model change), so each well sees the order of
-  one-by-one handling.
+  ``bayes`` updates stacked into one multi-well update, each well's result what its own
+  ``learn`` gives); the worker runs them earlier whenever anything else of such a well
+  comes (its next sample, another measurement, a model change), so each well sees the
+  order of one-by-one handling.
 * :meth:`Learning.apply`: the learning step itself, also used to re-learn after a
   checkpoint on start: learn, score the prediction made at the sample (the rolling
   error), and feed the well's streaming Hotelling T^2 detector; a confirmed drift is
