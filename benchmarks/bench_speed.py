@@ -14,13 +14,16 @@ Prints the median cost per call (microseconds) of:
     as the cost per well-update;
 (f) the service's prediction path: ``WellLearner.predict`` of one well (features, retrains
     due, the model), and ``predict_many`` of N wells' learners in one call, per well;
+(g) the service's learning path: ``WellLearner.learn`` of one well (retrains due, features,
+    memory, the method's update), and ``learn_many`` of N wells' learners in one call, per
+    well (``ol`` stacks the wells' updates; ``bayes`` learns one by one inside it);
 
 and each one's ratio to (a). Read the ratios: the machine may be shared. Each figure is
 the median over ``--calls`` calls on a simulated well's stream after a short fit (every
 call learns from the next measurement, as in the study), after ``--warmup`` calls.
 
     python benchmarks/bench_speed.py [--wells 10,100] [--calls 300] [--models mm,hem,ham]
-        [--streaming-wells 100,1000]
+        [--streaming-wells 100,1000] [--learning-wells 10,100]
 
 One torch thread (as the ``vfm`` command and the service run).
 """
@@ -197,6 +200,57 @@ def streaming_cost(
     return one, batched / n_wells
 
 
+def learning_cost(
+    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
+) -> tuple[float, float]:
+    """Median cost of ``WellLearner.learn`` (one well) and of ``learn_many`` over ``n_wells``
+    learners, per well, us (every call learns the next measurement, one second later)."""
+    import copy
+
+    import pandas as pd
+
+    from vfm_core.streaming import WellLearner, learn_many
+
+    wells = wells_of(frame)
+    rows = frame[(frame["well"] == wells[0]) & frame[TARGET].notna()]
+    hist = rows.iloc[:HISTORY]
+    learner = WellLearner(
+        "W",
+        model_name,
+        method_text,
+        train=replace(DEFAULT_TRAIN[model_name], max_iter=100, early_stopping=False),
+    )
+    learner.fit_history(
+        torch.tensor(hist[list(INPUT_COLUMNS)].to_numpy(dtype=float)),
+        torch.tensor(hist[TARGET].to_numpy(dtype=float)),
+        torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
+    )
+    live = rows.iloc[HISTORY:]
+    xs = live[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
+    ys = live[TARGET].to_numpy(dtype=float).tolist()
+    t0 = pd.Timestamp(hist["time"].max())
+
+    def when(k: int) -> pd.Timestamp:
+        return t0 + pd.Timedelta(seconds=k + 1)
+
+    many = [copy.deepcopy(learner) for _ in range(n_wells)]  # before the one-well calls
+    one = _median_us(
+        [
+            lambda k=k: learner.learn(xs[k % len(xs)], ys[k % len(ys)], when(k))
+            for k in range(calls)
+        ],
+        warmup,
+    )
+    per_call = max(5, calls // 10)  # a call covers every well: fewer calls
+
+    def call(k: int) -> None:
+        x, y = xs[k % len(xs)], ys[k % len(ys)]
+        learn_many(many, [x] * n_wells, [y] * n_wells, [when(k)] * n_wells)
+
+    batched = _median_us([lambda k=k: call(k) for k in range(per_call + 2)], 2)
+    return one, batched / n_wells
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--wells", default="10,100", help="batched well counts, e.g. 10,100")
@@ -208,6 +262,7 @@ def main() -> None:
     parser.add_argument(
         "--streaming-wells", default="100,1000", help="(f): wells per predict_many call"
     )
+    parser.add_argument("--learning-wells", default="10,100", help="(g): wells per learn_many call")
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
@@ -256,6 +311,14 @@ def main() -> None:
             )
             streaming.append((model_name, method_text, n_wells, one_us, many_us))
 
+    learning = []
+    for model_name, method_text in jobs:
+        for n_wells in [int(w) for w in args.learning_wells.split(",") if w]:
+            one_us, many_us = learning_cost(
+                frame, model_name, method_text, n_wells, n_calls, args.warmup
+            )
+            learning.append((model_name, method_text, n_wells, one_us, many_us))
+
     print(f"\nmedian of {args.calls} calls, microseconds; ratio = (a) / this (higher is cheaper)")
     print(f"{'':<62} {'update us':>10} {'(a)/update':>10} {'predict us':>11}")
     for what, update, predict in rows:
@@ -264,6 +327,11 @@ def main() -> None:
     print("\n(f) the service's prediction path, microseconds per sample")
     print(f"{'':<40} {'predict, 1 well':>16} {'predict_many, per well':>24} {'ratio':>7}")
     for model_name, method_text, n_wells, one_us, many_us in streaming:
+        label = f"{model_name} {method_text}, {n_wells} wells per call"
+        print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
+    print("\n(g) the service's learning path, microseconds per measurement")
+    print(f"{'':<40} {'learn, 1 well':>16} {'learn_many, per well':>24} {'ratio':>7}")
+    for model_name, method_text, n_wells, one_us, many_us in learning:
         label = f"{model_name} {method_text}, {n_wells} wells per call"
         print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
     if not isinstance(river, str):

@@ -13,6 +13,10 @@ the standard features they use (years on stream, cumulative throughput, water cu
 kept up to date sample by sample by a :class:`vfm_core.features.FeatureTracker`.
 :meth:`WellLearner.refit_as` builds a different model on the same remembered history.
 
+:func:`predict_many` and :func:`learn_many` do the same for many wells' samples and
+measurements at once (the service's worker batches), with the wells' models stacked into
+one multi-well model call; each well's results equal its own ``predict`` and ``learn``.
+
 State is tensors and plain values only: :meth:`WellLearner.checkpoint` returns bytes
 that :meth:`WellLearner.restore` reads back with ``torch.load(weights_only=True)``.
 """
@@ -30,6 +34,7 @@ from typing import Any
 
 import pandas as pd
 import torch
+import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
@@ -41,17 +46,20 @@ from vfm_core.learning import (
     BayesianFilter,
     Forecast,
     LearningMethod,
+    OnlineLearning,
     OnlineSettings,
     TrainSettings,
     WellMemory,
     parse_method,
 )
+from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
 
 __all__ = [
     "WellLearner",
     "predict_many",
+    "learn_many",
     "model_fixed_when_predicting",
     "phase_split",
     "PARAMETER_UNITS",
@@ -402,6 +410,19 @@ class WellLearner:
         that are due run first; the method then learns now or keeps the measurement for
         its next retrain. Returns True when the model changed.
         """
+        ts, changed, batch = self._take(inputs, q_total, when, source)
+        return self._learned(batch, ts, changed)
+
+    def _take(
+        self,
+        inputs: Sequence[float] | torch.Tensor,
+        q_total: float,
+        when: datetime,
+        source: str,
+    ) -> tuple[pd.Timestamp, bool, Batch]:
+        """The side effects of :meth:`learn` before the method learns, in its order: the
+        retrains due, the features, the memory. Returns the measurement's time, whether a
+        retrain changed the model, and the measurement as a one-well batch."""
         ts = utc_timestamp(when)
         changed = self._retrains_due(ts)
         x = torch.as_tensor(inputs, dtype=DTYPE).reshape(1, 6)
@@ -425,6 +446,11 @@ class WellLearner:
             feats[0, self._cols],
             tuple(self.model.extra_columns),
         )
+        return ts, changed, batch
+
+    def _learned(self, batch: Batch, ts: pd.Timestamp, changed: bool) -> bool:
+        """The rest of :meth:`learn`: the method learns from the measurement taken by
+        :meth:`_take`; a new version if the model changed."""
         if bool(self.method.on_measurement(batch, self.memory).any()):
             self._bump(ts.to_pydatetime(warn=False))
             changed = True
@@ -931,3 +957,373 @@ def _predict_group(members: list[_Waiting], results: list[Rates | BaseException 
         for name, values in columns.items():
             out[name] = values[row]
         results[i] = out
+
+
+# -- many wells' online updates in one call -------------------------------------------------------
+#: :meth:`WellLearner.learn` as defined here (a subclass may learn its own way)
+_WELL_LEARN = WellLearner.learn
+
+#: a measurement taken and waiting for its group's update: its place, learner, the
+#: measurement as a one-well batch, its time, and whether a retrain already changed the model
+_Taken = tuple[int, "WellLearner", Batch, pd.Timestamp, bool]
+
+
+def learn_many(
+    learners: Sequence[Any],
+    inputs: Sequence[Sequence[float] | torch.Tensor],
+    q_totals: Sequence[float],
+    whens: Sequence[datetime],
+    sources: Sequence[str] | None = None,
+    *,
+    return_exceptions: bool = False,
+) -> list[bool | BaseException]:
+    """``[learner.learn(x, q, when, source) for ...]``, with many wells' updates in one call.
+
+    For a service that learns from measurements of many wells that arrive together. Each
+    learner's side effects run as in :meth:`WellLearner.learn`, in the order given (the
+    retrains due, the features, the memory); then the learners whose models have the same
+    class and hyperparameters (as in :func:`predict_many`) and the same method settings
+    learn together, their per-well parameters stacked into one multi-well model:
+
+    - ``ol`` with a plain Adam or SGD (no learning-rate schedule): the E optimiser steps,
+      with the wells' optimiser states stacked (Adam's moments and each well's own step
+      count, so its own bias correction); each well keeps its own gradient clipping and
+      projection;
+    - ``bayes``: the filter's Kalman step, with the wells' filter states stacked (as the
+      study updates a field's wells in one call).
+
+    The parameters and method states are then written back into each learner's own model
+    and method, so its checkpoint and later one-by-one calls are what learning one by one
+    leaves: the parameters, optimiser and filter states and later predictions equal it to
+    rounding (1e-12 relative; a filter's covariance to 1e-12 of its largest entry). A
+    learner that comes twice waits for its first measurement to be learned. Anything else
+    (``pbl``, whose learn only stores the measurement; a subclass with its own ``learn``;
+    a field-wide model's well; a model that cannot be stacked) learns through its own
+    ``learn``, in order.
+
+    ``inputs``: each measurement's six inputs in file units; ``q_totals``: the measured
+    total rates, Sm3/h; ``whens``: their times; ``sources``: ``mpfm`` (the default) or
+    ``well_test`` each. Returns, per learner, True when its model changed. With
+    ``return_exceptions`` a learner that fails gets its exception in its place (the
+    others still learn); otherwise the first error is raised once every measurement
+    taken before it has been learned.
+    """
+    n = len(learners)
+    if (
+        len(inputs) != n
+        or len(q_totals) != n
+        or len(whens) != n
+        or (sources is not None and len(sources) != n)
+    ):
+        raise ValueError(
+            f"learn_many needs one input row, rate and time (and source, if given) per "
+            f"learner; got {n} learners, {len(inputs)} input rows, {len(q_totals)} rates, "
+            f"{len(whens)} times and {'no' if sources is None else len(sources)} sources."
+        )
+    results: list[bool | BaseException | None] = [None] * n
+    waiting: list[_Taken] = []
+    seen: set[int] = set()
+    for i, learner in enumerate(learners):
+        source = "mpfm" if sources is None else sources[i]
+        if id(learner) in seen:  # its earlier measurement is learned first
+            _learn_waiting(waiting, results)
+            waiting, seen = [], set()
+        try:
+            if _learn_batchable(learner):
+                ts, changed, batch = learner._take(inputs[i], q_totals[i], whens[i], source)
+                waiting.append((i, learner, batch, ts, changed))
+                seen.add(id(learner))
+            else:
+                results[i] = learner.learn(inputs[i], q_totals[i], whens[i], source)
+        except Exception as exc:
+            if not return_exceptions:
+                _learn_waiting(waiting, results)
+                raise
+            results[i] = exc
+    _learn_waiting(waiting, results)
+    if not return_exceptions:
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+    return results  # type: ignore[return-value]
+
+
+def _learn_batchable(learner: Any) -> bool:
+    """A :class:`WellLearner` learning with :meth:`WellLearner.learn` itself, a gradient
+    model, and ``ol`` or ``bayes`` exactly (whose updates :func:`_learn_group` runs for many
+    wells at once)."""
+    return (
+        isinstance(learner, WellLearner)
+        and type(learner).learn is _WELL_LEARN
+        and type(learner.method) in (OnlineLearning, BayesianFilter)
+        and not learner.model.gradient_free
+    )
+
+
+def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
+    """What learners must share to learn in one call: the model (as :func:`_group_key`)
+    and the method's settings: for ``ol`` its online settings and the optimiser's
+    hyperparameters, for ``bayes`` its text (every option); None: never stacked (``ol``
+    with a schedule, an optimiser :func:`optimizer_step_` would not step itself, more than
+    one parameter group; ``bayes`` on a model with nothing to filter)."""
+    key = _group_key(learner)
+    method = learner.method
+    if key is None:
+        return None
+    if isinstance(method, BayesianFilter):
+        if method._dim == 0:
+            return None
+        return (*key[:5], "bayes", method.text)
+    if not isinstance(method, OnlineLearning):
+        return None
+    s = method.online
+    opt = method._optimiser()
+    if s.schedule_power != 0 or method._sched is not None or len(opt.param_groups) != 1:
+        return None
+    if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not _plain(opt):
+        return None
+    group = opt.param_groups[0]
+    hyper: tuple[Any, ...]
+    if isinstance(opt, torch.optim.Adam):
+        hyper = ("adam", group["lr"], tuple(group["betas"]), group["eps"])
+    else:
+        hyper = ("sgd", group["lr"], None, None)
+    # the last four: the optimiser, its rate, Adam's betas and epsilon (see _online_steps)
+    return (*key[:5], "ol", s.steps, s.noise, s.max_grad_norm, *hyper)
+
+
+def _learn_waiting(waiting: list[_Taken], results: list[bool | BaseException | None]) -> None:
+    """Learn the taken measurements, one multi-well update per group of stackable learners."""
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for k, (_, learner, _, _, _) in enumerate(waiting):
+        try:
+            key = _learn_key(learner)
+        except Exception:
+            key = None
+        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    for key, members in groups.items():
+        if len(members) > 1 and key[0] != "alone":
+            try:
+                rest = _learn_group([waiting[k] for k in members], key, results)
+            except Exception:  # the one-by-one path below says what failed
+                rest = [waiting[k] for k in members]
+        else:
+            rest = [waiting[k] for k in members]
+        for i, learner, batch, ts, changed in rest:
+            try:
+                results[i] = learner._learned(batch, ts, changed)
+            except Exception as exc:
+                results[i] = exc
+
+
+def _learn_group(
+    members: list[_Taken], key: tuple[Any, ...], results: list[bool | BaseException | None]
+) -> list[_Taken]:
+    """The updates of one group's learners (see :func:`_learn_key`) as one multi-well
+    update; returns the members left to learn one by one (those not ready yet, or all
+    when fewer than two are ready). No learner's parameters or method state change until
+    the whole update has run, so a failure leaves the group to the one-by-one path."""
+    first = members[0][1]
+    stacked = _stacked(first, _group_key(first))  # type: ignore[arg-type]
+    if stacked is None:
+        raise ValueError(f"The model {first.name} cannot be stacked.")
+    model = stacked.model
+    online = key[5] == "ol"
+    ready: list[_Taken] = []
+    rest: list[_Taken] = []
+    for m in members:
+        learner, batch = m[1], m[2]
+        # what the method's _learn does first: set-up statistics (and ol's optimiser)
+        learner.model.setup(batch)
+        if online:
+            learner.method._optimiser()  # type: ignore[attr-defined]
+        (ready if learner.ready and int(batch.count()[0]) > 0 else rest).append(m)
+    if len(ready) < 2:
+        return rest + ready
+    if any(w[3] for w in stacked.shared):
+        raise ValueError(f"The model {first.name} has parameters shared by its wells.")
+    learners = [m[1] for m in ready]
+    models = [lrn.model for lrn in learners]
+    get = stacked._tensor
+    with torch.no_grad():
+        for name, path, attr, is_param in stacked.per_well + stacked.shared:
+            if (name, path, attr, is_param) in stacked.shared:
+                value = get(models[0], path, attr, is_param)
+            else:
+                value = torch.cat([get(mo, path, attr, is_param) for mo in models], 0)
+            if is_param:
+                get(model, path, attr, True).data = value.detach().clone()
+            else:
+                target: torch.nn.Module = model
+                for p in path:
+                    target = target._modules[p]  # type: ignore[assignment]
+                target._buffers[attr] = value
+    model.wells = [lrn.well for lrn in learners]
+    batches = [m[2] for m in ready]
+    batch = Batch(
+        model.wells,
+        torch.cat([b.x for b in batches], 0),
+        torch.cat([b.y for b in batches], 0),
+        torch.cat([b.mask for b in batches], 0),
+        torch.cat([b.time_ns for b in batches], 0),
+        torch.cat([b.row for b in batches], 0),
+        torch.cat([b.well_test for b in batches], 0),  # type: ignore[misc]
+        torch.cat([b.extra for b in batches], 0),  # type: ignore[misc]
+        batches[0].extra_names,
+    )
+    params = [w for w in stacked.per_well if w[3]]
+    if online:
+        finish = _online_steps(stacked, learners, batch, key)
+        changed = [True] * len(ready)
+    else:
+        finish, changed = _bayes_update(stacked, learners, batch)
+    # every step ran: write each well's parameters back, in place (one call per parameter
+    # for all wells), then the method's state
+    with torch.no_grad():
+        for _, path, attr, _ in params:
+            p = get(model, path, attr, True)
+            p.grad = None
+            torch._foreach_copy_([get(mo, path, attr, True) for mo in models], list(p.split(1, 0)))
+    finish()
+    for (i, learner, _, ts, was), moved in zip(ready, changed, strict=True):
+        if moved:
+            if online:
+                learner.method.updates += 1  # type: ignore[attr-defined]
+            learner._bump(ts.to_pydatetime(warn=False))
+        results[i] = was or moved
+    return rest
+
+
+def _online_steps(
+    stacked: _Stacked, learners: list[WellLearner], batch: Batch, key: tuple[Any, ...]
+) -> Any:
+    """``ol``'s E optimiser steps (``OnlineLearning._learn``) on the stacked model, each well
+    with its own Adam moments and step count (its own bias correction), its own gradient
+    clipping and projection. Returns what writes the optimiser states back."""
+    model, get = stacked.model, stacked._tensor
+    models = [lrn.model for lrn in learners]
+    trainable = [w for w in stacked.per_well if w[3] and get(model, w[1], w[2], True).requires_grad]
+    if not trainable:
+        raise ValueError("The model has no parameters to learn.")
+    opts = [lrn.method._optimiser() for lrn in learners]  # type: ignore[attr-defined]
+    kind, lr, betas, eps = key[-4:]
+    adam = kind == "adam"
+    k = len(learners)
+    # the stacked parameters and, per parameter, the wells' Adam states and step counts
+    params: list[torch.nn.Parameter] = []
+    own: list[list[torch.nn.Parameter]] = []  # per stacked parameter: each learner's own
+    moments: list[tuple[torch.Tensor, torch.Tensor] | None] = []
+    steps: list[list[float]] = []
+    for _, path, attr, _ in trainable:
+        mine = [get(mo, path, attr, True) for mo in models]
+        params.append(get(model, path, attr, True))
+        own.append(mine)
+        if not adam:
+            moments.append(None)
+            steps.append([])
+            continue
+        states = [opt.state.get(q) or {} for opt, q in zip(opts, mine, strict=True)]
+        pairs = list(zip(states, mine, strict=True))
+        moments.append(
+            (
+                torch.cat([st["exp_avg"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+                torch.cat([st["exp_avg_sq"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+            )
+        )
+        steps.append([float(st["step"]) if st else 0.0 for st in states])
+    stepped = [0] * len(params)  # steps each parameter took (torch's Adam skips no-gradient ones)
+    s = learners[0].method.online  # type: ignore[attr-defined]
+    groups = split_parameters(model)
+    objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
+    factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
+    for _ in range(s.steps):
+        objective.gradients_(params)
+        clip_per_well_(model, s.max_grad_norm, groups)
+        with torch.no_grad():
+            for j, p in enumerate(params):
+                g = p.grad
+                if g is None:  # no gradient this step: torch's Adam skips the parameter
+                    continue
+                stepped[j] += 1
+                if not adam:
+                    p.add_(g, alpha=-lr)
+                    continue
+                beta1, beta2 = betas
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                counts = steps[j] = [c + 1.0 for c in steps[j]]
+                exp_avg.lerp_(g, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+                fk = (p.dim(), *counts)
+                if fk not in factors:  # each well's bias correction, as torch's Adam's
+                    shape = (k, *([1] * (p.dim() - 1)))
+                    size = [-(lr / (1 - beta1**c)) for c in counts]
+                    root = [(1 - beta2**c) ** 0.5 for c in counts]
+                    factors[fk] = (
+                        torch.tensor(size, dtype=p.dtype).reshape(shape),
+                        torch.tensor(root, dtype=p.dtype).reshape(shape),
+                    )
+                neg_step_size, bias_correction2_sqrt = factors[fk]
+                # torch: param.addcdiv_(exp_avg, denom, value=-step_size), per well here
+                denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
+                p.addcdiv_(exp_avg * neg_step_size, denom)
+        model.project_()
+
+    def finish() -> None:
+        """Each well's optimiser state, in place (the learners' tensors stay their own)."""
+        if not adam:
+            return
+        scalar = _torch_optimizer._get_scalar_dtype()
+        with torch.no_grad():
+            for j in range(len(params)):
+                if not stepped[j]:
+                    continue
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
+                for st, q in zip(states, own[j], strict=True):
+                    if not st:  # its first step: the state torch's Adam would create
+                        st["step"] = torch.tensor(0.0, dtype=scalar)
+                        st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                        st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                # (integer step counts: adding them at once is adding one per step)
+                torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
+                torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
+                torch._foreach_copy_(
+                    [st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0))
+                )
+
+    return finish
+
+
+#: the per-well state of ``bayes`` its updates change (leading dimension: the well)
+_BAYES_LEARN_STATE = (*_BAYES_STATE, "_run")
+
+
+def _bayes_update(
+    stacked: _Stacked, learners: list[WellLearner], batch: Batch
+) -> tuple[Any, list[bool]]:
+    """``bayes``'s Kalman step (``BayesianFilter._learn``, written for many wells) on the
+    stacked model with the wells' filter states stacked. Returns what writes the states
+    back, and which wells' models changed."""
+    first = learners[0].method
+    assert isinstance(first, BayesianFilter)
+    method = copy.copy(first)
+    method._model = stacked.model
+    method._rebind(stacked.model)  # its filter blocks: the stacked model's parameters
+    methods: list[BayesianFilter] = [lrn.method for lrn in learners]  # type: ignore[misc]
+    for attr in _BAYES_LEARN_STATE:
+        setattr(method, attr, torch.cat([getattr(m, attr) for m in methods], 0))
+    method._counts = {
+        name: torch.cat([m._counts[name] for m in methods], 0) for name in first._counts
+    }
+    changed = method._learn(batch, None)
+
+    def finish() -> None:
+        for attr in _BAYES_LEARN_STATE:
+            rows = getattr(method, attr).split(1, 0)
+            for m, row in zip(methods, rows, strict=True):
+                setattr(m, attr, row.clone())
+        for name, value in method._counts.items():
+            for m, row in zip(methods, value.split(1, 0), strict=True):
+                m._counts[name] = row.clone()
+
+    return finish, [bool(c) for c in changed.tolist()]

@@ -13,7 +13,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.engine.state import WellTestResult
+from service.engine.state import Pending, Sample, WellTestResult
 from service.errors import ServiceError
 from service.inputs import Counters
 from service.store import Op
@@ -27,6 +27,7 @@ __all__ = [
     "RetireStep",
     "Item",
     "Batch",
+    "DeferredLearn",
     "refuse",
 ]
 
@@ -72,10 +73,33 @@ class RetireStep:
 Item = SensorItem | MeasurementItem | ModelStep | RetireStep
 
 
+@dataclass(slots=True)
+class DeferredLearn:
+    """A paired measurement whose learning step waits for the batch's one
+    :func:`~vfm_core.streaming.learn_many` call (see :meth:`Learning.learn_paired
+    <service.engine.learning.Learning.learn_paired>`): the well, the measurement, its sample,
+    and what a well-test caller is answered with (the version and prediction before)."""
+
+    st: Any  # WellState
+    pending: Pending
+    sample: Sample
+    version_before: int
+    before: dict[str, float | None]
+
+
 class Batch:
     """What one worker batch writes, publishes and answers (after one commit)."""
 
-    __slots__ = ("ops", "outbox", "answers", "samples", "sample_wells", "sample_last")
+    __slots__ = (
+        "ops",
+        "outbox",
+        "answers",
+        "samples",
+        "sample_wells",
+        "sample_last",
+        "learns",
+        "learn_wells",
+    )
 
     def __init__(self) -> None:
         self.ops: list[Op] = []
@@ -88,6 +112,10 @@ class Batch:
         self.sample_wells: dict[str, bool] = {}
         #: each of those wells' latest admitted sample: (time ns, inputs), for the order check
         self.sample_last: dict[str, tuple[int, tuple[float, ...]]] = {}
+        #: paired measurements waiting for the batch's one learning call, in pairing order
+        self.learns: list[DeferredLearn] = []
+        #: the wells among them: any other item of such a well waits for that call
+        self.learn_wells: set[str] = set()
 
     def answer(self, future: Future[Any] | None, result: Any) -> None:
         """Answer ``future`` (if any) with a result or an exception, once the batch is committed."""
@@ -95,6 +123,7 @@ class Batch:
             self.answers.append((future, result))
 
     def clear(self) -> None:
+        """Forget what was committed (the deferred learns were run before any commit)."""
         self.ops, self.outbox, self.answers = [], [], []
 
 

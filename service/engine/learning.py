@@ -5,7 +5,14 @@
   ``vfm evaluate``); None for a well whose model cannot answer yet.
 * :meth:`Learning.learn_paired`: learn from a measurement paired with its sample, record
   it as learned (its place in the learning order, the sample, the prediction made there)
-  and answer a waiting well-test caller with the prediction before and after.
+  and answer a waiting well-test caller with the prediction before and after. The
+  learning step of a :class:`~vfm_core.streaming.WellLearner` is deferred to the end of
+  the worker's batch (:meth:`Learning.run_deferred`), where the batch's learns of all
+  wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' ``ol`` or
+  ``bayes`` updates stacked into one multi-well update, each well's result what its own
+  ``learn`` gives); the worker runs them earlier whenever anything else of such a well
+  comes (its next sample, another measurement, a model change), so each well sees the
+  order of one-by-one handling.
 * :meth:`Learning.apply`: the learning step itself, also used to re-learn after a
   checkpoint on start: learn, score the prediction made at the sample (the rolling
   error), and feed the well's streaming Hotelling T^2 detector; a confirmed drift is
@@ -36,13 +43,13 @@ import numpy as np
 
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
-from service.engine.items import Batch
+from service.engine.items import Batch, DeferredLearn
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.learning import Learner
 from service.store import InsertDriftEvent, MarkLearned, Op
 from vfm_core.field_learner import FieldWell
-from vfm_core.streaming import predict_many
+from vfm_core.streaming import WellLearner, learn_many, predict_many
 from vfm_core.timeutil import from_ns, iso, to_ns
 
 __all__ = ["Learning"]
@@ -66,6 +73,10 @@ def _kept(learner: Learner) -> str:
 
 class Learning:
     """Prediction, learning, rolling error and drift for the wells of the workers."""
+
+    #: True: the learning steps of a worker batch run together (:meth:`run_deferred`);
+    #: False: each at once, one by one (the same results; the tests compare the two)
+    batch_learns: bool = True
 
     def __init__(self, settings: Settings, counters: Counters, checkpoints: Checkpoints) -> None:
         self.settings = settings
@@ -149,11 +160,74 @@ class Learning:
         return out
 
     def learn_paired(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
-        """Learn from a measurement paired with ``sample``; record it; answer its caller."""
+        """Learn from a measurement paired with ``sample``; record it; answer its caller.
+
+        The learning step of a :class:`~vfm_core.streaming.WellLearner` waits in ``b`` for
+        the batch's one learning call (:meth:`run_deferred`); everything around it runs in
+        the order of learning at once."""
+        if st.well in b.learn_wells:  # the well's earlier measurement is learned first
+            self.run_deferred(b)
         learner = st.learner
         version_before = learner.version
         before = learner.predict(list(sample.inputs)) if p.future is not None else {}
+        if self.batch_learns and isinstance(learner, WellLearner):
+            self.catch_up(learner, p.time_ns)
+            b.learns.append(DeferredLearn(st, p, sample, version_before, before))
+            b.learn_wells.add(st.well)
+            return
         self.apply(st, sample, p.q_total, p.time_ns, b.ops, p.source)
+        self._record(st, p, sample, b, version_before, before)
+
+    def run_deferred(self, b: Batch) -> None:
+        """Run the learning steps waiting in ``b``, all wells in one
+        :func:`~vfm_core.streaming.learn_many` call, then record each (as
+        :meth:`learn_paired` would have right away). A well whose step fails is counted
+        as an internal error and its caller answered with the error; the others go on."""
+        learns = b.learns
+        if not learns:
+            return
+        b.learns, b.learn_wells = [], set()
+        started = time.monotonic()
+        try:
+            results: list[bool | BaseException] = learn_many(
+                [d.st.learner for d in learns],
+                [list(d.sample.inputs) for d in learns],
+                [d.pending.q_total for d in learns],
+                [from_ns(d.pending.time_ns) for d in learns],
+                [d.pending.source for d in learns],
+                return_exceptions=True,
+            )
+        except Exception as exc:  # pragma: no cover - learn_many answers errors in place
+            results = [exc] * len(learns)
+        self._timed(learns[0].st, started, f"A batch of {len(learns)} learning step(s), the first")
+        for d, result in zip(learns, results, strict=True):
+            p = d.pending
+            try:
+                if isinstance(result, BaseException):
+                    raise result
+                self._after_step(d.st, d.sample, p.q_total, p.time_ns, b.ops, p.source)
+                self._record(d.st, p, d.sample, b, d.version_before, d.before)
+            except Exception as exc:  # one well's failure must not stop the others
+                logger.exception(
+                    "Unexpected error learning the %s measurement of %s: %s",
+                    p.source,
+                    d.st.well,
+                    exc,
+                )
+                self.counters.event("internal errors")
+                b.answer(p.future, exc)
+
+    def _record(
+        self,
+        st: WellState,
+        p: Pending,
+        sample: Sample,
+        b: Batch,
+        version_before: int,
+        before: Rates,
+    ) -> None:
+        """After the learning step: record the measurement as learned, answer its caller."""
+        learner = st.learner
         st.learn_seq += 1
         self.checkpoints.changed(st, b.ops, p.time_ns)
         b.ops.append(
@@ -203,6 +277,19 @@ class Learning:
         self.catch_up(learner, time_ns)
         learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
         self._timed(st, started, "Learning a measurement")
+        self._after_step(st, sample, q_total, time_ns, ops, source)
+
+    def _after_step(
+        self,
+        st: WellState,
+        sample: Sample,
+        q_total: float,
+        time_ns: int,
+        ops: list[Op],
+        source: str,
+    ) -> None:
+        """What follows the learning step: note it for a model change in progress, score
+        the earlier prediction, run the drift test."""
         if st.catch_up is not None:
             st.catch_up.append((sample.inputs, q_total, time_ns, source))
         if sample.predicted is not None and q_total:

@@ -20,8 +20,14 @@ is taken, then all those taken are predicted in one call
 then each is stored and published in arrival order. Anything else (a measurement, a model
 change, a retirement) first has the samples before it predicted, and so does a well's next
 sample when its model may change at that sample (a scheduled retrain, or a measurement
-waiting for the sample before); so each well sees exactly the order of one-by-one handling. The first message of a new well builds the well here, on its worker
-(never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
+waiting for the sample before); so each well sees exactly the order of one-by-one handling.
+Learning is batched the same way: a paired measurement's learning step waits, and the
+batch's waiting steps of all wells run in one call
+(:func:`vfm_core.streaming.learn_many`, via :meth:`Learning.run_deferred
+<service.engine.learning.Learning.run_deferred>`) before the commit, or earlier when
+anything else of such a well comes (its next sample, another of its measurements) and
+before a model change or a retirement. The first message of a new well builds the well
+here, on its worker (never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
 well after everything queued for it before (``DELETE /wells/{well}``).
 """
 
@@ -155,6 +161,11 @@ class Workers:
             # wells' models (a measurement, a model change), or is the next sample of a
             # well whose model may change at its next sample (a scheduled retrain)
             self._predict_samples(b)
+        if b.learn_wells and (
+            isinstance(item, ModelStep | RetireStep) or item.well in b.learn_wells
+        ):
+            # the learning steps waiting come first: this item reads or changes a model
+            self.learning.run_deferred(b)
         try:
             if isinstance(item, ModelStep):
                 self.model_changes.on_step(item, b, self.flush)
@@ -177,9 +188,10 @@ class Workers:
             b.answer(getattr(item, "future", None), exc)
 
     def flush(self, b: Batch) -> None:
-        """Predict the samples taken, commit the batch, then publish its predictions and
-        answer its callers."""
+        """Predict the samples taken, run the learning steps waiting, commit the batch, then
+        publish its predictions and answer its callers."""
         self._predict_samples(b)
+        self.learning.run_deferred(b)
         try:
             self.store.write(b.ops)
         except Exception as exc:
@@ -303,6 +315,8 @@ class Workers:
         sample waits for this call."""
         if not b.samples:
             return
+        if b.learn_wells and any(st.well in b.learn_wells for st, _, _, _ in b.samples):
+            self.learning.run_deferred(b)  # a sample is predicted after what was learned before it
         taken = b.samples
         b.samples, b.sample_wells, b.sample_last = [], {}, {}
         try:
