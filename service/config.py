@@ -142,6 +142,15 @@ class ModelSettings(_Section):
         description="PUT /wells/{well}/model: how long the new model's fit may take, s; "
         "past it the change is abandoned (503) and the current model kept",
     )
+    remember_max: int = Field(
+        default=50_000,
+        ge=10,
+        description="measurements a well remembers at most (the latest) for retrains, model "
+        "changes and checkpoints; each checkpoint stores them, so without a bound both grow "
+        "for ever (50,000: 137 years of daily readings, 104 days of one every 3 minutes, about "
+        "4.5 MB per checkpoint); with more, pbl retrains on the latest only (per-well models; "
+        "the field-wide mtl remembers everything)",
+    )
 
     @field_validator("name")
     @classmethod

@@ -73,13 +73,15 @@ def train_settings(cfg: ModelSettings) -> Any:
 
 
 def apply_budget(learner: Learner, cfg: ModelSettings) -> Learner:
-    """Give a restored or refitted learner the configured retrain budget (its other
-    settings stay those it was built with)."""
+    """Give a restored or refitted learner the configured retrain budget and bound on the
+    measurements it remembers (its other settings stay those it was built with)."""
     budget = fit_budget(cfg)
     if learner.train.time_budget_s != budget:
         learner.train = replace(learner.train, time_budget_s=budget)
     if learner.method.train.time_budget_s != budget:
         learner.method.train = replace(learner.method.train, time_budget_s=budget)
+    if isinstance(learner, WellLearner):  # and the configured bound on what it remembers
+        learner.memory.set_max_rows(cfg.remember_max)
     return learner
 
 
@@ -122,6 +124,7 @@ def new_learner(well: str, cfg: ModelSettings) -> Learner:
         model_kwargs=cfg.model_kwargs,
         seed=cfg.seed,
         effects=cfg.effects,
+        remember_max=cfg.remember_max,
     )
 
 

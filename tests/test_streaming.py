@@ -134,3 +134,40 @@ def test_earlier_checkpoint_formats_still_restore(method: str) -> None:
         if version == 1:
             # the features are rebuilt from the remembered rows: 17 hours on stream at the last
             assert float(back.memory.features[17, 0]) == pytest.approx(17 / (365.25 * 24))
+
+
+def test_memory_keeps_the_latest_rows_within_its_bound(one_well: pd.DataFrame) -> None:
+    """remember_max: appending overshoots by a tenth at most, then keeps the latest rows;
+    a checkpoint stores only those, and a restored learner is cut back when it is set."""
+    from service.config import ModelSettings
+    from service.learning import apply_budget
+    from vfm_core.features import FeatureTracker
+    from vfm_core.learning.memory import WellMemory
+
+    memory = WellMemory("W", FeatureTracker.names, (), max_rows=100)
+    for i in range(135):
+        x = torch.full((1, 6), float(i), dtype=torch.float64)
+        memory.append(x, torch.tensor([float(i)], dtype=torch.float64), torch.tensor([i]))
+        assert len(memory) <= 110
+    # cut back to the latest 100 whenever it reached 111 (last at row 132), then two more
+    assert memory.t.tolist() == list(range(33, 135))
+    memory.set_max_rows(20)
+    assert memory.y.tolist() == [float(i) for i in range(115, 135)]
+    memory.set_max_rows(None)
+    memory.append(torch.zeros(50, 6, dtype=torch.float64), torch.zeros(50), torch.arange(50))
+    assert len(memory) == 70  # no bound: every row
+
+    rows = one_well[target_mask(one_well, "all")]
+    x = torch.tensor(rows[list(INPUT_COLUMNS)].to_numpy())
+    y = torch.tensor(rows["q_total"].to_numpy())
+    t = torch.tensor(pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8)
+    learner = WellLearner("W01", "mm", "ol", remember_max=50)
+    learner.fit_history(x[:40], y[:40], t[:40])
+    for i in range(40, 140):
+        learner.learn(x[i].tolist(), float(y[i]), rows["time"].iloc[i])
+        assert learner.remembered <= 55
+    assert learner.memory.t[-1] == t[139] and learner.remembered >= 50
+    unbounded = WellLearner.restore(learner.checkpoint())
+    assert unbounded.remembered == learner.remembered  # the checkpoint held only those
+    restored = apply_budget(unbounded, ModelSettings(remember_max=10))
+    assert restored.remembered == 10 and restored.memory.t.tolist() == t[130:140].tolist()

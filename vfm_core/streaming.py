@@ -157,6 +157,7 @@ class WellLearner:
         model_kwargs: dict[str, Any] | None = None,
         seed: int = 0,
         effects: Sequence[Any] = (),
+        remember_max: int | None = None,
     ) -> None:
         if model not in MODELS:
             raise ConfigError(f"Unknown model '{model}'; choose one of {', '.join(MODELS)}.")
@@ -193,7 +194,10 @@ class WellLearner:
         self._cols = [FeatureTracker.names.index(c) for c in self.model.extra_columns]
         self.features = FeatureTracker()
         #: every measurement learned from (inputs, rate, time, source, features)
-        self.memory = WellMemory(well, FeatureTracker.names, self.model.extra_columns)
+        #: (``remember_max``: at most that many, the latest; see WellMemory.set_max_rows)
+        self.memory = WellMemory(
+            well, FeatureTracker.names, self.model.extra_columns, max_rows=remember_max
+        )
         self.version = 0
         self.n_updates = 0
         self.last_update: datetime | None = None

@@ -66,9 +66,16 @@ class WellMemory:
     """
 
     def __init__(
-        self, well: str, feature_names: Sequence[str], extra_columns: Sequence[str] = ()
+        self,
+        well: str,
+        feature_names: Sequence[str],
+        extra_columns: Sequence[str] = (),
+        max_rows: int | None = None,
     ) -> None:
         self.well = well
+        #: keep at most the latest ``max_rows`` rows (None: all); see :meth:`set_max_rows`
+        self.max_rows = max_rows
+        self._n_tail = 0
         self.feature_names = tuple(feature_names)
         self.extra_columns = tuple(extra_columns)
         self._cols = [self.feature_names.index(c) for c in self.extra_columns]
@@ -86,8 +93,23 @@ class WellMemory:
         if self._tail:
             columns = list(zip(*self._tail, strict=True))
             self._parts = [torch.cat([p, *c]) for p, c in zip(self._parts, columns, strict=True)]
-            self._tail = []
+            self._tail, self._n_tail = [], 0
         return self._parts
+
+    def set_max_rows(self, max_rows: int | None) -> None:
+        """Keep at most the latest ``max_rows`` rows from now on (None: every row).
+
+        A long-running service remembers every measurement for retrains and model changes,
+        and each checkpoint stores them: without a bound both grow for ever. Appending lets
+        the rows overshoot the bound by a tenth before it cuts back to ``max_rows`` (one
+        copy per tenth, not one per row); reading and restoring cut at once."""
+        self.max_rows = max_rows
+        self._trim(0)
+
+    def _trim(self, slack: int) -> None:
+        m = self.max_rows
+        if m is not None and len(self) > m + slack:
+            self._parts = [p[-m:].clone() for p in self._joined()]
 
     @property
     def x(self) -> torch.Tensor:
@@ -115,7 +137,7 @@ class WellMemory:
         return self._joined()[4]
 
     def __len__(self) -> int:
-        return int(self._parts[1].shape[0]) + sum(int(r[1].shape[0]) for r in self._tail)
+        return int(self._parts[1].shape[0]) + self._n_tail
 
     def append(
         self,
@@ -132,6 +154,9 @@ class WellMemory:
         w = torch.zeros(n, dtype=torch.bool) if well_test is None else well_test.reshape(n).bool()
         e = torch.zeros(n, k, dtype=DTYPE) if features is None else features.reshape(n, k)
         self._tail.append((x, y.reshape(n).to(DTYPE), t.reshape(n), w, e.to(DTYPE)))
+        self._n_tail += n
+        if self.max_rows is not None:
+            self._trim(max(1, self.max_rows // 10))
 
     def replace(self, rows: torch.Tensor) -> None:
         """Keep only ``rows`` (indices or a mask), e.g. to copy another memory's selection."""
@@ -144,7 +169,8 @@ class WellMemory:
             rows = torch.arange(int(parts[1].shape[0]))
         rows = rows[torch.argsort(parts[2][rows], stable=True)]
         self._parts = [p[rows].clone() for p in parts]
-        self._tail = []
+        self._tail, self._n_tail = [], 0
+        self._trim(0)
 
     def rows(self, keep: torch.Tensor | None = None) -> Batch:
         """The rows (all, or where ``keep``) as a one-well batch with the model's features."""
@@ -178,4 +204,5 @@ class WellMemory:
 
     def load(self, state: dict[str, torch.Tensor]) -> None:
         self._parts = [state["x"], state["y"], state["t"], state["w"], state["e"]]
-        self._tail = []
+        self._tail, self._n_tail = [], 0
+        self._trim(0)
