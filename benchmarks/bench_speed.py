@@ -36,6 +36,7 @@ import statistics
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -152,64 +153,12 @@ def learner_cost(
     return update, predict
 
 
-def streaming_cost(
-    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
-) -> tuple[float, float]:
-    """Median cost of ``WellLearner.predict`` (one well) and of ``predict_many`` over
-    ``n_wells`` learners, per well, us (every call one sample later)."""
-    import copy
-
+def _fitted_learner(frame, model_name: str, method_text: str) -> tuple[Any, list, list, Any]:
+    """A ``WellLearner`` of the frame's first well fitted on its first ``HISTORY`` measured
+    rows; the later rows' inputs and rates; and ``when(k)``: k + 1 seconds after the history."""
     import pandas as pd
 
-    from vfm_core.streaming import WellLearner, predict_many
-
-    wells = wells_of(frame)
-    rows = frame[(frame["well"] == wells[0]) & frame[TARGET].notna()]
-    hist = rows.iloc[:HISTORY]
-    learner = WellLearner(
-        "W",
-        model_name,
-        method_text,
-        train=replace(DEFAULT_TRAIN[model_name], max_iter=100, early_stopping=False),
-    )
-    learner.fit_history(
-        torch.tensor(hist[list(INPUT_COLUMNS)].to_numpy(dtype=float)),
-        torch.tensor(hist[TARGET].to_numpy(dtype=float)),
-        torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
-    )
-    live = rows.iloc[HISTORY:]
-    xs = live[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
-    t0 = pd.Timestamp(hist["time"].max())
-
-    def when(k: int) -> pd.Timestamp:
-        return t0 + pd.Timedelta(seconds=k + 1)
-
-    one = _median_us(
-        [lambda k=k: learner.predict(xs[k % len(xs)], when=when(k)) for k in range(calls)],
-        warmup,
-    )
-    many = [copy.deepcopy(learner) for _ in range(n_wells)]
-    per_call = max(5, calls // 10)  # a call covers every well: fewer calls
-    batched = _median_us(
-        [
-            lambda k=k: predict_many(many, [xs[k % len(xs)]] * n_wells, [when(calls + k)] * n_wells)
-            for k in range(per_call + 2)
-        ],
-        2,
-    )
-    return one, batched / n_wells
-
-
-def learning_cost(
-    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
-) -> tuple[float, float]:
-    """Median cost of ``WellLearner.learn`` (one well) and of ``learn_many`` over ``n_wells``
-    learners, per well, us (every call learns the next measurement, one second later)."""
-    import copy
-
-    import pandas as pd
-
-    from vfm_core.streaming import WellLearner, learn_many
+    from vfm_core.streaming import WellLearner
 
     wells = wells_of(frame)
     rows = frame[(frame["well"] == wells[0]) & frame[TARGET].notna()]
@@ -233,6 +182,45 @@ def learning_cost(
     def when(k: int) -> pd.Timestamp:
         return t0 + pd.Timedelta(seconds=k + 1)
 
+    return learner, xs, ys, when
+
+
+def streaming_cost(
+    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
+) -> tuple[float, float]:
+    """Median cost of ``WellLearner.predict`` (one well) and of ``predict_many`` over
+    ``n_wells`` learners, per well, us (every call one sample later)."""
+    import copy
+
+    from vfm_core.streaming import predict_many
+
+    learner, xs, _, when = _fitted_learner(frame, model_name, method_text)
+    one = _median_us(
+        [lambda k=k: learner.predict(xs[k % len(xs)], when=when(k)) for k in range(calls)],
+        warmup,
+    )
+    many = [copy.deepcopy(learner) for _ in range(n_wells)]
+    per_call = max(5, calls // 10)  # a call covers every well: fewer calls
+    batched = _median_us(
+        [
+            lambda k=k: predict_many(many, [xs[k % len(xs)]] * n_wells, [when(calls + k)] * n_wells)
+            for k in range(per_call + 2)
+        ],
+        2,
+    )
+    return one, batched / n_wells
+
+
+def learning_cost(
+    frame, model_name: str, method_text: str, n_wells: int, calls: int, warmup: int
+) -> tuple[float, float]:
+    """Median cost of ``WellLearner.learn`` (one well) and of ``learn_many`` over ``n_wells``
+    learners, per well, us (every call learns the next measurement, one second later)."""
+    import copy
+
+    from vfm_core.streaming import learn_many
+
+    learner, xs, ys, when = _fitted_learner(frame, model_name, method_text)
     many = [copy.deepcopy(learner) for _ in range(n_wells)]  # before the one-well calls
     one = _median_us(
         [
