@@ -18,7 +18,9 @@ Prints the median cost per call (microseconds) of:
     memory, the method's update), and ``learn_many`` of N wells' learners in one call, per
     well (``ol`` stacks the wells' updates; ``bayes`` learns one by one inside it);
 
-and each one's ratio to (a). Read the ratios: the machine may be shared. Each figure is
+and each one's ratio to (a). The plain ``mm``'s ``ol`` steps run compiled (numba,
+``vfm_core/learning/kernels.py``); its rows are repeated with ``VFM_KERNELS=0``, the torch
+path, in the same run. Read the ratios: the machine may be shared. Each figure is
 the median over ``--calls`` calls on a simulated well's stream after a short fit (every
 call learns from the next measurement, as in the study), after ``--warmup`` calls.
 
@@ -31,7 +33,9 @@ One torch thread (as the ``vfm`` command and the service run).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -51,6 +55,20 @@ from vfm_core.simulate import simulate_field
 
 #: samples per well the model is fitted on before the timed stream
 HISTORY = 200
+
+
+@contextlib.contextmanager
+def _kernels(on: bool) -> Any:
+    """The compiled ``mm`` online step on or off (``VFM_KERNELS``) inside the block."""
+    before = os.environ.get("VFM_KERNELS")
+    os.environ["VFM_KERNELS"] = "1" if on else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["VFM_KERNELS"]
+        else:
+            os.environ["VFM_KERNELS"] = before
 
 
 def _median_us(calls: list[Callable[[], object]], warmup: int) -> float:
@@ -271,28 +289,42 @@ def main() -> None:
         rows.append(("(b) river LinearRegression predict_one + learn_one", river, None))
 
     history, cols = _stream(frame, 1, n_calls)
-    jobs = [(m, "ol") for m in args.models.split(",") if m] + [
-        (m, "bayes") for m in args.bayes_models.split(",") if m
-    ]
-    for model_name, method_text in jobs:
-        update, predict = learner_cost(model_name, method_text, history, cols, args.warmup)
+    # (model, method, compiled kernel on): mm ol also with the torch path, side by side
+    jobs = [(m, "ol", True) for m in args.models.split(",") if m]
+    if "mm" in args.models.split(","):
+        jobs.append(("mm", "ol", False))
+    jobs += [(m, "bayes", True) for m in args.bayes_models.split(",") if m]
+
+    def name(model_name: str, method_text: str, kernel: bool) -> str:
+        return f"{model_name} {method_text}{'' if kernel else ' (torch, VFM_KERNELS=0)'}"
+
+    for model_name, method_text, kernel in jobs:
+        with _kernels(kernel):
+            update, predict = learner_cost(model_name, method_text, history, cols, args.warmup)
         steps = f", E={DEFAULT_ONLINE[model_name].steps}" if method_text == "ol" else ""
         label = "(c)" if method_text == "ol" else "(d)"
-        rows.append((f"{label} {model_name} {method_text}{steps}, 1 well", update, predict))
+        what = f"{label} {name(model_name, method_text, kernel)}{steps}, 1 well"
+        rows.append((what, update, predict))
     for n_wells in [int(w) for w in args.wells.split(",") if w]:
         history_n, cols_n = _stream(frame, n_wells, n_calls)
-        for model_name, method_text in jobs:
-            update, predict = learner_cost(model_name, method_text, history_n, cols_n, args.warmup)
+        for model_name, method_text, kernel in jobs:
+            with _kernels(kernel):
+                update, predict = learner_cost(
+                    model_name, method_text, history_n, cols_n, args.warmup
+                )
             rows.append(
                 (
-                    f"(e) {model_name} {method_text}, {n_wells} wells in one call, per well",
+                    f"(e) {name(model_name, method_text, kernel)}, {n_wells} wells in one call, "
+                    "per well",
                     update / n_wells,
                     predict / n_wells,
                 )
             )
 
     streaming = []
-    for model_name, method_text in jobs:
+    for model_name, method_text, kernel in jobs:
+        if not kernel:
+            continue  # predictions do not use the kernel
         for n_wells in [int(w) for w in args.streaming_wells.split(",") if w]:
             one_us, many_us = streaming_cost(
                 frame, model_name, method_text, n_wells, n_calls, args.warmup
@@ -300,28 +332,29 @@ def main() -> None:
             streaming.append((model_name, method_text, n_wells, one_us, many_us))
 
     learning = []
-    for model_name, method_text in jobs:
+    for model_name, method_text, kernel in jobs:
         for n_wells in [int(w) for w in args.learning_wells.split(",") if w]:
-            one_us, many_us = learning_cost(
-                frame, model_name, method_text, n_wells, n_calls, args.warmup
-            )
-            learning.append((model_name, method_text, n_wells, one_us, many_us))
+            with _kernels(kernel):
+                one_us, many_us = learning_cost(
+                    frame, model_name, method_text, n_wells, n_calls, args.warmup
+                )
+            learning.append((name(model_name, method_text, kernel), "", n_wells, one_us, many_us))
 
     print(f"\nmedian of {args.calls} calls, microseconds; ratio = (a) / this (higher is cheaper)")
-    print(f"{'':<62} {'update us':>10} {'(a)/update':>10} {'predict us':>11}")
+    print(f"{'':<80} {'update us':>10} {'(a)/update':>10} {'predict us':>11}")
     for what, update, predict in rows:
         pred = "" if predict is None else f"{predict:11.1f}"
-        print(f"{what:<62} {update:10.1f} {naive / update:10.2f} {pred:>11}")
+        print(f"{what:<80} {update:10.1f} {naive / update:10.2f} {pred:>11}")
     print("\n(f) the service's prediction path, microseconds per sample")
     print(f"{'':<40} {'predict, 1 well':>16} {'predict_many, per well':>24} {'ratio':>7}")
     for model_name, method_text, n_wells, one_us, many_us in streaming:
         label = f"{model_name} {method_text}, {n_wells} wells per call"
         print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
     print("\n(g) the service's learning path, microseconds per measurement")
-    print(f"{'':<40} {'learn, 1 well':>16} {'learn_many, per well':>24} {'ratio':>7}")
-    for model_name, method_text, n_wells, one_us, many_us in learning:
-        label = f"{model_name} {method_text}, {n_wells} wells per call"
-        print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
+    print(f"{'':<58} {'learn, 1 well':>16} {'learn_many, per well':>24} {'ratio':>7}")
+    for what, _, n_wells, one_us, many_us in learning:
+        label = f"{what}, {n_wells} wells per call"
+        print(f"{label:<58} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
     if not isinstance(river, str):
         print(f"\nriver predict+learn: {river:.1f} us; prediction / that, per row above:")
         for what, _, predict in rows:

@@ -93,6 +93,11 @@ class Service:
                 self.transport.forget,
             )
             self.engine.load()
+            if s.model.name == "mm" and not s.model.effects:
+                # the compiled online step: ready before the first measurement arrives
+                from vfm_core.learning.kernels import warm
+
+                warm()
             self.engine.start()
             self.transport.start(self.engine.deliver)
             self.locators = self.transport.locators()

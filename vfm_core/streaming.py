@@ -32,6 +32,7 @@ from dataclasses import replace
 from datetime import datetime
 from typing import Any
 
+import numpy as np
 import pandas as pd
 import torch
 import torch.optim.optimizer as _torch_optimizer
@@ -52,6 +53,7 @@ from vfm_core.learning import (
     WellMemory,
     parse_method,
 )
+from vfm_core.learning.kernels import mm_online_applies, mm_online_steps
 from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
@@ -1240,7 +1242,25 @@ def _online_steps(
     groups = split_parameters(model)
     objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
     factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
-    for _ in range(s.steps):
+    if len(params) == 1 and mm_online_applies(model):  # the same steps, compiled
+        before = np.array(steps[0] if adam else [0.0] * k, dtype=np.float64)
+        mm_online_steps(
+            model,
+            batch,
+            moments[0],
+            before,
+            np.zeros(k, dtype=bool),
+            steps=s.steps,
+            noise=s.noise,
+            lr=lr,
+            betas=betas if adam else (0.9, 0.999),
+            eps=eps if adam else 1e-8,
+            max_norm=s.max_grad_norm,
+        )
+        if adam:
+            steps[0] = before.tolist()
+        stepped[0] = s.steps
+    for _ in range(0 if stepped[0] else s.steps):
         objective.gradients_(params)
         clip_per_well_(model, s.max_grad_norm, groups)
         with torch.no_grad():

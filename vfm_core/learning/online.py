@@ -11,13 +11,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
+import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
+from vfm_core.learning.kernels import mm_online_applies, mm_online_steps
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
     MapObjective,
+    _plain,
     clip_per_well_,
     make_optimizer,
     optimizer_step_,
@@ -107,6 +111,10 @@ class OnlineLearning(LearningMethod):
             batch = batch.select(batch.mask & ready.unsqueeze(1))
         # Adam's momentum would move wells that have no new measurement: hold them still.
         idle = ~ready
+        if self._sched is None and mm_online_applies(model) and _plain(opt):
+            self._kernel_steps(batch, opt, idle)  # the same steps, compiled
+            self.updates += 1
+            return ready
         any_idle = bool(idle.any())
         held = [(p, p.detach()[idle].clone()) for p in self._groups[0]] if any_idle else []
         # the same batch for every step: its counts once
@@ -124,6 +132,41 @@ class OnlineLearning(LearningMethod):
             self._sched.step()
         self.updates += 1
         return ready
+
+    def _kernel_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
+        """The E steps of :meth:`_learn` for the plain ``mm``, by
+        :func:`vfm_core.learning.kernels.mm_online_steps`, on the optimiser's own state."""
+        z: torch.nn.Parameter = self.model.phys.z  # type: ignore[assignment, union-attr]
+        group = opt.param_groups[0]
+        n_wells = z.shape[0]
+        counts = np.zeros(n_wells)
+        moments = None
+        adam = isinstance(opt, torch.optim.Adam)
+        if adam:
+            state = opt.state[z]
+            if len(state) == 0:  # as torch's Adam starts it
+                state["step"] = torch.tensor(0.0, dtype=_torch_optimizer._get_scalar_dtype())
+                state["exp_avg"] = torch.zeros_like(z, memory_format=torch.preserve_format)
+                state["exp_avg_sq"] = torch.zeros_like(z, memory_format=torch.preserve_format)
+            moments = (state["exp_avg"], state["exp_avg_sq"])
+            counts[:] = float(state["step"])
+        s = self.online
+        mm_online_steps(
+            self.model,
+            batch,
+            moments,
+            counts,
+            idle.numpy(),
+            steps=s.steps,
+            noise=s.noise,
+            lr=group["lr"],
+            betas=tuple(group.get("betas", (0.9, 0.999))),  # type: ignore[arg-type]
+            eps=group.get("eps", 1e-8),
+            max_norm=s.max_grad_norm,
+        )
+        if adam:
+            opt.state[z]["step"].add_(float(s.steps))
+        z.grad = None
 
     def tuning(self, grid: str) -> list[dict[str, Any]]:
         """Step size gamma, steps E and optimiser (the paper's grid, or a small one)."""

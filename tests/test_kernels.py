@@ -1,0 +1,152 @@
+"""The compiled online step of the plain ``mm`` (vfm_core/learning/kernels.py) computes what
+the torch path computes (issue 16).
+
+- many ``ol`` updates (Adam and SGD, wells without a measurement held still) leave the
+  same parameters, Adam moments and step counts as the torch path, to rounding;
+- one step's gradient equals autograd's through the model's plain forward;
+- the learner learns through it: a well whose rates rose moves its C_D up and its error
+  falls;
+- the kernel is used only where it applies, and ``VFM_KERNELS=0`` turns it off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from vfm_core.data import DTYPE, Batch, make_batch, target_mask
+from vfm_core.jobs.study import wells_of
+from vfm_core.learning import DEFAULT_TRAIN, parse_method
+from vfm_core.learning.kernels import kernels_enabled, mm_online_applies, mm_online_steps
+from vfm_core.learning.online import OnlineSettings
+from vfm_core.learning.training import per_well_loss
+from vfm_core.models import make_model
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+pytestmark = pytest.mark.skipif(not kernels_enabled(), reason="numba is not installed here")
+
+
+@pytest.fixture(scope="module")
+def stream() -> tuple[Batch, list[Batch]]:
+    """Three simulated wells: a history of 150 measurements each, then 60 one-sample columns."""
+    frame = validate_frame(simulate_field(wells=3, years=1.0, seed=4).observations).frame
+    wells = wells_of(frame)
+    batch = make_batch(frame, wells, np.flatnonzero(target_mask(frame, "all")))
+    rank = torch.cumsum(batch.mask.long(), 1)
+    return batch.select(rank <= 150), [batch.select(rank == 151 + k) for k in range(60)]
+
+
+def _learner(history: Batch, online: OnlineSettings) -> tuple[object, object]:
+    model = make_model("mm", history.wells)
+    method = parse_method("ol")
+    train = replace(DEFAULT_TRAIN["mm"], max_iter=60, early_stopping=False)
+    method.bind(model, train=train, online=online)
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    return model, method
+
+
+def _run(
+    monkeypatch: pytest.MonkeyPatch, kernels: str, stream: tuple[Batch, list[Batch]], **kw: object
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    monkeypatch.setenv("VFM_KERNELS", kernels)
+    history, cols = stream
+    model, method = _learner(history, OnlineSettings(**kw))  # type: ignore[arg-type]
+    assert mm_online_applies(model) is (kernels == "1")
+    for k, col in enumerate(cols):
+        if k % 3 == 1:  # the middle well has no measurement this time: it is held still
+            col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+        method.on_measurement(col)  # type: ignore[attr-defined]
+    z = model.phys.z.detach().clone()  # type: ignore[attr-defined]
+    state = method._opt.state.get(model.phys.z, {})  # type: ignore[attr-defined]
+    return z, {k: v.clone() for k, v in state.items()}
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        dict(optimizer="adam", lr=1e-3, steps=10),
+        dict(optimizer="adam", lr=1e-1, steps=3, max_grad_norm=0.05),  # the clip bites
+        dict(optimizer="sgd", lr=1e-4, steps=10),
+    ],
+)
+def test_kernel_matches_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], settings: dict
+) -> None:
+    z_fast, state_fast = _run(monkeypatch, "1", stream, **settings)
+    z_torch, state_torch = _run(monkeypatch, "0", stream, **settings)
+    assert not torch.equal(z_torch, torch.zeros_like(z_torch))  # it learned something
+    assert torch.allclose(z_fast, z_torch, rtol=0, atol=1e-12 * float(z_torch.abs().max()))
+    assert state_fast.keys() == state_torch.keys()
+    for key, value in state_torch.items():
+        scale = float(value.abs().max())
+        assert torch.allclose(state_fast[key], value, rtol=0, atol=1e-12 * scale), key
+
+
+def test_kernel_gradient_is_autograds(stream: tuple[Batch, list[Batch]]) -> None:
+    """One SGD step of rate lr moves z by -lr times the objective's gradient; autograd
+    through the plain formula (an input that requires grad keeps the closed form out)."""
+    history, _ = stream
+    model, _ = _learner(history, OnlineSettings())
+    batch = history.select(torch.cumsum(history.mask.long(), 1) > 140)  # 10 samples per well
+    z0 = model.phys.z.detach().clone()  # type: ignore[attr-defined]
+    noise = 0.05
+    x = batch.x.clone().requires_grad_(True)
+    plain = replace(batch, x=x)
+    n = batch.count().to(DTYPE)
+    loss = per_well_loss(model, plain, noise, True, n).sum()  # type: ignore[arg-type]
+    (grad,) = torch.autograd.grad(loss, model.phys.z)  # type: ignore[attr-defined]
+    lr = 1e-9  # far inside the bounds: no projection
+    mm_online_steps(
+        model,
+        batch,
+        None,
+        np.zeros(batch.n_wells),
+        np.zeros(batch.n_wells, dtype=bool),
+        steps=1,
+        noise=noise,
+        lr=lr,
+        betas=(0.9, 0.999),
+        eps=1e-8,
+        max_norm=1e12,  # no clip
+    )
+    step = (model.phys.z.detach() - z0) / -lr  # type: ignore[attr-defined]
+    assert float(grad.abs().max()) > 0
+    assert torch.allclose(step, grad, rtol=1e-5, atol=1e-6 * float(grad.abs().max()))
+
+
+def test_learning_through_the_kernel_follows_a_well_whose_rates_rose(
+    stream: tuple[Batch, list[Batch]],
+) -> None:
+    history, cols = stream
+    model, method = _learner(history, OnlineSettings(optimizer="adam", lr=1e-2, steps=10))
+    assert mm_online_applies(model)
+    risen = [replace(c, y=c.y * 1.10) for c in cols]  # the truth: 10 % more through the choke
+    c_d = model.physical_parameters()["c_d"].clone()  # type: ignore[attr-defined]
+
+    def error(col: Batch) -> float:
+        q = method.predict(col).mean  # type: ignore[attr-defined]
+        return float((((q - col.y) / col.y).abs())[col.mask].mean())
+
+    before = np.mean([error(c) for c in risen[:10]])
+    for col in risen:
+        method.on_measurement(col)  # type: ignore[attr-defined]
+    after = np.mean([error(c) for c in risen[-10:]])
+    assert np.isfinite(before) and np.isfinite(after)
+    assert after < 0.5 * before
+    assert bool((model.physical_parameters()["c_d"] > c_d).all())  # type: ignore[attr-defined]
+
+
+def test_kernel_only_where_it_applies(monkeypatch: pytest.MonkeyPatch) -> None:
+    wells = ["A", "B"]
+    assert mm_online_applies(make_model("mm", wells))
+    assert not mm_online_applies(make_model("mm", wells, effects=["erosion"]))
+    for name in ("hem", "ham", "lr"):
+        assert not mm_online_applies(make_model(name, wells))
+    monkeypatch.setenv("VFM_KERNELS", "0")
+    assert not kernels_enabled()
+    assert not mm_online_applies(make_model("mm", wells))
