@@ -150,3 +150,19 @@ def test_kernel_only_where_it_applies(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("VFM_KERNELS", "0")
     assert not kernels_enabled()
     assert not mm_online_applies(make_model("mm", wells))
+
+
+def test_a_kernel_that_cannot_compile_leaves_the_torch_path(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from vfm_core.learning import kernels
+
+    def broken() -> None:
+        raise RuntimeError("no LLVM here")
+
+    monkeypatch.setattr(kernels, "_KERNEL", None)
+    monkeypatch.setattr(kernels, "_FAILED", None)
+    monkeypatch.setattr(kernels, "_build", broken)
+    assert not kernels.kernels_enabled()
+    assert not mm_online_applies(make_model("mm", ["A"]))
+    assert "no LLVM here" in caplog.text

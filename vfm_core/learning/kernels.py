@@ -20,8 +20,10 @@ comparison side by side or where numba cannot compile.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -31,6 +33,8 @@ import torch
 from vfm_core import physics as ph
 from vfm_core.units import KELVIN_OFFSET, PA_PER_BAR
 
+logger = logging.getLogger(__name__)
+
 __all__ = ["kernels_enabled", "mm_online_steps", "mm_online_applies", "warm"]
 
 _SECONDS_PER_HOUR = 3600.0
@@ -39,6 +43,7 @@ _NAMES = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
 
 _KERNEL: Callable[..., None] | None = None
 _FAILED: str | None = None
+_LOCK = threading.Lock()  # one compilation, whichever thread asks first
 
 
 def kernels_enabled() -> bool:
@@ -49,29 +54,24 @@ def kernels_enabled() -> bool:
 def _kernel() -> Callable[..., None] | None:
     global _KERNEL, _FAILED
     if _KERNEL is None and _FAILED is None:
-        try:
-            _KERNEL = _build()
-        except Exception as exc:  # pragma: no cover - numba missing or broken here
-            _FAILED = f"{type(exc).__name__}: {exc}"
+        with _LOCK:
+            if _KERNEL is None and _FAILED is None:
+                try:
+                    _KERNEL = _build()
+                except Exception as exc:  # pragma: no cover - numba missing or broken here
+                    _FAILED = f"{type(exc).__name__}: {exc}"
+                    logger.warning(
+                        "The compiled mm online step is off (%s); the torch path runs instead.",
+                        _FAILED,
+                    )
     return _KERNEL
 
 
 def warm() -> bool:
-    """Compile (or load from numba's cache) the kernel now, on one made-up sample, so that
-    a service's first measurement does not wait for it (about 1.5 s the first time on this
-    machine, 0.4 s from the cache). Returns whether the kernel is enabled."""
-    kernel = _kernel() if os.environ.get("VFM_KERNELS", "1") != "0" else None
-    if kernel is None:
-        return False
-    one = np.ones((1, 6))
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    kernel(
-        np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros(1), np.zeros(1, dtype=bool),
-        x, np.ones((1, 1)), np.ones((1, 1), dtype=bool), np.ones(1), np.ones(1),
-        np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825]), one[0], -one[0], one[0],
-        0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
-    )  # fmt: skip
-    return True
+    """Compile (or load from numba's cache) the kernel now, so that a service's first
+    measurement does not wait for it (about 1.5 s the first time on this machine, 0.4 s from
+    the cache). Returns whether the kernel is enabled."""
+    return kernels_enabled()
 
 
 def mm_online_applies(model: Any) -> bool:
@@ -307,4 +307,14 @@ def _build() -> Callable[..., None]:
                     for i in range(n_par):
                         z[w, i] = held[i]
 
+    # compiled here, on one made-up sample: a machine where numba cannot compile it falls
+    # back to the torch path (kernels_enabled() is then False), not fails at a measurement
+    one = np.ones((1, 6))
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    kernel(
+        np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros(1), np.zeros(1, dtype=bool),
+        x, np.ones((1, 1)), np.ones((1, 1), dtype=bool), np.ones(1), np.ones(1),
+        np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825]), one[0], -one[0], one[0],
+        0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
+    )  # fmt: skip
     return kernel  # type: ignore[no-any-return]
