@@ -18,9 +18,9 @@ Prints the median cost per call (microseconds) of:
     memory, the method's update), and ``learn_many`` of N wells' learners in one call, per
     well (``ol`` stacks the wells' updates; ``bayes`` learns one by one inside it);
 
-and each one's ratio to (a). The plain ``mm``'s ``ol`` steps run compiled (numba,
-``vfm_core/learning/kernels.py``); its rows are repeated with ``VFM_KERNELS=0``, the torch
-path, in the same run. Read the ratios: the machine may be shared. Each figure is
+and each one's ratio to (a). The plain ``mm``'s ``ol`` steps, ``bayes`` updates and
+predictions run compiled (numba, ``vfm_core/learning/kernels.py``); its rows are repeated
+with ``VFM_KERNELS=0``, the torch path, in the same run. Read the ratios: the machine may be shared. Each figure is
 the median over ``--calls`` calls on a simulated well's stream after a short fit (every
 call learns from the next measurement, as in the study), after ``--warmup`` calls.
 
@@ -289,11 +289,13 @@ def main() -> None:
         rows.append(("(b) river LinearRegression predict_one + learn_one", river, None))
 
     history, cols = _stream(frame, 1, n_calls)
-    # (model, method, compiled kernel on): mm ol also with the torch path, side by side
+    # (model, method, compiled kernel on): mm ol and bayes also with the torch path, side by side
     jobs = [(m, "ol", True) for m in args.models.split(",") if m]
     if "mm" in args.models.split(","):
         jobs.append(("mm", "ol", False))
     jobs += [(m, "bayes", True) for m in args.bayes_models.split(",") if m]
+    if "mm" in args.bayes_models.split(","):
+        jobs.append(("mm", "bayes", False))
 
     def name(model_name: str, method_text: str, kernel: bool) -> str:
         return f"{model_name} {method_text}{'' if kernel else ' (torch, VFM_KERNELS=0)'}"
@@ -323,13 +325,12 @@ def main() -> None:
 
     streaming = []
     for model_name, method_text, kernel in jobs:
-        if not kernel:
-            continue  # predictions do not use the kernel
         for n_wells in [int(w) for w in args.streaming_wells.split(",") if w]:
-            one_us, many_us = streaming_cost(
-                frame, model_name, method_text, n_wells, n_calls, args.warmup
-            )
-            streaming.append((model_name, method_text, n_wells, one_us, many_us))
+            with _kernels(kernel):
+                one_us, many_us = streaming_cost(
+                    frame, model_name, method_text, n_wells, n_calls, args.warmup
+                )
+            streaming.append((name(model_name, method_text, kernel), n_wells, one_us, many_us))
 
     learning = []
     for model_name, method_text, kernel in jobs:
@@ -346,10 +347,10 @@ def main() -> None:
         pred = "" if predict is None else f"{predict:11.1f}"
         print(f"{what:<80} {update:10.1f} {naive / update:10.2f} {pred:>11}")
     print("\n(f) the service's prediction path, microseconds per sample")
-    print(f"{'':<40} {'predict, 1 well':>16} {'predict_many, per well':>24} {'ratio':>7}")
-    for model_name, method_text, n_wells, one_us, many_us in streaming:
-        label = f"{model_name} {method_text}, {n_wells} wells per call"
-        print(f"{label:<40} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
+    print(f"{'':<58} {'predict, 1 well':>16} {'predict_many, per well':>24} {'ratio':>7}")
+    for what, n_wells, one_us, many_us in streaming:
+        label = f"{what}, {n_wells} wells per call"
+        print(f"{label:<58} {one_us:16.1f} {many_us:24.1f} {one_us / many_us:7.1f}")
     print("\n(g) the service's learning path, microseconds per measurement")
     print(f"{'':<58} {'learn, 1 well':>16} {'learn_many, per well':>24} {'ratio':>7}")
     for what, _, n_wells, one_us, many_us in learning:

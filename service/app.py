@@ -94,7 +94,7 @@ class Service:
             )
             self.engine.load()
             if s.model.name == "mm" and not s.model.effects:
-                # the compiled online step: ready before the first measurement arrives
+                # the compiled steps: ready before the first measurement arrives
                 from vfm_core.learning.kernels import warm
 
                 warm()

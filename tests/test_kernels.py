@@ -19,8 +19,13 @@ import torch
 
 from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.jobs.study import wells_of
-from vfm_core.learning import DEFAULT_TRAIN, parse_method
-from vfm_core.learning.kernels import kernels_enabled, mm_online_applies, mm_online_steps
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
+from vfm_core.learning.kernels import (
+    kernels_enabled,
+    mm_online_applies,
+    mm_online_steps,
+    predict_rates,
+)
 from vfm_core.learning.online import OnlineSettings
 from vfm_core.learning.training import per_well_loss
 from vfm_core.models import make_model
@@ -166,3 +171,123 @@ def test_a_kernel_that_cannot_compile_leaves_the_torch_path(
     assert not kernels.kernels_enabled()
     assert not mm_online_applies(make_model("mm", ["A"]))
     assert "no LLVM here" in caplog.text
+
+
+# -- bayes on the plain mm ------------------------------------------------------------------------
+_BAYES_STATE = ("_P", "_last", "_noise", "_h", "_scale", "_started", "_run")
+
+
+@pytest.fixture(scope="module")
+def field() -> Batch:
+    """Three simulated wells, every measured row (MPFM and well tests)."""
+    frame = validate_frame(simulate_field(wells=3, years=1.0, seed=4).observations).frame
+    return make_batch(frame, wells_of(frame), np.flatnonzero(target_mask(frame, "all")))
+
+
+def _bayes_run(
+    monkeypatch: pytest.MonkeyPatch, kernels: str, field: Batch, text: str
+) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    """Fit ``text`` on the first 150 rows of wells 0 and 1 (well 2 has no history: its
+    filter starts at its first measurement), then 60 updates that take every path of the
+    filter: one or two measurements per well, a well without one, outliers refused, three
+    in a row (a reset), a rate of zero. Returns the state and every update's answer."""
+    monkeypatch.setenv("VFM_KERNELS", kernels)
+    rank = torch.cumsum(field.mask.long(), 1)
+    no_history = torch.tensor([True, True, False]).unsqueeze(1)
+    history = field.select((rank <= 150) & no_history)
+    model = make_model("mm", history.wells)
+    method = parse_method(text)
+    train = replace(DEFAULT_TRAIN["mm"], max_iter=60, early_stopping=False)
+    method.bind(model, train=train, online=DEFAULT_ONLINE["mm"])
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    assert method.compiled is (kernels == "1")
+    answers = []
+    k = 151
+    for step in range(60):
+        take = (rank == k) | (rank == k + 1) if step % 5 == 2 else rank == k
+        k += 2 if step % 5 == 2 else 1
+        col = field.select(take)
+        y = col.y.clone()
+        if step % 3 == 1:  # the middle well has no measurement this time
+            col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+        if step % 7 == 3:
+            y[0] *= 4.0  # an outlier on well 0: refused
+        if 20 <= step < 23:
+            y[2] *= 3.0  # well 2 changed: refused twice, then a reset
+        if step == 30:
+            y[0] = 0.0  # no rate: not taken
+        answers.append(method.on_measurement(replace(col, y=y)).clone())
+        forecast = method.predict(col)
+        answers += [t.clone() for t in forecast]
+    state = {name: getattr(method, name).clone() for name in _BAYES_STATE}
+    state.update({f"count_{k}": v.clone() for k, v in method.stats().items()})
+    state["z"] = model.phys.z.detach().clone()
+    return state, answers
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "bayes",
+        "bayes:huber=0:gate=0:adapt=0:calibrate=0",
+        "bayes:noise_well_test=0.01:params=c_d+kappa:drift=4",
+    ],
+)
+def test_bayes_kernel_matches_the_torch_filter(
+    monkeypatch: pytest.MonkeyPatch, field: Batch, text: str
+) -> None:
+    fast, fast_answers = _bayes_run(monkeypatch, "1", field, text)
+    slow, slow_answers = _bayes_run(monkeypatch, "0", field, text)
+    if text == "bayes":  # every path was taken
+        for key in ("count_refused", "count_resets", "count_downweighted"):
+            assert int(slow[key].sum()) > 0, key
+    assert int(slow["count_updates"].min()) > 20
+    for key, value in slow.items():
+        if value.dtype in (torch.bool, torch.int64):
+            assert torch.equal(fast[key], value), key
+        else:
+            scale = float(value.abs().max())  # (0 for the calibration when it is off)
+            assert torch.allclose(fast[key], value, rtol=0, atol=1e-10 * scale), key
+    for a, b in zip(fast_answers, slow_answers, strict=True):
+        if a.dtype == torch.bool:
+            assert torch.equal(a, b)
+        else:
+            assert torch.allclose(a, b, rtol=1e-10, atol=0, equal_nan=True)
+
+
+def test_bayes_kernel_only_where_it_applies(field: Batch) -> None:
+    for text, model in [
+        ("bayes", make_model("mm", field.wells, effects=["erosion"])),
+        ("bayes:iterations=2", make_model("mm", field.wells)),
+        ("bayes", make_model("hem", field.wells)),
+    ]:
+        method = parse_method(text)
+        method.bind(model, train=DEFAULT_TRAIN["mm"], online=DEFAULT_ONLINE["mm"])
+        assert not method.compiled, text
+    plain = parse_method("bayes")
+    plain.bind(
+        make_model("mm", field.wells), train=DEFAULT_TRAIN["mm"], online=DEFAULT_ONLINE["mm"]
+    )
+    assert plain.compiled
+
+
+def test_compiled_prediction_is_the_models_rate(
+    monkeypatch: pytest.MonkeyPatch, field: Batch
+) -> None:
+    """``mm``'s compiled rate (what every learning method predicts with) against its
+    predict_batch and forward (torch), on every row, with a well not set up (NaN) and
+    parameters away from the prior."""
+    model = make_model("mm", field.wells)
+    model.setup(field.select(field.mask & torch.tensor([True, True, False]).unsqueeze(1)))
+    with torch.no_grad():
+        model.phys.z.copy_(torch.linspace(-0.8, 0.8, 18, dtype=DTYPE).reshape(3, 6))
+    assert mm_online_applies(model)  # the compiled rate runs
+    fast = predict_rates(model, field)
+    monkeypatch.setenv("VFM_KERNELS", "0")
+    slow = predict_rates(model, field)
+    with torch.no_grad():
+        plain = model.forward_batch(field)
+    assert bool(torch.isnan(fast[2]).all()) and bool(torch.isfinite(fast[:2]).all())
+    assert torch.allclose(fast, slow, rtol=1e-13, atol=0, equal_nan=True)
+    assert torch.allclose(fast[:2], plain[:2], rtol=1e-13, atol=0)

@@ -53,7 +53,7 @@ from vfm_core.learning import (
     WellMemory,
     parse_method,
 )
-from vfm_core.learning.kernels import mm_online_applies, mm_online_steps
+from vfm_core.learning.kernels import mm_online_applies, mm_online_steps, predict_rates
 from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
@@ -882,7 +882,7 @@ class _Stacked(torch.nn.Module):
         return state
 
     def forward(self, batch: Batch) -> torch.Tensor:
-        return self.model.predict_batch(batch)
+        return predict_rates(self.model, batch)
 
 
 class _Mean:

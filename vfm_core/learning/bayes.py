@@ -54,10 +54,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
+from vfm_core.learning.kernels import compiled, mm_online_applies, predict_rates, writable
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import (
     NEVER,
@@ -531,7 +533,9 @@ class BayesianFilter(LearningMethod):
 
     # -- predictions ---------------------------------------------------------------------------
     def predict(self, batch: Batch) -> Forecast:
-        mean = self.model.predict_batch(batch)
+        if self.compiled:  # the plain mm: the same numbers, compiled
+            return self._compiled_forecast(batch)
+        mean = predict_rates(self.model, batch)
         if self._dim == 0 or self.model.gradient_free:
             return Forecast(mean)
         sd = self._spread(batch.time_ns, _source(batch))
@@ -562,6 +566,8 @@ class BayesianFilter(LearningMethod):
         changed = torch.zeros(batch.n_wells, dtype=torch.bool)
         if self._dim == 0:
             return changed
+        if self.compiled:  # the plain mm: the same steps, compiled
+            return self._compiled_learn(batch)
         counts = batch.count()
         for k in range(int(counts.max()) if counts.numel() else 0):
             one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
@@ -691,6 +697,111 @@ class BayesianFilter(LearningMethod):
             dim=1,
         )
         return log_h.detach(), H.detach()
+
+    # -- compiled (the plain mm) ------------------------------------------------------------
+    @property
+    def compiled(self) -> bool:
+        """True when the compiled filter (:func:`vfm_core.learning.kernels.compiled`) runs
+        this filter's updates and predictions: on the plain ``mm`` (see
+        :func:`~vfm_core.learning.kernels.mm_online_applies`), with the mechanistic
+        parameters its only filter block and one Kalman iteration per update. The same steps
+        as :meth:`_update` and :meth:`predict`, in the same order (``tests/test_kernels.py``)."""
+        blocks = self._blocks
+        return (
+            self.kalman_iterations == 1
+            and len(blocks) == 1
+            and mm_online_applies(self.model)
+            and blocks[0].param is self.model.phys.z  # type: ignore[union-attr]
+        )
+
+    def _compiled_learn(self, batch: Batch) -> torch.Tensor:
+        """:meth:`_learn` on the plain ``mm`` (see :attr:`compiled`), in place: every well's measurements in ``batch`` one after another, each one extended
+        Kalman step in log space with its calibration, Huber weight, gate, reset and noise
+        adaptation. Returns which wells took a measurement [W]."""
+        kernel = compiled()
+        assert kernel is not None and batch.well_test is not None
+        model: Any = self.model
+        phys = model.phys
+        counts = self._counts
+        for name in counts:
+            if not counts[name].is_contiguous():
+                counts[name] = counts[name].contiguous()
+        changed = np.zeros(batch.n_wells, dtype=bool)
+        with torch.no_grad():
+            z = phys.z.detach().numpy().copy()
+            taken = kernel.bayes(
+                z,
+                writable(self, "_P"),
+                writable(self, "_last"),
+                writable(self, "_noise"),
+                writable(self, "_h"),
+                writable(self, "_scale"),
+                writable(self, "_started"),
+                writable(self, "_run"),
+                counts["updates"].numpy(),
+                counts["downweighted"].numpy(),
+                counts["refused"].numpy(),
+                counts["resets"].numpy(),
+                changed,
+                np.ascontiguousarray(batch.x.numpy()),
+                np.ascontiguousarray(batch.y.numpy()),
+                np.ascontiguousarray(batch.mask.numpy()),
+                np.ascontiguousarray(batch.time_ns.numpy()),
+                np.ascontiguousarray(batch.well_test.numpy()),
+                model.ready.numpy(),
+                model.a_max.numpy(),
+                phys.mu.numpy(),
+                phys.sigma.numpy(),
+                phys.z_low.numpy(),
+                phys.z_high.numpy(),
+                self._prior_var.numpy(),
+                self._q.numpy(),
+                self._keep.to(torch.float64).numpy(),
+                np.array([self.noise[0] is not None, self.noise[1] is not None]),
+                float(self.huber),
+                float(self.gate),
+                float(self.adapt),
+                float(self.calibrate),
+                int(NEVER),
+                _RESET_AFTER,
+                _NOISE_FLOOR,
+                Z90,
+                _NS_PER_YEAR,
+            )
+            if taken:  # written back through torch, as the torch path's in-place update
+                phys.z.copy_(torch.from_numpy(z))
+        return torch.from_numpy(changed)
+
+    def _compiled_forecast(self, batch: Batch) -> Forecast:
+        """:meth:`predict` on the plain ``mm`` (see :attr:`compiled`)."""
+        kernel = compiled()
+        assert kernel is not None and batch.well_test is not None
+        model: Any = self.model
+        phys = model.phys
+        out = [np.empty(tuple(batch.y.shape)) for _ in range(4)]
+        with torch.no_grad():
+            kernel.bayes_forecast(
+                phys.z.detach().numpy(),
+                np.ascontiguousarray(batch.x.numpy()),
+                model.a_max.numpy(),
+                phys.mu.numpy(),
+                phys.sigma.numpy(),
+                model.ready.numpy(),
+                writable(self, "_h"),
+                writable(self, "_P"),
+                self._q.numpy(),
+                writable(self, "_last"),
+                writable(self, "_noise"),
+                writable(self, "_scale"),
+                writable(self, "_started"),
+                np.ascontiguousarray(batch.time_ns.numpy()),
+                np.ascontiguousarray(batch.well_test.numpy()),
+                int(NEVER),
+                Z90,
+                _NS_PER_YEAR,
+                *out,
+            )
+        return Forecast(*(torch.from_numpy(a) for a in out))
 
     # -- tuning -----------------------------------------------------------------------------------
     def tuning(self, grid: str) -> list[dict[str, Any]]:

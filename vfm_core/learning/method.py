@@ -46,6 +46,7 @@ import torch
 
 from vfm_core.data import Batch
 from vfm_core.errors import ConfigError
+from vfm_core.learning.kernels import predict_rates
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.training import DEFAULT_TRAIN, TrainSettings, fit_batch
 from vfm_core.models import ChokeModel
@@ -270,7 +271,7 @@ class LearningMethod(ABC):
 
     def predict(self, batch: Batch) -> Forecast:
         """The predicted rate for every sample of ``batch`` (NaN where a well has no model)."""
-        return Forecast(self.model.predict_batch(batch), None)
+        return Forecast(predict_rates(self.model, batch), None)
 
     # -- tuning ----------------------------------------------------------------------------------
     def tuning(self, grid: str) -> list[dict[str, Any]]:
