@@ -21,6 +21,7 @@ from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 from vfm_core.learning.kernels import (
+    hybrid_applies,
     kernels_enabled,
     mm_online_applies,
     mm_online_steps,
@@ -272,22 +273,74 @@ def test_bayes_kernel_only_where_it_applies(field: Batch) -> None:
     assert plain.compiled
 
 
+@pytest.mark.parametrize("name", ["mm", "hem", "ham"])
 def test_compiled_prediction_is_the_models_rate(
-    monkeypatch: pytest.MonkeyPatch, field: Batch
+    monkeypatch: pytest.MonkeyPatch, field: Batch, name: str
 ) -> None:
-    """``mm``'s compiled rate (what every learning method predicts with) against its
-    predict_batch and forward (torch), on every row, with a well not set up (NaN) and
-    parameters away from the prior."""
-    model = make_model("mm", field.wells)
+    """The compiled rate (what every learning method predicts with) against the model's
+    predict_batch and forward (torch), on every row, with a well not set up (NaN), the
+    parameters away from the prior and, for the hybrids, a network that is not zero."""
+    model = make_model(name, field.wells)
     model.setup(field.select(field.mask & torch.tensor([True, True, False]).unsqueeze(1)))
+    gen = torch.Generator().manual_seed(3)
     with torch.no_grad():
-        model.phys.z.copy_(torch.linspace(-0.8, 0.8, 18, dtype=DTYPE).reshape(3, 6))
-    assert mm_online_applies(model)  # the compiled rate runs
+        z = model.phys.z  # type: ignore[attr-defined]
+        z.copy_(torch.linspace(-0.8, 0.8, z.numel(), dtype=DTYPE).reshape(z.shape))
+        if model.net is not None:  # type: ignore[attr-defined]
+            for p in model.net.parameters():  # type: ignore[attr-defined]
+                p.copy_(0.05 * torch.randn(p.shape, generator=gen, dtype=DTYPE))
+    assert mm_online_applies(model) or hybrid_applies(model)  # the compiled rate runs
     fast = predict_rates(model, field)
     monkeypatch.setenv("VFM_KERNELS", "0")
     slow = predict_rates(model, field)
     with torch.no_grad():
         plain = model.forward_batch(field)
     assert bool(torch.isnan(fast[2]).all()) and bool(torch.isfinite(fast[:2]).all())
-    assert torch.allclose(fast, slow, rtol=1e-13, atol=0, equal_nan=True)
-    assert torch.allclose(fast[:2], plain[:2], rtol=1e-13, atol=0)
+    # (hem adds the network's output to the physics: a sum, rounded as such)
+    tol = 1e-13 * float(fast[:2].abs().max())
+    assert torch.allclose(fast, slow, rtol=1e-13, atol=tol, equal_nan=True)
+    assert torch.allclose(fast[:2], plain[:2], rtol=1e-13, atol=tol)
+    if model.net is not None:  # type: ignore[attr-defined]
+        # the network is in the compiled rate: without it the rates differ
+        monkeypatch.setenv("VFM_KERNELS", "1")
+        with torch.no_grad():
+            for p in model.net.parameters():  # type: ignore[attr-defined]
+                p.zero_()
+        assert not torch.allclose(fast[:2], predict_rates(model, field)[:2], rtol=1e-3)
+
+
+def test_compiled_rates_only_where_they_apply() -> None:
+    wells = ["A", "B"]
+    assert hybrid_applies(make_model("hem", wells)) and hybrid_applies(make_model("ham", wells))
+    assert not hybrid_applies(make_model("ham", wells, effects=["erosion"]))
+    assert not hybrid_applies(make_model("mm", wells))
+    assert not hybrid_applies(make_model("nn", wells))
+
+
+def test_bayes_intervals_compiled_for_a_hybrid(
+    monkeypatch: pytest.MonkeyPatch, field: Batch
+) -> None:
+    """``ham`` with ``bayes`` (its update stays in torch): the compiled spread gives the
+    torch path's sd and 90 % bounds, NaN where a well has no filter state yet."""
+    rank = torch.cumsum(field.mask.long(), 1)
+    history = field.select((rank <= 150) & torch.tensor([True, True, False]).unsqueeze(1))
+    model = make_model("ham", history.wells)
+    method = parse_method("bayes")
+    train = replace(DEFAULT_TRAIN["ham"], max_iter=60, early_stopping=False)
+    method.bind(model, train=train, online=DEFAULT_ONLINE["ham"])
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    assert not method.compiled  # its update is torch's
+    for k in range(151, 161):
+        method.on_measurement(
+            field.select((rank == k) & torch.tensor([True, True, False]).unsqueeze(1))
+        )
+    later = field.select((rank > 170) & (rank <= 180))
+    fast = method.predict(later)
+    monkeypatch.setenv("VFM_KERNELS", "0")
+    slow = method.predict(later)
+    assert fast.std is not None and slow.std is not None
+    assert bool(torch.isnan(fast.std[2]).all()) and bool(torch.isfinite(fast.std[:2]).all())
+    assert bool((fast.std[:2] > 0).all())
+    for a, b in zip(fast, slow, strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=0, equal_nan=True)

@@ -111,6 +111,55 @@ def rates(z: np.ndarray, x: np.ndarray, a_max: np.ndarray, mu: np.ndarray,
 
 
 @jit
+def hybrid_rates(
+    z: np.ndarray,
+    pos: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    x: np.ndarray,
+    a_max: np.ndarray,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    w2: np.ndarray,
+    b2: np.ndarray,
+    y_scale: np.ndarray,
+    area_model: bool,
+    out: np.ndarray,
+) -> None:
+    """The rate [W, N] (Sm3/h) of a hybrid with one hidden ReLU layer, into ``out``: the
+    network o = b2 + relu(b1 + x_norm W1) W2 of the normalised inputs; ``hem``: the
+    Sachdeva rate plus y_scale o; ``ham`` (``area_model``): the Sachdeva rate with C_D
+    replaced by C_D0 exp(o). ``theta[i]`` is mu[i] + sigma[i] z[w, pos[i]], or mu[i] where
+    pos[i] < 0 (a parameter the model does not learn: ``ham``'s C_D0)."""
+    n_wells, n_samples = out.shape
+    hidden = w1.shape[2]
+    theta = np.zeros(6)
+    dq = np.zeros(6)
+    xn = np.zeros(6)
+    for w in range(n_wells):
+        for i in range(6):
+            theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
+        c_d = theta[5]
+        for j in range(n_samples):
+            for i in range(6):
+                xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
+            o = b2[w, 0]
+            for k in range(hidden):
+                a = b1[w, k]
+                for i in range(6):
+                    a += xn[i] * w1[w, i, k]
+                if not a <= 0.0:  # ReLU (a NaN passes, as torch's)
+                    o += a * w2[w, k, 0]
+            if area_model:
+                theta[5] = c_d * math.exp(o)
+                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq)
+            else:
+                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) + y_scale[w] * o
+
+
+@jit
 def online(  # noqa: PLR0913 - the arrays of one update
     z: np.ndarray,
     m: np.ndarray,
@@ -360,13 +409,8 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
 
 
 @jit
-def bayes_forecast(  # noqa: PLR0913 - BayesianFilter.predict, on the plain mm
-    z: np.ndarray,
-    x: np.ndarray,
-    a_max: np.ndarray,
-    mu: np.ndarray,
-    sigma: np.ndarray,
-    ready: np.ndarray,
+def bayes_spread(
+    mean: np.ndarray,
     h: np.ndarray,
     P: np.ndarray,
     q: np.ndarray,
@@ -379,21 +423,17 @@ def bayes_forecast(  # noqa: PLR0913 - BayesianFilter.predict, on the plain mm
     never: int,
     z90: float,
     ns_per_year: float,
-    mean: np.ndarray,
     std: np.ndarray,
     p05: np.ndarray,
     p95: np.ndarray,
 ) -> None:
-    """The rate [W, N] (NaN for a well not set up) and its spread: the predictive sd of
-    the log rate sqrt(h (P + Q dt) h + s^2) times the meter's calibration factor (NaN
-    for a well without filter state), as std = rate sd and the 90 % bounds."""
+    """``BayesianFilter.predict``'s spread of the rates ``mean`` [W, N] (any model, any
+    number of filtered parameters D): the predictive sd of the log rate sqrt(h (P + Q dt)
+    h + s^2) times the meter's calibration factor (NaN for a well without filter state),
+    as std = rate sd and the central 90 % bounds rate exp(+-z90 sd)."""
     n_wells, n_samples = mean.shape
-    d = z.shape[1]
-    theta = np.zeros(d)
-    dq = np.zeros(d)
+    d = h.shape[1]
     for w in range(n_wells):
-        for i in range(d):
-            theta[i] = mu[i] + sigma[i] * z[w, i]
         hph = 0.0
         hqh = 0.0
         for a in range(d):
@@ -401,8 +441,7 @@ def bayes_forecast(  # noqa: PLR0913 - BayesianFilter.predict, on the plain mm
             for b in range(d):
                 hph += h[w, a] * P[w, a, b] * h[w, b]
         for j in range(n_samples):
-            rate = rate_grad(theta, x[w, j], a_max[w], dq) if ready[w] else np.nan
-            mean[w, j] = rate
+            rate = mean[w, j]
             if not started[w]:
                 std[w, j] = np.nan
                 p05[w, j] = np.nan
@@ -429,6 +468,13 @@ def warm_up() -> None:
         0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
     )  # fmt: skip
     rates(np.zeros((1, 6)), x, np.ones(1), mu, one[0], np.zeros((1, 1)))
+    pos = np.arange(6)
+    for area_model in (False, True):
+        hybrid_rates(
+            np.zeros((1, 6)), pos, mu, one[0], x, np.ones(1), np.zeros((1, 6)), one,
+            np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1)), np.ones(1),
+            area_model, np.zeros((1, 1)),
+        )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     bayes(
         np.zeros((1, 6)), np.zeros((1, 6, 6)), np.zeros(1, dtype=np.int64), np.ones((1, 2)),
@@ -438,10 +484,9 @@ def warm_up() -> None:
         np.ones(1), mu, one[0], -one[0], one[0], one[0], one[0], one[0], np.zeros(2, dtype=bool),
         3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16,
     )  # fmt: skip
-    out = [np.zeros((1, 1)) for _ in range(4)]
-    bayes_forecast(
-        np.zeros((1, 6)), x, np.ones(1), mu, one[0], np.ones(1, dtype=bool), np.zeros((1, 6)),
-        np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64), np.ones((1, 2)),
-        np.zeros((1, 2)), np.ones(1, dtype=bool), np.ones((1, 1), dtype=np.int64), yes,
-        -1, 1.645, 3.15e16, *out,
+    out = [np.zeros((1, 1)) for _ in range(3)]
+    bayes_spread(
+        ones, np.zeros((1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),
+        np.ones((1, 2)), np.zeros((1, 2)), np.ones(1, dtype=bool),
+        np.ones((1, 1), dtype=np.int64), yes, -1, 1.645, 3.15e16, *out,
     )  # fmt: skip

@@ -533,11 +533,12 @@ class BayesianFilter(LearningMethod):
 
     # -- predictions ---------------------------------------------------------------------------
     def predict(self, batch: Batch) -> Forecast:
-        if self.compiled:  # the plain mm: the same numbers, compiled
-            return self._compiled_forecast(batch)
         mean = predict_rates(self.model, batch)
         if self._dim == 0 or self.model.gradient_free:
             return Forecast(mean)
+        kernel = compiled()
+        if kernel is not None:  # the same numbers, compiled (any model)
+            return self._compiled_spread(kernel, mean, batch)
         sd = self._spread(batch.time_ns, _source(batch))
         missing = ~self._started.unsqueeze(1).expand_as(mean)
         nan = torch.full_like(mean, float("nan"))
@@ -772,21 +773,14 @@ class BayesianFilter(LearningMethod):
                 phys.z.copy_(torch.from_numpy(z))
         return torch.from_numpy(changed)
 
-    def _compiled_forecast(self, batch: Batch) -> Forecast:
-        """:meth:`predict` on the plain ``mm`` (see :attr:`compiled`)."""
-        kernel = compiled()
-        assert kernel is not None and batch.well_test is not None
-        model: Any = self.model
-        phys = model.phys
-        out = [np.empty(tuple(batch.y.shape)) for _ in range(4)]
+    def _compiled_spread(self, kernel: Any, mean: torch.Tensor, batch: Batch) -> Forecast:
+        """:meth:`predict`'s spread of the rates ``mean``, by the compiled
+        ``bayes_spread`` (the same arithmetic as :meth:`_spread`)."""
+        assert batch.well_test is not None
+        out = [np.empty(tuple(mean.shape)) for _ in range(3)]
         with torch.no_grad():
-            kernel.bayes_forecast(
-                phys.z.detach().numpy(),
-                np.ascontiguousarray(batch.x.numpy()),
-                model.a_max.numpy(),
-                phys.mu.numpy(),
-                phys.sigma.numpy(),
-                model.ready.numpy(),
+            kernel.bayes_spread(
+                np.ascontiguousarray(mean.numpy()),
                 writable(self, "_h"),
                 writable(self, "_P"),
                 self._q.numpy(),
@@ -801,7 +795,7 @@ class BayesianFilter(LearningMethod):
                 _NS_PER_YEAR,
                 *out,
             )
-        return Forecast(*(torch.from_numpy(a) for a in out))
+        return Forecast(mean, *(torch.from_numpy(a) for a in out))
 
     # -- tuning -----------------------------------------------------------------------------------
     def tuning(self, grid: str) -> list[dict[str, Any]]:

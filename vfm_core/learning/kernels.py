@@ -14,7 +14,7 @@ arithmetic, in the same order, as one loop over wells and samples:
 - :func:`mm_online_steps`: ``ol``'s E steps (``OnlineLearning`` and the service's
   ``learn_many``);
 - :func:`predict_rates`: the rate every learning method predicts with;
-- ``bayes`` and ``bayes_forecast``: ``BayesianFilter``'s update and prediction (see
+- ``bayes`` and ``bayes_spread``: ``BayesianFilter``'s update and prediction (see
   :attr:`vfm_core.learning.bayes.BayesianFilter.compiled`).
 
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
@@ -42,6 +42,8 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "kernels_enabled",
     "compiled",
+    "hybrid_applies",
+    "hybrid_rates",
     "mm_online_applies",
     "mm_online_steps",
     "mm_rates",
@@ -53,7 +55,7 @@ __all__ = [
 #: the order of the parameters in ``PhysicalParameters.z`` of ``mm`` (PHYSICAL_NAMES)
 _NAMES = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
 
-#: the compiled functions (``online``, ``rates``, ``bayes``, ``bayes_forecast``), once built
+#: the compiled functions (``online``, ``rates``, ``bayes``, ``bayes_spread``), once built
 _KERNEL: SimpleNamespace | None = None
 _FAILED: str | None = None
 _LOCK = threading.Lock()  # one compilation, whichever thread asks first
@@ -81,7 +83,7 @@ def _kernel() -> SimpleNamespace | None:
 
 
 def compiled() -> SimpleNamespace | None:
-    """The compiled functions (``online``, ``rates``, ``bayes``, ``bayes_forecast`` of
+    """The compiled functions (``online``, ``rates``, ``bayes``, ``bayes_spread`` of
     :mod:`vfm_core.learning._mm_numba`), or None when the kernels are off."""
     return _kernel() if kernels_enabled() else None
 
@@ -172,11 +174,73 @@ def mm_online_steps(
 
 def predict_rates(model: Any, batch: Any) -> torch.Tensor:
     """``model.predict_batch(batch)``: compiled for the plain ``mm``
-    (:func:`mm_online_applies`), the model's own otherwise."""
+    (:func:`mm_online_applies`) and the plain hybrids (:func:`hybrid_applies`), the model's
+    own otherwise."""
     if mm_online_applies(model):
         q = mm_rates(model, batch)
-        return torch.where(model.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
-    return model.predict_batch(batch)  # type: ignore[no-any-return]
+    elif hybrid_applies(model):
+        q = hybrid_rates(model, batch)
+    else:
+        return model.predict_batch(batch)  # type: ignore[no-any-return]
+    return torch.where(model.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
+
+
+def hybrid_applies(model: Any) -> bool:
+    """True when :func:`hybrid_rates` computes ``model``'s rate: exactly ``hem`` or
+    ``ham`` without effects, a network of one hidden layer on the six inputs, float64,
+    and the kernels enabled."""
+    from vfm_core.models.physical import HybridArea, HybridError
+
+    if type(model) not in (HybridError, HybridArea) or model.effects or model.net is None:
+        return False
+    weights = model.net.weights
+    names = tuple(model.phys.names)
+    return (
+        len(weights) == 2
+        and weights[0].shape[1] == 6
+        and weights[1].shape[2] == 1
+        and names == _NAMES[: len(names)]
+        and len(names) == (5 if type(model) is HybridArea else 6)
+        and weights[0].dtype == model.phys.z.dtype == torch.float64
+        and kernels_enabled()
+    )
+
+
+def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
+    """The rate [W, N] (Sm3/h) of ``hem`` or ``ham`` (see :func:`hybrid_applies`), what
+    ``model.forward_batch`` gives, without a graph."""
+    from vfm_core import physics as ph
+    from vfm_core.models.physical import HybridArea
+
+    kernel = _kernel()
+    assert kernel is not None
+    phys, net = model.phys, model.net
+    n = len(phys.names)
+    mu = np.full(6, ph.PRIORS["c_d"].mean)  # ham: C_D0, the network's reference
+    sigma = np.zeros(6)
+    mu[:n] = phys.mu.numpy()
+    sigma[:n] = phys.sigma.numpy()
+    pos = np.array([i if i < n else -1 for i in range(6)])
+    out = np.empty(tuple(batch.y.shape))
+    with torch.no_grad():
+        kernel.hybrid_rates(
+            phys.z.detach().numpy(),
+            pos,
+            mu,
+            sigma,
+            np.ascontiguousarray(batch.x.numpy()),
+            model.a_max.numpy(),
+            model.x_mean.numpy(),
+            model.x_std.numpy(),
+            net.weights[0].detach().numpy(),
+            net.biases[0].detach().numpy(),
+            net.weights[1].detach().numpy(),
+            net.biases[1].detach().numpy(),
+            model.y_scale.numpy(),
+            type(model) is HybridArea,
+            out,
+        )
+    return torch.from_numpy(out)
 
 
 def mm_rates(model: Any, batch: Any) -> torch.Tensor:
@@ -215,5 +279,9 @@ def _build() -> SimpleNamespace:
 
     k.warm_up()
     return SimpleNamespace(
-        online=k.online, rates=k.rates, bayes=k.bayes, bayes_forecast=k.bayes_forecast
+        online=k.online,
+        rates=k.rates,
+        hybrid_rates=k.hybrid_rates,
+        bayes=k.bayes,
+        bayes_spread=k.bayes_spread,
     )
