@@ -46,10 +46,10 @@ def stream() -> tuple[Batch, list[Batch]]:
     return batch.select(rank <= 150), [batch.select(rank == 151 + k) for k in range(60)]
 
 
-def _learner(history: Batch, online: OnlineSettings) -> tuple[object, object]:
-    model = make_model("mm", history.wells)
+def _learner(history: Batch, online: OnlineSettings, name: str = "mm") -> tuple[object, object]:
+    model = make_model(name, history.wells)
     method = parse_method("ol")
-    train = replace(DEFAULT_TRAIN["mm"], max_iter=60, early_stopping=False)
+    train = replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False)
     method.bind(model, train=train, online=online)
     method.fit(history)
     method.start(int(history.time_ns[history.mask].max()))
@@ -91,6 +91,53 @@ def test_kernel_matches_the_torch_steps(
     for key, value in state_torch.items():
         scale = float(value.abs().max())
         assert torch.allclose(state_fast[key], value, rtol=0, atol=1e-12 * scale), key
+
+
+def _hybrid_run(
+    monkeypatch: pytest.MonkeyPatch,
+    kernels: str,
+    stream: tuple[Batch, list[Batch]],
+    name: str,
+    **kw: object,
+) -> dict[str, torch.Tensor]:
+    monkeypatch.setenv("VFM_KERNELS", kernels)
+    history, cols = stream
+    model, method = _learner(history, OnlineSettings(**kw), name)  # type: ignore[arg-type]
+    assert hybrid_applies(model) is (kernels == "1")
+    for k, col in enumerate(cols):
+        if k % 3 == 1:  # the middle well has no measurement this time: it is held still
+            col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+        method.on_measurement(col)  # type: ignore[attr-defined]
+    out = {}
+    for i, p in enumerate(model.parameters()):  # type: ignore[attr-defined]
+        out[f"param{i}"] = p.detach().clone()
+        for key, value in method._opt.state.get(p, {}).items():  # type: ignore[attr-defined]
+            out[f"param{i}.{key}"] = value.clone()
+    return out
+
+
+@pytest.mark.parametrize(
+    ("name", "settings"),
+    [
+        ("hem", dict(optimizer="adam", lr=1e-2, steps=2)),
+        ("ham", dict(optimizer="adam", lr=1e-2, steps=2)),
+        ("ham", dict(optimizer="adam", lr=1e-1, steps=3, max_grad_norm=0.05)),  # the clip bites
+        ("hem", dict(optimizer="sgd", lr=1e-3, steps=2)),
+    ],
+)
+def test_hybrid_kernel_matches_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str, settings: dict
+) -> None:
+    """hem and ham: every parameter (physics and network) and its Adam state after 60
+    updates, compiled and torch."""
+    fast = _hybrid_run(monkeypatch, "1", stream, name, **settings)
+    slow = _hybrid_run(monkeypatch, "0", stream, name, **settings)
+    assert fast.keys() == slow.keys()
+    assert len(slow) == (5 * 4 if settings["optimizer"] == "adam" else 5)  # (step, moments)
+    for key, value in slow.items():
+        scale = float(value.abs().max())
+        assert scale > 0, key  # every parameter learned, every state moved
+        assert torch.allclose(fast[key], value, rtol=0, atol=1e-10 * scale), key
 
 
 def test_kernel_gradient_is_autograds(stream: tuple[Batch, list[Batch]]) -> None:
@@ -186,7 +233,7 @@ def field() -> Batch:
 
 
 def _bayes_run(
-    monkeypatch: pytest.MonkeyPatch, kernels: str, field: Batch, text: str
+    monkeypatch: pytest.MonkeyPatch, kernels: str, field: Batch, text: str, name: str = "mm"
 ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
     """Fit ``text`` on the first 150 rows of wells 0 and 1 (well 2 has no history: its
     filter starts at its first measurement), then 60 updates that take every path of the
@@ -196,10 +243,10 @@ def _bayes_run(
     rank = torch.cumsum(field.mask.long(), 1)
     no_history = torch.tensor([True, True, False]).unsqueeze(1)
     history = field.select((rank <= 150) & no_history)
-    model = make_model("mm", history.wells)
+    model = make_model(name, history.wells)
     method = parse_method(text)
-    train = replace(DEFAULT_TRAIN["mm"], max_iter=60, early_stopping=False)
-    method.bind(model, train=train, online=DEFAULT_ONLINE["mm"])
+    train = replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False)
+    method.bind(model, train=train, online=DEFAULT_ONLINE[name])
     method.fit(history)
     method.start(int(history.time_ns[history.mask].max()))
     assert method.compiled is (kernels == "1")
@@ -223,24 +270,28 @@ def _bayes_run(
         answers += [t.clone() for t in forecast]
     state = {name: getattr(method, name).clone() for name in _BAYES_STATE}
     state.update({f"count_{k}": v.clone() for k, v in method.stats().items()})
-    state["z"] = model.phys.z.detach().clone()
+    for i, p in enumerate(model.parameters()):  # the physics and (hybrids) the network
+        state[f"param{i}"] = p.detach().clone()
     return state, answers
 
 
 @pytest.mark.parametrize(
-    "text",
+    ("name", "text"),
     [
-        "bayes",
-        "bayes:huber=0:gate=0:adapt=0:calibrate=0",
-        "bayes:noise_well_test=0.01:params=c_d+kappa:drift=4",
+        ("mm", "bayes"),
+        ("mm", "bayes:huber=0:gate=0:adapt=0:calibrate=0"),
+        ("mm", "bayes:noise_well_test=0.01:params=c_d+kappa:drift=4"),
+        ("hem", "bayes"),
+        ("ham", "bayes"),
+        ("ham", "bayes:params=kappa+head.bias:drift=2"),
     ],
 )
 def test_bayes_kernel_matches_the_torch_filter(
-    monkeypatch: pytest.MonkeyPatch, field: Batch, text: str
+    monkeypatch: pytest.MonkeyPatch, field: Batch, name: str, text: str
 ) -> None:
-    fast, fast_answers = _bayes_run(monkeypatch, "1", field, text)
-    slow, slow_answers = _bayes_run(monkeypatch, "0", field, text)
-    if text == "bayes":  # every path was taken
+    fast, fast_answers = _bayes_run(monkeypatch, "1", field, text, name)
+    slow, slow_answers = _bayes_run(monkeypatch, "0", field, text, name)
+    if text == "bayes" and name == "mm":  # every path was taken
         for key in ("count_refused", "count_resets", "count_downweighted"):
             assert int(slow[key].sum()) > 0, key
     assert int(slow["count_updates"].min()) > 20
@@ -261,7 +312,9 @@ def test_bayes_kernel_only_where_it_applies(field: Batch) -> None:
     for text, model in [
         ("bayes", make_model("mm", field.wells, effects=["erosion"])),
         ("bayes:iterations=2", make_model("mm", field.wells)),
-        ("bayes", make_model("hem", field.wells)),
+        ("bayes", make_model("hem", field.wells, effects=["erosion"])),
+        ("bayes", make_model("nn", field.wells)),
+        ("bayes", make_model("ham", field.wells, hidden=(8, 8))),
     ]:
         method = parse_method(text)
         method.bind(model, train=DEFAULT_TRAIN["mm"], online=DEFAULT_ONLINE["mm"])
@@ -324,10 +377,10 @@ def test_bayes_intervals_compiled_for_a_hybrid(
     torch path's sd and 90 % bounds, NaN where a well has no filter state yet."""
     rank = torch.cumsum(field.mask.long(), 1)
     history = field.select((rank <= 150) & torch.tensor([True, True, False]).unsqueeze(1))
-    model = make_model("ham", history.wells)
+    model = make_model("nn", history.wells)
     method = parse_method("bayes")
-    train = replace(DEFAULT_TRAIN["ham"], max_iter=60, early_stopping=False)
-    method.bind(model, train=train, online=DEFAULT_ONLINE["ham"])
+    train = replace(DEFAULT_TRAIN["nn"], max_iter=60, early_stopping=False)
+    method.bind(model, train=train, online=DEFAULT_ONLINE["nn"])
     method.fit(history)
     method.start(int(history.time_ns[history.mask].max()))
     assert not method.compiled  # its update is torch's

@@ -53,7 +53,14 @@ from vfm_core.learning import (
     WellMemory,
     parse_method,
 )
-from vfm_core.learning.kernels import mm_online_applies, mm_online_steps, predict_rates
+from vfm_core.learning.kernels import (
+    hybrid_applies,
+    hybrid_online_steps,
+    hybrid_parameters,
+    mm_online_applies,
+    mm_online_steps,
+    predict_rates,
+)
 from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import utc_timestamp
@@ -1200,6 +1207,11 @@ def _learn_group(
     return rest
 
 
+def _same_parameters(a: list[torch.nn.Parameter], b: list[torch.nn.Parameter]) -> bool:
+    """True when ``a`` and ``b`` hold the same parameters (in any order)."""
+    return len(a) == len(b) and {id(p) for p in a} == {id(p) for p in b}
+
+
 def _online_steps(
     stacked: _Stacked, learners: list[WellLearner], batch: Batch, key: tuple[Any, ...]
 ) -> Any:
@@ -1260,6 +1272,24 @@ def _online_steps(
         if adam:
             steps[0] = before.tolist()
         stepped[0] = s.steps
+    elif hybrid_applies(model) and _same_parameters(params, hybrid_parameters(model)):
+        index = [[id(p) for p in params].index(id(q)) for q in hybrid_parameters(model)]
+        counts = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
+        hybrid_online_steps(  # the same steps, compiled
+            model,
+            batch,
+            [moments[j] for j in index] if adam else None,  # type: ignore[misc]
+            counts,
+            np.zeros(k, dtype=bool),
+            steps=s.steps,
+            noise=s.noise,
+            lr=lr,
+            betas=betas if adam else (0.9, 0.999),
+            eps=eps if adam else 1e-8,
+            max_norm=s.max_grad_norm,
+        )
+        for j in index:
+            stepped[j] = s.steps
     for _ in range(0 if stepped[0] else s.steps):
         objective.gradients_(params)
         clip_per_well_(model, s.max_grad_norm, groups)

@@ -240,8 +240,267 @@ def online(  # noqa: PLR0913 - the arrays of one update
 
 
 @jit
-def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilter._update
+def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
+    kind: int,
     z: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    w2: np.ndarray,
+    b2: np.ndarray,
+    mz: np.ndarray,
+    vz: np.ndarray,
+    mw1: np.ndarray,
+    vw1: np.ndarray,
+    mb1: np.ndarray,
+    vb1: np.ndarray,
+    mw2: np.ndarray,
+    vw2: np.ndarray,
+    mb2: np.ndarray,
+    vb2: np.ndarray,
+    counts: np.ndarray,
+    hold: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    mask: np.ndarray,
+    a_max: np.ndarray,
+    scale: np.ndarray,
+    pos: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    z_low: np.ndarray,
+    z_high: np.ndarray,
+    noise: float,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    max_norm: float,
+    steps: int,
+    adam: bool,
+) -> None:
+    """``ol``'s E steps on ``hem`` (``kind`` 1) or ``ham`` (2) with one hidden layer, in
+    place, as :func:`online` on the plain ``mm``: the closed-form gradient of the MAP
+    objective (the prior on the physical parameters only, as ``ol`` has it) through the
+    Sachdeva rate and the network, the per-well clip over all of a well's parameters,
+    Adam (``counts`` [5, W]: each parameter's step count per well, in the order z, W1,
+    b1, W2, b2) or SGD, the projection of z into its bounds, and wells in ``hold`` kept
+    still."""
+    n_wells, n_samples = y.shape
+    n_par = z.shape[1]
+    hidden = w1.shape[2]
+    theta = np.zeros(6)
+    dq = np.zeros(6)
+    xn = np.zeros(6)
+    pre = np.zeros(hidden)
+    act = np.zeros(hidden)
+    gz = np.zeros(n_par)
+    gw1 = np.zeros((6, hidden))
+    gb1 = np.zeros(hidden)
+    gw2 = np.zeros(hidden)
+    hz = np.zeros(n_par)
+    hw1 = np.zeros((6, hidden))
+    hb1 = np.zeros(hidden)
+    hw2 = np.zeros(hidden)
+    size = np.zeros(5)
+    root = np.zeros(5)
+    for w in range(n_wells):
+        n = 0
+        for j in range(n_samples):
+            if mask[w, j]:
+                n += 1
+        has = n > 0
+        n_safe = max(float(n), 1.0)
+        weight = noise**2 / n_safe if has else 0.0
+        d_factor = (2.0 / n_safe if has else 0.0) / scale[w]
+        for i in range(n_par):
+            hz[i] = z[w, i]
+        for k in range(hidden):
+            hb1[k] = b1[w, k]
+            hw2[k] = w2[w, k, 0]
+            for i in range(6):
+                hw1[i, k] = w1[w, i, k]
+        hb2 = b2[w, 0]
+        for _ in range(steps):
+            for i in range(6):
+                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
+            for i in range(n_par):
+                gz[i] = 0.0
+            for k in range(hidden):
+                gb1[k] = 0.0
+                gw2[k] = 0.0
+                for i in range(6):
+                    gw1[i, k] = 0.0
+            gb2 = 0.0
+            for j in range(n_samples):
+                if not mask[w, j]:
+                    continue
+                for i in range(6):
+                    xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
+                o = b2[w, 0]
+                for k in range(hidden):
+                    a = b1[w, k]
+                    for i in range(6):
+                        a += xn[i] * w1[w, i, k]
+                    pre[k] = a
+                    act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes)
+                    o += act[k] * w2[w, k, 0]
+                if kind == 2:
+                    theta[5] = mu[5] * math.exp(o)
+                    rate = rate_grad(theta, x[w, j], a_max[w], dq)
+                    dq_do = dq[5] * theta[5]
+                else:
+                    rate = rate_grad(theta, x[w, j], a_max[w], dq) + scale[w] * o
+                    dq_do = scale[w]
+                g = (rate - y[w, j]) / scale[w] * d_factor
+                for i in range(n_par):
+                    gz[i] += g * dq[i]
+                g_o = g * dq_do
+                gb2 += g_o
+                for k in range(hidden):
+                    gw2[k] += g_o * act[k]
+                    if pre[k] > 0:  # ReLU's gradient (threshold_backward)
+                        g_a = g_o * w2[w, k, 0]
+                        gb1[k] += g_a
+                        for i in range(6):
+                            gw1[i, k] += xn[i] * g_a
+            # the physical parameters standardised, plus the prior's pull; then the clip
+            sq = 0.0
+            for i in range(n_par):
+                gz[i] = gz[i] * sigma[i] + 2.0 * weight * z[w, i]
+                sq += gz[i] * gz[i]
+            for k in range(hidden):
+                sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
+                for i in range(6):
+                    sq += gw1[i, k] * gw1[i, k]
+            sq += gb2 * gb2
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                for t in range(5):
+                    counts[t, w] += 1.0
+                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
+                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
+            for i in range(n_par):
+                gi = gz[i] * clip
+                if adam:
+                    mz[w, i] = mz[w, i] + (1.0 - beta1) * (gi - mz[w, i])
+                    vz[w, i] = vz[w, i] * beta2 + (1.0 - beta2) * gi * gi
+                    zi = z[w, i] + (-size[0]) * mz[w, i] / (math.sqrt(vz[w, i]) / root[0] + eps)
+                else:
+                    zi = z[w, i] + (-lr) * gi
+                z[w, i] = max(min(zi, z_high[i]), z_low[i])
+            for k in range(hidden):
+                for i in range(6):
+                    gi = gw1[i, k] * clip
+                    if adam:
+                        mw1[w, i, k] = mw1[w, i, k] + (1.0 - beta1) * (gi - mw1[w, i, k])
+                        vw1[w, i, k] = vw1[w, i, k] * beta2 + (1.0 - beta2) * gi * gi
+                        denom = math.sqrt(vw1[w, i, k]) / root[1] + eps
+                        w1[w, i, k] = w1[w, i, k] + (-size[1]) * mw1[w, i, k] / denom
+                    else:
+                        w1[w, i, k] = w1[w, i, k] + (-lr) * gi
+                gi = gb1[k] * clip
+                if adam:
+                    mb1[w, k] = mb1[w, k] + (1.0 - beta1) * (gi - mb1[w, k])
+                    vb1[w, k] = vb1[w, k] * beta2 + (1.0 - beta2) * gi * gi
+                    denom = math.sqrt(vb1[w, k]) / root[2] + eps
+                    b1[w, k] = b1[w, k] + (-size[2]) * mb1[w, k] / denom
+                else:
+                    b1[w, k] = b1[w, k] + (-lr) * gi
+                gi = gw2[k] * clip
+                if adam:
+                    mw2[w, k, 0] = mw2[w, k, 0] + (1.0 - beta1) * (gi - mw2[w, k, 0])
+                    vw2[w, k, 0] = vw2[w, k, 0] * beta2 + (1.0 - beta2) * gi * gi
+                    denom = math.sqrt(vw2[w, k, 0]) / root[3] + eps
+                    w2[w, k, 0] = w2[w, k, 0] + (-size[3]) * mw2[w, k, 0] / denom
+                else:
+                    w2[w, k, 0] = w2[w, k, 0] + (-lr) * gi
+            gi = gb2 * clip
+            if adam:
+                mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
+                vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
+                denom = math.sqrt(vb2[w, 0]) / root[4] + eps
+                b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
+            else:
+                b2[w, 0] = b2[w, 0] + (-lr) * gi
+            if hold[w]:
+                for i in range(n_par):
+                    z[w, i] = hz[i]
+                for k in range(hidden):
+                    b1[w, k] = hb1[k]
+                    w2[w, k, 0] = hw2[k]
+                    for i in range(6):
+                        w1[w, i, k] = hw1[i, k]
+                b2[w, 0] = hb2
+
+
+@jit
+def log_rate_grad(
+    kind: int,
+    state: np.ndarray,
+    w: int,
+    x: np.ndarray,
+    a_max: float,
+    pos: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    n_phys: int,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    y_scale: np.ndarray,
+    theta: np.ndarray,
+    dq: np.ndarray,
+    xn: np.ndarray,
+    act: np.ndarray,
+    H: np.ndarray,
+) -> float:
+    """log h of one sample ``x`` of well ``w`` (log of the rate clamped at 1e-12) and its
+    gradient H [D] with respect to the well's filter state ``state[w]``: the standardised
+    physical parameters (``n_phys`` of them, theta[i] = mu[i] + sigma[i] state[w, pos[i]],
+    or mu[i] where pos[i] < 0), then for a hybrid the output layer of its network (the
+    hidden weights W2, then the bias b2; W1, b1 below it stay as fitted). ``kind``: 0 the
+    plain ``mm``, 1 ``hem`` (rate + y_scale o), 2 ``ham`` (C_D = C_D0 exp(o))."""
+    for i in range(6):
+        theta[i] = mu[i] + sigma[i] * state[w, pos[i]] if pos[i] >= 0 else mu[i]
+    hidden = w1.shape[2]
+    d_log_o = 0.0
+    if kind == 0:
+        rate = rate_grad(theta, x, a_max, dq)
+    else:
+        for i in range(6):
+            xn[i] = (x[i] - x_mean[w, i]) / x_std[w, i]
+        o = state[w, n_phys + hidden]
+        for k in range(hidden):
+            a = b1[w, k]
+            for i in range(6):
+                a += xn[i] * w1[w, i, k]
+            act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes, as torch's)
+            o += act[k] * state[w, n_phys + k]
+        if kind == 2:
+            theta[5] = mu[5] * math.exp(o)
+            rate = rate_grad(theta, x, a_max, dq)
+            d_log_o = dq[5] * theta[5]  # dq / do, divided by the rate below
+        else:
+            rate = rate_grad(theta, x, a_max, dq) + y_scale[w] * o
+            d_log_o = y_scale[w]
+    clamped = max(rate, 1e-12)
+    ok = rate >= 1e-12  # torch.clamp's gradient: none below the floor
+    for i in range(n_phys):
+        H[i] = dq[i] * sigma[i] / clamped if ok else 0.0
+    if kind != 0:
+        g = d_log_o / clamped if ok else 0.0
+        for k in range(hidden):
+            H[n_phys + k] = g * act[k]
+        H[n_phys + hidden] = g
+    return math.log(clamped)
+
+
+@jit
+def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilter._update
+    state: np.ndarray,
     P: np.ndarray,
     last: np.ndarray,
     noise: np.ndarray,
@@ -260,11 +519,19 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     time_ns: np.ndarray,
     well_test: np.ndarray,
     ready: np.ndarray,
+    kind: int,
     a_max: np.ndarray,
+    pos: np.ndarray,
     mu: np.ndarray,
     sigma: np.ndarray,
-    z_low: np.ndarray,
-    z_high: np.ndarray,
+    n_phys: int,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    y_scale: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
     prior_var: np.ndarray,
     q: np.ndarray,
     keep: np.ndarray,
@@ -280,11 +547,15 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     ns_per_year: float,
 ) -> bool:
     n_wells, n_samples = y.shape
-    d = z.shape[1]
-    theta = np.zeros(d)
-    dq = np.zeros(d)
+    d = state.shape[1]
+    theta = np.zeros(6)
+    dq = np.zeros(6)
+    xn = np.zeros(6)
+    act = np.zeros(w1.shape[2])
     H = np.zeros(d)
     K = np.zeros(d)
+    u = np.zeros(d)
+    v = np.zeros(d)
     Pg = np.zeros((d, d))
     AP = np.zeros((d, d))
     taken = False
@@ -329,13 +600,12 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
             log_y = math.log(y[w, j])
             R = noise[w, s] ** 2
             # log h and its gradient H at the current parameters (_log_rate_and_gradient)
+            log_h = log_rate_grad(
+                kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
+                w1, b1, y_scale, theta, dq, xn, act, H,
+            )  # fmt: skip
             for i in range(d):
-                theta[i] = mu[i] + sigma[i] * z[w, i]
-            rate = rate_grad(theta, x[w, j], a_max[w], dq)
-            clamped = max(rate, 1e-12)
-            log_h = math.log(clamped)
-            for i in range(d):
-                H[i] = (dq[i] * sigma[i] / clamped if rate >= 1e-12 else 0.0) * keep[i]
+                H[i] = H[i] * keep[i]
             if calibrate > 0:  # adaptive conformal calibration of this meter's intervals
                 miss = 1.0 if abs(log_y - log_h) > z90 * sd_given else 0.0
                 scale[w, s] += calibrate * (miss - 0.1)
@@ -371,26 +641,30 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
                     ph_a += Pg[a, b] * H[b]
                 K[a] = ph_a / S
             innov = log_y - log_h
-            # Joseph form: (I - K H) P (I - K H)^T + K K^T Rk, symmetrised
+            # Joseph form: (I - K H) P (I - K H)^T + K K^T Rk, symmetrised; I - K H is
+            # the identity less a rank one, so each product is O(D^2): A P = P - K (H P),
+            # (A P) A^T = A P - (A P H) K^T
+            for b in range(d):
+                acc = 0.0
+                for c in range(d):
+                    acc += H[c] * Pg[c, b]
+                v[b] = acc
+            for a in range(d):
+                acc = 0.0
+                for b in range(d):
+                    AP[a, b] = Pg[a, b] - K[a] * v[b]
+                    acc += AP[a, b] * H[b]
+                u[a] = acc
             for a in range(d):
                 for b in range(d):
-                    acc = Pg[a, b]
-                    for c in range(d):
-                        acc -= K[a] * H[c] * Pg[c, b]
-                    AP[a, b] = acc
-            for a in range(d):
-                for b in range(d):
-                    acc = AP[a, b]
-                    for c in range(d):
-                        acc -= AP[a, c] * H[c] * K[b]
-                    P[w, a, b] = acc + K[a] * K[b] * Rk
+                    P[w, a, b] = AP[a, b] - u[a] * K[b] + K[a] * K[b] * Rk
             for a in range(d):
                 for b in range(a + 1, d):
                     mean = 0.5 * (P[w, a, b] + P[w, b, a])
                     P[w, a, b] = mean
                     P[w, b, a] = mean
             for i in range(d):
-                z[w, i] = max(min(z[w, i] + K[i] * innov, z_high[i]), z_low[i])
+                state[w, i] = max(min(state[w, i] + K[i] * innov, high[i]), low[i])
                 h[w, i] = H[i]
             if adapt > 0 and not fixed[s]:
                 # the meter's noise follows the innovations (beyond the parameters')
@@ -404,7 +678,7 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     if taken:  # model.project_() after an update: every well within its bounds
         for w in range(n_wells):
             for i in range(d):
-                z[w, i] = max(min(z[w, i], z_high[i]), z_low[i])
+                state[w, i] = max(min(state[w, i], high[i]), low[i])
     return taken
 
 
@@ -475,15 +749,27 @@ def warm_up() -> None:
             np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1)), np.ones(1),
             area_model, np.zeros((1, 1)),
         )  # fmt: skip
+    for kind in (1, 2):
+        net = [np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1))]
+        moments = [np.zeros_like(a) for a in [np.zeros((1, 6)), *net] for _ in range(2)]
+        hybrid_online(
+            kind, np.zeros((1, 6)), *net, *moments, np.zeros((5, 1)), np.zeros(1, dtype=bool),
+            x, ones, yes, np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)), one,
+            -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
+        )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
-    bayes(
-        np.zeros((1, 6)), np.zeros((1, 6, 6)), np.zeros(1, dtype=np.int64), np.ones((1, 2)),
-        np.zeros((1, 6)), np.zeros((1, 2)), np.zeros(1, dtype=bool), count.copy(), count.copy(),
-        count.copy(), count.copy(), count.copy(), np.zeros(1, dtype=bool),
-        x, ones, yes, np.ones((1, 1), dtype=np.int64), yes, np.ones(1, dtype=bool),
-        np.ones(1), mu, one[0], -one[0], one[0], one[0], one[0], one[0], np.zeros(2, dtype=bool),
-        3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16,
-    )  # fmt: skip
+    for kind, hidden in ((0, 0), (1, 4), (2, 4)):
+        d = 6 + (hidden + 1 if kind else 0)
+        bayes(
+            np.zeros((1, d)), np.zeros((1, d, d)), np.zeros(1, dtype=np.int64), np.ones((1, 2)),
+            np.zeros((1, d)), np.zeros((1, 2)), np.zeros(1, dtype=bool), count.copy(),
+            count.copy(), count.copy(), count.copy(), count.copy(), np.zeros(1, dtype=bool),
+            x, ones, yes, np.ones((1, 1), dtype=np.int64), yes, np.ones(1, dtype=bool),
+            kind, np.ones(1), pos, mu, one[0], 6, np.zeros((1, 6)), one,
+            np.ones((1, 6, hidden)), np.ones((1, hidden)), np.ones(1),
+            -np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.zeros(2, dtype=bool),
+            3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16,
+        )  # fmt: skip
     out = [np.zeros((1, 1)) for _ in range(3)]
     bayes_spread(
         ones, np.zeros((1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),

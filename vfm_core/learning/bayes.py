@@ -59,7 +59,15 @@ import torch
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
-from vfm_core.learning.kernels import compiled, mm_online_applies, predict_rates, writable
+from vfm_core.learning.kernels import (
+    compiled,
+    kernels_enabled,
+    physics_layout,
+    plain_hybrid,
+    plain_mm,
+    predict_rates,
+    writable,
+)
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import (
     NEVER,
@@ -377,6 +385,7 @@ class BayesianFilter(LearningMethod):
         self.calibrate = calibrate
         self.params = tuple(params)
         self._blocks: list[FilterBlock] = []
+        self._layout: dict[str, Any] | None = None
 
     @classmethod
     def from_text(cls, text: str) -> BayesianFilter:
@@ -461,6 +470,47 @@ class BayesianFilter(LearningMethod):
         self._prior_var = torch.where(keep, prior_var, torch.full_like(prior_var, 1e-30))
         self._q = torch.where(keep, drift**2, torch.zeros_like(drift))
         self._dim = len(labels)
+        self._layout = self._compiled_layout(model, blocks)
+
+    def _compiled_layout(self, model: Any, blocks: list[FilterBlock]) -> dict[str, Any] | None:
+        """What the compiled filter needs of ``model`` that does not change between updates
+        (see :attr:`compiled`), or None where it does not apply."""
+        if self.kalman_iterations != 1 or not blocks:
+            return None
+        params = [b.param for b in blocks]
+        if plain_mm(model):
+            if params != [model.phys.z]:
+                return None
+            kind, lower = 0, None
+        elif plain_hybrid(model):
+            net = model.net
+            head = [model.phys.z, net.weights[-1], net.biases[-1]]
+            if len(params) != 3 or not all(p is q for p, q in zip(params, head, strict=True)):
+                return None
+            kind, lower = (2 if model.key == "ham" else 1), (net.weights[0], net.biases[0])
+        else:
+            return None
+        pos, mu, sigma = physics_layout(model)
+        n_phys = len(model.phys.names)
+        low, high = model.phys.z_low.numpy(), model.phys.z_high.numpy()
+        if kind:
+            free = np.full(self._dim - n_phys, np.inf)  # the output layer: no bounds
+            low, high = np.concatenate([low, -free]), np.concatenate([high, free])
+        return {
+            "kind": kind,
+            "lower": lower,  # a hybrid's first layer (W1, b1): read as it is at each update
+            "pos": pos,
+            "mu": mu,
+            "sigma": sigma,
+            "n_phys": n_phys,
+            "low": low,
+            "high": high,
+            "fixed": np.array([self.noise[0] is not None, self.noise[1] is not None]),
+            "prior_var": self._prior_var.numpy(),
+            "q": self._q.numpy(),
+            "keep": self._keep.to(torch.float64).numpy(),
+            "blocks": [(b.param, b.size) for b in blocks],
+        }
 
     # -- start ---------------------------------------------------------------------------------
     def _fitted(self, batch: Batch, wells: torch.Tensor) -> None:
@@ -703,35 +753,38 @@ class BayesianFilter(LearningMethod):
     @property
     def compiled(self) -> bool:
         """True when the compiled filter (:func:`vfm_core.learning.kernels.compiled`) runs
-        this filter's updates and predictions: on the plain ``mm`` (see
-        :func:`~vfm_core.learning.kernels.mm_online_applies`), with the mechanistic
-        parameters its only filter block and one Kalman iteration per update. The same steps
-        as :meth:`_update` and :meth:`predict`, in the same order (``tests/test_kernels.py``)."""
-        blocks = self._blocks
-        return (
-            self.kalman_iterations == 1
-            and len(blocks) == 1
-            and mm_online_applies(self.model)
-            and blocks[0].param is self.model.phys.z  # type: ignore[union-attr]
-        )
+        this filter's updates: one Kalman iteration per update, on the plain ``mm`` (see
+        :func:`~vfm_core.learning.kernels.plain_mm`) with its parameters the one filter
+        block, or on the plain ``hem`` or ``ham`` (see
+        :func:`~vfm_core.learning.kernels.plain_hybrid`) with its parameters and its
+        network's output layer, and the kernels enabled. The same steps as :meth:`_update`,
+        in the same order (``tests/test_kernels.py``)."""
+        return self._layout is not None and kernels_enabled()
 
     def _compiled_learn(self, batch: Batch) -> torch.Tensor:
-        """:meth:`_learn` on the plain ``mm`` (see :attr:`compiled`), in place: every well's measurements in ``batch`` one after another, each one extended
+        """:meth:`_learn` on the plain ``mm``, ``hem`` or ``ham`` (see :attr:`compiled`), in
+        place: every well's measurements in ``batch`` one after another, each one extended
         Kalman step in log space with its calibration, Huber weight, gate, reset and noise
         adaptation. Returns which wells took a measurement [W]."""
         kernel = compiled()
-        assert kernel is not None and batch.well_test is not None
+        lay = self._layout
+        assert kernel is not None and batch.well_test is not None and lay is not None
         model: Any = self.model
-        phys = model.phys
+        n = batch.n_wells
         counts = self._counts
         for name in counts:
             if not counts[name].is_contiguous():
                 counts[name] = counts[name].contiguous()
-        changed = np.zeros(batch.n_wells, dtype=bool)
+        if lay["lower"] is None:  # mm: no network
+            w1, b1 = np.zeros((n, 6, 0)), np.zeros((n, 0))
+        else:
+            w1, b1 = (p.detach().numpy() for p in lay["lower"])
+        changed = np.zeros(n, dtype=bool)
+        blocks = lay["blocks"]
         with torch.no_grad():
-            z = phys.z.detach().numpy().copy()
+            state = np.concatenate([p.detach().numpy().reshape(n, k) for p, k in blocks], axis=1)
             taken = kernel.bayes(
-                z,
+                state,
                 writable(self, "_P"),
                 writable(self, "_last"),
                 writable(self, "_noise"),
@@ -750,15 +803,23 @@ class BayesianFilter(LearningMethod):
                 np.ascontiguousarray(batch.time_ns.numpy()),
                 np.ascontiguousarray(batch.well_test.numpy()),
                 model.ready.numpy(),
+                lay["kind"],
                 model.a_max.numpy(),
-                phys.mu.numpy(),
-                phys.sigma.numpy(),
-                phys.z_low.numpy(),
-                phys.z_high.numpy(),
-                self._prior_var.numpy(),
-                self._q.numpy(),
-                self._keep.to(torch.float64).numpy(),
-                np.array([self.noise[0] is not None, self.noise[1] is not None]),
+                lay["pos"],
+                lay["mu"],
+                lay["sigma"],
+                lay["n_phys"],
+                model.x_mean.numpy(),
+                model.x_std.numpy(),
+                w1,
+                b1,
+                model.y_scale.numpy(),
+                lay["low"],
+                lay["high"],
+                lay["prior_var"],
+                lay["q"],
+                lay["keep"],
+                lay["fixed"],
                 float(self.huber),
                 float(self.gate),
                 float(self.adapt),
@@ -770,7 +831,11 @@ class BayesianFilter(LearningMethod):
                 _NS_PER_YEAR,
             )
             if taken:  # written back through torch, as the torch path's in-place update
-                phys.z.copy_(torch.from_numpy(z))
+                values = torch.from_numpy(state)
+                start = 0
+                for p, k in blocks:
+                    p.data.view(n, k).copy_(values[:, start : start + k])
+                    start += k
         return torch.from_numpy(changed)
 
     def _compiled_spread(self, kernel: Any, mean: torch.Tensor, batch: Batch) -> Forecast:

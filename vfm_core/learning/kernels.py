@@ -43,10 +43,15 @@ __all__ = [
     "kernels_enabled",
     "compiled",
     "hybrid_applies",
+    "hybrid_online_steps",
+    "hybrid_parameters",
     "hybrid_rates",
     "mm_online_applies",
     "mm_online_steps",
     "mm_rates",
+    "physics_layout",
+    "plain_hybrid",
+    "plain_mm",
     "predict_rates",
     "warm",
     "writable",
@@ -98,6 +103,12 @@ def warm() -> bool:
 def mm_online_applies(model: Any) -> bool:
     """True when :func:`mm_online_steps` computes ``model``'s online steps: exactly the
     plain ``mm`` (no effects, no subclass), in float64, and the kernel is enabled."""
+    return plain_mm(model) and kernels_enabled()
+
+
+def plain_mm(model: Any) -> bool:
+    """True for exactly the plain ``mm`` (no effects, no subclass) in float64: what the
+    kernels compute (whether they are enabled or not)."""
     from vfm_core.models.physical import PHYSICAL_NAMES, Mechanistic
 
     return (
@@ -105,7 +116,6 @@ def mm_online_applies(model: Any) -> bool:
         and not model.effects
         and tuple(model.phys.names) == PHYSICAL_NAMES == _NAMES
         and model.phys.z.dtype == torch.float64
-        and kernels_enabled()
     )
 
 
@@ -186,9 +196,14 @@ def predict_rates(model: Any, batch: Any) -> torch.Tensor:
 
 
 def hybrid_applies(model: Any) -> bool:
-    """True when :func:`hybrid_rates` computes ``model``'s rate: exactly ``hem`` or
-    ``ham`` without effects, a network of one hidden layer on the six inputs, float64,
-    and the kernels enabled."""
+    """True when :func:`hybrid_rates` computes ``model``'s rate: :func:`plain_hybrid` and
+    the kernels enabled."""
+    return plain_hybrid(model) and kernels_enabled()
+
+
+def plain_hybrid(model: Any) -> bool:
+    """True for exactly ``hem`` or ``ham`` without effects, a network of one hidden layer
+    on the six inputs, in float64: what the kernels compute."""
     from vfm_core.models.physical import HybridArea, HybridError
 
     if type(model) not in (HybridError, HybridArea) or model.effects or model.net is None:
@@ -202,25 +217,108 @@ def hybrid_applies(model: Any) -> bool:
         and names == _NAMES[: len(names)]
         and len(names) == (5 if type(model) is HybridArea else 6)
         and weights[0].dtype == model.phys.z.dtype == torch.float64
-        and kernels_enabled()
     )
+
+
+def hybrid_parameters(model: Any) -> list[torch.nn.Parameter]:
+    """The parameters :func:`hybrid_online_steps` steps, in its order: z, W1, b1, W2, b2."""
+    net = model.net
+    return [model.phys.z, net.weights[0], net.biases[0], net.weights[1], net.biases[1]]
+
+
+def hybrid_online_steps(
+    model: Any,
+    batch: Any,
+    moments: list[tuple[torch.Tensor, torch.Tensor]] | None,
+    counts: np.ndarray,
+    hold: np.ndarray,
+    *,
+    steps: int,
+    noise: float,
+    lr: float,
+    betas: tuple[float, float],
+    eps: float,
+    max_norm: float,
+) -> None:
+    """E steps of ``ol`` on ``hem`` or ``ham`` (see :func:`hybrid_applies`) and ``batch``,
+    in place, as :func:`mm_online_steps`: the parameters of :func:`hybrid_parameters`;
+    with Adam their moments (``moments``, one (exp_avg, exp_avg_sq) pair per parameter in
+    that order) and ``counts`` [5, W] (each parameter's step count per well, as floats),
+    advanced by ``steps``; ``moments`` None is SGD. Wells in ``hold`` keep their
+    parameters."""
+    from vfm_core.models.physical import HybridArea
+
+    kernel = _kernel()
+    assert kernel is not None
+    params = hybrid_parameters(model)
+    pos, mu, sigma = physics_layout(model)
+    with torch.no_grad():
+        values = [p.detach().numpy().copy() for p in params]
+        if moments is None:
+            state = [np.zeros_like(v) for v in values for _ in range(2)]
+        else:
+            state = [t.numpy().copy() for pair in moments for t in pair]
+        kernel.hybrid_online(
+            2 if type(model) is HybridArea else 1,
+            *values,
+            *state,
+            counts,
+            hold,
+            np.ascontiguousarray(batch.x.numpy()),
+            np.ascontiguousarray(batch.y.numpy()),
+            np.ascontiguousarray(batch.mask.numpy()),
+            model.a_max.numpy(),
+            model.y_scale.numpy(),
+            pos,
+            mu,
+            sigma,
+            model.x_mean.numpy(),
+            model.x_std.numpy(),
+            model.phys.z_low.numpy(),
+            model.phys.z_high.numpy(),
+            float(noise),
+            float(lr),
+            float(betas[0]),
+            float(betas[1]),
+            float(eps),
+            float(max_norm),
+            int(steps),
+            moments is not None,
+        )
+        # written back through torch, so that the tensors' versions move as an in-place
+        # torch update moves them
+        for p, v in zip(params, values, strict=True):
+            p.copy_(torch.from_numpy(v))
+        if moments is not None:
+            flat = [t for pair in moments for t in pair]
+            for t, v in zip(flat, state, strict=True):
+                t.copy_(torch.from_numpy(v))
+
+
+def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How the kernels read the six Sachdeva parameters (``_NAMES``) of ``mm``, ``hem`` or
+    ``ham``: theta[i] = mu[i] + sigma[i] z[pos[i]], or mu[i] where pos[i] < 0 (``ham``'s
+    C_D, which the network replaces: C_D0, its prior mean, the network's reference)."""
+    from vfm_core import physics as ph
+
+    phys = model.phys
+    n = len(phys.names)
+    mu = np.full(6, ph.PRIORS["c_d"].mean)
+    sigma = np.zeros(6)
+    mu[:n] = phys.mu.numpy()
+    sigma[:n] = phys.sigma.numpy()
+    return np.array([i if i < n else -1 for i in range(6)]), mu, sigma
 
 
 def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
     """The rate [W, N] (Sm3/h) of ``hem`` or ``ham`` (see :func:`hybrid_applies`), what
     ``model.forward_batch`` gives, without a graph."""
-    from vfm_core import physics as ph
     from vfm_core.models.physical import HybridArea
 
     kernel = _kernel()
     assert kernel is not None
     phys, net = model.phys, model.net
-    n = len(phys.names)
-    mu = np.full(6, ph.PRIORS["c_d"].mean)  # ham: C_D0, the network's reference
-    sigma = np.zeros(6)
-    mu[:n] = phys.mu.numpy()
-    sigma[:n] = phys.sigma.numpy()
-    pos = np.array([i if i < n else -1 for i in range(6)])
+    pos, mu, sigma = physics_layout(model)
     out = np.empty(tuple(batch.y.shape))
     with torch.no_grad():
         kernel.hybrid_rates(
@@ -280,6 +378,7 @@ def _build() -> SimpleNamespace:
     k.warm_up()
     return SimpleNamespace(
         online=k.online,
+        hybrid_online=k.hybrid_online,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,

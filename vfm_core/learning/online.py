@@ -16,7 +16,13 @@ import torch
 import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
-from vfm_core.learning.kernels import mm_online_applies, mm_online_steps
+from vfm_core.learning.kernels import (
+    hybrid_applies,
+    hybrid_online_steps,
+    hybrid_parameters,
+    mm_online_applies,
+    mm_online_steps,
+)
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
@@ -111,10 +117,15 @@ class OnlineLearning(LearningMethod):
             batch = batch.select(batch.mask & ready.unsqueeze(1))
         # Adam's momentum would move wells that have no new measurement: hold them still.
         idle = ~ready
-        if self._sched is None and mm_online_applies(model) and _plain(opt):
-            self._kernel_steps(batch, opt, idle)  # the same steps, compiled
-            self.updates += 1
-            return ready
+        if self._sched is None and _plain(opt):
+            if mm_online_applies(model):
+                self._kernel_steps(batch, opt, idle)  # the same steps, compiled
+                self.updates += 1
+                return ready
+            if hybrid_applies(model) and self._all_of(hybrid_parameters(model)):
+                self._hybrid_steps(batch, opt, idle)  # the same steps, compiled
+                self.updates += 1
+                return ready
         any_idle = bool(idle.any())
         held = [(p, p.detach()[idle].clone()) for p in self._groups[0]] if any_idle else []
         # the same batch for every step: its counts once
@@ -133,6 +144,54 @@ class OnlineLearning(LearningMethod):
         self.updates += 1
         return ready
 
+    def _all_of(self, params: list[torch.nn.Parameter]) -> bool:
+        """True when the optimiser steps exactly ``params`` (in any order)."""
+        return len(self._params) == len(params) and {id(p) for p in self._params} == {
+            id(p) for p in params
+        }
+
+    def _adam_state(self, opt: torch.optim.Optimizer, p: torch.nn.Parameter) -> dict[str, Any]:
+        """``p``'s Adam state, started as torch's Adam starts it."""
+        state = opt.state[p]
+        if len(state) == 0:
+            state["step"] = torch.tensor(0.0, dtype=_torch_optimizer._get_scalar_dtype())
+            state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        return state  # type: ignore[no-any-return]
+
+    def _hybrid_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
+        """The E steps of :meth:`_learn` for the plain ``hem`` and ``ham``, by
+        :func:`vfm_core.learning.kernels.hybrid_online_steps`, on the optimiser's own state."""
+        params = hybrid_parameters(self.model)
+        group = opt.param_groups[0]
+        n_wells = params[0].shape[0]
+        counts = np.zeros((len(params), n_wells))
+        moments = None
+        adam = isinstance(opt, torch.optim.Adam)
+        if adam:
+            states = [self._adam_state(opt, p) for p in params]
+            moments = [(st["exp_avg"], st["exp_avg_sq"]) for st in states]
+            for i, st in enumerate(states):
+                counts[i, :] = float(st["step"])
+        s = self.online
+        hybrid_online_steps(
+            self.model,
+            batch,
+            moments,
+            counts,
+            idle.numpy(),
+            steps=s.steps,
+            noise=s.noise,
+            lr=group["lr"],
+            betas=tuple(group.get("betas", (0.9, 0.999))),  # type: ignore[arg-type]
+            eps=group.get("eps", 1e-8),
+            max_norm=s.max_grad_norm,
+        )
+        for p in params:
+            if adam:
+                opt.state[p]["step"].add_(float(s.steps))
+            p.grad = None
+
     def _kernel_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
         """The E steps of :meth:`_learn` for the plain ``mm``, by
         :func:`vfm_core.learning.kernels.mm_online_steps`, on the optimiser's own state."""
@@ -143,11 +202,7 @@ class OnlineLearning(LearningMethod):
         moments = None
         adam = isinstance(opt, torch.optim.Adam)
         if adam:
-            state = opt.state[z]
-            if len(state) == 0:  # as torch's Adam starts it
-                state["step"] = torch.tensor(0.0, dtype=_torch_optimizer._get_scalar_dtype())
-                state["exp_avg"] = torch.zeros_like(z, memory_format=torch.preserve_format)
-                state["exp_avg_sq"] = torch.zeros_like(z, memory_format=torch.preserve_format)
+            state = self._adam_state(opt, z)
             moments = (state["exp_avg"], state["exp_avg_sq"])
             counts[:] = float(state["step"])
         s = self.online
