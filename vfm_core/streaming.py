@@ -1272,8 +1272,8 @@ def _online_steps(
         if adam:
             steps[0] = before.tolist()
         stepped[0] = s.steps
-    elif hybrid_applies(model) and _same_parameters(params, hybrid_parameters(model)):
-        index = [[id(p) for p in params].index(id(q)) for q in hybrid_parameters(model)]
+    elif hybrid_applies(model) and _same_parameters(params, order := hybrid_parameters(model)):
+        index = [[id(p) for p in params].index(id(q)) for q in order]
         counts = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
         hybrid_online_steps(  # the same steps, compiled
             model,
@@ -1287,6 +1287,7 @@ def _online_steps(
             betas=betas if adam else (0.9, 0.999),
             eps=eps if adam else 1e-8,
             max_norm=s.max_grad_norm,
+            params=order,
         )
         for j in index:
             stepped[j] = s.steps

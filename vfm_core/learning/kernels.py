@@ -59,6 +59,8 @@ __all__ = [
 
 #: the order of the parameters in ``PhysicalParameters.z`` of ``mm`` (PHYSICAL_NAMES)
 _NAMES = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
+_SIX = np.arange(6)
+_FIVE = np.array([0, 1, 2, 3, 4, -1])
 
 #: the compiled functions (``online``, ``rates``, ``bayes``, ``bayes_spread``), once built
 _KERNEL: SimpleNamespace | None = None
@@ -239,25 +241,27 @@ def hybrid_online_steps(
     betas: tuple[float, float],
     eps: float,
     max_norm: float,
+    params: list[torch.nn.Parameter] | None = None,
 ) -> None:
     """E steps of ``ol`` on ``hem`` or ``ham`` (see :func:`hybrid_applies`) and ``batch``,
     in place, as :func:`mm_online_steps`: the parameters of :func:`hybrid_parameters`;
     with Adam their moments (``moments``, one (exp_avg, exp_avg_sq) pair per parameter in
     that order) and ``counts`` [5, W] (each parameter's step count per well, as floats),
     advanced by ``steps``; ``moments`` None is SGD. Wells in ``hold`` keep their
-    parameters."""
+    parameters. ``params``: :func:`hybrid_parameters` of the model, when the caller has
+    them (the lookup costs more than the step). The moments are updated in place."""
     from vfm_core.models.physical import HybridArea
 
     kernel = _kernel()
     assert kernel is not None
-    params = hybrid_parameters(model)
+    params = hybrid_parameters(model) if params is None else params
     pos, mu, sigma = physics_layout(model)
     with torch.no_grad():
         values = [p.detach().numpy().copy() for p in params]
         if moments is None:
             state = [np.zeros_like(v) for v in values for _ in range(2)]
-        else:
-            state = [t.numpy().copy() for pair in moments for t in pair]
+        else:  # (optimiser state, in no graph: written in place)
+            state = [t.numpy() for pair in moments for t in pair]
         kernel.hybrid_online(
             2 if type(model) is HybridArea else 1,
             *values,
@@ -289,10 +293,6 @@ def hybrid_online_steps(
         # torch update moves them
         for p, v in zip(params, values, strict=True):
             p.copy_(torch.from_numpy(v))
-        if moments is not None:
-            flat = [t for pair in moments for t in pair]
-            for t, v in zip(flat, state, strict=True):
-                t.copy_(torch.from_numpy(v))
 
 
 def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -302,12 +302,11 @@ def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from vfm_core import physics as ph
 
     phys = model.phys
-    n = len(phys.names)
-    mu = np.full(6, ph.PRIORS["c_d"].mean)
-    sigma = np.zeros(6)
-    mu[:n] = phys.mu.numpy()
-    sigma[:n] = phys.sigma.numpy()
-    return np.array([i if i < n else -1 for i in range(6)]), mu, sigma
+    if len(phys.names) == 6:
+        return _SIX, phys.mu.numpy(), phys.sigma.numpy()
+    assert len(phys.names) == 5  # ham: no C_D
+    c_d0 = ph.PRIORS["c_d"].mean
+    return _FIVE, np.append(phys.mu.numpy(), c_d0), np.append(phys.sigma.numpy(), 0.0)
 
 
 def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:

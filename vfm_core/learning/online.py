@@ -17,11 +17,12 @@ import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.kernels import (
-    hybrid_applies,
     hybrid_online_steps,
     hybrid_parameters,
+    kernels_enabled,
     mm_online_applies,
     mm_online_steps,
+    plain_hybrid,
 )
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
@@ -84,6 +85,8 @@ class OnlineLearning(LearningMethod):
         #: with the optimiser: an update takes E steps and must not walk the model each time)
         self._params: list[torch.nn.Parameter] = []
         self._groups: tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]] = ([], [])
+        #: the plain hybrid's parameters in the compiled steps' order (None: not compiled)
+        self._hybrid: list[torch.nn.Parameter] | None = None
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -104,6 +107,9 @@ class OnlineLearning(LearningMethod):
             self._opt, self._sched = make_optimizer(params, s.optimizer, s.lr, s.schedule_power)
             self._params = params
             self._groups = split_parameters(self.model)
+            # the plain hem and ham, every parameter stepped: their compiled steps
+            hybrid = hybrid_parameters(self.model) if plain_hybrid(self.model) else None
+            self._hybrid = hybrid if hybrid is not None and self._all_of(hybrid) else None
         return self._opt
 
     def _learn(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
@@ -122,7 +128,7 @@ class OnlineLearning(LearningMethod):
                 self._kernel_steps(batch, opt, idle)  # the same steps, compiled
                 self.updates += 1
                 return ready
-            if hybrid_applies(model) and self._all_of(hybrid_parameters(model)):
+            if self._hybrid is not None and kernels_enabled():
                 self._hybrid_steps(batch, opt, idle)  # the same steps, compiled
                 self.updates += 1
                 return ready
@@ -162,7 +168,8 @@ class OnlineLearning(LearningMethod):
     def _hybrid_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
         """The E steps of :meth:`_learn` for the plain ``hem`` and ``ham``, by
         :func:`vfm_core.learning.kernels.hybrid_online_steps`, on the optimiser's own state."""
-        params = hybrid_parameters(self.model)
+        params = self._hybrid
+        assert params is not None
         group = opt.param_groups[0]
         n_wells = params[0].shape[0]
         counts = np.zeros((len(params), n_wells))
@@ -171,8 +178,7 @@ class OnlineLearning(LearningMethod):
         if adam:
             states = [self._adam_state(opt, p) for p in params]
             moments = [(st["exp_avg"], st["exp_avg_sq"]) for st in states]
-            for i, st in enumerate(states):
-                counts[i, :] = float(st["step"])
+            counts[:] = np.array([float(st["step"]) for st in states]).reshape(-1, 1)
         s = self.online
         hybrid_online_steps(
             self.model,
@@ -186,10 +192,11 @@ class OnlineLearning(LearningMethod):
             betas=tuple(group.get("betas", (0.9, 0.999))),  # type: ignore[arg-type]
             eps=group.get("eps", 1e-8),
             max_norm=s.max_grad_norm,
+            params=params,
         )
+        if adam:
+            torch._foreach_add_([st["step"] for st in states], float(s.steps))
         for p in params:
-            if adam:
-                opt.state[p]["step"].add_(float(s.steps))
             p.grad = None
 
     def _kernel_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
