@@ -93,7 +93,7 @@ class Service:
                 self.transport.forget,
             )
             self.engine.load()
-            if s.model.name == "mm" and not s.model.effects:
+            if s.model.name in ("mm", "hem", "ham") and not s.model.effects:
                 # the compiled steps: ready before the first measurement arrives
                 from vfm_core.learning.kernels import warm
 
