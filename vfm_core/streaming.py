@@ -1274,12 +1274,12 @@ def _online_steps(
         stepped[0] = s.steps
     elif hybrid_applies(model) and _same_parameters(params, order := hybrid_parameters(model)):
         index = [[id(p) for p in params].index(id(q)) for q in order]
-        counts = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
+        before_all = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
         hybrid_online_steps(  # the same steps, compiled
             model,
             batch,
             [moments[j] for j in index] if adam else None,  # type: ignore[misc]
-            counts,
+            before_all,
             np.zeros(k, dtype=bool),
             steps=s.steps,
             noise=s.noise,

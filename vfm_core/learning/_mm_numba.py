@@ -752,8 +752,8 @@ def warm_up() -> None:
     for kind in (1, 2):
         net = [np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1))]
         moments = [np.zeros_like(a) for a in [np.zeros((1, 6)), *net] for _ in range(2)]
-        hybrid_online(
-            kind, np.zeros((1, 6)), *net, *moments, np.zeros((5, 1)), np.zeros(1, dtype=bool),
+        hybrid_online(  # type: ignore[call-arg]
+            kind, np.zeros((1, 6)), *net, *moments, np.zeros((5, 1)), np.zeros(1, dtype=bool),  # type: ignore[arg-type]
             x, ones, yes, np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)), one,
             -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
         )  # fmt: skip
