@@ -160,6 +160,20 @@ def hybrid_rates(
 
 
 @jit
+def map_weights(mask: np.ndarray, w: int, noise: float, scale: float) -> tuple[float, float]:
+    """:class:`~vfm_core.learning.training.MapObjective`'s factors for well ``w`` with n
+    samples in ``mask``: the prior's weight sigma^2 / n and d loss / d rate per scaled error
+    (2 / n / scale); both 0 for a well without samples."""
+    n = 0
+    for j in range(mask.shape[1]):
+        if mask[w, j]:
+            n += 1
+    if n == 0:
+        return 0.0, 0.0
+    return noise**2 / float(n), 2.0 / float(n) / scale
+
+
+@jit
 def online(  # noqa: PLR0913 - the arrays of one update
     z: np.ndarray,
     m: np.ndarray,
@@ -191,15 +205,7 @@ def online(  # noqa: PLR0913 - the arrays of one update
     theta = np.zeros(n_par)
     dq = np.zeros(n_par)
     for w in range(n_wells):
-        n = 0
-        for j in range(n_samples):
-            if mask[w, j]:
-                n += 1
-        has = n > 0
-        n_safe = max(float(n), 1.0)
-        # MapObjective: prior weight sigma^2 / n, d loss / d rate = e * d_factor
-        weight = noise**2 / n_safe if has else 0.0
-        d_factor = (2.0 / n_safe if has else 0.0) / scale[w]
+        weight, d_factor = map_weights(mask, w, noise, scale[w])
         for i in range(n_par):
             held[i] = z[w, i]
         for _ in range(steps):
@@ -306,14 +312,7 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     size = np.zeros(5)
     root = np.zeros(5)
     for w in range(n_wells):
-        n = 0
-        for j in range(n_samples):
-            if mask[w, j]:
-                n += 1
-        has = n > 0
-        n_safe = max(float(n), 1.0)
-        weight = noise**2 / n_safe if has else 0.0
-        d_factor = (2.0 / n_safe if has else 0.0) / scale[w]
+        weight, d_factor = map_weights(mask, w, noise, scale[w])
         for i in range(n_par):
             hz[i] = z[w, i]
         for k in range(hidden):

@@ -125,11 +125,11 @@ class OnlineLearning(LearningMethod):
         idle = ~ready
         if self._sched is None and _plain(opt):
             if mm_online_applies(model):
-                self._kernel_steps(batch, opt, idle)  # the same steps, compiled
+                self._compiled_steps(batch, opt, idle)  # the same steps, compiled
                 self.updates += 1
                 return ready
             if self._hybrid is not None and kernels_enabled():
-                self._hybrid_steps(batch, opt, idle)  # the same steps, compiled
+                self._compiled_steps(batch, opt, idle, self._hybrid)  # the same, compiled
                 self.updates += 1
                 return ready
         any_idle = bool(idle.any())
@@ -165,70 +165,48 @@ class OnlineLearning(LearningMethod):
             state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
         return state  # type: ignore[no-any-return]
 
-    def _hybrid_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
-        """The E steps of :meth:`_learn` for the plain ``hem`` and ``ham``, by
-        :func:`vfm_core.learning.kernels.hybrid_online_steps`, on the optimiser's own state."""
-        params = self._hybrid
-        assert params is not None
+    def _compiled_steps(
+        self,
+        batch: Batch,
+        opt: torch.optim.Optimizer,
+        idle: torch.Tensor,
+        params: list[torch.nn.Parameter] | None = None,
+    ) -> None:
+        """The E steps of :meth:`_learn`, compiled, on the optimiser's own state: the plain
+        ``mm`` (``params`` None: :func:`vfm_core.learning.kernels.mm_online_steps`) or the
+        plain ``hem`` / ``ham`` (``params`` in the order of
+        :func:`~vfm_core.learning.kernels.hybrid_online_steps`)."""
+        z: torch.nn.Parameter = self.model.phys.z  # type: ignore[assignment, union-attr]
+        steps = [z] if params is None else params
         group = opt.param_groups[0]
-        n_wells = params[0].shape[0]
-        counts = np.zeros((len(params), n_wells))
+        counts = np.zeros((len(steps), z.shape[0]))  # each parameter's step count per well
+        states: list[dict[str, Any]] = []
         moments = None
         adam = isinstance(opt, torch.optim.Adam)
         if adam:
-            states = [self._adam_state(opt, p) for p in params]
+            states = [self._adam_state(opt, p) for p in steps]
             moments = [(st["exp_avg"], st["exp_avg_sq"]) for st in states]
             counts[:] = np.array([float(st["step"]) for st in states]).reshape(-1, 1)
         s = self.online
-        hybrid_online_steps(
-            self.model,
-            batch,
-            moments,
-            counts,
-            idle.numpy(),
+        kw: dict[str, Any] = dict(
             steps=s.steps,
             noise=s.noise,
             lr=group["lr"],
-            betas=tuple(group.get("betas", (0.9, 0.999))),  # type: ignore[arg-type]
+            betas=tuple(group.get("betas", (0.9, 0.999))),
             eps=group.get("eps", 1e-8),
             max_norm=s.max_grad_norm,
-            params=params,
         )
+        if params is None:
+            first = None if moments is None else moments[0]
+            mm_online_steps(self.model, batch, first, counts[0], idle.numpy(), **kw)
+        else:
+            hybrid_online_steps(
+                self.model, batch, moments, counts, idle.numpy(), params=params, **kw
+            )
         if adam:
             torch._foreach_add_([st["step"] for st in states], float(s.steps))
-        for p in params:
+        for p in steps:
             p.grad = None
-
-    def _kernel_steps(self, batch: Batch, opt: torch.optim.Optimizer, idle: torch.Tensor) -> None:
-        """The E steps of :meth:`_learn` for the plain ``mm``, by
-        :func:`vfm_core.learning.kernels.mm_online_steps`, on the optimiser's own state."""
-        z: torch.nn.Parameter = self.model.phys.z  # type: ignore[assignment, union-attr]
-        group = opt.param_groups[0]
-        n_wells = z.shape[0]
-        counts = np.zeros(n_wells)
-        moments = None
-        adam = isinstance(opt, torch.optim.Adam)
-        if adam:
-            state = self._adam_state(opt, z)
-            moments = (state["exp_avg"], state["exp_avg_sq"])
-            counts[:] = float(state["step"])
-        s = self.online
-        mm_online_steps(
-            self.model,
-            batch,
-            moments,
-            counts,
-            idle.numpy(),
-            steps=s.steps,
-            noise=s.noise,
-            lr=group["lr"],
-            betas=tuple(group.get("betas", (0.9, 0.999))),  # type: ignore[arg-type]
-            eps=group.get("eps", 1e-8),
-            max_norm=s.max_grad_norm,
-        )
-        if adam:
-            opt.state[z]["step"].add_(float(s.steps))
-        z.grad = None
 
     def tuning(self, grid: str) -> list[dict[str, Any]]:
         """Step size gamma, steps E and optimiser (the paper's grid, or a small one)."""
