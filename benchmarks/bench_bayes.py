@@ -21,10 +21,10 @@ import time
 
 import numpy as np
 import pandas as pd
-import torch
 
 from vfm_core.data import target_mask
 from vfm_core.jobs.study import resolve_split, run_prequential
+from vfm_core.runtime import configure
 from vfm_core.simulate import simulate_field
 
 EFFECTS = ("none", "erosion", "valve", "real_gas", "slip", "mpfm_bias", "critical_ratio")
@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the rows to this file")
     args = parser.parse_args()
-    torch.set_num_threads(1)  # small tensors: a second thread only costs (see vfm_core.cli)
+    configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
     rows = []
     print(
         f"{'hidden':<15} {'case':<9} {'floor %':>7} {'model':<5} {'method':<10} {'MAPE %':>7} "

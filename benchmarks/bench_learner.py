@@ -18,6 +18,7 @@ import pandas as pd
 import torch
 
 from vfm_core.learning import TrainSettings
+from vfm_core.runtime import configure
 from vfm_core.streaming import WellLearner
 
 SAMPLE = [
@@ -64,7 +65,7 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=300_000, help="long history, rows")
     parser.add_argument("--updates", type=int, default=300)
     args = parser.parse_args()
-    torch.set_num_threads(1)  # small tensors: a second thread only costs (see vfm_core.cli)
+    configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
     print(f"{'model':<12} {'method':<6} {'history rows':>12} {'predict us':>11} {'update us':>10}")
     for effects in ([], ["erosion"]):
         name = "+".join(["mm", *effects])

@@ -50,6 +50,7 @@ from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 from vfm_core.models import make_model
 from vfm_core.observations import validate_frame
+from vfm_core.runtime import configure, tune_malloc
 from vfm_core.schema import INPUT_COLUMNS, TARGET
 from vfm_core.simulate import simulate_field
 
@@ -270,8 +271,11 @@ def main() -> None:
     )
     parser.add_argument("--learning-wells", default="10,100", help="(g): wells per learn_many call")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
+    configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
+    print(
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults)"
+    )
     field = simulate_field(wells=10, years=2.0, seed=args.seed)
     frame = validate_frame(field.observations).frame
     one = frame[(frame["well"] == wells_of(frame)[0]) & frame[TARGET].notna()]

@@ -34,6 +34,7 @@ from vfm_core.jobs.study import run_prequential, wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
 from vfm_core.observations import load_observations, validate_frame
+from vfm_core.runtime import configure, tune_malloc
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 
@@ -120,8 +121,11 @@ def main() -> None:
     parser.add_argument("--per-run", action="store_true", help="time each model x method run")
     args = parser.parse_args()
     models = args.models.split(",")
-    torch.set_num_threads(1)  # small tensors: a second thread only costs (see vfm_core.cli)
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
+    configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
+    print(
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults)"
+    )
     started = time.perf_counter()
     if args.data:
         frame = load_observations(args.data).frame

@@ -41,6 +41,7 @@ from service.scaleout import (
 from service.store import Store
 from service.transport import MemoryTransport, Transport, ZenohTransport
 from vfm_core.errors import ConfigError
+from vfm_core.runtime import configure
 
 __all__ = ["Service", "serve", "running", "bind_socket"]
 
@@ -66,9 +67,7 @@ class Service:
         self._claim: Any = None
 
     def start(self) -> None:
-        import torch
-
-        torch.set_num_threads(self.settings.torch_threads)
+        configure(self.settings.torch_threads)  # torch's threads, glibc's malloc
         s = self.settings
         self.store = Store(s.store.path, s.store.synchronous)
         try:

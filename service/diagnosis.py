@@ -89,9 +89,9 @@ def _child(request: dict[str, Any]) -> None:
         print(json.dumps([kind, fraction, text]), flush=True)
 
     try:
-        import torch
+        from vfm_core.runtime import configure
 
-        torch.set_num_threads(1)
+        configure(1)  # torch's threads, glibc's malloc
         from service.export import load_store
         from vfm_core.jobs.diagnose import run_diagnosis, write_diagnosis
 

@@ -397,3 +397,26 @@ def test_bayes_intervals_compiled_for_a_hybrid(
     assert bool((fast.std[:2] > 0).all())
     for a, b in zip(fast, slow, strict=True):
         assert torch.allclose(a, b, rtol=1e-12, atol=0, equal_nan=True)
+
+
+def test_the_arrays_kept_for_the_steps_follow_their_tensors() -> None:
+    """The numpy views and the prior layout the compiled steps keep between calls are
+    given anew when a buffer is replaced or the priors change in place (a stale view
+    would step with old scales or priors)."""
+    from vfm_core.learning.kernels import buffer_views, physics_layout
+
+    model = make_model("ham", ["a", "b"])
+    first = buffer_views(model, ("a_max", "y_scale"))
+    assert buffer_views(model, ("a_max", "y_scale")) is first  # kept
+    with torch.no_grad():
+        model.y_scale.mul_(3.0)  # in place: the view shows it
+    assert np.allclose(first[1], 3.0)
+    model.y_scale = torch.full((2,), 7.0, dtype=DTYPE)  # a new tensor: a new view
+    again = buffer_views(model, ("a_max", "y_scale"))
+    assert again is not first and np.allclose(again[1], 7.0)
+    layout = physics_layout(model)
+    assert physics_layout(model) is layout
+    with torch.no_grad():
+        model.phys.mu.add_(1.0)
+    moved = physics_layout(model)
+    assert np.allclose(moved[1][:5], layout[1][:5] + 1.0)

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from vfm_core.errors import VFMError
+from vfm_core.runtime import configure
 
 __all__ = ["main", "build_parser"]
 
@@ -250,15 +251,6 @@ def _register_plugins(sub: argparse._SubParsersAction) -> None:  # type: ignore[
         register(sub)
 
 
-def _torch_threads(threads: int) -> None:
-    """Torch's intra-op threads. The VFM's tensors are small (wells x samples): a second
-    thread buys nothing and, on a machine shared with other work, its barriers cost an
-    order of magnitude (measured: a study 10x slower with 2 threads under load)."""
-    import torch
-
-    torch.set_num_threads(max(1, threads))
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -267,7 +259,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     handler: Handler = args.handler
-    _torch_threads(args.threads)
+    configure(args.threads)  # torch's threads and glibc's malloc (vfm_core.runtime)
     try:
         return handler(args)
     except VFMError as exc:

@@ -63,7 +63,7 @@ from vfm_core.learning.kernels import (
 )
 from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
 from vfm_core.models import MODELS, ChokeModel, make_model
-from vfm_core.timeutil import utc_timestamp
+from vfm_core.timeutil import to_ns, utc_timestamp
 
 __all__ = [
     "WellLearner",
@@ -115,6 +115,14 @@ def phase_split(
 
 #: one prepared sample: its six inputs, its time (epoch ns) and the model's feature columns
 _Row = tuple[list[float], int, list[float]]
+
+
+def _epoch_ns(when: datetime) -> int:
+    """Epoch nanoseconds of a sample's time: :func:`utc_timestamp`'s ``.value``, without a
+    pandas Timestamp for a plain datetime (microseconds: exact integer arithmetic)."""
+    if type(when) is datetime:
+        return to_ns(when)
+    return int(utc_timestamp(when).value)
 
 
 def _six(inputs: Sequence[float] | torch.Tensor) -> list[float]:
@@ -330,10 +338,12 @@ class WellLearner:
         self.n_updates += 1
         self.last_update = when
 
-    def _retrains_due(self, now: pd.Timestamp) -> bool:
-        """Run the method's scheduled retrains due by ``now``; one version per retrain."""
+    def _retrains_due(self, now: pd.Timestamp | int) -> bool:
+        """Run the method's scheduled retrains due by ``now`` (or epoch ns); one version per
+        retrain."""
         before = self.method.n_retrains
-        self.method.retrain_due(self.memory, torch.tensor([now.value], dtype=torch.int64))
+        now_ns = now if isinstance(now, int) else now.value
+        self.method.retrain_due(self.memory, torch.tensor([now_ns], dtype=torch.int64))
         new = self.method.n_retrains - before
         done = self.method.retrains[-new:] if new > 0 else []
         for until in done:
@@ -365,16 +375,16 @@ class WellLearner:
         as plain numbers (None while the model is not ready): inputs, time (ns, 0 for
         none) and the model's feature columns."""
         x = _six(inputs)
-        ts = None if when is None else utc_timestamp(when)
+        ns = None if when is None else _epoch_ns(when)
         # the sample's features (a sample without a time sits at the latest one)
-        at = self.features.last_ns if ts is None else ts.value
+        at = self.features.last_ns if ns is None else ns
         feats = (
             [0.0] * len(FeatureTracker.names)
             if at is None
             else self.features.advance(int(at), x[4], x[5])
         )
-        if ts is not None and type(self.method).retrain_due is not LearningMethod.retrain_due:
-            self._retrains_due(ts)  # (the base method never retrains: nothing to run)
+        if ns is not None and type(self.method).retrain_due is not LearningMethod.retrain_due:
+            self._retrains_due(ns)  # (the base method never retrains: nothing to run)
         out: dict[str, float | None] = dict.fromkeys(_ANSWER_KEYS)
         if not self.ready:
             return out, None

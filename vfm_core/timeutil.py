@@ -45,7 +45,10 @@ PLAUSIBLE_MIN = datetime(1970, 1, 1, tzinfo=UTC)
 
 def utc(when: datetime) -> datetime:
     """An aware UTC datetime (a naive one is taken as UTC)."""
-    return when.replace(tzinfo=UTC) if when.tzinfo is None else when.astimezone(UTC)
+    tz = when.tzinfo
+    if tz is UTC:  # already: asked several times per sample, astimezone is the cost
+        return when
+    return when.replace(tzinfo=UTC) if tz is None else when.astimezone(UTC)
 
 
 def time_problem(

@@ -81,9 +81,9 @@ def trial_grid(models: Sequence[str], methods: Sequence[str], grid: str) -> list
 
 def _run_trial(args: tuple[str, dict[str, Any], str, str, str]) -> dict[str, Any]:
     data_path, trial, targets, inner_split, split = args
-    import torch
+    from vfm_core.runtime import configure
 
-    torch.set_num_threads(1)
+    configure(1)
     from vfm_core.observations import load_observations
 
     frame = load_observations(data_path).frame

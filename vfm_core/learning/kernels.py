@@ -124,7 +124,7 @@ def plain_mm(model: Any) -> bool:
 def mm_online_steps(
     model: Any,
     batch: Any,
-    moments: tuple[torch.Tensor, torch.Tensor] | None,
+    moments: tuple[torch.Tensor, torch.Tensor] | tuple[np.ndarray, np.ndarray] | None,
     counts: np.ndarray,
     hold: np.ndarray,
     *,
@@ -145,13 +145,13 @@ def mm_online_steps(
     assert kernel is not None
     z_t = model.phys.z
     with torch.no_grad():
-        z = z_t.detach().numpy().copy()
+        z = _in_place(z_t)
         if moments is None:
             m = np.zeros_like(z)
             v = np.zeros_like(z)
         else:
-            m = moments[0].numpy().copy()
-            v = moments[1].numpy().copy()
+            m = _in_place(moments[0])
+            v = _in_place(moments[1])
         kernel.online(
             z,
             m,
@@ -161,12 +161,8 @@ def mm_online_steps(
             np.ascontiguousarray(batch.x.numpy()),
             np.ascontiguousarray(batch.y.numpy()),
             np.ascontiguousarray(batch.mask.numpy()),
-            model.a_max.numpy(),
-            model.y_scale.numpy(),
-            model.phys.mu.numpy(),
-            model.phys.sigma.numpy(),
-            model.phys.z_low.numpy(),
-            model.phys.z_high.numpy(),
+            *buffer_views(model, _SCALES[:2]),
+            *buffer_views(model.phys, ("mu", "sigma", *_BOUNDS)),
             float(noise),
             float(lr),
             float(betas[0]),
@@ -176,12 +172,7 @@ def mm_online_steps(
             int(steps),
             moments is not None,
         )
-        # written back through torch, so that the tensors' versions move as an in-place
-        # torch update moves them
-        z_t.copy_(torch.from_numpy(z))
-        if moments is not None:
-            moments[0].copy_(torch.from_numpy(m))
-            moments[1].copy_(torch.from_numpy(v))
+        _written_back([z_t] + ([] if moments is None else list(moments)), [z, m, v])
 
 
 def predict_rates(model: Any, batch: Any) -> torch.Tensor:
@@ -231,7 +222,7 @@ def hybrid_parameters(model: Any) -> list[torch.nn.Parameter]:
 def hybrid_online_steps(
     model: Any,
     batch: Any,
-    moments: list[tuple[torch.Tensor, torch.Tensor]] | None,
+    moments: list[tuple[torch.Tensor, torch.Tensor]] | list[tuple[np.ndarray, np.ndarray]] | None,
     counts: np.ndarray,
     hold: np.ndarray,
     *,
@@ -256,12 +247,13 @@ def hybrid_online_steps(
     assert kernel is not None
     params = hybrid_parameters(model) if params is None else params
     pos, mu, sigma = physics_layout(model)
+    a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
     with torch.no_grad():
-        values = [p.detach().numpy().copy() for p in params]
+        values = [_in_place(p) for p in params]
         if moments is None:
             state = [np.zeros_like(v) for v in values for _ in range(2)]
         else:  # (optimiser state, in no graph: written in place)
-            state = [t.numpy() for pair in moments for t in pair]
+            state = [_in_place(t) for pair in moments for t in pair]
         kernel.hybrid_online(
             2 if type(model) is HybridArea else 1,
             *values,
@@ -271,15 +263,14 @@ def hybrid_online_steps(
             np.ascontiguousarray(batch.x.numpy()),
             np.ascontiguousarray(batch.y.numpy()),
             np.ascontiguousarray(batch.mask.numpy()),
-            model.a_max.numpy(),
-            model.y_scale.numpy(),
+            a_max,
+            y_scale,
             pos,
             mu,
             sigma,
-            model.x_mean.numpy(),
-            model.x_std.numpy(),
-            model.phys.z_low.numpy(),
-            model.phys.z_high.numpy(),
+            x_mean,
+            x_std,
+            *buffer_views(model.phys, _BOUNDS),
             float(noise),
             float(lr),
             float(betas[0]),
@@ -289,10 +280,10 @@ def hybrid_online_steps(
             int(steps),
             moments is not None,
         )
-        # written back through torch, so that the tensors' versions move as an in-place
-        # torch update moves them
-        for p, v in zip(params, values, strict=True):
-            p.copy_(torch.from_numpy(v))
+        _written_back(
+            [*params, *(t for pair in moments or [] for t in pair)],
+            values + (state if moments is not None else []),
+        )
 
 
 def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -305,8 +296,16 @@ def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if len(phys.names) == 6:
         return _SIX, phys.mu.numpy(), phys.sigma.numpy()
     assert len(phys.names) == 5  # ham: no C_D
+    # asked at every step: kept while the priors' tensors and their contents stay the same
+    mu_t, sigma_t = phys.mu, phys.sigma
+    versions = (mu_t._version, sigma_t._version)
+    cached = phys.__dict__.get("_vfm_layout")
+    if cached is not None and cached[0] is mu_t and cached[1] is sigma_t and cached[2] == versions:
+        return cached[3]  # type: ignore[no-any-return]
     c_d0 = ph.PRIORS["c_d"].mean
-    return _FIVE, np.append(phys.mu.numpy(), c_d0), np.append(phys.sigma.numpy(), 0.0)
+    layout = _FIVE, np.append(mu_t.numpy(), c_d0), np.append(sigma_t.numpy(), 0.0)
+    phys.__dict__["_vfm_layout"] = (mu_t, sigma_t, versions, layout)
+    return layout
 
 
 def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
@@ -357,6 +356,50 @@ def mm_rates(model: Any, batch: Any) -> torch.Tensor:
             out,
         )
     return torch.from_numpy(out)
+
+
+#: the buffers the kernels read: the model's scales, the physics' bounds
+_SCALES = ("a_max", "y_scale", "x_mean", "x_std")
+_BOUNDS = ("z_low", "z_high")
+
+
+def buffer_views(module: torch.nn.Module, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    """numpy views of ``module``'s buffers ``names``, kept while it holds the same tensors
+    (they change in place; a step asks for them every time, and a module attribute and
+    its view cost a microsecond each)."""
+    buffers = module._buffers
+    tensors = tuple(buffers[name] for name in names)
+    cache: dict[tuple[str, ...], tuple[tuple[Any, ...], tuple[np.ndarray, ...]]] = (
+        module.__dict__.setdefault("_vfm_views", {})
+    )
+    hit = cache.get(names)
+    if hit is not None and all(a is b for a, b in zip(hit[0], tensors, strict=True)):
+        return hit[1]
+    views = tuple(t.detach().numpy() for t in tensors)  # type: ignore[union-attr]
+    cache[names] = (tensors, views)
+    return views
+
+
+def _in_place(t: torch.Tensor | np.ndarray) -> np.ndarray:
+    """The array a kernel updates ``t`` in: ``t``'s own memory when it is contiguous (a
+    learning step holds no graph of it, so nothing saved for a backward pass can see the
+    change), else a contiguous copy that :func:`_written_back` copies back. An array
+    (a view of a tensor the caller keeps) is taken as it is."""
+    a: np.ndarray = t if isinstance(t, np.ndarray) else t.detach().numpy()
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
+
+
+def _written_back(
+    tensors: list[torch.Tensor] | list[torch.Tensor | np.ndarray], arrays: list[np.ndarray]
+) -> None:
+    """Copy each array of :func:`_in_place` that is not its tensor's own memory back."""
+    for t, a in zip(tensors, arrays, strict=False):
+        if a is t or not a.flags.owndata:  # the memory itself (a view owns none)
+            continue
+        if isinstance(t, np.ndarray):
+            np.copyto(t, a)
+        else:
+            t.copy_(torch.from_numpy(a))
 
 
 def writable(owner: Any, name: str) -> np.ndarray:

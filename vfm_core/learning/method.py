@@ -258,11 +258,10 @@ class LearningMethod(ABC):
         """Learn from new measurements (normally one per well; wells without one are masked
         out and do not move). ``memory`` holds every measurement so far, these included.
         Returns the wells whose model changed [W] (bool)."""
-        has = batch.count() > 0
         if self.model.gradient_free:  # the benchmark remembers the last value, whatever the method
             self.model.setup(batch)
             self.model.observe(batch)
-            return has
+            return batch.count() > 0
         return self._learn(batch, memory)
 
     @abstractmethod

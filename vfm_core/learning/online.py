@@ -20,18 +20,18 @@ from vfm_core.learning.kernels import (
     hybrid_online_steps,
     hybrid_parameters,
     kernels_enabled,
-    mm_online_applies,
     mm_online_steps,
     plain_hybrid,
+    plain_mm,
 )
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
 from vfm_core.learning.training import (
     MapObjective,
-    _plain,
     clip_per_well_,
     make_optimizer,
     optimizer_step_,
+    plain_optimizer,
     split_parameters,
 )
 from vfm_core.models import ChokeModel
@@ -87,6 +87,7 @@ class OnlineLearning(LearningMethod):
         self._groups: tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]] = ([], [])
         #: the plain hybrid's parameters in the compiled steps' order (None: not compiled)
         self._hybrid: list[torch.nn.Parameter] | None = None
+        self._compiled: list[torch.nn.Parameter] | None = None
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -99,6 +100,7 @@ class OnlineLearning(LearningMethod):
 
     def _rebind(self, model: ChokeModel) -> None:
         self._opt, self._sched = None, None
+        self._compiled = None
 
     def _optimiser(self) -> torch.optim.Optimizer:
         if self._opt is None:
@@ -110,12 +112,42 @@ class OnlineLearning(LearningMethod):
             # the plain hem and ham, every parameter stepped: their compiled steps
             hybrid = hybrid_parameters(self.model) if plain_hybrid(self.model) else None
             self._hybrid = hybrid if hybrid is not None and self._all_of(hybrid) else None
+            # the compiled steps apply (kernels on): the plain mm ([] for its one tensor,
+            # z) or the plain hybrids (their parameters), with torch's plain Adam or SGD
+            self._compiled = None
+            if plain_optimizer(self._opt) and self._sched is None:
+                if plain_mm(self.model) and self._all_of([self.model.phys.z]):  # type: ignore[union-attr]
+                    self._compiled = []
+                elif self._hybrid is not None:
+                    self._compiled = self._hybrid
         return self._opt
+
+    def _learn_compiled(self, batch: Batch) -> torch.Tensor:
+        """:meth:`_learn` with the compiled steps: the same set-up and masks, taken in numpy
+        (a microsecond each, where a torch operation on a few booleans costs two or three),
+        then the E steps. The wells that learned [W]."""
+        model = self.model
+        mask = batch.mask.numpy()
+        has = mask.any(1)
+        if (has & ~model.ready.numpy()).any():
+            model.setup(batch)  # wells seen for the first time: their scales
+        ready = model.ready.numpy() & has
+        if not ready.any():
+            return torch.from_numpy(ready)
+        if (mask & ~ready[:, None]).any():
+            batch = batch.select(torch.from_numpy(mask & ready[:, None]))
+        assert self._compiled is not None and self._opt is not None
+        # Adam's momentum would move wells that have no new measurement: hold them still.
+        self._compiled_steps(batch, self._opt, ~ready, self._compiled or None)
+        self.updates += 1
+        return torch.from_numpy(ready)
 
     def _learn(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
         model = self.model
-        model.setup(batch)
         opt = self._optimiser()
+        if self._compiled is not None and kernels_enabled():
+            return self._learn_compiled(batch)
+        model.setup(batch)
         ready = model.ready & (batch.count() > 0)
         if not bool(ready.any()):
             return ready
@@ -123,15 +155,6 @@ class OnlineLearning(LearningMethod):
             batch = batch.select(batch.mask & ready.unsqueeze(1))
         # Adam's momentum would move wells that have no new measurement: hold them still.
         idle = ~ready
-        if self._sched is None and _plain(opt):
-            if mm_online_applies(model):
-                self._compiled_steps(batch, opt, idle)  # the same steps, compiled
-                self.updates += 1
-                return ready
-            if self._hybrid is not None and kernels_enabled():
-                self._compiled_steps(batch, opt, idle, self._hybrid)  # the same, compiled
-                self.updates += 1
-                return ready
         any_idle = bool(idle.any())
         held = [(p, p.detach()[idle].clone()) for p in self._groups[0]] if any_idle else []
         # the same batch for every step: its counts once
@@ -165,11 +188,31 @@ class OnlineLearning(LearningMethod):
             state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
         return state  # type: ignore[no-any-return]
 
+    def _adam_views(
+        self, opt: torch.optim.Optimizer, params: list[torch.nn.Parameter]
+    ) -> tuple[list[torch.Tensor], list[tuple[np.ndarray, np.ndarray]]]:
+        """Adam's step counts of ``params`` and numpy views of their moments (the compiled
+        steps write them in place), kept while the optimiser and its state stay the same
+        (the torch path updates the same tensors in place too)."""
+        cached = self.__dict__.get("_adam_cache")
+        if (
+            cached is not None
+            and cached[0] is opt
+            and cached[1] is params
+            and opt.state.get(params[0], {}).get("exp_avg") is cached[2]
+        ):
+            return cached[3], cached[4]  # type: ignore[no-any-return]
+        states = [self._adam_state(opt, p) for p in params]
+        step_counts = [st["step"] for st in states]
+        views = [(st["exp_avg"].numpy(), st["exp_avg_sq"].numpy()) for st in states]
+        self.__dict__["_adam_cache"] = (opt, params, states[0]["exp_avg"], step_counts, views)
+        return step_counts, views
+
     def _compiled_steps(
         self,
         batch: Batch,
         opt: torch.optim.Optimizer,
-        idle: torch.Tensor,
+        idle: np.ndarray,
         params: list[torch.nn.Parameter] | None = None,
     ) -> None:
         """The E steps of :meth:`_learn`, compiled, on the optimiser's own state: the plain
@@ -180,13 +223,12 @@ class OnlineLearning(LearningMethod):
         steps = [z] if params is None else params
         group = opt.param_groups[0]
         counts = np.zeros((len(steps), z.shape[0]))  # each parameter's step count per well
-        states: list[dict[str, Any]] = []
+        step_counts: list[torch.Tensor] = []
         moments = None
         adam = isinstance(opt, torch.optim.Adam)
         if adam:
-            states = [self._adam_state(opt, p) for p in steps]
-            moments = [(st["exp_avg"], st["exp_avg_sq"]) for st in states]
-            counts[:] = np.array([float(st["step"]) for st in states]).reshape(-1, 1)
+            step_counts, moments = self._adam_views(opt, steps)
+            counts[:] = torch.stack(step_counts).numpy().reshape(-1, 1)
         s = self.online
         kw: dict[str, Any] = dict(
             steps=s.steps,
@@ -198,13 +240,11 @@ class OnlineLearning(LearningMethod):
         )
         if params is None:
             first = None if moments is None else moments[0]
-            mm_online_steps(self.model, batch, first, counts[0], idle.numpy(), **kw)
+            mm_online_steps(self.model, batch, first, counts[0], idle, **kw)
         else:
-            hybrid_online_steps(
-                self.model, batch, moments, counts, idle.numpy(), params=params, **kw
-            )
+            hybrid_online_steps(self.model, batch, moments, counts, idle, params=params, **kw)
         if adam:
-            torch._foreach_add_([st["step"] for st in states], float(s.steps))
+            torch._foreach_add_(step_counts, float(s.steps))
         for p in steps:
             p.grad = None
 

@@ -31,6 +31,7 @@ __all__ = [
     "fit_batch",
     "make_optimizer",
     "optimizer_step_",
+    "plain_optimizer",
     "zero_grad_",
     "scaled_errors",
     "per_well_loss",
@@ -144,6 +145,16 @@ def _plain(opt: torch.optim.Optimizer) -> bool:
     return True
 
 
+def plain_optimizer(opt: torch.optim.Optimizer) -> bool:
+    """True for an optimiser :func:`optimizer_step_` steps itself (:func:`_plain`), asked
+    once per optimiser."""
+    plain = getattr(opt, "_vfm_plain", None)
+    if plain is None:
+        plain = _plain(opt)
+        opt._vfm_plain = plain  # type: ignore[attr-defined]
+    return bool(plain)
+
+
 def zero_grad_(params: list[torch.nn.Parameter]) -> None:
     """``optimizer.zero_grad()`` (gradients set to None) without its per-call machinery."""
     for p in params:
@@ -159,11 +170,7 @@ def optimizer_step_(opt: torch.optim.Optimizer) -> None:
     identical to the bit), on the optimiser's own state, so ``opt.state_dict()`` is what
     ``opt.step()`` would leave. Any other optimiser or option goes through ``opt.step()``.
     """
-    plain = getattr(opt, "_vfm_plain", None)
-    if plain is None:
-        plain = _plain(opt)
-        opt._vfm_plain = plain  # type: ignore[attr-defined]
-    if not plain:
+    if not plain_optimizer(opt):
         opt.step()
         return
     with torch.no_grad():
