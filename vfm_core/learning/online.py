@@ -198,14 +198,15 @@ class OnlineLearning(LearningMethod):
         if (
             cached is not None
             and cached[0] is opt
-            and cached[1] is params
+            and len(cached[1]) == len(params)
+            and all(a is b for a, b in zip(cached[1], params, strict=True))
             and opt.state.get(params[0], {}).get("exp_avg") is cached[2]
         ):
             return cached[3], cached[4]  # type: ignore[no-any-return]
         states = [self._adam_state(opt, p) for p in params]
         step_counts = [st["step"] for st in states]
         views = [(st["exp_avg"].numpy(), st["exp_avg_sq"].numpy()) for st in states]
-        self.__dict__["_adam_cache"] = (opt, params, states[0]["exp_avg"], step_counts, views)
+        self.__dict__["_adam_cache"] = (opt, list(params), states[0]["exp_avg"], step_counts, views)
         return step_counts, views
 
     def _compiled_steps(
