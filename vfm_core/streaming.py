@@ -61,7 +61,12 @@ from vfm_core.learning.kernels import (
     mm_online_steps,
     predict_rates,
 )
-from vfm_core.learning.training import MapObjective, _plain, clip_per_well_, split_parameters
+from vfm_core.learning.training import (
+    MapObjective,
+    clip_per_well_,
+    plain_optimizer,
+    split_parameters,
+)
 from vfm_core.models import MODELS, ChokeModel, make_model
 from vfm_core.timeutil import to_ns, utc_timestamp
 
@@ -1103,7 +1108,7 @@ def _learn_key(learner: WellLearner) -> tuple[Any, ...] | None:
     opt = method._optimiser()
     if s.schedule_power != 0 or method._sched is not None or len(opt.param_groups) != 1:
         return None
-    if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not _plain(opt):
+    if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not plain_optimizer(opt):
         return None
     group = opt.param_groups[0]
     hyper: tuple[Any, ...]

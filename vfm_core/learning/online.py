@@ -87,7 +87,8 @@ class OnlineLearning(LearningMethod):
         self._groups: tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]] = ([], [])
         #: the plain hybrid's parameters in the compiled steps' order (None: not compiled)
         self._hybrid: list[torch.nn.Parameter] | None = None
-        self._compiled: list[torch.nn.Parameter] | None = None
+        #: the compiled steps apply (the kernels on): the plain mm, or the plain hybrids
+        self._compiled = False
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -100,7 +101,7 @@ class OnlineLearning(LearningMethod):
 
     def _rebind(self, model: ChokeModel) -> None:
         self._opt, self._sched = None, None
-        self._compiled = None
+        self._compiled = False
 
     def _optimiser(self) -> torch.optim.Optimizer:
         if self._opt is None:
@@ -112,14 +113,14 @@ class OnlineLearning(LearningMethod):
             # the plain hem and ham, every parameter stepped: their compiled steps
             hybrid = hybrid_parameters(self.model) if plain_hybrid(self.model) else None
             self._hybrid = hybrid if hybrid is not None and self._all_of(hybrid) else None
-            # the compiled steps apply (kernels on): the plain mm ([] for its one tensor,
-            # z) or the plain hybrids (their parameters), with torch's plain Adam or SGD
-            self._compiled = None
-            if plain_optimizer(self._opt) and self._sched is None:
-                if plain_mm(self.model) and self._all_of([self.model.phys.z]):  # type: ignore[union-attr]
-                    self._compiled = []
-                elif self._hybrid is not None:
-                    self._compiled = self._hybrid
+            # with torch's plain Adam or SGD: the plain mm (its one tensor, z) or the
+            # plain hybrids (every parameter) step compiled
+            mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr]
+            self._compiled = (
+                plain_optimizer(self._opt)
+                and self._sched is None
+                and (mm or self._hybrid is not None)
+            )
         return self._opt
 
     def _learn_compiled(self, batch: Batch) -> torch.Tensor:
@@ -136,16 +137,16 @@ class OnlineLearning(LearningMethod):
             return torch.from_numpy(ready)
         if (mask & ~ready[:, None]).any():
             batch = batch.select(torch.from_numpy(mask & ready[:, None]))
-        assert self._compiled is not None and self._opt is not None
+        assert self._opt is not None
         # Adam's momentum would move wells that have no new measurement: hold them still.
-        self._compiled_steps(batch, self._opt, ~ready, self._compiled or None)
+        self._compiled_steps(batch, self._opt, ~ready, self._hybrid)
         self.updates += 1
         return torch.from_numpy(ready)
 
     def _learn(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
         model = self.model
         opt = self._optimiser()
-        if self._compiled is not None and kernels_enabled():
+        if self._compiled and kernels_enabled():
             return self._learn_compiled(batch)
         model.setup(batch)
         ready = model.ready & (batch.count() > 0)
