@@ -5,6 +5,11 @@ within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
         [--outages 7d,30d,90d] [--data field.parquet | --hidden erosion] [--per-run]
+        [--jobs 1,2]
+
+With ``--jobs 1,2`` the whole study runs once per value, as ``vfm evaluate --jobs`` runs it
+(this process and N - 1 workers taking the models in turn), and the ratios of the wall
+times are printed.
 
 With ``--per-run`` the study is timed one model x method run at a time (as ``vfm evaluate``
 runs them, the initial fit shared between methods with the same window), per case, with
@@ -29,8 +34,9 @@ import numpy as np
 import torch
 
 from vfm_core.data import make_batch, target_mask
-from vfm_core.jobs.evaluate import format_summary, run_study
+from vfm_core.jobs.evaluate import PRELOAD, format_summary, run_study
 from vfm_core.jobs.study import run_prequential, wells_of
+from vfm_core.jobs.workers import StudyWorkers
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
 from vfm_core.observations import load_observations, validate_frame
@@ -119,6 +125,12 @@ def main() -> None:
     parser.add_argument("--data", default=None, help="an observation file instead of simulating")
     parser.add_argument("--hidden", default="", help="hidden effects of the simulated field")
     parser.add_argument("--per-run", action="store_true", help="time each model x method run")
+    parser.add_argument(
+        "--jobs",
+        default="1",
+        help="processes for the whole study (as vfm evaluate --jobs); a list (1,2) runs "
+        "it once per value and prints the ratios",
+    )
     args = parser.parse_args()
     models = args.models.split(",")
     configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
@@ -155,39 +167,68 @@ def main() -> None:
 
     if args.skip_study:
         return
-    total = 0.0
-    for case in args.cases.split(","):
-        result = run_study(
-            frame, models=models, methods=args.methods.split(","), targets=case, progress=False
+    walls = {}
+    for jobs in [int(j) for j in args.jobs.split(",")]:
+        walls[jobs] = whole_study(frame, models, args, jobs)
+    if len(walls) > 1:
+        first = next(iter(walls))
+        print(
+            "\nwall time of the whole study by --jobs: "
+            + ", ".join(f"{j}: {w:.1f} s ({walls[first] / w:.2f}x)" for j, w in walls.items())
         )
-        total += result.runtime_s
-        if args.out:
-            from vfm_core.jobs.evaluate import write_study
 
-            write_study(result, f"{args.out}/{case}")
-        print()
-        print(format_summary(result))
-        per = result.predictions.groupby(["model", "method"]).size()
-        print(f"case {case}: {result.runtime_s:.1f} s for {len(per)} model x method runs")
-        if args.outages:
-            with_outages = run_study(
-                frame,
-                models=models,
-                methods=args.methods.split(","),
-                targets=case,
-                progress=False,
-                outages=args.outages,
-            )
-            total += with_outages.runtime_s
-            lengths = len(with_outages.outages)
-            windows = len(with_outages.outage_windows)
-            print(format_summary(with_outages))
-            print(
-                f"case {case} with outages {args.outages} ({windows} windows): "
-                f"{with_outages.runtime_s:.1f} s, {with_outages.runtime_s / result.runtime_s:.2f} x "
-                f"the ordinary study (1 + {lengths} lengths = {1 + lengths})"
-            )
-    print(f"\nfull study: {total:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB")
+
+def whole_study(frame, models: list[str], args: argparse.Namespace, jobs: int) -> float:
+    """The study of every case, as ``vfm evaluate --jobs`` runs it; returns its wall time."""
+    print(f"\nthe whole study with --jobs {jobs}:")
+    started = time.perf_counter()
+    total = 0.0
+    with StudyWorkers(max(jobs, 1) - 1, preload=PRELOAD) as workers:
+        for case in args.cases.split(","):
+            total += study_case(frame, models, args, case, workers if jobs > 1 else None)
+    wall = time.perf_counter() - started
+    print(f"full study (--jobs {jobs}): {wall:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB")
+    return wall
+
+
+def study_case(frame, models: list[str], args: argparse.Namespace, case: str, workers) -> float:
+    result = run_study(
+        frame,
+        models=models,
+        methods=args.methods.split(","),
+        targets=case,
+        progress=False,
+        workers=workers,
+    )
+    total = result.runtime_s
+    if args.out:
+        from vfm_core.jobs.evaluate import write_study
+
+        write_study(result, f"{args.out}/{case}")
+    print()
+    print(format_summary(result))
+    per = result.predictions.groupby(["model", "method"]).size()
+    print(f"case {case}: {result.runtime_s:.1f} s for {len(per)} model x method runs")
+    if args.outages:
+        with_outages = run_study(
+            frame,
+            models=models,
+            methods=args.methods.split(","),
+            targets=case,
+            progress=False,
+            outages=args.outages,
+            workers=workers,
+        )
+        total += with_outages.runtime_s
+        lengths = len(with_outages.outages)
+        windows = len(with_outages.outage_windows)
+        print(format_summary(with_outages))
+        print(
+            f"case {case} with outages {args.outages} ({windows} windows): "
+            f"{with_outages.runtime_s:.1f} s, {with_outages.runtime_s / result.runtime_s:.2f} x "
+            f"the ordinary study (1 + {lengths} lengths = {1 + lengths})"
+        )
+    return total
 
 
 if __name__ == "__main__":

@@ -22,6 +22,16 @@ __all__ = ["main", "build_parser"]
 Handler = Callable[[argparse.Namespace], int]
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number.") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not a positive number of processes.")
+    return value
+
+
 def _split_list(values: Sequence[str] | None) -> list[str]:
     out: list[str] = []
     for v in values or []:
@@ -63,11 +73,13 @@ def _cmd_import_volve(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from vfm_core.jobs.evaluate import (
         DEFAULT_METHODS,
+        PRELOAD,
         format_summary,
         run_study,
         slow_runs,
         write_study,
     )
+    from vfm_core.jobs.workers import StudyWorkers, usable_cpus
     from vfm_core.models import MODELS
     from vfm_core.observations import load_observations
 
@@ -81,28 +93,37 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         from vfm_core.jobs.tune import load_params
 
         params = load_params(args.params)
-    for case in targets:
-        result = run_study(
-            loaded.frame,
-            models=models,
-            methods=methods,
-            targets=case,
-            split=args.split,
-            seed=args.seed,
-            progress=not args.quiet,
-            data_path=str(args.data),
-            track_parameters=args.track_parameters,
-            params=params,
-            effects=_split_list(args.effects),
-            outages=_split_list(args.outages),
-            outage_fractions=args.outage_fractions,
-        )
-        out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
-        written = write_study(result, out, report=not args.no_report)
-        print(format_summary(result))
-        for sentence in slow_runs(result.runs):
-            print(f"Slow run: {sentence}")
-        print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
+    groups = len(models) * (2 if args.effects else 1)  # a group: one model's runs
+    jobs = min(args.jobs or usable_cpus(), groups)
+    if jobs > 1:
+        print(f"Running models in {jobs} processes (--jobs 1: all in this one).")
+    # the workers start while this process runs the first models, and serve every case
+    with StudyWorkers(jobs - 1, threads=args.threads, preload=PRELOAD) as workers:
+        for case in targets:
+            result = run_study(
+                loaded.frame,
+                models=models,
+                methods=methods,
+                targets=case,
+                split=args.split,
+                seed=args.seed,
+                progress=not args.quiet,
+                data_path=str(args.data),
+                track_parameters=args.track_parameters,
+                params=params,
+                effects=_split_list(args.effects),
+                outages=_split_list(args.outages),
+                outage_fractions=args.outage_fractions,
+                workers=workers if jobs > 1 else None,
+            )
+            out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
+            written = write_study(result, out, report=not args.no_report)
+            print(format_summary(result))
+            for sentence in slow_runs(result.runs):
+                print(f"Slow run: {sentence}")
+            print(
+                f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}."
+            )
     return 0
 
 
@@ -206,6 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--track-parameters",
         action="store_true",
         help="also write parameters.parquet (physical parameters after each update)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=_positive_int,
+        default=None,
+        help="processes that run models at once (default: the CPUs this process may use; "
+        "1 runs everything in this process); the results are the same",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_evaluate)

@@ -34,7 +34,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +48,7 @@ from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import (
     OUTAGE_FRACTIONS,
     PHASES,
+    RunResult,
     has_phases,
     metrics_records,
     parse_outages,
@@ -55,6 +56,7 @@ from vfm_core.jobs.study import (
     resolve_split,
     run_prequential,
 )
+from vfm_core.jobs.workers import StudyWorkers
 from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
 from vfm_core.schema import SOURCE, TIME, WELL, WELL_TEST
@@ -69,6 +71,8 @@ __all__ = [
 ]
 
 DEFAULT_METHODS: tuple[str, ...] = ("ol", "pbl:14d", "pbl:182d")
+#: what a study worker imports before it takes a model (see vfm_core.jobs.workers)
+PRELOAD: tuple[str, ...] = (__name__,)
 
 
 @dataclass
@@ -193,6 +197,8 @@ def run_study(
     effects: Sequence[str] = (),
     outages: str | Sequence[str] = (),
     outage_fractions: str = "held",
+    jobs: int = 1,
+    workers: StudyWorkers | None = None,
 ) -> StudyResult:
     """Run every model with every method prequentially on one target case.
 
@@ -207,6 +213,11 @@ def run_study(
     run). ``outage_fractions``: ``held`` (the phase fractions inside a window are those of
     the last measurement before it, as with a failed MPFM) or ``measured`` (the file's).
     Where the data have the phase rates, every run also scores them.
+
+    ``jobs``: processes that run the study's model groups at once (this one and ``jobs - 1``
+    spawned workers, see :mod:`vfm_core.jobs.workers`); ``workers``, already started, are
+    used instead (and kept open: ``vfm evaluate`` shares them between its cases). The
+    results are the same as with one process: each run is seeded and independent.
     """
     _check_names(models, methods)
     split_ts = resolve_split(targets, split, frame)
@@ -254,66 +265,66 @@ def run_study(
         dynamic_ncols=True,
         mininterval=0.5,
     )
+    # the runs in the order of a serial study; a group is one model's runs (they share the
+    # initial fit), the unit that a worker takes
+    order: list[tuple[str, str, str, int]] = [
+        (model, meth, label, k) for model, meth, label in combos for k in range(-1, len(plans))
+    ]
+    groups: dict[str, list[tuple[int, str, str, str, int]]] = {}
+    for index, (model, meth, label, k) in enumerate(order):
+        groups.setdefault(label, []).append((index, model, meth, label, k))
+    common = {
+        "targets": targets,
+        "split": split_ts,
+        "seed": seed,
+        "track_parameters": track_parameters,
+        "params": params,
+        "effects": list(effects),
+        "phases": phases,
+        "run_kwargs": dict(run_kwargs or {}),
+        "n_test": n_test,
+    }
+    tasks = [
+        {"frame": frame, "runs": runs, "plans": plans, "common": common} for runs in groups.values()
+    ]
+    own = workers is None and jobs > 1 and len(tasks) > 1
+    pool = StudyWorkers(min(jobs, len(tasks)) - 1, preload=PRELOAD).start() if own else workers
+    try:
+        if pool is None or len(tasks) < 2:
+            done = [_run_group(task, bar.update) for task in tasks]
+        else:
+            bar.set_postfix_str(f"{1 + pool.workers} processes")
+            done = pool.map(_run_group, tasks, bar.update)
+    finally:
+        bar.close()
+        if own and pool is not None:
+            pool.close()
+    results: dict[int, RunResult] = {i: r for part in done for i, r in part.items()}
     predictions = []
     outage_predictions = []
     parameters = []
     updates: dict[str, list[pd.Timestamp]] = {}
     runs: list[dict[str, Any]] = []
-    initial_fits: dict[Any, Any] = {}
-    from vfm_core.jobs.tune import method_for, settings_for
-
-    try:
-        for model, meth, label in combos:
-            extended = label != model
-            for plan in [None, *plans]:
-                what = f"{label} {meth}" + ("" if plan is None else f" outage {plan.label}")
-                bar.set_postfix_str(what)
-                base = bar.n
-
-                def report(done: int, total: int, base: int = base) -> None:
-                    bar.update(base + done - bar.n)
-
-                text = method_for(params, model, meth)  # with the options `vfm tune` chose
-                result = run_prequential(
-                    frame,
-                    model,
-                    text,
-                    targets=targets,
-                    split=split_ts,
-                    seed=seed,
-                    progress=report,
-                    track_parameters=track_parameters and plan is None,
-                    initial_fits=initial_fits,
-                    effects=list(effects) if extended else (),
-                    outage=plan,
-                    phases=phases,
-                    **settings_for(params, model, meth),
-                    **(run_kwargs or {}),
-                )
-                runs.append(
-                    {
-                        "model": label,
-                        "method": meth,
-                        **({} if plan is None else {"outage": plan.label}),
-                        "runtime_s": result.runtime_s,
-                        "retrains": len(result.updates),
-                    }
-                )
-                if extended:
-                    result.predictions["model"] = label
-                if text != meth:
-                    result.predictions["method"] = meth
-                bar.update(base + n_test - bar.n)
-                if plan is not None:
-                    inside = result.predictions["in_outage"].to_numpy(dtype=bool)
-                    outage_predictions.append(result.predictions[inside].drop(columns="in_outage"))
-                    continue
-                predictions.append(result.predictions)
-                updates[meth] = result.updates
-                if track_parameters and not result.parameters.empty:
-                    parameters.append(result.parameters.assign(model=label, method=meth))
-    finally:
-        bar.close()
+    for index, (_, meth, label, k) in enumerate(order):
+        result = results[index]
+        plan = None if k < 0 else plans[k]
+        runs.append(
+            {
+                "model": label,
+                "method": meth,
+                **({} if plan is None else {"outage": plan.label}),
+                "runtime_s": result.runtime_s,
+                "retrains": len(result.updates),
+            }
+        )
+        if plan is not None:
+            inside = result.predictions["in_outage"].to_numpy(dtype=bool)
+            outage_predictions.append(result.predictions[inside].drop(columns="in_outage"))
+            continue
+        predictions.append(result.predictions)
+        updates[meth] = result.updates
+        if track_parameters and not result.parameters.empty:
+            parameters.append(result.parameters.assign(model=label, method=meth))
     preds = pd.concat(predictions, ignore_index=True)
     records = metrics_records(preds)
     outage_preds = (
@@ -343,6 +354,54 @@ def run_study(
         phases=list(PHASES) if phases else [],
         runs=runs,
     )
+
+
+def _run_group(task: dict[str, Any], report: Callable[[int], None]) -> dict[int, RunResult]:
+    """Run one group of the study (one model's methods, and their outage runs, sharing the
+    initial fit), in this process or a worker's; ``report(n)``: n more observations done.
+    Returns each run's result by its index in the serial order (without the final model)."""
+    from vfm_core.jobs.tune import method_for, settings_for
+
+    frame, plans, common = task["frame"], task["plans"], task["common"]
+    params, n_test = common["params"], common["n_test"]
+    initial_fits: dict[Any, Any] = {}
+    out: dict[int, RunResult] = {}
+    for index, model, meth, label, k in task["runs"]:
+        plan = None if k < 0 else plans[k]
+        extended = label != model
+        reported = [0]
+
+        def progress(done: int, total: int, reported: list[int] = reported) -> None:
+            if done > reported[0]:
+                report(done - reported[0])
+                reported[0] = done
+
+        text = method_for(params, model, meth)  # with the options `vfm tune` chose
+        result = run_prequential(
+            frame,
+            model,
+            text,
+            targets=common["targets"],
+            split=common["split"],
+            seed=common["seed"],
+            progress=progress,
+            track_parameters=common["track_parameters"] and plan is None,
+            initial_fits=initial_fits,
+            effects=common["effects"] if extended else (),
+            outage=plan,
+            phases=common["phases"],
+            **settings_for(params, model, meth),
+            **common["run_kwargs"],
+        )
+        if n_test > reported[0]:
+            report(n_test - reported[0])
+        result.final_model = None  # not needed, and not sent back from a worker
+        if extended:
+            result.predictions["model"] = label
+        if text != meth:
+            result.predictions["method"] = meth
+        out[index] = result
+    return out
 
 
 #: a run this many times the median run's time is named by :func:`slow_runs`
