@@ -126,6 +126,7 @@ class StudyWorkers:
         self._reader: threading.Thread | None = None
         self._cond = threading.Condition()
         self._idle = 0
+        self._ready: set[int] = set()
         self._closed = False
         self._run: dict[str, Any] | None = None
 
@@ -149,12 +150,24 @@ class StudyWorkers:
         return self
 
     def close(self) -> None:
-        """Stop the workers (at once: a task still running is abandoned)."""
+        """Stop the workers: idle ones are told to end (a worker killed while it waits on
+        the queue leaves its locks to the resource tracker, which then warns); a task still
+        running is abandoned, its worker terminated."""
         with self._cond:
             if self._closed:
                 return
             self._closed = True
+            busy = self._run is not None and bool(self._run["outstanding"])
             self._cond.notify_all()
+        if not busy and self._tasks is not None:
+            for _ in self._procs:
+                self._tasks.put(None)
+            for proc in self._procs:
+                if proc.pid not in self._ready:  # still importing: it holds no lock yet
+                    proc.terminate()
+            deadline = time.monotonic() + 10.0
+            for proc in self._procs:
+                proc.join(timeout=max(0.0, deadline - time.monotonic()))
         for proc in self._procs:
             if proc.is_alive():
                 proc.terminate()
@@ -209,6 +222,7 @@ class StudyWorkers:
             with self._cond:
                 if kind == "ready":
                     self._idle += 1
+                    self._ready.add(msg[1])
                 else:
                     self._idle += 1
                     run = self._run
