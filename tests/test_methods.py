@@ -216,3 +216,40 @@ def test_methods_the_service_cannot_run_are_refused_by_the_streaming_learner() -
         if not cls.streaming:
             with pytest.raises(ConfigError, match="cannot run"):
                 WellLearner("W1", "mm", cls.example)
+
+
+def test_a_retrain_chooses_a_stale_iteration_count_again() -> None:
+    """A count chosen by early stopping on few measurements (here one step, as a young
+    well's few measurements can give) is chosen again by early stopping once the well holds
+    twice as many; the retrain then fits the eroded choke better than one that keeps the
+    stale count, and a count chosen on enough measurements is kept."""
+    from vfm_core.learning.method import RECHOOSE_GROWTH
+
+    frame = simulate_field(
+        wells=2, years=2.0, seed=3, start="2017-01-01", hidden=["erosion"]
+    ).observations
+    is_target = target_mask(frame, "all")
+    wells = wells_of(frame)
+    memory = FrameMemory(frame, is_target, wells)
+    start = pd.Timestamp("2017-07-01", tz="UTC").value
+    end = int(frame["time"].max().value) + 1
+    recent = np.flatnonzero(
+        is_target & (frame["time"] >= frame["time"].max() - pd.Timedelta("90D"))
+    )
+    probe = make_batch(frame, wells, recent)
+
+    def retrained(chosen_on: int) -> tuple[LearningMethod, float]:
+        method = parse_method("pbl:30d").bind(make_model("mm", wells))
+        method.fit(memory.batch(start))
+        method.iterations = torch.ones(len(wells), dtype=torch.int64)
+        method.chosen_on = torch.full((len(wells),), chosen_on, dtype=torch.int64)
+        method.retrain(memory, end)
+        q = method.predict(probe).mean
+        return method, float(((q - probe.y).abs() / probe.y)[probe.mask].mean())
+
+    counts = memory.batch(end).count()
+    stale, err_stale = retrained(1)
+    kept, err_kept = retrained(int(counts.max()) // RECHOOSE_GROWTH + 1)
+    assert torch.equal(stale.chosen_on, counts) and bool((stale.iterations > 1).all())
+    assert bool((kept.iterations == 1).all())  # chosen on more than half: not stale yet
+    assert err_stale < 0.8 * err_kept, (err_stale, err_kept)

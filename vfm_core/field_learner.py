@@ -204,6 +204,9 @@ class FieldLearner:
             value = current.get(key)
             if isinstance(value, torch.Tensor) and bool(others.any()):
                 value[j] = pick(value[others])
+        chosen_on = current.get("chosen_on")
+        if isinstance(chosen_on, torch.Tensor) and chosen_on.numel() == n:
+            chosen_on[j] = 0  # it has no measurement now
         positions = _per_well_indices(self.model)
         for idx, entry in (current.get("optimizer") or {}).get("state", {}).items():
             if int(idx) in positions:

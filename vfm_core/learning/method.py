@@ -147,6 +147,9 @@ class LearningMethod(ABC):
         self.train = TrainSettings()
         #: iterations per well of the initial (early-stopped) fit, reused by warm retrains
         self.iterations = torch.zeros(0, dtype=torch.int64)
+        #: per well, how many measurements that count was chosen on (0: none, the default);
+        #: a retrain chooses it again once the well holds RECHOOSE_GROWTH times as many
+        self.chosen_on = torch.zeros(0, dtype=torch.int64)
         #: times (epoch ns) of the retrains so far in the order they ran (a checkpoint keeps
         #: the last 100), and their count
         self.retrains: list[int] = []
@@ -184,6 +187,7 @@ class LearningMethod(ABC):
         self.iterations = torch.full(
             (len(model.wells),), self.train.default_iter, dtype=torch.int64
         )
+        self.chosen_on = torch.zeros(len(model.wells), dtype=torch.int64)
         return self
 
     def copy_for(self: M, model: ChokeModel) -> M:
@@ -204,12 +208,20 @@ class LearningMethod(ABC):
         settings = replace(self.train, early_stopping=False) if converge else self.train
         summary = fit_batch(self.model, batch, settings)
         self.iterations = summary["iterations"].clone()
+        self.chosen_on = batch.count().clone()
         self._fitted(batch, torch.ones(batch.n_wells, dtype=torch.bool))
 
     def adopt(self, batch: Batch, iterations: torch.Tensor) -> None:
         """Take on an initial fit done elsewhere (the model already holds it)."""
         self.iterations = iterations.clone()
+        self.chosen_on = batch.count().clone()
         self._fitted(batch, torch.ones(batch.n_wells, dtype=torch.bool))
+
+    def chose(self, wells: torch.Tensor, iterations: torch.Tensor, counts: torch.Tensor) -> None:
+        """Record a new early-stopped iteration count for ``wells`` [W] (bool), chosen on
+        ``counts`` [W] measurements."""
+        self.iterations = torch.where(wells, iterations, self.iterations)
+        self.chosen_on = torch.where(wells, counts, self.chosen_on)
 
     def _fitted(self, batch: Batch, wells: torch.Tensor) -> None:
         """Hook after a batch fit of ``wells`` on ``batch`` (Bayesian methods take their
@@ -247,7 +259,16 @@ class LearningMethod(ABC):
         batch = memory.batch(until_ns, window)
         if not bool(batch.count().any()):
             return
-        fit_batch(model, batch, self.train, self.iterations, wells=wells)
+        # a count chosen on a young well's few measurements (early stopping may pick one
+        # step there) is chosen again, as the paper's batch learning does, once the well
+        # holds RECHOOSE_GROWTH times the measurements it was chosen on
+        counts = batch.count()
+        again = (counts > 0) & (counts >= RECHOOSE_GROWTH * self.chosen_on)
+        if wells is not None:
+            again &= wells
+        summary = fit_batch(model, batch, self.train, self.iterations, wells=wells, rechoose=again)
+        if self.train.early_stopping and bool(again.any()):
+            self.chose(again, summary["chosen"], counts)
         self.retrains.append(int(until_ns if at_ns is None else at_ns))
         self.n_retrains += 1
         mask = torch.ones(batch.n_wells, dtype=torch.bool) if wells is None else wells
@@ -295,6 +316,7 @@ class LearningMethod(ABC):
     def state_dict(self) -> dict[str, Any]:
         return {
             "iterations": self.iterations.clone(),
+            "chosen_on": self.chosen_on.clone(),
             "retrains": list(self.retrains[-100:]),
             "n_retrains": self.n_retrains,
         }
@@ -302,9 +324,18 @@ class LearningMethod(ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "iterations" in state:
             self.iterations = torch.as_tensor(state["iterations"]).clone()
+            # a checkpoint from before: the counts were chosen on no known number of
+            # measurements, so the next retrain chooses them again
+            self.chosen_on = torch.as_tensor(
+                state.get("chosen_on", torch.zeros_like(self.iterations))
+            ).clone()
         self.retrains = [int(t) for t in state.get("retrains", [])]
         self.n_retrains = int(state.get("n_retrains", len(self.retrains)))
 
+
+#: a retrain chooses a well's iteration count again by early stopping once the well holds
+#: this many times the measurements the count was chosen on (the choice grew stale)
+RECHOOSE_GROWTH = 2
 
 #: every registered method by key (filled by :func:`register`)
 METHODS: dict[str, type[LearningMethod]] = {}

@@ -109,7 +109,7 @@ class PeriodicBatch(LearningMethod):
         t = int(batch.time_ns[new].max())
         fresh = memory.batch(t + 1)
         summary = fit_batch(self.model, fresh, self.train, wells=new)
-        self.iterations = torch.where(new, summary["iterations"], self.iterations)
+        self.chose(new, summary["iterations"], fresh.count())
         self._fitted(fresh, new)
         self._next[new] = t + int(self.period.value)
         return new

@@ -506,6 +506,7 @@ def fit_batch(
     settings: TrainSettings,
     iterations: torch.Tensor | None = None,
     wells: torch.Tensor | None = None,
+    rechoose: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """MAP-train ``model`` on ``batch`` from its current parameters (a warm start).
 
@@ -514,7 +515,11 @@ def fit_batch(
     in one batch, fewer once its objective has converged (``retrain_tol``: running on only
     costs time). ``wells`` [W] (bool)
     retrains only those wells (the others keep their parameters; shared parameters always
-    train). Returns a summary with ``iterations``, the count per well, for later retrains.
+    train). ``rechoose`` [W] (bool, with ``iterations``): wells whose iteration count this
+    retrain chooses again by early stopping, as the initial fit did (from the warm start, on
+    the latest slice held out). Returns a summary with ``iterations``, the count per well
+    run, and ``chosen``, early stopping's choice per well (the count given where it did not
+    run), for later retrains.
     """
     deadline = time.monotonic() + settings.time_budget_s if settings.time_budget_s > 0 else None
     model.setup(batch)
@@ -547,7 +552,12 @@ def fit_batch(
         best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
             max=settings.retrain_max_iter
         )
-        has_val = torch.zeros_like(has_val)
+        if rechoose is None or not settings.early_stopping:
+            has_val = torch.zeros_like(has_val)
+        else:
+            again = rechoose & (batch.count() > 0)
+            has_val = has_val & (again.any() if model.shared else again)
+    given = best_iter.clone()
     # pass 1: find the best iteration count on the held-out latest slice
     if bool(has_val.any()):
         opt, sched = make_optimizer(
@@ -578,12 +588,13 @@ def fit_batch(
                 timed_out = True
                 break
         sampler.finish()  # pass 2 continues each well's random stream
-        best_iter = torch.where(
-            has_val, best_iter, torch.full_like(best_iter, settings.default_iter)
-        )
+        best_iter = torch.where(has_val, best_iter, given)
         for p, s in zip(params, start, strict=True):
             p.data.copy_(s)
 
+    chosen = torch.where(has_val, best_iter, iterations) if retrain else best_iter.clone()
+    if retrain:
+        best_iter = best_iter.clamp(max=settings.retrain_max_iter)
     # pass 2: from the same start, on all data, each well for its chosen iteration count
     if model.shared:
         best_iter = torch.full_like(best_iter, int(best_iter.max()))
@@ -637,7 +648,7 @@ def fit_batch(
             # wells that stopped early keep their snapshot; the rest end at total_iter
             keep = best_iter < total_iter
             p.data[keep] = f[keep]
-    return {"iterations": best_iter, "timed_out": timed_out}
+    return {"iterations": best_iter, "chosen": chosen, "timed_out": timed_out}
 
 
 def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
