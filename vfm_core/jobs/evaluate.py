@@ -291,7 +291,7 @@ def run_study(
     pool = StudyWorkers(min(jobs, len(tasks)) - 1, preload=PRELOAD).start() if own else workers
     try:
         if pool is None or len(tasks) < 2:
-            done = [_run_group(task, bar.update) for task in tasks]
+            done = [_run_group(task, _BarReport(bar)) for task in tasks]
         else:
             bar.set_postfix_str(f"{1 + pool.workers} processes")
             done = pool.map(_run_group, tasks, bar.update)
@@ -356,6 +356,20 @@ def run_study(
     )
 
 
+class _BarReport:
+    """The progress of a study run in this process alone: observations done, and the run
+    under way (shown beside the bar)."""
+
+    def __init__(self, bar: Any) -> None:
+        self.bar = bar
+
+    def __call__(self, n: int) -> None:
+        self.bar.update(n)
+
+    def status(self, text: str) -> None:
+        self.bar.set_postfix_str(text)
+
+
 def _run_group(task: dict[str, Any], report: Callable[[int], None]) -> dict[int, RunResult]:
     """Run one group of the study (one model's methods, and their outage runs, sharing the
     initial fit), in this process or a worker's; ``report(n)``: n more observations done.
@@ -366,10 +380,13 @@ def _run_group(task: dict[str, Any], report: Callable[[int], None]) -> dict[int,
     params, n_test = common["params"], common["n_test"]
     initial_fits: dict[Any, Any] = {}
     out: dict[int, RunResult] = {}
+    status = getattr(report, "status", None)
     for index, model, meth, label, k in task["runs"]:
         plan = None if k < 0 else plans[k]
         extended = label != model
         reported = [0]
+        if status is not None:
+            status(f"{label} {meth}" + ("" if plan is None else f" outage {plan.label}"))
 
         def progress(done: int, total: int, reported: list[int] = reported) -> None:
             if done > reported[0]:
