@@ -238,18 +238,24 @@ def test_a_retrain_chooses_a_stale_iteration_count_again() -> None:
     )
     probe = make_batch(frame, wells, recent)
 
-    def retrained(chosen_on: int) -> tuple[LearningMethod, float]:
+    def retrained(*chosen_on: int) -> tuple[LearningMethod, float]:
         method = parse_method("pbl:30d").bind(make_model("mm", wells))
         method.fit(memory.batch(start))
         method.iterations = torch.ones(len(wells), dtype=torch.int64)
-        method.chosen_on = torch.full((len(wells),), chosen_on, dtype=torch.int64)
+        method.chosen_on = torch.tensor(chosen_on, dtype=torch.int64)
         method.retrain(memory, end)
         q = method.predict(probe).mean
         return method, float(((q - probe.y).abs() / probe.y)[probe.mask].mean())
 
     counts = memory.batch(end).count()
-    stale, err_stale = retrained(1)
-    kept, err_kept = retrained(int(counts.max()) // RECHOOSE_GROWTH + 1)
+    enough = int(counts.max()) // RECHOOSE_GROWTH + 1
+    stale, err_stale = retrained(1, 1)
+    kept, err_kept = retrained(enough, enough)
     assert torch.equal(stale.chosen_on, counts) and bool((stale.iterations > 1).all())
     assert bool((kept.iterations == 1).all())  # chosen on more than half: not stale yet
     assert err_stale < 0.8 * err_kept, (err_stale, err_kept)
+    # choosing one well's count again leaves the other's retrain as it was, to the bit
+    one, _ = retrained(1, enough)
+    assert int(one.iterations[0]) > 1 and int(one.iterations[1]) == 1
+    z_one, z_kept = one.model.phys.z.detach(), kept.model.phys.z.detach()  # type: ignore[union-attr]
+    assert torch.equal(z_one[1], z_kept[1]) and not torch.equal(z_one[0], z_kept[0])

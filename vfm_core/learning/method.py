@@ -263,7 +263,11 @@ class LearningMethod(ABC):
         # step there) is chosen again, as the paper's batch learning does, once the well
         # holds RECHOOSE_GROWTH times the measurements it was chosen on
         counts = batch.count()
-        again = (counts > 0) & (counts >= RECHOOSE_GROWTH * self.chosen_on)
+        if model.shared:  # one count for the field, chosen on the field's measurements
+            grown = bool(counts.sum() >= RECHOOSE_GROWTH * self.chosen_on.sum())
+            again = (counts > 0) & grown
+        else:
+            again = (counts > 0) & (counts >= RECHOOSE_GROWTH * self.chosen_on)
         if wells is not None:
             again &= wells
         summary = fit_batch(model, batch, self.train, self.iterations, wells=wells, rechoose=again)
