@@ -271,8 +271,9 @@ class LearningMethod(ABC):
         if wells is not None:
             again &= wells
         summary = fit_batch(model, batch, self.train, self.iterations, wells=wells, rechoose=again)
-        if self.train.early_stopping and bool(again.any()):
-            self.chose(again, summary["chosen"], counts)
+        searched = summary.get("searched")
+        if searched is not None and bool(searched.any()):  # too few to hold out: next time
+            self.chose(searched, summary["chosen"], counts)
         self.retrains.append(int(until_ns if at_ns is None else at_ns))
         self.n_retrains += 1
         mask = torch.ones(batch.n_wells, dtype=torch.bool) if wells is None else wells

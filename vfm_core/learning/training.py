@@ -518,8 +518,8 @@ def fit_batch(
     train). ``rechoose`` [W] (bool, with ``iterations``): wells whose iteration count this
     retrain chooses again by early stopping, as the initial fit did (from the warm start, on
     the latest slice held out). Returns a summary with ``iterations``, the count per well
-    run, and ``chosen``, early stopping's choice per well (the count given where it did not
-    run), for later retrains.
+    run, ``chosen``, early stopping's choice per well (the count given where it did not
+    run), and ``searched``, the wells it ran for [W] (bool), for later retrains.
     """
     deadline = time.monotonic() + settings.time_budget_s if settings.time_budget_s > 0 else None
     model.setup(batch)
@@ -656,7 +656,7 @@ def fit_batch(
             # wells that stopped early keep their snapshot; the rest end at total_iter
             keep = best_iter < total_iter
             p.data[keep] = f[keep]
-    return {"iterations": best_iter, "chosen": chosen, "timed_out": timed_out}
+    return {"iterations": best_iter, "chosen": chosen, "searched": has_val, "timed_out": timed_out}
 
 
 def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:
