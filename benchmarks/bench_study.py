@@ -192,14 +192,8 @@ def whole_study(frame, models: list[str], args: argparse.Namespace, jobs: int) -
 
 
 def study_case(frame, models: list[str], args: argparse.Namespace, case: str, workers) -> float:
-    result = run_study(
-        frame,
-        models=models,
-        methods=args.methods.split(","),
-        targets=case,
-        progress=False,
-        workers=workers,
-    )
+    common = dict(models=models, methods=args.methods.split(","), targets=case, progress=False)
+    result = run_study(frame, workers=workers, **common)
     total = result.runtime_s
     if args.out:
         from vfm_core.jobs.evaluate import write_study
@@ -210,15 +204,7 @@ def study_case(frame, models: list[str], args: argparse.Namespace, case: str, wo
     per = result.predictions.groupby(["model", "method"]).size()
     print(f"case {case}: {result.runtime_s:.1f} s for {len(per)} model x method runs")
     if args.outages:
-        with_outages = run_study(
-            frame,
-            models=models,
-            methods=args.methods.split(","),
-            targets=case,
-            progress=False,
-            outages=args.outages,
-            workers=workers,
-        )
+        with_outages = run_study(frame, outages=args.outages, workers=workers, **common)
         total += with_outages.runtime_s
         lengths = len(with_outages.outages)
         windows = len(with_outages.outage_windows)
