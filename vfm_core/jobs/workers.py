@@ -220,11 +220,10 @@ class StudyWorkers:
                         self._run["running"][msg[1]] = msg[2]
                 continue
             with self._cond:
+                self._idle += 1  # a worker ready for its first task, or done with one
                 if kind == "ready":
-                    self._idle += 1
                     self._ready.add(msg[1])
                 else:
-                    self._idle += 1
                     run = self._run
                     if run is not None:
                         run["outstanding"] -= 1
@@ -286,15 +285,14 @@ class StudyWorkers:
                     index, task = run["pending"].popleft()
                 run["results"][index] = fn(task, locked)
             self._wait(run)
+            if run["error"] is not None:
+                raise run["error"]
         except BaseException:
-            self.close()  # a worker may still be running a task of this run
+            self.close()  # another worker may still be running a task of this run
             raise
         finally:
             with self._cond:
                 self._run = None
-        if run["error"] is not None:
-            self.close()
-            raise run["error"]
         return [run["results"][i] for i in range(len(tasks))]
 
     def _wait(self, run: dict[str, Any]) -> None:

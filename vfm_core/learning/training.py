@@ -567,7 +567,11 @@ def fit_batch(
         since = torch.zeros(n_w, dtype=torch.int64)
         # a retrain that chooses some wells' counts again leaves the others' random streams
         # where they were: their pass 2 is the one they would have had without the search
-        kept = [(g, g.get_state()) for g, v in zip(gens, has_val.tolist(), strict=True) if not v]
+        kept = (
+            [(g, g.get_state()) for g, v in zip(gens, has_val.tolist(), strict=True) if not v]
+            if retrain
+            else []
+        )
         sampler = _Sampler(train, settings.batch_size, gens)
         # a retrain runs at most retrain_max_iter: looking further for its count is waste
         search = min(settings.max_iter, settings.retrain_max_iter) if retrain else settings.max_iter
@@ -593,9 +597,8 @@ def fit_batch(
                 timed_out = True
                 break
         sampler.finish()  # pass 2 continues each well's random stream
-        if retrain:
-            for gen, state in kept:
-                gen.set_state(state)
+        for gen, state in kept:
+            gen.set_state(state)
         best_iter = torch.where(has_val, best_iter, given)
         for p, s in zip(params, start, strict=True):
             p.data.copy_(s)
