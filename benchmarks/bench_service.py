@@ -9,12 +9,14 @@ minutes per well, which the service learns from online. Figures per field size:
 * the sustained rate: samples sent and predictions received per second, and how many
   were lost (should be zero);
 * a burst: the same wells' samples sent as fast as Zenoh's BLOCK congestion control lets
-  them, to find the rate the service sustains without loss.
+  them, to find the rate the service sustains without loss; ``--block 1,40`` runs one burst
+  per message size (1: one sample a message; more: sensor blocks of that many rows).
 
 Fairness (``--scenario flood``): two wells with a history; a good well sends a sample every
 50 ms from this process while, from a second process with its own Zenoh session, another
 well floods as fast as Zenoh's BLOCK congestion control lets it (several thousand samples
-a second) -- or, with ``--flood-kind names``, a stream of new well names. Figures: the
+a second) -- or, with ``--flood-kind names``, a stream of new well names, or with
+``--flood-kind blocks``, sensor blocks of that well (``--flood-block`` rows, 500). Figures: the
 good well's latency (send to prediction) before and during the flood, p50 / p99 / max, and
 what the flood got (sent, accepted, refused by reason).
 
@@ -29,11 +31,13 @@ Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
     .venv/bin/python benchmarks/bench_service.py [--wells 100,1000] [--seconds 30] [--burst 20000]
     .venv/bin/python benchmarks/bench_service.py --scenario flood [--flood-kind samples|names]
     .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 [--profile 30]
+    .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 --block 1,40
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from datetime import UTC, datetime, timedelta
@@ -46,7 +50,7 @@ import pandas as pd
 from replay.client import FieldClient, ZenohBus, sample_of
 from service.testing import ServeProcess
 from vfm_core.data import target_mask
-from vfm_core.messages import Measurement
+from vfm_core.messages import Measurement, sensor_block
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -110,6 +114,41 @@ class Plant:
             self.bus.close()
 
 
+def block_messages(
+    names: list[str],
+    inputs: dict[str, np.ndarray],
+    t0: datetime,
+    per_well: int,
+    block: int,
+    measure_every_s: float,
+    phase: np.ndarray | None = None,
+    prefix: str = "vfm",
+) -> list[tuple[str, bytes]]:
+    """(key, payload) of every well's samples at 1 s steps from ``t0``, ``block`` samples a
+    message (1: one sample a message), each block followed by the MPFM readings of its
+    samples (one every ``measure_every_s`` per well)."""
+    messages: list[tuple[str, bytes]] = []
+    for first in range(0, per_well, block):
+        steps = range(first, min(first + block, per_well))
+        for j, name in enumerate(names):
+            samples, measured = [], []
+            offset = j if phase is None else int(phase[j])
+            for step in steps:
+                when = t0 + timedelta(seconds=step)
+                row = inputs[name][step % len(inputs[name])]
+                samples.append(sample_of(when, row[:6]))
+                if (step + offset) % int(measure_every_s) == 0:
+                    m = Measurement(time=when, q_total=float(row[6]))
+                    measured.append(m.model_dump_json().encode())
+            key = f"{prefix}/{name}/sensors"
+            if block == 1:
+                messages.append((key, samples[0].model_dump_json().encode()))
+            else:  # one sensor block, then the measurements of its samples
+                messages.append((key, sensor_block(samples)))
+            messages += [(f"{prefix}/{name}/measurements/mpfm", m) for m in measured]
+    return messages
+
+
 def run_field(
     wells: int,
     seconds: float,
@@ -119,7 +158,8 @@ def run_field(
     synchronous: str,
     history_rows: int,
     queues: str = "",
-) -> dict[str, float]:
+    blocks: tuple[int, ...] = (1,),
+) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="vfm-bench-") as tmp:
         folder = Path(tmp)
         history, inputs = make_history(folder, wells, history_rows)
@@ -184,35 +224,50 @@ workers = {workers}
                 "max_ms": float(lat.max()) if len(lat) else float("nan"),
                 "elapsed_s": steady_s,
             }
-            # -- burst: as fast as BLOCK lets us ------------------------------------------------
-            plant.latency.clear()
-            base_received = plant.received
+            # -- bursts: as fast as BLOCK lets us, one per message size ------------------------
+            bursts = []
             t1_wall = t0_wall + timedelta(seconds=n_seconds + 1)
-            t1 = time.perf_counter()
-            n_burst = 0
             per_well = max(1, burst // wells)
-            for step in range(per_well):
-                for j, name in enumerate(names):
-                    row = inputs[name][step % len(inputs[name])]
-                    measure = (step + int(phase[j])) % int(measure_every_s) == 0
-                    plant.send(name, t1_wall + timedelta(seconds=step), row, measure)
-                    n_burst += 1
-            burst_send_s = time.perf_counter() - t1
-            deadline = time.monotonic() + 300
-            while plant.received - base_received < n_burst and time.monotonic() < deadline:
-                time.sleep(0.02)
-            burst_s = time.perf_counter() - t1
-            got = plant.received - base_received
-            lat = np.array(plant.latency) * 1000.0
-            burst_out = {
-                "sent": n_burst,
-                "received": got,
-                "lost": n_burst - got,
-                "send_s": burst_send_s,
-                "elapsed_s": burst_s,
-                "rate": got / burst_s,
-                "p50_ms": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
-            }
+            for block in blocks:
+                plant.latency.clear()
+                base_received = plant.received
+                t1 = time.perf_counter()
+                n_burst = 0
+                if block == 1:
+                    for step in range(per_well):
+                        for j, name in enumerate(names):
+                            row = inputs[name][step % len(inputs[name])]
+                            measure = (step + int(phase[j])) % int(measure_every_s) == 0
+                            plant.send(name, t1_wall + timedelta(seconds=step), row, measure)
+                            n_burst += 1
+                else:  # sensor blocks, made before the clock starts (the sender is not measured)
+                    puts = block_messages(
+                        names, inputs, t1_wall, per_well, block, measure_every_s, phase
+                    )
+                    t1 = time.perf_counter()
+                    for key, payload in puts:
+                        plant.bus.put(key, payload)
+                    n_burst = per_well * len(names)
+                burst_send_s = time.perf_counter() - t1
+                deadline = time.monotonic() + 300
+                while plant.received - base_received < n_burst and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                burst_s = time.perf_counter() - t1
+                got = plant.received - base_received
+                lat = np.array(plant.latency) * 1000.0
+                bursts.append(
+                    {
+                        "block": block,
+                        "sent": n_burst,
+                        "received": got,
+                        "lost": n_burst - got,
+                        "send_s": burst_send_s,
+                        "elapsed_s": burst_s,
+                        "rate": got / burst_s,
+                        "p50_ms": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
+                    }
+                )
+                t1_wall += timedelta(seconds=per_well + 1)
         finally:
             plant.close()
             serve.stop()
@@ -228,12 +283,18 @@ workers = {workers}
             "startup_s": startup,
             "learned": learned,
             **{f"steady_{k}": v for k, v in steady.items()},
-            **{f"burst_{k}": v for k, v in burst_out.items()},
+            "bursts": bursts,
         }
 
 
 def _flood(
-    endpoint: str, kind: str, seconds: float, row: list[float], t0_ns: int, out: Any
+    endpoint: str,
+    kind: str,
+    seconds: float,
+    row: list[float],
+    t0_ns: int,
+    out: Any,
+    rows: int = 500,
 ) -> None:
     """The flooding side, in its own process and Zenoh session: as fast as BLOCK lets it."""
     import zenoh
@@ -259,7 +320,17 @@ def _flood(
         )
         n = 0
         end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        while kind == "blocks" and time.monotonic() < end:  # sensor blocks of `rows` rows
+            times = [
+                datetime.fromtimestamp((t0_ns + (n + i) * 1000) / 1e9, UTC).isoformat()
+                for i in range(rows)
+            ]
+            block: dict[str, Any] = {"time": times}
+            for j, name in enumerate(("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")):
+                block[name] = [row[j]] * rows
+            pub.put(json.dumps(block))
+            n += rows
+        while kind != "blocks" and time.monotonic() < end:
             for _ in range(100):
                 when = datetime.fromtimestamp((t0_ns + n * 1000) / 1e9, UTC).isoformat()
                 payload = f'{{"time": "{when}", {inputs}}}'
@@ -297,7 +368,13 @@ def service_share_within(http_url: str, bound_s: float) -> float:
 
 
 def run_flood(
-    kind: str, baseline_s: float, flood_s: float, period_s: float, queues: str = ""
+    kind: str,
+    baseline_s: float,
+    flood_s: float,
+    period_s: float,
+    queues: str = "",
+    rows: int = 500,
+    inputs_toml: str = "",
 ) -> dict[str, Any]:
     """A good well's latency before and during a flood from another process (see the docstring)."""
     import multiprocessing as mp
@@ -325,6 +402,8 @@ port = 0
 [store]
 path = "{folder / "store.sqlite"}"
 synchronous = "normal"
+[inputs]
+{inputs_toml}
 [queues]
 {queues}
 """)
@@ -358,7 +437,7 @@ synchronous = "normal"
             flood_t0 = int((t_now + timedelta(minutes=1)).timestamp() * 1e9)
             proc = ctx.Process(
                 target=_flood,
-                args=(serve.zenoh, kind, flood_s, list(f_rows[0][:6]), flood_t0, out),
+                args=(serve.zenoh, kind, flood_s, list(f_rows[0][:6]), flood_t0, out, rows),
             )
             proc.start()
             time.sleep(1.0)  # let the flood start
@@ -382,6 +461,7 @@ synchronous = "normal"
 
     return {
         "kind": kind,
+        "rows": rows,
         "before": stats(before, sent_before),
         "during": stats(during, sent_during),
         "flood_sent": flooded,
@@ -394,7 +474,14 @@ synchronous = "normal"
 
 
 def run_engine(
-    wells: int, burst: int, measure_every_s: float, history_rows: int, profile: int, queues: str
+    wells: int,
+    burst: int,
+    measure_every_s: float,
+    history_rows: int,
+    profile: int,
+    queues: str,
+    block: int = 1,
+    synchronous: str = "normal",
 ) -> dict[str, Any]:
     """The engine in this process with the in-memory transport (see the module docstring)."""
     import cProfile
@@ -419,6 +506,7 @@ def run_engine(
             folder,
             model={"name": "mm", "method": "ol", "history": str(history)},
             queues=extra_queues,
+            store={"path": str(folder / "store.sqlite"), "synchronous": synchronous},
         )
         bus = MemoryTransport(settings.prefix, capacity=4096, keep=16)
         service = Service(settings, bus)
@@ -440,8 +528,9 @@ def run_engine(
         lock = threading.Lock()
 
         def on_prediction(key: str, payload: bytes) -> None:
+            n = payload.count(b'Z"')  # the answers' times (a prediction block holds many)
             with lock:
-                got[0] += 1
+                got[0] += n
                 if got[0] >= total[0]:
                     done.set()
 
@@ -458,23 +547,9 @@ def run_engine(
                     seconds=per_well + 3600
                 )
                 total[0] = per_well * len(names)
-                messages: list[tuple[str, bytes]] = []
-                for step in range(per_well):
-                    when = t0_wall + timedelta(seconds=step)
-                    for j, name in enumerate(names):
-                        row = inputs[name][step % len(inputs[name])]
-                        sample = sample_of(when, row[:6])
-                        messages.append(
-                            (f"{settings.prefix}/{name}/sensors", sample.model_dump_json().encode())
-                        )
-                        if (step + j) % int(measure_every_s) == 0:
-                            m = Measurement(time=when, q_total=float(row[6]))
-                            messages.append(
-                                (
-                                    f"{settings.prefix}/{name}/measurements/mpfm",
-                                    m.model_dump_json().encode(),
-                                )
-                            )
+                messages = block_messages(
+                    names, inputs, t0_wall, per_well, block, measure_every_s, None, settings.prefix
+                )
                 t1 = time.perf_counter()
                 cpu1 = time.process_time()
                 if profile:
@@ -533,7 +608,12 @@ def main() -> None:
         "--measure-every", type=float, default=180.0, help="seconds between a well's MPFM readings"
     )
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--synchronous", default="full", choices=["full", "normal"])
+    parser.add_argument(
+        "--synchronous",
+        default=None,
+        choices=["full", "normal"],
+        help="the store's synchronous mode (default: full over Zenoh, normal in-process)",
+    )
     parser.add_argument(
         "--history-rows", type=int, default=60, help="history rows per well for the initial fit"
     )
@@ -541,7 +621,16 @@ def main() -> None:
     parser.add_argument(
         "--profile", type=int, default=0, help="engine: print the N costliest functions"
     )
-    parser.add_argument("--flood-kind", default="samples", choices=["samples", "names"])
+    parser.add_argument(
+        "--block",
+        default="1",
+        help="samples per sensor message in the burst (engine and load scenarios), "
+        "comma-separated sizes run side by side (1: one sample a message; more: sensor blocks)",
+    )
+    parser.add_argument("--flood-kind", default="samples", choices=["samples", "names", "blocks"])
+    parser.add_argument(
+        "--flood-block", type=int, default=500, help="rows per block with --flood-kind blocks"
+    )
     parser.add_argument("--flood-seconds", type=float, default=10.0)
     parser.add_argument(
         "--queues", default="", help="TOML lines for [queues], e.g. 'receive_capacity = 256'"
@@ -550,32 +639,47 @@ def main() -> None:
     if args.scenario == "engine":
         print(
             "vfm engine in this process (in-memory transport, no Zenoh): mm + ol, "
-            f"{args.burst:,} samples put as fast as the receive queue takes them."
+            f"store synchronous={args.synchronous or 'normal'}, {args.burst:,} samples put as fast as the "
+            "receive queue takes them."
         )
         for wells in [int(w) for w in args.wells.split(",")]:
-            r = run_engine(
-                wells,
-                args.burst,
-                args.measure_every,
-                args.history_rows,
-                args.profile,
-                args.queues,
-            )
-            print(
-                f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s): {r['sent']:,} samples, "
-                f"{r['received']:,} predictions published in {r['elapsed_s']:.2f} s = "
-                f"{r['rate']:,.0f} samples/s ({r['cpu_us']:.0f} us of CPU per sample); accepted "
-                f"{r['accepted']}, refused {r['rejected']}"
-            )
-            if "profile" in r:
-                print(r["profile"])
+            for block in [int(b) for b in args.block.split(",")]:
+                r = run_engine(
+                    wells,
+                    args.burst,
+                    args.measure_every,
+                    args.history_rows,
+                    args.profile,
+                    args.queues,
+                    block,
+                    args.synchronous or "normal",
+                )
+                how = "one sample a message" if block == 1 else f"sensor blocks of {block} samples"
+                print(
+                    f"\n{wells} wells, {how} (start-up incl. fit {r['startup_s']:.1f} s): "
+                    f"{r['sent']:,} samples, {r['received']:,} predictions published in "
+                    f"{r['elapsed_s']:.2f} s = {r['rate']:,.0f} samples/s ({r['cpu_us']:.0f} us "
+                    f"of CPU per sample); accepted {r['accepted']}, refused {r['rejected']}"
+                )
+                if "profile" in r:
+                    print(r["profile"])
         return
     if args.scenario == "flood":
-        f = run_flood(args.flood_kind, 5.0, args.flood_seconds, 0.05, args.queues)
+        f = run_flood(
+            args.flood_kind,
+            5.0,
+            args.flood_seconds,
+            0.05,
+            args.queues,
+            args.flood_block,
+            f"max_block_samples = {max(args.flood_block, 1000)}",
+        )
+        blocks = f" in sensor blocks of {f['rows']} rows" if f["kind"] == "blocks" else ""
         print(
             f"Fairness: a good well sends a sample every 50 ms; another process floods "
-            f"{'new well names' if f['kind'] == 'names' else 'one well'} for {f['flood_s']:g} s "
-            f"({f['flood_sent']:,} messages sent, {f['flood_sent'] / f['flood_s']:,.0f}/s)."
+            f"{'new well names' if f['kind'] == 'names' else 'one well'}{blocks} for "
+            f"{f['flood_s']:g} s ({f['flood_sent']:,} samples sent, "
+            f"{f['flood_sent'] / f['flood_s']:,.0f}/s)."
         )
         for phase in ("before", "during"):
             r = f[phase]
@@ -589,7 +693,7 @@ def main() -> None:
         )
         return
     print(
-        f"vfm service benchmark: mm + ol, store synchronous={args.synchronous}, workers={args.workers}, "
+        f"vfm service benchmark: mm + ol, store synchronous={args.synchronous or 'full'}, workers={args.workers}, "
         f"{args.seconds:g} s at 1 Hz per well, a measurement every {args.measure_every:g} s per well."
     )
     for wells in [int(w) for w in args.wells.split(",")]:
@@ -599,9 +703,10 @@ def main() -> None:
             args.burst,
             args.measure_every,
             args.workers,
-            args.synchronous,
+            args.synchronous or "full",
             args.history_rows,
             args.queues,
+            tuple(int(b) for b in args.block.split(",")),
         )
         print(
             f"\n{wells} wells (start-up incl. fit {r['startup_s']:.1f} s; {r['learned']} online updates)"
@@ -613,10 +718,13 @@ def main() -> None:
             f"(arrival to stored prediction) {100 * r['steady_service_within_10ms']:.2f} % "
             "within 10 ms"
         )
-        print(
-            f"  burst: {r['burst_sent']:,} samples sent in {r['burst_send_s']:.1f} s, all answered after "
-            f"{r['burst_elapsed_s']:.1f} s = {r['burst_rate']:,.0f} samples/s sustained, lost {r['burst_lost']}"
-        )
+        for u in r["bursts"]:
+            how = "one sample a message" if u["block"] == 1 else f"sensor blocks of {u['block']}"
+            print(
+                f"  burst, {how}: {u['sent']:,} samples sent in {u['send_s']:.1f} s, "
+                f"{u['received']:,} answered after {u['elapsed_s']:.1f} s = {u['rate']:,.0f} "
+                f"samples/s sustained, lost {u['lost']}"
+            )
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from vfm_core.messages import (
     Measurement,
     SensorSample,
     measurement_key,
+    sensor_block,
     sensors_key,
     validate_prefix,
 )
@@ -285,22 +286,30 @@ class FieldClient:
         well = key[self._n_prefix :].rsplit("/", 1)[0]
         try:
             data = json.loads(payload)
-            t = to_ns(datetime.fromisoformat(str(data["time"]).replace("Z", "+00:00")))
-            q = float(data["q_total"])
+            times, rates = data["time"], data["q_total"]
+            if not isinstance(times, list):  # one prediction, else a prediction block
+                times, rates = [times], [rates]
+            if len(times) != len(rates):
+                raise ValueError("a prediction block's arrays differ in length")
+            answers = [
+                (to_ns(datetime.fromisoformat(str(t).replace("Z", "+00:00"))), float(q))
+                for t, q in zip(times, rates, strict=True)
+            ]
         except (ValueError, KeyError, TypeError):
             with self._lock:
                 self.bad += 1
             return
         with self._lock:
-            self.predictions[(well, t)] = q
-            self.count += 1
+            for t, q in answers:
+                self.predictions[(well, t)] = q
+                self.count += 1
+                if t > self.latest.get(well, t - 1):
+                    self.latest[well] = t
+                if self.track_latency:
+                    sent = self._sent_at.pop((well, t), None)
+                    if sent is not None:
+                        self.latency_s.append(now - sent)
             self.last_at = time.monotonic()
-            if t > self.latest.get(well, t - 1):
-                self.latest[well] = t
-            if self.track_latency:
-                sent = self._sent_at.pop((well, t), None)
-                if sent is not None:
-                    self.latency_s.append(now - sent)
 
     def prediction(self, well: str, when: datetime) -> float | None:
         """The q_total predicted for the well's sample at ``when`` (None: not received)."""
@@ -358,6 +367,16 @@ class FieldClient:
             with self._lock:
                 self._sent_at[(well, to_ns(sample.time))] = time.perf_counter()
         self.bus.put(sensors_key(self.prefix, well), sample.model_dump_json())
+
+    def send_block(self, well: str, samples: Sequence[SensorSample]) -> None:
+        """Several samples of one well (rising in time) in one sensor block: the service
+        answers with one prediction block."""
+        if self.track_latency:
+            sent = time.perf_counter()
+            with self._lock:
+                for sample in samples:
+                    self._sent_at[(well, to_ns(sample.time))] = sent
+        self.bus.put(sensors_key(self.prefix, well), sensor_block(samples))
 
     def send_measurement(self, well: str, source: str, measurement: Measurement) -> None:
         """An MPFM reading (``mpfm``) or a well test (``well_test``)."""

@@ -411,6 +411,13 @@ class InputSettings(_Section):
     max_json_depth: int = Field(
         default=32, ge=2, description="deepest JSON nesting accepted (a message is flat: 1)"
     )
+    max_block_samples: int = Field(
+        default=1000,
+        ge=1,
+        le=100_000,
+        description="most samples in one sensor block (a message whose fields are arrays); "
+        "max_payload_bytes bounds it too (about 100 bytes a sample)",
+    )
     max_rate: float = Field(
         default=1e7, gt=0, description="largest measured q_total accepted, Sm3/h"
     )
@@ -483,7 +490,11 @@ class QueueSettings(_Section):
         "messages of other wells before it reaches its own queue (small keeps that wait short; "
         "the senders' BLOCK congestion control buffers the rest)",
     )
-    worker_capacity: int = Field(default=10_000, ge=16)
+    worker_capacity: int = Field(
+        default=10_000,
+        ge=16,
+        description="messages a worker's queue holds at most (a sensor block counts its samples)",
+    )
     well_capacity: int = Field(
         default=1000,
         ge=1,

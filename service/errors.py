@@ -64,6 +64,8 @@ REASONS: dict[str, str] = {
     "time out of range": "the time lies outside 1677-09-22..2262-04-10 (what int64 nanoseconds "
     "hold) or before inputs.earliest_time",
     "time going backwards": "a sensor sample is older than the well's previous one",
+    "block too large": "a sensor block holds more samples than inputs.max_block_samples",
+    "malformed block": "a sensor block's fields are not arrays of one length (at least one sample)",
     "duplicate": "the same sample or measurement arrived before",
     "unknown well": "the well is not known and inputs.unknown_wells = 'reject' (or, over HTTP, "
     "the well is not known: HTTP never creates a well)",

@@ -18,14 +18,18 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
+import numpy as np
+import pandas as pd
 from pydantic import ValidationError
 
 from service.errors import InvalidRequest
 from vfm_core.messages import Measurement, SensorSample, parse_key, well_id_problem
+from vfm_core.timeutil import iso, to_ns
 
 __all__ = [
     "Counters",
@@ -34,6 +38,10 @@ __all__ = [
     "printable",
     "parse_sensor",
     "parse_measurement",
+    "SensorBlock",
+    "decode",
+    "is_block",
+    "parse_sensor_block",
     "classify_errors",
     "route_key",
     "SOURCES",
@@ -123,6 +131,11 @@ def _loads(payload: bytes | str, limits: Limits = DEFAULT_LIMITS) -> dict[str, A
             "not a JSON object",
         )
     return data
+
+
+def decode(payload: bytes | str, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:
+    """A payload's JSON object, within ``limits``; :class:`InvalidRequest` otherwise."""
+    return _loads(payload, limits)
 
 
 def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
@@ -217,6 +230,135 @@ def parse_measurement(
     except ValidationError as exc:
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
         raise InvalidRequest(sentence, reason) from None
+
+
+def is_block(data: dict[str, Any]) -> bool:
+    """Whether a decoded sensor payload is a block (its fields are arrays), not one sample."""
+    return isinstance(data.get("time"), list)
+
+
+@dataclass
+class SensorBlock:
+    """The samples of one sensor block that passed: times [N] (epoch ns, rising) and the
+    six inputs [N, 6] in file units, and the rows refused, each with its error."""
+
+    times_ns: np.ndarray
+    inputs: np.ndarray
+    refused: list[tuple[int, InvalidRequest]] = field(default_factory=list)
+
+
+_BLOCK_FIELDS = ("time", *_NUMERIC_SENSOR)
+
+
+def parse_sensor_block(
+    data: dict[str, Any],
+    max_samples: int,
+    check_time: Callable[[datetime, str], None],
+    earliest_ns: int,
+    latest_ns: int,
+) -> SensorBlock:
+    """The samples of a decoded sensor block (:func:`is_block`), checked row by row.
+
+    A block holds one well's samples as arrays of one length: ``time`` (ISO 8601 texts,
+    rising) and the six inputs, as in :class:`~vfm_core.messages.SensorSample`. The rules
+    are those of one sample, run on whole columns; a row that breaks one is refused alone
+    (with the reason and sentence the same values would get as one sample, from
+    :func:`parse_sensor` and ``check_time``), and so is a row not after the row before
+    it. The others pass. A block that is not arrays of one length, or holds more than
+    ``max_samples`` rows, is refused whole (:class:`InvalidRequest`). ``earliest_ns`` and
+    ``latest_ns`` bound the times (epoch ns), as ``check_time`` does."""
+    missing = [name for name in _BLOCK_FIELDS if name not in data]
+    if missing:
+        raise InvalidRequest(f"Required field(s) missing: {', '.join(missing)}.", "missing field")
+    scalar = [name for name in _BLOCK_FIELDS if not isinstance(data[name], list)]
+    if scalar:
+        raise InvalidRequest(
+            "In a sensor block every field is an array (time is one); "
+            f"{', '.join(scalar)} {'is' if len(scalar) == 1 else 'are'} not.",
+            "malformed block",
+        )
+    n = len(data["time"])
+    lengths = {name: len(data[name]) for name in _BLOCK_FIELDS}
+    if len(set(lengths.values())) != 1 or n == 0:
+        shown = ", ".join(f"{k} {v}" for k, v in lengths.items())
+        raise InvalidRequest(
+            f"The arrays of a sensor block must have one length, at least 1; got {shown}.",
+            "malformed block",
+        )
+    if n > max_samples:
+        raise InvalidRequest(
+            f"The sensor block holds {n:,} samples; at most {max_samples:,} are accepted "
+            "(inputs.max_block_samples). Send it in smaller blocks.",
+            "block too large",
+        )
+    x = np.empty((n, 6))
+    bad = np.zeros(n, dtype=bool)
+    for j, name in enumerate(_NUMERIC_SENSOR):
+        column = data[name]
+        try:
+            if not all(type(v) is float or type(v) is int for v in column):
+                raise TypeError
+            x[:, j] = column
+        except (TypeError, OverflowError, ValueError):  # text, true/false, a huge integer
+            for i, v in enumerate(column):
+                try:
+                    x[i, j] = v if type(v) is float or type(v) is int else np.nan
+                except OverflowError:
+                    x[i, j] = np.nan
+    texts = data["time"]
+    if all(type(v) is str for v in texts):
+        stamps = pd.to_datetime(pd.Series(texts), utc=True, format="ISO8601", errors="coerce")
+        ns = stamps.to_numpy(dtype="datetime64[ns]").view(np.int64) // 1000 * 1000
+        bad |= stamps.isna().to_numpy()
+    else:
+        ns = np.zeros(n, dtype=np.int64)
+        bad[:] = True  # each row says what its time is (the one-sample check below)
+    choke, p_up, p_down, t_up, gas, oil = x.T
+    with np.errstate(invalid="ignore"):
+        bad |= ~np.isfinite(x).all(axis=1)
+        bad |= (choke < 0) | (choke > 1) | (p_up <= 0) | (p_down <= 0) | (p_down >= p_up)
+        bad |= (gas < 0) | (gas > 1) | (oil < 0) | (oil > 1) | (gas + oil > 1.0 + 1e-9)
+        bad |= t_up <= -273.15
+    bad |= (ns < earliest_ns) | (ns > latest_ns)
+    refused: list[tuple[int, InvalidRequest]] = []
+    keep = ~bad
+    for i in np.flatnonzero(bad).tolist():  # the row alone decides, with one sample's words
+        try:
+            sample = parse_sensor({name: data[name][i] for name in _BLOCK_FIELDS})
+            check_time(sample.time, "sample")
+        except InvalidRequest as error:
+            refused.append((i, error))
+            continue
+        x[i] = sample.inputs()
+        ns[i] = to_ns(sample.time)
+        keep[i] = True
+    rows = np.flatnonzero(keep)
+    if len(rows) > 1 and not (np.diff(ns[rows]) > 0).all():
+        ordered, last = [], None
+        for i in rows.tolist():
+            if last is not None and ns[i] <= ns[last]:
+                same = ns[i] == ns[last] and (x[i] == x[last]).all()
+                refused.append(
+                    (
+                        i,
+                        InvalidRequest(
+                            f"The sample at {iso(int(ns[i]))} "
+                            + (
+                                "repeats the row before it."
+                                if same
+                                else f"is not after the row before it ({iso(int(ns[last]))}); "
+                                "the rows of a block must rise in time."
+                            ),
+                            "duplicate" if same else "time going backwards",
+                        ),
+                    )
+                )
+                continue
+            ordered.append(i)
+            last = i
+        rows = np.asarray(ordered, dtype=np.int64)
+    refused.sort(key=lambda r: r[0])
+    return SensorBlock(ns[rows], x[rows], refused)
 
 
 def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:

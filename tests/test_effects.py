@@ -269,6 +269,38 @@ def test_feature_tracker_matches_the_offline_features() -> None:
     np.testing.assert_allclose(np.asarray(rest)[late[~early]], ref[late], rtol=1e-9, atol=1e-12)
 
 
+def test_feature_tracker_advances_a_block_as_row_by_row() -> None:
+    """``advance_many`` (a block of samples between measurements) gives the features and
+    the state that ``advance`` row by row gives: across the 90-day mark that fixes the
+    scale, over a gap longer than 48 h, and with a step backwards in time."""
+    from vfm_core.features import FeatureTracker
+
+    rng = np.random.default_rng(3)
+    day = 24 * 3600 * 10**9
+    times = np.cumsum(rng.integers(1, 3 * day, size=200)).astype(np.int64)
+    times[50] = times[49] - day  # a step backwards integrates nothing
+    times[120:] += 5 * day  # a gap longer than 48 h
+    gas, oil = rng.uniform(0, 0.5, 200), rng.uniform(0, 0.4, 200)
+    rows, block = FeatureTracker(), FeatureTracker()
+    got: list[np.ndarray] = []
+    want: list[list[float]] = []
+    start = 0
+    for stop in (1, 30, 31, 90, 160, 200):  # a measurement after each block
+        want += [
+            rows.advance(int(t), g, o)
+            for t, g, o in zip(times[start:stop], gas[start:stop], oil[start:stop], strict=True)
+        ]
+        got.append(block.advance_many(times[start:stop], gas[start:stop], oil[start:stop]))
+        q = float(rng.uniform(50, 150))
+        rows.measured(int(times[stop - 1]), q)
+        block.measured(int(times[stop - 1]), q)
+        start = stop
+    np.testing.assert_array_equal(np.concatenate(got), np.asarray(want))
+    assert block.state() == rows.state()
+    assert rows.scale is not None and np.asarray(want)[:, 1].max() > 0.1  # both rules ran
+    assert FeatureTracker().advance_many(times[:0], gas[:0], oil[:0]).shape == (0, 3)
+
+
 def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
     from vfm_core.streaming import WellLearner
 

@@ -234,3 +234,45 @@ def test_a_wells_consecutive_samples_share_one_call_when_its_model_cannot_change
     assert one[0].features.state() == many[0].features.state()
     assert streaming.model_fixed_when_predicting(many[0])
     assert not streaming.model_fixed_when_predicting(_fitted(field, "mm", (), "pbl:14d")[0])
+
+
+#: the methods whose model predicting cannot change: a block is predicted in one call
+BLOCK_METHODS = [m for m in METHODS if m in ("ol", "bayes")]
+
+
+@pytest.mark.parametrize("method", BLOCK_METHODS)
+@pytest.mark.parametrize(("model", "effects"), SPECS, ids=["+".join([m, *e]) for m, e in SPECS])
+def test_predict_block_equals_one_by_one(
+    field: pd.DataFrame, model: str, effects: tuple[str, ...], method: str
+) -> None:
+    """A block of one well's samples (the service's sensor blocks) in one model call gives
+    what predicting them one by one gives, and leaves the same features behind."""
+    one = _fitted(field, model, effects, method)[:1]
+    block = copy.deepcopy(one[0])
+    rows = _rows(field, "W01").iloc[HISTORY : HISTORY + STREAM]
+    xs = rows[list(INPUT_COLUMNS)].to_numpy()
+    ns = pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8
+    expected = [one[0].predict(list(x), when=w) for x, w in zip(xs, rows["time"], strict=True)]
+    got = block.predict_block(xs, ns)
+    assert set(got) == {k for k, v in expected[0].items() if v is not None}
+    for i, a in enumerate(expected):
+        _close(
+            {k: v for k, v in a.items() if v is not None},
+            {k: float(got[k][i]) for k in got},
+        )
+    assert block.features.state() == one[0].features.state()
+
+
+def test_predict_block_refuses_a_model_that_may_retrain_while_predicting(
+    field: pd.DataFrame,
+) -> None:
+    learner = _fitted(field, "mm", (), "pbl:14d")[0]
+    rows = _rows(field, "W01").iloc[HISTORY : HISTORY + 3]
+    with pytest.raises(ValueError, match="retrained on a schedule"):
+        learner.predict_block(
+            rows[list(INPUT_COLUMNS)].to_numpy(), pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8
+        )
+    with pytest.raises(ValueError, match="not ready"):
+        WellLearner("W99", "mm", "ol").predict_block(
+            rows[list(INPUT_COLUMNS)].to_numpy(), pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8
+        )

@@ -193,6 +193,22 @@ def test_fair_queue_bounds_and_close() -> None:
     assert q.get(timeout=0.1) is CLOSED
 
 
+def test_fair_queue_counts_a_block_by_its_samples() -> None:
+    """The queue bounds the samples it holds: a sensor block weighs its samples."""
+    q = FairQueue(capacity=100, well_capacity=50)
+    assert q.put("a", "block of 60", weight=60) == "ok"
+    assert q.put("b", "block of 50", weight=50, timeout=0.05) == "total"
+    assert q.put("b", "sample") == "ok"
+    assert q.qsize() == 61
+    assert q.get_nowait() == "block of 60"
+    assert q.put("b", "block of 50", weight=50) == "ok"
+    assert q.qsize() == 51
+    # a block heavier than the whole queue goes in once the queue is empty
+    assert q.put("c", "block of 500", weight=500, timeout=0.05) == "total"
+    assert [q.get_nowait(), q.get_nowait()] == ["sample", "block of 50"]
+    assert q.put("c", "block of 500", weight=500) == "ok" and q.qsize() == 100
+
+
 # -- admission of wells ----------------------------------------------------------------------------
 def test_registry_caps_wells_and_their_creation_rate(tmp_path: Path) -> None:
     settings = loopback_settings(
@@ -232,6 +248,14 @@ def test_per_well_quota(tmp_path: Path) -> None:
             refused += 1
     assert 15 <= refused <= 20  # a burst of 10 (and a token or two refilled), the rest refused
     reg.quota("B")  # another well has its own quota
+    # a sensor block counts its samples: 8 of the burst of 10, then 8 more are refused
+    reg.quota("C", 8)
+    with pytest.raises(InvalidRequest, match="sensor block of 8 samples") as info:
+        reg.quota("C", 8)
+    assert info.value.reason == "well flooding"
+    reg.quota("D", 50)  # a block above the burst passes once the burst is saved up
+    with pytest.raises(InvalidRequest):
+        reg.quota("D", 1)
 
 
 # -- plausible rates -------------------------------------------------------------------------------

@@ -136,6 +136,40 @@ class FeatureTracker:
         }
         return [values[n] for n in self.names]
 
+    def advance_many(
+        self, times_ns: np.ndarray, eta_gas: np.ndarray, eta_oil: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`advance` for rows with no measurement among them (a block of samples),
+        in one pass: the features [N, k] in :attr:`names` order, and the same state after.
+
+        Without a measurement the last rate and the scale's median stay fixed, so the
+        throughput integrates one rate over the rows' capped steps; ``times_ns`` need not
+        rise (a step backwards integrates nothing, as in :meth:`advance`)."""
+        t = np.asarray(times_ns, dtype=np.int64)
+        n = len(t)
+        if n == 0:
+            return np.zeros((0, len(self.names)))
+        if self.first_ns is None:
+            self.first_ns = self.last_ns = int(t[0])
+        assert self.last_ns is not None
+        # the clock only moves forward: each row's step is from the latest time before it
+        clock = np.maximum.accumulate(np.concatenate([[self.last_ns], t]))
+        hours = np.minimum(np.diff(clock) / 3.6e12, _MAX_STEP_HOURS)
+        # summed in the order :meth:`advance` adds (the same rounding)
+        cumulative = np.cumsum(np.concatenate([[self.cumulative], self.last_rate * hours]))[1:]
+        scale = self._scale()  # the median of the early rates: no row here changes it
+        wat = 1.0 - np.asarray(eta_gas, dtype=float) - np.asarray(eta_oil, dtype=float)
+        values = {
+            "years_on": np.maximum(t - self.first_ns, 0) / 3.6e12 / HOURS_PER_YEAR,
+            "throughput_years": cumulative / (scale * HOURS_PER_YEAR),
+            "water_cut": np.clip(wat / np.maximum(np.asarray(eta_oil) + wat, 1e-9), 0.0, 1.0),
+        }
+        self.cumulative = float(cumulative[-1])
+        self.last_ns = int(clock[-1])
+        if self.scale is None and self.last_ns - self.first_ns > self._EARLY_NS and self.early:
+            self.scale = float(np.median(self.early))
+        return np.stack([values[name] for name in self.names], axis=1)
+
     def measured(self, time_ns: int, q_total: float) -> None:
         """Record a measured rate (Sm3/h) at ``time_ns`` (after :meth:`advance` for that row)."""
         if not (math.isfinite(q_total) and q_total > 0):

@@ -424,6 +424,49 @@ class WellLearner:
             out["q_total_p95"] = float(forecast.p95[row, 0])
         return out
 
+    def predict_block(self, inputs: np.ndarray, times_ns: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`predict` for a block of one well's samples in time order, in one model call.
+
+        ``inputs`` [N, 6] in file units, ``times_ns`` [N] epoch ns. For a learner whose
+        model cannot change while predicting (:func:`model_fixed_when_predicting`: ``ol``,
+        ``bayes``) and that is ready; the answers equal N calls of :meth:`predict` (to
+        rounding) and so does the state after (the features). Returns each of
+        ``q_total``, ``q_gas``, ``q_oil``, ``q_water`` as an array [N] (Sm3/h), and with a
+        method that gives intervals also ``q_total_std``, ``q_total_p05``, ``q_total_p95``.
+        """
+        if not model_fixed_when_predicting(self) or not self.ready:
+            raise ValueError(
+                f"predict_block needs a ready model that predicting cannot change; {self.well} "
+                f"({self.name}) is {'not ready' if not self.ready else 'retrained on a schedule'}."
+            )
+        x = np.asarray(inputs, dtype=float).reshape(-1, 6)
+        t = np.asarray(times_ns, dtype=np.int64).reshape(-1)
+        n = len(t)
+        if len(x) != n:
+            raise ValueError(f"predict_block needs one time per input row; got {len(x)} and {n}.")
+        feats = self.features.advance_many(t, x[:, 4], x[:, 5])
+        batch = Batch(
+            ["well"],
+            torch.tensor(x, dtype=DTYPE).reshape(1, n, 6),
+            torch.zeros(1, n, dtype=DTYPE),
+            torch.ones(1, n, dtype=torch.bool),
+            torch.tensor(t).reshape(1, n),
+            torch.zeros(1, n, dtype=torch.int64),
+            torch.ones(1, n, dtype=torch.bool),  # as a well test would measure it (predict)
+            torch.tensor(feats[:, self._cols], dtype=DTYPE).reshape(1, n, -1),
+            tuple(self.model.extra_columns),
+        )
+        with torch.no_grad():
+            forecast = self.method.predict(batch)
+        out = {"q_total": forecast.mean[0].numpy()}
+        out.update({k: v[0].numpy() for k, v in phase_split(forecast.mean, batch.x).items()})
+        if forecast.std is not None:
+            out["q_total_std"] = forecast.std[0].numpy()
+        if forecast.p05 is not None and forecast.p95 is not None:
+            out["q_total_p05"] = forecast.p05[0].numpy()
+            out["q_total_p95"] = forecast.p95[0].numpy()
+        return out
+
     def learn(
         self,
         inputs: list[float] | torch.Tensor,

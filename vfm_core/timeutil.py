@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
+import numpy as np
 import pandas as pd
 
 __all__ = [
@@ -100,6 +101,21 @@ def to_ns(when: datetime) -> int:
 def from_ns(ns: int) -> datetime:
     """The aware UTC datetime of epoch nanoseconds (microsecond precision)."""
     return _EPOCH + timedelta(microseconds=int(ns) // 1000)
+
+
+def iso_many(ns: np.ndarray) -> list[str]:
+    """:func:`iso` of many epoch nanoseconds at once (whole microseconds, as a datetime
+    holds): seconds alone when the fraction is zero, else six digits, and a ``Z``."""
+    us = np.asarray(ns, dtype=np.int64) // 1000
+    stamps = us.astype("datetime64[us]")
+    whole = np.datetime_as_string(stamps, unit="s")
+    if (us % 1_000_000 == 0).all():
+        return [s + "Z" for s in whole.tolist()]
+    fine = np.datetime_as_string(stamps, unit="us")
+    return [
+        (w if u % 1_000_000 == 0 else f) + "Z"
+        for w, f, u in zip(whole.tolist(), fine.tolist(), us.tolist(), strict=True)
+    ]
 
 
 def iso(ns: int | None) -> str | None:

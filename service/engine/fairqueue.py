@@ -11,7 +11,8 @@ those send.
 :meth:`FairQueue.put` waits while the well's FIFO (or the whole queue, ``capacity``) is
 full, at most ``timeout`` seconds, and then says which was full, so that the receiver can
 count ``well flooding`` or ``queue overflow``; ``force`` puts an item whatever the bounds
-(a model swap, which must never be dropped). :meth:`FairQueue.close` makes :meth:`get`
+(a model swap, which must never be dropped). A sensor block counts against ``capacity``
+by its samples, so the queue bounds the samples it holds (memory) as well as the messages. :meth:`FairQueue.close` makes :meth:`get`
 answer :data:`CLOSED` once every queued item has been taken.
 """
 
@@ -45,6 +46,7 @@ class FairQueue:
         self._waiting = 0
 
     def qsize(self) -> int:
+        """What is queued: messages, a sensor block counted by its samples."""
         return self._size
 
     def depth(self, well: str) -> int:
@@ -57,17 +59,28 @@ class FairQueue:
         return len(self._ring)
 
     def put(
-        self, well: str, item: Any, timeout: float | None = 0.0, *, force: bool = False
+        self,
+        well: str,
+        item: Any,
+        timeout: float | None = 0.0,
+        *,
+        force: bool = False,
+        weight: int = 1,
     ) -> Literal["ok", "well", "total"]:
         """Queue ``item`` for ``well``: ``ok``, or which bound stayed full for ``timeout`` s
-        (``well``: the well's own FIFO; ``total``: the whole queue). None waits for ever."""
+        (``well``: the well's own FIFO; ``total``: the whole queue). None waits for ever.
+
+        ``weight``: what the item counts against ``capacity`` (a sensor block: its samples,
+        so that the queue bounds the samples it holds, not only the messages); an item
+        heavier than the whole capacity waits for an empty queue."""
+        weight = max(1, min(weight, self.capacity))
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._lock:
             while not force:
                 q = self._queues.get(well)
                 if q is not None and len(q) >= self.well_capacity:
                     full: Literal["well", "total"] = "well"
-                elif self._size >= self.capacity:
+                elif self._size + weight > self.capacity:
                     full = "total"
                 else:
                     break
@@ -83,8 +96,8 @@ class FairQueue:
             if q is None:
                 q = self._queues[well] = deque()
                 self._ring.append(well)
-            q.append(item)
-            self._size += 1
+            q.append((item, weight))
+            self._size += weight
             self._has_items.notify()
             return "ok"
 
@@ -112,12 +125,12 @@ class FairQueue:
     def _pop(self) -> Any:
         well = self._ring.popleft()
         q = self._queues[well]
-        item = q.popleft()
+        item, weight = q.popleft()
         if q:
             self._ring.append(well)
         else:
             del self._queues[well]
-        self._size -= 1
+        self._size -= weight
         if self._waiting:
             self._has_room.notify_all()
         return item
@@ -131,7 +144,7 @@ class FairQueue:
     def drain(self) -> list[Any]:
         """Take every queued item (at a stop, to answer the callers still waiting)."""
         with self._lock:
-            items = [item for well in self._ring for item in self._queues[well]]
+            items = [item for well in self._ring for item, _ in self._queues[well]]
             self._queues.clear()
             self._ring.clear()
             self._size = 0

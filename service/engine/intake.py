@@ -17,6 +17,11 @@ refused as ``well of another instance``. A well not seen before is admitted by t
 passes :func:`vfm_core.messages.well_id_problem`, the one rule for well ids; its worker
 creates it.
 
+A sensor block (a ``sensors`` payload whose fields are arrays) is checked as columns
+(:func:`service.inputs.parse_sensor_block`): a bad row is refused alone, with its reason
+and sentence, and the rows that pass are queued as one item that weighs its rows in the
+worker's queue. A per-well quota (``inputs.well_rate_hz``) counts a block's rows.
+
 Times are checked here against one rule (:func:`vfm_core.timeutil.time_problem`): within
 the span the VFM represents, not before ``inputs.earliest_time``, at most
 ``inputs.max_future_s`` ahead of the service's clock; rates against ``inputs.max_rate``
@@ -31,18 +36,23 @@ import time
 import zlib
 from concurrent.futures import Future
 from datetime import datetime
+from typing import Any
 
 from service.config import Settings
 from service.engine.fairqueue import FairQueue
-from service.engine.items import MeasurementItem, SensorItem
+from service.engine.items import MeasurementItem, SensorBlockItem, SensorItem
 from service.engine.registry import Registry
 from service.engine.state import WellTestResult
 from service.errors import Busy, InvalidRequest, ServiceError
 from service.inputs import (
     Counters,
     Limits,
+    SensorBlock,
+    decode,
+    is_block,
     parse_measurement,
     parse_sensor,
+    parse_sensor_block,
     printable,
     route_key,
 )
@@ -101,18 +111,36 @@ class Intake:
                     "share a router and that the instances' zenoh.wells are disjoint.",
                     "well of another instance",
                 )
-            item: SensorItem | MeasurementItem
+            item: SensorItem | SensorBlockItem | MeasurementItem
             if kind == "sensors":
-                sample = parse_sensor(payload, self.limits)
-                self.check_time(sample.time, "sample")
-                item = SensorItem(well, sample, received_ns)
+                data = decode(payload, self.limits)
+                if is_block(data):
+                    block = self.parse_block(data)
+                    if block.refused:
+                        known = well if self.registry.known(well) else None
+                        for row, error in block.refused:
+                            self.counters.reject(
+                                str(error.reason),
+                                f"Row {row} of the sensor block: {error.message}",
+                                where=key,
+                                well=known,
+                            )
+                    if not len(block.times_ns):
+                        return
+                    item = SensorBlockItem(well, block.times_ns, block.inputs, received_ns)
+                else:
+                    sample = parse_sensor(data, self.limits)
+                    self.check_time(sample.time, "sample")
+                    item = SensorItem(well, sample, received_ns)
             else:
                 measurement = parse_measurement(payload, self.limits)
                 self.check_time(measurement.time, "measurement")
                 self.check_rate(measurement.q_total, well)
                 item = MeasurementItem(well, measurement, str(source), received_ns)
             self.registry.admit(well)
-            self.registry.quota(well)
+            self.registry.quota(
+                well, len(item.times_ns) if isinstance(item, SensorBlockItem) else 1
+            )
         except ServiceError as error:  # every refusal here is of an input: it has a reason
             if error.reason is not None:
                 known = well if well is not None and self.registry.known(well) else None
@@ -123,6 +151,17 @@ class Intake:
             logger.exception("Checking a message on %s failed: %s", printable(key), exc)
             return
         self._enqueue(item, key)
+
+    def parse_block(self, data: dict[str, Any]) -> SensorBlock:
+        """The rows of a sensor block that pass the checks of one sample (see
+        :func:`service.inputs.parse_sensor_block`), with the time bounds of :meth:`check_time`."""
+        return parse_sensor_block(
+            data,
+            self.settings.inputs.max_block_samples,
+            self.check_time,
+            to_ns(self.settings.inputs.earliest_time),
+            time.time_ns() + self._future_ns,
+        )
 
     def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:
         """Queue a well test; the future answers after it is stored (and learned).
@@ -181,12 +220,13 @@ class Intake:
                 "implausible rate",
             )
 
-    def _enqueue(self, item: SensorItem | MeasurementItem, where: str) -> None:
+    def _enqueue(self, item: SensorItem | SensorBlockItem | MeasurementItem, where: str) -> None:
         q = self.queues[worker_of(item.well, len(self.queues))]
-        if q.put(item.well, item) == "ok":
+        weight = len(item.times_ns) if isinstance(item, SensorBlockItem) else 1
+        if q.put(item.well, item, weight=weight) == "ok":
             return
         self.counters.event("backpressure waits")
-        full = q.put(item.well, item, timeout=self.settings.queues.block_s)
+        full = q.put(item.well, item, timeout=self.settings.queues.block_s, weight=weight)
         if full == "ok":
             return
         if q.depth(item.well) == 0:

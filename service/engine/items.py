@@ -22,6 +22,7 @@ from vfm_core.streaming import WellLearner
 
 __all__ = [
     "SensorItem",
+    "SensorBlockItem",
     "MeasurementItem",
     "ModelStep",
     "RetireStep",
@@ -36,6 +37,17 @@ __all__ = [
 class SensorItem:
     well: str
     sample: SensorSample
+    received_ns: int
+
+
+@dataclass(slots=True)
+class SensorBlockItem:
+    """A well's samples from one sensor block, checked and in rising time order: times
+    [N] (epoch ns) and inputs [N, 6] (file units)."""
+
+    well: str
+    times_ns: Any  # np.ndarray [N] int64
+    inputs: Any  # np.ndarray [N, 6]
     received_ns: int
 
 
@@ -70,7 +82,7 @@ class RetireStep:
     future: Future[Any]
 
 
-Item = SensorItem | MeasurementItem | ModelStep | RetireStep
+Item = SensorItem | SensorBlockItem | MeasurementItem | ModelStep | RetireStep
 
 
 @dataclass(slots=True)

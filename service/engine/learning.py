@@ -159,6 +159,16 @@ class Learning:
             out[i] = None if q_total is None or not math.isfinite(q_total) else rates
         return out
 
+    def predict_block(
+        self, st: WellState, inputs: np.ndarray, times_ns: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """Rates (Sm3/h) for a block of one well's samples in one model call (see
+        :meth:`vfm_core.streaming.WellLearner.predict_block`), timed as a learning step."""
+        started = time.monotonic()
+        out: dict[str, np.ndarray] = st.learner.predict_block(inputs, times_ns)  # type: ignore[union-attr]
+        self._timed(st, started, f"A block of {len(times_ns)} prediction(s)")
+        return out
+
     def learn_paired(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
         """Learn from a measurement paired with ``sample``; record it; answer its caller.
 

@@ -37,12 +37,14 @@ class TokenBucket:
         self.tokens = float(burst)
         self.stamp = time.monotonic()
 
-    def take(self, now: float | None = None) -> bool:
+    def take(self, now: float | None = None, n: float = 1.0) -> bool:
+        """Take ``n`` tokens (at most ``burst``, so any ``n`` can pass once saved up)."""
         now = time.monotonic() if now is None else now
         self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
         self.stamp = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
+        n = min(n, self.burst)
+        if self.tokens >= n:
+            self.tokens -= n
             return True
         return False
 
@@ -104,8 +106,9 @@ class Registry:
                 )
             self.creating.add(well)
 
-    def quota(self, well: str) -> None:
-        """With ``inputs.well_rate_hz`` set: refuse a message above the well's rate."""
+    def quota(self, well: str, samples: int = 1) -> None:
+        """With ``inputs.well_rate_hz`` set: refuse a message above the well's rate. A
+        sensor block counts its samples (at most the burst), so blocks do not widen it."""
         rate = self.settings.inputs.well_rate_hz
         if rate <= 0:
             return
@@ -113,12 +116,13 @@ class Registry:
             bucket = self._quotas.get(well)
             if bucket is None:
                 bucket = self._quotas[well] = TokenBucket(rate, self.settings.inputs.well_burst)
-            ok = bucket.take()
+            ok = bucket.take(n=samples)
         if not ok:
+            what = "message" if samples == 1 else f"sensor block of {samples} samples"
             raise InvalidRequest(
                 f"The well {well} sends more than {rate:g} messages a second (inputs.well_rate_hz, "
-                f"burst {self.settings.inputs.well_burst}); this one is refused so that other wells "
-                "are not delayed. Slow the sender down.",
+                f"burst {self.settings.inputs.well_burst}; a sensor block counts its samples); "
+                f"this {what} is refused so that other wells are not delayed. Slow the sender down.",
                 "well flooding",
             )
 

@@ -29,20 +29,39 @@ anything else of such a well comes (its next sample, another of its measurements
 before a model change or a retirement. The first message of a new well builds the well
 here, on its worker (never on the receiver thread). A :class:`~service.engine.items.RetireStep` retires a
 well after everything queued for it before (``DELETE /wells/{well}``).
+
+A sensor block (:class:`~service.engine.items.SensorBlockItem`, many samples of one well in
+one message, checked at intake) is answered at once: its rows not after the well's previous
+sample are refused, the others go through the well's model in one call
+(:meth:`~vfm_core.streaming.WellLearner.predict_block`), are stored row by row and answered
+with one prediction block. A well whose model may change within the block (a measurement
+waits for one of its samples, a scheduled retrain), or that is not ready, takes the rows
+one by one as single samples, so a block is always answered as its rows sent one by one.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
 
+import numpy as np
+
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
 from service.engine.fairqueue import CLOSED, FairQueue
 from service.engine.intake import worker_of
-from service.engine.items import Batch, Item, ModelStep, RetireStep, SensorItem, refuse
+from service.engine.items import (
+    Batch,
+    Item,
+    ModelStep,
+    RetireStep,
+    SensorBlockItem,
+    SensorItem,
+    refuse,
+)
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
@@ -52,13 +71,16 @@ from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping, Un
 from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
-from vfm_core.messages import Prediction
+from vfm_core.messages import Prediction, SensorSample
 from vfm_core.streaming import model_fixed_when_predicting
-from vfm_core.timeutil import iso, to_ns
+from vfm_core.timeutil import from_ns, iso, iso_many, to_ns
 
 __all__ = ["Workers"]
 
 logger = logging.getLogger("vfm.service.engine")
+
+#: a sample's six inputs, in :data:`vfm_core.schema.INPUT_COLUMNS` order
+_INPUTS = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
 
 Publish = Callable[[str, bytes], None]
 
@@ -154,9 +176,13 @@ class Workers:
             self.flush(b)
 
     def _handle(self, item: Item, b: Batch) -> None:
-        if not isinstance(item, SensorItem) or (
-            item.well in b.sample_wells and not b.sample_wells[item.well]
-        ):
+        if isinstance(item, SensorItem):
+            first = item.well in b.sample_wells and not b.sample_wells[item.well]
+        elif isinstance(item, SensorBlockItem):
+            first = item.well in b.sample_wells  # a block is answered at once, in order
+        else:
+            first = True
+        if first:
             # the samples taken so far are predicted first: this item may change their
             # wells' models (a measurement, a model change), or is the next sample of a
             # well whose model may change at its next sample (a scheduled retrain)
@@ -178,6 +204,8 @@ class Workers:
                 return
             if isinstance(item, SensorItem):
                 self._admit_sample(st, item, b)
+            elif isinstance(item, SensorBlockItem):
+                self._on_block(st, item, b)
             else:
                 self.pairing.on_measurement(st, item, b)
         except Exception as exc:  # one bad message must not stop the worker
@@ -307,6 +335,112 @@ class Workers:
         # a scheduled retrain (pbl), or a measurement this sample settles and learns
         b.sample_wells[item.well] = not st.pending and model_fixed_when_predicting(st.learner)
         b.sample_last[item.well] = (t, inputs)
+
+    def _on_block(self, st: WellState, item: SensorBlockItem, b: Batch) -> None:
+        """A well's sensor block (rows checked and rising at intake): the rows not after
+        the well's previous sample are refused; the others are predicted in one model call
+        (:meth:`WellLearner.predict_block <vfm_core.streaming.WellLearner.predict_block>`),
+        stored row by row, and answered with one prediction block. A well whose model may
+        change within the block (a measurement waits for one of its samples, a scheduled
+        retrain), that is not ready, or that is not a per-well learner takes the rows one
+        by one instead, as single samples: the same answers, one message each."""
+        t, x = item.times_ns, item.inputs
+        last_ns = st.last_time_ns
+        if last_ns is not None and t[0] <= last_ns:
+            k = int(np.searchsorted(t, last_ns, side="right"))
+            for i in range(k):
+                ti, row = int(t[i]), tuple(x[i].tolist())
+                error: ServiceError
+                if ti == last_ns and row == st.last_inputs:
+                    error = Duplicate(
+                        f"The sample of {item.well} at {iso(ti)} arrived before.", "duplicate"
+                    )
+                else:
+                    error = InvalidRequest(
+                        f"The sample of {item.well} at {iso(ti)} is not after the well's previous "
+                        f"sample at {iso(last_ns)}; samples of a well must arrive in time order.",
+                        "time going backwards",
+                    )
+                refuse(self.counters, error, item.well, b)
+            t, x = t[k:], x[k:]
+            if not len(t):
+                return
+        learner = st.learner
+        rates = None
+        if not st.pending and model_fixed_when_predicting(learner) and learner.ready:
+            try:
+                rates = self.learning.predict_block(st, x, t)
+            except Exception as exc:  # the rows one by one say what fails
+                logger.debug("A block of %s went one by one: %s", item.well, exc)
+        if rates is None:
+            for i in range(len(t)):
+                values = dict(zip(_INPUTS, x[i].tolist(), strict=True))
+                sample = SensorSample.model_construct(time=from_ns(int(t[i])), **values)
+                self._handle(SensorItem(item.well, sample, item.received_ns), b)
+            return
+        self._store_block(st, item, t, x, rates, b)
+
+    def _store_block(
+        self,
+        st: WellState,
+        item: SensorBlockItem,
+        t: np.ndarray,
+        x: np.ndarray,
+        rates: dict[str, np.ndarray],
+        b: Batch,
+    ) -> None:
+        """Store a block's rows with their predictions; queue its one prediction message."""
+        learner = st.learner
+        if learner.version != st.snapshot.get("version"):
+            self.checkpoints.changed(st, b.ops, int(t[0]))
+        version = learner.version
+        columns = {k: v.tolist() for k, v in rates.items()}
+        q_total = columns["q_total"]
+        none = [None] * len(q_total)
+        q_gas, q_oil, q_water = columns["q_gas"], columns["q_oil"], columns["q_water"]
+        std = columns.get("q_total_std", none)
+        p05, p95 = columns.get("q_total_p05", none), columns.get("q_total_p95", none)
+        times, rows = t.tolist(), [tuple(r) for r in x.tolist()]
+        ok = np.isfinite(rates["q_total"])
+        recent, ops, well, received = st.recent, b.ops, item.well, item.received_ns
+        for i, (ti, row) in enumerate(zip(times, rows, strict=True)):
+            if ok[i]:
+                q = q_total[i]
+                recent.append(Sample(ti, row, q))
+                ops.append(
+                    InsertSample(
+                        well,
+                        ti,
+                        row,
+                        received,
+                        q,
+                        q_gas[i],
+                        q_oil[i],
+                        q_water[i],
+                        version,
+                        std[i],
+                        p05[i],
+                        p95[i],
+                    )
+                )
+            else:  # no finite answer: stored without one, as a single sample would be
+                recent.append(Sample(ti, row, None))
+                ops.append(InsertSample(well, ti, row, received, None, None, None, None, None))
+        st.last_time_ns, st.last_inputs = times[-1], rows[-1]
+        st.samples += len(times)
+        self.counters.accept("sensors", len(times))
+        answered = int(ok.sum())
+        if answered < len(times):
+            self.counters.event("model not ready", len(times) - answered)
+        if answered:
+            keep = ok if answered < len(times) else slice(None)
+            message: dict[str, object] = {"time": iso_many(t[keep])}
+            for name in ("q_total", "q_gas", "q_oil", "q_water"):
+                message[name] = rates[name][keep].tolist()
+            message["model"], message["version"] = learner.name, version
+            for name in ("q_total_std", "q_total_p05", "q_total_p95"):
+                message[name] = rates[name][keep].tolist() if name in rates else None
+            b.outbox.append((well, json.dumps(message, allow_nan=False).encode()))
 
     def _predict_samples(self, b: Batch) -> None:
         """Second pass: predict every admitted sample of the batch in one call, then store
