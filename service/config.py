@@ -493,7 +493,8 @@ class QueueSettings(_Section):
     worker_capacity: int = Field(
         default=10_000,
         ge=16,
-        description="messages a worker's queue holds at most (a sensor block counts its samples)",
+        description="messages a worker's queue holds at most (a sensor block counts 1 + "
+        "rows/16: its memory in messages)",
     )
     well_capacity: int = Field(
         default=1000,

@@ -12,7 +12,7 @@ those send.
 full, at most ``timeout`` seconds, and then says which was full, so that the receiver can
 count ``well flooding`` or ``queue overflow``; ``force`` puts an item whatever the bounds
 (a model swap, which must never be dropped). A sensor block counts against ``capacity``
-by its samples, so the queue bounds the samples it holds (memory) as well as the messages. :meth:`FairQueue.close` makes :meth:`get`
+by its memory in messages (``weight``), so the queue bounds what it holds. :meth:`FairQueue.close` makes :meth:`get`
 answer :data:`CLOSED` once every queued item has been taken.
 """
 
@@ -46,7 +46,7 @@ class FairQueue:
         self._waiting = 0
 
     def qsize(self) -> int:
-        """What is queued: messages, a sensor block counted by its samples."""
+        """What is queued: messages, a sensor block counted by its weight."""
         return self._size
 
     def depth(self, well: str) -> int:
@@ -70,9 +70,9 @@ class FairQueue:
         """Queue ``item`` for ``well``: ``ok``, or which bound stayed full for ``timeout`` s
         (``well``: the well's own FIFO; ``total``: the whole queue). None waits for ever.
 
-        ``weight``: what the item counts against ``capacity`` (a sensor block: its samples,
-        so that the queue bounds the samples it holds, not only the messages); an item
-        heavier than the whole capacity waits for an empty queue."""
+        ``weight``: what the item counts against ``capacity`` (a sensor block: its memory
+        in messages, so that the queue bounds what it holds, not only how many messages);
+        an item heavier than the whole capacity waits for an empty queue."""
         weight = max(1, min(weight, self.capacity))
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._lock:
