@@ -318,17 +318,12 @@ class Workers:
         # the well's previous sample: one taken in this batch, else the last one stored
         last_ns, last_inputs = b.sample_last.get(item.well, (st.last_time_ns, st.last_inputs))
         if last_ns is not None and t <= last_ns:
-            if t == last_ns and inputs == last_inputs:
-                error: ServiceError = Duplicate(
-                    f"The sample of {item.well} at {iso(t)} arrived before.", "duplicate"
-                )
-            else:
-                error = InvalidRequest(
-                    f"The sample of {item.well} at {iso(t)} is not after the well's previous sample at "
-                    f"{iso(last_ns)}; samples of a well must arrive in time order.",
-                    "time going backwards",
-                )
-            refuse(self.counters, error, item.well, b)
+            refuse(
+                self.counters,
+                _out_of_order(item.well, t, inputs, last_ns, last_inputs),
+                item.well,
+                b,
+            )
             return
         b.samples.append((st, item, t, inputs))
         # another sample of the well may join the call unless its model can change first:
@@ -343,24 +338,15 @@ class Workers:
         stored row by row, and answered with one prediction block. A well whose model may
         change within the block (a measurement waits for one of its samples, a scheduled
         retrain), that is not ready, or that is not a per-well learner takes the rows one
-        by one instead, as single samples: the same answers, one message each."""
+        by one instead, as single samples: the same answers, one prediction message each."""
         t, x = item.times_ns, item.inputs
         last_ns = st.last_time_ns
         if last_ns is not None and t[0] <= last_ns:
             k = int(np.searchsorted(t, last_ns, side="right"))
             for i in range(k):
-                ti, row = int(t[i]), tuple(x[i].tolist())
-                error: ServiceError
-                if ti == last_ns and row == st.last_inputs:
-                    error = Duplicate(
-                        f"The sample of {item.well} at {iso(ti)} arrived before.", "duplicate"
-                    )
-                else:
-                    error = InvalidRequest(
-                        f"The sample of {item.well} at {iso(ti)} is not after the well's previous "
-                        f"sample at {iso(last_ns)}; samples of a well must arrive in time order.",
-                        "time going backwards",
-                    )
+                error = _out_of_order(
+                    item.well, int(t[i]), tuple(x[i].tolist()), last_ns, st.last_inputs
+                )
                 refuse(self.counters, error, item.well, b)
             t, x = t[k:], x[k:]
             if not len(t):
@@ -522,3 +508,21 @@ class Workers:
             b.outbox.append((item.well, pred.model_dump_json().encode()))
         if st.pending:
             self.pairing.resolve(st, b, upto=t)
+
+
+def _out_of_order(
+    well: str,
+    t: int,
+    inputs: tuple[float, ...],
+    last_ns: int,
+    last_inputs: tuple[float, ...] | None,
+) -> ServiceError:
+    """Why a sample at ``t`` (epoch ns), not after the well's previous one at ``last_ns``,
+    is refused: the same sample again, or time going backwards."""
+    if t == last_ns and inputs == last_inputs:
+        return Duplicate(f"The sample of {well} at {iso(t)} arrived before.", "duplicate")
+    return InvalidRequest(
+        f"The sample of {well} at {iso(t)} is not after the well's previous sample at "
+        f"{iso(last_ns)}; samples of a well must arrive in time order.",
+        "time going backwards",
+    )
