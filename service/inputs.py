@@ -24,12 +24,11 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
-import pandas as pd
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from service.errors import InvalidRequest
 from vfm_core.messages import Measurement, SensorSample, parse_key, well_id_problem
-from vfm_core.timeutil import iso, to_ns
+from vfm_core.timeutil import to_ns
 
 __all__ = [
     "Counters",
@@ -158,6 +157,14 @@ def _check_numbers(data: dict[str, Any], fields: Iterable[str]) -> None:
             raise InvalidRequest(f"{name} must be a finite number, got {value}.", "not finite")
 
 
+def _finite(value: float) -> bool:
+    """``math.isfinite``, False for an integer too large for a float (hundreds of digits)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     """A reason and a sentence for pydantic validation errors (the first error decides)."""
     e = errors[0]
@@ -173,8 +180,8 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
     if kind == "missing":
         missing = [str(x["loc"][-1]) for x in errors if x.get("type") == "missing" and x.get("loc")]
         return "missing field", f"Required field(s) missing: {', '.join(missing)}."
-    if isinstance(value, float | int) and not isinstance(value, bool) and not math.isfinite(value):
-        return "not finite", f"{field} must be a finite number, got {value}."
+    if isinstance(value, float | int) and not isinstance(value, bool) and not _finite(value):
+        return "not finite", f"{field} must be a finite number, got {printable(value, 60)}."
     if isinstance(value, str) and value.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"):
         return "not finite", f"{field} must be a finite number, got {value!r}."
     if "finite" in msg:
@@ -261,12 +268,14 @@ def parse_sensor_block(
 
     A block holds one well's samples as arrays of one length: ``time`` (ISO 8601 texts,
     rising) and the six inputs, as in :class:`~vfm_core.messages.SensorSample`. The rules
-    are those of one sample, run on whole columns; a row that breaks one is refused alone
-    (with the reason and sentence the same values would get as one sample, from
-    :func:`parse_sensor` and ``check_time``), and so is a row not after the row before
-    it. The others pass. A block that is not arrays of one length, or holds more than
-    ``max_samples`` rows, is refused whole (:class:`InvalidRequest`). ``earliest_ns`` and
-    ``latest_ns`` bound the times (epoch ns), as ``check_time`` does."""
+    are those of one sample, run on whole columns (times read by pydantic, as one
+    sample's); a row that breaks one is refused alone, with the reason and sentence the
+    same values get as one sample (from :func:`parse_sensor` and ``check_time``). The
+    others pass, in the block's order: whether each is after the well's previous sample
+    is the worker's check, as for single samples. A block that is not arrays of one
+    length, or holds more than ``max_samples`` rows, is refused whole
+    (:class:`InvalidRequest`). ``earliest_ns`` and ``latest_ns`` bound the times (epoch
+    ns), as ``check_time`` does."""
     missing = [name for name in _BLOCK_FIELDS if name not in data]
     if missing:
         raise InvalidRequest(f"Required field(s) missing: {', '.join(missing)}.", "missing field")
@@ -305,60 +314,72 @@ def parse_sensor_block(
                     x[i, j] = v if type(v) is float or type(v) is int else np.nan
                 except OverflowError:
                     x[i, j] = np.nan
-    texts = data["time"]
-    if all(type(v) is str for v in texts):
-        stamps = pd.to_datetime(pd.Series(texts), utc=True, format="ISO8601", errors="coerce")
-        ns = stamps.to_numpy(dtype="datetime64[ns]").view(np.int64) // 1000 * 1000
-        bad |= stamps.isna().to_numpy()
-    else:
-        ns = np.zeros(n, dtype=np.int64)
-        bad[:] = True  # each row says what its time is (the one-sample check below)
+    ns, unread = _block_times(data["time"], earliest_ns, latest_ns)
+    bad |= unread
     choke, p_up, p_down, t_up, gas, oil = x.T
     with np.errstate(invalid="ignore"):
         bad |= ~np.isfinite(x).all(axis=1)
         bad |= (choke < 0) | (choke > 1) | (p_up <= 0) | (p_down <= 0) | (p_down >= p_up)
         bad |= (gas < 0) | (gas > 1) | (oil < 0) | (oil > 1) | (gas + oil > 1.0 + 1e-9)
         bad |= t_up <= -273.15
-    bad |= (ns < earliest_ns) | (ns > latest_ns)
     refused: list[tuple[int, InvalidRequest]] = []
     keep = ~bad
     for i in np.flatnonzero(bad).tolist():  # the row alone decides, with one sample's words
         try:
             sample = parse_sensor({name: data[name][i] for name in _BLOCK_FIELDS})
             check_time(sample.time, "sample")
+            ns[i] = to_ns(sample.time)
         except InvalidRequest as error:
             refused.append((i, error))
             continue
+        except Exception as exc:  # noqa: BLE001 - whatever a row holds, it is refused alone
+            refused.append(
+                (
+                    i,
+                    InvalidRequest(
+                        f"The row cannot be read ({printable(exc, 120)}).", "wrong type"
+                    ),
+                )
+            )
+            continue
         x[i] = sample.inputs()
-        ns[i] = to_ns(sample.time)
         keep[i] = True
     rows = np.flatnonzero(keep)
-    if len(rows) > 1 and not (np.diff(ns[rows]) > 0).all():
-        ordered, last = [], None
-        for i in rows.tolist():
-            if last is not None and ns[i] <= ns[last]:
-                same = ns[i] == ns[last] and (x[i] == x[last]).all()
-                refused.append(
-                    (
-                        i,
-                        InvalidRequest(
-                            f"The sample at {iso(int(ns[i]))} "
-                            + (
-                                "repeats the row before it."
-                                if same
-                                else f"is not after the row before it ({iso(int(ns[last]))}); "
-                                "the rows of a block must rise in time."
-                            ),
-                            "duplicate" if same else "time going backwards",
-                        ),
-                    )
-                )
-                continue
-            ordered.append(i)
-            last = i
-        rows = np.asarray(ordered, dtype=np.int64)
-    refused.sort(key=lambda r: r[0])
     return SensorBlock(ns[rows], x[rows], refused)
+
+
+#: how one sample's time is read (pydantic, as :class:`SensorSample` reads it)
+_TIMES = TypeAdapter(list[datetime])
+_TIME = TypeAdapter(datetime)
+
+
+def _block_times(
+    texts: list[Any], earliest_ns: int, latest_ns: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A block's times as epoch ns, read as one sample's time is read, and the rows whose
+    time cannot be read or lies outside ``earliest_ns .. latest_ns`` (True)."""
+    n = len(texts)
+    try:
+        stamps: list[datetime | None] = list(_TIMES.validate_python(texts))
+    except ValidationError:
+        stamps = []
+        for v in texts:
+            try:
+                stamps.append(_TIME.validate_python(v))
+            except ValidationError:
+                stamps.append(None)
+    ns = np.zeros(n, dtype=np.int64)
+    bad = np.zeros(n, dtype=bool)
+    for i, when in enumerate(stamps):
+        try:
+            v = None if when is None else to_ns(when)
+        except (OverflowError, ValueError):  # an offset beyond year 1 or 9999
+            v = None
+        if v is None or not earliest_ns <= v <= latest_ns:
+            bad[i] = True
+        else:
+            ns[i] = v
+    return ns, bad
 
 
 def route_key(prefix: str, key: str) -> tuple[str, str, str | None]:

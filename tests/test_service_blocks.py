@@ -283,3 +283,136 @@ def test_prediction_block_parses_into_single_predictions() -> None:
     assert [p.q_total for p in rows] == [10.0, 11.0] and rows[1].q_total_p05 is None
     with pytest.raises(ValueError, match="at least one"):
         sensor_block([])
+
+
+def test_a_block_reads_each_time_as_one_sample_does() -> None:
+    """Times are read by the same parser as one sample's (pydantic): the same rows pass,
+    at the same times, and the others get one sample's reason (a number is read as Unix
+    seconds; a text that is not ISO 8601 is refused; an integer too large for any time
+    refuses its row, not the block)."""
+    texts: list[Any] = [
+        "2020-03-01T06:00:00Z",
+        "2020-03-01T06:00:00+01:00",
+        "2020-03-01T06:00:00",
+        "2020-03-01T06:00:00.000123Z",
+        "2024",
+        1_600_000_000,
+        "20240101",
+        "now",
+        "2024-01",
+        "2024/01/01",
+        " 2024-01-01T00:00:00",
+        "2020-03-01T06:00:00Z ",
+        10**400,
+        "",
+    ]
+    data = _block(texts, [INPUTS] * len(texts))
+    latest = to_ns(datetime(2100, 1, 1, tzinfo=UTC))
+
+    def check_time(when: datetime, what: str) -> None:
+        if not 0 <= to_ns(when) <= latest:
+            raise InvalidRequest("out of range", "time out of range")
+
+    block = parse_sensor_block(data, 100, check_time, 0, latest)
+    refused = dict(block.refused)
+    accepted = iter(block.times_ns.tolist())
+    for i in range(len(texts)):
+        row = {name: data[name][i] for name in data}
+        try:
+            sample = parse_sensor(row)
+            check_time(sample.time, "sample")
+        except InvalidRequest as single:
+            assert i in refused, (texts[i], "the block took a row one sample is refused for")
+            assert (refused[i].reason, refused[i].message) == (single.reason, single.message)
+            continue
+        assert i not in refused, (texts[i], refused.get(i))
+        assert next(accepted) == to_ns(sample.time), texts[i]
+    # "now" and the huge integer are refused, "2024" is Unix seconds, as for one sample
+    assert 7 in refused and 12 in refused and 4 not in refused
+    assert refused[12].reason == "not finite"
+
+
+def test_rows_out_of_order_are_judged_as_one_by_one(tmp_path: Path) -> None:
+    """Each row is judged against the well's previous accepted sample, as if sent alone:
+    a row refused does not become the reference for the next one."""
+    t = {k: datetime(2020, 3, 1, 6, 0, tzinfo=UTC) + timedelta(seconds=k) for k in range(20)}
+    a, b, c = INPUTS, (0.5, *INPUTS[1:]), (0.6, *INPUTS[1:])
+    rows = [(t[9], a), (t[9], a), (t[11], b), (t[11], b), (t[10], c), (t[12], b)]
+    results = []
+    for as_block in (False, True):
+        with service(tmp_path / str(as_block), model={"name": "last", "method": "ol"}) as (
+            svc,
+            client,
+        ):
+            client.send_sample("W01", sample_of(t[10], INPUTS))
+            samples = [sample_of(when, x) for when, x in rows]
+            if as_block:
+                client.send_block("W01", samples)
+            else:
+                for sample in samples:
+                    client.send_sample("W01", sample)
+            wait_until(
+                lambda: sum(svc.counters.snapshot()["rejected"].values()) == 4, 20, "refusals"
+            )
+            stored = svc.store.history("W01", 0, 2**62, 100)[0]  # type: ignore[union-attr]
+            results.append((svc.counters.snapshot()["rejected"], [s.time_ns for s in stored]))
+    assert results[0] == results[1]
+    assert results[0] == (
+        {"time going backwards": 3, "duplicate": 1},
+        [to_ns(t[10]), to_ns(t[11]), to_ns(t[12])],
+    )
+
+
+def test_a_prediction_block_writes_what_is_not_finite_as_null() -> None:
+    from service.engine.worker import _json_floats
+
+    assert _json_floats(np.array([1.5, np.nan, np.inf])) == [1.5, None, None]
+    assert _json_floats(np.array([1.0, 2.0])) == [1.0, 2.0]
+    block = PredictionBlock.model_validate(
+        {
+            "time": ["2020-01-01T00:00:00Z"],
+            "q_total": [10.0],
+            "q_gas": [1.0],
+            "q_oil": [2.0],
+            "q_water": [7.0],
+            "model": "mm",
+            "version": 3,
+            "q_total_std": [None],
+            "q_total_p05": [None],
+            "q_total_p95": [None],
+        }
+    )
+    assert block.predictions()[0].q_total_std is None
+
+
+def test_a_failed_block_call_leaves_the_features_as_they_were(
+    field: tuple[Path, pd.DataFrame], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dataclasses import replace
+
+    import torch
+
+    from vfm_core.learning import DEFAULT_TRAIN
+    from vfm_core.streaming import WellLearner
+
+    history, later = field
+    rows = pd.read_parquet(history)
+    rows = rows[rows["well"] == "W01"]
+    learner = WellLearner("W01", "mm", "ol", train=replace(DEFAULT_TRAIN["mm"], max_iter=20))
+    learner.fit_history(
+        torch.tensor(rows[COLUMNS].to_numpy()),
+        torch.tensor(rows["q_total"].to_numpy()),
+        torch.tensor(pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8),
+    )
+    part = later[later["well"] == "W01"].iloc[:5]
+    before = learner.features.state()
+
+    def fail(*args: Any) -> Any:
+        raise RuntimeError("the model call failed")
+
+    monkeypatch.setattr(learner, "_block_answer", fail)
+    with pytest.raises(RuntimeError):
+        learner.predict_block(
+            part[COLUMNS].to_numpy(), pd.DatetimeIndex(part["time"]).as_unit("ns").asi8
+        )
+    assert learner.features.state() == before

@@ -25,7 +25,7 @@ from service.app import Service
 from service.config import load_settings, method_problem
 from service.engine.fairqueue import CLOSED, FairQueue
 from service.engine.learning import Learning
-from service.engine.registry import Registry
+from service.engine.registry import Registry, TokenBucket
 from service.engine.state import WellState
 from service.errors import REASONS, InvalidRequest, UnknownWell
 from service.inputs import Counters, Limits, parse_measurement, parse_sensor, printable
@@ -256,6 +256,12 @@ def test_per_well_quota(tmp_path: Path) -> None:
     reg.quota("D", 50)  # a block above the burst passes once the burst is saved up
     with pytest.raises(InvalidRequest):
         reg.quota("D", 1)
+    # ... and the well repays it: a block of 1,000 at 1/s, then nothing for 100 s
+    bucket = TokenBucket(1.0, 10)
+    start = bucket.stamp
+    assert bucket.take(now=start, n=1000)
+    assert not bucket.take(now=start + 100.0)
+    assert bucket.take(now=start + 1000.0)
 
 
 # -- plausible rates -------------------------------------------------------------------------------

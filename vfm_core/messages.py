@@ -166,9 +166,9 @@ class PredictionBlock(BaseModel):
     q_water: list[float | None]
     model: str
     version: int
-    q_total_std: list[float] | None = None
-    q_total_p05: list[float] | None = None
-    q_total_p95: list[float] | None = None
+    q_total_std: list[float | None] | None = None
+    q_total_p05: list[float | None] | None = None
+    q_total_p95: list[float | None] | None = None
 
     def predictions(self) -> list[Prediction]:
         """The block's rows as single predictions."""

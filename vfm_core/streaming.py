@@ -430,7 +430,8 @@ class WellLearner:
         ``inputs`` [N, 6] in file units, ``times_ns`` [N] epoch ns. For a learner whose
         model cannot change while predicting (:func:`model_fixed_when_predicting`: ``ol``,
         ``bayes``) and that is ready; the answers equal N calls of :meth:`predict` (to
-        rounding) and so does the state after (the features). Returns each of
+        rounding) and so does the state after (the features; left as they were when the
+        model call fails). Returns each of
         ``q_total``, ``q_gas``, ``q_oil``, ``q_water`` as an array [N] (Sm3/h), and with a
         method that gives intervals also ``q_total_std``, ``q_total_p05``, ``q_total_p95``.
         """
@@ -444,7 +445,20 @@ class WellLearner:
         n = len(t)
         if len(x) != n:
             raise ValueError(f"predict_block needs one time per input row; got {len(x)} and {n}.")
-        feats = self.features.advance_many(t, x[:, 4], x[:, 5])
+        tracker = self.features
+        before = (tracker.first_ns, tracker.last_ns, tracker.cumulative, tracker.scale)
+        feats = tracker.advance_many(t, x[:, 4], x[:, 5])
+        try:
+            return self._block_answer(x, t, feats)
+        except BaseException:  # nothing happened: the features are as they were
+            tracker.first_ns, tracker.last_ns, tracker.cumulative, tracker.scale = before
+            raise
+
+    def _block_answer(
+        self, x: np.ndarray, t: np.ndarray, feats: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """The model's answers for a block's rows (see :meth:`predict_block`)."""
+        n = len(t)
         batch = Batch(
             ["well"],
             torch.tensor(x, dtype=DTYPE).reshape(1, n, 6),

@@ -38,12 +38,12 @@ class TokenBucket:
         self.stamp = time.monotonic()
 
     def take(self, now: float | None = None, n: float = 1.0) -> bool:
-        """Take ``n`` tokens (at most ``burst``, so any ``n`` can pass once saved up)."""
+        """Take ``n`` tokens. More than ``burst`` pass once the burst is saved up, and the
+        balance goes below zero: the well repays them before it sends again."""
         now = time.monotonic() if now is None else now
         self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
         self.stamp = now
-        n = min(n, self.burst)
-        if self.tokens >= n:
+        if self.tokens >= min(n, self.burst):
             self.tokens -= n
             return True
         return False

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -332,8 +333,9 @@ class Workers:
         b.sample_last[item.well] = (t, inputs)
 
     def _on_block(self, st: WellState, item: SensorBlockItem, b: Batch) -> None:
-        """A well's sensor block (rows checked and rising at intake): the rows not after
-        the well's previous sample are refused; the others are predicted in one model call
+        """A well's sensor block (rows checked at intake): a row not after the well's
+        previous sample (or the block's row before it that was taken) is refused, as one
+        by one; the others are predicted in one model call
         (:meth:`WellLearner.predict_block <vfm_core.streaming.WellLearner.predict_block>`),
         stored row by row, and answered with one prediction block. A well whose model may
         change within the block (a measurement waits for one of its samples, a scheduled
@@ -341,16 +343,21 @@ class Workers:
         by one instead, as single samples: the same answers, one prediction message each."""
         t, x = item.times_ns, item.inputs
         last_ns = st.last_time_ns
-        if last_ns is not None and t[0] <= last_ns:
-            k = int(np.searchsorted(t, last_ns, side="right"))
-            for i in range(k):
-                error = _out_of_order(
-                    item.well, int(t[i]), tuple(x[i].tolist()), last_ns, st.last_inputs
-                )
-                refuse(self.counters, error, item.well, b)
-            t, x = t[k:], x[k:]
-            if not len(t):
+        if (last_ns is not None and t[0] <= last_ns) or (len(t) > 1 and (np.diff(t) <= 0).any()):
+            # as one by one: each row against the well's previous accepted sample
+            keep: list[int] = []
+            last_inputs = st.last_inputs
+            for i in range(len(t)):
+                ti, row = int(t[i]), tuple(x[i].tolist())
+                if last_ns is not None and ti <= last_ns:
+                    error = _out_of_order(item.well, ti, row, last_ns, last_inputs)
+                    refuse(self.counters, error, item.well, b)
+                    continue
+                keep.append(i)
+                last_ns, last_inputs = ti, row
+            if not keep:
                 return
+            t, x = t[keep], x[keep]
         learner = st.learner
         rates = None
         if not st.pending and model_fixed_when_predicting(learner) and learner.ready:
@@ -388,6 +395,17 @@ class Workers:
         p05, p95 = columns.get("q_total_p05", none), columns.get("q_total_p95", none)
         times, rows = t.tolist(), [tuple(r) for r in x.tolist()]
         ok = np.isfinite(rates["q_total"])
+        answered = int(ok.sum())
+        payload = None
+        if answered:  # the message first: what it cannot hold must not leave half a block
+            keep = ok if answered < len(times) else slice(None)
+            message: dict[str, object] = {"time": iso_many(t[keep])}
+            for name in ("q_total", "q_gas", "q_oil", "q_water"):
+                message[name] = _json_floats(rates[name][keep])
+            message["model"], message["version"] = learner.name, version
+            for name in ("q_total_std", "q_total_p05", "q_total_p95"):
+                message[name] = _json_floats(rates[name][keep]) if name in rates else None
+            payload = json.dumps(message, allow_nan=False).encode()
         recent, ops, well, received = st.recent, b.ops, item.well, item.received_ns
         for i, (ti, row) in enumerate(zip(times, rows, strict=True)):
             if ok[i]:
@@ -415,18 +433,10 @@ class Workers:
         st.last_time_ns, st.last_inputs = times[-1], rows[-1]
         st.samples += len(times)
         self.counters.accept("sensors", len(times))
-        answered = int(ok.sum())
         if answered < len(times):
             self.counters.event("model not ready", len(times) - answered)
-        if answered:
-            keep = ok if answered < len(times) else slice(None)
-            message: dict[str, object] = {"time": iso_many(t[keep])}
-            for name in ("q_total", "q_gas", "q_oil", "q_water"):
-                message[name] = rates[name][keep].tolist()
-            message["model"], message["version"] = learner.name, version
-            for name in ("q_total_std", "q_total_p05", "q_total_p95"):
-                message[name] = rates[name][keep].tolist() if name in rates else None
-            b.outbox.append((well, json.dumps(message, allow_nan=False).encode()))
+        if payload is not None:
+            b.outbox.append((well, payload))
 
     def _predict_samples(self, b: Batch) -> None:
         """Second pass: predict every admitted sample of the batch in one call, then store
@@ -526,3 +536,12 @@ def _out_of_order(
         f"{iso(last_ns)}; samples of a well must arrive in time order.",
         "time going backwards",
     )
+
+
+def _json_floats(values: np.ndarray) -> list[float | None]:
+    """Numbers for a JSON message: a value that is not finite is null (as pydantic writes
+    one sample's prediction)."""
+    out: list[float | None] = values.tolist()
+    if not np.isfinite(values).all():
+        out = [v if math.isfinite(v) else None for v in out]
+    return out
