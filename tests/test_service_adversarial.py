@@ -507,6 +507,83 @@ def test_zenoh_corpus(rig: Rig) -> None:
         _sample(wall + timedelta(seconds=1)),
         "time going backwards",
     )
+    # sensor blocks (many samples in one message): bad rows refused alone, bad blocks whole
+    b = "vfm/BLK/sensors"
+
+    def block(n: int = 3, **rows: Any) -> dict[str, Any]:
+        times = [rig.tick().isoformat() for _ in range(n)]
+        data: dict[str, Any] = {"time": times}
+        for name, value in _sample(times[0]).items():
+            if name != "time":
+                data[name] = [value] * n
+        for name, column in rows.items():
+            data[name] = column
+        return data
+
+    _zenoh_case(rig, "a block of three samples", b, block, "accepted")
+    _zenoh_case(
+        rig,
+        "a block with one row p_down >= p_up",
+        b,
+        lambda: block(p_down=[30.0, 130.0, 30.0]),
+        "p_down >= p_up",
+    )
+    _zenoh_case(
+        rig,
+        "a block with a nested array in a row",
+        b,
+        lambda: block(choke=[[0.4], 0.4, 0.4]),
+        "wrong type",
+    )
+    _zenoh_case(
+        rig,
+        "a block with a 400-digit time",
+        b,
+        lambda: {**block(), "time": [10**400, rig.tick().isoformat(), rig.tick().isoformat()]},
+        "not finite",
+    )
+    _zenoh_case(
+        rig,
+        "a block with a row out of order",
+        b,
+        lambda: (lambda d: {**d, "time": [d["time"][1], d["time"][0], d["time"][2]]})(block()),
+        "time going backwards",
+    )
+    _zenoh_case(
+        rig,
+        "a block with arrays of two lengths",
+        b,
+        lambda: block(p_up=[120.0, 120.0]),
+        "malformed block",
+    )
+    _zenoh_case(
+        rig, "a block with one field a number", b, lambda: block(p_up=120.0), "malformed block"
+    )
+    _zenoh_case(
+        rig,
+        "an empty block",
+        b,
+        {
+            "time": [],
+            "choke": [],
+            "p_up": [],
+            "p_down": [],
+            "t_up": [],
+            "eta_gas": [],
+            "eta_oil": [],
+        },
+        "malformed block",
+    )
+    _zenoh_case(
+        rig,
+        "a block of 1,001 rows",
+        b,
+        lambda: {
+            "time": ["2020"] * 1001,
+            **{k: [1] * 1001 for k in ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")},
+        },
+        "block too large",
+    )
     # nothing forged reached the log; the escaped id is there
     log = rig.log_text()
     assert not re.search(r"^ERROR vfm\.service: forged", log, re.M), "a forged log line"
