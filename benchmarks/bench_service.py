@@ -52,6 +52,7 @@ from service.testing import ServeProcess
 from vfm_core.data import target_mask
 from vfm_core.messages import Measurement, sensor_block
 from vfm_core.observations import validate_frame
+from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
 
 
@@ -326,7 +327,7 @@ def _flood(
                 for i in range(rows)
             ]
             block: dict[str, Any] = {"time": times}
-            for j, name in enumerate(("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")):
+            for j, name in enumerate(INPUT_COLUMNS):
                 block[name] = [row[j]] * rows
             pub.put(json.dumps(block))
             n += rows

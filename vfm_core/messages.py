@@ -33,6 +33,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from vfm_core.errors import ConfigError
+from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.timeutil import time_problem
 
 __all__ = [
@@ -202,11 +203,10 @@ def sensor_block(samples: Sequence[SensorSample]) -> bytes:
     message, each field an array (see the module docstring)."""
     if not samples:
         raise ValueError("A sensor block needs at least one sample.")
-    fields = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
     block: dict[str, list[Any]] = {
         "time": [s.time.isoformat().replace("+00:00", "Z") for s in samples]
     }
-    for name in fields:
+    for name in INPUT_COLUMNS:
         block[name] = [getattr(s, name) for s in samples]
     return json.dumps(block, allow_nan=False).encode()
 

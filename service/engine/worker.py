@@ -73,15 +73,13 @@ from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import Prediction, SensorSample
+from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.streaming import model_fixed_when_predicting
 from vfm_core.timeutil import from_ns, iso, iso_many, to_ns
 
 __all__ = ["Workers"]
 
 logger = logging.getLogger("vfm.service.engine")
-
-#: a sample's six inputs, in :data:`vfm_core.schema.INPUT_COLUMNS` order
-_INPUTS = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
 
 Publish = Callable[[str, bytes], None]
 
@@ -367,7 +365,7 @@ class Workers:
                 logger.debug("A block of %s went one by one: %s", item.well, exc)
         if rates is None:
             for i in range(len(t)):
-                values = dict(zip(_INPUTS, x[i].tolist(), strict=True))
+                values = dict(zip(INPUT_COLUMNS, x[i].tolist(), strict=True))
                 sample = SensorSample.model_construct(time=from_ns(int(t[i])), **values)
                 self._handle(SensorItem(item.well, sample, item.received_ns), b)
             return
