@@ -5,11 +5,15 @@ within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
         [--outages 7d,30d,90d] [--data field.parquet | --hidden erosion] [--per-run]
-        [--jobs 1,2]
+        [--jobs 1,2] [--matmul torch,numpy]
 
 With ``--jobs 1,2`` the whole study runs once per value, as ``vfm evaluate --jobs`` runs it
 (this process and N - 1 workers taking the models in turn), and the ratios of the wall
 times are printed.
+
+With ``--matmul torch,numpy`` everything asked runs once per value of ``VFM_MATMUL``, each
+in its own process: the networks' products in torch (MKL) or in numpy's OpenBLAS
+(:mod:`vfm_core.models.linalg`), side by side.
 
 With ``--per-run`` the study is timed one model x method run at a time (as ``vfm evaluate``
 runs them, the initial fit shared between methods with the same window), per case, with
@@ -27,7 +31,10 @@ River (a benchmark-only extra: ``pip install -e '.[bench]'``) gives a reference:
 from __future__ import annotations
 
 import argparse
+import os
 import resource
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -39,6 +46,7 @@ from vfm_core.jobs.study import run_prequential, wells_of
 from vfm_core.jobs.workers import StudyWorkers
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, parse_method
 from vfm_core.models import MODELS, make_model
+from vfm_core.models.linalg import numpy_enabled
 from vfm_core.observations import load_observations, validate_frame
 from vfm_core.runtime import configure, tune_malloc
 from vfm_core.schema import INPUT_COLUMNS
@@ -131,12 +139,30 @@ def main() -> None:
         help="processes for the whole study (as vfm evaluate --jobs); a list (1,2) runs "
         "it once per value and prints the ratios",
     )
+    parser.add_argument(
+        "--matmul",
+        default="",
+        help="the networks' products: torch, numpy or a list (torch,numpy), each value a "
+        "run of everything asked, side by side (VFM_MATMUL; vfm_core.models.linalg)",
+    )
     args = parser.parse_args()
+    if args.matmul:
+        backends = [m.strip() for m in args.matmul.split(",") if m.strip()]
+        if len(backends) > 1:
+            for backend in backends:  # each in its own process: nothing cached is shared
+                cmd = [sys.argv[0], *strip_option(sys.argv[1:], "--matmul")]
+                print(f"\n=== VFM_MATMUL={backend}", flush=True)
+                env = {**os.environ, "VFM_MATMUL": backend}
+                subprocess.run([sys.executable, *cmd], env=env, check=True)
+            return
+        os.environ["VFM_MATMUL"] = backends[0]
     models = args.models.split(",")
     configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
     print(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
-        f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults)"
+        f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults), "
+        f"matmul {'torch' if not numpy_enabled() else 'numpy where faster'} (VFM_MATMUL), "
+        f"numpy's BLAS {blas_kernels()}"
     )
     started = time.perf_counter()
     if args.data:
@@ -176,6 +202,30 @@ def main() -> None:
             "\nwall time of the whole study by --jobs: "
             + ", ".join(f"{j}: {w:.1f} s ({walls[first] / w:.2f}x)" for j, w in walls.items())
         )
+
+
+def blas_kernels() -> str:
+    """numpy's BLAS, its kernels and threads (threadpoolctl), e.g. 'openblas Haswell x1'."""
+    from threadpoolctl import threadpool_info
+
+    pools = [p for p in threadpool_info() if p.get("user_api") == "blas"]
+    return ", ".join(
+        f"{p.get('internal_api')} {p.get('architecture', '?')} x{p.get('num_threads')}"
+        for p in pools
+    )
+
+
+def strip_option(argv: list[str], name: str) -> list[str]:
+    """``argv`` without ``name`` and its value (``--name value`` or ``--name=value``)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == name:
+            skip = True
+        elif not a.startswith(name + "="):
+            out.append(a)
+    return out
 
 
 def whole_study(frame, models: list[str], args: argparse.Namespace, jobs: int) -> float:

@@ -20,6 +20,9 @@ is the in-process form of the advice to run PyTorch on CPU with another allocato
 (tcmalloc, jemalloc) preloaded, which a ``pip install`` cannot arrange. The peak memory
 stays the same (it is held a little longer); ``VFM_MALLOC=default`` leaves glibc's
 settings alone, and on another C library, or another system, nothing is changed.
+
+**numpy's BLAS threads** (:mod:`vfm_core.models.linalg` runs the networks' products in
+numpy's OpenBLAS): limited to torch's, for the same reason.
 """
 
 from __future__ import annotations
@@ -30,7 +33,13 @@ import logging
 import os
 import sys
 
-__all__ = ["configure", "torch_threads", "tune_malloc", "MALLOC_SETTINGS"]
+__all__ = [
+    "configure",
+    "torch_threads",
+    "blas_threads",
+    "tune_malloc",
+    "MALLOC_SETTINGS",
+]
 
 logger = logging.getLogger("vfm.runtime")
 
@@ -77,7 +86,16 @@ def tune_malloc() -> bool:
     return _tuned
 
 
+def blas_threads(threads: int = 1) -> None:
+    """numpy's BLAS threads (OpenBLAS's pool, through threadpoolctl), at least one."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=max(1, int(threads)), user_api="blas")
+
+
 def configure(threads: int = 1) -> None:
-    """Both settings of the module docstring: torch's threads, then glibc's malloc."""
+    """The settings of the module docstring: torch's threads, numpy's BLAS threads, then
+    glibc's malloc."""
     tune_malloc()
     torch_threads(threads)
+    blas_threads(threads)

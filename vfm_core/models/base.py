@@ -42,6 +42,7 @@ from torch import nn
 
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
+from vfm_core.models.linalg import matmul
 
 __all__ = [
     "ChokeModel",
@@ -247,7 +248,7 @@ class WellMLP(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         n = len(self.weights)
         for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
-            z = torch.baddbmm(b.unsqueeze(1), z, w)
+            z = matmul(z, w, b.unsqueeze(1))
             if i < n - 1:
                 z = torch.relu(z)
         return z.squeeze(-1)
@@ -258,7 +259,7 @@ class WellMLP(nn.Module):
         n = len(self.weights)
         cache = []
         for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
-            a = torch.baddbmm(b.unsqueeze(1), z, w)
+            a = matmul(z, w, b.unsqueeze(1))
             cache += [z, a]
             z = torch.relu(a) if i < n - 1 else a
         return z.squeeze(-1), cache
@@ -273,10 +274,10 @@ class WellMLP(nn.Module):
             if i < len(self.weights) - 1:
                 delta = torch.ops.aten.threshold_backward(delta, a, 0.0)  # ReLU's, as autograd
             w = self.weights[i]
-            out[id(w)] = torch.bmm(z.transpose(1, 2), delta)
+            out[id(w)] = matmul(z.transpose(1, 2), delta)
             out[id(self.biases[i])] = delta.sum(1)
             if i > 0:
-                delta = torch.bmm(delta, w.transpose(1, 2))
+                delta = matmul(delta, w.transpose(1, 2))
         return out
 
     def prior_gradients(self, weight: torch.Tensor) -> Gradients:

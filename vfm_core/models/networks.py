@@ -24,6 +24,7 @@ from vfm_core.models.base import (
     WellMLP,
     make_block,
 )
+from vfm_core.models.linalg import matmul
 from vfm_core.schema import INPUT_COLUMNS
 
 __all__ = ["LastValue", "LinearRegression", "NeuralNet", "MultiTask"]
@@ -203,9 +204,9 @@ class MultiTask(ChokeModel):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = self.normalise(x)
         beta = self.beta.unsqueeze(1).expand(-1, x.shape[1], -1)
-        h = torch.cat([z, beta], dim=-1) @ self.w_in + self.b_in
+        h = matmul(torch.cat([z, beta], dim=-1), self.w_in, self.b_in)
         for w1, b1, w2, b2 in zip(self.w1, self.b1, self.w2, self.b2, strict=True):
-            h = h + torch.relu(torch.relu(h) @ w1 + b1) @ w2 + b2
+            h = h + matmul(torch.relu(matmul(torch.relu(h), w1, b1)), w2, b2)
         out = (h @ self.w_out).squeeze(-1) + self.b_out
         return self.y_scale.unsqueeze(1) * (1.0 + out)
 
@@ -231,12 +232,12 @@ class MultiTask(ChokeModel):
             z = self.normalise(batch.x)
             beta = self.beta.unsqueeze(1).expand(-1, z.shape[1], -1)
             inp = torch.cat([z, beta], dim=-1)
-            h = inp @ self.w_in + self.b_in
+            h = matmul(inp, self.w_in, self.b_in)
             cache = []
             for w1, b1, w2, b2 in zip(self.w1, self.b1, self.w2, self.b2, strict=True):
-                u = torch.relu(h) @ w1 + b1
+                u = matmul(torch.relu(h), w1, b1)
                 cache.append((h, u))
-                h = h + torch.relu(u) @ w2 + b2
+                h = h + matmul(torch.relu(u), w2, b2)
             scale = self.y_scale.unsqueeze(1)
             q = scale * (1.0 + (h @ self.w_out).squeeze(-1) + self.b_out)
 
@@ -251,15 +252,15 @@ class MultiTask(ChokeModel):
             blocks = list(zip(self.w1, self.b1, self.w2, self.b2, strict=True))
             for (w1, b1, w2, b2), (h_in, u) in zip(blocks[::-1], cache[::-1], strict=True):
                 flat = dh.reshape(-1, width)
-                out[id(w2)] = torch.relu(u).reshape(-1, width).T @ flat
+                out[id(w2)] = matmul(torch.relu(u).reshape(-1, width).T, flat)
                 out[id(b2)] = flat.sum(0)
-                du = (dh @ w2.detach().T) * (u > 0)
+                du = matmul(dh, w2.detach().T) * (u > 0)
                 du_flat = du.reshape(-1, width)
-                out[id(w1)] = torch.relu(h_in).reshape(-1, width).T @ du_flat
+                out[id(w1)] = matmul(torch.relu(h_in).reshape(-1, width).T, du_flat)
                 out[id(b1)] = du_flat.sum(0)
-                dh = dh + (du @ w1.detach().T) * (h_in > 0)
+                dh = dh + matmul(du, w1.detach().T) * (h_in > 0)
             flat = dh.reshape(-1, width)
-            out[id(self.w_in)] = inp.reshape(-1, inp.shape[-1]).T @ flat
+            out[id(self.w_in)] = matmul(inp.reshape(-1, inp.shape[-1]).T, flat)
             out[id(self.b_in)] = flat.sum(0)
             out[id(self.beta)] = (dh @ self.w_in.detach()[z.shape[-1] :].T).sum(1)
             return out
