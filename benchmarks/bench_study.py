@@ -5,7 +5,7 @@ within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
         [--outages 7d,30d,90d] [--data field.parquet | --hidden erosion] [--per-run]
-        [--jobs 1,2] [--matmul torch,numpy]
+        [--jobs 1,2] [--matmul torch,numpy] [--fit-kernel 0,1]
 
 With ``--jobs 1,2`` the whole study runs once per value, as ``vfm evaluate --jobs`` runs it
 (this process and N - 1 workers taking the models in turn), and the ratios of the wall
@@ -13,7 +13,8 @@ times are printed.
 
 With ``--matmul torch,numpy`` everything asked runs once per value of ``VFM_MATMUL``, each
 in its own process: the networks' products in torch (MKL) or in numpy's OpenBLAS
-(:mod:`vfm_core.models.linalg`), side by side.
+(:mod:`vfm_core.models.linalg`), side by side. ``--fit-kernel 0,1`` does the same for the
+compiled training steps of ``mm`` and the hybrids (``VFM_FIT_KERNEL``).
 
 With ``--per-run`` the study is timed one model x method run at a time (as ``vfm evaluate``
 runs them, the initial fit shared between methods with the same window), per case, with
@@ -145,24 +146,33 @@ def main() -> None:
         help="the networks' products: torch, numpy or a list (torch,numpy), each value a "
         "run of everything asked, side by side (VFM_MATMUL; vfm_core.models.linalg)",
     )
+    parser.add_argument(
+        "--fit-kernel",
+        default="",
+        help="1: the mm and hybrids' training steps compiled (the default), 0: torch's loop, "
+        "or a list (0,1), side by side (VFM_FIT_KERNEL; vfm_core.learning.kernels.FitSteps)",
+    )
     args = parser.parse_args()
-    if args.matmul:
-        backends = [m.strip() for m in args.matmul.split(",") if m.strip()]
-        if len(backends) > 1:
-            for backend in backends:  # each in its own process: nothing cached is shared
-                cmd = [sys.argv[0], *strip_option(sys.argv[1:], "--matmul")]
-                print(f"\n=== VFM_MATMUL={backend}", flush=True)
-                env = {**os.environ, "VFM_MATMUL": backend}
-                subprocess.run([sys.executable, *cmd], env=env, check=True)
+    for option, variable in (("--matmul", "VFM_MATMUL"), ("--fit-kernel", "VFM_FIT_KERNEL")):
+        values = [v.strip() for v in getattr(args, option[2:].replace("-", "_")).split(",")]
+        values = [v for v in values if v]
+        if len(values) > 1:  # each value in its own process: nothing cached is shared
+            for value in values:
+                print(f"\n=== {variable}={value}", flush=True)
+                argv = [sys.argv[0], *strip_option(sys.argv[1:], option)]
+                env = {**os.environ, variable: value}
+                subprocess.run([sys.executable, *argv], env=env, check=True)
             return
-        os.environ["VFM_MATMUL"] = backends[0]
+        if values:
+            os.environ[variable] = values[0]
     models = args.models.split(",")
     configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
     print(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults), "
         f"matmul {'torch' if not numpy_enabled() else 'numpy where faster'} (VFM_MATMUL), "
-        f"numpy's BLAS {blas_kernels()}"
+        f"numpy's BLAS {blas_kernels()}, compiled training steps "
+        f"{'off' if os.environ.get('VFM_FIT_KERNEL', '1') == '0' else 'on'} (VFM_FIT_KERNEL)"
     )
     started = time.perf_counter()
     if args.data:

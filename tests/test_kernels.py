@@ -240,6 +240,9 @@ def _bayes_run(
     filter: one or two measurements per well, a well without one, outliers refused, three
     in a row (a reset), a rate of zero. Returns the state and every update's answer."""
     monkeypatch.setenv("VFM_KERNELS", kernels)
+    # the same initial fit for both (its compiled steps match to rounding, which the
+    # filter's many updates would amplify past this test's tolerance)
+    monkeypatch.setenv("VFM_FIT_KERNEL", "0")
     rank = torch.cumsum(field.mask.long(), 1)
     no_history = torch.tensor([True, True, False]).unsqueeze(1)
     history = field.select((rank <= 150) & no_history)
@@ -420,3 +423,68 @@ def test_the_arrays_kept_for_the_steps_follow_their_tensors() -> None:
         model.phys.mu.add_(1.0)
     moved = physics_layout(model)
     assert np.allclose(moved[1][:5], layout[1][:5] + 1.0)
+
+
+# -- fit_batch's training steps, compiled (kernels.FitSteps) --------------------------------
+def _fit_twice(
+    monkeypatch: pytest.MonkeyPatch, name: str, flag: str, history: Batch, later: Batch
+) -> tuple[dict[str, torch.Tensor], list[list[int]], int]:
+    """An initial fit (early stopping, then pass 2), a retrain on mini-batches with given
+    counts, and a retrain on a batch that fits in one (the convergence stop): the
+    parameters, the counts run, and how many times the compiled steps ran."""
+    from vfm_core.learning import kernels
+    from vfm_core.learning.training import fit_batch
+
+    monkeypatch.setenv("VFM_FIT_KERNEL", flag)
+    calls = []
+    run = kernels.FitSteps.run
+    monkeypatch.setattr(kernels.FitSteps, "run", lambda self, *a: calls.append(1) or run(self, *a))
+    model = make_model(name, history.wells)
+    settings = replace(DEFAULT_TRAIN[name], batch_size=64)
+    counts = [fit_batch(model, history, settings)["iterations"].tolist()]
+    given = torch.tensor([120, 30, 90])
+    counts.append(fit_batch(model, later, settings, iterations=given)["iterations"].tolist())
+    # the whole batch at every step; a tolerance that stops some wells' retrains early
+    small = replace(settings, batch_size=1000, retrain_tol=0.2)
+    counts.append(fit_batch(model, later, small, iterations=given)["iterations"].tolist())
+    state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    return state, counts, len(calls)
+
+
+@pytest.mark.parametrize("name", ["mm", "hem", "ham"])
+def test_compiled_training_steps_match_the_torch_loop(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
+) -> None:
+    history, _ = stream
+    rank = torch.cumsum(history.mask.long(), 1)
+    first = history.select(rank <= 80)
+    torch_state, torch_counts, torch_calls = _fit_twice(monkeypatch, name, "0", first, history)
+    state, counts, calls = _fit_twice(monkeypatch, name, "1", first, history)
+    assert torch_calls == 0 and calls == 3  # the kernel ran every pass 2 here, torch none
+    assert counts == torch_counts
+    # the convergence stop ended some well's retrain before its given count
+    assert any(c < g for c, g in zip(counts[2], [120, 30, 90], strict=True))
+    for key, value in torch_state.items():
+        torch.testing.assert_close(state[key], value, rtol=1e-9, atol=1e-12, msg=key)
+    # and the parameters moved: the retrains learned something
+    fresh = make_model(name, history.wells).state_dict()
+    assert any(not torch.equal(fresh[k], state[k]) for k in state if k.endswith("z"))
+
+
+def test_compiled_training_steps_only_where_they_apply(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]]
+) -> None:
+    from vfm_core.learning import kernels
+    from vfm_core.learning.training import fit_batch
+
+    history, _ = stream
+    calls = []
+    run = kernels.FitSteps.run
+    monkeypatch.setattr(kernels.FitSteps, "run", lambda self, *a: calls.append(1) or run(self, *a))
+    short = replace(DEFAULT_TRAIN["nn"], max_iter=5, early_stopping=False)
+    fit_batch(make_model("nn", history.wells), history, short)  # a network: torch
+    assert kernels.fit_parameters(make_model("mm", history.wells, effects=["erosion"])) is None
+    assert calls == []
+    monkeypatch.setenv("VFM_KERNELS", "0")
+    fit_batch(make_model("mm", history.wells), history, replace(short, lr=1e-2))
+    assert calls == []

@@ -435,6 +435,211 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
 
 
 @jit
+def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chunk
+    kind: int,
+    z: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    w2: np.ndarray,
+    b2: np.ndarray,
+    moments: tuple,  # type: ignore[type-arg]
+    counts: np.ndarray,
+    todo: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    has: np.ndarray,
+    width: int,
+    same: bool,
+    n_full: np.ndarray,
+    a_max: np.ndarray,
+    scale: np.ndarray,
+    pos: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    z_low: np.ndarray,
+    z_high: np.ndarray,
+    noise: float,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+) -> None:
+    """Training steps of :func:`vfm_core.learning.training.fit_batch` on the plain ``mm``
+    (``kind`` 0), ``hem`` (1) or ``ham`` (2, one hidden layer), in place: well ``w`` takes
+    ``todo[w]`` steps, step s on the mini-batch in columns [s width, (s + 1) width) of
+    ``x``, ``y``, ``has`` (or columns [0, width) at every step when ``same``). A step is
+    the MAP objective's closed-form gradient (:class:`MapObjective` with the prior on
+    every parameter, weighted by sigma^2 / ``n_full``, the data term by the mini-batch's
+    count), the per-well clip, Adam (``moments``: (m, v) of z, W1, b1, W2, b2; ``counts``
+    [5, W] each parameter's step count) or SGD, and the projection of z into its bounds.
+    Each step's objective per well (before the step, as ``MapObjective.gradients_`` gives
+    it) is added to ``losses`` [W]."""
+    n_wells = z.shape[0]
+    n_par = z.shape[1]
+    hidden = w1.shape[2]
+    mz, vz, mw1, vw1, mb1, vb1, mw2, vw2, mb2, vb2 = moments
+    theta = np.zeros(6)
+    dq = np.zeros(6)
+    xn = np.zeros(6)
+    pre = np.zeros(hidden)
+    act = np.zeros(hidden)
+    gz = np.zeros(n_par)
+    gw1 = np.zeros((6, hidden))
+    gb1 = np.zeros(hidden)
+    gw2 = np.zeros(hidden)
+    size = np.zeros(5)
+    root = np.zeros(5)
+    he1 = 2.0 / (2.0 / 6.0)  # WellMLP.prior_gradients: 2 / he_var, he_var = 2 / fan_in
+    he2 = 2.0 / (2.0 / hidden) if hidden > 0 else 0.0
+    for w in range(n_wells):
+        n = n_full[w]
+        weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
+        for s in range(todo[w]):
+            c0 = 0 if same else s * width
+            n_data = 0
+            for j in range(c0, c0 + width):
+                if has[w, j]:
+                    n_data += 1
+            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
+            for i in range(6):
+                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
+            for i in range(n_par):
+                gz[i] = 0.0
+            for k in range(hidden):
+                gb1[k] = 0.0
+                gw2[k] = 0.0
+                for i in range(6):
+                    gw1[i, k] = 0.0
+            gb2 = 0.0
+            sse = 0.0
+            for j in range(c0, c0 + width):
+                if not has[w, j]:
+                    continue
+                if kind == 0:
+                    rate = rate_grad(theta, x[w, j], a_max[w], dq)
+                    dq_do = 0.0
+                else:
+                    for i in range(6):
+                        xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
+                    o = b2[w, 0]
+                    for k in range(hidden):
+                        a = b1[w, k]
+                        for i in range(6):
+                            a += xn[i] * w1[w, i, k]
+                        pre[k] = a
+                        act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes)
+                        o += act[k] * w2[w, k, 0]
+                    if kind == 2:
+                        theta[5] = mu[5] * math.exp(o)
+                        rate = rate_grad(theta, x[w, j], a_max[w], dq)
+                        dq_do = dq[5] * theta[5]
+                    else:
+                        rate = rate_grad(theta, x[w, j], a_max[w], dq) + scale[w] * o
+                        dq_do = scale[w]
+                e = (rate - y[w, j]) / scale[w]
+                sse += e * e
+                g = e * d_factor
+                for i in range(n_par):
+                    gz[i] += g * dq[i]
+                if kind != 0:
+                    g_o = g * dq_do
+                    gb2 += g_o
+                    for k in range(hidden):
+                        gw2[k] += g_o * act[k]
+                        if pre[k] > 0:  # ReLU's gradient (threshold_backward)
+                            g_a = g_o * w2[w, k, 0]
+                            gb1[k] += g_a
+                            for i in range(6):
+                                gw1[i, k] += xn[i] * g_a
+            if n > 0:  # the objective: mean squared scaled error plus the weighted prior
+                penalty = 0.0
+                for i in range(n_par):
+                    penalty += z[w, i] * z[w, i]
+                if kind != 0:
+                    net1 = 0.0
+                    net2 = 0.0
+                    nb = 0.0
+                    for k in range(hidden):
+                        net2 += w2[w, k, 0] * w2[w, k, 0]
+                        nb += b1[w, k] * b1[w, k]
+                        for i in range(6):
+                            net1 += w1[w, i, k] * w1[w, i, k]
+                    penalty += net1 / (2.0 / 6.0) + nb + net2 / (2.0 / hidden) + b2[w, 0] ** 2
+                losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
+            # the prior's pull on every parameter, then the per-well clip
+            sq = 0.0
+            for i in range(n_par):
+                gz[i] = gz[i] * sigma[i] + 2.0 * weight * z[w, i]
+                sq += gz[i] * gz[i]
+            if kind != 0:
+                for k in range(hidden):
+                    gb1[k] += 2.0 * weight * b1[w, k]
+                    gw2[k] += he2 * weight * w2[w, k, 0]
+                    sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
+                    for i in range(6):
+                        gw1[i, k] += he1 * weight * w1[w, i, k]
+                        sq += gw1[i, k] * gw1[i, k]
+                gb2 += 2.0 * weight * b2[w, 0]
+                sq += gb2 * gb2
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                for t in range(5):
+                    counts[t, w] += 1.0
+                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
+                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
+            for i in range(n_par):
+                gi = gz[i] * clip
+                if adam:
+                    mz[w, i] = mz[w, i] + (1.0 - beta1) * (gi - mz[w, i])
+                    vz[w, i] = vz[w, i] * beta2 + (1.0 - beta2) * gi * gi
+                    zi = z[w, i] + (-size[0]) * mz[w, i] / (math.sqrt(vz[w, i]) / root[0] + eps)
+                else:
+                    zi = z[w, i] + (-lr) * gi
+                z[w, i] = max(min(zi, z_high[i]), z_low[i])
+            if kind == 0:
+                continue
+            for k in range(hidden):
+                for i in range(6):
+                    gi = gw1[i, k] * clip
+                    if adam:
+                        mw1[w, i, k] = mw1[w, i, k] + (1.0 - beta1) * (gi - mw1[w, i, k])
+                        vw1[w, i, k] = vw1[w, i, k] * beta2 + (1.0 - beta2) * gi * gi
+                        denom = math.sqrt(vw1[w, i, k]) / root[1] + eps
+                        w1[w, i, k] = w1[w, i, k] + (-size[1]) * mw1[w, i, k] / denom
+                    else:
+                        w1[w, i, k] = w1[w, i, k] + (-lr) * gi
+                gi = gb1[k] * clip
+                if adam:
+                    mb1[w, k] = mb1[w, k] + (1.0 - beta1) * (gi - mb1[w, k])
+                    vb1[w, k] = vb1[w, k] * beta2 + (1.0 - beta2) * gi * gi
+                    denom = math.sqrt(vb1[w, k]) / root[2] + eps
+                    b1[w, k] = b1[w, k] + (-size[2]) * mb1[w, k] / denom
+                else:
+                    b1[w, k] = b1[w, k] + (-lr) * gi
+                gi = gw2[k] * clip
+                if adam:
+                    mw2[w, k, 0] = mw2[w, k, 0] + (1.0 - beta1) * (gi - mw2[w, k, 0])
+                    vw2[w, k, 0] = vw2[w, k, 0] * beta2 + (1.0 - beta2) * gi * gi
+                    denom = math.sqrt(vw2[w, k, 0]) / root[3] + eps
+                    w2[w, k, 0] = w2[w, k, 0] + (-size[3]) * mw2[w, k, 0] / denom
+                else:
+                    w2[w, k, 0] = w2[w, k, 0] + (-lr) * gi
+            gi = gb2 * clip
+            if adam:
+                mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
+                vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
+                denom = math.sqrt(vb2[w, 0]) / root[4] + eps
+                b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
+            else:
+                b2[w, 0] = b2[w, 0] + (-lr) * gi
+
+
+@jit
 def log_rate_grad(
     kind: int,
     state: np.ndarray,
@@ -755,6 +960,20 @@ def warm_up() -> None:
             kind, np.zeros((1, 6)), *net, *moments, np.zeros((5, 1)), np.zeros(1, dtype=bool),  # type: ignore[arg-type]
             x, ones, yes, np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)), one,
             -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
+        )  # fmt: skip
+    for kind, hidden in ((0, 0), (1, 4), (2, 4)):
+        net = [
+            np.ones((1, 6, hidden)),
+            np.ones((1, hidden)),
+            np.ones((1, hidden, 1)),
+            np.ones((1, 1)),
+        ]
+        z6 = np.zeros((1, 6))
+        moments = tuple(np.zeros_like(a) for a in [z6, *net] for _ in range(2))
+        fit_steps(
+            kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,
+            yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
+            one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1),
         )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):

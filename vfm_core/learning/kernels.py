@@ -15,7 +15,12 @@ arithmetic, in the same order, as one loop over wells and samples:
   ``learn_many``);
 - :func:`predict_rates`: the rate every learning method predicts with;
 - ``bayes`` and ``bayes_spread``: ``BayesianFilter``'s update and prediction (see
-  :attr:`vfm_core.learning.bayes.BayesianFilter.compiled`).
+  :attr:`vfm_core.learning.bayes.BayesianFilter.compiled`);
+- :class:`FitSteps`: the training steps of :func:`vfm_core.learning.training.fit_batch`'s
+  second pass (the initial fit and every ``pbl`` retrain) for the plain ``mm`` and the
+  plain hybrids, each well for its own count, with the convergence stop of a retrain on
+  the whole batch. ``VFM_FIT_KERNEL=0`` turns this one off alone (a comparison side by
+  side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
 
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
 the torch path (parameters, optimiser and filter states to 1e-10 or better after many
@@ -42,6 +47,8 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "kernels_enabled",
     "compiled",
+    "FitSteps",
+    "fit_parameters",
     "hybrid_applies",
     "hybrid_online_steps",
     "hybrid_parameters",
@@ -286,6 +293,118 @@ def hybrid_online_steps(
         )
 
 
+def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
+    """The parameters :func:`fit_steps` trains, in its order (z; then W1, b1, W2, b2 of a
+    hybrid), when it computes ``model``'s training steps (the plain ``mm`` or a plain
+    hybrid, the kernels enabled); else None."""
+    if mm_online_applies(model):
+        return [model.phys.z]
+    if hybrid_applies(model):
+        return hybrid_parameters(model)
+    return None
+
+
+class FitSteps:
+    """:func:`vfm_core.learning.training.fit_batch`'s second pass, compiled
+    (:func:`vfm_core.learning._mm_numba.fit_steps`): each well of the plain ``mm`` or a
+    plain hybrid steps its own number of times on the sampler's mini-batches, with a fresh
+    Adam (or SGD) of ``opt``'s settings, in place. The same arithmetic as the torch loop
+    (``tests/test_kernels.py`` compares them), without a torch call per step."""
+
+    def __init__(self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer):
+        self.model, self.params = model, params
+        group = opt.param_groups[0]
+        self.adam = isinstance(opt, torch.optim.Adam)
+        self.lr = float(group["lr"])
+        self.betas = tuple(float(b) for b in group.get("betas", (0.9, 0.999)))
+        self.eps = float(group.get("eps", 1e-8))
+
+    def run(
+        self,
+        sampler: Any,
+        iterations: torch.Tensor,
+        noise: float,
+        max_norm: float,
+        converge: tuple[int, float, int] | None = None,
+    ) -> torch.Tensor:
+        """Step well w ``iterations[w]`` times (the sampler's draws, chunk by chunk); with
+        ``converge`` (check, tol, patience: a retrain on the whole batch), a well also stops
+        once the mean objective of ``check`` steps has not fallen below the best block's by
+        the fraction ``tol``, ``patience`` blocks in a row, as the torch loop stops it.
+        Returns the steps each well took."""
+        from vfm_core.models.physical import HybridArea
+
+        kernel = _kernel()
+        assert kernel is not None
+        model = self.model
+        kind = 0 if len(self.params) == 1 else (2 if type(model) is HybridArea else 1)
+        n_w = int(model.phys.z.shape[0])
+        want = iterations.clone()
+        with torch.no_grad():
+            values = [_in_place(p) for p in self.params]
+            if kind == 0:  # no network: empty arrays of the network's shapes
+                values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
+                values += [np.zeros((n_w, 1))]
+            moments = tuple(np.zeros_like(v) for v in values for _ in range(2))
+            counts = np.zeros((5, n_w))
+            pos, mu, sigma = physics_layout(model)
+            a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
+            z_low, z_high = buffer_views(model.phys, _BOUNDS)
+            n_full = sampler.counts.to(torch.float64).numpy()
+            losses = np.zeros(n_w)
+            best_block = np.full(n_w, np.inf)
+            stale = np.zeros(n_w, dtype=np.int64)
+            total, done = int(want.max()) if n_w else 0, 0
+            while done < total:
+                limit = total - done if converge is None else min(converge[0], total - done)
+                x, y, has, taken, same = sampler.take(limit)
+                todo = (want.numpy() - done).clip(0, taken).astype(np.int64)
+                losses[:] = 0.0
+                kernel.fit_steps(
+                    kind,
+                    *values,
+                    moments,
+                    counts,
+                    todo,
+                    np.ascontiguousarray(x.numpy()),
+                    np.ascontiguousarray(y.numpy()),
+                    np.ascontiguousarray(has.numpy()),
+                    int(x.shape[1]) if same else int(sampler.size),
+                    bool(same),
+                    n_full,
+                    a_max,
+                    y_scale,
+                    pos,
+                    mu,
+                    sigma,
+                    x_mean,
+                    x_std,
+                    z_low,
+                    z_high,
+                    float(noise),
+                    self.lr,
+                    self.betas[0],
+                    self.betas[1],
+                    self.eps,
+                    float(max_norm),
+                    self.adam,
+                    losses,
+                )
+                done += taken
+                if converge is not None and done % converge[0] == 0 and done < total:
+                    check, tol, patience = converge
+                    mean = losses / check
+                    improved = mean < best_block * (1.0 - tol)
+                    best_block = np.minimum(best_block, mean)
+                    stale = np.where(improved, 0, stale + 1)
+                    stop = torch.from_numpy((stale >= patience) & (want.numpy() > done))
+                    if bool(stop.any()):
+                        want = torch.where(stop, torch.full_like(want, done), want)
+                        total = int(want.max())
+            _written_back(list(self.params), values[: len(self.params)])
+        return want
+
+
 def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How the kernels read the six Sachdeva parameters (``_NAMES``) of ``mm``, ``hem`` or
     ``ham``: theta[i] = mu[i] + sigma[i] z[pos[i]], or mu[i] where pos[i] < 0 (``ham``'s
@@ -421,6 +540,7 @@ def _build() -> SimpleNamespace:
     return SimpleNamespace(
         online=k.online,
         hybrid_online=k.hybrid_online,
+        fit_steps=k.fit_steps,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,

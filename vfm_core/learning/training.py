@@ -13,6 +13,7 @@ well; only a shared model (``mtl``) couples them.
 
 from __future__ import annotations
 
+import os
 import time
 import zlib
 from dataclasses import asdict, dataclass, replace
@@ -416,6 +417,31 @@ class _Sampler:
             )
         self._queue.reverse()
 
+    def take(self, limit: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, bool]:
+        """The next iterations' mini-batches at once, for a compiled loop: ``x`` [W, c size,
+        6], ``y`` and ``has`` [W, c size] (iteration i in columns [i size, (i + 1) size)),
+        c (at most ``limit``), and False; or, when every well fits in one batch, the whole
+        batch for ``limit`` iterations and True. The same draws as :meth:`next`."""
+        batch = self.batch
+        if self.full:
+            return batch.x, batch.y, batch.mask, max(int(limit), 0), True
+        assert not self._queue, "take() and next() do not mix"
+        size, counts = self.size, self.counts
+        c = max(1, min(int(limit), self.chunk))
+        rows = []
+        for j, gen in enumerate(self.gens):
+            if int(counts[j]) > size:
+                u = torch.rand(size * c, generator=gen, dtype=DTYPE)
+                rows.append(torch.floor(u * float(counts[j])).to(torch.int64))
+            else:
+                rows.append(torch.arange(size, dtype=torch.int64).repeat(c))
+        idx = torch.stack(rows)
+        has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
+        idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
+        x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
+        self.taken += c
+        return x, torch.gather(batch.y, 1, idx), has, c, False
+
     def next(self) -> tuple[Batch, torch.Tensor]:
         """The next iteration's mini-batch and the full counts per well."""
         if self.full:
@@ -446,6 +472,23 @@ def _map_step_gradients(
     mb, counts = sampler.next()
     n = counts.to(DTYPE)
     return map_gradients_(model, params, mb, settings.noise, False, n, n_data=mb.count().to(DTYPE))
+
+
+def _compiled_fit(
+    model: ChokeModel, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer
+) -> Any:
+    """:class:`vfm_core.learning.kernels.FitSteps` for ``model`` when the kernels compute its
+    training steps and ``params`` are exactly the ones they train; else None."""
+    from vfm_core.learning import kernels
+
+    if os.environ.get("VFM_FIT_KERNEL", "1") == "0":
+        return None
+    ordered = kernels.fit_parameters(model)
+    if ordered is None or {id(p) for p in ordered} != {id(p) for p in params}:
+        return None
+    if len(ordered) != len(params):
+        return None
+    return kernels.FitSteps(model, ordered, opt)
 
 
 def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
@@ -621,6 +664,15 @@ def fit_batch(
     block = torch.zeros(n_w, dtype=DTYPE)
     best_block = torch.full((n_w,), float("inf"), dtype=DTYPE)
     stale = torch.zeros(n_w, dtype=torch.int64)
+    compiled = (
+        None
+        if model.shared or deadline is not None or sched is not None or not plain_optimizer(opt)
+        else _compiled_fit(model, params, opt)
+    )
+    if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
+        stops = (check, settings.retrain_tol, _RETRAIN_PATIENCE) if converge else None
+        best_iter = compiled.run(sampler, best_iter, settings.noise, settings.max_grad_norm, stops)
+        total_iter = 0  # each well stopped at its own count: nothing to restore below
     for k in range(1, total_iter + 1):
         per_well_loss_k = _map_step_gradients(model, params, sampler, settings)
         clip_per_well_(model, settings.max_grad_norm, groups)
@@ -655,7 +707,7 @@ def fit_batch(
         if k >= total_iter:
             break
     for p, f in zip(params, final, strict=True):
-        if id(p) in per_well:
+        if id(p) in per_well and compiled is None:
             # wells that stopped early keep their snapshot; the rest end at total_iter
             keep = best_iter < total_iter
             p.data[keep] = f[keep]
