@@ -451,7 +451,7 @@ def _fit_twice(
     return state, counts, len(calls)
 
 
-@pytest.mark.parametrize("name", ["mm", "hem", "ham"])
+@pytest.mark.parametrize("name", ["mm", "hem", "ham", "nn"])
 def test_compiled_training_steps_match_the_torch_loop(
     monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
 ) -> None:
@@ -468,7 +468,8 @@ def test_compiled_training_steps_match_the_torch_loop(
         torch.testing.assert_close(state[key], value, rtol=1e-9, atol=1e-12, msg=key)
     # and the parameters moved: the retrains learned something
     fresh = make_model(name, history.wells).state_dict()
-    assert any(not torch.equal(fresh[k], state[k]) for k in state if k.endswith("z"))
+    learned = [k for k in state if k.endswith("z") or k.startswith("net.")]
+    assert learned and all(not torch.equal(fresh[k], state[k]) for k in learned)
 
 
 def test_compiled_training_steps_only_where_they_apply(
@@ -482,7 +483,8 @@ def test_compiled_training_steps_only_where_they_apply(
     run = kernels.FitSteps.run
     monkeypatch.setattr(kernels.FitSteps, "run", lambda self, *a: calls.append(1) or run(self, *a))
     short = replace(DEFAULT_TRAIN["nn"], max_iter=5, early_stopping=False)
-    fit_batch(make_model("nn", history.wells), history, short)  # a network: torch
+    fit_batch(make_model("nn", history.wells, hidden=(8,)), history, short)  # one layer: torch
+    fit_batch(make_model("mtl", history.wells), history, short)  # shared: torch
     assert kernels.fit_parameters(make_model("mm", history.wells, effects=["erosion"])) is None
     assert calls == []
     monkeypatch.setenv("VFM_KERNELS", "0")

@@ -640,6 +640,152 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
 
 
 @jit
+def _pull_(g: np.ndarray, p: np.ndarray, k: float) -> float:
+    """``g += k p`` (a Gaussian prior's pull) in place; returns the sum of g's squares."""
+    sq = 0.0
+    for i in range(g.size):
+        g[i] += k * p[i]
+        sq += g[i] * g[i]
+    return sq
+
+
+@jit
+def _adam_(  # noqa: PLR0913 - one parameter's update
+    p: np.ndarray,
+    g: np.ndarray,
+    m: np.ndarray,
+    v: np.ndarray,
+    clip: float,
+    size: float,
+    root: float,
+    hyper: tuple[float, float, float, float],
+    adam: bool,
+) -> None:
+    """One Adam (``hyper``: lr, beta1, beta2, eps) or SGD step of the flat parameter ``p``
+    with gradient ``clip g``, in place (torch's single-tensor Adam, as in
+    :func:`hybrid_online`)."""
+    lr, beta1, beta2, eps = hyper
+    for i in range(p.size):
+        gi = g[i] * clip
+        if adam:
+            m[i] = m[i] + (1.0 - beta1) * (gi - m[i])
+            v[i] = v[i] * beta2 + (1.0 - beta2) * gi * gi
+            p[i] = p[i] + (-size) * m[i] / (math.sqrt(v[i]) / root + eps)
+        else:
+            p[i] = p[i] + (-lr) * gi
+
+
+@jit
+def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    counts: np.ndarray,
+    todo: np.ndarray,
+    xn: np.ndarray,
+    y: np.ndarray,
+    has: np.ndarray,
+    width: int,
+    same: bool,
+    n_full: np.ndarray,
+    scale: np.ndarray,
+    noise: float,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+) -> None:
+    """:func:`fit_steps` for ``nn`` with two hidden ReLU layers: q = y_scale (1 + o), o the
+    network of the normalised inputs ``xn``; ``params`` (W1, b1, W2, b2, W3, b3) and
+    ``moments`` ((m, v) of each, in that order), ``counts`` [6, W]. The products go to
+    BLAS (np.dot), the rest is fused here: the gradient of the MAP objective (the data
+    term and the He prior on every weight), the per-well clip and Adam or SGD."""
+    w1, b1, w2, b2, w3, b3 = params
+    n_wells = w1.shape[0]
+    fan = (w1.shape[1], w2.shape[1], w3.shape[1])
+    size = np.zeros(6)
+    root = np.zeros(6)
+    for w in range(n_wells):
+        n = n_full[w]
+        weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
+        for s in range(todo[w]):
+            c0 = 0 if same else s * width
+            x0 = np.ascontiguousarray(xn[w, c0 : c0 + width])
+            a1 = np.dot(x0, w1[w])
+            for j in range(width):
+                for k in range(a1.shape[1]):
+                    a1[j, k] += b1[w, k]
+            h1 = np.maximum(a1, 0.0)
+            a2 = np.dot(h1, w2[w])
+            for j in range(width):
+                for k in range(a2.shape[1]):
+                    a2[j, k] += b2[w, k]
+            h2 = np.maximum(a2, 0.0)
+            o = np.dot(h2, w3[w])
+            n_data = 0
+            for j in range(width):
+                if has[w, c0 + j]:
+                    n_data += 1
+            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
+            delta = np.zeros((width, 1))
+            sse = 0.0
+            for j in range(width):
+                if has[w, c0 + j]:
+                    q = scale[w] * (1.0 + (o[j, 0] + b3[w, 0]))
+                    e = (q - y[w, c0 + j]) / scale[w]
+                    sse += e * e
+                    delta[j, 0] = e * d_factor * scale[w]
+            if n > 0:
+                penalty = 0.0
+                for t in range(3):
+                    wt = (w1, w2, w3)[t][w]
+                    bt = (b1, b2, b3)[t][w]
+                    penalty += np.sum(wt * wt) / (2.0 / fan[t]) + np.sum(bt * bt)
+                losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
+            # backpropagation, as WellMLP.pullback
+            g3 = np.dot(h2.T, delta)
+            gb3 = delta.sum(0)
+            d2 = np.dot(delta, w3[w].T)
+            d2 = np.where(a2 > 0.0, d2, 0.0)
+            g2 = np.dot(h1.T, d2)
+            gb2 = d2.sum(0)
+            d1 = np.dot(d2, w2[w].T)
+            d1 = np.where(a1 > 0.0, d1, 0.0)
+            g1 = np.dot(x0.T, d1)
+            gb1 = d1.sum(0)
+            # the He prior's pull, then the per-well clip over every parameter
+            k1 = 2.0 / (2.0 / fan[0]) * weight
+            k2 = 2.0 / (2.0 / fan[1]) * weight
+            k3 = 2.0 / (2.0 / fan[2]) * weight
+            kb = 2.0 * weight
+            sq = _pull_(g1.reshape(-1), w1[w].reshape(-1), k1)
+            sq += _pull_(gb1, b1[w], kb)
+            sq += _pull_(g2.reshape(-1), w2[w].reshape(-1), k2)
+            sq += _pull_(gb2, b2[w], kb)
+            sq += _pull_(g3.reshape(-1), w3[w].reshape(-1), k3)
+            sq += _pull_(gb3, b3[w], kb)
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                for t in range(6):
+                    counts[t, w] += 1.0
+                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
+                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
+            m1, v1, mb1, vb1, m2, v2, mb2, vb2, m3, v3, mb3, vb3 = moments
+            hyper = (lr, beta1, beta2, eps)
+            _adam_(w1[w].reshape(-1), g1.reshape(-1), m1[w].reshape(-1), v1[w].reshape(-1),
+                   clip, size[0], root[0], hyper, adam)  # fmt: skip
+            _adam_(b1[w], gb1, mb1[w], vb1[w], clip, size[1], root[1], hyper, adam)
+            _adam_(w2[w].reshape(-1), g2.reshape(-1), m2[w].reshape(-1), v2[w].reshape(-1),
+                   clip, size[2], root[2], hyper, adam)  # fmt: skip
+            _adam_(b2[w], gb2, mb2[w], vb2[w], clip, size[3], root[3], hyper, adam)
+            _adam_(w3[w].reshape(-1), g3.reshape(-1), m3[w].reshape(-1), v3[w].reshape(-1),
+                   clip, size[4], root[4], hyper, adam)  # fmt: skip
+            _adam_(b3[w], gb3, mb3[w], vb3[w], clip, size[5], root[5], hyper, adam)
+
+
+@jit
 def log_rate_grad(
     kind: int,
     state: np.ndarray,
@@ -975,6 +1121,13 @@ def warm_up() -> None:
             yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
             one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1),
         )  # fmt: skip
+    net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
+    net += (np.ones((1, 4, 1)), np.ones((1, 1)))
+    nn_fit_steps(
+        net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
+        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
+        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1),
+    )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):
         d = 6 + (hidden + 1 if kind else 0)

@@ -17,8 +17,9 @@ arithmetic, in the same order, as one loop over wells and samples:
 - ``bayes`` and ``bayes_spread``: ``BayesianFilter``'s update and prediction (see
   :attr:`vfm_core.learning.bayes.BayesianFilter.compiled`);
 - :class:`FitSteps`: the training steps of :func:`vfm_core.learning.training.fit_batch`'s
-  second pass (the initial fit and every ``pbl`` retrain) for the plain ``mm`` and the
-  plain hybrids, each well for its own count, with the convergence stop of a retrain on
+  second pass (the initial fit and every ``pbl`` retrain) for the plain ``mm``, the
+  plain hybrids and ``nn`` with two hidden layers (its products in BLAS through
+  ``np.dot``, the rest fused), each well for its own count, with the convergence stop of a retrain on
   the whole batch. ``VFM_FIT_KERNEL=0`` turns this one off alone (a comparison side by
   side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
 
@@ -301,13 +302,32 @@ def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
         return [model.phys.z]
     if hybrid_applies(model):
         return hybrid_parameters(model)
+    if plain_nn(model) and kernels_enabled():
+        net = model.net
+        return [t for pair in zip(net.weights, net.biases, strict=True) for t in pair]
     return None
+
+
+def plain_nn(model: Any) -> bool:
+    """True for exactly ``nn`` with two hidden layers, in float64: what
+    :func:`vfm_core.learning._mm_numba.nn_fit_steps` computes."""
+    from vfm_core.models.networks import NeuralNet
+
+    if type(model) is not NeuralNet:
+        return False
+    weights = model.net.weights
+    return (
+        len(weights) == 3
+        and weights[0].shape[1] == 6
+        and weights[2].shape[2] == 1
+        and all(w.dtype == torch.float64 for w in weights)
+    )
 
 
 class FitSteps:
     """:func:`vfm_core.learning.training.fit_batch`'s second pass, compiled
-    (:func:`vfm_core.learning._mm_numba.fit_steps`): each well of the plain ``mm`` or a
-    plain hybrid steps its own number of times on the sampler's mini-batches, with a fresh
+    (:func:`vfm_core.learning._mm_numba.fit_steps`, ``nn_fit_steps``): each well of the plain
+    ``mm``, a plain hybrid or the plain ``nn`` steps its own number of times on the sampler's mini-batches, with a fresh
     Adam (or SGD) of ``opt``'s settings, in place. The same arithmetic as the torch loop
     (``tests/test_kernels.py`` compares them), without a torch call per step."""
 
@@ -337,19 +357,24 @@ class FitSteps:
         kernel = _kernel()
         assert kernel is not None
         model = self.model
+        network = len(self.params) == 6  # nn: W1, b1, W2, b2, W3, b3
         kind = 0 if len(self.params) == 1 else (2 if type(model) is HybridArea else 1)
-        n_w = int(model.phys.z.shape[0])
+        n_w = int(self.params[0].shape[0])
         want = iterations.clone()
         with torch.no_grad():
             values = [_in_place(p) for p in self.params]
-            if kind == 0:  # no network: empty arrays of the network's shapes
+            if network:
+                kind = -1
+            elif kind == 0:  # no network: empty arrays of the network's shapes
                 values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
                 values += [np.zeros((n_w, 1))]
             moments = tuple(np.zeros_like(v) for v in values for _ in range(2))
-            counts = np.zeros((5, n_w))
-            pos, mu, sigma = physics_layout(model)
-            a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
-            z_low, z_high = buffer_views(model.phys, _BOUNDS)
+            counts = np.zeros((len(values) if network else 5, n_w))
+            (y_scale,) = buffer_views(model, ("y_scale",))
+            if not network:
+                a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
+                pos, mu, sigma = physics_layout(model)
+                z_low, z_high = buffer_views(model.phys, _BOUNDS)
             n_full = sampler.counts.to(torch.float64).numpy()
             losses = np.zeros(n_w)
             best_block = np.full(n_w, np.inf)
@@ -360,36 +385,59 @@ class FitSteps:
                 x, y, has, taken, same = sampler.take(limit)
                 todo = (want.numpy() - done).clip(0, taken).astype(np.int64)
                 losses[:] = 0.0
-                kernel.fit_steps(
-                    kind,
-                    *values,
-                    moments,
-                    counts,
-                    todo,
-                    np.ascontiguousarray(x.numpy()),
-                    np.ascontiguousarray(y.numpy()),
-                    np.ascontiguousarray(has.numpy()),
-                    int(x.shape[1]) if same else int(sampler.size),
-                    bool(same),
-                    n_full,
-                    a_max,
-                    y_scale,
-                    pos,
-                    mu,
-                    sigma,
-                    x_mean,
-                    x_std,
-                    z_low,
-                    z_high,
-                    float(noise),
-                    self.lr,
-                    self.betas[0],
-                    self.betas[1],
-                    self.eps,
-                    float(max_norm),
-                    self.adam,
-                    losses,
-                )
+                if network:
+                    kernel.nn_fit_steps(
+                        tuple(values),
+                        moments,
+                        counts,
+                        todo,
+                        np.ascontiguousarray(model.normalise(x).numpy()),
+                        np.ascontiguousarray(y.numpy()),
+                        np.ascontiguousarray(has.numpy()),
+                        int(x.shape[1]) if same else int(sampler.size),
+                        bool(same),
+                        n_full,
+                        y_scale,
+                        float(noise),
+                        self.lr,
+                        self.betas[0],
+                        self.betas[1],
+                        self.eps,
+                        float(max_norm),
+                        self.adam,
+                        losses,
+                    )
+                else:
+                    kernel.fit_steps(
+                        kind,
+                        *values,
+                        moments,
+                        counts,
+                        todo,
+                        np.ascontiguousarray(x.numpy()),
+                        np.ascontiguousarray(y.numpy()),
+                        np.ascontiguousarray(has.numpy()),
+                        int(x.shape[1]) if same else int(sampler.size),
+                        bool(same),
+                        n_full,
+                        a_max,
+                        y_scale,
+                        pos,
+                        mu,
+                        sigma,
+                        x_mean,
+                        x_std,
+                        z_low,
+                        z_high,
+                        float(noise),
+                        self.lr,
+                        self.betas[0],
+                        self.betas[1],
+                        self.eps,
+                        float(max_norm),
+                        self.adam,
+                        losses,
+                    )
                 done += taken
                 if converge is not None and done % converge[0] == 0 and done < total:
                     check, tol, patience = converge
@@ -541,6 +589,7 @@ def _build() -> SimpleNamespace:
         online=k.online,
         hybrid_online=k.hybrid_online,
         fit_steps=k.fit_steps,
+        nn_fit_steps=k.nn_fit_steps,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,
