@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from vfm_core.errors import VFMError
 from vfm_core.runtime import configure
@@ -71,15 +72,26 @@ def _cmd_import_volve(args: argparse.Namespace) -> int:
 
 # --- evaluate -----------------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from vfm_core.jobs.workers import StudyWorkers, usable_cpus
+
+    # the workers start first (a light import): they import torch and the kernels, seconds,
+    # while this process imports its own and reads the data; then they serve every case
+    given = _split_list(args.models)
+    groups = (len(given) if given else usable_cpus()) * (2 if args.effects else 1)
+    jobs = min(args.jobs or usable_cpus(), groups)  # a group: one model's runs
+    preload = ("vfm_core.jobs.evaluate",)  # vfm_core.jobs.evaluate.PRELOAD
+    with StudyWorkers(jobs - 1, threads=args.threads, preload=preload) as workers:
+        return _evaluate_with(args, workers if jobs > 1 else None, jobs)
+
+
+def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
     from vfm_core.jobs.evaluate import (
         DEFAULT_METHODS,
-        PRELOAD,
         format_summary,
         run_study,
         slow_runs,
         write_study,
     )
-    from vfm_core.jobs.workers import StudyWorkers, usable_cpus
     from vfm_core.models import MODELS
     from vfm_core.observations import load_observations
 
@@ -93,37 +105,31 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         from vfm_core.jobs.tune import load_params
 
         params = load_params(args.params)
-    groups = len(models) * (2 if args.effects else 1)  # a group: one model's runs
-    jobs = min(args.jobs or usable_cpus(), groups)
     if jobs > 1:
         print(f"Running models in {jobs} processes (--jobs 1: all in this one).")
-    # the workers start while this process runs the first models, and serve every case
-    with StudyWorkers(jobs - 1, threads=args.threads, preload=PRELOAD) as workers:
-        for case in targets:
-            result = run_study(
-                loaded.frame,
-                models=models,
-                methods=methods,
-                targets=case,
-                split=args.split,
-                seed=args.seed,
-                progress=not args.quiet,
-                data_path=str(args.data),
-                track_parameters=args.track_parameters,
-                params=params,
-                effects=_split_list(args.effects),
-                outages=_split_list(args.outages),
-                outage_fractions=args.outage_fractions,
-                workers=workers if jobs > 1 else None,
-            )
-            out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
-            written = write_study(result, out, report=not args.no_report)
-            print(format_summary(result))
-            for sentence in slow_runs(result.runs):
-                print(f"Slow run: {sentence}")
-            print(
-                f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}."
-            )
+    for case in targets:
+        result = run_study(
+            loaded.frame,
+            models=models,
+            methods=methods,
+            targets=case,
+            split=args.split,
+            seed=args.seed,
+            progress=not args.quiet,
+            data_path=str(args.data),
+            track_parameters=args.track_parameters,
+            params=params,
+            effects=_split_list(args.effects),
+            outages=_split_list(args.outages),
+            outage_fractions=args.outage_fractions,
+            workers=workers,
+        )
+        out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
+        written = write_study(result, out, report=not args.no_report)
+        print(format_summary(result))
+        for sentence in slow_runs(result.runs):
+            print(f"Slow run: {sentence}")
+        print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
     return 0
 
 

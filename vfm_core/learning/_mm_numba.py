@@ -468,6 +468,11 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
     max_norm: float,
     adam: bool,
     losses: np.ndarray,
+    validate: bool,
+    xv: np.ndarray,
+    yv: np.ndarray,
+    hv: np.ndarray,
+    val_out: np.ndarray,
 ) -> None:
     """Training steps of :func:`vfm_core.learning.training.fit_batch` on the plain ``mm``
     (``kind`` 0), ``hem`` (1) or ``ham`` (2, one hidden layer), in place: well ``w`` takes
@@ -478,7 +483,9 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
     count), the per-well clip, Adam (``moments``: (m, v) of z, W1, b1, W2, b2; ``counts``
     [5, W] each parameter's step count) or SGD, and the projection of z into its bounds.
     Each step's objective per well (before the step, as ``MapObjective.gradients_`` gives
-    it) is added to ``losses`` [W]."""
+    it) is added to ``losses`` [W]. With ``validate``, the mean squared scaled error on the
+    held-out rows ``xv``, ``yv``, ``hv`` after step s goes to ``val_out[w, s]`` (early
+    stopping's measure)."""
     n_wells = z.shape[0]
     n_par = z.shape[1]
     hidden = w1.shape[2]
@@ -601,8 +608,6 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
                 else:
                     zi = z[w, i] + (-lr) * gi
                 z[w, i] = max(min(zi, z_high[i]), z_low[i])
-            if kind == 0:
-                continue
             for k in range(hidden):
                 for i in range(6):
                     gi = gw1[i, k] * clip
@@ -630,13 +635,43 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
                 else:
                     w2[w, k, 0] = w2[w, k, 0] + (-lr) * gi
             gi = gb2 * clip
-            if adam:
+            if kind != 0 and adam:
                 mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
                 vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
                 denom = math.sqrt(vb2[w, 0]) / root[4] + eps
                 b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
-            else:
+            elif kind != 0:
                 b2[w, 0] = b2[w, 0] + (-lr) * gi
+            if not validate:
+                continue
+            for i in range(6):
+                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
+            sse = 0.0
+            n_val = 0
+            for j in range(hv.shape[1]):
+                if not hv[w, j]:
+                    continue
+                n_val += 1
+                o = b2[w, 0]
+                if kind != 0:
+                    for i in range(6):
+                        xn[i] = (xv[w, j, i] - x_mean[w, i]) / x_std[w, i]
+                    for k in range(hidden):
+                        a = b1[w, k]
+                        for i in range(6):
+                            a += xn[i] * w1[w, i, k]
+                        if not a <= 0.0:
+                            o += a * w2[w, k, 0]
+                if kind == 2:
+                    theta[5] = mu[5] * math.exp(o)
+                    rate = rate_grad(theta, xv[w, j], a_max[w], dq)
+                elif kind == 1:
+                    rate = rate_grad(theta, xv[w, j], a_max[w], dq) + scale[w] * o
+                else:
+                    rate = rate_grad(theta, xv[w, j], a_max[w], dq)
+                e = (rate - yv[w, j]) / scale[w]
+                sse += e * e
+            val_out[w, s] = sse / max(float(n_val), 1.0)
 
 
 @jit
@@ -676,6 +711,33 @@ def _adam_(  # noqa: PLR0913 - one parameter's update
 
 
 @jit
+def _nn_val(  # noqa: PLR0913 - one well's network
+    w1: np.ndarray,
+    b1: np.ndarray,
+    w2: np.ndarray,
+    b2: np.ndarray,
+    w3: np.ndarray,
+    b3: np.ndarray,
+    xv: np.ndarray,
+    yv: np.ndarray,
+    hv: np.ndarray,
+    scale: float,
+) -> float:
+    """The mean squared scaled error of one well's ``nn`` on its held-out rows."""
+    h1 = np.maximum(np.dot(np.ascontiguousarray(xv), w1) + b1, 0.0)
+    h2 = np.maximum(np.dot(h1, w2) + b2, 0.0)
+    o = np.dot(h2, w3)
+    sse = 0.0
+    n_val = 0
+    for j in range(hv.shape[0]):
+        if hv[j]:
+            e = (scale * (1.0 + (o[j, 0] + b3[0])) - yv[j]) / scale
+            sse += e * e
+            n_val += 1
+    return sse / max(float(n_val), 1.0)
+
+
+@jit
 def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
     params: tuple,  # type: ignore[type-arg]
     moments: tuple,  # type: ignore[type-arg]
@@ -696,12 +758,19 @@ def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
     max_norm: float,
     adam: bool,
     losses: np.ndarray,
+    validate: bool,
+    xv: np.ndarray,
+    yv: np.ndarray,
+    hv: np.ndarray,
+    val_out: np.ndarray,
 ) -> None:
     """:func:`fit_steps` for ``nn`` with two hidden ReLU layers: q = y_scale (1 + o), o the
     network of the normalised inputs ``xn``; ``params`` (W1, b1, W2, b2, W3, b3) and
     ``moments`` ((m, v) of each, in that order), ``counts`` [6, W]. The products go to
     BLAS (np.dot), the rest is fused here: the gradient of the MAP objective (the data
-    term and the He prior on every weight), the per-well clip and Adam or SGD."""
+    term and the He prior on every weight), the per-well clip and Adam or SGD; with
+    ``validate``, the held-out error after each step, as :func:`fit_steps` (``xv``
+    normalised)."""
     w1, b1, w2, b2, w3, b3 = params
     n_wells = w1.shape[0]
     fan = (w1.shape[1], w2.shape[1], w3.shape[1])
@@ -783,6 +852,10 @@ def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
             _adam_(w3[w].reshape(-1), g3.reshape(-1), m3[w].reshape(-1), v3[w].reshape(-1),
                    clip, size[4], root[4], hyper, adam)  # fmt: skip
             _adam_(b3[w], gb3, mb3[w], vb3[w], clip, size[5], root[5], hyper, adam)
+            if validate:
+                val_out[w, s] = _nn_val(
+                    w1[w], b1[w], w2[w], b2[w], w3[w], b3[w], xv[w], yv[w], hv[w], scale[w]
+                )
 
 
 @jit
@@ -1119,14 +1192,15 @@ def warm_up() -> None:
         fit_steps(
             kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,
             yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
-            one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1),
+            one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True,
+            x, ones, yes, np.zeros((1, 1)),
         )  # fmt: skip
     net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
     net += (np.ones((1, 4, 1)), np.ones((1, 1)))
     nn_fit_steps(
         net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
         np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
-        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1),
+        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
     )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):

@@ -325,19 +325,106 @@ def plain_nn(model: Any) -> bool:
 
 
 class FitSteps:
-    """:func:`vfm_core.learning.training.fit_batch`'s second pass, compiled
-    (:func:`vfm_core.learning._mm_numba.fit_steps`, ``nn_fit_steps``): each well of the plain
-    ``mm``, a plain hybrid or the plain ``nn`` steps its own number of times on the sampler's mini-batches, with a fresh
-    Adam (or SGD) of ``opt``'s settings, in place. The same arithmetic as the torch loop
-    (``tests/test_kernels.py`` compares them), without a torch call per step."""
+    """:func:`vfm_core.learning.training.fit_batch`'s training loops, compiled
+    (:func:`vfm_core.learning._mm_numba.fit_steps`, ``nn_fit_steps``) for the plain ``mm``,
+    a plain hybrid or the plain ``nn``: :meth:`run` (the second pass: each well its own
+    number of steps) and :meth:`search` (the first: early stopping on the held-out slice),
+    each with a fresh Adam (or SGD) of ``opt``'s settings, in place, on the sampler's
+    mini-batches. The same arithmetic as the torch loops (``tests/test_kernels.py``
+    compares them), without a torch call per step."""
 
-    def __init__(self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer):
+    #: steps per call while early stopping watches (the steps past its stop are wasted)
+    SEARCH_CHUNK = 16
+
+    def __init__(
+        self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer
+    ) -> None:
+        from vfm_core.models.physical import HybridArea
+
         self.model, self.params = model, params
         group = opt.param_groups[0]
         self.adam = isinstance(opt, torch.optim.Adam)
-        self.lr = float(group["lr"])
-        self.betas = tuple(float(b) for b in group.get("betas", (0.9, 0.999)))
-        self.eps = float(group.get("eps", 1e-8))
+        self.hyper = (
+            float(group["lr"]),
+            *(float(b) for b in group.get("betas", (0.9, 0.999))),
+            float(group.get("eps", 1e-8)),
+        )
+        self.network = len(params) == 6  # nn: W1, b1, W2, b2, W3, b3
+        self.kind = 0 if len(params) == 1 else (2 if type(model) is HybridArea else 1)
+        self.n_w = int(params[0].shape[0])
+
+    def _begin(self) -> None:
+        """The arrays the kernel steps (the parameters' own memory) and a fresh optimiser."""
+        n_w = self.n_w
+        self.values = [_in_place(p) for p in self.params]
+        if not self.network and self.kind == 0:  # no network: empty arrays of its shapes
+            self.values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
+            self.values += [np.zeros((n_w, 1))]
+        self.moments = tuple(np.zeros_like(v) for v in self.values for _ in range(2))
+        self.counts = np.zeros((len(self.values) if self.network else 5, n_w))
+
+    def _end(self) -> None:
+        _written_back(list(self.params), self.values[: len(self.params)])
+
+    def _inputs(self, x: torch.Tensor) -> np.ndarray:
+        """The rows as the kernel reads them: normalised for ``nn``, in file units else."""
+        return np.ascontiguousarray((self.model.normalise(x) if self.network else x).numpy())
+
+    def _steps(  # noqa: PLR0913 - one chunk's arrays
+        self,
+        chunk: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, bool],
+        todo: np.ndarray,
+        n_full: np.ndarray,
+        noise: float,
+        max_norm: float,
+        losses: np.ndarray,
+        val: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+        size: int,
+    ) -> None:
+        kernel = _kernel()
+        assert kernel is not None
+        model = self.model
+        x, y, has, taken, same = chunk
+        width = int(x.shape[1]) if same else int(size)
+        lr, beta1, beta2, eps = self.hyper
+        data = (
+            self._inputs(x),
+            np.ascontiguousarray(y.numpy()),
+            np.ascontiguousarray(has.numpy()),
+            width,
+            bool(same),
+            n_full,
+        )
+        empty = (np.zeros((1, 0, 6)), np.zeros((1, 0)), np.zeros((1, 0), dtype=bool))
+        validation = (True, *val) if val is not None else (False, *empty, np.zeros((1, 1)))
+        steps = (noise, lr, beta1, beta2, eps, max_norm, self.adam, losses, *validation)
+        if self.network:
+            (y_scale,) = buffer_views(model, ("y_scale",))
+            kernel.nn_fit_steps(
+                tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps
+            )
+            return
+        a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
+        pos, mu, sigma = physics_layout(model)
+        z_low, z_high = buffer_views(model.phys, _BOUNDS)
+        kernel.fit_steps(
+            self.kind,
+            *self.values,
+            self.moments,
+            self.counts,
+            todo,
+            *data,
+            a_max,
+            y_scale,
+            pos,
+            mu,
+            sigma,
+            x_mean,
+            x_std,
+            z_low,
+            z_high,
+            *steps,
+        )
 
     def run(
         self,
@@ -352,29 +439,10 @@ class FitSteps:
         once the mean objective of ``check`` steps has not fallen below the best block's by
         the fraction ``tol``, ``patience`` blocks in a row, as the torch loop stops it.
         Returns the steps each well took."""
-        from vfm_core.models.physical import HybridArea
-
-        kernel = _kernel()
-        assert kernel is not None
-        model = self.model
-        network = len(self.params) == 6  # nn: W1, b1, W2, b2, W3, b3
-        kind = 0 if len(self.params) == 1 else (2 if type(model) is HybridArea else 1)
-        n_w = int(self.params[0].shape[0])
         want = iterations.clone()
+        n_w = self.n_w
         with torch.no_grad():
-            values = [_in_place(p) for p in self.params]
-            if network:
-                kind = -1
-            elif kind == 0:  # no network: empty arrays of the network's shapes
-                values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
-                values += [np.zeros((n_w, 1))]
-            moments = tuple(np.zeros_like(v) for v in values for _ in range(2))
-            counts = np.zeros((len(values) if network else 5, n_w))
-            (y_scale,) = buffer_views(model, ("y_scale",))
-            if not network:
-                a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
-                pos, mu, sigma = physics_layout(model)
-                z_low, z_high = buffer_views(model.phys, _BOUNDS)
+            self._begin()
             n_full = sampler.counts.to(torch.float64).numpy()
             losses = np.zeros(n_w)
             best_block = np.full(n_w, np.inf)
@@ -382,62 +450,11 @@ class FitSteps:
             total, done = int(want.max()) if n_w else 0, 0
             while done < total:
                 limit = total - done if converge is None else min(converge[0], total - done)
-                x, y, has, taken, same = sampler.take(limit)
+                chunk = sampler.take(limit)
+                taken = chunk[3]
                 todo = (want.numpy() - done).clip(0, taken).astype(np.int64)
                 losses[:] = 0.0
-                if network:
-                    kernel.nn_fit_steps(
-                        tuple(values),
-                        moments,
-                        counts,
-                        todo,
-                        np.ascontiguousarray(model.normalise(x).numpy()),
-                        np.ascontiguousarray(y.numpy()),
-                        np.ascontiguousarray(has.numpy()),
-                        int(x.shape[1]) if same else int(sampler.size),
-                        bool(same),
-                        n_full,
-                        y_scale,
-                        float(noise),
-                        self.lr,
-                        self.betas[0],
-                        self.betas[1],
-                        self.eps,
-                        float(max_norm),
-                        self.adam,
-                        losses,
-                    )
-                else:
-                    kernel.fit_steps(
-                        kind,
-                        *values,
-                        moments,
-                        counts,
-                        todo,
-                        np.ascontiguousarray(x.numpy()),
-                        np.ascontiguousarray(y.numpy()),
-                        np.ascontiguousarray(has.numpy()),
-                        int(x.shape[1]) if same else int(sampler.size),
-                        bool(same),
-                        n_full,
-                        a_max,
-                        y_scale,
-                        pos,
-                        mu,
-                        sigma,
-                        x_mean,
-                        x_std,
-                        z_low,
-                        z_high,
-                        float(noise),
-                        self.lr,
-                        self.betas[0],
-                        self.betas[1],
-                        self.eps,
-                        float(max_norm),
-                        self.adam,
-                        losses,
-                    )
+                self._steps(chunk, todo, n_full, noise, max_norm, losses, None, sampler.size)
                 done += taken
                 if converge is not None and done % converge[0] == 0 and done < total:
                     check, tol, patience = converge
@@ -449,8 +466,65 @@ class FitSteps:
                     if bool(stop.any()):
                         want = torch.where(stop, torch.full_like(want, done), want)
                         total = int(want.max())
-            _written_back(list(self.params), values[: len(self.params)])
+            self._end()
         return want
+
+    def search(
+        self,
+        sampler: Any,
+        val: Any,
+        has_val: torch.Tensor,
+        best_iter: torch.Tensor,
+        steps: int,
+        patience: int,
+        noise: float,
+        max_norm: float,
+    ) -> torch.Tensor:
+        """Early stopping's pass: every well steps on, up to ``steps``, and after each step
+        its error on ``val`` (the held-out batch) is measured; a well with ``has_val`` keeps
+        the step of its best error, and the pass ends once every such well has gone
+        ``patience`` steps without a better one. Returns ``best_iter`` updated; the sampler
+        has taken exactly the steps the torch loop would have (the kernel's steps past the
+        end are undone by the caller, which restores the parameters)."""
+        n_w = self.n_w
+        best_iter = best_iter.clone().numpy()
+        has = has_val.numpy()
+        best_loss = np.full(n_w, np.inf)
+        since = np.zeros(n_w, dtype=np.int64)
+        val_arrays = (
+            self._inputs(val.x),
+            np.ascontiguousarray(val.y.numpy()),
+            np.ascontiguousarray(val.mask.numpy()),
+        )
+        with torch.no_grad():
+            self._begin()
+            n_full = sampler.counts.to(torch.float64).numpy()
+            losses = np.zeros(n_w)
+            k = 0
+            while k < steps:
+                chunk = sampler.take(min(self.SEARCH_CHUNK, steps - k))
+                taken = chunk[3]
+                out = np.zeros((n_w, taken))
+                todo = np.full(n_w, taken, dtype=np.int64)
+                self._steps(
+                    chunk, todo, n_full, noise, max_norm, losses, (*val_arrays, out), sampler.size
+                )
+                stop = False
+                for i in range(taken):
+                    v = out[:, i]
+                    improved = has & (v < best_loss - 1e-12)
+                    best_loss = np.where(improved, v, best_loss)
+                    best_iter = np.where(improved, k + i + 1, best_iter)
+                    since = np.where(improved, 0, since + 1)
+                    if bool((since[has] >= patience).all()):
+                        sampler.taken -= taken - (i + 1)  # the steps past the stop
+                        stop = True
+                        break
+                k += taken
+                if stop:
+                    break
+            self._end()
+        return torch.from_numpy(best_iter)
 
 
 def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

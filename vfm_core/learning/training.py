@@ -618,6 +618,23 @@ def fit_batch(
         sampler = _Sampler(train, settings.batch_size, gens)
         # a retrain runs at most retrain_max_iter: looking further for its count is waste
         search = min(settings.max_iter, settings.retrain_max_iter) if retrain else settings.max_iter
+        compiled = (
+            None
+            if model.shared or deadline is not None or sched is not None or not plain_optimizer(opt)
+            else _compiled_fit(model, params, opt)
+        )
+        if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
+            best_iter = compiled.search(
+                sampler,
+                val,
+                has_val,
+                best_iter,
+                search,
+                settings.patience,
+                settings.noise,
+                settings.max_grad_norm,
+            )
+            search = 0  # done: the loop below has nothing left to run
         for k in range(1, search + 1):
             _map_step_gradients(model, params, sampler, settings)
             clip_per_well_(model, settings.max_grad_norm, groups)
