@@ -451,7 +451,7 @@ def _fit_twice(
     return state, counts, len(calls)
 
 
-@pytest.mark.parametrize("name", ["mm", "hem", "ham", "nn"])
+@pytest.mark.parametrize("name", ["mm", "hem", "ham", "nn", "lr"])
 def test_compiled_training_steps_match_the_torch_loop(
     monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
 ) -> None:
@@ -467,9 +467,8 @@ def test_compiled_training_steps_match_the_torch_loop(
     for key, value in torch_state.items():
         torch.testing.assert_close(state[key], value, rtol=1e-9, atol=1e-12, msg=key)
     # and the parameters moved: the retrains learned something
-    fresh = make_model(name, history.wells).state_dict()
-    learned = [k for k in state if k.endswith("z") or k.startswith("net.")]
-    assert learned and all(not torch.equal(fresh[k], state[k]) for k in learned)
+    fresh = dict(make_model(name, history.wells).named_parameters())
+    assert fresh and all(not torch.equal(p.detach(), state[k]) for k, p in fresh.items())
 
 
 def test_compiled_training_steps_only_where_they_apply(
@@ -490,3 +489,33 @@ def test_compiled_training_steps_only_where_they_apply(
     monkeypatch.setenv("VFM_KERNELS", "0")
     fit_batch(make_model("mm", history.wells), history, replace(short, lr=1e-2))
     assert calls == []
+
+
+@pytest.mark.parametrize("name", ["nn", "lr"])
+def test_compiled_sgd_online_steps_match_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
+) -> None:
+    """``nn`` and ``lr`` with ``ol``'s SGD (their default): 60 updates, a well without a
+    measurement every third time, compiled and in torch, end at the same parameters."""
+    history, columns = stream
+    states = {}
+    for kernels in ("0", "1"):
+        monkeypatch.setenv("VFM_KERNELS", kernels)
+        model = make_model(name, history.wells)
+        method = parse_method("ol")
+        train = replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False)
+        method.bind(model, train=train, online=DEFAULT_ONLINE[name])
+        method.fit(history)
+        method.start(int(history.time_ns[history.mask].max()))
+        before = {k: v.clone() for k, v in model.state_dict().items()}
+        for i, col in enumerate(columns):
+            if i % 3 == 1:  # the middle well has no measurement this time: it stays
+                col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+            method.on_measurement(col)
+        assert method._nn is (kernels == "1")
+        states[kernels] = (before, {k: v.clone() for k, v in model.state_dict().items()})
+    (before, slow), (_, fast) = states["0"], states["1"]
+    for key, value in slow.items():
+        torch.testing.assert_close(fast[key], value, rtol=1e-9, atol=1e-12, msg=key)
+    last = "net.biases.2" if name == "nn" else "b"
+    assert not torch.equal(slow[last], before[last])  # it learned

@@ -711,6 +711,106 @@ def _adam_(  # noqa: PLR0913 - one parameter's update
 
 
 @jit
+def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    counts: np.ndarray,
+    todo: np.ndarray,
+    xn: np.ndarray,
+    y: np.ndarray,
+    has: np.ndarray,
+    width: int,
+    same: bool,
+    n_full: np.ndarray,
+    scale: np.ndarray,
+    noise: float,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+    validate: bool,
+    xv: np.ndarray,
+    yv: np.ndarray,
+    hv: np.ndarray,
+    val_out: np.ndarray,
+) -> None:
+    """:func:`fit_steps` for ``lr``: q = y_scale (w . x_norm + b), the prior w ~ N(0, 1),
+    b ~ N(1, 1); ``params`` (w [W, 6], b [W]), ``moments`` ((m, v) of each), ``counts``
+    [2, W]; ``xn`` (and ``xv``) normalised."""
+    wt, bt = params
+    mw, vw, mb, vb = moments
+    n_wells, n_in = wt.shape
+    g = np.zeros(n_in)
+    for w in range(n_wells):
+        n = n_full[w]
+        weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
+        for s in range(todo[w]):
+            c0 = 0 if same else s * width
+            n_data = 0
+            for j in range(c0, c0 + width):
+                if has[w, j]:
+                    n_data += 1
+            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
+            for i in range(n_in):
+                g[i] = 0.0
+            gb = 0.0
+            sse = 0.0
+            for j in range(c0, c0 + width):
+                if not has[w, j]:
+                    continue
+                dot = 0.0
+                for i in range(n_in):
+                    dot += xn[w, j, i] * wt[w, i]
+                e = (scale[w] * (dot + bt[w]) - y[w, j]) / scale[w]
+                sse += e * e
+                d = e * d_factor * scale[w]
+                for i in range(n_in):
+                    g[i] += d * xn[w, j, i]
+                gb += d
+            if n > 0:
+                penalty = (bt[w] - 1.0) ** 2
+                for i in range(n_in):
+                    penalty += wt[w, i] * wt[w, i]
+                losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
+            sq = 0.0
+            for i in range(n_in):
+                g[i] += 2.0 * weight * wt[w, i]
+                sq += g[i] * g[i]
+            gb += 2.0 * weight * (bt[w] - 1.0)
+            sq += gb * gb
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            size_w = size_b = root_w = root_b = 1.0
+            if adam:
+                counts[0, w] += 1.0
+                counts[1, w] += 1.0
+                size_w = lr / (1.0 - beta1 ** counts[0, w])
+                root_w = math.sqrt(1.0 - beta2 ** counts[0, w])
+                size_b = lr / (1.0 - beta1 ** counts[1, w])
+                root_b = math.sqrt(1.0 - beta2 ** counts[1, w])
+            hyper = (lr, beta1, beta2, eps)
+            _adam_(wt[w], g, mw[w], vw[w], clip, size_w, root_w, hyper, adam)
+            gbs = np.array([gb])
+            _adam_(
+                bt[w : w + 1], gbs, mb[w : w + 1], vb[w : w + 1], clip, size_b, root_b, hyper, adam
+            )
+            if validate:
+                sse = 0.0
+                n_val = 0
+                for j in range(hv.shape[1]):
+                    if hv[w, j]:
+                        dot = 0.0
+                        for i in range(n_in):
+                            dot += xv[w, j, i] * wt[w, i]
+                        e = (scale[w] * (dot + bt[w]) - yv[w, j]) / scale[w]
+                        sse += e * e
+                        n_val += 1
+                val_out[w, s] = sse / max(float(n_val), 1.0)
+
+
+@jit
 def _nn_val(  # noqa: PLR0913 - one well's network
     w1: np.ndarray,
     b1: np.ndarray,
@@ -1199,6 +1299,12 @@ def warm_up() -> None:
     net += (np.ones((1, 4, 1)), np.ones((1, 1)))
     nn_fit_steps(
         net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
+        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
+        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
+    )  # fmt: skip
+    lin = (np.zeros((1, 6)), np.ones(1))
+    lr_fit_steps(
+        lin, tuple(np.zeros_like(a) for a in lin for _ in range(2)), np.zeros((2, 1)),
         np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
         0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
     )  # fmt: skip

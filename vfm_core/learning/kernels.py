@@ -50,6 +50,9 @@ __all__ = [
     "compiled",
     "FitSteps",
     "fit_parameters",
+    "sgd_online_steps",
+    "plain_lr",
+    "plain_nn",
     "hybrid_applies",
     "hybrid_online_steps",
     "hybrid_parameters",
@@ -305,7 +308,17 @@ def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
     if plain_nn(model) and kernels_enabled():
         net = model.net
         return [t for pair in zip(net.weights, net.biases, strict=True) for t in pair]
+    if plain_lr(model) and kernels_enabled():
+        return [model.w, model.b]
     return None
+
+
+def plain_lr(model: Any) -> bool:
+    """True for exactly ``lr`` in float64: what
+    :func:`vfm_core.learning._mm_numba.lr_fit_steps` computes."""
+    from vfm_core.models.networks import LinearRegression
+
+    return type(model) is LinearRegression and model.w.dtype == model.b.dtype == torch.float64
 
 
 def plain_nn(model: Any) -> bool:
@@ -322,6 +335,38 @@ def plain_nn(model: Any) -> bool:
         and weights[2].shape[2] == 1
         and all(w.dtype == torch.float64 for w in weights)
     )
+
+
+def sgd_online_steps(
+    model: Any, batch: Any, hold: np.ndarray, *, steps: int, lr: float, max_norm: float
+) -> None:
+    """E steps of ``ol`` with SGD on the plain ``nn`` (:func:`plain_nn`) or ``lr``
+    (:func:`plain_lr`) and ``batch``, in place (``nn_fit_steps`` or ``lr_fit_steps`` of
+    :mod:`vfm_core.learning._mm_numba` on the same batch each step): the gradient of the
+    mean squared scaled error (``ol`` keeps the prior on physical parameters only: these
+    models have none), the per-well clip, the SGD step. Wells in ``hold`` (no new
+    measurement) keep their parameters: with SGD a well without data does not move."""
+    kernel = _kernel()
+    assert kernel is not None
+    params = fit_parameters(model)
+    assert params is not None and len(params) in (2, 6)
+    step = kernel.nn_fit_steps if len(params) == 6 else kernel.lr_fit_steps
+    with torch.no_grad():
+        values = [_in_place(p) for p in params]
+        mask = batch.mask.numpy() & ~np.asarray(hold, dtype=bool)[:, None]
+        n = mask.sum(1).astype(np.float64)
+        todo = np.where(n > 0, int(steps), 0).astype(np.int64)
+        moments = tuple(np.zeros_like(v) for v in values for _ in range(2))  # SGD: unused
+        (y_scale,) = buffer_views(model, ("y_scale",))
+        step(
+            tuple(values), moments, np.zeros((len(values), len(n))), todo,
+            np.ascontiguousarray(model.normalise(batch.x).numpy()),
+            np.ascontiguousarray(batch.y.numpy()), np.ascontiguousarray(mask),
+            int(mask.shape[1]), True, n, y_scale, 0.0, float(lr), 0.9, 0.999, 1e-8,
+            float(max_norm), False, np.zeros(len(n)), False, np.zeros((1, 0, 6)),
+            np.zeros((1, 0)), np.zeros((1, 0), dtype=bool), np.zeros((1, 1)),
+        )  # fmt: skip
+        _written_back(params, values)
 
 
 class FitSteps:
@@ -350,25 +395,27 @@ class FitSteps:
             float(group.get("eps", 1e-8)),
         )
         self.network = len(params) == 6  # nn: W1, b1, W2, b2, W3, b3
-        self.kind = 0 if len(params) == 1 else (2 if type(model) is HybridArea else 1)
+        self.linear = len(params) == 2  # lr: w, b
+        self.kind = 0 if len(params) <= 2 else (2 if type(model) is HybridArea else 1)
         self.n_w = int(params[0].shape[0])
 
     def _begin(self) -> None:
         """The arrays the kernel steps (the parameters' own memory) and a fresh optimiser."""
         n_w = self.n_w
         self.values = [_in_place(p) for p in self.params]
-        if not self.network and self.kind == 0:  # no network: empty arrays of its shapes
+        if len(self.params) == 1:  # mm, no network: empty arrays of its shapes
             self.values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
             self.values += [np.zeros((n_w, 1))]
         self.moments = tuple(np.zeros_like(v) for v in self.values for _ in range(2))
-        self.counts = np.zeros((len(self.values) if self.network else 5, n_w))
+        self.counts = np.zeros((len(self.values) if self.network or self.linear else 5, n_w))
 
     def _end(self) -> None:
         _written_back(list(self.params), self.values[: len(self.params)])
 
     def _inputs(self, x: torch.Tensor) -> np.ndarray:
         """The rows as the kernel reads them: normalised for ``nn``, in file units else."""
-        return np.ascontiguousarray((self.model.normalise(x) if self.network else x).numpy())
+        normalised = self.network or self.linear
+        return np.ascontiguousarray((self.model.normalise(x) if normalised else x).numpy())
 
     def _steps(  # noqa: PLR0913 - one chunk's arrays
         self,
@@ -398,11 +445,10 @@ class FitSteps:
         empty = (np.zeros((1, 0, 6)), np.zeros((1, 0)), np.zeros((1, 0), dtype=bool))
         validation = (True, *val) if val is not None else (False, *empty, np.zeros((1, 1)))
         steps = (noise, lr, beta1, beta2, eps, max_norm, self.adam, losses, *validation)
-        if self.network:
+        if self.network or self.linear:
             (y_scale,) = buffer_views(model, ("y_scale",))
-            kernel.nn_fit_steps(
-                tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps
-            )
+            step = kernel.nn_fit_steps if self.network else kernel.lr_fit_steps
+            step(tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps)
             return
         a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
         pos, mu, sigma = physics_layout(model)
@@ -664,6 +710,7 @@ def _build() -> SimpleNamespace:
         hybrid_online=k.hybrid_online,
         fit_steps=k.fit_steps,
         nn_fit_steps=k.nn_fit_steps,
+        lr_fit_steps=k.lr_fit_steps,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,

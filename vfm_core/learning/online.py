@@ -17,12 +17,16 @@ import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.kernels import (
+    fit_parameters,
     hybrid_online_steps,
     hybrid_parameters,
     kernels_enabled,
     mm_online_steps,
     plain_hybrid,
+    plain_lr,
     plain_mm,
+    plain_nn,
+    sgd_online_steps,
 )
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import LearningMethod, register
@@ -89,6 +93,8 @@ class OnlineLearning(LearningMethod):
         self._hybrid: list[torch.nn.Parameter] | None = None
         #: the compiled steps apply (the kernels on): the plain mm, or the plain hybrids
         self._compiled = False
+        #: the compiled steps are the plain nn's with SGD (kernels.sgd_online_steps)
+        self._nn = False
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -116,10 +122,16 @@ class OnlineLearning(LearningMethod):
             # with torch's plain Adam or SGD: the plain mm (its one tensor, z) or the
             # plain hybrids (every parameter) step compiled
             mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr]
+            # the plain nn or lr with SGD (their default), every parameter stepped
+            plain = plain_nn(self.model) or plain_lr(self.model)
+            net = fit_parameters(self.model) if plain else None
+            self._nn = (
+                net is not None and self._all_of(net) and isinstance(self._opt, torch.optim.SGD)
+            )
             self._compiled = (
                 plain_optimizer(self._opt)
                 and self._sched is None
-                and (mm or self._hybrid is not None)
+                and (mm or self._hybrid is not None or self._nn)
             )
         return self._opt
 
@@ -221,6 +233,15 @@ class OnlineLearning(LearningMethod):
         ``mm`` (``params`` None: :func:`vfm_core.learning.kernels.mm_online_steps`) or the
         plain ``hem`` / ``ham`` (``params`` in the order of
         :func:`~vfm_core.learning.kernels.hybrid_online_steps`)."""
+        if self._nn:
+            s = self.online
+            lr = float(opt.param_groups[0]["lr"])
+            sgd_online_steps(
+                self.model, batch, idle, steps=s.steps, lr=lr, max_norm=s.max_grad_norm
+            )
+            for p in self._params:
+                p.grad = None
+            return
         z: torch.nn.Parameter = self.model.phys.z  # type: ignore[assignment, union-attr]
         steps = [z] if params is None else params
         group = opt.param_groups[0]
