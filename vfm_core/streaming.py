@@ -54,12 +54,14 @@ from vfm_core.learning import (
     parse_method,
 )
 from vfm_core.learning.kernels import (
+    fit_parameters,
     hybrid_applies,
     hybrid_online_steps,
     hybrid_parameters,
     mm_online_applies,
     mm_online_steps,
     predict_rates,
+    sgd_online_steps,
 )
 from vfm_core.learning.training import (
     MapObjective,
@@ -1363,6 +1365,17 @@ def _online_steps(
         )
         for j in index:
             stepped[j] = s.steps
+    elif (
+        not adam
+        and all(getattr(lrn.method, "_nn", False) and lrn.method._compiled for lrn in learners)  # type: ignore[attr-defined]
+        and _same_parameters(params, fit_parameters(model) or [])
+    ):
+        # the plain nn or lr with SGD: the same steps, compiled, as each learner's own
+        # OnlineLearning takes them one by one
+        sgd_online_steps(
+            model, batch, np.zeros(k, dtype=bool), steps=s.steps, lr=lr, max_norm=s.max_grad_norm
+        )
+        stepped = [s.steps] * len(params)
     for _ in range(0 if stepped[0] else s.steps):
         objective.gradients_(params)
         clip_per_well_(model, s.max_grad_norm, groups)
