@@ -16,7 +16,10 @@ import pytest
 # the minor page faults of a second retrain (the first warms the process up)
 _RETRAIN = textwrap.dedent(
     """
-    import json, resource
+    import json, os, resource
+    # torch's training loop, as mtl and the models with effects run it (nn's own is
+    # compiled and allocates little either way)
+    os.environ["VFM_FIT_KERNEL"] = "0"
     from dataclasses import replace
     import numpy as np
     from vfm_core.runtime import configure, tune_malloc
