@@ -17,9 +17,10 @@ import pytest
 _RETRAIN = textwrap.dedent(
     """
     import json, os, resource
-    # torch's training loop, as mtl and the models with effects run it (nn's own is
-    # compiled and allocates little either way)
+    # torch's training loop and products, as the models with effects run them (nn's own
+    # loop is compiled and its products are numpy's: they allocate little either way)
     os.environ["VFM_FIT_KERNEL"] = "0"
+    os.environ["VFM_MATMUL"] = "torch"
     from dataclasses import replace
     import numpy as np
     from vfm_core.runtime import configure, tune_malloc
