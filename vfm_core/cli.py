@@ -73,12 +73,13 @@ def _cmd_import_volve(args: argparse.Namespace) -> int:
 # --- evaluate -----------------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from vfm_core.jobs.workers import StudyWorkers, usable_cpus
+    from vfm_core.models import MODELS
 
-    # the workers start first (a light import): they import torch and the kernels, seconds,
-    # while this process imports its own and reads the data; then they serve every case
-    given = _split_list(args.models)
-    groups = (len(given) if given else usable_cpus()) * (2 if args.effects else 1)
-    jobs = min(args.jobs or usable_cpus(), groups)  # a group: one model's runs
+    # the workers start first: they import the study and the kernels, seconds, while this
+    # process imports its own and reads the data; then they serve every case
+    models = _split_list(args.models) or list(MODELS)
+    groups = len(models) * (2 if args.effects else 1)  # a group: one model's runs
+    jobs = min(args.jobs or usable_cpus(), groups)
     preload = ("vfm_core.jobs.evaluate",)  # vfm_core.jobs.evaluate.PRELOAD
     with StudyWorkers(jobs - 1, threads=args.threads, preload=preload) as workers:
         return _evaluate_with(args, workers if jobs > 1 else None, jobs)

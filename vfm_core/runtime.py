@@ -87,7 +87,10 @@ def tune_malloc() -> bool:
 
 
 def blas_threads(threads: int = 1) -> None:
-    """numpy's BLAS threads (OpenBLAS's pool, through threadpoolctl), at least one."""
+    """numpy's and scipy's BLAS threads (OpenBLAS's pools, through threadpoolctl), at least
+    one. threadpoolctl limits the libraries loaded, so scipy's (which the compiled
+    kernels' ``np.dot`` calls) is loaded first."""
+    import scipy.linalg  # noqa: F401 - loads scipy's BLAS, to be limited too
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=max(1, int(threads)), user_api="blas")
