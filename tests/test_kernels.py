@@ -519,3 +519,42 @@ def test_compiled_sgd_online_steps_match_the_torch_steps(
         torch.testing.assert_close(fast[key], value, rtol=1e-9, atol=1e-12, msg=key)
     last = "net.biases.2" if name == "nn" else "b"
     assert not torch.equal(slow[last], before[last])  # it learned
+
+
+def test_compiled_mtl_online_steps_match_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]]
+) -> None:
+    """``mtl`` with ``ol``'s Adam (its default): 60 updates, a well without a measurement
+    every third time (its task vector held, its moments moving), compiled and in torch,
+    end at the same parameters, Adam moments and step counts."""
+    history, columns = stream
+    states = {}
+    for kernels in ("0", "1"):
+        monkeypatch.setenv("VFM_KERNELS", kernels)
+        model = make_model("mtl", history.wells)
+        method = parse_method("ol")
+        train = replace(DEFAULT_TRAIN["mtl"], max_iter=60, early_stopping=False)
+        method.bind(model, train=train, online=DEFAULT_ONLINE["mtl"])
+        method.fit(history)
+        method.start(int(history.time_ns[history.mask].max()))
+        before = {k: v.clone() for k, v in model.state_dict().items()}
+        held = []
+        for i, col in enumerate(columns):
+            if i % 3 == 1:  # the middle well has no measurement this time: it stays
+                col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+                beta = model.beta.detach()[1].clone()
+                method.on_measurement(col)
+                held.append(torch.equal(model.beta.detach()[1], beta))
+            else:
+                method.on_measurement(col)
+        assert method._mtl is (kernels == "1") and all(held)
+        optimizer = method.state_dict()["optimizer"]["state"]
+        states[kernels] = (before, {k: v.clone() for k, v in model.state_dict().items()}, optimizer)
+    (before, slow, slow_opt), (_, fast, fast_opt) = states["0"], states["1"]
+    for key, value in slow.items():
+        torch.testing.assert_close(fast[key], value, rtol=1e-9, atol=1e-12, msg=key)
+    for i, st in slow_opt.items():
+        assert float(fast_opt[i]["step"]) == float(st["step"]) == 60 * DEFAULT_ONLINE["mtl"].steps
+        for name in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(fast_opt[i][name], st[name], rtol=1e-9, atol=1e-15)
+    assert not torch.equal(slow["w_out"], before["w_out"])  # it learned

@@ -811,6 +811,141 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
 
 
 @jit
+def mtl_online(  # noqa: PLR0913, PLR0915 - the arrays of one update
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    count: np.ndarray,
+    idle: np.ndarray,
+    zn: np.ndarray,
+    y: np.ndarray,
+    mask: np.ndarray,
+    scale: np.ndarray,
+    steps: int,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    lr: float,
+    max_norm: float,
+) -> None:
+    """``ol``'s E Adam steps on ``mtl`` with two residual blocks (``MultiTask.rate_vjp``'s
+    closed form), in place: the mean squared scaled error of each well's rows (``ol`` has
+    no prior on a network), the per-well clip of the task vectors beta, the clip of the
+    shared weights by their global norm (``clip_grad_norm_``), torch's single-tensor Adam
+    on all 13 tensors (``count[0]``: their common step count), then the idle wells' beta
+    put back (their moments still move, as torch's optimiser moves them). ``params``:
+    beta, w_in, b_in, w1.0, w1.1, b1.0, b1.1, w2.0, w2.1, b2.0, b2.1, w_out, b_out (the
+    model's parameter order); ``zn`` the normalised inputs [W, N, 6]."""
+    beta, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, b_out = params
+    n_wells, n_cols = mask.shape
+    n_in = zn.shape[2]
+    task = beta.shape[1]
+    rows = 0
+    for w in range(n_wells):
+        for j in range(n_cols):
+            if mask[w, j]:
+                rows += 1
+    if rows == 0:
+        return
+    inp = np.zeros((rows, n_in + task))
+    target = np.zeros(rows)
+    well = np.zeros(rows, dtype=np.int64)
+    d_row = np.zeros(rows)
+    r = 0
+    for w in range(n_wells):
+        n = 0
+        for j in range(n_cols):
+            if mask[w, j]:
+                n += 1
+        for j in range(n_cols):
+            if mask[w, j]:
+                well[r] = w
+                target[r] = y[w, j]
+                d_row[r] = 2.0 / max(float(n), 1.0) / scale[w] * scale[w]  # d loss / d out per e
+                for i in range(n_in):
+                    inp[r, i] = zn[w, j, i]
+                r += 1
+    held = beta.copy()
+    grads_beta = np.zeros_like(beta)
+    for _ in range(steps):
+        for r in range(rows):
+            for i in range(task):
+                inp[r, n_in + i] = beta[well[r], i]
+        h0 = np.dot(inp, w_in) + b_in
+        u_a = np.dot(np.maximum(h0, 0.0), w1a) + b1a
+        h1 = h0 + (np.dot(np.maximum(u_a, 0.0), w2a) + b2a)
+        u_b = np.dot(np.maximum(h1, 0.0), w1b) + b1b
+        h2 = h1 + (np.dot(np.maximum(u_b, 0.0), w2b) + b2b)
+        out = np.dot(h2, w_out)
+        g = np.zeros((rows, 1))
+        for r in range(rows):
+            w = well[r]
+            q = scale[w] * (1.0 + (out[r, 0] + b_out[0]))
+            g[r, 0] = (q - target[r]) / scale[w] * d_row[r]
+        gw_out = np.dot(h2.T, g)
+        gb_out = g.sum(0)
+        dh = np.dot(g, w_out.T)
+        # block b (the last), then block a
+        gw2b = np.dot(np.maximum(u_b, 0.0).T, dh)
+        gb2b = dh.sum(0)
+        du = np.where(u_b > 0.0, np.dot(dh, w2b.T), 0.0)
+        gw1b = np.dot(np.maximum(h1, 0.0).T, du)
+        gb1b = du.sum(0)
+        dh = dh + np.where(h1 > 0.0, np.dot(du, w1b.T), 0.0)
+        gw2a = np.dot(np.maximum(u_a, 0.0).T, dh)
+        gb2a = dh.sum(0)
+        du = np.where(u_a > 0.0, np.dot(dh, w2a.T), 0.0)
+        gw1a = np.dot(np.maximum(h0, 0.0).T, du)
+        gb1a = du.sum(0)
+        dh = dh + np.where(h0 > 0.0, np.dot(du, w1a.T), 0.0)
+        gw_in = np.dot(inp.T, dh)
+        gb_in = dh.sum(0)
+        d_beta = np.dot(dh, w_in[n_in:].T)
+        grads_beta[:] = 0.0
+        for r in range(rows):
+            for i in range(task):
+                grads_beta[well[r], i] += d_beta[r, i]
+        # beta: clipped per well; the shared weights: by their global norm
+        for w in range(n_wells):
+            sq = 0.0
+            for i in range(task):
+                sq += grads_beta[w, i] * grads_beta[w, i]
+            c = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            for i in range(task):
+                grads_beta[w, i] *= c
+        shared = (
+            gw_in.reshape(-1), gb_in, gw1a.reshape(-1), gw1b.reshape(-1), gb1a, gb1b,
+            gw2a.reshape(-1), gw2b.reshape(-1), gb2a, gb2b, gw_out.reshape(-1), gb_out,
+        )  # fmt: skip
+        total = 0.0
+        for t in range(len(shared)):
+            total += np.sum(shared[t] * shared[t])
+        coef = min(max_norm / (math.sqrt(total) + 1e-6), 1.0)
+        count[0] += 1.0
+        size = lr / (1.0 - beta1 ** count[0])
+        root = math.sqrt(1.0 - beta2 ** count[0])
+        hyper = (lr, beta1, beta2, eps)
+        m = moments
+        _adam_(beta.reshape(-1), grads_beta.reshape(-1), m[0].reshape(-1), m[1].reshape(-1),
+               1.0, size, root, hyper, True)  # fmt: skip
+        _adam_(w_in.reshape(-1), shared[0], m[2].reshape(-1), m[3].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(b_in, shared[1], m[4], m[5], coef, size, root, hyper, True)
+        _adam_(w1a.reshape(-1), shared[2], m[6].reshape(-1), m[7].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(w1b.reshape(-1), shared[3], m[8].reshape(-1), m[9].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(b1a, shared[4], m[10], m[11], coef, size, root, hyper, True)
+        _adam_(b1b, shared[5], m[12], m[13], coef, size, root, hyper, True)
+        _adam_(w2a.reshape(-1), shared[6], m[14].reshape(-1), m[15].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(w2b.reshape(-1), shared[7], m[16].reshape(-1), m[17].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(b2a, shared[8], m[18], m[19], coef, size, root, hyper, True)
+        _adam_(b2b, shared[9], m[20], m[21], coef, size, root, hyper, True)
+        _adam_(w_out.reshape(-1), shared[10], m[22].reshape(-1), m[23].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
+        _adam_(b_out, shared[11], m[24], m[25], coef, size, root, hyper, True)
+        for w in range(n_wells):
+            if idle[w]:
+                for i in range(task):
+                    beta[w, i] = held[w, i]
+
+
+@jit
 def _nn_val(  # noqa: PLR0913 - one well's network
     w1: np.ndarray,
     b1: np.ndarray,
@@ -1301,6 +1436,15 @@ def warm_up() -> None:
         net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
         np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
         0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
+    )  # fmt: skip
+    mtl = (
+        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
+        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
+        np.ones((4, 1)), np.ones(1),
+    )  # fmt: skip
+    mtl_online(
+        mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1),
+        np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), 1, 0.9, 0.999, 1e-8, 1e-3, 1.0,
     )  # fmt: skip
     lin = (np.zeros((1, 6)), np.ones(1))
     lr_fit_steps(

@@ -51,6 +51,9 @@ __all__ = [
     "FitSteps",
     "fit_parameters",
     "sgd_online_steps",
+    "mtl_online_steps",
+    "mtl_parameters",
+    "plain_mtl",
     "plain_lr",
     "plain_nn",
     "hybrid_applies",
@@ -366,6 +369,69 @@ def sgd_online_steps(
             float(max_norm), False, np.zeros(len(n)), False, np.zeros((1, 0, 6)),
             np.zeros((1, 0)), np.zeros((1, 0), dtype=bool), np.zeros((1, 1)),
         )  # fmt: skip
+        _written_back(params, values)
+
+
+def plain_mtl(model: Any) -> bool:
+    """True for exactly ``mtl`` with two residual blocks, in float64, the kernels enabled:
+    what :func:`vfm_core.learning._mm_numba.mtl_online` computes."""
+    from vfm_core.models.networks import MultiTask
+
+    return (
+        type(model) is MultiTask
+        and len(model.w1) == len(model.w2) == 2
+        and all(p.dtype == torch.float64 for p in model.parameters())
+        and kernels_enabled()
+    )
+
+
+def mtl_parameters(model: Any) -> list[torch.nn.Parameter]:
+    """The parameters of :func:`mtl_online_steps`, in its order (the model's own)."""
+    return [
+        model.beta, model.w_in, model.b_in, *model.w1, *model.b1, *model.w2, *model.b2,
+        model.w_out, model.b_out,
+    ]  # fmt: skip
+
+
+def mtl_online_steps(
+    model: Any,
+    batch: Any,
+    moments: list[tuple[np.ndarray, np.ndarray]],
+    count: float,
+    idle: np.ndarray,
+    *,
+    steps: int,
+    lr: float,
+    betas: tuple[float, float],
+    eps: float,
+    max_norm: float,
+) -> None:
+    """E steps of ``ol`` with Adam on ``mtl`` (:func:`plain_mtl`) and ``batch``, in place:
+    the parameters of :func:`mtl_parameters`, ``moments`` their Adam moments (numpy views,
+    updated in place), ``count`` their common step count before. Wells in ``idle`` keep
+    their task vectors (see :func:`vfm_core.learning._mm_numba.mtl_online`)."""
+    kernel = _kernel()
+    assert kernel is not None
+    params = mtl_parameters(model)
+    with torch.no_grad():
+        values = [_in_place(p) for p in params]
+        (y_scale,) = buffer_views(model, ("y_scale",))
+        kernel.mtl_online(
+            tuple(values),
+            tuple(a for pair in moments for a in pair),
+            np.array([float(count)]),
+            np.ascontiguousarray(np.asarray(idle, dtype=bool)),
+            np.ascontiguousarray(model.normalise(batch.x).numpy()),
+            np.ascontiguousarray(batch.y.numpy()),
+            np.ascontiguousarray(batch.mask.numpy()),
+            y_scale,
+            int(steps),
+            float(betas[0]),
+            float(betas[1]),
+            float(eps),
+            float(lr),
+            float(max_norm),
+        )
         _written_back(params, values)
 
 
@@ -711,6 +777,7 @@ def _build() -> SimpleNamespace:
         fit_steps=k.fit_steps,
         nn_fit_steps=k.nn_fit_steps,
         lr_fit_steps=k.lr_fit_steps,
+        mtl_online=k.mtl_online,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,

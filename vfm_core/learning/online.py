@@ -22,9 +22,12 @@ from vfm_core.learning.kernels import (
     hybrid_parameters,
     kernels_enabled,
     mm_online_steps,
+    mtl_online_steps,
+    mtl_parameters,
     plain_hybrid,
     plain_lr,
     plain_mm,
+    plain_mtl,
     plain_nn,
     sgd_online_steps,
 )
@@ -128,10 +131,16 @@ class OnlineLearning(LearningMethod):
             self._nn = (
                 net is not None and self._all_of(net) and isinstance(self._opt, torch.optim.SGD)
             )
+            # the plain mtl with Adam (its default), every parameter stepped
+            self._mtl = (
+                plain_mtl(self.model)
+                and isinstance(self._opt, torch.optim.Adam)
+                and self._all_of(mtl_parameters(self.model))
+            )
             self._compiled = (
                 plain_optimizer(self._opt)
                 and self._sched is None
-                and (mm or self._hybrid is not None or self._nn)
+                and (mm or self._hybrid is not None or self._nn or self._mtl)
             )
         return self._opt
 
@@ -233,6 +242,22 @@ class OnlineLearning(LearningMethod):
         ``mm`` (``params`` None: :func:`vfm_core.learning.kernels.mm_online_steps`) or the
         plain ``hem`` / ``ham`` (``params`` in the order of
         :func:`~vfm_core.learning.kernels.hybrid_online_steps`)."""
+        if self._mtl:
+            order = mtl_parameters(self.model)
+            step_counts, views = self._adam_views(opt, order)
+            counts = {float(c) for c in step_counts}
+            if len(counts) == 1:  # one step count (else torch's path: see _learn)
+                group = opt.param_groups[0]
+                s = self.online
+                mtl_online_steps(
+                    self.model, batch, views, counts.pop(), idle, steps=s.steps,
+                    lr=float(group["lr"]), betas=tuple(group["betas"]), eps=float(group["eps"]),
+                    max_norm=s.max_grad_norm,
+                )  # fmt: skip
+                torch._foreach_add_(step_counts, float(s.steps))
+                for p in self._params:
+                    p.grad = None
+                return
         if self._nn:
             s = self.online
             lr = float(opt.param_groups[0]["lr"])
