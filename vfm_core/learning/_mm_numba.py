@@ -499,8 +499,9 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
     gw1 = np.zeros((6, hidden))
     gb1 = np.zeros(hidden)
     gw2 = np.zeros(hidden)
-    size = np.zeros(5)
-    root = np.zeros(5)
+    size = np.ones(5)
+    root = np.ones(5)
+    gb2s = np.zeros(1)
     he1 = 2.0 / (2.0 / 6.0)  # WellMLP.prior_gradients: 2 / he_var, he_var = 2 / fan_in
     he2 = 2.0 / (2.0 / hidden) if hidden > 0 else 0.0
     for w in range(n_wells):
@@ -599,49 +600,18 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
                     counts[t, w] += 1.0
                     size[t] = lr / (1.0 - beta1 ** counts[t, w])
                     root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
+            hyper = (lr, beta1, beta2, eps)
+            _adam_(z[w], gz, mz[w], vz[w], clip, size[0], root[0], hyper, adam)
             for i in range(n_par):
-                gi = gz[i] * clip
-                if adam:
-                    mz[w, i] = mz[w, i] + (1.0 - beta1) * (gi - mz[w, i])
-                    vz[w, i] = vz[w, i] * beta2 + (1.0 - beta2) * gi * gi
-                    zi = z[w, i] + (-size[0]) * mz[w, i] / (math.sqrt(vz[w, i]) / root[0] + eps)
-                else:
-                    zi = z[w, i] + (-lr) * gi
-                z[w, i] = max(min(zi, z_high[i]), z_low[i])
-            for k in range(hidden):
-                for i in range(6):
-                    gi = gw1[i, k] * clip
-                    if adam:
-                        mw1[w, i, k] = mw1[w, i, k] + (1.0 - beta1) * (gi - mw1[w, i, k])
-                        vw1[w, i, k] = vw1[w, i, k] * beta2 + (1.0 - beta2) * gi * gi
-                        denom = math.sqrt(vw1[w, i, k]) / root[1] + eps
-                        w1[w, i, k] = w1[w, i, k] + (-size[1]) * mw1[w, i, k] / denom
-                    else:
-                        w1[w, i, k] = w1[w, i, k] + (-lr) * gi
-                gi = gb1[k] * clip
-                if adam:
-                    mb1[w, k] = mb1[w, k] + (1.0 - beta1) * (gi - mb1[w, k])
-                    vb1[w, k] = vb1[w, k] * beta2 + (1.0 - beta2) * gi * gi
-                    denom = math.sqrt(vb1[w, k]) / root[2] + eps
-                    b1[w, k] = b1[w, k] + (-size[2]) * mb1[w, k] / denom
-                else:
-                    b1[w, k] = b1[w, k] + (-lr) * gi
-                gi = gw2[k] * clip
-                if adam:
-                    mw2[w, k, 0] = mw2[w, k, 0] + (1.0 - beta1) * (gi - mw2[w, k, 0])
-                    vw2[w, k, 0] = vw2[w, k, 0] * beta2 + (1.0 - beta2) * gi * gi
-                    denom = math.sqrt(vw2[w, k, 0]) / root[3] + eps
-                    w2[w, k, 0] = w2[w, k, 0] + (-size[3]) * mw2[w, k, 0] / denom
-                else:
-                    w2[w, k, 0] = w2[w, k, 0] + (-lr) * gi
-            gi = gb2 * clip
-            if kind != 0 and adam:
-                mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
-                vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
-                denom = math.sqrt(vb2[w, 0]) / root[4] + eps
-                b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
-            elif kind != 0:
-                b2[w, 0] = b2[w, 0] + (-lr) * gi
+                z[w, i] = max(min(z[w, i], z_high[i]), z_low[i])
+            if kind != 0:
+                gb2s[0] = gb2
+                _adam_(w1[w].reshape(-1), gw1.reshape(-1), mw1[w].reshape(-1),
+                       vw1[w].reshape(-1), clip, size[1], root[1], hyper, adam)  # fmt: skip
+                _adam_(b1[w], gb1, mb1[w], vb1[w], clip, size[2], root[2], hyper, adam)
+                _adam_(w2[w].reshape(-1), gw2, mw2[w].reshape(-1), vw2[w].reshape(-1),
+                       clip, size[3], root[3], hyper, adam)  # fmt: skip
+                _adam_(b2[w], gb2s, mb2[w], vb2[w], clip, size[4], root[4], hyper, adam)
             if not validate:
                 continue
             for i in range(6):
