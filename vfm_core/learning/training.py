@@ -381,8 +381,11 @@ class _Sampler:
         self.taken = 0
         self._queue: list[Batch] = []
 
-    def _refill(self) -> None:
-        size, c, batch, counts = self.size, self.chunk, self.batch, self.counts
+    def _draw(self, c: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rows of ``c`` iterations' mini-batches [W, c size] (each well's draws from
+        its own stream, or all its rows when they fit in one), clamped into its samples,
+        and which of them are samples (``has``)."""
+        size, counts = self.size, self.counts
         rows = []
         for j, gen in enumerate(self.gens):
             if int(counts[j]) > size:
@@ -392,7 +395,11 @@ class _Sampler:
                 rows.append(torch.arange(size, dtype=torch.int64).repeat(c))
         idx = torch.stack(rows)
         has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
-        idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
+        return torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1)), has
+
+    def _refill(self) -> None:
+        size, c, batch = self.size, self.chunk, self.batch
+        idx, has = self._draw(c)
         assert batch.well_test is not None and batch.extra is not None
         x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
         ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
@@ -426,18 +433,8 @@ class _Sampler:
         if self.full:
             return batch.x, batch.y, batch.mask, max(int(limit), 0), True
         assert not self._queue, "take() and next() do not mix"
-        size, counts = self.size, self.counts
         c = max(1, min(int(limit), self.chunk))
-        rows = []
-        for j, gen in enumerate(self.gens):
-            if int(counts[j]) > size:
-                u = torch.rand(size * c, generator=gen, dtype=DTYPE)
-                rows.append(torch.floor(u * float(counts[j])).to(torch.int64))
-            else:
-                rows.append(torch.arange(size, dtype=torch.int64).repeat(c))
-        idx = torch.stack(rows)
-        has = (idx < counts.unsqueeze(1)) & (counts > 0).unsqueeze(1)
-        idx = torch.minimum(idx, (counts - 1).clamp(min=0).unsqueeze(1))
+        idx, has = self._draw(c)
         x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
         self.taken += c
         return x, torch.gather(batch.y, 1, idx), has, c, False
