@@ -558,3 +558,31 @@ def test_compiled_mtl_online_steps_match_the_torch_steps(
         for name in ("exp_avg", "exp_avg_sq"):
             torch.testing.assert_close(fast_opt[i][name], st[name], rtol=1e-9, atol=1e-15)
     assert not torch.equal(slow["w_out"], before["w_out"])  # it learned
+
+
+def test_a_training_kernel_that_cannot_compile_leaves_the_torch_loop(
+    monkeypatch: pytest.MonkeyPatch,
+    stream: tuple[Batch, list[Batch]],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The training loops' kernels compile on first use; one that fails is logged once and
+    its models train in torch (here ``nn``), the others keep theirs."""
+    from vfm_core.learning import _mm_numba, kernels
+    from vfm_core.learning.training import fit_batch
+
+    def broken() -> None:
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(kernels, "_LAZY", {})
+    monkeypatch.setattr(_mm_numba, "warm_nn_fit_steps", broken)
+    history, _ = stream
+    model = make_model("nn", history.wells)
+    with caplog.at_level("WARNING", logger=kernels.__name__):
+        assert kernels.fit_parameters(model) is None
+        assert kernels.fit_parameters(model) is None  # asked again: not compiled again
+    assert sum("nn_fit_steps is off" in r.getMessage() for r in caplog.records) == 1
+    short = replace(DEFAULT_TRAIN["nn"], max_iter=5, early_stopping=False)
+    before = model.net.biases[2].detach().clone()
+    fit_batch(model, history, short)  # the torch loop
+    assert not torch.equal(model.net.biases[2].detach(), before)
+    assert kernels.fit_parameters(make_model("mm", history.wells)) is not None

@@ -1385,43 +1385,6 @@ def warm_up() -> None:
             x, ones, yes, np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)), one,
             -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
         )  # fmt: skip
-    for kind, hidden in ((0, 0), (1, 4), (2, 4)):
-        net = [
-            np.ones((1, 6, hidden)),
-            np.ones((1, hidden)),
-            np.ones((1, hidden, 1)),
-            np.ones((1, 1)),
-        ]
-        z6 = np.zeros((1, 6))
-        moments = tuple(np.zeros_like(a) for a in [z6, *net] for _ in range(2))
-        fit_steps(
-            kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,
-            yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
-            one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True,
-            x, ones, yes, np.zeros((1, 1)),
-        )  # fmt: skip
-    net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
-    net += (np.ones((1, 4, 1)), np.ones((1, 1)))
-    nn_fit_steps(
-        net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
-        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
-        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
-    )  # fmt: skip
-    mtl = (
-        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
-        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
-        np.ones((4, 1)), np.ones(1),
-    )  # fmt: skip
-    mtl_online(
-        mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1),
-        np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), 1, 0.9, 0.999, 1e-8, 1e-3, 1.0,
-    )  # fmt: skip
-    lin = (np.zeros((1, 6)), np.ones(1))
-    lr_fit_steps(
-        lin, tuple(np.zeros_like(a) for a in lin for _ in range(2)), np.zeros((2, 1)),
-        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
-        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
-    )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):
         d = 6 + (hidden + 1 if kind else 0)
@@ -1440,4 +1403,69 @@ def warm_up() -> None:
         ones, np.zeros((1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),
         np.ones((1, 2)), np.zeros((1, 2)), np.ones(1, dtype=bool),
         np.ones((1, 1), dtype=np.int64), yes, -1, 1.645, 3.15e16, *out,
+    )  # fmt: skip
+
+
+# -- the training loops' kernels: compiled on first use (kernels._lazy), not at start-up ----
+def warm_fit_steps() -> None:
+    """Run :func:`fit_steps` once per kind on a made-up sample (compiles it, or loads it)."""
+    one = np.ones((1, 6))
+    mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
+    pos = np.arange(6)
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    for kind, hidden in ((0, 0), (1, 4), (2, 4)):
+        net = [
+            np.ones((1, 6, hidden)),
+            np.ones((1, hidden)),
+            np.ones((1, hidden, 1)),
+            np.ones((1, 1)),
+        ]
+        z6 = np.zeros((1, 6))
+        moments = tuple(np.zeros_like(a) for a in [z6, *net] for _ in range(2))
+        fit_steps(
+            kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,
+            yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
+            one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True,
+            x, ones, yes, np.zeros((1, 1)),
+        )  # fmt: skip
+
+
+def warm_nn_fit_steps() -> None:
+    """Run :func:`nn_fit_steps` once on a made-up sample."""
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
+    net += (np.ones((1, 4, 1)), np.ones((1, 1)))
+    nn_fit_steps(
+        net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),
+        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
+        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
+    )  # fmt: skip
+
+
+def warm_lr_fit_steps() -> None:
+    """Run :func:`lr_fit_steps` once on a made-up sample."""
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    lin = (np.zeros((1, 6)), np.ones(1))
+    lr_fit_steps(
+        lin, tuple(np.zeros_like(a) for a in lin for _ in range(2)), np.zeros((2, 1)),
+        np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
+        0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
+    )  # fmt: skip
+
+
+def warm_mtl_online() -> None:
+    """Run :func:`mtl_online` once on a made-up sample."""
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    mtl = (
+        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
+        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
+        np.ones((4, 1)), np.ones(1),
+    )  # fmt: skip
+    mtl_online(
+        mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1),
+        np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), 1, 0.9, 0.999, 1e-8, 1e-3, 1.0,
     )  # fmt: skip

@@ -103,6 +103,37 @@ def _kernel() -> SimpleNamespace | None:
     return _KERNEL
 
 
+#: the training loops' kernels, compiled on first use: name -> function, or None (failed)
+_LAZY: dict[str, Any] = {}
+
+
+def _lazy(name: str) -> Any:
+    """The kernel ``name`` of :mod:`vfm_core.learning._mm_numba`, compiled (or loaded from
+    numba's cache) the first time a model asks for it, on a made-up sample; None when the
+    kernels are off or it cannot compile (the torch path runs). The training loops' kernels
+    take 1-7 s each to compile the first time, so a process compiles only those of the
+    models it trains, and a service start-up (:func:`warm`) none of them."""
+    if not kernels_enabled():
+        return None
+    if name not in _LAZY:
+        with _LOCK:
+            if name not in _LAZY:
+                from vfm_core.learning import _mm_numba as k
+
+                try:
+                    getattr(k, f"warm_{name}")()
+                    _LAZY[name] = getattr(k, name)
+                except Exception as exc:  # pragma: no cover - numba broken here
+                    logger.warning(
+                        "The compiled %s is off (%s: %s); the torch path runs instead.",
+                        name,
+                        type(exc).__name__,
+                        exc,
+                    )
+                    _LAZY[name] = None
+    return _LAZY[name]
+
+
 def compiled() -> SimpleNamespace | None:
     """The compiled functions (``online``, ``rates``, ``bayes``, ``bayes_spread`` of
     :mod:`vfm_core.learning._mm_numba`), or None when the kernels are off."""
@@ -112,7 +143,8 @@ def compiled() -> SimpleNamespace | None:
 def warm() -> bool:
     """Compile (or load from numba's cache) the kernels now, so that a service's first
     measurement does not wait for them (about 4.5 s the first time on this machine, 0.4 s
-    from the cache). Returns whether the kernels are enabled."""
+    from the cache). The training loops' kernels are not among them: they compile on a
+    model's first fit (:func:`_lazy`). Returns whether the kernels are enabled."""
     return kernels_enabled()
 
 
@@ -304,14 +336,14 @@ def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
     """The parameters :func:`fit_steps` trains, in its order (z; then W1, b1, W2, b2 of a
     hybrid), when it computes ``model``'s training steps (the plain ``mm`` or a plain
     hybrid, the kernels enabled); else None."""
-    if mm_online_applies(model):
+    if mm_online_applies(model) and _lazy("fit_steps") is not None:
         return [model.phys.z]
-    if hybrid_applies(model):
+    if hybrid_applies(model) and _lazy("fit_steps") is not None:
         return hybrid_parameters(model)
-    if plain_nn(model) and kernels_enabled():
+    if plain_nn(model) and _lazy("nn_fit_steps") is not None:
         net = model.net
         return [t for pair in zip(net.weights, net.biases, strict=True) for t in pair]
-    if plain_lr(model) and kernels_enabled():
+    if plain_lr(model) and _lazy("lr_fit_steps") is not None:
         return [model.w, model.b]
     return None
 
@@ -349,11 +381,9 @@ def sgd_online_steps(
     mean squared scaled error (``ol`` keeps the prior on physical parameters only: these
     models have none), the per-well clip, the SGD step. Wells in ``hold`` (no new
     measurement) keep their parameters: with SGD a well without data does not move."""
-    kernel = _kernel()
-    assert kernel is not None
     params = fit_parameters(model)
     assert params is not None and len(params) in (2, 6)
-    step = kernel.nn_fit_steps if len(params) == 6 else kernel.lr_fit_steps
+    step = _lazy("nn_fit_steps" if len(params) == 6 else "lr_fit_steps")
     with torch.no_grad():
         values = [_in_place(p) for p in params]
         mask = batch.mask.numpy() & ~np.asarray(hold, dtype=bool)[:, None]
@@ -381,7 +411,7 @@ def plain_mtl(model: Any) -> bool:
         type(model) is MultiTask
         and len(model.w1) == len(model.w2) == 2
         and all(p.dtype == torch.float64 for p in model.parameters())
-        and kernels_enabled()
+        and _lazy("mtl_online") is not None
     )
 
 
@@ -410,13 +440,11 @@ def mtl_online_steps(
     the parameters of :func:`mtl_parameters`, ``moments`` their Adam moments (numpy views,
     updated in place), ``count`` their common step count before. Wells in ``idle`` keep
     their task vectors (see :func:`vfm_core.learning._mm_numba.mtl_online`)."""
-    kernel = _kernel()
-    assert kernel is not None
     params = mtl_parameters(model)
     with torch.no_grad():
         values = [_in_place(p) for p in params]
         (y_scale,) = buffer_views(model, ("y_scale",))
-        kernel.mtl_online(
+        _lazy("mtl_online")(
             tuple(values),
             tuple(a for pair in moments for a in pair),
             np.array([float(count)]),
@@ -494,8 +522,6 @@ class FitSteps:
         val: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
         size: int,
     ) -> None:
-        kernel = _kernel()
-        assert kernel is not None
         model = self.model
         x, y, has, taken, same = chunk
         width = int(x.shape[1]) if same else int(size)
@@ -513,13 +539,13 @@ class FitSteps:
         steps = (noise, lr, beta1, beta2, eps, max_norm, self.adam, losses, *validation)
         if self.network or self.linear:
             (y_scale,) = buffer_views(model, ("y_scale",))
-            step = kernel.nn_fit_steps if self.network else kernel.lr_fit_steps
+            step = _lazy("nn_fit_steps" if self.network else "lr_fit_steps")
             step(tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps)
             return
         a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
         pos, mu, sigma = physics_layout(model)
         z_low, z_high = buffer_views(model.phys, _BOUNDS)
-        kernel.fit_steps(
+        _lazy("fit_steps")(
             self.kind,
             *self.values,
             self.moments,
@@ -774,10 +800,6 @@ def _build() -> SimpleNamespace:
     return SimpleNamespace(
         online=k.online,
         hybrid_online=k.hybrid_online,
-        fit_steps=k.fit_steps,
-        nn_fit_steps=k.nn_fit_steps,
-        lr_fit_steps=k.lr_fit_steps,
-        mtl_online=k.mtl_online,
         rates=k.rates,
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,
