@@ -96,8 +96,10 @@ class OnlineLearning(LearningMethod):
         self._hybrid: list[torch.nn.Parameter] | None = None
         #: the compiled steps apply (the kernels on): the plain mm, or the plain hybrids
         self._compiled = False
-        #: the compiled steps are the plain nn's with SGD (kernels.sgd_online_steps)
+        #: the compiled steps are the plain nn's or lr's with SGD (kernels.sgd_online_steps)
         self._nn = False
+        #: ... or the plain mtl's with Adam (kernels.mtl_online_steps)
+        self._mtl = False
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -167,7 +169,7 @@ class OnlineLearning(LearningMethod):
     def _learn(self, batch: Batch, memory: Memory | None = None) -> torch.Tensor:
         model = self.model
         opt = self._optimiser()
-        if self._compiled and kernels_enabled():
+        if self._compiled and kernels_enabled() and self._one_step_count(opt):
             return self._learn_compiled(batch)
         model.setup(batch)
         ready = model.ready & (batch.count() > 0)
@@ -194,6 +196,14 @@ class OnlineLearning(LearningMethod):
             self._sched.step()
         self.updates += 1
         return ready
+
+    def _one_step_count(self, opt: torch.optim.Optimizer) -> bool:
+        """False for ``mtl`` when its tensors' Adam step counts differ (a state loaded from
+        elsewhere): its compiled steps keep one count, so torch's path runs then."""
+        if not self._mtl:
+            return True
+        step_counts, _ = self._adam_views(opt, mtl_parameters(self.model))
+        return len({float(c) for c in step_counts}) == 1
 
     def _all_of(self, params: list[torch.nn.Parameter]) -> bool:
         """True when the optimiser steps exactly ``params`` (in any order)."""
@@ -243,21 +253,18 @@ class OnlineLearning(LearningMethod):
         plain ``hem`` / ``ham`` (``params`` in the order of
         :func:`~vfm_core.learning.kernels.hybrid_online_steps`)."""
         if self._mtl:
-            order = mtl_parameters(self.model)
-            step_counts, views = self._adam_views(opt, order)
-            counts = {float(c) for c in step_counts}
-            if len(counts) == 1:  # one step count (else torch's path: see _learn)
-                group = opt.param_groups[0]
-                s = self.online
-                mtl_online_steps(
-                    self.model, batch, views, counts.pop(), idle, steps=s.steps,
-                    lr=float(group["lr"]), betas=tuple(group["betas"]), eps=float(group["eps"]),
-                    max_norm=s.max_grad_norm,
-                )  # fmt: skip
-                torch._foreach_add_(step_counts, float(s.steps))
-                for p in self._params:
-                    p.grad = None
-                return
+            step_counts, views = self._adam_views(opt, mtl_parameters(self.model))
+            group = opt.param_groups[0]
+            s = self.online
+            mtl_online_steps(
+                self.model, batch, views, float(step_counts[0]), idle, steps=s.steps,
+                lr=float(group["lr"]), betas=tuple(group["betas"]), eps=float(group["eps"]),
+                max_norm=s.max_grad_norm,
+            )  # fmt: skip
+            torch._foreach_add_(step_counts, float(s.steps))
+            for p in self._params:
+                p.grad = None
+            return
         if self._nn:
             s = self.online
             lr = float(opt.param_groups[0]["lr"])
