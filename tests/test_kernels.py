@@ -437,8 +437,10 @@ def _fit_twice(
 
     monkeypatch.setenv("VFM_FIT_KERNEL", flag)
     calls = []
-    run = kernels.FitSteps.run
-    monkeypatch.setattr(kernels.FitSteps, "run", lambda self, *a: calls.append(1) or run(self, *a))
+    for cls in (kernels.FitSteps, kernels.MtlFitSteps):
+        monkeypatch.setattr(
+            cls, "run", lambda self, *a, _run=cls.run: calls.append(1) or _run(self, *a)
+        )
     model = make_model(name, history.wells)
     settings = replace(DEFAULT_TRAIN[name], batch_size=64)
     counts = [fit_batch(model, history, settings)["iterations"].tolist()]
@@ -451,7 +453,7 @@ def _fit_twice(
     return state, counts, len(calls)
 
 
-@pytest.mark.parametrize("name", ["mm", "hem", "ham", "nn", "lr"])
+@pytest.mark.parametrize("name", ["mm", "hem", "ham", "nn", "lr", "mtl"])
 def test_compiled_training_steps_match_the_torch_loop(
     monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
 ) -> None:
@@ -479,11 +481,13 @@ def test_compiled_training_steps_only_where_they_apply(
 
     history, _ = stream
     calls = []
-    run = kernels.FitSteps.run
-    monkeypatch.setattr(kernels.FitSteps, "run", lambda self, *a: calls.append(1) or run(self, *a))
+    for cls in (kernels.FitSteps, kernels.MtlFitSteps):
+        monkeypatch.setattr(
+            cls, "run", lambda self, *a, _run=cls.run: calls.append(1) or _run(self, *a)
+        )
     short = replace(DEFAULT_TRAIN["nn"], max_iter=5, early_stopping=False)
     fit_batch(make_model("nn", history.wells, hidden=(8,)), history, short)  # one layer: torch
-    fit_batch(make_model("mtl", history.wells), history, short)  # shared: torch
+    fit_batch(make_model("mtl", history.wells, blocks=1), history, short)  # one block: torch
     assert kernels.fit_parameters(make_model("mm", history.wells, effects=["erosion"])) is None
     assert calls == []
     monkeypatch.setenv("VFM_KERNELS", "0")

@@ -781,6 +781,61 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
 
 
 @jit
+def _mtl_forward(params: tuple, inp: np.ndarray) -> tuple:  # type: ignore[type-arg]
+    """``mtl``'s two residual blocks on the rows ``inp`` (normalised inputs, then the task
+    vector): the activations the backward pass needs and the output before ``b_out``."""
+    _, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, _ = params
+    h0 = np.dot(inp, w_in) + b_in
+    u_a = np.dot(np.maximum(h0, 0.0), w1a) + b1a
+    h1 = h0 + (np.dot(np.maximum(u_a, 0.0), w2a) + b2a)
+    u_b = np.dot(np.maximum(h1, 0.0), w1b) + b1b
+    h2 = h1 + (np.dot(np.maximum(u_b, 0.0), w2b) + b2b)
+    return h0, u_a, h1, u_b, h2, np.dot(h2, w_out)
+
+
+@jit
+def _mtl_backward(  # noqa: PLR0913 - the forward pass's activations
+    params: tuple,  # type: ignore[type-arg]
+    inp: np.ndarray,
+    h0: np.ndarray,
+    u_a: np.ndarray,
+    h1: np.ndarray,
+    u_b: np.ndarray,
+    h2: np.ndarray,
+    g: np.ndarray,
+) -> tuple:  # type: ignore[type-arg]
+    """The gradients of :func:`_mtl_forward`'s output rows, weighted by ``g`` [rows, 1]
+    (``MultiTask.rate_vjp``'s pullback): the shared tensors' (in the model's order, w_in
+    to b_out, flat) and each row's gradient of its task vector [rows, task]."""
+    _, w_in, _, w1a, w1b, _, _, w2a, w2b, _, _, w_out, _ = params
+    n_in = inp.shape[1] - params[0].shape[1]
+    gw_out = np.dot(h2.T, g)
+    gb_out = g.sum(0)
+    dh = np.dot(g, w_out.T)
+    # block b (the last), then block a
+    gw2b = np.dot(np.maximum(u_b, 0.0).T, dh)
+    gb2b = dh.sum(0)
+    du = np.where(u_b > 0.0, np.dot(dh, w2b.T), 0.0)
+    gw1b = np.dot(np.maximum(h1, 0.0).T, du)
+    gb1b = du.sum(0)
+    dh = dh + np.where(h1 > 0.0, np.dot(du, w1b.T), 0.0)
+    gw2a = np.dot(np.maximum(u_a, 0.0).T, dh)
+    gb2a = dh.sum(0)
+    du = np.where(u_a > 0.0, np.dot(dh, w2a.T), 0.0)
+    gw1a = np.dot(np.maximum(h0, 0.0).T, du)
+    gb1a = du.sum(0)
+    dh = dh + np.where(h0 > 0.0, np.dot(du, w1a.T), 0.0)
+    gw_in = np.dot(inp.T, dh)
+    gb_in = dh.sum(0)
+    d_beta = np.dot(dh, np.ascontiguousarray(w_in[n_in:].T))
+    shared = (
+        gw_in.reshape(-1), gb_in, gw1a.reshape(-1), gw1b.reshape(-1), gb1a, gb1b,
+        gw2a.reshape(-1), gw2b.reshape(-1), gb2a, gb2b, gw_out.reshape(-1), gb_out,
+    )  # fmt: skip
+    return shared, d_beta
+
+
+@jit
 def mtl_online(  # noqa: PLR0913, PLR0915 - the arrays of one update
     params: tuple,  # type: ignore[type-arg]
     moments: tuple,  # type: ignore[type-arg]
@@ -840,79 +895,235 @@ def mtl_online(  # noqa: PLR0913, PLR0915 - the arrays of one update
         for r in range(rows):
             for i in range(task):
                 inp[r, n_in + i] = beta[well[r], i]
-        h0 = np.dot(inp, w_in) + b_in
-        u_a = np.dot(np.maximum(h0, 0.0), w1a) + b1a
-        h1 = h0 + (np.dot(np.maximum(u_a, 0.0), w2a) + b2a)
-        u_b = np.dot(np.maximum(h1, 0.0), w1b) + b1b
-        h2 = h1 + (np.dot(np.maximum(u_b, 0.0), w2b) + b2b)
-        out = np.dot(h2, w_out)
+        h0, u_a, h1, u_b, h2, out = _mtl_forward(params, inp)
         g = np.zeros((rows, 1))
         for r in range(rows):
             w = well[r]
             q = scale[w] * (1.0 + (out[r, 0] + b_out[0]))
             g[r, 0] = (q - target[r]) / scale[w] * d_row[r]
-        gw_out = np.dot(h2.T, g)
-        gb_out = g.sum(0)
-        dh = np.dot(g, w_out.T)
-        # block b (the last), then block a
-        gw2b = np.dot(np.maximum(u_b, 0.0).T, dh)
-        gb2b = dh.sum(0)
-        du = np.where(u_b > 0.0, np.dot(dh, w2b.T), 0.0)
-        gw1b = np.dot(np.maximum(h1, 0.0).T, du)
-        gb1b = du.sum(0)
-        dh = dh + np.where(h1 > 0.0, np.dot(du, w1b.T), 0.0)
-        gw2a = np.dot(np.maximum(u_a, 0.0).T, dh)
-        gb2a = dh.sum(0)
-        du = np.where(u_a > 0.0, np.dot(dh, w2a.T), 0.0)
-        gw1a = np.dot(np.maximum(h0, 0.0).T, du)
-        gb1a = du.sum(0)
-        dh = dh + np.where(h0 > 0.0, np.dot(du, w1a.T), 0.0)
-        gw_in = np.dot(inp.T, dh)
-        gb_in = dh.sum(0)
-        d_beta = np.dot(dh, w_in[n_in:].T)
+        shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)
         grads_beta[:] = 0.0
         for r in range(rows):
             for i in range(task):
                 grads_beta[well[r], i] += d_beta[r, i]
         # beta: clipped per well; the shared weights: by their global norm
-        for w in range(n_wells):
-            sq = 0.0
-            for i in range(task):
-                sq += grads_beta[w, i] * grads_beta[w, i]
-            c = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
-            for i in range(task):
-                grads_beta[w, i] *= c
-        shared = (
-            gw_in.reshape(-1), gb_in, gw1a.reshape(-1), gw1b.reshape(-1), gb1a, gb1b,
-            gw2a.reshape(-1), gw2b.reshape(-1), gb2a, gb2b, gw_out.reshape(-1), gb_out,
-        )  # fmt: skip
-        total = 0.0
-        for t in range(len(shared)):
-            total += np.sum(shared[t] * shared[t])
-        coef = min(max_norm / (math.sqrt(total) + 1e-6), 1.0)
-        count[0] += 1.0
-        size = lr / (1.0 - beta1 ** count[0])
-        root = math.sqrt(1.0 - beta2 ** count[0])
-        hyper = (lr, beta1, beta2, eps)
-        m = moments
-        _adam_(beta.reshape(-1), grads_beta.reshape(-1), m[0].reshape(-1), m[1].reshape(-1),
-               1.0, size, root, hyper, True)  # fmt: skip
-        _adam_(w_in.reshape(-1), shared[0], m[2].reshape(-1), m[3].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(b_in, shared[1], m[4], m[5], coef, size, root, hyper, True)
-        _adam_(w1a.reshape(-1), shared[2], m[6].reshape(-1), m[7].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(w1b.reshape(-1), shared[3], m[8].reshape(-1), m[9].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(b1a, shared[4], m[10], m[11], coef, size, root, hyper, True)
-        _adam_(b1b, shared[5], m[12], m[13], coef, size, root, hyper, True)
-        _adam_(w2a.reshape(-1), shared[6], m[14].reshape(-1), m[15].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(w2b.reshape(-1), shared[7], m[16].reshape(-1), m[17].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(b2a, shared[8], m[18], m[19], coef, size, root, hyper, True)
-        _adam_(b2b, shared[9], m[20], m[21], coef, size, root, hyper, True)
-        _adam_(w_out.reshape(-1), shared[10], m[22].reshape(-1), m[23].reshape(-1), coef, size, root, hyper, True)  # fmt: skip
-        _adam_(b_out, shared[11], m[24], m[25], coef, size, root, hyper, True)
+        coef = _mtl_clip_(grads_beta, shared, max_norm)
+        _mtl_adam_(params, moments, grads_beta, shared, coef, count, (lr, beta1, beta2, eps), True)
         for w in range(n_wells):
             if idle[w]:
                 for i in range(task):
                     beta[w, i] = held[w, i]
+
+
+@jit
+def _mtl_adam_(  # noqa: PLR0913 - the 13 tensors' update
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    grads_beta: np.ndarray,
+    shared: tuple,  # type: ignore[type-arg]
+    coef: float,
+    count: np.ndarray,
+    hyper: tuple[float, float, float, float],
+    adam: bool,
+) -> None:
+    """One Adam (or SGD) step of ``mtl``'s 13 tensors, in place: beta with ``grads_beta``
+    (clipped per well already), the shared tensors with ``coef`` times their gradients
+    (the global-norm clip); ``count[0]``, the common step count, is advanced."""
+    beta, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, b_out = params
+    lr, beta1, beta2, _ = hyper
+    size, root = lr, 1.0
+    if adam:
+        count[0] += 1.0
+        size = lr / (1.0 - beta1 ** count[0])
+        root = math.sqrt(1.0 - beta2 ** count[0])
+    m = moments
+    _adam_(beta.reshape(-1), grads_beta.reshape(-1), m[0].reshape(-1), m[1].reshape(-1),
+           1.0, size, root, hyper, adam)  # fmt: skip
+    _adam_(w_in.reshape(-1), shared[0], m[2].reshape(-1), m[3].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(b_in, shared[1], m[4], m[5], coef, size, root, hyper, adam)
+    _adam_(w1a.reshape(-1), shared[2], m[6].reshape(-1), m[7].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(w1b.reshape(-1), shared[3], m[8].reshape(-1), m[9].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(b1a, shared[4], m[10], m[11], coef, size, root, hyper, adam)
+    _adam_(b1b, shared[5], m[12], m[13], coef, size, root, hyper, adam)
+    _adam_(w2a.reshape(-1), shared[6], m[14].reshape(-1), m[15].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(w2b.reshape(-1), shared[7], m[16].reshape(-1), m[17].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(b2a, shared[8], m[18], m[19], coef, size, root, hyper, adam)
+    _adam_(b2b, shared[9], m[20], m[21], coef, size, root, hyper, adam)
+    _adam_(w_out.reshape(-1), shared[10], m[22].reshape(-1), m[23].reshape(-1), coef, size, root, hyper, adam)  # fmt: skip
+    _adam_(b_out, shared[11], m[24], m[25], coef, size, root, hyper, adam)
+
+
+@jit
+def _mtl_clip_(grads_beta: np.ndarray, shared: tuple, max_norm: float) -> float:  # type: ignore[type-arg]
+    """Clip each well's task-vector gradient to ``max_norm`` in place (1e-12 as
+    ``clip_per_well_``); returns the shared tensors' global-norm factor
+    (``clip_grad_norm_``, 1e-6)."""
+    for w in range(grads_beta.shape[0]):
+        sq = 0.0
+        for i in range(grads_beta.shape[1]):
+            sq += grads_beta[w, i] * grads_beta[w, i]
+        c = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+        for i in range(grads_beta.shape[1]):
+            grads_beta[w, i] *= c
+    total = 0.0
+    for t in range(len(shared)):
+        total += np.sum(shared[t] * shared[t])
+    return min(max_norm / (math.sqrt(total) + 1e-6), 1.0)
+
+
+@jit
+def _mtl_rows(  # noqa: PLR0913 - one step's rows
+    params: tuple,  # type: ignore[type-arg]
+    zn: np.ndarray,
+    y: np.ndarray,
+    has: np.ndarray,
+    c0: int,
+    width: int,
+) -> tuple:  # type: ignore[type-arg]
+    """The rows of columns ``[c0, c0 + width)`` that are samples, compacted: the network's
+    inputs (the task vectors filled in), targets, wells, and the samples per well."""
+    beta = params[0]
+    n_wells, n_in, task = has.shape[0], zn.shape[2], beta.shape[1]
+    n_data = np.zeros(n_wells)
+    rows = 0
+    for w in range(n_wells):
+        for j in range(width):
+            if has[w, c0 + j]:
+                n_data[w] += 1.0
+                rows += 1
+    inp = np.zeros((rows, n_in + task))
+    target = np.zeros(rows)
+    well = np.zeros(rows, dtype=np.int64)
+    r = 0
+    for w in range(n_wells):
+        for j in range(width):
+            if has[w, c0 + j]:
+                well[r] = w
+                target[r] = y[w, c0 + j]
+                for i in range(n_in):
+                    inp[r, i] = zn[w, c0 + j, i]
+                for i in range(task):
+                    inp[r, n_in + i] = beta[w, i]
+                r += 1
+    return inp, target, well, n_data
+
+
+@jit
+def _mtl_penalty(params: tuple) -> float:  # type: ignore[type-arg]
+    """The He prior of ``mtl``'s shared tensors (``MultiTask.prior_penalty``'s ``shared``)."""
+    _, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, b_out = params
+    shared = 0.0
+    for wt in (w_in, w1a, w1b, w2a, w2b, w_out):
+        shared += np.sum(wt * wt) / (2.0 / wt.shape[0])
+    for bt in (b_in, b1a, b1b, b2a, b2b, b_out):
+        shared += np.sum(bt * bt)
+    return shared
+
+
+@jit
+def mtl_fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chunk
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    count: np.ndarray,
+    steps: int,
+    zn: np.ndarray,
+    y: np.ndarray,
+    has: np.ndarray,
+    width: int,
+    same: bool,
+    n_full: np.ndarray,
+    scale: np.ndarray,
+    n_model: int,
+    noise: float,
+    hyper: tuple[float, float, float, float],
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+    validate: bool,
+    zv: np.ndarray,
+    yv: np.ndarray,
+    hv: np.ndarray,
+    has_val: np.ndarray,
+    val_out: np.ndarray,
+) -> None:
+    """``steps`` training steps of ``mtl`` with two residual blocks (``fit_batch``'s loop on
+    a shared model), in place: step s on the columns ``[s width, (s + 1) width)`` of the
+    normalised inputs ``zn`` (all of them each step when ``same``). Each step is the
+    gradient of the MAP objective (:class:`vfm_core.learning.training.MapObjective` with
+    ``MultiTask.rate_vjp``: the data term of each well's rows, its task vector's N(0, 1)
+    prior, and the shared He prior spread over the ``n_model`` wells), the per-well clip of
+    the task vectors, the global-norm clip of the shared tensors, one Adam or SGD step of
+    all 13 tensors (``count[0]``, their common step count). ``losses`` [steps, W]: each
+    well's objective before the step; with ``validate``, ``val_out[s]`` is the held-out
+    error after step s summed over the wells of ``has_val`` (one early-stopping decision
+    for the shared network)."""
+    beta, b_out = params[0], params[12]
+    n_wells, task = has.shape[0], beta.shape[1]
+    weight = np.zeros(n_wells)
+    total_weight = 0.0
+    for w in range(n_wells):
+        if n_full[w] > 0:
+            weight[w] = noise**2 / max(n_full[w], 1.0)
+        total_weight += weight[w]
+    pull = total_weight / n_model  # each well carries 1/W of the shared prior
+    grads_beta = np.zeros_like(beta)
+    for s in range(steps):
+        c0 = 0 if same else s * width
+        inp, target, well, n_data = _mtl_rows(params, zn, y, has, c0, width)
+        rows = target.shape[0]
+        sse = np.zeros(n_wells)
+        grads_beta[:] = 0.0
+        if rows > 0:
+            h0, u_a, h1, u_b, h2, out = _mtl_forward(params, inp)
+            g = np.zeros((rows, 1))
+            for r in range(rows):
+                w = well[r]
+                if n_full[w] > 0:
+                    e = (scale[w] * (1.0 + (out[r, 0] + b_out[0])) - target[r]) / scale[w]
+                    sse[w] += e * e
+                    g[r, 0] = e * (2.0 / max(n_data[w], 1.0) / scale[w]) * scale[w]
+            shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)
+            for r in range(rows):
+                for i in range(task):
+                    grads_beta[well[r], i] += d_beta[r, i]
+        else:
+            shared = (
+                np.zeros(params[1].size), np.zeros(params[2].size), np.zeros(params[3].size),
+                np.zeros(params[4].size), np.zeros(params[5].size), np.zeros(params[6].size),
+                np.zeros(params[7].size), np.zeros(params[8].size), np.zeros(params[9].size),
+                np.zeros(params[10].size), np.zeros(params[11].size), np.zeros(params[12].size),
+            )  # fmt: skip
+        penalty = _mtl_penalty(params) / n_model
+        for w in range(n_wells):
+            if n_full[w] > 0:
+                sq = 0.0
+                for i in range(task):
+                    sq += beta[w, i] * beta[w, i]
+                losses[s, w] = sse[w] / max(n_data[w], 1.0) + (sq + penalty) * weight[w]
+            for i in range(task):
+                grads_beta[w, i] += 2.0 * weight[w] * beta[w, i]
+        # the He prior's pull on the shared tensors (weights: 1 / fan-in; biases: 1)
+        _, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, _ = params
+        for t, wt in ((0, w_in), (2, w1a), (3, w1b), (6, w2a), (7, w2b), (10, w_out)):
+            _pull_(shared[t], wt.reshape(-1), 2.0 * pull / (2.0 / wt.shape[0]))
+        for t, bt in ((1, b_in), (4, b1a), (5, b1b), (8, b2a), (9, b2b), (11, b_out)):
+            _pull_(shared[t], bt, 2.0 * pull)
+        coef = _mtl_clip_(grads_beta, shared, max_norm)
+        _mtl_adam_(params, moments, grads_beta, shared, coef, count, hyper, adam)
+        if validate:
+            inp, target, well, n_val = _mtl_rows(params, zv, yv, hv, 0, hv.shape[1])
+            if target.shape[0] > 0:
+                out = _mtl_forward(params, inp)[5]
+                sse[:] = 0.0
+                for r in range(target.shape[0]):
+                    w = well[r]
+                    e = (scale[w] * (1.0 + (out[r, 0] + b_out[0])) - target[r]) / scale[w]
+                    sse[w] += e * e
+                v = 0.0
+                for w in range(n_wells):
+                    if has_val[w]:
+                        v += sse[w] / max(n_val[w], 1.0)
+                val_out[s] = v
 
 
 @jit
@@ -1468,4 +1679,20 @@ def warm_mtl_online() -> None:
     mtl_online(
         mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1),
         np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), 1, 0.9, 0.999, 1e-8, 1e-3, 1.0,
+    )  # fmt: skip
+
+
+def warm_mtl_fit_steps() -> None:
+    """Run :func:`mtl_fit_steps` once on made-up samples, with the held-out error."""
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    mtl = (
+        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
+        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
+        np.ones((4, 1)), np.ones(1),
+    )  # fmt: skip
+    mtl_fit_steps(
+        mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1), 1, x, ones,
+        yes, 1, True, np.ones(1), np.ones(1), 1, 0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, True,
+        np.zeros((1, 1)), True, x, ones, yes, yes[0], np.zeros(1),
     )  # fmt: skip

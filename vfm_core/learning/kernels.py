@@ -20,8 +20,10 @@ arithmetic, in the same order, as one loop over wells and samples:
   second pass (the initial fit and every ``pbl`` retrain) for the plain ``mm``, the
   plain hybrids and ``nn`` with two hidden layers (its products in BLAS through
   ``np.dot``, the rest fused), each well for its own count, with the convergence stop of a retrain on
-  the whole batch. ``VFM_FIT_KERNEL=0`` turns this one off alone (a comparison side by
-  side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
+  the whole batch; :class:`MtlFitSteps`: the same for ``mtl`` with two residual blocks, whose
+  shared network steps the whole field together (one count, one early-stopping and one
+  convergence decision for the field). ``VFM_FIT_KERNEL=0`` turns these off alone (a
+  comparison side by side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
 
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
 the torch path (parameters, optimiser and filter states to 1e-10 or better after many
@@ -49,6 +51,7 @@ __all__ = [
     "kernels_enabled",
     "compiled",
     "FitSteps",
+    "MtlFitSteps",
     "fit_parameters",
     "sgd_online_steps",
     "mtl_online_steps",
@@ -650,6 +653,173 @@ class FitSteps:
                 stop = False
                 for i in range(taken):
                     v = out[:, i]
+                    improved = has & (v < best_loss - 1e-12)
+                    best_loss = np.where(improved, v, best_loss)
+                    best_iter = np.where(improved, k + i + 1, best_iter)
+                    since = np.where(improved, 0, since + 1)
+                    if bool((since[has] >= patience).all()):
+                        sampler.taken -= taken - (i + 1)  # the steps past the stop
+                        stop = True
+                        break
+                k += taken
+                if stop:
+                    break
+            self._end()
+        return torch.from_numpy(best_iter)
+
+
+class MtlFitSteps:
+    """:func:`vfm_core.learning.training.fit_batch`'s training loops for the plain ``mtl``
+    (:func:`plain_mtl`), compiled (:func:`vfm_core.learning._mm_numba.mtl_fit_steps`): the
+    shared network steps every well together, so :meth:`run` runs one count for the field
+    (with one convergence decision on the sum of the wells' objectives) and :meth:`search`
+    one early-stopping decision on the sum of their held-out errors, as the torch loops do
+    for a shared model. The same arithmetic (``tests/test_kernels.py``), its products in
+    BLAS through ``np.dot``, without a torch call per step."""
+
+    SEARCH_CHUNK = FitSteps.SEARCH_CHUNK
+
+    def __init__(
+        self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer
+    ) -> None:
+        self.model, self.params = model, params
+        group = opt.param_groups[0]
+        self.adam = isinstance(opt, torch.optim.Adam)
+        self.hyper = (
+            float(group["lr"]),
+            *(float(b) for b in group.get("betas", (0.9, 0.999))),
+            float(group.get("eps", 1e-8)),
+        )
+        self.n_w = int(model.beta.shape[0])
+
+    def _begin(self) -> None:
+        self.values = [_in_place(p) for p in self.params]
+        self.moments = tuple(np.zeros_like(v) for v in self.values for _ in range(2))
+        self.count = np.zeros(1)
+
+    def _end(self) -> None:
+        _written_back(list(self.params), self.values)
+
+    def _steps(  # noqa: PLR0913 - one chunk's arrays
+        self,
+        chunk: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, bool],
+        n_full: np.ndarray,
+        noise: float,
+        max_norm: float,
+        losses: np.ndarray,
+        val: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+        size: int,
+    ) -> None:
+        model = self.model
+        x, y, has, taken, same = chunk
+        (y_scale,) = buffer_views(model, ("y_scale",))
+        empty = (np.zeros((1, 0, 6)), np.zeros((1, 0)), np.zeros((1, 0), dtype=bool))
+        validation = (
+            (True, *val)
+            if val is not None
+            else (False, *empty, np.zeros(1, dtype=bool), np.zeros(1))
+        )
+        _lazy("mtl_fit_steps")(
+            tuple(self.values),
+            self.moments,
+            self.count,
+            int(taken),
+            np.ascontiguousarray(model.normalise(x).numpy()),
+            np.ascontiguousarray(y.numpy()),
+            np.ascontiguousarray(has.numpy()),
+            int(x.shape[1]) if same else int(size),
+            bool(same),
+            n_full,
+            y_scale,
+            len(model.wells),
+            float(noise),
+            self.hyper,
+            float(max_norm),
+            self.adam,
+            losses,
+            *validation,
+        )
+
+    def run(
+        self,
+        sampler: Any,
+        iterations: torch.Tensor,
+        noise: float,
+        max_norm: float,
+        converge: tuple[int, float, int] | None = None,
+    ) -> torch.Tensor:
+        """Step the field ``max(iterations)`` times (the sampler's draws, chunk by chunk);
+        with ``converge`` (check, tol, patience: a retrain on the whole batch), stop once the
+        summed mean objective of ``check`` steps has not fallen below the best block's by the
+        fraction ``tol``, ``patience`` blocks in a row. Returns the steps taken, per well."""
+        n_w = self.n_w
+        total = int(iterations.max()) if n_w else 0
+        with torch.no_grad():
+            self._begin()
+            n_full = sampler.counts.to(torch.float64).numpy()
+            best_block, stale, done = np.inf, 0, 0
+            while done < total:
+                limit = total - done if converge is None else min(converge[0], total - done)
+                chunk = sampler.take(limit)
+                taken = chunk[3]
+                losses = np.zeros((taken, n_w))
+                self._steps(chunk, n_full, noise, max_norm, losses, None, sampler.size)
+                done += taken
+                if converge is not None and done % converge[0] == 0 and done < total:
+                    check, tol, patience = converge
+                    block = np.zeros(n_w)
+                    for i in range(taken):  # as the torch loop adds them, step by step
+                        block += losses[i]
+                    mean = float((block / check).sum())
+                    improved = mean < best_block * (1.0 - tol)
+                    best_block = min(best_block, mean)
+                    stale = 0 if improved else stale + 1
+                    if stale >= patience:
+                        total = done
+            self._end()
+        return torch.full_like(iterations, total)
+
+    def search(
+        self,
+        sampler: Any,
+        val: Any,
+        has_val: torch.Tensor,
+        best_iter: torch.Tensor,
+        steps: int,
+        patience: int,
+        noise: float,
+        max_norm: float,
+    ) -> torch.Tensor:
+        """Early stopping's pass, one decision for the field: after each step the held-out
+        error summed over the wells of ``has_val``; those wells keep the step of its best
+        value, and the pass ends once it has gone ``patience`` steps without a better one
+        (see :meth:`FitSteps.search`)."""
+        n_w = self.n_w
+        best_iter = best_iter.clone().numpy()
+        has = has_val.numpy()
+        best_loss = np.full(n_w, np.inf)
+        since = np.zeros(n_w, dtype=np.int64)
+        val_arrays = (
+            np.ascontiguousarray(self.model.normalise(val.x).numpy()),
+            np.ascontiguousarray(val.y.numpy()),
+            np.ascontiguousarray(val.mask.numpy()),
+            np.ascontiguousarray(has),
+        )
+        with torch.no_grad():
+            self._begin()
+            n_full = sampler.counts.to(torch.float64).numpy()
+            k = 0
+            while k < steps:
+                chunk = sampler.take(min(self.SEARCH_CHUNK, steps - k))
+                taken = chunk[3]
+                out = np.zeros(taken)
+                losses = np.zeros((taken, n_w))
+                self._steps(
+                    chunk, n_full, noise, max_norm, losses, (*val_arrays, out), sampler.size
+                )
+                stop = False
+                for i in range(taken):
+                    v = np.full(n_w, out[i])
                     improved = has & (v < best_loss - 1e-12)
                     best_loss = np.where(improved, v, best_loss)
                     best_iter = np.where(improved, k + i + 1, best_iter)

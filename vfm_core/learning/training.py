@@ -480,6 +480,13 @@ def _compiled_fit(
 
     if os.environ.get("VFM_FIT_KERNEL", "1") == "0":
         return None
+    if model.shared:  # the plain mtl: the field's steps together (kernels.MtlFitSteps)
+        if not kernels.plain_mtl(model) or kernels._lazy("mtl_fit_steps") is None:
+            return None
+        ordered = kernels.mtl_parameters(model)
+        if len(ordered) != len(params) or {id(p) for p in ordered} != {id(p) for p in params}:
+            return None
+        return kernels.MtlFitSteps(model, ordered, opt)
     ordered = kernels.fit_parameters(model)
     if ordered is None or {id(p) for p in ordered} != {id(p) for p in params}:
         return None
@@ -617,7 +624,7 @@ def fit_batch(
         search = min(settings.max_iter, settings.retrain_max_iter) if retrain else settings.max_iter
         compiled = (
             None
-            if model.shared or deadline is not None or sched is not None or not plain_optimizer(opt)
+            if deadline is not None or sched is not None or not plain_optimizer(opt)
             else _compiled_fit(model, params, opt)
         )
         if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
@@ -680,7 +687,7 @@ def fit_batch(
     stale = torch.zeros(n_w, dtype=torch.int64)
     compiled = (
         None
-        if model.shared or deadline is not None or sched is not None or not plain_optimizer(opt)
+        if deadline is not None or sched is not None or not plain_optimizer(opt)
         else _compiled_fit(model, params, opt)
     )
     if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
