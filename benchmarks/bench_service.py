@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from datetime import UTC, datetime, timedelta
@@ -594,6 +595,8 @@ def run_engine(
             stats.add(prof)
         stats.sort_stats("tottime").print_stats(profile)
         stats.sort_stats("cumulative").print_stats(profile)
+        if os.environ.get("VFM_BENCH_PSTATS"):  # the raw statistics, for pstats' callers
+            stats.dump_stats(os.environ["VFM_BENCH_PSTATS"])
         out["profile"] = buf.getvalue()
     return out
 
@@ -636,6 +639,11 @@ def main() -> None:
     parser.add_argument(
         "--queues", default="", help="TOML lines for [queues], e.g. 'receive_capacity = 256'"
     )
+    parser.add_argument(
+        "--inputs",
+        default="",
+        help="flood: TOML lines for [inputs], e.g. 'well_rate_hz = 100' (a per-well quota)",
+    )
     args = parser.parse_args()
     if args.scenario == "engine":
         print(
@@ -673,7 +681,7 @@ def main() -> None:
             0.05,
             args.queues,
             args.flood_block,
-            f"max_block_samples = {max(args.flood_block, 1000)}",
+            f"max_block_samples = {max(args.flood_block, 1000)}\n{args.inputs}",
         )
         blocks = f" in sensor blocks of {f['rows']} rows" if f["kind"] == "blocks" else ""
         print(

@@ -262,6 +262,40 @@ def test_per_well_quota(tmp_path: Path) -> None:
     assert bucket.take(now=start, n=1000)
     assert not bucket.take(now=start + 100.0)
     assert bucket.take(now=start + 1000.0)
+    # a well whose quota is spent is refused before its message is decoded, taking nothing
+    reg.quota_spent("E")  # no bucket yet: nothing spent
+    reg.quota("E", 10)
+    with pytest.raises(InvalidRequest) as info:
+        reg.quota_spent("E")
+    assert info.value.reason == "well flooding"
+    reg.quota_spent("B")  # another well's quota is its own
+    owed = TokenBucket(1.0, 10)
+    assert owed.take(now=owed.stamp, n=1000)  # 990 tokens owed, repaid at 1 a second
+    assert owed.spent(now=owed.stamp + 500.0) and not owed.spent(now=owed.stamp + 992.0)
+    assert owed.take(now=owed.stamp + 992.0)  # spent() took nothing
+
+
+def test_a_flooding_wells_messages_are_refused_before_decoding(tmp_path: Path) -> None:
+    """With a quota, a well that spent it is refused at the door: its next message (here
+    not even JSON) costs a lookup, not its parsing, and counts as ``well flooding``."""
+    from service.engine.fairqueue import FairQueue
+    from service.engine.intake import Intake
+    from service.inputs import Counters
+
+    settings = loopback_settings(tmp_path, inputs={"well_rate_hz": 1.0, "well_burst": 2})
+    counters = Counters()
+    intake = Intake(settings, counters, Registry(settings, {}), [FairQueue(100, 100)])
+    now = datetime.now(UTC).isoformat()
+    sample = {"time": now, "choke": 0.5, "p_up": 80.0, "p_down": 30.0, "t_up": 60.0}
+    good = json.dumps({**sample, "eta_gas": 0.2, "eta_oil": 0.5}).encode()
+    key = f"{settings.prefix}/F/sensors"
+    for _ in range(2):
+        intake.deliver(key, good, time.time_ns())
+    intake.deliver(key, b"{not json", time.time_ns())
+    refused = counters.snapshot()["rejected"]
+    assert refused == {"well flooding": 1}, refused  # not "unparseable"
+    intake.deliver(f"{settings.prefix}/G/sensors", b"{not json", time.time_ns())
+    assert counters.snapshot()["rejected"].get("well flooding") == 1  # G's quota is its own
 
 
 # -- plausible rates -------------------------------------------------------------------------------

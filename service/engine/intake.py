@@ -122,6 +122,7 @@ class Intake:
                     "share a router and that the instances' zenoh.wells are disjoint.",
                     "well of another instance",
                 )
+            self.registry.quota_spent(well)  # a flooding well: refused before decoding
             item: SensorItem | SensorBlockItem | MeasurementItem
             if kind == "sensors":
                 data = decode(payload, self.limits)

@@ -37,6 +37,11 @@ class TokenBucket:
         self.tokens = float(burst)
         self.stamp = time.monotonic()
 
+    def spent(self, now: float | None = None) -> bool:
+        """Whether no message would pass now (less than one token saved), taking none."""
+        now = time.monotonic() if now is None else now
+        return min(self.burst, self.tokens + (now - self.stamp) * self.rate) < min(1.0, self.burst)
+
     def take(self, now: float | None = None, n: float = 1.0) -> bool:
         """Take ``n`` tokens. More than ``burst`` pass once the burst is saved up, and the
         balance goes below zero: the well repays them before it sends again."""
@@ -106,6 +111,29 @@ class Registry:
                 )
             self.creating.add(well)
 
+    def quota_spent(self, well: str) -> None:
+        """With ``inputs.well_rate_hz`` set: refuse any message of a well whose quota is
+        spent, before it is decoded (a flood of large sensor blocks then costs the receiver
+        a lookup per message, not their parsing, so it cannot delay the other wells); takes
+        nothing: :meth:`quota` counts the message once it is parsed."""
+        if self.settings.inputs.well_rate_hz <= 0:
+            return
+        with self._lock:
+            bucket = self._quotas.get(well)
+            spent = bucket is not None and bucket.spent()
+        if spent:
+            self._refuse(well, 1)
+
+    def _refuse(self, well: str, samples: int) -> None:
+        rate = self.settings.inputs.well_rate_hz
+        what = "message" if samples == 1 else f"sensor block of {samples} samples"
+        raise InvalidRequest(
+            f"The well {well} sends more than {rate:g} messages a second (inputs.well_rate_hz, "
+            f"burst {self.settings.inputs.well_burst}; a sensor block counts its samples); "
+            f"this {what} is refused so that other wells are not delayed. Slow the sender down.",
+            "well flooding",
+        )
+
     def quota(self, well: str, samples: int = 1) -> None:
         """With ``inputs.well_rate_hz`` set: refuse a message above the well's rate. A
         sensor block counts its samples (at most the burst), so blocks do not widen it."""
@@ -118,13 +146,7 @@ class Registry:
                 bucket = self._quotas[well] = TokenBucket(rate, self.settings.inputs.well_burst)
             ok = bucket.take(n=samples)
         if not ok:
-            what = "message" if samples == 1 else f"sensor block of {samples} samples"
-            raise InvalidRequest(
-                f"The well {well} sends more than {rate:g} messages a second (inputs.well_rate_hz, "
-                f"burst {self.settings.inputs.well_burst}; a sensor block counts its samples); "
-                f"this {what} is refused so that other wells are not delayed. Slow the sender down.",
-                "well flooding",
-            )
+            self._refuse(well, samples)
 
     def known(self, well: str) -> bool:
         """Whether ``well`` is served (or being created): its refusals are counted per well."""
