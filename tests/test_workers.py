@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -115,3 +116,43 @@ def test_evaluate_jobs_option(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit):
         main([*args, "--out", str(tmp_path / "bad"), "--jobs", "0"])
     assert "not a positive number of processes" in capsys.readouterr().err
+
+
+def test_close_stops_a_worker_that_is_ready_but_not_yet_recorded_at_once() -> None:
+    """A worker that has marked itself ready waits on the shared task queue, maybe holding
+    its lock: terminating it there could leave the others without their stop (close then
+    waited 10 s for them). Here the caller's reader thread is held back, as if the workers'
+    "ready" had not reached it yet; close() still sends them their stop and returns fast."""
+    workers = StudyWorkers(2, threads=1)
+    hold = threading.Event()
+    read = workers._read
+
+    def late_reader() -> None:
+        hold.wait(WAIT_S)
+        read()
+
+    workers._read = late_reader  # type: ignore[method-assign]
+    workers.start()
+    deadline = time.monotonic() + WAIT_S
+    while not all(workers._flags[1:]):  # both imported and waiting on the task queue
+        assert time.monotonic() < deadline, "the workers never became ready"
+        time.sleep(0.05)
+    assert workers._idle == 0  # the reader has recorded nothing
+    # the reader catches up only once close() has chosen whom to stop and whom to terminate
+    threading.Timer(0.5, hold.set).start()
+    started = time.monotonic()
+    workers.close()
+    took = time.monotonic() - started
+    # both got their stop and ended by themselves (terminated, they would exit with -15)
+    assert [p.exitcode for p in workers._procs] == [0, 0]
+    assert took < 5.0, f"close took {took:.1f} s"
+
+
+def test_close_while_the_workers_import_terminates_them() -> None:
+    """An early error (a missing file, say) closes workers that are still importing: they
+    are terminated at once, not waited for."""
+    workers = StudyWorkers(2, threads=1).start()
+    started = time.monotonic()
+    workers.close()
+    assert time.monotonic() - started < 5.0
+    assert all(not p.is_alive() for p in workers._procs)

@@ -46,9 +46,18 @@ def usable_cpus() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _worker_main(tasks: Any, results: Any, threads: int, preload: tuple[str, ...]) -> None:
+def _worker_main(  # noqa: PLR0913 - what a spawned worker is given
+    tasks: Any,
+    results: Any,
+    threads: int,
+    preload: tuple[str, ...],
+    gate: Any = None,
+    flags: Any = None,
+    index: int = 0,
+) -> None:
     """A worker: import what the tasks need, say it is ready, then run tasks until told to
-    stop."""
+    stop. ``gate``, ``flags``: see :meth:`StudyWorkers.close` (flags[0]: closing;
+    flags[1 + index]: this worker may take from the task queue)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller handles Ctrl-C and stops us
     import importlib
 
@@ -60,6 +69,11 @@ def _worker_main(tasks: Any, results: Any, threads: int, preload: tuple[str, ...
     from vfm_core.learning import kernels
 
     kernels.warm()
+    if gate is not None:
+        with gate:  # once marked, close() sends this worker its stop, never terminates it
+            if flags[0]:
+                return
+            flags[1 + index] = 1
     results.put(("ready", os.getpid()))
     while True:
         item = tasks.get()
@@ -126,7 +140,9 @@ class StudyWorkers:
         self._reader: threading.Thread | None = None
         self._cond = threading.Condition()
         self._idle = 0
-        self._ready: set[int] = set()
+        #: close() and the workers' ready marks (see close): a lock and [closing, ready...]
+        self._gate: Any = None
+        self._flags: Any = None
         self._closed = False
         self._run: dict[str, Any] | None = None
 
@@ -136,10 +152,19 @@ class StudyWorkers:
             return self
         ctx = mp.get_context("spawn")
         self._tasks, self._results = ctx.Queue(), ctx.Queue()
-        for _ in range(self.workers):
+        self._gate, self._flags = ctx.Lock(), ctx.Array("b", self.workers + 1, lock=False)
+        for i in range(self.workers):
             proc = ctx.Process(
                 target=_worker_main,
-                args=(self._tasks, self._results, self._threads, self._preload),
+                args=(
+                    self._tasks,
+                    self._results,
+                    self._threads,
+                    self._preload,
+                    self._gate,
+                    self._flags,
+                    i,
+                ),
                 daemon=True,
                 name="vfm-study-worker",
             )
@@ -151,8 +176,10 @@ class StudyWorkers:
 
     def close(self) -> None:
         """Stop the workers: idle ones are told to end (a worker killed while it waits on
-        the queue leaves its locks to the resource tracker, which then warns); a task still
-        running is abandoned, its worker terminated."""
+        the task queue may hold the queue's lock, and then the others never get their
+        stop); one still importing is terminated (it has not touched the queue: under the
+        shared ``gate`` it either marked itself ready before ``close`` looked, or sees the
+        closing flag and ends); a task still running is abandoned, its worker terminated."""
         with self._cond:
             if self._closed:
                 return
@@ -160,11 +187,13 @@ class StudyWorkers:
             busy = self._run is not None and bool(self._run["outstanding"])
             self._cond.notify_all()
         if not busy and self._tasks is not None:
+            with self._gate:  # no worker marks itself ready from here on
+                self._flags[0] = 1
+                importing = [p for i, p in enumerate(self._procs) if not self._flags[1 + i]]
             for _ in self._procs:
                 self._tasks.put(None)
-            for proc in self._procs:
-                if proc.pid not in self._ready:  # still importing: it holds no lock yet
-                    proc.terminate()
+            for proc in importing:  # it never takes from the task queue: no lock to leave
+                proc.terminate()
             deadline = time.monotonic() + 10.0
             for proc in self._procs:
                 proc.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -221,9 +250,7 @@ class StudyWorkers:
                 continue
             with self._cond:
                 self._idle += 1  # a worker ready for its first task, or done with one
-                if kind == "ready":
-                    self._ready.add(msg[1])
-                else:
+                if kind != "ready":
                     run = self._run
                     if run is not None:
                         run["outstanding"] -= 1
