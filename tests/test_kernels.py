@@ -590,3 +590,25 @@ def test_a_training_kernel_that_cannot_compile_leaves_the_torch_loop(
     fit_batch(model, history, short)  # the torch loop
     assert not torch.equal(model.net.biases[2].detach(), before)
     assert kernels.fit_parameters(make_model("mm", history.wells)) is not None
+
+
+@pytest.mark.parametrize("name", ["mm", "mtl"])
+def test_a_whole_batch_fit_with_early_stopping(
+    monkeypatch: pytest.MonkeyPatch, stream: tuple[Batch, list[Batch]], name: str
+) -> None:
+    """``batch_size = 0`` (every step on the whole batch) with early stopping: the sampler
+    draws nothing, so nothing is rewound after the search (a KeyError before), and the
+    compiled loops choose what torch's choose."""
+    from vfm_core.learning.training import fit_batch
+
+    history, _ = stream
+    settings = replace(DEFAULT_TRAIN[name], batch_size=0, max_iter=40)
+    results = {}
+    for flag in ("0", "1"):
+        monkeypatch.setenv("VFM_FIT_KERNEL", flag)
+        model = make_model(name, history.wells)
+        counts = fit_batch(model, history, settings)["iterations"].tolist()
+        results[flag] = (counts, {k: v.clone() for k, v in model.state_dict().items()})
+    assert results["0"][0] == results["1"][0] and max(results["1"][0]) > 0
+    for key, value in results["0"][1].items():
+        torch.testing.assert_close(results["1"][1][key], value, rtol=1e-9, atol=1e-12, msg=key)

@@ -53,11 +53,11 @@ def _worker_main(  # noqa: PLR0913 - what a spawned worker is given
     preload: tuple[str, ...],
     gate: Any = None,
     flags: Any = None,
-    index: int = 0,
+    slot: int = 0,
 ) -> None:
     """A worker: import what the tasks need, say it is ready, then run tasks until told to
     stop. ``gate``, ``flags``: see :meth:`StudyWorkers.close` (flags[0]: closing;
-    flags[1 + index]: this worker may take from the task queue)."""
+    flags[1 + slot]: this worker may take from the task queue)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller handles Ctrl-C and stops us
     import importlib
 
@@ -73,7 +73,7 @@ def _worker_main(  # noqa: PLR0913 - what a spawned worker is given
         with gate:  # once marked, close() sends this worker its stop, never terminates it
             if flags[0]:
                 return
-            flags[1 + index] = 1
+            flags[1 + slot] = 1
     results.put(("ready", os.getpid()))
     while True:
         item = tasks.get()
@@ -187,13 +187,20 @@ class StudyWorkers:
             busy = self._run is not None and bool(self._run["outstanding"])
             self._cond.notify_all()
         if not busy and self._tasks is not None:
-            with self._gate:  # no worker marks itself ready from here on
-                self._flags[0] = 1
-                importing = [p for i, p in enumerate(self._procs) if not self._flags[1 + i]]
+            # no worker marks itself ready from here on; the workers not marked never take
+            # from the task queue, so they hold none of its locks and may be terminated. A
+            # gate that stays taken means a worker was killed from outside inside it: then
+            # none is known to be safe, and all are terminated.
+            got = self._gate.acquire(timeout=5.0)
+            self._flags[0] = 1
+            marked = [got and bool(self._flags[1 + i]) for i in range(len(self._procs))]
+            if got:
+                self._gate.release()
             for _ in self._procs:
                 self._tasks.put(None)
-            for proc in importing:  # it never takes from the task queue: no lock to leave
-                proc.terminate()
+            for proc, ready in zip(self._procs, marked, strict=True):
+                if not ready:
+                    proc.terminate()
             deadline = time.monotonic() + 10.0
             for proc in self._procs:
                 proc.join(timeout=max(0.0, deadline - time.monotonic()))

@@ -899,7 +899,7 @@ def mtl_online(  # noqa: PLR0913, PLR0915 - the arrays of one update
         g = np.zeros((rows, 1))
         for r in range(rows):
             w = well[r]
-            q = scale[w] * (1.0 + (out[r, 0] + b_out[0]))
+            q = scale[w] * ((1.0 + out[r, 0]) + b_out[0])
             g[r, 0] = (q - target[r]) / scale[w] * d_row[r]
         shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)
         grads_beta[:] = 0.0
@@ -1079,7 +1079,7 @@ def mtl_fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training
             for r in range(rows):
                 w = well[r]
                 if n_full[w] > 0:
-                    e = (scale[w] * (1.0 + (out[r, 0] + b_out[0])) - target[r]) / scale[w]
+                    e = (scale[w] * ((1.0 + out[r, 0]) + b_out[0]) - target[r]) / scale[w]
                     sse[w] += e * e
                     g[r, 0] = e * (2.0 / max(n_data[w], 1.0) / scale[w]) * scale[w]
             shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)

@@ -375,7 +375,10 @@ class _Sampler:
         self.batch, self.size, self.gens = batch, size, gens
         self.counts = batch.count()
         self.full = size <= 0 or int(self.counts.max()) <= size
-        self.draws = [j for j in range(len(gens)) if int(self.counts[j]) > size]
+        # a full batch draws nothing (size 0 means the whole batch at every step)
+        self.draws = (
+            [] if self.full else [j for j in range(len(gens)) if int(self.counts[j]) > size]
+        )
         self.start = {j: gens[j].get_state() for j in self.draws} if not self.full else {}
         self.chunk = max(1, min(16, self._CHUNK_SAMPLES // max(batch.n_wells * size, 1)))
         self.taken = 0
