@@ -30,6 +30,8 @@ Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--wells 100,1000] [--seconds 30] [--burst 20000]
     .venv/bin/python benchmarks/bench_service.py --scenario flood [--flood-kind samples|names]
+    .venv/bin/python benchmarks/bench_service.py --scenario flood --flood-kind blocks \
+        --flood-block 200 --inputs 'well_rate_hz = 100'   # with a per-well quota
     .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 [--profile 30]
     .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 --block 1,40
 """
