@@ -466,6 +466,52 @@ def mtl_online_steps(
         _written_back(params, values)
 
 
+def _optimiser_settings(opt: torch.optim.Optimizer) -> tuple[bool, tuple[float, ...]]:
+    """Whether ``opt`` is Adam (else SGD), and its (lr, beta1, beta2, eps)."""
+    group = opt.param_groups[0]
+    return isinstance(opt, torch.optim.Adam), (
+        float(group["lr"]),
+        *(float(b) for b in group.get("betas", (0.9, 0.999))),
+        float(group.get("eps", 1e-8)),
+    )
+
+
+def _early_stopping(  # noqa: PLR0913 - the pass's state
+    sampler: Any,
+    steps: int,
+    chunk_size: int,
+    has: np.ndarray,
+    best_iter: np.ndarray,
+    patience: int,
+    run: Any,
+) -> np.ndarray:
+    """Early stopping's pass over compiled chunks: ``run(chunk)`` steps the kernel on the
+    sampler's chunk and gives the held-out error after each step [W, taken]; a well with
+    ``has`` keeps the step of its best error, and the pass ends once every such well has
+    gone ``patience`` steps without a better one (the torch loop's rule, its 1e-12 margin).
+    Returns ``best_iter`` updated; the sampler has taken exactly the steps the torch loop
+    would have (the kernel's steps past the end are undone by the caller, which restores
+    the parameters)."""
+    best_loss = np.full(len(has), np.inf)
+    since = np.zeros(len(has), dtype=np.int64)
+    k = 0
+    while k < steps:
+        chunk = sampler.take(min(chunk_size, steps - k))
+        taken = chunk[3]
+        out = run(chunk)
+        for i in range(taken):
+            v = out[:, i]
+            improved = has & (v < best_loss - 1e-12)
+            best_loss = np.where(improved, v, best_loss)
+            best_iter = np.where(improved, k + i + 1, best_iter)
+            since = np.where(improved, 0, since + 1)
+            if bool((since[has] >= patience).all()):
+                sampler.taken -= taken - (i + 1)  # the steps past the stop
+                return best_iter
+        k += taken
+    return best_iter
+
+
 class FitSteps:
     """:func:`vfm_core.learning.training.fit_batch`'s training loops, compiled
     (:func:`vfm_core.learning._mm_numba.fit_steps`, ``nn_fit_steps``) for the plain ``mm``,
@@ -484,13 +530,7 @@ class FitSteps:
         from vfm_core.models.physical import HybridArea
 
         self.model, self.params = model, params
-        group = opt.param_groups[0]
-        self.adam = isinstance(opt, torch.optim.Adam)
-        self.hyper = (
-            float(group["lr"]),
-            *(float(b) for b in group.get("betas", (0.9, 0.999))),
-            float(group.get("eps", 1e-8)),
-        )
+        self.adam, self.hyper = _optimiser_settings(opt)
         self.network = len(params) == 6  # nn: W1, b1, W2, b2, W3, b3
         self.linear = len(params) == 2  # lr: w, b
         self.kind = 0 if len(params) <= 2 else (2 if type(model) is HybridArea else 1)
@@ -628,10 +668,6 @@ class FitSteps:
         has taken exactly the steps the torch loop would have (the kernel's steps past the
         end are undone by the caller, which restores the parameters)."""
         n_w = self.n_w
-        best_iter = best_iter.clone().numpy()
-        has = has_val.numpy()
-        best_loss = np.full(n_w, np.inf)
-        since = np.zeros(n_w, dtype=np.int64)
         val_arrays = (
             self._inputs(val.x),
             np.ascontiguousarray(val.y.numpy()),
@@ -641,31 +677,21 @@ class FitSteps:
             self._begin()
             n_full = sampler.counts.to(torch.float64).numpy()
             losses = np.zeros(n_w)
-            k = 0
-            while k < steps:
-                chunk = sampler.take(min(self.SEARCH_CHUNK, steps - k))
+
+            def run(chunk: Any) -> np.ndarray:
                 taken = chunk[3]
                 out = np.zeros((n_w, taken))
                 todo = np.full(n_w, taken, dtype=np.int64)
-                self._steps(
-                    chunk, todo, n_full, noise, max_norm, losses, (*val_arrays, out), sampler.size
-                )
-                stop = False
-                for i in range(taken):
-                    v = out[:, i]
-                    improved = has & (v < best_loss - 1e-12)
-                    best_loss = np.where(improved, v, best_loss)
-                    best_iter = np.where(improved, k + i + 1, best_iter)
-                    since = np.where(improved, 0, since + 1)
-                    if bool((since[has] >= patience).all()):
-                        sampler.taken -= taken - (i + 1)  # the steps past the stop
-                        stop = True
-                        break
-                k += taken
-                if stop:
-                    break
+                val = (*val_arrays, out)
+                self._steps(chunk, todo, n_full, noise, max_norm, losses, val, sampler.size)
+                return out
+
+            chosen = _early_stopping(
+                sampler, steps, self.SEARCH_CHUNK, has_val.numpy(), best_iter.clone().numpy(),
+                patience, run,
+            )  # fmt: skip
             self._end()
-        return torch.from_numpy(best_iter)
+        return torch.from_numpy(chosen)
 
 
 class MtlFitSteps:
@@ -683,13 +709,7 @@ class MtlFitSteps:
         self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer
     ) -> None:
         self.model, self.params = model, params
-        group = opt.param_groups[0]
-        self.adam = isinstance(opt, torch.optim.Adam)
-        self.hyper = (
-            float(group["lr"]),
-            *(float(b) for b in group.get("betas", (0.9, 0.999))),
-            float(group.get("eps", 1e-8)),
-        )
+        self.adam, self.hyper = _optimiser_settings(opt)
         self.n_w = int(model.beta.shape[0])
 
     def _begin(self) -> None:
@@ -795,10 +815,7 @@ class MtlFitSteps:
         value, and the pass ends once it has gone ``patience`` steps without a better one
         (see :meth:`FitSteps.search`)."""
         n_w = self.n_w
-        best_iter = best_iter.clone().numpy()
         has = has_val.numpy()
-        best_loss = np.full(n_w, np.inf)
-        since = np.zeros(n_w, dtype=np.int64)
         val_arrays = (
             np.ascontiguousarray(self.model.normalise(val.x).numpy()),
             np.ascontiguousarray(val.y.numpy()),
@@ -808,31 +825,20 @@ class MtlFitSteps:
         with torch.no_grad():
             self._begin()
             n_full = sampler.counts.to(torch.float64).numpy()
-            k = 0
-            while k < steps:
-                chunk = sampler.take(min(self.SEARCH_CHUNK, steps - k))
+
+            def run(chunk: Any) -> np.ndarray:
                 taken = chunk[3]
                 out = np.zeros(taken)
                 losses = np.zeros((taken, n_w))
-                self._steps(
-                    chunk, n_full, noise, max_norm, losses, (*val_arrays, out), sampler.size
-                )
-                stop = False
-                for i in range(taken):
-                    v = np.full(n_w, out[i])
-                    improved = has & (v < best_loss - 1e-12)
-                    best_loss = np.where(improved, v, best_loss)
-                    best_iter = np.where(improved, k + i + 1, best_iter)
-                    since = np.where(improved, 0, since + 1)
-                    if bool((since[has] >= patience).all()):
-                        sampler.taken -= taken - (i + 1)  # the steps past the stop
-                        stop = True
-                        break
-                k += taken
-                if stop:
-                    break
+                val = (*val_arrays, out)
+                self._steps(chunk, n_full, noise, max_norm, losses, val, sampler.size)
+                return np.tile(out, (n_w, 1))  # the field's one error, for every well
+
+            chosen = _early_stopping(
+                sampler, steps, self.SEARCH_CHUNK, has, best_iter.clone().numpy(), patience, run
+            )
             self._end()
-        return torch.from_numpy(best_iter)
+        return torch.from_numpy(chosen)
 
 
 def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
