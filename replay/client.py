@@ -6,11 +6,14 @@ One client for the replay tool (``vfm replay``), the service benchmark and the t
 sample time), with a count, the latest answered sample time per well and, if asked, the
 latency from sending a sample to receiving its prediction. Two buses fit:
 
-* :class:`ZenohBus`: a Zenoh session that connects only (no multicast, no listener), one
-  publisher per key with BLOCK congestion control, each used only once the service's
-  subscriber has matched it (nothing reaches a subscriber that has not matched), and a
-  FifoChannel subscriber read by its own thread (never a callback: a slow one would stall
-  the session).
+* :class:`ZenohBus`: a Zenoh session that connects only (no multicast, no listener), puts
+  with BLOCK congestion control on a key only once the service's subscriber has matched
+  it (nothing reaches a subscriber that has not matched), and a FifoChannel subscriber
+  read by its own thread (never a callback: a slow one would stall the session). A key's
+  publisher is declared only to see that match, then undeclared: with zenoh 1.10, every
+  key expression a session keeps declared makes each message it receives (here, the
+  predictions) cost a match against all of them, 130 µs a message with 1,000 wells'
+  keys (``benchmarks/bench_zenoh_keys.py``).
 * :class:`service.transport.MemoryTransport`: the service's in-memory transport offers
   the same three methods, so the same client drives the real engine without a network.
   This package does not import ``service``: the bus is handed in.
@@ -115,7 +118,7 @@ def field_config(
 
 
 class ZenohBus:
-    """The field side on Zenoh: BLOCK publishers used once matched, FifoChannel subscribers.
+    """The field side on Zenoh: BLOCK puts on keys once matched, FifoChannel subscribers.
 
     Close it (or use ``with``): an open session hangs the interpreter at exit.
     """
@@ -129,7 +132,8 @@ class ZenohBus:
         self.session = session
         self.match_timeout = match_timeout
         self.capacity = capacity
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        #: the keys the service has matched, parsed once (none stays declared)
+        self._matched: dict[str, zenoh.KeyExpr] = {}
         self._settled = False
 
     @classmethod
@@ -148,25 +152,21 @@ class ZenohBus:
         )
         return cls(zenoh.open(cfg), match_timeout=match_timeout, capacity=capacity)
 
-    def _publisher(self, key: str) -> zenoh.Publisher:
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self.session.declare_publisher(
-                key,
-                encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            self._publishers[key] = pub
-        return pub
-
     def matching(self, key: str, timeout: float) -> bool:
-        pub = self._publisher(key)
-        deadline = time.monotonic() + timeout
-        # the stubs say bool, zenoh 1.10 returns a MatchingStatus (always truthy): read .matching
-        while not getattr(pub.matching_status, "matching", False):
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.01)
+        """True once a subscriber (the service's) matches ``key``; False after ``timeout`` s."""
+        if key in self._matched:
+            return True
+        pub = self.session.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout
+            # the stubs say bool, zenoh 1.10 returns a MatchingStatus (always truthy): read .matching
+            while not getattr(pub.matching_status, "matching", False):
+                if time.monotonic() > deadline:
+                    return False
+                time.sleep(0.01)
+        finally:
+            pub.undeclare()
+        self._matched[key] = zenoh.KeyExpr(key)
         if not self._settled:
             self._settled = True
             time.sleep(self.SETTLE_S)
@@ -174,9 +174,17 @@ class ZenohBus:
 
     def put(self, key: str, payload: bytes | str) -> None:
         """Publish on ``key``; the first time, wait for the service to match (else ReplayError)."""
-        if key not in self._publishers and not self.matching(key, self.match_timeout):
-            raise _no_service(key, self.match_timeout)
-        self._publishers[key].put(payload)
+        expr = self._matched.get(key)
+        if expr is None:
+            if not self.matching(key, self.match_timeout):
+                raise _no_service(key, self.match_timeout)
+            expr = self._matched[key]
+        self.session.put(
+            expr,
+            payload,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
 
     def subscribe(
         self, key_expr: str, callback: Callable[[str, bytes], None]
@@ -200,12 +208,8 @@ class ZenohBus:
         return unsubscribe
 
     def close(self) -> None:
-        try:
-            for pub in self._publishers.values():
-                pub.undeclare()
-            self._publishers.clear()
-        finally:
-            self.session.close()
+        self._matched.clear()
+        self.session.close()
 
     def __enter__(self) -> ZenohBus:
         return self

@@ -9,7 +9,13 @@ stop. Two implementations share that path:
 callback: a slow callback would stall every subscriber of the session) and hands each
 message to ``deliver(key, payload, received_ns)`` on its own receiver thread. Predictions
 go out on ``<prefix>/<well>/prediction`` with BLOCK congestion control (DROP would lose
-them under load), never back to this session's own subscriber.
+them under load), never back to this session's own subscriber. They are sent with
+``Session.put``, not one declared publisher per well: with zenoh 1.10, every key
+expression a session declares (a publisher, ``declare_keyexpr``) makes each message the
+session *receives* cost a match against all of them in Zenoh's receiving thread. With
+1,000 wells' publishers declared, that was 130 µs of CPU a message, and it capped what a
+service could take in at about 7,800 messages/s before any of its own work
+(``benchmarks/bench_zenoh_keys.py``).
 
 Zenoh facts this relies on are in ``/work/shared/notes/zenoh.md``: never the default
 config (it joins multicast and listens everywhere), close every session (an open one
@@ -113,7 +119,7 @@ def session_locators(session: zenoh.Session, timeout: float = 2.0) -> list[str]:
 
 
 class ZenohTransport:
-    """Zenoh subscriber + receiver thread in, one BLOCK publisher per well out."""
+    """Zenoh subscriber + receiver thread in, BLOCK puts per well out (no declared publishers)."""
 
     def __init__(self, settings: ZenohSettings, prefix: str, capacity: int = 4096) -> None:
         self.settings = settings
@@ -122,8 +128,8 @@ class ZenohTransport:
         self._session: zenoh.Session | None = None
         self._subscriber: zenoh.Subscriber | None = None
         self._thread: threading.Thread | None = None
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._pub_lock = threading.Lock()
+        #: each well's prediction key, parsed once (not declared: see the module docstring)
+        self._keys: dict[str, zenoh.KeyExpr] = {}
         self._stop_token = secrets.token_bytes(16)
         self._control_key = f"{prefix}/_vfm-control/stop"
         self.received = 0
@@ -199,29 +205,20 @@ class ZenohTransport:
         self._thread.start()
 
     def publish(self, well: str, payload: bytes) -> None:
-        pub = self._publishers.get(well)
-        if pub is None:
-            with self._pub_lock:
-                pub = self._publishers.get(well)
-                if pub is None:
-                    pub = self.session.declare_publisher(
-                        prediction_key(self.prefix, well),
-                        encoding=zenoh.Encoding.APPLICATION_JSON,
-                        congestion_control=zenoh.CongestionControl.BLOCK,
-                        allowed_destination=zenoh.Locality.REMOTE,
-                    )
-                    self._publishers[well] = pub
-        pub.put(payload)
+        key = self._keys.get(well)
+        if key is None:
+            key = self._keys[well] = zenoh.KeyExpr(prediction_key(self.prefix, well))
+        self.session.put(
+            key,
+            payload,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            allowed_destination=zenoh.Locality.REMOTE,
+        )
 
     def forget(self, well: str) -> None:
-        """A retired well: undeclare its prediction publisher (declared again if it returns)."""
-        with self._pub_lock:
-            pub = self._publishers.pop(well, None)
-        if pub is not None:
-            try:
-                pub.undeclare()
-            except zenoh.ZError as exc:  # the session is closing: nothing left to free
-                logger.debug("Undeclaring the publisher of %s: %s", well, exc)
+        """A retired well: let go of its prediction key (parsed again if it returns)."""
+        self._keys.pop(well, None)
 
     def locators(self) -> list[str]:
         return session_locators(self.session)
@@ -255,9 +252,7 @@ class ZenohTransport:
             if self._subscriber is not None:
                 self._subscriber.undeclare()
                 self._subscriber = None
-            for pub in self._publishers.values():
-                pub.undeclare()
-            self._publishers.clear()
+            self._keys.clear()
         finally:
             if self._session is not None:
                 self._session.close()

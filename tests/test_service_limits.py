@@ -585,20 +585,43 @@ def test_refusals_are_counted_per_well_within_a_bound() -> None:
     assert counters.rejected_of("W01") == {}
 
 
-def test_a_retired_wells_publisher_is_undeclared(tmp_path: Path) -> None:
+def test_predictions_go_out_without_declared_publishers(tmp_path: Path) -> None:
+    """Each well's prediction key is parsed once and let go when the well retires; no
+    publisher is declared (each declared key expression would slow what the session
+    receives), and a subscriber of another session still gets every prediction, as JSON."""
+    from replay.client import ZenohBus
     from service.transport import ZenohTransport
 
     settings = loopback_settings(tmp_path)
     bus = ZenohTransport(settings.zenoh, settings.prefix)
     bus.open()
     try:
-        bus.publish("W01", b"{}")
-        bus.publish("W02", b"{}")
-        assert set(bus._publishers) == {"W01", "W02"}
+        endpoint = bus.locators()[0]
+        got: list[tuple[str, bytes]] = []
+        with ZenohBus.connect([endpoint]) as field:
+            unsubscribe = field.subscribe(f"{settings.prefix}/**", lambda k, p: got.append((k, p)))
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not got:
+                bus.publish("W01", b'{"probe": 1}')
+                time.sleep(0.05)
+            assert got, "no prediction reached the other session"
+            got.clear()
+            bus.publish("W01", b'{"n": 1}')
+            bus.publish("W02", b'{"n": 2}')
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and len(got) < 2:
+                time.sleep(0.01)
+            unsubscribe()
+        assert got == [
+            (f"{settings.prefix}/W01/prediction", b'{"n": 1}'),
+            (f"{settings.prefix}/W02/prediction", b'{"n": 2}'),
+        ]
+        assert not hasattr(bus, "_publishers")
+        assert set(bus._keys) == {"W01", "W02"}
         bus.forget("W01")
         bus.forget("W09")  # never published: nothing to do
-        assert set(bus._publishers) == {"W02"}
-        bus.publish("W01", b"{}")  # a well that returns gets a publisher again
-        assert set(bus._publishers) == {"W01", "W02"}
+        assert set(bus._keys) == {"W02"}
+        bus.publish("W01", b"{}")  # a well that returns is published again
+        assert set(bus._keys) == {"W01", "W02"}
     finally:
         bus.close()
