@@ -31,6 +31,7 @@ replay tool, the benchmark and the tests run the real engine code path either wa
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import queue
@@ -259,6 +260,7 @@ class ZenohTransport:
                 self._session = None
 
 
+@functools.lru_cache(maxsize=65_536)  # asked once per prediction and subscriber
 def key_matches(expr: str, key: str) -> bool:
     """Whether ``key`` matches the key expression ``expr`` (``*`` one chunk, ``**`` any)."""
 
