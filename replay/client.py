@@ -11,9 +11,9 @@ latency from sending a sample to receiving its prediction. Two buses fit:
   it (nothing reaches a subscriber that has not matched), and a FifoChannel subscriber
   read by its own thread (never a callback: a slow one would stall the session). A key's
   publisher is declared only to see that match, then undeclared: with zenoh 1.10, every
-  key expression a session keeps declared makes each message it receives (here, the
-  predictions) cost a match against all of them, 130 µs a message with 1,000 wells'
-  keys (``benchmarks/bench_zenoh_keys.py``).
+  publisher a session keeps declared under the prefix of the keys it receives makes each
+  message it receives (here, the predictions) cost a match against them, 138 µs a message
+  with 1,000 wells' publishers (``benchmarks/bench_zenoh_keys.py``).
 * :class:`service.transport.MemoryTransport`: the service's in-memory transport offers
   the same three methods, so the same client drives the real engine without a network.
   This package does not import ``service``: the bus is handed in.
@@ -153,9 +153,10 @@ class ZenohBus:
         return cls(zenoh.open(cfg), match_timeout=match_timeout, capacity=capacity)
 
     def matching(self, key: str, timeout: float) -> bool:
-        """True once a subscriber (the service's) matches ``key``; False after ``timeout`` s."""
-        if key in self._matched:
-            return True
+        """True once a subscriber (the service's) matches ``key``; False after ``timeout`` s.
+
+        Asks Zenoh each time (a publisher declared for the question, then undeclared);
+        :meth:`put` asks only before its first message on a key."""
         pub = self.session.declare_publisher(key)
         try:
             deadline = time.monotonic() + timeout

@@ -10,11 +10,11 @@ callback: a slow callback would stall every subscriber of the session) and hands
 message to ``deliver(key, payload, received_ns)`` on its own receiver thread. Predictions
 go out on ``<prefix>/<well>/prediction`` with BLOCK congestion control (DROP would lose
 them under load), never back to this session's own subscriber. They are sent with
-``Session.put``, not one declared publisher per well: with zenoh 1.10, every key
-expression a session declares (a publisher, ``declare_keyexpr``) makes each message the
-session *receives* cost a match against all of them in Zenoh's receiving thread. With
-1,000 wells' publishers declared, that was 130 µs of CPU a message, and it capped what a
-service could take in at about 7,800 messages/s before any of its own work
+``Session.put``, not one declared publisher per well: with zenoh 1.10, every publisher
+a session keeps declared under the prefix of the keys it receives makes each message the
+session *receives* cost a match against them, in Zenoh's receiving thread. With 1,000
+wells' prediction publishers declared, that was 138 µs of CPU a message, and it capped
+what a service could take in at about 7,400 messages/s before any of its own work
 (``benchmarks/bench_zenoh_keys.py``).
 
 Zenoh facts this relies on are in ``/work/shared/notes/zenoh.md``: never the default
@@ -71,7 +71,7 @@ class Transport(Protocol):
     def publish(self, well: str, payload: bytes) -> None: ...
 
     def forget(self, well: str) -> None:
-        """Let go of what is held for a retired well (its prediction publisher)."""
+        """Let go of what is held for a retired well (e.g. its prediction key)."""
         ...
 
     def locators(self) -> list[str]: ...

@@ -128,11 +128,17 @@ def test_well_ids_follow_the_one_rule(tmp_path: Path) -> None:
     """A well created on first sight needs a valid id, as in files, keys and the config."""
     with rig(tmp_path) as r:
         r.client.put_raw("vfm/ W02/sensors", sample_of(T0, INPUTS).model_dump_json())
+        # '@' first: Zenoh matches such a chunk with no wildcard, so no subscriber of
+        # vfm/** would ever see the well's predictions
+        r.client.put_raw("vfm/@W04/sensors", sample_of(T0, INPUTS).model_dump_json())
         r.client.send_sample("W01", sample_of(T0, INPUTS))
-        wait_until(lambda: r.rejected().get("unparseable key") == 1, 10, "the refusal")
+        wait_until(lambda: r.rejected().get("unparseable key") == 2, 10, "the refusals")
         assert set(r.engine.wells) == {"W01"}
         with pytest.raises(InvalidRequest, match="starts or ends with a space") as info:
             r.engine.submit_well_test("W03 ", Measurement(time=T0, q_total=1.0))
+        assert info.value.reason == "unparseable key"
+        with pytest.raises(InvalidRequest, match="starts with '@'") as info:
+            r.engine.submit_well_test("@W05", Measurement(time=T0, q_total=1.0))
         assert info.value.reason == "unparseable key"
 
 

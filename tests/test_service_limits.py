@@ -585,43 +585,82 @@ def test_refusals_are_counted_per_well_within_a_bound() -> None:
     assert counters.rejected_of("W01") == {}
 
 
+class _NoDeclarations:
+    """A Zenoh session that refuses to declare publishers or key expressions (each one
+    kept declared slows every message the session receives); the rest goes through."""
+
+    def __init__(self, session: object) -> None:
+        self._session = session
+
+    def declare_publisher(self, *args: object, **kwargs: object) -> None:
+        raise AssertionError("the service declared a publisher")
+
+    def declare_keyexpr(self, *args: object, **kwargs: object) -> None:
+        raise AssertionError("the service declared a key expression")
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._session, name)
+
+
 def test_predictions_go_out_without_declared_publishers(tmp_path: Path) -> None:
-    """Each well's prediction key is parsed once and let go when the well retires; no
-    publisher is declared (each declared key expression would slow what the session
-    receives), and a subscriber of another session still gets every prediction, as JSON."""
+    """Predictions reach another session as JSON with BLOCK, in order, never the service's
+    own subscriber, and without a declared publisher or key expression; each well's key is
+    parsed once and let go when the well retires."""
+    import zenoh
+
     from replay.client import ZenohBus
     from service.transport import ZenohTransport
 
     settings = loopback_settings(tmp_path)
     bus = ZenohTransport(settings.zenoh, settings.prefix)
     bus.open()
+    delivered: list[str] = []
     try:
+        bus._session = _NoDeclarations(bus._session)  # type: ignore[assignment]
+        bus.start(lambda key, payload, ns: delivered.append(key))
         endpoint = bus.locators()[0]
-        got: list[tuple[str, bytes]] = []
         with ZenohBus.connect([endpoint]) as field:
-            unsubscribe = field.subscribe(f"{settings.prefix}/**", lambda k, p: got.append((k, p)))
-            deadline = time.monotonic() + 20
-            while time.monotonic() < deadline and not got:
-                bus.publish("W01", b'{"probe": 1}')
-                time.sleep(0.05)
-            assert got, "no prediction reached the other session"
-            got.clear()
-            bus.publish("W01", b'{"n": 1}')
-            bus.publish("W02", b'{"n": 2}')
-            deadline = time.monotonic() + 10
-            while time.monotonic() < deadline and len(got) < 2:
-                time.sleep(0.01)
-            unsubscribe()
-        assert got == [
+            sub = field.session.declare_subscriber(
+                f"{settings.prefix}/**", zenoh.handlers.FifoChannel(1024)
+            )
+            try:
+                got: list[zenoh.Sample] = []
+                probe = f"{settings.prefix}/W00/prediction"
+
+                def drain() -> None:
+                    while (sample := sub.try_recv()) is not None:
+                        got.append(sample)
+
+                deadline = time.monotonic() + 20
+                while not got and time.monotonic() < deadline:  # until the subscriber matched
+                    bus.publish("W00", b'{"probe": 1}')
+                    time.sleep(0.05)
+                    drain()
+                assert got, "no prediction reached the other session"
+                bus.publish("W01", b'{"n": 1}')
+                bus.publish("W02", b'{"n": 2}')
+                deadline = time.monotonic() + 20
+                while time.monotonic() < deadline:
+                    drain()
+                    if sum(str(g.key_expr) != probe for g in got) >= 2:
+                        break
+                    time.sleep(0.01)
+            finally:
+                sub.undeclare()
+        ours = [g for g in got if str(g.key_expr) != probe]
+        assert [(str(g.key_expr), g.payload.to_bytes()) for g in ours] == [
             (f"{settings.prefix}/W01/prediction", b'{"n": 1}'),
             (f"{settings.prefix}/W02/prediction", b'{"n": 2}'),
         ]
-        assert not hasattr(bus, "_publishers")
-        assert set(bus._keys) == {"W01", "W02"}
+        for g in got:
+            assert str(g.encoding) == "application/json"
+            assert g.congestion_control == zenoh.CongestionControl.BLOCK
+        assert not [k for k in delivered if k.endswith("/prediction")]  # never back to itself
+        assert set(bus._keys) == {"W00", "W01", "W02"}
         bus.forget("W01")
         bus.forget("W09")  # never published: nothing to do
-        assert set(bus._keys) == {"W02"}
+        assert set(bus._keys) == {"W00", "W02"}
         bus.publish("W01", b"{}")  # a well that returns is published again
-        assert set(bus._keys) == {"W01", "W02"}
+        assert set(bus._keys) == {"W00", "W01", "W02"}
     finally:
         bus.close()

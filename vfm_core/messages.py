@@ -235,7 +235,8 @@ def well_id_problem(well: str) -> str | None:
     One rule on every path (observation files, Zenoh keys, HTTP, the config): 1 to
     :data:`WELL_ID_MAX` characters, no control characters (a newline in an id would forge
     log lines), none of ``/ * $ ? #`` (they have a meaning in key expressions), not ``.`` or
-    ``..``, and no space at either end.
+    ``..``, no space at either end, and no ``@`` first (Zenoh reads such a chunk verbatim: no
+    wildcard matches it, so ``<prefix>/**`` would never see the well's messages).
     """
     shown = repr(well[:40] + ("..." if len(well) > 40 else ""))
     if not well:
@@ -252,6 +253,11 @@ def well_id_problem(well: str) -> str | None:
         return f"The well id {shown} is not a name."
     if well != well.strip():
         return f"The well id {shown} starts or ends with a space."
+    if well.startswith("@"):
+        return (
+            f"The well id {shown} starts with '@': Zenoh reads such a key chunk verbatim, so no "
+            "wildcard subscriber (the service's, the field's) would see its messages."
+        )
     return None
 
 

@@ -63,8 +63,8 @@ class Engine:
         publish: Callable[[str, bytes], None],
         forget: Callable[[str], None] | None = None,
     ) -> None:
-        """``forget(well)``: the transport lets go of what it holds for a retired well (its
-        prediction publisher)."""
+        """``forget(well)``: the transport lets go of what it holds for a retired well (e.g.
+        its prediction key)."""
         self.settings = settings
         self.store = store
         self.counters = counters
