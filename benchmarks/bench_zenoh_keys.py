@@ -147,7 +147,7 @@ def main() -> None:
         return
     print(
         f"A Zenoh receiver taking {args.messages:,} single-sample messages of 1,000 wells "
-        "(BLOCK puts from another process), with other key expressions declared in its session:"
+        "(BLOCK puts from another process), with publishers declared on its wells' prediction keys:"
     )
     for declared in [int(d) for d in args.declared.split(",")]:
         r = run(args.messages, declared, args.timeout)
