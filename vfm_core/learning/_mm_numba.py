@@ -1569,12 +1569,26 @@ def bayes_spread(
             p95[w, j] = rate * math.exp(z90 * sd)
 
 
+def _made_up_sample() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One made-up sample of one well for the warm-ups: inputs [1, 1, 6], its weight and mask."""
+    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
+    return x, np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+
+
+def _made_up_mtl() -> tuple[np.ndarray, ...]:
+    """Made-up ``mtl`` tensors (task dimension 4, width 4) for the warm-ups."""
+    return (
+        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
+        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
+        np.ones((4, 1)), np.ones(1),
+    )  # fmt: skip
+
+
 def warm_up() -> None:
     """Run each kernel once on a made-up sample (compiles it, or loads it from the cache)."""
     one = np.ones((1, 6))
     mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    x, ones, yes = _made_up_sample()
     online(
         np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros(1), np.zeros(1, dtype=bool),
         x, ones, yes, np.ones(1), np.ones(1), mu, one[0], -one[0], one[0],
@@ -1623,8 +1637,7 @@ def warm_fit_steps() -> None:
     one = np.ones((1, 6))
     mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
     pos = np.arange(6)
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    x, ones, yes = _made_up_sample()
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):
         net = [
             np.ones((1, 6, hidden)),
@@ -1644,8 +1657,7 @@ def warm_fit_steps() -> None:
 
 def warm_nn_fit_steps() -> None:
     """Run :func:`nn_fit_steps` once on a made-up sample."""
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    x, ones, yes = _made_up_sample()
     net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
     net += (np.ones((1, 4, 1)), np.ones((1, 1)))
     nn_fit_steps(
@@ -1657,8 +1669,7 @@ def warm_nn_fit_steps() -> None:
 
 def warm_lr_fit_steps() -> None:
     """Run :func:`lr_fit_steps` once on a made-up sample."""
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
+    x, ones, yes = _made_up_sample()
     lin = (np.zeros((1, 6)), np.ones(1))
     lr_fit_steps(
         lin, tuple(np.zeros_like(a) for a in lin for _ in range(2)), np.zeros((2, 1)),
@@ -1669,13 +1680,8 @@ def warm_lr_fit_steps() -> None:
 
 def warm_mtl_online() -> None:
     """Run :func:`mtl_online` once on a made-up sample."""
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
-    mtl = (
-        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
-        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
-        np.ones((4, 1)), np.ones(1),
-    )  # fmt: skip
+    x, ones, yes = _made_up_sample()
+    mtl = _made_up_mtl()
     mtl_online(
         mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1),
         np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), 1, 0.9, 0.999, 1e-8, 1e-3, 1.0,
@@ -1684,13 +1690,8 @@ def warm_mtl_online() -> None:
 
 def warm_mtl_fit_steps() -> None:
     """Run :func:`mtl_fit_steps` once on made-up samples, with the held-out error."""
-    x = np.array([[[0.5, 50.0, 20.0, 60.0, 0.1, 0.5]]])
-    ones, yes = np.ones((1, 1)), np.ones((1, 1), dtype=bool)
-    mtl = (
-        np.zeros((1, 4)), np.ones((10, 4)), np.ones(4), np.ones((4, 4)), np.ones((4, 4)),
-        np.ones(4), np.ones(4), np.ones((4, 4)), np.ones((4, 4)), np.ones(4), np.ones(4),
-        np.ones((4, 1)), np.ones(1),
-    )  # fmt: skip
+    x, ones, yes = _made_up_sample()
+    mtl = _made_up_mtl()
     mtl_fit_steps(
         mtl, tuple(np.zeros_like(a) for a in mtl for _ in range(2)), np.zeros(1), 1, x, ones,
         yes, 1, True, np.ones(1), np.ones(1), 1, 0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, True,
