@@ -7,7 +7,8 @@ the GIL, and the time the thread then waits to take it back counts as its own. T
 script times two parts with nothing else running, so their CPU time is theirs:
 
 * receiving: ``Intake.deliver`` on single-sample sensor messages of ``--wells`` wells
-  (the route, JSON, pydantic's checks of a sample, the time checks, the per-well fair
+  (the route, the quick reader :func:`service.inputs.quick_sensor` or, for what it is not
+  sure of, JSON, pydantic's checks of a sample and the time checks; the per-well fair
   queue), as the receiver thread runs it;
 * predicting: ``predict_many`` on one sample of each of ``--wells`` plain ``mm`` + ``ol``
   learners in one call, as a worker's batch does (the wells stacked into one model, the

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import threading
 import time
 from collections import Counter
@@ -24,11 +25,12 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
+import orjson
 from pydantic import TypeAdapter, ValidationError
 
 from service.errors import InvalidRequest
 from vfm_core.messages import Measurement, SensorSample, parse_key, well_id_problem
-from vfm_core.timeutil import to_ns
+from vfm_core.timeutil import REPRESENTABLE_MAX, REPRESENTABLE_MIN, to_ns
 
 __all__ = [
     "Counters",
@@ -36,6 +38,7 @@ __all__ = [
     "DEFAULT_LIMITS",
     "printable",
     "parse_sensor",
+    "quick_sensor",
     "parse_measurement",
     "SensorBlock",
     "decode",
@@ -224,6 +227,73 @@ def parse_sensor(
     except ValidationError as exc:
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
         raise InvalidRequest(sentence, reason) from None
+
+
+#: the times :func:`quick_sensor` reads itself: ISO 8601 with a ``T``, whole seconds or up to
+#: six digits of fraction, ``Z``, an offset in hours (00-23) and minutes (00-59), or none
+#: (UTC); any other text goes the full way (:func:`parse_sensor`). (``fromisoformat`` alone
+#: would take an offset of ``+00:60``, which pydantic refuses.)
+_QUICK_TIME = re.compile(
+    r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(?:\.\d{1,6})?(?:Z|[+-](?:[01]\d|2[0-3]):[0-5]\d)?"
+)
+_SPAN_NS = (to_ns(REPRESENTABLE_MIN), to_ns(REPRESENTABLE_MAX))
+
+
+def quick_sensor(
+    payload: bytes, limits: Limits, earliest_ns: int, latest_ns: int
+) -> tuple[int, tuple[float, float, float, float, float, float]] | None:
+    """A single sensor sample's time (epoch ns) and six inputs when it passes every check
+    of :func:`parse_sensor` and a time within ``earliest_ns .. latest_ns``, read the quick
+    way (orjson, plain comparisons: about 2 µs against 25); None when it is not sure.
+
+    None is no verdict: the caller reads the payload the full way, which accepts it or
+    gives the reason and sentence. So this path only ever accepts what the full one
+    accepts, with the same values: a sample that breaks a rule, a time written another
+    way, a number given as text, JSON that orjson does not read as the standard library
+    does (``NaN``, UTF-16) all take the full path."""
+    if len(payload) > limits.max_bytes or _openings(payload) > limits.max_depth:
+        return None
+    try:
+        data = orjson.loads(payload)
+    except orjson.JSONDecodeError:
+        return None
+    if type(data) is not dict:
+        return None
+    try:
+        when = data["time"]
+        values = (
+            data["choke"],
+            data["p_up"],
+            data["p_down"],
+            data["t_up"],
+            data["eta_gas"],
+            data["eta_oil"],
+        )
+    except KeyError:
+        return None
+    if type(when) is not str or _QUICK_TIME.fullmatch(when) is None:
+        return None
+    for v in values:
+        if type(v) is not float and type(v) is not int:  # bool, text, null, lists
+            return None
+    choke, p_up, p_down, t_up, gas, oil = x = tuple(map(float, values))
+    if not (
+        math.isfinite(choke + p_up + p_down + t_up + gas + oil)
+        and 0.0 <= choke <= 1.0
+        and 0.0 < p_down < p_up
+        and 0.0 <= gas <= 1.0
+        and 0.0 <= oil <= 1.0
+        and gas + oil <= 1.0 + 1e-9
+        and t_up > -273.15
+    ):
+        return None
+    try:
+        t = to_ns(datetime.fromisoformat(when))
+    except (ValueError, OverflowError):  # e.g. hour 24, 30 February, past year 9999
+        return None
+    if not (max(earliest_ns, _SPAN_NS[0]) <= t <= min(latest_ns, _SPAN_NS[1])):
+        return None
+    return t, x  # type: ignore[return-value]
 
 
 def parse_measurement(

@@ -172,6 +172,37 @@ def test_fair_queue_serves_wells_in_turn_and_keeps_each_wells_order() -> None:
     assert rest == [("flood", i) for i in range(3, 20)]
 
 
+def test_fair_queue_get_many_takes_what_get_nowait_would() -> None:
+    """A worker takes items a few at a time: the same items in the same order, the room
+    they free counted (a block by its weight), a waiting sender woken, CLOSED at the end."""
+    one, many = FairQueue(capacity=200, well_capacity=50), FairQueue(capacity=200, well_capacity=50)
+    for q in (one, many):
+        for i in range(30):
+            q.put("flood", ("flood", i))
+            if i % 3 == 0:
+                q.put(f"w{i}", (f"w{i}", i), weight=1 + i % 4)
+    order = []
+    while (item := one.get_nowait()) is not None:
+        order.append(item)
+    taken = []
+    for limit in [1, 5, 16, 3, 100]:
+        taken.extend(many.get_many(limit))
+    assert taken == order and many.qsize() == 0 and many.get_many(16) == []
+    full = FairQueue(capacity=4, well_capacity=10)
+    for i in range(4):
+        full.put("a", i)
+    result: list[str] = []
+    t = threading.Thread(target=lambda: result.append(full.put("b", 9, timeout=5.0)))
+    t.start()
+    time.sleep(0.05)
+    assert full.get_many(2) == [0, 1]  # room for the waiting sender at once
+    t.join(5)
+    assert result == ["ok"] and full.qsize() == 3
+    full.close()
+    assert full.get_many(16) == [2, 9, 3]  # the wells in turn
+    assert full.get_many(16) == [CLOSED]
+
+
 def test_fair_queue_bounds_and_close() -> None:
     q = FairQueue(capacity=5, well_capacity=3)
     assert [q.put("a", i) for i in range(3)] == ["ok"] * 3

@@ -99,6 +99,8 @@ class FeatureTracker:
     """
 
     names: ClassVar[tuple[str, ...]] = tuple(STANDARD_FEATURES)
+    # :meth:`advance` writes its list in this order
+    assert names == ("years_on", "throughput_years", "water_cut")
     _EARLY_NS: ClassVar[int] = int(90 * 24 * 3600 * 1e9)
 
     def __init__(self) -> None:
@@ -129,12 +131,13 @@ class FeatureTracker:
         if self.scale is None and time_ns - self.first_ns > self._EARLY_NS and self.early:
             self.scale = float(np.median(self.early))
         wat = 1.0 - eta_gas - eta_oil
-        values = {
-            "years_on": max(time_ns - self.first_ns, 0) / 3.6e12 / HOURS_PER_YEAR,
-            "throughput_years": self.cumulative / (self._scale() * HOURS_PER_YEAR),
-            "water_cut": min(max(wat / max(eta_oil + wat, 1e-9), 0.0), 1.0),
-        }
-        return [values[n] for n in self.names]
+        scale = self.scale if self.scale is not None else self._scale()
+        # in :attr:`names` order (asked once per sample: no dict of names)
+        return [
+            max(time_ns - self.first_ns, 0) / 3.6e12 / HOURS_PER_YEAR,
+            self.cumulative / (scale * HOURS_PER_YEAR),
+            min(max(wat / max(eta_oil + wat, 1e-9), 0.0), 1.0),
+        ]
 
     def advance_many(
         self, times_ns: np.ndarray, eta_gas: np.ndarray, eta_oil: np.ndarray

@@ -24,6 +24,7 @@ that :meth:`WellLearner.restore` reads back with ``torch.load(weights_only=True)
 from __future__ import annotations
 
 import copy
+import functools
 import io
 import json
 import threading
@@ -70,7 +71,7 @@ from vfm_core.learning.training import (
     split_parameters,
 )
 from vfm_core.models import MODELS, ChokeModel, make_model
-from vfm_core.timeutil import to_ns, utc_timestamp
+from vfm_core.timeutil import from_ns, to_ns, utc_timestamp
 
 __all__ = [
     "WellLearner",
@@ -120,13 +121,46 @@ def phase_split(
     }
 
 
+@functools.cache
+def _split_densities() -> tuple[float, float, float]:
+    """The prior densities :func:`phase_split` divides by (standard gas, oil, water), kg/m3."""
+    prior = {
+        k: torch.as_tensor(ph.PRIORS[k].mean, dtype=DTYPE) for k in ("m_gas", "rho_oil", "rho_wat")
+    }
+    return (
+        float(ph.gas_density_standard(prior["m_gas"])),
+        float(prior["rho_oil"]),
+        float(prior["rho_wat"]),
+    )
+
+
+def phase_split_numpy(q_total: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`phase_split` at the prior densities on numpy arrays (``q_total`` [N], ``x``
+    [N, 6]): the same operations in the same order, so the same numbers to the last bit,
+    without a dozen small torch calls (a group of wells' predictions asks it once)."""
+    rho_gas, rho_oil, rho_wat = _split_densities()
+    eta_gas, eta_oil = x[:, 4], x[:, 5]
+    gas = eta_gas / rho_gas
+    oil = eta_oil / rho_oil
+    wat = (1.0 - eta_gas - eta_oil) / rho_wat
+    total = gas + oil + wat
+    return {
+        "q_gas": q_total * gas / total,
+        "q_oil": q_total * oil / total,
+        "q_water": q_total * wat / total,
+    }
+
+
 #: one prepared sample: its six inputs, its time (epoch ns) and the model's feature columns
 _Row = tuple[list[float], int, list[float]]
 
 
-def _epoch_ns(when: datetime) -> int:
+def _epoch_ns(when: datetime | int) -> int:
     """Epoch nanoseconds of a sample's time: :func:`utc_timestamp`'s ``.value``, without a
-    pandas Timestamp for a plain datetime (microseconds: exact integer arithmetic)."""
+    pandas Timestamp for a plain datetime (microseconds: exact integer arithmetic); an int
+    is epoch ns already."""
+    if type(when) is int:
+        return when
     if type(when) is datetime:
         return to_ns(when)
     return int(utc_timestamp(when).value)
@@ -136,7 +170,7 @@ def _six(inputs: Sequence[float] | torch.Tensor) -> list[float]:
     """A sample's six inputs as floats (the same numbers ``torch.as_tensor`` would hold)."""
     try:
         values = inputs.reshape(-1).tolist() if isinstance(inputs, torch.Tensor) else inputs
-        x = [float(v) for v in values]
+        x = list(map(float, values))
     except (TypeError, ValueError):
         x = []
     if len(x) != 6:  # the tensor's own error says what is wrong
@@ -241,7 +275,10 @@ class WellLearner:
         """True once the model has seen enough data to predict (priors alone give no scale)."""
         # asked on every sample: read the flag once per change of its tensor (an in-place
         # change bumps the tensor's version; a new model brings a new tensor)
-        flag = self.model.ready
+        model = self.model
+        flag = model._buffers.get("ready")  # a buffer: no Module.__getattr__ on every sample
+        if flag is None:
+            flag = model.ready
         cached = self.__dict__.get("_ready")
         if cached is not None and cached[0] is flag and cached[1] == flag._version:
             return bool(cached[2])
@@ -375,7 +412,7 @@ class WellLearner:
         return self._answer(out, self.method.predict(self._batch_of(row)), row[0], 0)
 
     def _prepare(
-        self, inputs: Sequence[float] | torch.Tensor, when: datetime | None
+        self, inputs: Sequence[float] | torch.Tensor, when: datetime | int | None
     ) -> tuple[dict[str, float | None], _Row | None]:
         """The side effects of :meth:`predict` before the model runs, in its order: the
         sample's features, then the retrains due. Returns the answer to fill and the sample
@@ -778,7 +815,7 @@ _BAYES_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 def predict_many(
     learners: Sequence[Any],
     inputs: Sequence[Sequence[float] | torch.Tensor],
-    whens: Sequence[datetime | None] | None = None,
+    whens: Sequence[datetime | int | None] | None = None,
     *,
     return_exceptions: bool = False,
 ) -> list[Rates | BaseException]:
@@ -798,7 +835,7 @@ def predict_many(
     model that cannot be stacked) answers through its own ``predict``.
 
     ``inputs``: each sample's six inputs in file units; ``whens``: each sample's time (or
-    None). With ``return_exceptions`` a learner that fails gets its exception in its place
+    None), a datetime or epoch ns (an int). With ``return_exceptions`` a learner that fails gets its exception in its place
     in the list (the others are still answered); otherwise the first error is raised.
     """
     n = len(learners)
@@ -824,8 +861,10 @@ def predict_many(
                 else:
                     waiting.append((i, learner, out, row))
                     seen.add(id(learner))
-            else:
-                results[i] = learner.predict(inputs[i], when=when)
+            else:  # its own predict: a datetime, as one-by-one callers give it
+                results[i] = learner.predict(
+                    inputs[i], when=from_ns(when) if type(when) is int else when
+                )
         except Exception as exc:
             if not return_exceptions:
                 raise
@@ -951,12 +990,30 @@ class _Stacked(torch.nn.Module):
             model = model._modules[p]  # type: ignore[assignment]
         return model._parameters[attr] if is_param else model._buffers[attr]
 
+    def _places(self, model: torch.nn.Module) -> list[tuple[dict[str, Any], str]]:
+        """Where ``model`` keeps each per-well tensor: its module's parameter or buffer dict
+        and the name, kept on the model (a module's dicts live as long as the module, and a
+        tensor put in their place is read from them)."""
+        cached = model.__dict__.get("_vfm_places")
+        if cached is not None and cached[0] is self.per_well:
+            return cached[1]  # type: ignore[no-any-return]
+        places = []
+        for _, path, attr, is_param in self.per_well:
+            module = model
+            for p in path:
+                module = module._modules[p]  # type: ignore[assignment]
+            places.append((module._parameters if is_param else module._buffers, attr))
+        model.__dict__["_vfm_places"] = (self.per_well, places)
+        return places
+
     def state_of(self, models: list[ChokeModel]) -> dict[str, torch.Tensor]:
         """The models' tensors stacked along the well dimension (shared ones from the first)."""
         get = self._tensor
+        places = self._places
+        columns = zip(*[[d[a] for d, a in places(m)] for m in models], strict=True)
         state = {
-            f"model.{name}": torch.cat([get(m, path, attr, is_param) for m in models], 0)
-            for name, path, attr, is_param in self.per_well
+            f"model.{name}": torch.cat(column, 0)
+            for (name, _, _, _), column in zip(self.per_well, columns, strict=True)
         }
         for name, path, attr, is_param in self.shared:
             state[f"model.{name}"] = get(models[0], path, attr, is_param)
@@ -964,6 +1021,32 @@ class _Stacked(torch.nn.Module):
 
     def forward(self, batch: Batch) -> torch.Tensor:
         return predict_rates(self.model, batch)
+
+    def call(self, state: dict[str, torch.Tensor], batch: Batch) -> torch.Tensor:
+        """The rates for ``batch`` with ``state``'s tensors (:meth:`state_of`) in the
+        model's place, then its own put back: what
+        ``torch.func.functional_call(self, state, (batch,))`` gives, with a plain swap in
+        the module's dicts instead of its per-call machinery. The stacked model is this
+        thread's own (:func:`_stacked`) and its stacked updates use it too, so its own
+        tensors must be back in place after every call."""
+        slots = self.__dict__.get("_slots")
+        if slots is None:
+            slots = []
+            for name, path, attr, is_param in self.per_well + self.shared:
+                module: torch.nn.Module = self.model
+                for p in path:
+                    module = module._modules[p]  # type: ignore[assignment]
+                holder = module._parameters if is_param else module._buffers
+                slots.append((f"model.{name}", holder, attr))
+            self.__dict__["_slots"] = slots
+        own = [holder[attr] for _, holder, attr in slots]
+        try:
+            for key, holder, attr in slots:
+                holder[attr] = state[key]
+            return self.forward(batch)
+        finally:
+            for (_, holder, attr), tensor in zip(slots, own, strict=True):
+                holder[attr] = tensor
 
 
 class _Mean:
@@ -1008,21 +1091,23 @@ def _predict_group(members: list[_Waiting], results: list[Rates | BaseException 
     k = len(members)
     rows = [m[3] for m in members]
     # as the one-sample batches of WellLearner._batch_of, one row per well
+    xs, ts, extras = zip(*rows, strict=True)
+    x_np = np.array(xs, dtype=np.float64)
     batch = Batch(
         [m[1].well for m in members],
-        torch.tensor([[r[0]] for r in rows], dtype=DTYPE),
+        torch.from_numpy(x_np).reshape(k, 1, 6).to(DTYPE),
         torch.zeros(k, 1, dtype=DTYPE),
         torch.ones(k, 1, dtype=torch.bool),
-        torch.tensor([[r[1]] for r in rows], dtype=torch.int64),
+        torch.from_numpy(np.array(ts, dtype=np.int64)).reshape(k, 1),
         torch.zeros(k, 1, dtype=torch.int64),
         torch.ones(k, 1, dtype=torch.bool),
-        torch.tensor([[r[2]] for r in rows], dtype=DTYPE).reshape(k, 1, -1),
+        torch.from_numpy(np.array(extras, dtype=np.float64)).reshape(k, 1, -1).to(DTYPE),
         tuple(first.model.extra_columns),
     )
     state = stacked.state_of([m[1].model for m in members])
     stacked.model.wells = batch.wells
     with torch.no_grad():
-        mean = torch.func.functional_call(stacked, state, (batch,), strict=False)
+        mean = stacked.call(state, batch)
     if key[5] == "bayes":
         method = copy.copy(first.method)
         for attr in _BAYES_STATE:
@@ -1031,18 +1116,17 @@ def _predict_group(members: list[_Waiting], results: list[Rates | BaseException 
         forecast = method.predict(batch)
     else:
         forecast = Forecast(mean)
-    x = batch.x
-    split = phase_split(forecast.mean, x)
-    columns = {"q_total": forecast.mean[:, 0].tolist()}
-    columns.update({name: v[:, 0].tolist() for name, v in split.items()})
+    q_total = forecast.mean[:, 0].detach().numpy()
+    columns = {"q_total": q_total.tolist()}
+    columns.update({name: v.tolist() for name, v in phase_split_numpy(q_total, x_np).items()})
     if forecast.std is not None:
         columns["q_total_std"] = forecast.std[:, 0].tolist()
     if forecast.p05 is not None and forecast.p95 is not None:
         columns["q_total_p05"] = forecast.p05[:, 0].tolist()
         columns["q_total_p95"] = forecast.p95[:, 0].tolist()
-    for row, (i, _, out, _) in enumerate(members):
-        for name, values in columns.items():
-            out[name] = values[row]
+    names = list(columns)
+    for (i, _, out, _), values in zip(members, zip(*columns.values(), strict=True), strict=True):
+        out.update(zip(names, values, strict=True))
         results[i] = out
 
 

@@ -13,6 +13,7 @@ further ahead than a given bound.
 
 from __future__ import annotations
 
+import functools
 from datetime import UTC, datetime, timedelta
 
 import numpy as np
@@ -95,7 +96,8 @@ def utc_timestamp(when: datetime | pd.Timestamp | str | int) -> pd.Timestamp:
 
 def to_ns(when: datetime) -> int:
     """Epoch nanoseconds of a datetime (naive = UTC), exact integer arithmetic at microseconds."""
-    return ((utc(when) - _EPOCH) // timedelta(microseconds=1)) * 1000
+    d = utc(when) - _EPOCH  # exact: days, seconds and microseconds as integers
+    return ((d.days * 86_400 + d.seconds) * 1_000_000 + d.microseconds) * 1000
 
 
 def from_ns(ns: int) -> datetime:
@@ -120,4 +122,9 @@ def iso_many(ns: np.ndarray) -> list[str]:
 
 def iso(ns: int | None) -> str | None:
     """ISO 8601 with a trailing ``Z`` for epoch nanoseconds (None stays None)."""
-    return None if ns is None else from_ns(ns).isoformat().replace("+00:00", "Z")
+    return None if ns is None else _iso(ns)
+
+
+@functools.lru_cache(maxsize=4096)  # every prediction's time: wells often share a second
+def _iso(ns: int) -> str:
+    return from_ns(ns).isoformat().replace("+00:00", "Z")

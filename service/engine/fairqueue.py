@@ -122,6 +122,31 @@ class FairQueue:
                 return CLOSED if self._closed else None
             return self._pop()
 
+    def get_many(self, limit: int) -> list[Any]:
+        """Up to ``limit`` items in the order :meth:`get_nowait` would give them, under one
+        lock (a worker takes many single samples in a row); [] when nothing is queued,
+        ``[CLOSED]`` once closed and empty."""
+        with self._lock:
+            if not self._ring:
+                return [CLOSED] if self._closed else []
+            ring, queues = self._ring, self._queues
+            out: list[Any] = []
+            freed = 0
+            while ring and len(out) < limit:
+                well = ring.popleft()
+                q = queues[well]
+                item, weight = q.popleft()
+                if q:
+                    ring.append(well)
+                else:
+                    del queues[well]
+                freed += weight
+                out.append(item)
+            self._size -= freed
+            if self._waiting:
+                self._has_room.notify_all()
+            return out
+
     def _pop(self) -> Any:
         well = self._ring.popleft()
         q = self._queues[well]

@@ -17,7 +17,7 @@ from service.engine.state import Pending, Sample, WellTestResult
 from service.errors import ServiceError
 from service.inputs import Counters
 from service.store import Op
-from vfm_core.messages import Measurement, SensorSample
+from vfm_core.messages import Measurement
 from vfm_core.streaming import WellLearner
 
 __all__ = [
@@ -35,8 +35,12 @@ __all__ = [
 
 @dataclass(slots=True)
 class SensorItem:
+    """A well's single sensor sample, checked: its time (epoch ns) and six inputs (file
+    units, in :data:`vfm_core.schema.INPUT_COLUMNS` order)."""
+
     well: str
-    sample: SensorSample
+    time_ns: int
+    inputs: tuple[float, ...]
     received_ns: int
 
 

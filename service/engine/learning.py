@@ -36,7 +36,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -50,7 +49,7 @@ from service.learning import Learner
 from service.store import InsertDriftEvent, MarkLearned, Op
 from vfm_core.field_learner import FieldWell
 from vfm_core.streaming import WellLearner, learn_many, predict_many
-from vfm_core.timeutil import from_ns, iso, to_ns
+from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
 
@@ -126,24 +125,26 @@ class Learning:
             )
 
     def predict_many(
-        self, states: list[WellState], inputs: list[tuple[float, ...]], whens: list[datetime]
+        self, states: list[WellState], inputs: list[tuple[float, ...]], times_ns: list[int]
     ) -> list[Rates | None | BaseException]:
         """Rates (Sm3/h) for samples of different wells in one model call (see
         :func:`vfm_core.streaming.predict_many`), or None while a well's model has no
-        (finite) answer; a well whose step failed gets its exception in its place."""
+        (finite) answer; a well whose step failed gets its exception in its place.
+        ``times_ns``: each sample's time, epoch ns."""
         started = time.monotonic()
         out: list[Rates | None | BaseException] = [None] * len(states)
         go: list[int] = []
-        for i, (st, when) in enumerate(zip(states, whens, strict=True)):
+        for i, (st, t) in enumerate(zip(states, times_ns, strict=True)):
             try:
-                self.catch_up(st.learner, to_ns(when))
+                self.catch_up(st.learner, t)
                 go.append(i)
             except Exception as exc:
                 out[i] = exc
+        everyone = len(go) == len(states)
         answers = predict_many(
-            [states[i].learner for i in go],
-            [list(inputs[i]) for i in go],
-            [whens[i] for i in go],
+            [st.learner for st in states] if everyone else [states[i].learner for i in go],
+            inputs if everyone else [inputs[i] for i in go],
+            times_ns if everyone else [times_ns[i] for i in go],
             return_exceptions=True,
         )
         if states:

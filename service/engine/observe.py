@@ -20,18 +20,21 @@ lock, and never serializes, sends or sleeps.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Sequence
 from typing import Any
 
-from prometheus_client import Histogram
+import numpy as np
+from prometheus_client.core import Metric
+from prometheus_client.utils import floatToGoString
 
 from service.store import InsertDriftEvent, InsertMeasurement, InsertSample, MarkLearned, Op
 from vfm_core.timeutil import iso
 
-__all__ = ["Observer", "Subscription", "LATENCY_BUCKETS_S"]
+__all__ = ["Observer", "Subscription", "LatencyHistogram", "LATENCY_BUCKETS_S"]
 
 #: buckets of the prediction latency histogram, s (arrival to stored prediction)
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
@@ -39,6 +42,52 @@ LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.
 _INTERVALS_KEPT = 4096
 #: measured rates remembered until learned (all wells)
 _MEASURED_KEPT = 8192
+
+
+class LatencyHistogram:
+    """A Prometheus histogram filled a commit at a time (:meth:`observe_many`): one call
+    and one lock per commit instead of per sample (a ``prometheus_client.Histogram``
+    takes a lock per bucket and sum on every ``observe``). :meth:`collect` gives the
+    metric family, as a Histogram's does: cumulative buckets ``le``, count and sum."""
+
+    def __init__(self, name: str, documentation: str, buckets: Sequence[float]) -> None:
+        self.name = name
+        self.documentation = documentation
+        self.bounds = np.asarray(sorted(float(b) for b in buckets), dtype=float)
+        self._counts = np.zeros(len(self.bounds) + 1, dtype=np.int64)  # the last: +Inf
+        self._sum = 0.0
+        self._created = time.time()
+        self._lock = threading.Lock()
+
+    def observe_many(self, values: Sequence[float]) -> None:
+        """Count each value (seconds) in the first bucket whose bound is not below it."""
+        if not len(values):
+            return
+        v = np.asarray(values, dtype=float)
+        counts = np.bincount(
+            np.searchsorted(self.bounds, v, side="left"), minlength=len(self._counts)
+        )
+        total = float(v.sum())
+        with self._lock:
+            self._counts += counts
+            self._sum += total
+
+    def observe(self, value: float) -> None:
+        self.observe_many([value])
+
+    def collect(self) -> list[Metric]:
+        """The metric family, sample for sample as a ``prometheus_client.Histogram`` gives
+        it: the cumulative buckets, ``_count``, ``_sum`` and ``_created``."""
+        with self._lock:
+            cumulative = np.cumsum(self._counts).tolist()
+            total = self._sum
+        family = Metric(self.name, self.documentation, "histogram")
+        for bound, count in zip([*self.bounds.tolist(), math.inf], cumulative, strict=True):
+            family.add_sample(f"{self.name}_bucket", {"le": floatToGoString(bound)}, float(count))
+        family.add_sample(f"{self.name}_count", {}, float(cumulative[-1]))
+        family.add_sample(f"{self.name}_sum", {}, total)
+        family.add_sample(f"{self.name}_created", {}, self._created)
+        return [family]
 
 
 class Subscription:
@@ -83,11 +132,10 @@ class Observer:
         self.model_changes: Counter[str] = Counter()
         self.dropped = 0
         self.closed = threading.Event()
-        self.latency = Histogram(
+        self.latency = LatencyHistogram(
             "vfm_prediction_latency_seconds",
             "Time from a sensor sample's arrival to its stored prediction, s.",
-            buckets=LATENCY_BUCKETS_S,
-            registry=None,
+            LATENCY_BUCKETS_S,
         )
 
     # -- subscribers --------------------------------------------------------------------
@@ -120,11 +168,12 @@ class Observer:
     def committed(self, ops: Sequence[Op]) -> None:
         """The ops of one successful commit (called on the worker thread; never blocks long)."""
         now_ns = time.time_ns()
+        waited: list[float] = []  # the commit's latencies, counted at once
         with self._lock:
             live = bool(self._subscribers)
             for op in ops:
                 if isinstance(op, InsertSample):
-                    self._sample(op, now_ns, live)
+                    self._sample(op, now_ns, live, waited)
                 elif isinstance(op, InsertMeasurement):
                     key = (op.well, op.source, op.time_ns)
                     self._measured[key] = op.q_total
@@ -156,12 +205,13 @@ class Observer:
                                 "action": op.action,
                             }
                         )
+        self.latency.observe_many(waited)
 
-    def _sample(self, op: InsertSample, now_ns: int, live: bool) -> None:
+    def _sample(self, op: InsertSample, now_ns: int, live: bool, waited: list[float]) -> None:
         if op.q_total is None:
             return
         if op.received_ns > 0 and now_ns >= op.received_ns:
-            self.latency.observe((now_ns - op.received_ns) / 1e9)
+            waited.append((now_ns - op.received_ns) / 1e9)
         if op.q_total_p05 is not None and op.q_total_p95 is not None:
             kept = self._intervals.setdefault(op.well, OrderedDict())
             kept[op.time_ns] = (op.q_total_p05, op.q_total_p95)

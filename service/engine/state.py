@@ -12,6 +12,7 @@ below.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import OrderedDict, deque
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -134,7 +135,7 @@ class WellState:
         """
         if self._rate_factor <= 0 or len(self.rates) < self._rate_min:
             return None
-        median = float(np.median(np.fromiter(self.rates, dtype=float)))
+        median = float(statistics.median(self.rates))  # a few dozen: numpy's call costs more
         if median <= 0:
             return None
         factor = self._rate_factor

@@ -6,7 +6,9 @@ wells in turn (round robin), so a flooding well cannot hold back the others. Ite
 handled into a :class:`~service.engine.items.Batch`; the batch is committed to the store
 in one transaction (group commit) when the queue runs dry, the batch holds
 ``queues.batch_max`` items, or it has run for ``queues.batch_ms`` (so a slow learning
-step does not hold back the predictions already made). Only after the commit are its
+step does not hold back the predictions already made). A worker takes its items a few at a
+time (one lock for up to 16, in the queue's order); what a batch leaves starts the next
+one. Only after the commit are its
 predictions published and its HTTP callers answered: nothing unstored is ever
 acknowledged. Every half second a worker also settles the measurements of its wells that
 waited too long for their sample.
@@ -21,6 +23,9 @@ then each is stored and published in arrival order. Anything else (a measurement
 change, a retirement) first has the samples before it predicted, and so does a well's next
 sample when its model may change at that sample (a scheduled retrain, or a measurement
 waiting for the sample before); so each well sees exactly the order of one-by-one handling.
+A measurement of a well with its own model and no sample taken in the batch is the one
+exception: it changes no other well's model, so the other wells' samples keep waiting for
+the batch's one call (a field-wide ``mtl`` model still has them predicted first).
 Learning is batched the same way: a paired measurement's learning step waits, and the
 batch's waiting steps of all wells run in one call
 (:func:`vfm_core.streaming.learn_many`, via :meth:`Learning.run_deferred
@@ -46,6 +51,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 
 import numpy as np
@@ -57,6 +63,7 @@ from service.engine.intake import worker_of
 from service.engine.items import (
     Batch,
     Item,
+    MeasurementItem,
     ModelStep,
     RetireStep,
     SensorBlockItem,
@@ -72,10 +79,9 @@ from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping, Un
 from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
-from vfm_core.messages import Prediction, SensorSample
-from vfm_core.schema import INPUT_COLUMNS
-from vfm_core.streaming import model_fixed_when_predicting
-from vfm_core.timeutil import from_ns, iso, iso_many, to_ns
+from vfm_core.messages import prediction_json
+from vfm_core.streaming import WellLearner, model_fixed_when_predicting
+from vfm_core.timeutil import iso, iso_many
 
 __all__ = ["Workers"]
 
@@ -115,6 +121,8 @@ class Workers:
         self.batch_max = settings.queues.batch_max
         self.batch_s = settings.queues.batch_ms / 1000.0
         self._threads: list[threading.Thread] = []
+        #: each worker's items taken from its queue and not handled yet (:meth:`_run`)
+        self._taken: list[deque[Item]] = [deque() for _ in queues]
 
     def start(self) -> None:
         for i, q in enumerate(self.queues):
@@ -137,23 +145,30 @@ class Workers:
                 timeout,
             )
         self._threads.clear()
-        for q in self.queues:  # callers still waiting on items the workers did not reach
-            for item in q.drain():
-                future = getattr(item, "future", None)
-                if future is not None and not future.done():
-                    what = {ModelStep: "model change", RetireStep: "retirement"}.get(
-                        type(item), "well test"
-                    )
-                    future.set_exception(Stopping(f"The service stopped before the {what} ran."))
+        # callers still waiting on items the workers did not reach: queued, or taken by
+        # a worker that did not end
+        left = [item for taken in self._taken for item in list(taken)]
+        for q in self.queues:
+            left.extend(q.drain())
+        for item in left:
+            future = getattr(item, "future", None)
+            if future is not None and not future.done():
+                what = {ModelStep: "model change", RetireStep: "retirement"}.get(
+                    type(item), "well test"
+                )
+                future.set_exception(Stopping(f"The service stopped before the {what} ran."))
         return ended
 
     # -- the loop -------------------------------------------------------------------------
     def _run(self, index: int, q: FairQueue) -> None:
         last_expiry = time.monotonic()
         stopping = False
+        # items taken from the queue a few at a time (one lock for them), handled in order;
+        # what a batch leaves starts the next one
+        taken = self._taken[index]
         while not stopping:
             b = Batch()
-            item = q.get(timeout=0.5)
+            item = taken.popleft() if taken else q.get(timeout=0.5)
             began = time.monotonic()
             n = 0
             while item is not None:
@@ -164,7 +179,9 @@ class Workers:
                 n += 1
                 if n >= self.batch_max or time.monotonic() - began > self.batch_s:
                     break
-                item = q.get_nowait()
+                if not taken:
+                    taken.extend(q.get_many(_TAKE))
+                item = taken.popleft() if taken else None
             self._predict_samples(b)
             now = time.monotonic()
             if now - last_expiry > 0.5:
@@ -179,6 +196,11 @@ class Workers:
             first = item.well in b.sample_wells and not b.sample_wells[item.well]
         elif isinstance(item, SensorBlockItem):
             first = item.well in b.sample_wells  # a block is answered at once, in order
+        elif isinstance(item, MeasurementItem) and item.well not in b.sample_wells:
+            # a measurement changes its own well's model only, unless the model is
+            # field-wide (mtl): the other wells' samples taken so far need not wait
+            st = self.wells.get(item.well)
+            first = st is None or not isinstance(st.learner, WellLearner)
         else:
             first = True
         if first:
@@ -227,13 +249,16 @@ class Workers:
             for fut, _ in b.answers:
                 fut.set_exception(exc)
             return  # nothing unstored is published or acknowledged
+        published = 0
         for well, payload in b.outbox:
             try:
                 self.publish(well, payload)
-                self.counters.event("predictions published")
+                published += 1
             except Exception as exc:  # pragma: no cover - session closed under us
                 self.counters.event("publish errors")
                 logger.warning("Publishing the prediction of %s failed: %s", well, exc)
+        if published:  # counted once per commit: the counters take a lock
+            self.counters.event("predictions published", published)
         for fut, result in b.answers:
             if fut.done():
                 continue
@@ -311,9 +336,7 @@ class Workers:
     def _admit_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
         """First pass: refuse a sample that is not after the well's previous one, else keep
         it for the batch's one prediction call (:meth:`_predict_samples`)."""
-        sample = item.sample
-        t = to_ns(sample.time)
-        inputs = tuple(sample.inputs())
+        t, inputs = item.time_ns, item.inputs
         # the well's previous sample: one taken in this batch, else the last one stored
         last_ns, last_inputs = b.sample_last.get(item.well, (st.last_time_ns, st.last_inputs))
         if last_ns is not None and t <= last_ns:
@@ -364,10 +387,8 @@ class Workers:
             except Exception as exc:  # the rows one by one say what fails
                 logger.debug("A block of %s went one by one: %s", item.well, exc)
         if rates is None:
-            for i in range(len(t)):
-                values = dict(zip(INPUT_COLUMNS, x[i].tolist(), strict=True))
-                sample = SensorSample.model_construct(time=from_ns(int(t[i])), **values)
-                self._handle(SensorItem(item.well, sample, item.received_ns), b)
+            for ti, row in zip(t.tolist(), x.tolist(), strict=True):
+                self._handle(SensorItem(item.well, ti, tuple(row), item.received_ns), b)
             return
         self._store_block(st, item, t, x, rates, b)
 
@@ -451,7 +472,7 @@ class Workers:
             answers = self.learning.predict_many(
                 [st for st, _, _, _ in taken],
                 [inputs for _, _, _, inputs in taken],
-                [item.sample.time for _, item, _, _ in taken],
+                [t for _, _, t, _ in taken],
             )
         except Exception as exc:  # pragma: no cover - predict_many answers errors in place
             answers = [exc] * len(taken)
@@ -477,45 +498,55 @@ class Workers:
         b: Batch,
     ) -> None:
         """Third pass, per sample: store it with its prediction, publish, settle what waited."""
-        sample = item.sample
         learner = st.learner
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
-        q_total = rates["q_total"] if rates else None
-        interval = {k: (rates or {}).get(k) for k in ("q_total_std", "q_total_p05", "q_total_p95")}
-        st.recent.append(Sample(t, inputs, q_total))
+        st.recent.append(Sample(t, inputs, rates.get("q_total") if rates else None))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
-        b.ops.append(
-            InsertSample(
-                well=item.well,
-                time_ns=t,
-                inputs=inputs,
-                received_ns=item.received_ns,
-                q_total=q_total,
-                q_gas=rates["q_gas"] if rates else None,
-                q_oil=rates["q_oil"] if rates else None,
-                q_water=rates["q_water"] if rates else None,
-                version=learner.version if rates else None,
-                **interval,
-            )
-        )
-        if rates is None or q_total is None:
+        if not rates or rates.get("q_total") is None:
+            b.ops.append(InsertSample(item.well, t, inputs, item.received_ns, *_NOT_READY))
             self.counters.event("model not ready")
         else:
-            pred = Prediction(
-                time=sample.time,
-                q_total=q_total,
-                q_gas=rates["q_gas"],
-                q_oil=rates["q_oil"],
-                q_water=rates["q_water"],
-                model=learner.name,
-                version=learner.version,
-                **interval,
+            get = rates.get
+            version = learner.version
+            q_total, q_gas, q_oil, q_water = (
+                rates["q_total"],
+                rates["q_gas"],
+                rates["q_oil"],
+                rates["q_water"],
             )
-            b.outbox.append((item.well, pred.model_dump_json().encode()))
+            std, p05, p95 = get("q_total_std"), get("q_total_p05"), get("q_total_p95")
+            b.ops.append(
+                InsertSample(
+                    item.well,
+                    t,
+                    inputs,
+                    item.received_ns,
+                    q_total,
+                    q_gas,
+                    q_oil,
+                    q_water,
+                    version,
+                    std,
+                    p05,
+                    p95,
+                )
+            )
+            message = prediction_json(
+                t, q_total, q_gas, q_oil, q_water, learner.name, version, std, p05, p95
+            )
+            b.outbox.append((item.well, message))
         if st.pending:
             self.pairing.resolve(st, b, upto=t)
+
+
+#: items a worker takes from its queue at once (:meth:`FairQueue.get_many`: one lock for
+#: them); taken items keep their order, and a batch's leftovers start the next batch
+_TAKE = 16
+
+#: an InsertSample's rates and version for a sample without a prediction (the model not ready)
+_NOT_READY = (None, None, None, None, None)
 
 
 def _out_of_order(
