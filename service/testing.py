@@ -122,11 +122,15 @@ class ServeProcess:
         except BaseException:  # interrupted while waiting: never leave the child behind
             self.stop()
             raise
+        code = self.proc.poll()  # ended by itself (e.g. a bad setting), or still starting
         self.stop()
         tail = self.log_path.read_text(encoding="utf-8", errors="replace")[-2000:]
-        raise VFMError(
-            f"`vfm serve` did not become ready within {timeout:.0f} s; log {self.log_path}:\n{tail}"
+        what = (
+            f"did not become ready within {timeout:.0f} s"
+            if code is None
+            else f"ended (exit code {code}) before it was ready"
         )
+        raise VFMError(f"`vfm serve` {what}; log {self.log_path}:\n{tail}")
 
     def kill9(self) -> None:
         """SIGKILL: no cleanup at all, as in a crash."""

@@ -131,3 +131,21 @@ def test_freeze_loaded_objects_leaves_them_out_of_collection() -> None:
     finally:
         gc.unfreeze()
     assert gc.get_freeze_count() == 0
+
+
+def test_a_serve_that_ends_at_start_is_reported_as_ended(tmp_path) -> None:
+    """A bad setting ends `vfm serve` at once: its starter says so (with the exit code and
+    the log's sentence) at once, not that it did not become ready within the timeout."""
+    import time
+
+    from service.testing import ServeProcess
+    from vfm_core.errors import VFMError
+
+    config = tmp_path / "vfm.toml"
+    config.write_text('[model]\nname = "nosuch"\n', encoding="utf-8")
+    started = time.monotonic()
+    with pytest.raises(VFMError) as caught:
+        ServeProcess(config, tmp_path / "serve.log").start(timeout=120)
+    message = str(caught.value)
+    assert "ended (exit code" in message and "unknown model 'nosuch'" in message
+    assert "within" not in message and time.monotonic() - started < 60
