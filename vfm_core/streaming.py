@@ -985,10 +985,15 @@ class _Stacked(torch.nn.Module):
                 raise ValueError(f"The tensor {name} of {one.name} has no well dimension.")
 
     @staticmethod
-    def _tensor(model: torch.nn.Module, path: tuple[str, ...], attr: str, is_param: bool) -> Any:
+    def _holder(model: torch.nn.Module, path: tuple[str, ...], is_param: bool) -> dict[str, Any]:
+        """The parameter or buffer dict of the module at ``path`` under ``model``."""
         for p in path:
             model = model._modules[p]  # type: ignore[assignment]
-        return model._parameters[attr] if is_param else model._buffers[attr]
+        return model._parameters if is_param else model._buffers  # type: ignore[return-value]
+
+    @staticmethod
+    def _tensor(model: torch.nn.Module, path: tuple[str, ...], attr: str, is_param: bool) -> Any:
+        return _Stacked._holder(model, path, is_param)[attr]
 
     def _places(self, model: torch.nn.Module) -> list[tuple[dict[str, Any], str]]:
         """Where ``model`` keeps each per-well tensor: its module's parameter or buffer dict
@@ -997,12 +1002,9 @@ class _Stacked(torch.nn.Module):
         cached = model.__dict__.get("_vfm_places")
         if cached is not None and cached[0] is self.per_well:
             return cached[1]  # type: ignore[no-any-return]
-        places = []
-        for _, path, attr, is_param in self.per_well:
-            module = model
-            for p in path:
-                module = module._modules[p]  # type: ignore[assignment]
-            places.append((module._parameters if is_param else module._buffers, attr))
+        places = [
+            (self._holder(model, path, is_param), attr) for _, path, attr, is_param in self.per_well
+        ]
         model.__dict__["_vfm_places"] = (self.per_well, places)
         return places
 
@@ -1031,13 +1033,10 @@ class _Stacked(torch.nn.Module):
         tensors must be back in place after every call."""
         slots = self.__dict__.get("_slots")
         if slots is None:
-            slots = []
-            for name, path, attr, is_param in self.per_well + self.shared:
-                module: torch.nn.Module = self.model
-                for p in path:
-                    module = module._modules[p]  # type: ignore[assignment]
-                holder = module._parameters if is_param else module._buffers
-                slots.append((f"model.{name}", holder, attr))
+            slots = [
+                (f"model.{name}", self._holder(self.model, path, is_param), attr)
+                for name, path, attr, is_param in self.per_well + self.shared
+            ]
             self.__dict__["_slots"] = slots
         own = [holder[attr] for _, holder, attr in slots]
         try:
@@ -1325,10 +1324,7 @@ def _learn_group(
             if is_param:
                 get(model, path, attr, True).data = value.detach().clone()
             else:
-                target: torch.nn.Module = model
-                for p in path:
-                    target = target._modules[p]  # type: ignore[assignment]
-                target._buffers[attr] = value
+                stacked._holder(model, path, False)[attr] = value
     model.wells = [lrn.well for lrn in learners]
     batches = [m[2] for m in ready]
     batch = Batch(
