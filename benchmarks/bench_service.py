@@ -10,7 +10,8 @@ minutes per well, which the service learns from online. Figures per field size:
   were lost (should be zero);
 * a burst: the same wells' samples sent as fast as Zenoh's BLOCK congestion control lets
   them, to find the rate the service sustains without loss; ``--block 1,40`` runs one burst
-  per message size (1: one sample a message; more: sensor blocks of that many rows).
+  per message size (1: one sample a message; more: sensor blocks of that many rows). A
+  burst's messages are made before its clock starts: the plant's JSON is not measured.
 
 Fairness (``--scenario flood``): two wells with a history; a good well sends a sample every
 50 ms from this process while, from a second process with its own Zenoh session, another
@@ -235,23 +236,15 @@ workers = {workers}
             for block in blocks:
                 plant.latency.clear()
                 base_received = plant.received
+                # every message made before the clock starts (the sender's JSON is not
+                # measured): one sample a message, or sensor blocks
+                puts = block_messages(
+                    names, inputs, t1_wall, per_well, block, measure_every_s, phase
+                )
                 t1 = time.perf_counter()
-                n_burst = 0
-                if block == 1:
-                    for step in range(per_well):
-                        for j, name in enumerate(names):
-                            row = inputs[name][step % len(inputs[name])]
-                            measure = (step + int(phase[j])) % int(measure_every_s) == 0
-                            plant.send(name, t1_wall + timedelta(seconds=step), row, measure)
-                            n_burst += 1
-                else:  # sensor blocks, made before the clock starts (the sender is not measured)
-                    puts = block_messages(
-                        names, inputs, t1_wall, per_well, block, measure_every_s, phase
-                    )
-                    t1 = time.perf_counter()
-                    for key, payload in puts:
-                        plant.bus.put(key, payload)
-                    n_burst = per_well * len(names)
+                for key, payload in puts:
+                    plant.bus.put(key, payload)
+                n_burst = per_well * len(names)
                 burst_send_s = time.perf_counter() - t1
                 deadline = time.monotonic() + 300
                 while plant.received - base_received < n_burst and time.monotonic() < deadline:
