@@ -26,6 +26,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -256,10 +257,10 @@ class StreamingHotelling:
             "n_seen": self.n_seen,
         }
 
-    def load_state_dict(self, state: dict[str, object]) -> None:
-        self.__init__(int(state["reference_size"]), float(state["alpha"]), int(state["confirm"]))  # type: ignore[misc, arg-type]
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.__init__(int(state["reference_size"]), float(state["alpha"]), int(state["confirm"]))  # type: ignore[misc]
         ref = state.get("reference") or []
-        self.reset(np.asarray(ref) if len(ref) else None)  # type: ignore[arg-type]
+        self.reset(np.asarray(ref) if len(ref) else None)
         self.drift_detected = bool(state["drift_detected"])
-        self.run = int(state["run"])  # type: ignore[arg-type]
-        self.n_seen = int(state["n_seen"])  # type: ignore[arg-type]
+        self.run = int(state["run"])
+        self.n_seen = int(state["n_seen"])

@@ -459,19 +459,17 @@ class MeterBias(Effect):
 
 
 #: The library by name. Valve families are also available as ``valve_<family>``.
-EFFECTS: dict[str, type[Effect]] = {
-    cls.name: cls
-    for cls in (
-        Erosion,
-        ErosionTime,
-        Valve,
-        RealGas,
-        Slip,
-        CriticalRatio,
-        MeterBias,
-        *(_valve_family(f) for f in ph.AREA_FUNCTIONS if f != "linear"),
-    )
-}
+_LIBRARY: tuple[type[Effect], ...] = (
+    Erosion,
+    ErosionTime,
+    Valve,
+    RealGas,
+    Slip,
+    CriticalRatio,
+    MeterBias,
+    *(_valve_family(f) for f in ph.AREA_FUNCTIONS if f != "linear"),
+)
+EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in _LIBRARY}
 #: What ``vfm diagnose`` tries by default (one per physical effect).
 DEFAULT_CANDIDATES: tuple[str, ...] = (
     "erosion",
@@ -514,11 +512,12 @@ def resolve_effect(name_or_path: str | type[Effect]) -> type[Effect]:
                     f"Cannot import the module '{module_name}' of effect '{text}' ({exc}); "
                     "put it on PYTHONPATH or install it."
                 ) from None
-            cls = getattr(module, attr, None)
-            if cls is None:
+            found = getattr(module, attr, None)
+            if found is None:
                 raise ConfigError(
                     f"The module '{module_name}' has no class '{attr}' (effect '{text}')."
                 )
+            cls = found
         else:
             try:
                 cls = EFFECTS[text]

@@ -1432,7 +1432,7 @@ def _online_steps(
         hybrid_online_steps(  # the same steps, compiled
             model,
             batch,
-            [moments[j] for j in index] if adam else None,  # type: ignore[misc]
+            [moments[j] for j in index] if adam else None,  # type: ignore[misc, arg-type]
             before_all,
             np.zeros(k, dtype=bool),
             steps=s.steps,

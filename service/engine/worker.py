@@ -501,21 +501,17 @@ class Workers:
         learner = st.learner
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
-        st.recent.append(Sample(t, inputs, rates.get("q_total") if rates else None))
+        q_total = rates.get("q_total") if rates else None
+        st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
-        if not rates or rates.get("q_total") is None:
+        if not rates or q_total is None:
             b.ops.append(InsertSample(item.well, t, inputs, item.received_ns, *_NOT_READY))
             self.counters.event("model not ready")
         else:
             get = rates.get
             version = learner.version
-            q_total, q_gas, q_oil, q_water = (
-                rates["q_total"],
-                rates["q_gas"],
-                rates["q_oil"],
-                rates["q_water"],
-            )
+            q_gas, q_oil, q_water = rates["q_gas"], rates["q_oil"], rates["q_water"]
             std, p05, p95 = get("q_total_std"), get("q_total_p05"), get("q_total_p95")
             b.ops.append(
                 InsertSample(
@@ -567,10 +563,10 @@ def _out_of_order(
     )
 
 
-def _json_floats(values: np.ndarray) -> list[float | None]:
+def _json_floats(values: np.ndarray) -> list[float] | list[float | None]:
     """Numbers for a JSON message: a value that is not finite is null (as pydantic writes
     one sample's prediction)."""
-    out: list[float | None] = values.tolist()
-    if not np.isfinite(values).all():
-        out = [v if math.isfinite(v) else None for v in out]
-    return out
+    out: list[float] = values.tolist()
+    if np.isfinite(values).all():
+        return out
+    return [v if math.isfinite(v) else None for v in out]

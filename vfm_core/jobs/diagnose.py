@@ -641,7 +641,8 @@ def _laplace_sd(model: ChokeModel, batch: Batch) -> dict[str, np.ndarray]:
 
 def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
     """Parameters that sit at a physical bound (other than their 'no effect' prior mean)."""
-    priors = model.physical_priors() if hasattr(model, "physical_priors") else {}
+    priors_of = getattr(model, "physical_priors", None)  # a physics model's own
+    priors = priors_of() if priors_of is not None else {}
     params = model.physical_parameters()
     out = []
     for key, prior in priors.items():

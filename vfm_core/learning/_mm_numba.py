@@ -1647,8 +1647,8 @@ def warm_fit_steps() -> None:
         ]
         z6 = np.zeros((1, 6))
         moments = tuple(np.zeros_like(a) for a in [z6, *net] for _ in range(2))
-        fit_steps(
-            kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,
+        fit_steps(  # type: ignore[call-arg]
+            kind, z6, *net, moments, np.zeros((5, 1)), np.ones(1, dtype=np.int64), x, ones,  # type: ignore[arg-type]
             yes, 1, False, np.ones(1), np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)),
             one, -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True,
             x, ones, yes, np.zeros((1, 1)),
@@ -1658,7 +1658,12 @@ def warm_fit_steps() -> None:
 def warm_nn_fit_steps() -> None:
     """Run :func:`nn_fit_steps` once on a made-up sample."""
     x, ones, yes = _made_up_sample()
-    net = (np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 4)), np.ones((1, 4)))
+    net: tuple[np.ndarray, ...] = (
+        np.ones((1, 6, 4)),
+        np.ones((1, 4)),
+        np.ones((1, 4, 4)),
+        np.ones((1, 4)),
+    )
     net += (np.ones((1, 4, 1)), np.ones((1, 1)))
     nn_fit_steps(
         net, tuple(np.zeros_like(a) for a in net for _ in range(2)), np.zeros((6, 1)),

@@ -443,7 +443,8 @@ class BayesianFilter(LearningMethod):
         return self
 
     def _fixed_or_default(self, s: int) -> float:
-        return float(self.noise[s]) if self.noise[s] is not None else NOISE_DEFAULTS[s]
+        fixed = self.noise[s]
+        return float(fixed) if fixed is not None else NOISE_DEFAULTS[s]
 
     def _rebind(self, model: ChokeModel) -> None:
         blocks = model.filter_blocks()

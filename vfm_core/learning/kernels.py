@@ -39,6 +39,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from collections.abc import Sequence
 from types import SimpleNamespace
 from typing import Any
 
@@ -944,9 +945,7 @@ def _in_place(t: torch.Tensor | np.ndarray) -> np.ndarray:
     return a if a.flags.c_contiguous else np.ascontiguousarray(a)
 
 
-def _written_back(
-    tensors: list[torch.Tensor] | list[torch.Tensor | np.ndarray], arrays: list[np.ndarray]
-) -> None:
+def _written_back(tensors: Sequence[torch.Tensor | np.ndarray], arrays: list[np.ndarray]) -> None:
     """Copy each array of :func:`_in_place` that is not its tensor's own memory back."""
     for t, a in zip(tensors, arrays, strict=False):
         if a is t or not a.flags.owndata:  # the memory itself (a view owns none)

@@ -126,7 +126,7 @@ class OnlineLearning(LearningMethod):
             self._hybrid = hybrid if hybrid is not None and self._all_of(hybrid) else None
             # with torch's plain Adam or SGD: the plain mm (its one tensor, z) or the
             # plain hybrids (every parameter) step compiled
-            mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr]
+            mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr, list-item]
             # the plain nn or lr with SGD (their default), every parameter stepped
             plain = plain_nn(self.model) or plain_lr(self.model)
             net = fit_parameters(self.model) if plain else None
@@ -278,7 +278,7 @@ class OnlineLearning(LearningMethod):
         steps = [z] if params is None else params
         group = opt.param_groups[0]
         counts = np.zeros((len(steps), z.shape[0]))  # each parameter's step count per well
-        step_counts: list[torch.Tensor] = []
+        step_counts = []
         moments = None
         adam = isinstance(opt, torch.optim.Adam)
         if adam:

@@ -301,8 +301,8 @@ class MapObjective:
             for pid, g in model.prior_gradients(self.weight, self.physical_only).items():
                 grads[pid] = grads[pid] + g if pid in grads else g
             for p in params:
-                g = grads.get(id(p))
-                p.grad = torch.zeros_like(p) if g is None else g.reshape(p.shape)
+                got = grads.get(id(p))
+                p.grad = torch.zeros_like(p) if got is None else got.reshape(p.shape)
         return loss
 
 
@@ -490,12 +490,12 @@ def _compiled_fit(
         if len(ordered) != len(params) or {id(p) for p in ordered} != {id(p) for p in params}:
             return None
         return kernels.MtlFitSteps(model, ordered, opt)
-    ordered = kernels.fit_parameters(model)
-    if ordered is None or {id(p) for p in ordered} != {id(p) for p in params}:
+    own = kernels.fit_parameters(model)
+    if own is None or {id(p) for p in own} != {id(p) for p in params}:
         return None
-    if len(ordered) != len(params):
+    if len(own) != len(params):
         return None
-    return kernels.FitSteps(model, ordered, opt)
+    return kernels.FitSteps(model, own, opt)
 
 
 def _split_latest(batch: Batch, fraction: float) -> tuple[Batch, Batch, torch.Tensor]:
@@ -670,7 +670,11 @@ def fit_batch(
         for p, s in zip(params, start, strict=True):
             p.data.copy_(s)
 
-    chosen = torch.where(has_val, best_iter, iterations) if retrain else best_iter.clone()
+    chosen = (
+        torch.where(has_val, best_iter, iterations)
+        if retrain and iterations is not None
+        else best_iter.clone()
+    )
     if retrain:
         best_iter = best_iter.clamp(max=settings.retrain_max_iter)
     # pass 2: from the same start, on all data, each well for its chosen iteration count

@@ -114,6 +114,11 @@ class ChokeModel(nn.Module):
     shared: ClassVar[bool] = False
     #: True when the model learns by ``observe`` rather than by gradients.
     gradient_free: ClassVar[bool] = False
+    # buffers (registered in __init__), per well: set up, the rate scale, input statistics
+    ready: torch.Tensor
+    y_scale: torch.Tensor
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
 
     def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
         super().__init__()
@@ -316,6 +321,12 @@ class PhysicalParameters(nn.Module):
     Learning in z keeps every parameter on the same scale for SGD and Adam, and the prior
     penalty is simply sum(z^2). Bounds from :data:`vfm_core.physics.PRIORS`.
     """
+
+    # buffers (registered in __init__): the priors' means and sds, the bounds in z
+    mu: torch.Tensor
+    sigma: torch.Tensor
+    z_low: torch.Tensor
+    z_high: torch.Tensor
 
     def __init__(self, n_wells: int, names: Sequence[str] | Mapping[str, ph.Prior]) -> None:
         super().__init__()

@@ -35,6 +35,7 @@ class LastValue(ChokeModel):
 
     key = "last"
     gradient_free = True
+    last_y: torch.Tensor  # buffer: each well's last measured rate, Sm3/h (NaN: none yet)
 
     def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
         super().__init__(wells, seed=seed)

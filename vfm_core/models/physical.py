@@ -15,7 +15,7 @@ parameters in SI (kg/m3, -, kg/mol); rates in Sm3/h.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import torch
 from torch import nn
@@ -217,6 +217,10 @@ class Mechanistic(ChokeModel):
 
     key = "mm"
     physical_names: ClassVar[tuple[str, ...]] = PHYSICAL_NAMES
+    # buffers (registered in _build): each well's full-open area, m2, and, with valve
+    # effects, its reference opening
+    a_max: torch.Tensor
+    u_ref: torch.Tensor
 
     def __init__(
         self,
@@ -282,9 +286,13 @@ class Mechanistic(ChokeModel):
         }
         return values
 
+    def effect_block(self, name: str) -> PhysicalParameters:
+        """The parameters of the effect ``name`` (one of :attr:`effects`)."""
+        return cast(PhysicalParameters, self.effect_params[name])
+
     def effect_values(self) -> dict[str, dict[str, torch.Tensor]]:
         """Each effect's parameters [W] by effect and parameter name, SI units."""
-        return {e.name: self.effect_params[e.name].values() for e in self.effects}
+        return {e.name: self.effect_block(e.name).values() for e in self.effects}
 
     # -- the rate ------------------------------------------------------------------------
     def area(self, x: torch.Tensor, theta: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -349,7 +357,7 @@ class Mechanistic(ChokeModel):
     # -- prior and bounds ----------------------------------------------------------------
     def _effect_penalty(self) -> torch.Tensor:
         total = torch.zeros(len(self.wells), dtype=DTYPE)
-        for p in self.effect_params.values():
+        for p in map(self.effect_block, self.effect_params):
             total = total + p.penalty()
         return total
 
@@ -361,7 +369,7 @@ class Mechanistic(ChokeModel):
 
     def project_(self) -> None:
         self.phys.project_()
-        for p in self.effect_params.values():
+        for p in map(self.effect_block, self.effect_params):
             p.project_()
 
     def physical_parameters(self) -> dict[str, torch.Tensor]:
@@ -369,14 +377,14 @@ class Mechanistic(ChokeModel):
             out = {k: v.detach().clone() for k, v in self.phys.values().items()}
             out["a_max"] = self.a_max.clone()
             for e in self.effects:
-                for n, v in self.effect_params[e.name].values().items():
+                for n, v in self.effect_block(e.name).values().items():
                     out[f"{e.name}.{n}"] = v.detach().clone()
         return out
 
     def filter_blocks(self) -> list[FilterBlock]:
         """The mechanistic parameters, each effect's, and a hybrid's output layer."""
         blocks = [self.phys.filter_block()]
-        blocks += [self.effect_params[e.name].filter_block(f"{e.name}.") for e in self.effects]
+        blocks += [self.effect_block(e.name).filter_block(f"{e.name}.") for e in self.effects]
         if self.net is not None:
             blocks += self.net.head_blocks("head")
         return blocks

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import matplotlib
 import numpy as np
 import pandas as pd
+from matplotlib.artist import Artist
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
@@ -919,7 +920,7 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     for ax in axes.flat[len(wells) :]:
         ax.set_visible(False)
     _date_axes_below(axes, len(wells))
-    handles = [
+    handles: list[Artist] = [
         Line2D(
             [],
             [],
@@ -938,9 +939,10 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
             color="black",
             label="measured (well test)",
         ),
-    ] + [
-        Line2D([], [], color=study.colours[m], linewidth=2, label=f"predicted, {m}")
-        for m in study.methods
+        *(
+            Line2D([], [], color=study.colours[m], linewidth=2, label=f"predicted, {m}")
+            for m in study.methods
+        ),
     ]
     if banded:
         handles.append(Patch(facecolor="#888", alpha=0.3, label="90 % predictive interval"))
