@@ -18,6 +18,7 @@ demo exits (status 143 or 130): a stopped demo never leaves a service on its por
 from __future__ import annotations
 
 import argparse
+import json
 import secrets
 import signal
 import sys
@@ -29,13 +30,22 @@ from typing import Any
 __all__ = ["register", "run_demo"]
 
 
-def _config_text(out: Path, data: Path, split: str, model: str, method: str, token: str) -> str:
+def _config_text(
+    out: Path,
+    data: Path,
+    split: str,
+    model: str,
+    method: str,
+    token: str,
+    effects: list[str] | None = None,
+) -> str:
     return f"""# Written by `vfm demo`: the service's settings (see README.md, 'The streaming service').
 prefix = "vfm"
 
 [model]
 name = "{model}"
 method = "{method}"
+effects = {json.dumps(effects or [])}
 history = "{data.resolve()}"
 history_until = "{split}"
 
@@ -96,6 +106,24 @@ def _run_demo(args: argparse.Namespace) -> int:
     from vfm_core.simulate import simulate_field, write_field
 
     started = time.perf_counter()
+    effects = [e.strip() for e in (args.effects or "").split(",") if e.strip()]
+    label = args.model
+    if effects:  # checked before anything runs: a bad name fails here, with its sentence
+        from vfm_core.effects import resolve_effects
+        from vfm_core.errors import ConfigError
+
+        if args.model not in ("mm", "hem", "ham"):
+            print(
+                f"vfm demo: --effects extend the physics models mm, hem and ham, not "
+                f"'{args.model}'; choose --model mm, hem or ham.",
+                file=sys.stderr,
+            )
+            return 2
+        try:
+            label = "+".join([args.model, *(c.name for c in resolve_effects(effects))])
+        except ConfigError as exc:
+            print(f"vfm demo: --effects: {exc}", file=sys.stderr)
+            return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data = out / "field.parquet"
@@ -115,9 +143,11 @@ def _run_demo(args: argparse.Namespace) -> int:
         stale.unlink()
     token = secrets.token_urlsafe(24)
     config = out / "service.toml"
-    write_text_atomic(config, _config_text(out, data, split, args.model, args.method, token))
+    write_text_atomic(
+        config, _config_text(out, data, split, args.model, args.method, token, effects)
+    )
     print(
-        f"2/{n_steps} Starting `vfm serve` ({args.model} with {args.method}, fitted on the data before {split}) ...",
+        f"2/{n_steps} Starting `vfm serve` ({label} with {args.method}, fitted on the data before {split}) ...",
         flush=True,
     )
     from service.testing import (
@@ -144,18 +174,20 @@ def _run_demo(args: argparse.Namespace) -> int:
             last = run_prequential(frame, "last", "ol", split=split).predictions
             offline: dict[tuple[str, str], float] = {}
         else:
+            models = list(dict.fromkeys(["last", "mm", args.model]))
             print(
-                f"4/{n_steps} The offline study of the same file (vfm evaluate: last, mm, {args.model}; "
-                "ol and pbl:182d) for the report ...",
+                f"4/{n_steps} The offline study of the same file (vfm evaluate: {', '.join(models)}"
+                f"{', and with ' + '+'.join(effects) if effects else ''}; "
+                f"{args.method} and pbl:182d) for the report ...",
                 flush=True,
             )
-            models = list(dict.fromkeys(["last", "mm", args.model]))
             methods = list(dict.fromkeys([args.method, "pbl:182d"]))
             study = run_study(
                 frame,
                 models=models,
                 methods=methods,
                 split=split,
+                effects=effects,
                 progress=not args.quiet,
                 data_path=str(data),
             )
@@ -172,11 +204,11 @@ def _run_demo(args: argparse.Namespace) -> int:
 
         print(f"{n_steps}/{n_steps} Results")
         print(result.summary().split("MAPE of the")[0].rstrip())
-        label = f"{args.model}+{args.method} (service)"
+        column = f"{label}+{args.method} (service)"
         print(
             f"\n  MAPE %, {len(result.scored):,} measurements after {split} (each predicted before learning from it)"
         )
-        print(f"  {'well':<8} {label:>22} {'last (benchmark)':>17} {'n':>7}")
+        print(f"  {'well':<8} {column:>22} {'last (benchmark)':>17} {'n':>7}")
         for r in result.per_well.itertuples():
             print(
                 f"  {r.well:<8} {r.mape:>22.2f} {last_by_well.get(r.well, float('nan')):>17.2f} {r.n:>7,}"
@@ -184,12 +216,12 @@ def _run_demo(args: argparse.Namespace) -> int:
         n_all = int(result.per_well["n"].sum())
         print(f"  {'all':<8} {result.overall_mape:>22.2f} {last_all:>17.2f} {n_all:>7,}")
         if offline:
-            same = offline.get((args.model, args.method))
+            same = offline.get((label, args.method))
             others = ", ".join(f"{m}+{meth} {v:.2f}" for (m, meth), v in offline.items())
             print(f"\n  Offline (vfm evaluate, pooled MAPE %): {others}.")
             if same is not None:
                 print(
-                    f"  The service through Zenoh gave {result.overall_mape:.2f} for {args.model}+{args.method}; "
+                    f"  The service through Zenoh gave {result.overall_mape:.2f} for {label}+{args.method}; "
                     f"the offline prequential run {same:.2f}."
                 )
         rejected = health.get("rejected_total", 0)
@@ -216,6 +248,7 @@ def _run_demo(args: argparse.Namespace) -> int:
             print(
                 f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,{args.model} "
                 f"--methods {args.method},pbl:182d --split {split}"
+                + (f" --effects {','.join(effects)}" if effects else "")
             )
         if args.keep_serving:
             print(f"  workbench  {http_url}/  (the page: every well, charts, diagnose and apply)")
@@ -262,6 +295,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--model", default="ham", help="model of the service (default ham)")
     p.add_argument("--method", default="ol", help="learning method (default ol)")
+    p.add_argument(
+        "--effects",
+        default="",
+        help="physical effects extending the service's model (mm, hem or ham), comma-separated, "
+        "e.g. erosion, the wear the demo's field hides (vfm diagnose names them; default none)",
+    )
     p.add_argument(
         "--keep-serving", action="store_true", help="leave the service running until Ctrl-C"
     )
