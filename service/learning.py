@@ -136,6 +136,9 @@ def load_history(cfg: ModelSettings) -> pd.DataFrame:
         return pd.DataFrame()
     loaded = load_observations(cfg.history)
     frame = loaded.frame
+    # the file's wells as `vfm evaluate` lays them out (first measured appearance), those
+    # measured only after history_until included: fit_history builds its model over them
+    field_wells = list(dict.fromkeys(frame.loc[target_mask(frame, "all"), WELL].astype(str)))
     keep = np.ones(len(frame), dtype=bool)
     if cfg.history_until is not None:
         keep = (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
@@ -143,6 +146,7 @@ def load_history(cfg: ModelSettings) -> pd.DataFrame:
     feats = standard_features(frame)
     for name in FeatureTracker.names:
         frame[name] = feats[name].to_numpy()
+    frame.attrs["field_wells"] = field_wells
     logger.info(
         "History %s: %d measured rows before %s.",
         cfg.history,
@@ -186,15 +190,20 @@ def fit_history(
     }
     frame = measured[measured[WELL].isin(wells)].reset_index(drop=True)
     train = settings_from_dict(DEFAULT_TRAIN[cfg.name], cfg.train)
+    # the model over the history file's wells in vfm evaluate's order, so that each well
+    # starts from the same random draw as there (a network's later layers are drawn after
+    # the earlier layers of every well); the wells not fitted here have no rows in it
+    layout = list(dict.fromkeys([*history.attrs.get("field_wells", []), *wells]))
     try:
-        model = make_model(cfg.name, wells, seed=cfg.seed, effects=cfg.effects, **cfg.model_kwargs)
-        batch = make_batch(frame, wells, extra_columns=model.extra_columns)
+        model = make_model(cfg.name, layout, seed=cfg.seed, effects=cfg.effects, **cfg.model_kwargs)
+        batch = make_batch(frame, layout, extra_columns=model.extra_columns)
         summary = fit_batch(model, batch, train)
         full = model.state_dict()
-        for j, well in enumerate(wells):
+        for well in wells:
+            j = layout.index(well)
             learner = _per_well(learners[well])
             learner.model.load_state_dict(
-                _slice_state(full, learner.model.state_dict(), j, len(wells))
+                _slice_state(full, learner.model.state_dict(), j, len(layout))
             )
             _adopt_fit(
                 learner,

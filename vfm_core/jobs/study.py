@@ -94,6 +94,25 @@ class RunResult:
     runtime_s: float = 0.0
 
 
+def _start_fresh(
+    model: ChokeModel, fresh: list[str], one_well: Callable[[str], ChokeModel]
+) -> None:
+    """Put each well of ``fresh`` back at the state ``one_well(well)`` starts in (its per-well
+    tensors: a one-well model's leading dimension is 1, the field's is its wells)."""
+    if not fresh:
+        return
+    n = len(model.wells)
+    tensors = dict(model.named_parameters()) | dict(model.named_buffers())
+    with torch.no_grad():
+        for well in fresh:
+            j = model.wells.index(well)
+            own = one_well(well)
+            for name, t in (dict(own.named_parameters()) | dict(own.named_buffers())).items():
+                full = tensors.get(name)
+                if full is not None and t.dim() >= 1 and t.shape[0] == 1 and full.shape[0] == n:
+                    full[j].copy_(t[0])
+
+
 def wells_of(frame: pd.DataFrame) -> list[str]:
     """Wells in order of first appearance."""
     return list(dict.fromkeys(frame[WELL].astype(str)))
@@ -474,6 +493,17 @@ def run_prequential(
         meth.fit(initial)
         if initial_fits is not None:
             initial_fits[cache_key] = (copy.deepcopy(model.state_dict()), meth.iterations.clone())
+    if not model.shared:
+        # a well with no measurement before the split starts as the service starts a new
+        # well: its own one-well model at its prior, not the field fit's slice of it
+        had = set(frame.loc[is_target & before, WELL].astype(str))
+        _start_fresh(
+            model,
+            [w for w in wells if w not in had],
+            lambda w: make_model(
+                model_name, [w], seed=seed, effects=effects, **(model_kwargs or {})
+            ),
+        )
     meth.start(split_ts.value)
     param_rows = _param_rows(model, split_ts, model.ready) if track_parameters else []
     predicted = np.full(len(frame), np.nan)
