@@ -576,9 +576,19 @@ def run_prequential(
     else:
         t_last = int(test.time_ns[test.mask].max())
         start = int(split_ts.value)
+        # a well with no model yet starts at its first measurement learned from, as the
+        # method starts it when measurements come one by one (the service): fitted on what
+        # it has, its retrains counted from then (PeriodicBatch._learn)
+        arrives = test.mask & ~hidden_t[test.row.clamp(min=0)]
+        first = torch.where(arrives, test.time_ns, torch.full_like(test.time_ns, NEVER))
+        starts = torch.where(model.ready, NEVER, first.min(dim=1).values)
         while start <= t_last:
             due = meth.next_due()
             end = NEVER if due is None else max(int(due), start + 1)
+            waiting = (starts >= start) & (starts < end) & (starts != NEVER)
+            new_at = int(starts[waiting].min()) if bool(waiting.any()) else None
+            if new_at is not None:  # up to that measurement, predicted before it is learned
+                end = new_at + 1
             in_period = (test.time_ns >= start) & (test.time_ns < end) & test.mask
             if bool(in_period.any()):
                 # only the period's samples: predicting the whole test span at every
@@ -588,6 +598,12 @@ def run_prequential(
                 done += int(in_period.sum())
                 if progress is not None:
                     progress(done, total)
+            if new_at is not None:
+                wells_now = starts == new_at
+                learn(test.select(arrives & (test.time_ns == new_at) & wells_now.unsqueeze(1)))
+                starts[wells_now] = NEVER
+                start = end
+                continue
             if end > t_last:
                 break
             meth.retrain_due(memory, torch.full((len(wells),), end, dtype=torch.int64))
