@@ -97,8 +97,12 @@ class Service:
                 from vfm_core.learning.kernels import warm
 
                 warm()
-            self.engine.start()
-            self.transport.start(self.engine.deliver)
+            source = None
+            if s.queues.receiver == "worker" and s.queues.workers == 1:
+                source = self.transport.start_polled(self.engine.deliver)
+            self.engine.start(source)
+            if source is None:  # a receiver thread (more workers, or zenoh.wells patterns)
+                self.transport.start(self.engine.deliver)
             self.locators = self.transport.locators()
         except BaseException:
             self.stop()

@@ -481,7 +481,8 @@ class InputSettings(_Section):
 
 
 class QueueSettings(_Section):
-    """Receive path: Zenoh FifoChannel -> receiver thread -> bounded per-worker queues."""
+    """Receive path: Zenoh FifoChannel -> receiver (the worker, or a thread) -> bounded
+    per-worker queues."""
 
     receive_capacity: int = Field(
         default=64,
@@ -502,6 +503,14 @@ class QueueSettings(_Section):
         description="messages queued per well at most; the worker serves its wells round robin",
     )
     workers: int = Field(default=1, ge=1, le=64)
+    receiver: Literal["worker", "thread"] = Field(
+        default="worker",
+        description="who takes the messages from Zenoh: 'worker', the one worker itself "
+        "between its items (no receiver thread: a busy worker and a receiver thread handed "
+        "the GIL to each other at every message, which cost more than the message's own "
+        "work); 'thread', a receiver thread of its own (always so with more workers, or with "
+        "zenoh.wells patterns)",
+    )
     #: how long the receiver waits on a full worker queue or a full well queue
     #: (back-pressure through Zenoh's BLOCK congestion control) before it drops the message
     #: and counts a 'queue overflow' or 'well flooding'

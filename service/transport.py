@@ -17,6 +17,14 @@ wells' prediction publishers declared, that was 138 µs of CPU a message, and it
 what a service could take in at about 7,400 messages/s before any of its own work
 (``benchmarks/bench_zenoh_keys.py``).
 
+With one worker (``queues.receiver = "worker"``, the default) no receiver thread runs: the
+worker takes the messages itself between its items (:meth:`ZenohTransport.start_polled`
+gives it a :class:`Source`). Each Zenoh ``recv`` lets go of the GIL; with a receiver
+thread beside a busy worker, every message handed the GIL from one thread to the other
+and back, and that hand-over cost more than the message's own work. A worker with
+nothing to do waits in ``recv``; a session-local message wakes it (work put in its queue
+from elsewhere, e.g. a well test over HTTP; a tick every half second for its timers).
+
 Zenoh facts this relies on are in ``/work/shared/notes/zenoh.md``: never the default
 config (it joins multicast and listens everywhere), close every session (an open one
 hangs the interpreter at exit), never fork after ``zenoh.open``.
@@ -51,6 +59,7 @@ from vfm_core.messages import prediction_key
 
 __all__ = [
     "Transport",
+    "Source",
     "ZenohTransport",
     "MemoryTransport",
     "zenoh_config",
@@ -63,10 +72,38 @@ logger = logging.getLogger("vfm.service.transport")
 Deliver = Callable[[str, bytes, int], None]
 
 
+class Source(Protocol):
+    """Messages taken by the worker's own thread, not by a receiver thread.
+
+    :meth:`poll` hands up to ``limit`` messages that have arrived to ``deliver`` (never
+    waits) while ``more()`` is true; :meth:`wait` blocks until a message arrives (handed on),
+    :meth:`wake` is called, or half a second has passed, unless ``ready()`` is already true
+    once waiting is announced (so a wake between the caller's last look and the wait is
+    never lost); :attr:`stopped` turns true once :meth:`Transport.stop_receiving` was asked,
+    after every message that arrived before it was handed on."""
+
+    stopped: bool
+    #: true while :meth:`wait` is under way (a put from elsewhere then calls :meth:`wake`)
+    waiting: bool
+
+    def poll(self, limit: int, more: Callable[[], bool]) -> int: ...
+
+    def wait(self, ready: Callable[[], bool]) -> None: ...
+
+    def wake(self) -> None:
+        """From any thread: end a :meth:`wait` now (nothing happens if none is under way)."""
+        ...
+
+
 class Transport(Protocol):
     """What the service needs from a message bus."""
 
     def start(self, deliver: Deliver) -> None: ...
+
+    def start_polled(self, deliver: Deliver) -> Source | None:
+        """Receive without a thread of its own: the caller takes the messages through the
+        returned :class:`Source`; None when this transport cannot (then :meth:`start`)."""
+        ...
 
     def publish(self, well: str, payload: bytes) -> None: ...
 
@@ -137,6 +174,7 @@ class ZenohTransport:
         self._pattern_subs: list[zenoh.Subscriber] = []
         self._pattern_threads: list[threading.Thread] = []
         self._count_lock = threading.Lock()
+        self._source: _ZenohSource | None = None
 
     def open(self) -> None:
         try:
@@ -180,6 +218,19 @@ class ZenohTransport:
             thread = threading.Thread(target=receive, name=f"vfm-zenoh-receiver-{i}", daemon=True)
             self._pattern_threads.append(thread)
             thread.start()
+
+    def start_polled(self, deliver: Deliver) -> Source | None:
+        """One subscriber on ``<prefix>/**`` whose messages the caller takes (see
+        :class:`Source`); None with ``zenoh.wells`` patterns (one subscriber and receiver
+        thread per pattern: :meth:`start`)."""
+        keys = WellSet(self.settings.wells).key_exprs(self.prefix)
+        if not (len(keys) == 1 and keys[0] == f"{self.prefix}/**"):
+            return None
+        self._subscriber = self.session.declare_subscriber(
+            f"{self.prefix}/**", zenoh.handlers.FifoChannel(self.capacity)
+        )
+        self._source = _ZenohSource(self, self._subscriber, deliver)
+        return self._source
 
     def _start_all(self, deliver: Deliver) -> None:
         sub = self.session.declare_subscriber(
@@ -234,6 +285,18 @@ class ZenohTransport:
                 logger.warning("A Zenoh receiver thread did not stop within %.0f s.", timeout)
         self._pattern_subs.clear()
         self._pattern_threads.clear()
+        source = self._source
+        if source is not None and self._session is not None:
+            self._session.put(
+                self._control_key,
+                b"",
+                attachment=self._stop_token,
+                allowed_destination=zenoh.Locality.SESSION_LOCAL,
+            )
+            if not source.stopped_event.wait(timeout):  # pragma: no cover - worker stuck
+                logger.warning("The worker did not stop receiving within %.0f s.", timeout)
+            source.close()
+            self._source = None
         if self._thread is None or self._session is None:
             return
         self._session.put(
@@ -258,6 +321,94 @@ class ZenohTransport:
             if self._session is not None:
                 self._session.close()
                 self._session = None
+
+
+class _ZenohSource:
+    """The :class:`Source` of :meth:`ZenohTransport.start_polled`: ``try_recv`` / ``recv``
+    on the subscriber's FifoChannel from the worker's thread; woken by a session-local
+    message on ``<prefix>/_vfm-control/wake`` (from :meth:`wake`, and every half second
+    from a ticker thread while the worker waits)."""
+
+    #: how often a waiting worker is woken for its timers (s)
+    tick_s = 0.5
+
+    def __init__(self, transport: ZenohTransport, sub: zenoh.Subscriber, deliver: Deliver) -> None:
+        self.transport = transport
+        self.stopped = False
+        self.stopped_event = threading.Event()
+        #: true while the worker is in (or about to enter) ``recv``
+        self.waiting = False
+        self._sub = sub
+        self._deliver = deliver
+        self._stop_key = transport._control_key
+        self._wake_key = zenoh.KeyExpr(f"{transport.prefix}/_vfm-control/wake")
+        self._control = f"{transport.prefix}/_vfm-control/"
+        self._token = transport._stop_token
+        self._closed = threading.Event()
+        self._ticker = threading.Thread(target=self._tick, name="vfm-zenoh-ticker", daemon=True)
+        self._ticker.start()
+
+    def _take(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key.startswith(self._control):
+            att = sample.attachment
+            if att is not None and secrets.compare_digest(att.to_bytes(), self._token):
+                if key == self._stop_key:
+                    self.stopped = True
+                    self.stopped_event.set()
+            return
+        self.transport.received += 1
+        try:
+            self._deliver(key, sample.payload.to_bytes(), time.time_ns())
+        except Exception:  # a bug in one message must not end reception
+            logger.exception("Delivering %r failed", key[:200])
+
+    def poll(self, limit: int, more: Callable[[], bool]) -> int:
+        try_recv = self._sub.try_recv
+        n = 0
+        while n < limit and not self.stopped and more():
+            sample = try_recv()
+            if sample is None:
+                break
+            self._take(sample)
+            n += 1
+        return n
+
+    def wait(self, ready: Callable[[], bool]) -> None:
+        if self.stopped:
+            return
+        self.waiting = True
+        try:
+            if ready():
+                return
+            sample = self._sub.recv()
+        finally:
+            self.waiting = False
+        self._take(sample)
+
+    def wake(self) -> None:
+        if not self.waiting or self.stopped:
+            return
+        session = self.transport._session
+        if session is None:  # pragma: no cover - closed under us
+            return
+        try:
+            session.put(
+                self._wake_key,
+                b"",
+                attachment=self._token,
+                allowed_destination=zenoh.Locality.SESSION_LOCAL,
+            )
+        except zenoh.ZError as exc:  # pragma: no cover - session closing
+            logger.debug("Waking the worker failed: %s", exc)
+
+    def _tick(self) -> None:
+        while not self._closed.wait(self.tick_s):
+            self.wake()
+
+    def close(self) -> None:
+        self._closed.set()
+        self._ticker.join(2.0)
 
 
 @functools.lru_cache(maxsize=65_536)  # asked once per prediction and subscriber
@@ -291,19 +442,29 @@ class MemoryTransport:
         self.forgotten: list[str] = []
         #: each well's prediction key (made once: the well id is checked when it is made)
         self._keys: dict[str, str] = {}
-        self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(capacity)  # None: stop
+        # None: stop; _WAKE: end a wait (a Source's)
+        self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(capacity)
         self._thread: threading.Thread | None = None
+        self._source: _MemorySource | None = None
         self._receiving = threading.Event()
         self._subscribers: dict[int, tuple[str, Callable[[str, bytes], None]]] = {}
         self._sub_lock = threading.Lock()
         self._next_id = 0
 
     # -- the service's side (Transport) ---------------------------------------------------
+    def start_polled(self, deliver: Deliver) -> Source | None:
+        """The caller takes the inputs put on this transport (see :class:`Source`)."""
+        self._source = _MemorySource(self, deliver)
+        self._receiving.set()
+        return self._source
+
     def start(self, deliver: Deliver) -> None:
         inbox = self._inbox
 
         def receive() -> None:
             while (message := inbox.get()) is not None:
+                if message is _WAKE:
+                    continue
                 key, payload = message
                 self.received += 1
                 try:
@@ -336,6 +497,13 @@ class MemoryTransport:
 
     def stop_receiving(self, timeout: float = 10.0) -> None:
         """End the receiver thread once it has handed on what was put before."""
+        source = self._source
+        if source is not None:
+            self._receiving.clear()
+            self._inbox.put(None)
+            if not source.stopped_event.wait(timeout):  # pragma: no cover - worker stuck
+                logger.warning("The worker did not stop receiving within %.0f s.", timeout)
+            self._source = None
         if self._thread is None:
             return
         self._receiving.clear()
@@ -374,3 +542,67 @@ class MemoryTransport:
                 self._subscribers.pop(token, None)
 
         return unsubscribe
+
+
+#: what :meth:`_MemorySource.wake` puts in a memory transport's inbox (told apart by identity)
+_WAKE: tuple[str, bytes] = ("", b"")
+
+
+class _MemorySource:
+    """The :class:`Source` of :meth:`MemoryTransport.start_polled`: the inbox read from
+    the worker's thread (a ``None`` in it: stop; :data:`_WAKE`: end a wait)."""
+
+    def __init__(self, transport: MemoryTransport, deliver: Deliver) -> None:
+        self.transport = transport
+        self.stopped = False
+        self.stopped_event = threading.Event()
+        self.waiting = False
+        self._deliver = deliver
+        self._inbox = transport._inbox
+
+    def _take(self, message: tuple[str, bytes] | None) -> None:
+        if message is None:
+            self.stopped = True
+            self.stopped_event.set()
+            return
+        if message is _WAKE:
+            return
+        key, payload = message
+        self.transport.received += 1
+        try:
+            self._deliver(key, payload, time.time_ns())
+        except Exception:  # a bug in one message must not end reception
+            logger.exception("Delivering %r failed", key[:200])
+
+    def poll(self, limit: int, more: Callable[[], bool]) -> int:
+        n = 0
+        while n < limit and not self.stopped and more():
+            try:
+                message = self._inbox.get_nowait()
+            except queue.Empty:
+                break
+            self._take(message)
+            n += 1
+        return n
+
+    def wait(self, ready: Callable[[], bool]) -> None:
+        if self.stopped:
+            return
+        self.waiting = True
+        try:
+            if ready():
+                return
+            try:
+                message = self._inbox.get(timeout=0.5)
+            except queue.Empty:
+                return
+        finally:
+            self.waiting = False
+        self._take(message)
+
+    def wake(self) -> None:
+        if self.waiting and not self.stopped:
+            try:
+                self._inbox.put_nowait(_WAKE)
+            except queue.Full:  # full: the wait ends on what is in it
+                pass

@@ -8,6 +8,9 @@ Data flow::
     (intake; refusals counted)          pair / learn -> one store commit -> publish
                                         predictions -> answer HTTP callers
 
+With one worker (``queues.receiver = "worker"``) the left column runs on the worker's
+thread too, between its items: no receiver thread, no hand-over of the GIL per message.
+
 :class:`Engine` wires the parts, each in its own module: :mod:`~service.engine.recovery`
 (restore, re-learn, fit on the history), :mod:`~service.engine.intake` (receiving,
 routing, back-pressure), :mod:`~service.engine.worker` (the loop, group commit, publish,
@@ -25,7 +28,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.config import Settings
 from service.engine.alarms import MpfmCheck
@@ -46,6 +49,9 @@ from service.inputs import Counters
 from service.store import Store
 from vfm_core.messages import Measurement
 from vfm_core.timeutil import iso
+
+if TYPE_CHECKING:  # the engine knows no transport; a Source is what it is handed
+    from service.transport import Source
 
 __all__ = ["Engine"]
 
@@ -123,9 +129,10 @@ class Engine:
         for st in self._wells.values():
             self.mpfm_check.load(st)
 
-    def start(self) -> None:
-        """Start the worker threads."""
-        self._workers.start()
+    def start(self, source: Source | None = None) -> None:
+        """Start the worker threads; with ``source`` (one worker) the worker takes the
+        messages from it itself, no receiver thread (see :class:`service.transport.Source`)."""
+        self._workers.start(source, self._intake if source is not None else None)
 
     def stop(self, timeout: float = 30.0) -> bool:
         """Let the workers finish what is queued, checkpoint, and stop. A model change still

@@ -13,7 +13,9 @@ full, at most ``timeout`` seconds, and then says which was full, so that the rec
 count ``well flooding`` or ``queue overflow``; ``force`` puts an item whatever the bounds
 (a model swap, which must never be dropped). A sensor block counts against ``capacity``
 by its memory in messages (``weight``), so the queue bounds what it holds. :meth:`FairQueue.close` makes :meth:`get`
-answer :data:`CLOSED` once every queued item has been taken.
+answer :data:`CLOSED` once every queued item has been taken. :attr:`FairQueue.on_put`, when
+set, is called after every put and at close, outside the lock (a worker that waits for
+messages elsewhere, in Zenoh's ``recv``, is woken by it: see :class:`service.transport.Source`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any, Literal
 
 __all__ = ["FairQueue", "CLOSED"]
@@ -44,6 +47,12 @@ class FairQueue:
         self._size = 0
         self._closed = False
         self._waiting = 0
+        #: called after every put and at close, outside the lock (see the module docstring)
+        self.on_put: Callable[[], None] | None = None
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def qsize(self) -> int:
         """What is queued: messages, a sensor block counted by its weight."""
@@ -99,7 +108,9 @@ class FairQueue:
             q.append((item, weight))
             self._size += weight
             self._has_items.notify()
-            return "ok"
+        if self.on_put is not None:
+            self.on_put()
+        return "ok"
 
     def get(self, timeout: float | None = None) -> Any:
         """The next item (round robin over wells); None after ``timeout`` s without one;
@@ -165,6 +176,8 @@ class FairQueue:
         with self._lock:
             self._closed = True
             self._has_items.notify_all()
+        if self.on_put is not None:
+            self.on_put()
 
     def drain(self) -> list[Any]:
         """Take every queued item (at a stop, to answer the callers still waiting)."""

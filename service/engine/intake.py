@@ -8,7 +8,10 @@ FIFO per well (its messages keep their order), served round robin. When the well
 (``queues.well_capacity``) or the worker's queue (``queues.worker_capacity``) is full the
 receiver waits up to ``queues.block_s`` (back-pressure: Zenoh's BLOCK congestion control
 then slows the publisher), then drops the message and counts ``well flooding`` or
-``queue overflow``. Well tests posted over HTTP enter here too
+``queue overflow``. When the worker takes the messages itself (:attr:`Intake.hold`), it
+cannot wait for its own queue: the message is held (:attr:`Intake.held`), no further one is
+taken from the bus, and the worker works its queue and tries the held one again
+(:meth:`Intake.retry_held`) until it fits or ``queues.block_s`` has passed. Well tests posted over HTTP enter here too
 (:meth:`Intake.submit_well_test`).
 
 A well outside this instance's ``zenoh.wells`` (scale-out: another instance owns it) is
@@ -41,7 +44,7 @@ import time
 import zlib
 from concurrent.futures import Future
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
 from service.config import Settings
 from service.engine.fairqueue import FairQueue
@@ -111,6 +114,11 @@ class Intake:
         self._earliest_ns = to_ns(settings.inputs.earliest_time)
         #: the wells this instance owns (scale-out, ``zenoh.wells``)
         self.own = WellSet(settings.zenoh.wells)
+        #: the worker itself calls :meth:`deliver`: a message that does not fit is held,
+        #: not waited for (see the module docstring)
+        self.hold = False
+        #: the message held: the item, where it came from, until when it may wait (monotonic s)
+        self.held: tuple[SensorItem | SensorBlockItem | MeasurementItem, str, float] | None = None
 
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
         """One inbound message: check, then queue for the well's worker (never learns)."""
@@ -249,9 +257,37 @@ class Intake:
         if q.put(item.well, item, weight=weight) == "ok":
             return
         self.counters.event("backpressure waits")
-        full = q.put(item.well, item, timeout=self.settings.queues.block_s, weight=weight)
-        if full == "ok":
+        if self.hold:
+            self.held = (item, where, time.monotonic() + self.settings.queues.block_s)
             return
+        full = q.put(item.well, item, timeout=self.settings.queues.block_s, weight=weight)
+        if full != "ok":
+            self._drop(item, where, full)
+
+    def retry_held(self) -> bool:
+        """Put the held message in its queue if it fits now (True), or drop and count it
+        once it has waited ``queues.block_s`` (True); False while it still waits."""
+        if self.held is None:
+            return True
+        item, where, deadline = self.held
+        q = self.queues[worker_of(item.well, len(self.queues))]
+        weight = block_weight(len(item.times_ns)) if isinstance(item, SensorBlockItem) else 1
+        full = q.put(item.well, item, weight=weight)
+        if full != "ok" and time.monotonic() < deadline:
+            return False
+        self.held = None
+        if full != "ok":
+            self._drop(item, where, full)
+        return True
+
+    def _drop(
+        self,
+        item: SensorItem | SensorBlockItem | MeasurementItem,
+        where: str,
+        full: Literal["well", "total"],
+    ) -> None:
+        """Count a message dropped because its queue stayed full for ``queues.block_s``."""
+        q = self.queues[worker_of(item.well, len(self.queues))]
         if q.depth(item.well) == 0:
             self.registry.abandon(item.well)  # a new well whose first message was dropped
         block = self.settings.queues.block_s

@@ -53,13 +53,14 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
 from service.engine.fairqueue import CLOSED, FairQueue
-from service.engine.intake import worker_of
+from service.engine.intake import Intake, worker_of
 from service.engine.items import (
     Batch,
     Item,
@@ -82,6 +83,9 @@ from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import prediction_json
 from vfm_core.streaming import WellLearner, model_fixed_when_predicting
 from vfm_core.timeutil import iso, iso_many
+
+if TYPE_CHECKING:  # the engine knows no transport; a Source is what it is handed
+    from service.transport import Source
 
 __all__ = ["Workers"]
 
@@ -123,8 +127,20 @@ class Workers:
         self._threads: list[threading.Thread] = []
         #: each worker's items taken from its queue and not handled yet (:meth:`_run`)
         self._taken: list[deque[Item]] = [deque() for _ in queues]
+        #: the messages the one worker takes itself (no receiver thread), and the intake
+        #: they pass through (:meth:`start`)
+        self._source: Source | None = None
+        self._intake: Intake | None = None
 
-    def start(self) -> None:
+    def start(self, source: Source | None = None, intake: Intake | None = None) -> None:
+        """Start the worker threads; with ``source`` (one worker only) the worker takes the
+        messages from it itself, through ``intake``, between its items (see :meth:`_take_in`)."""
+        if source is not None:
+            if len(self.queues) != 1 or intake is None:
+                raise ValueError("A worker takes the messages itself only when it is the only one.")
+            self._source, self._intake = source, intake
+            intake.hold = True
+            self.queues[0].on_put = self._wake
         for i, q in enumerate(self.queues):
             t = threading.Thread(target=self._run, args=(i, q), name=f"vfm-worker-{i}", daemon=True)
             t.start()
@@ -166,9 +182,16 @@ class Workers:
         # items taken from the queue a few at a time (one lock for them), handled in order;
         # what a batch leaves starts the next one
         taken = self._taken[index]
+        source = self._source if index == 0 else None
         while not stopping:
             b = Batch()
-            item = taken.popleft() if taken else q.get(timeout=0.5)
+            item: Item | None
+            if taken:
+                item = taken.popleft()
+            elif source is not None and not source.stopped:
+                item = self._take_in(q, source, wait=True)
+            else:
+                item = q.get(timeout=0.5)
             began = time.monotonic()
             n = 0
             while item is not None:
@@ -180,6 +203,8 @@ class Workers:
                 if n >= self.batch_max or time.monotonic() - began > self.batch_s:
                     break
                 if not taken:
+                    if source is not None and not source.stopped:
+                        self._take_in(q, source, wait=False)
                     taken.extend(q.get_many(_TAKE))
                 item = taken.popleft() if taken else None
             self._predict_samples(b)
@@ -190,6 +215,34 @@ class Workers:
                     if st.worker == index and st.pending:
                         self.pairing.expire(st, b, now)
             self.flush(b)
+
+    def _take_in(self, q: FairQueue, source: Source, wait: bool) -> Item | None:
+        """The one worker takes the messages that have arrived (at most
+        ``queues.receive_capacity`` at a time, none while one is held for a full queue);
+        with ``wait`` it then answers the next item of its queue, waiting in the source for
+        one (a message, a wake, or half a second: None) when the queue is empty."""
+        intake = self._intake
+        assert intake is not None
+        room = intake.retry_held
+        if room():
+            source.poll(self.settings.queues.receive_capacity, room)
+        if not wait:
+            return None
+        item = q.get_nowait()
+        if item is None and not source.stopped:
+            # ready when something is queued (a well test, a model change) or at a stop
+            source.wait(lambda: q.qsize() > 0 or q.closed)
+            if room():
+                source.poll(self.settings.queues.receive_capacity, room)
+            item = q.get_nowait()
+        return item  # type: ignore[no-any-return]
+
+    def _wake(self) -> None:
+        """Something was put in the queue (or it was closed): end the worker's wait in the
+        source, if it waits (from another thread; the worker's own puts find it busy)."""
+        source = self._source
+        if source is not None and source.waiting:
+            source.wake()
 
     def _handle(self, item: Item, b: Batch) -> None:
         if isinstance(item, SensorItem):
