@@ -41,6 +41,7 @@ rewritten).
 
 from __future__ import annotations
 
+import functools
 import logging
 import sqlite3
 import threading
@@ -536,6 +537,33 @@ def _sample_row(
     return SampleRow(named[time], tuple(named[k] for k in INPUT_FIELDS), named[predicted])
 
 
+#: rows of samples a multi-row statement inserts (17 values a row; SQLite allows 32,766)
+_ROWS_PER_STATEMENT = 64
+
+
+@functools.lru_cache(maxsize=8)
+def _multi_row(rows: int) -> str:
+    """The statement of :class:`InsertSample` for ``rows`` rows (each ignored on conflict
+    alone, as one by one)."""
+    head, values = InsertSample.SQL.split(" VALUES ")
+    return f"{head} VALUES {', '.join([values] * rows)}"
+
+
+def _insert_rows(con: sqlite3.Connection, rows: Sequence[Any]) -> int:
+    """Insert sample rows in statements of :data:`_ROWS_PER_STATEMENT` rows and the rest in
+    halving sizes (few distinct statements; one step of SQLite, and one release of the GIL,
+    each); the number of rows written."""
+    changed, i, n = 0, 0, len(rows)
+    size = _ROWS_PER_STATEMENT
+    while i < n:
+        while size > n - i:
+            size //= 2
+        flat = [value for row in rows[i : i + size] for value in row]
+        changed += con.execute(_multi_row(size), flat).rowcount
+        i += size
+    return changed
+
+
 class Store:
     """The service's SQLite file. Thread-safe: one locked writer, a reader per thread."""
 
@@ -604,7 +632,8 @@ class Store:
     def write(self, ops: Sequence[Op]) -> int:
         """Run the operations in one transaction, in order; the number of rows they changed.
 
-        Consecutive operations of the same statement (a batch's samples) run as one
+        Consecutive operations of the same statement (a batch's samples) run together:
+        samples as multi-row statements (:func:`_insert_rows`), others as one
         ``executemany``: the same rows, without a call per row."""
         if not ops:
             return 0
@@ -623,6 +652,8 @@ class Store:
                         j += 1
                     if j - i == 1:
                         changed += con.execute(statement, ops[i].params()).rowcount
+                    elif type(ops[i]) is InsertSample:
+                        changed += _insert_rows(con, [op.params() for op in ops[i:j]])
                     else:
                         changed += con.executemany(
                             statement, [op.params() for op in ops[i:j]]
