@@ -258,7 +258,8 @@ class CheckpointRow:
 
 # -- writes -----------------------------------------------------------------------------------
 class Op:
-    """One write statement; a subclass is a frozen dataclass whose fields are its parameters."""
+    """One write statement; a subclass is a dataclass (frozen, but for the one made per
+    sample) whose fields are its parameters."""
 
     __slots__ = ()
     SQL: ClassVar[str]
@@ -283,7 +284,7 @@ class AddWell(Op):
     )
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)  # not frozen: made once per sample, and a frozen one costs 6x to make
 class InsertSample(Op):
     """An accepted sensor sample with the prediction made for it (rates None: not ready)."""
 

@@ -314,7 +314,10 @@ class ZenohTransport:
         try:
             self.stop_receiving()
             if self._subscriber is not None:
-                self._subscriber.undeclare()
+                try:
+                    self._subscriber.undeclare()
+                except zenoh.ZError:  # undeclared already
+                    pass
                 self._subscriber = None
             self._keys.clear()
         finally:
@@ -367,7 +370,11 @@ class _ZenohSource:
         try_recv = self._sub.try_recv
         n = 0
         while n < limit and not self.stopped and more():
-            sample = try_recv()
+            try:
+                sample = try_recv()
+            except zenoh.ZError as exc:  # undeclared under us (a close that did not wait)
+                self._gone(exc)
+                break
             if sample is None:
                 break
             self._take(sample)
@@ -382,9 +389,18 @@ class _ZenohSource:
             if ready():
                 return
             sample = self._sub.recv()
+        except zenoh.ZError as exc:
+            self._gone(exc)
+            return
         finally:
             self.waiting = False
         self._take(sample)
+
+    def _gone(self, exc: Exception) -> None:
+        """The subscriber is gone: stop receiving (the worker then only works its queue)."""
+        logger.warning("The Zenoh subscriber ended (%s); no more messages are taken.", exc)
+        self.stopped = True
+        self.stopped_event.set()
 
     def wake(self) -> None:
         if not self.waiting or self.stopped:

@@ -155,3 +155,21 @@ def test_a_well_test_posted_while_the_worker_waits_is_answered(
         assert ("vfm-memory-receiver" in threads) == (receiver == "thread")
     finally:
         service.stop()
+
+
+def test_a_subscriber_gone_under_the_worker_ends_receiving_not_the_worker(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = loopback_settings(tmp_path)
+    transport = ZenohTransport(settings.zenoh, settings.prefix, capacity=16)
+    transport.open()
+    try:
+        source = transport.start_polled(lambda *_: None)
+        assert source is not None
+        source._sub.undeclare()  # type: ignore[attr-defined]  # as a close that did not wait
+        assert source.poll(10, lambda: True) == 0  # no exception: the worker goes on
+        assert source.stopped
+        source.wait(lambda: False)  # returns at once
+        assert "no more messages are taken" in caplog.text
+    finally:
+        transport.close()

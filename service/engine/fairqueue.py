@@ -47,6 +47,8 @@ class FairQueue:
         self._size = 0
         self._closed = False
         self._waiting = 0
+        #: callers waiting in :meth:`get` (a put notifies only when there are any)
+        self._getting = 0
         #: called after every put and at close, outside the lock (see the module docstring)
         self.on_put: Callable[[], None] | None = None
 
@@ -107,7 +109,8 @@ class FairQueue:
                 self._ring.append(well)
             q.append((item, weight))
             self._size += weight
-            self._has_items.notify()
+            if self._getting:  # a worker waits in get (not when it takes messages itself)
+                self._has_items.notify()
         if self.on_put is not None:
             self.on_put()
         return "ok"
@@ -123,7 +126,11 @@ class FairQueue:
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
                     return None
-                self._has_items.wait(remaining)
+                self._getting += 1
+                try:
+                    self._has_items.wait(remaining)
+                finally:
+                    self._getting -= 1
             return self._pop()
 
     def get_nowait(self) -> Any:
