@@ -48,7 +48,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import zenoh
 
@@ -326,58 +326,39 @@ class ZenohTransport:
                 self._session = None
 
 
-class _ZenohSource:
-    """The :class:`Source` of :meth:`ZenohTransport.start_polled`: ``try_recv`` / ``recv``
-    on the subscriber's FifoChannel from the worker's thread; woken by a session-local
-    message on ``<prefix>/_vfm-control/wake`` (from :meth:`wake`, and every half second
-    from a ticker thread while the worker waits)."""
+class _PolledSource:
+    """What a :class:`Source` does whatever the bus: take messages while there are any
+    (:meth:`poll`), or wait for the next (:meth:`wait`); a subclass says how to take one
+    without waiting (:meth:`_try`), with waiting (:meth:`_block`: None when it gave up) and
+    what one is (:meth:`_take`). A bus that is gone (:class:`_Gone`) stops receiving, never
+    the worker: it then only works its queue."""
 
-    #: how often a waiting worker is woken for its timers (s)
-    tick_s = 0.5
-
-    def __init__(self, transport: ZenohTransport, sub: zenoh.Subscriber, deliver: Deliver) -> None:
-        self.transport = transport
+    def __init__(self) -> None:
         self.stopped = False
         self.stopped_event = threading.Event()
-        #: true while the worker is in (or about to enter) ``recv``
+        #: true while the worker is in (or about to enter) a wait
         self.waiting = False
-        self._sub = sub
-        self._deliver = deliver
-        self._stop_key = transport._control_key
-        self._wake_key = zenoh.KeyExpr(f"{transport.prefix}/_vfm-control/wake")
-        self._control = f"{transport.prefix}/_vfm-control/"
-        self._token = transport._stop_token
-        self._closed = threading.Event()
-        self._ticker = threading.Thread(target=self._tick, name="vfm-zenoh-ticker", daemon=True)
-        self._ticker.start()
 
-    def _take(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        if key.startswith(self._control):
-            att = sample.attachment
-            if att is not None and secrets.compare_digest(att.to_bytes(), self._token):
-                if key == self._stop_key:
-                    self.stopped = True
-                    self.stopped_event.set()
-            return
-        self.transport.received += 1
-        try:
-            self._deliver(key, sample.payload.to_bytes(), time.time_ns())
-        except Exception:  # a bug in one message must not end reception
-            logger.exception("Delivering %r failed", key[:200])
+    def _try(self) -> Any:
+        raise NotImplementedError
+
+    def _block(self) -> Any:
+        raise NotImplementedError
+
+    def _take(self, message: Any) -> None:
+        raise NotImplementedError
 
     def poll(self, limit: int, more: Callable[[], bool]) -> int:
-        try_recv = self._sub.try_recv
         n = 0
         while n < limit and not self.stopped and more():
             try:
-                sample = try_recv()
-            except zenoh.ZError as exc:  # undeclared under us (a close that did not wait)
+                message = self._try()
+            except _Gone as exc:
                 self._gone(exc)
                 break
-            if sample is None:
+            if message is None:
                 break
-            self._take(sample)
+            self._take(message)
             n += 1
         return n
 
@@ -388,19 +369,75 @@ class _ZenohSource:
         try:
             if ready():
                 return
-            sample = self._sub.recv()
-        except zenoh.ZError as exc:
+            message = self._block()
+        except _Gone as exc:
             self._gone(exc)
             return
         finally:
             self.waiting = False
-        self._take(sample)
+        if message is not None:
+            self._take(message)
 
-    def _gone(self, exc: Exception) -> None:
-        """The subscriber is gone: stop receiving (the worker then only works its queue)."""
-        logger.warning("The Zenoh subscriber ended (%s); no more messages are taken.", exc)
+    def _stop(self) -> None:
         self.stopped = True
         self.stopped_event.set()
+
+    def _gone(self, exc: Exception) -> None:
+        logger.warning("The subscription ended (%s); no more messages are taken.", exc)
+        self._stop()
+
+
+class _Gone(Exception):
+    """The bus's subscription is gone (e.g. undeclared by a close that did not wait)."""
+
+
+class _ZenohSource(_PolledSource):
+    """The :class:`Source` of :meth:`ZenohTransport.start_polled`: ``try_recv`` / ``recv``
+    on the subscriber's FifoChannel from the worker's thread; woken by a session-local
+    message on ``<prefix>/_vfm-control/wake`` (from :meth:`wake`, and every half second
+    from a ticker thread while the worker waits)."""
+
+    #: how often a waiting worker is woken for its timers (s)
+    tick_s = 0.5
+
+    def __init__(self, transport: ZenohTransport, sub: zenoh.Subscriber, deliver: Deliver) -> None:
+        super().__init__()
+        self.transport = transport
+        self._sub = sub
+        self._deliver = deliver
+        self._stop_key = transport._control_key
+        self._wake_key = zenoh.KeyExpr(f"{transport.prefix}/_vfm-control/wake")
+        self._control = f"{transport.prefix}/_vfm-control/"
+        self._token = transport._stop_token
+        self._closed = threading.Event()
+        self._ticker = threading.Thread(target=self._tick, name="vfm-zenoh-ticker", daemon=True)
+        self._ticker.start()
+
+    def _try(self) -> zenoh.Sample | None:
+        try:
+            return self._sub.try_recv()
+        except zenoh.ZError as exc:
+            raise _Gone(str(exc)) from None
+
+    def _block(self) -> zenoh.Sample:
+        try:
+            return self._sub.recv()
+        except zenoh.ZError as exc:
+            raise _Gone(str(exc)) from None
+
+    def _take(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key.startswith(self._control):
+            att = sample.attachment
+            if att is not None and secrets.compare_digest(att.to_bytes(), self._token):
+                if key == self._stop_key:
+                    self._stop()
+            return
+        self.transport.received += 1
+        try:
+            self._deliver(key, sample.payload.to_bytes(), time.time_ns())
+        except Exception:  # a bug in one message must not end reception
+            logger.exception("Delivering %r failed", key[:200])
 
     def wake(self) -> None:
         if not self.waiting or self.stopped:
@@ -560,26 +597,39 @@ class MemoryTransport:
         return unsubscribe
 
 
-#: what :meth:`_MemorySource.wake` puts in a memory transport's inbox (told apart by identity)
-_WAKE: tuple[str, bytes] = ("", b"")
+#: what :meth:`_MemorySource.wake` puts in a memory transport's inbox, and what its source
+#: makes of the stop (a None) in it (both told apart by identity)
+_WAKE: tuple[str, bytes] = ("", b"wake")
+_STOP: tuple[str, bytes] = ("", b"stop")
 
 
-class _MemorySource:
+class _MemorySource(_PolledSource):
     """The :class:`Source` of :meth:`MemoryTransport.start_polled`: the inbox read from
     the worker's thread (a ``None`` in it: stop; :data:`_WAKE`: end a wait)."""
 
     def __init__(self, transport: MemoryTransport, deliver: Deliver) -> None:
+        super().__init__()
         self.transport = transport
-        self.stopped = False
-        self.stopped_event = threading.Event()
-        self.waiting = False
         self._deliver = deliver
         self._inbox = transport._inbox
 
-    def _take(self, message: tuple[str, bytes] | None) -> None:
-        if message is None:
-            self.stopped = True
-            self.stopped_event.set()
+    def _try(self) -> tuple[str, bytes] | None:
+        try:
+            message = self._inbox.get_nowait()
+        except queue.Empty:
+            return None
+        return _STOP if message is None else message
+
+    def _block(self) -> tuple[str, bytes] | None:
+        try:
+            message = self._inbox.get(timeout=0.5)
+        except queue.Empty:
+            return None
+        return _STOP if message is None else message
+
+    def _take(self, message: tuple[str, bytes]) -> None:
+        if message is _STOP:
+            self._stop()
             return
         if message is _WAKE:
             return
@@ -589,32 +639,6 @@ class _MemorySource:
             self._deliver(key, payload, time.time_ns())
         except Exception:  # a bug in one message must not end reception
             logger.exception("Delivering %r failed", key[:200])
-
-    def poll(self, limit: int, more: Callable[[], bool]) -> int:
-        n = 0
-        while n < limit and not self.stopped and more():
-            try:
-                message = self._inbox.get_nowait()
-            except queue.Empty:
-                break
-            self._take(message)
-            n += 1
-        return n
-
-    def wait(self, ready: Callable[[], bool]) -> None:
-        if self.stopped:
-            return
-        self.waiting = True
-        try:
-            if ready():
-                return
-            try:
-                message = self._inbox.get(timeout=0.5)
-            except queue.Empty:
-                return
-        finally:
-            self.waiting = False
-        self._take(message)
 
     def wake(self) -> None:
         if self.waiting and not self.stopped:
