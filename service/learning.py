@@ -31,6 +31,7 @@ from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
 from vfm_core.features import FeatureTracker, standard_features
 from vfm_core.field_learner import FieldLearner, FieldWell
+from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
@@ -138,7 +139,7 @@ def load_history(cfg: ModelSettings) -> pd.DataFrame:
     frame = loaded.frame
     # the file's wells as `vfm evaluate` lays them out (first measured appearance), those
     # measured only after history_until included: fit_history builds its model over them
-    field_wells = list(dict.fromkeys(frame.loc[target_mask(frame, "all"), WELL].astype(str)))
+    field_wells = wells_of(frame.loc[target_mask(frame, "all")])
     keep = np.ones(len(frame), dtype=bool)
     if cfg.history_until is not None:
         keep = (frame[TIME] < pd.Timestamp(cfg.history_until)).to_numpy()
@@ -179,7 +180,7 @@ def fit_history(
     if history.empty:
         return []
     measured = history.loc[target_mask(history, "all")]
-    wells = [w for w in dict.fromkeys(measured[WELL].astype(str)) if w in learners]
+    wells = [w for w in wells_of(measured) if w in learners]
     if not wells:
         return []
     if cfg.field_wide:
