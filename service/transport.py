@@ -39,6 +39,7 @@ replay tool, the benchmark and the tests run the real engine code path either wa
 
 from __future__ import annotations
 
+import abc
 import functools
 import json
 import logging
@@ -326,7 +327,7 @@ class ZenohTransport:
                 self._session = None
 
 
-class _PolledSource:
+class _PolledSource(abc.ABC):
     """What a :class:`Source` does whatever the bus: take messages while there are any
     (:meth:`poll`), or wait for the next (:meth:`wait`); a subclass says how to take one
     without waiting (:meth:`_try`), with waiting (:meth:`_block`: None when it gave up) and
@@ -339,14 +340,17 @@ class _PolledSource:
         #: true while the worker is in (or about to enter) a wait
         self.waiting = False
 
+    @abc.abstractmethod
     def _try(self) -> Any:
-        raise NotImplementedError
+        """A message that has arrived, or None (never waits)."""
 
+    @abc.abstractmethod
     def _block(self) -> Any:
-        raise NotImplementedError
+        """The next message, or None when the wait gave up (a wake, a timeout)."""
 
+    @abc.abstractmethod
     def _take(self, message: Any) -> None:
-        raise NotImplementedError
+        """Hand one message on (or act on a control message)."""
 
     def poll(self, limit: int, more: Callable[[], bool]) -> int:
         n = 0

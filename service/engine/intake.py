@@ -251,16 +251,23 @@ class Intake:
                 "implausible rate",
             )
 
-    def _enqueue(self, item: SensorItem | SensorBlockItem | MeasurementItem, where: str) -> None:
+    def _put(
+        self, item: SensorItem | SensorBlockItem | MeasurementItem, timeout: float = 0.0
+    ) -> Literal["ok", "well", "total"]:
+        """Queue ``item`` at its well's worker (a block weighs its memory), waiting up to
+        ``timeout`` s for room."""
         q = self.queues[worker_of(item.well, len(self.queues))]
         weight = block_weight(len(item.times_ns)) if isinstance(item, SensorBlockItem) else 1
-        if q.put(item.well, item, weight=weight) == "ok":
+        return q.put(item.well, item, timeout=timeout, weight=weight)
+
+    def _enqueue(self, item: SensorItem | SensorBlockItem | MeasurementItem, where: str) -> None:
+        if self._put(item) == "ok":
             return
         self.counters.event("backpressure waits")
         if self.hold:
             self.held = (item, where, time.monotonic() + self.settings.queues.block_s)
             return
-        full = q.put(item.well, item, timeout=self.settings.queues.block_s, weight=weight)
+        full = self._put(item, self.settings.queues.block_s)
         if full != "ok":
             self._drop(item, where, full)
 
@@ -270,9 +277,7 @@ class Intake:
         if self.held is None:
             return True
         item, where, deadline = self.held
-        q = self.queues[worker_of(item.well, len(self.queues))]
-        weight = block_weight(len(item.times_ns)) if isinstance(item, SensorBlockItem) else 1
-        full = q.put(item.well, item, weight=weight)
+        full = self._put(item)
         if full != "ok" and time.monotonic() < deadline:
             return False
         self.held = None

@@ -240,9 +240,8 @@ class Workers:
     def _wake(self) -> None:
         """Something was put in the queue (or it was closed): end the worker's wait in the
         source, if it waits (from another thread; the worker's own puts find it busy)."""
-        source = self._source
-        if source is not None and source.waiting:
-            source.wake()
+        if self._source is not None:
+            self._source.wake()
 
     def _handle(self, item: Item, b: Batch) -> None:
         if isinstance(item, SensorItem):
