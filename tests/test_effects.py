@@ -269,6 +269,36 @@ def test_feature_tracker_matches_the_offline_features() -> None:
     np.testing.assert_allclose(np.asarray(rest)[late[~early]], ref[late], rtol=1e-9, atol=1e-12)
 
 
+def test_feature_tracker_scale_is_the_median_of_the_early_rates_so_far() -> None:
+    """In a well's first 90 days the throughput scale is the median of the rates measured so
+    far: exactly ``np.median`` of them after every measurement (odd and even counts, equal
+    rates, rates out of order), through a state round trip, and then fixed."""
+    from vfm_core.features import FeatureTracker
+
+    rng = np.random.default_rng(3)
+    rates = np.concatenate([rng.lognormal(4.0, 0.5, 300), [55.0] * 7, rng.uniform(1, 9, 40)])
+    rng.shuffle(rates)
+    tracker = FeatureTracker()
+    t0 = 1_500_000_000 * 10**9
+    seen: list[float] = []
+    for i, q in enumerate(rates):
+        t = t0 + i * 600 * 10**9  # every 10 minutes: all within the first 90 days
+        tracker.advance(t, 0.1, 0.8)
+        tracker.measured(t, float(q))
+        seen.append(float(q))
+        assert tracker._scale() == float(np.median(seen)), i
+        if i == 150:
+            tracker = FeatureTracker.from_state(tracker.state())
+            assert tracker._scale() == float(np.median(seen))
+    tracker.measured(t0, float("nan"))  # not a rate: ignored
+    assert tracker._scale() == float(np.median(seen))
+    # the 90 days end: the scale is fixed at the median of the early rates
+    tracker.advance(t0 + 91 * 86400 * 10**9, 0.1, 0.8)
+    assert tracker.scale == float(np.median(seen))
+    tracker.measured(t0 + 91 * 86400 * 10**9, 1e6)
+    assert tracker._scale() == float(np.median(seen))
+
+
 def test_feature_tracker_advances_a_block_as_row_by_row() -> None:
     """``advance_many`` (a block of samples between measurements) gives the features and
     the state that ``advance`` row by row gives: across the 90-day mark that fixes the

@@ -8,6 +8,7 @@ in :data:`STANDARD_FEATURES`.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Mapping
 from typing import Any, ClassVar
@@ -87,6 +88,14 @@ def standard_scale(q: np.ndarray, time_ns: np.ndarray, first_ns: int) -> float:
     return float(np.median(q[ok])) if ok.any() else 1.0
 
 
+def _sorted_median(values: list[float]) -> float:
+    """The median of a sorted, non-empty list: what ``np.median`` gives (the middle value,
+    or the mean of the two middle ones), without sorting or converting the list."""
+    n = len(values)
+    mid = n // 2
+    return values[mid] if n % 2 else (values[mid - 1] + values[mid]) / 2
+
+
 class FeatureTracker:
     """The standard features of one well, kept up to date one row at a time (the service).
 
@@ -108,16 +117,15 @@ class FeatureTracker:
         self.last_ns: int | None = None
         self.last_rate = 0.0
         self.cumulative = 0.0  # Sm3 (rate x hours)
+        #: the measured rates of the first 90 days, kept sorted: their median is read in
+        #: O(1) after each new rate (a young well's MPFM adds thousands of them)
         self.early: list[float] = []
         self.scale: float | None = None  # fixed once the first 90 days are over
-        self._median: float | None = None  # median of ``early``, cached until it changes
 
     def _scale(self) -> float:
         if self.scale is not None:
             return self.scale
-        if self._median is None:
-            self._median = float(np.median(self.early)) if self.early else 1.0
-        return self._median
+        return _sorted_median(self.early) if self.early else 1.0
 
     def advance(self, time_ns: int, eta_gas: float, eta_oil: float) -> list[float]:
         """Features at ``time_ns`` for a row with these mass fractions, in :attr:`names` order."""
@@ -129,7 +137,7 @@ class FeatureTracker:
             self.cumulative += self.last_rate * hours
             self.last_ns = time_ns
         if self.scale is None and time_ns - self.first_ns > self._EARLY_NS and self.early:
-            self.scale = float(np.median(self.early))
+            self.scale = _sorted_median(self.early)
         wat = 1.0 - eta_gas - eta_oil
         scale = self.scale if self.scale is not None else self._scale()
         # in :attr:`names` order (asked once per sample: no dict of names)
@@ -170,7 +178,7 @@ class FeatureTracker:
         self.cumulative = float(cumulative[-1])
         self.last_ns = int(clock[-1])
         if self.scale is None and self.last_ns - self.first_ns > self._EARLY_NS and self.early:
-            self.scale = float(np.median(self.early))
+            self.scale = _sorted_median(self.early)
         return np.stack([values[name] for name in self.names], axis=1)
 
     def measured(self, time_ns: int, q_total: float) -> None:
@@ -180,8 +188,7 @@ class FeatureTracker:
         if self.first_ns is None:
             self.first_ns = self.last_ns = time_ns
         if self.scale is None and time_ns - self.first_ns <= self._EARLY_NS:
-            self.early.append(float(q_total))
-            self._median = None
+            bisect.insort(self.early, float(q_total))
         self.last_rate = float(q_total)
 
     @classmethod
@@ -199,7 +206,7 @@ class FeatureTracker:
         early = ok & (ns - tr.first_ns <= cls._EARLY_NS)
         if tr.last_ns - tr.first_ns <= cls._EARLY_NS:  # the first 90 days are not over yet
             tr.scale = None
-            tr.early = [float(v) for v in q[order][early[order]]]
+            tr.early = sorted(float(v) for v in q[order][early[order]])
         else:
             tr.scale = standard_scale(q, ns, tr.first_ns)
         if ok.any():
@@ -229,7 +236,7 @@ class FeatureTracker:
         tr.last_ns = state.get("last_ns")
         tr.last_rate = float(state.get("last_rate", 0.0))
         tr.cumulative = float(state.get("cumulative", 0.0))
-        tr.early = [float(v) for v in state.get("early", [])]
+        tr.early = sorted(float(v) for v in state.get("early", []))
         scale = state.get("scale")
         tr.scale = None if scale is None else float(scale)
         return tr
