@@ -16,6 +16,7 @@ service and never imports this module.
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import logging
 import signal
@@ -260,6 +261,44 @@ def freeze_loaded_objects() -> int:
     return gc.get_freeze_count()
 
 
+class HeapFreezer:
+    """Keeps what stays alive out of the cyclic garbage collector's full passes, as it grows.
+
+    :func:`freeze_loaded_objects` at start-up leaves out the code; what the service makes
+    afterwards and keeps (wells built after start, their state as it grows) would be walked
+    by every full pass: measured with one freeze at start, the passes grew to 100-350 ms
+    within 7 minutes at 1,000 wells and 1 Hz (``benchmarks/bench_service.py --seconds 420``). :meth:`tick` (every ``every_s``) collects what was made since the last
+    freeze (short: only that is walked) and freezes what survives. Frozen objects are still
+    freed by reference counting, but not a cycle among them that becomes garbage: every
+    ``thaw_s`` everything is unfrozen and collected once in full before freezing again.
+    """
+
+    def __init__(self, every_s: float, thaw_s: float, now: float) -> None:
+        self.every_s = every_s
+        self.thaw_s = thaw_s
+        self.last = now
+        self.last_thaw = now
+        self.freezes = 0
+        self.thaws = 0
+        self.longest_s = 0.0
+
+    def tick(self, now: float) -> bool:
+        """Freeze again when ``every_s`` has passed (thaw first when ``thaw_s`` has);
+        True when it did."""
+        if self.every_s <= 0 or now - self.last < self.every_s:
+            return False
+        began = time.perf_counter()
+        if now - self.last_thaw >= self.thaw_s:
+            gc.unfreeze()
+            self.last_thaw = now
+            self.thaws += 1
+        freeze_loaded_objects()
+        self.longest_s = max(self.longest_s, time.perf_counter() - began)
+        self.last = now
+        self.freezes += 1
+        return True
+
+
 def _uvicorn_server(app: Any, settings: Settings, *, freeze_gc: bool = False) -> Any:
     import uvicorn
 
@@ -282,6 +321,10 @@ def _uvicorn_server(app: Any, settings: Settings, *, freeze_gc: bool = False) ->
                     "(queues.gc_freeze).",
                     frozen,
                 )
+                queues = settings.queues
+                if queues.gc_refreeze_s > 0:
+                    freezer = HeapFreezer(queues.gc_refreeze_s, queues.gc_thaw_s, time.monotonic())
+                    self._vfm_refreeze = asyncio.get_running_loop().create_task(_refreeze(freezer))
 
         async def shutdown(self, sockets: Any = None) -> None:
             # live streams (GET /events) end now, not after http.shutdown_grace_s
@@ -289,6 +332,20 @@ def _uvicorn_server(app: Any, settings: Settings, *, freeze_gc: bool = False) ->
             await super().shutdown(sockets)
 
     return _Server(config)
+
+
+async def _refreeze(freezer: HeapFreezer) -> None:
+    """:meth:`HeapFreezer.tick` every ``every_s``, on the server's loop, until cancelled."""
+    while True:
+        await asyncio.sleep(freezer.every_s)
+        freezer.tick(time.monotonic())
+        if freezer.freezes % 60 == 1:
+            logger.debug(
+                "Heap frozen %d times (%d full), the longest %.0f ms.",
+                freezer.freezes,
+                freezer.thaws,
+                freezer.longest_s * 1e3,
+            )
 
 
 def _url(sock: socket.socket) -> str:

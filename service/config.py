@@ -527,6 +527,21 @@ class QueueSettings(_Section):
         "torch, pandas, ...) out of Python's cyclic garbage collector, whose full passes over "
         "them paused the workers 150-250 ms every few seconds under load",
     )
+    gc_refreeze_s: float = Field(
+        default=10.0,
+        ge=0,
+        description="`vfm serve` with gc_freeze: freeze again this often, s (0: at start only): "
+        "what stays alive since (wells built after start, their growing state) leaves the collector "
+        "too, so its full passes stay short as the service fills (they reached 350 ms "
+        "after 7 minutes at 1,000 wells and 1 Hz with one freeze at start)",
+    )
+    gc_thaw_s: float = Field(
+        default=3600.0,
+        gt=0,
+        description="`vfm serve` with gc_freeze: this often, s, unfreeze everything and collect "
+        "once in full before freezing again, so that frozen objects that later form garbage "
+        "cycles are freed (one full pass, a few hundred ms)",
+    )
 
 
 class DriftSettings(_Section):

@@ -133,6 +133,49 @@ def test_freeze_loaded_objects_leaves_them_out_of_collection() -> None:
     assert gc.get_freeze_count() == 0
 
 
+def test_heap_freezer_freezes_what_stays_alive_and_frees_cycles_at_a_thaw() -> None:
+    """`vfm serve` freezes again every queues.gc_refreeze_s: what was made and kept since
+    (a well's recent samples) leaves the collector's full passes too. A frozen cycle that
+    becomes garbage is freed at the next thaw (queues.gc_thaw_s), not kept for ever."""
+    import gc
+    import weakref
+
+    from service.app import HeapFreezer, freeze_loaded_objects
+
+    assert Settings().queues.gc_refreeze_s == 10.0
+    assert Settings().queues.gc_thaw_s == 3600.0
+
+    class Node:
+        pass
+
+    try:
+        freeze_loaded_objects()
+        freezer = HeapFreezer(every_s=10.0, thaw_s=100.0, now=0.0)
+        kept = [[i, float(i)] for i in range(5_000)]  # what the service keeps (lists: tracked)
+        cycle = Node()
+        cycle.me = cycle  # type: ignore[attr-defined]
+        alive = weakref.ref(cycle)
+        assert any(o is kept for o in gc.get_objects())  # walked by a full pass now
+        before = gc.get_freeze_count()
+        assert freezer.tick(5.0) is False  # not yet due
+        assert freezer.tick(10.0) is True
+        assert freezer.freezes == 1 and freezer.thaws == 0
+        assert gc.get_freeze_count() >= before + 5_000
+        assert not any(o is kept for o in gc.get_objects())  # frozen: no longer walked
+        del cycle
+        gc.collect()
+        assert alive() is not None  # frozen garbage cycle: not freed by a pass
+        assert freezer.tick(15.0) is False
+        assert freezer.tick(120.0) is True  # a thaw is due: unfreeze, collect, freeze
+        assert freezer.thaws == 1
+        assert alive() is None  # the cycle was freed
+        assert kept[4_999] == [4_999, 4_999.0]  # what is alive stays
+        assert HeapFreezer(every_s=0.0, thaw_s=1.0, now=0.0).tick(1e9) is False  # off
+    finally:
+        gc.unfreeze()
+    assert gc.get_freeze_count() == 0
+
+
 def test_a_serve_that_ends_at_start_is_reported_as_ended(tmp_path) -> None:
     """A bad setting ends `vfm serve` at once: its starter says so (with the exit code and
     the log's sentence) at once, not that it did not become ready within the timeout."""
