@@ -267,8 +267,9 @@ class HeapFreezer:
     :func:`freeze_loaded_objects` at start-up leaves out the code; what the service makes
     afterwards and keeps (wells built after start, their state as it grows) would be walked
     by every full pass: measured with one freeze at start, the passes grew to 100-350 ms
-    within 7 minutes at 1,000 wells and 1 Hz (``benchmarks/bench_service.py --seconds 420``). :meth:`tick` (every ``every_s``) collects what was made since the last
-    freeze (short: only that is walked) and freezes what survives. Frozen objects are still
+    within 7 minutes at 1,000 wells and 1 Hz (``benchmarks/bench_service.py --seconds
+    420``). :meth:`tick` (every ``every_s``) collects what was made since the last freeze
+    (short: only that is walked) and freezes what survives. Frozen objects are still
     freed by reference counting, but not a cycle among them that becomes garbage: every
     ``thaw_s`` everything is unfrozen and collected once in full before freezing again.
     """

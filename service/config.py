@@ -531,8 +531,8 @@ class QueueSettings(_Section):
         default=10.0,
         ge=0,
         description="`vfm serve` with gc_freeze: freeze again this often, s (0: at start only): "
-        "what stays alive since (wells built after start, their growing state) leaves the collector "
-        "too, so its full passes stay short as the service fills (they reached 350 ms "
+        "what stays alive since (wells built after start, their growing state) leaves the "
+        "collector too, so its full passes stay short as the service fills (they reached 350 ms "
         "after 7 minutes at 1,000 wells and 1 Hz with one freeze at start)",
     )
     gc_thaw_s: float = Field(
