@@ -206,7 +206,7 @@ class FeatureTracker:
         early = ok & (ns - tr.first_ns <= cls._EARLY_NS)
         if tr.last_ns - tr.first_ns <= cls._EARLY_NS:  # the first 90 days are not over yet
             tr.scale = None
-            tr.early = sorted(float(v) for v in q[order][early[order]])
+            tr.early = sorted(float(v) for v in q[early])  # sorted: time order is not needed
         else:
             tr.scale = standard_scale(q, ns, tr.first_ns)
         if ok.any():
