@@ -32,8 +32,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from service.config import Settings
-from service.engine.model_change import effect_module
-from service.errors import Conflict, InvalidRequest, NotAllowed, Stopping
+from service.engine.model_change import check_effect_modules
+from service.errors import Conflict, InvalidRequest, Stopping
 from vfm_core.errors import VFMError
 
 __all__ = ["DiagnosisJobs", "Job", "MODELS", "KEEP_JOBS"]
@@ -103,6 +103,7 @@ def _child(request: dict[str, Any]) -> None:
             method=request["method"],
             split=request["split"],
             candidates=request["candidates"],
+            base_effects=request.get("base_effects") or [],
             suggest=request["suggest"],
             progress=lambda fraction, text: say("progress", float(fraction), str(text)),
             source={"kind": "store", "path": request["store"], "well": request["well"]},
@@ -141,7 +142,11 @@ class DiagnosisJobs:
         return self._jobs.get(job_id)
 
     def check(
-        self, model: str, candidates: list[str] | None, split: str | None
+        self,
+        model: str,
+        candidates: list[str] | None,
+        split: str | None,
+        base_effects: list[str] | None = None,
     ) -> list[str] | None:
         """Refuse a bad request before any work (an unknown model or effect, a module not allowed)."""
         if model not in MODELS:
@@ -149,21 +154,19 @@ class DiagnosisJobs:
                 f"The diagnosis takes the model mm, hem or ham, not '{model}'; the effects "
                 "found are then added to it (PUT /wells/{well}/model)."
             )
-        if candidates is None:
-            return None
-        from vfm_core.effects import resolve_effect
+        from vfm_core.effects import resolve_effect, resolve_effects
 
-        allowed = set(self.settings.model.effect_modules)
-        for text in candidates:
-            module = effect_module(text)
-            if module is not None and module not in allowed:
-                raise NotAllowed(
-                    f"The candidate '{text}' names the module '{module}', which is not in "
-                    "model.effect_modules; over HTTP only the library's effects and classes "
-                    "from those modules can be tried."
-                )
+        allowed = self.settings.model.effect_modules
+        for what, texts in (("candidate", candidates or []), ("base effect", base_effects or [])):
+            check_effect_modules(texts, allowed, what)
+            for text in texts:
+                try:
+                    resolve_effect(text)
+                except VFMError as exc:
+                    raise InvalidRequest(str(exc)) from None
+        if base_effects:
             try:
-                resolve_effect(text)
+                resolve_effects(base_effects)
             except VFMError as exc:
                 raise InvalidRequest(str(exc)) from None
         if split is not None:
@@ -187,9 +190,12 @@ class DiagnosisJobs:
         split: str | None = None,
         suggest: bool = True,
         report: bool = True,
+        base_effects: list[str] | None = None,
     ) -> Job:
-        """Start a diagnosis of ``well``'s stored history; Conflict while another runs."""
-        checked = self.check(model, candidates, split)
+        """Start a diagnosis of ``well``'s stored history; Conflict while another runs.
+        ``base_effects``: the effects already in the model (see :func:`run_diagnosis
+        <vfm_core.jobs.diagnose.run_diagnosis>`)."""
+        checked = self.check(model, candidates, split, base_effects)
         if self._stopping.is_set():
             raise Stopping("The service is stopping; retry after it restarts.")
         with self._lock:
@@ -206,6 +212,7 @@ class DiagnosisJobs:
                 "model": model,
                 "method": method,
                 "candidates": checked,
+                "base_effects": list(base_effects or []),
                 "split": split,
                 "suggest": suggest,
             }

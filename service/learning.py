@@ -304,6 +304,8 @@ def describe(learner: Learner) -> dict[str, Any]:
     last: datetime | None = learner.last_update
     return {
         "model": learner.name,
+        # the effects in the model, as the texts that rebuild them (what PUT .../model takes)
+        "effects": list(getattr(learner, "effects", [])),
         "method": learner.method.text,
         "ready": learner.ready,
         "version": learner.version,

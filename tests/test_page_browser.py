@@ -231,6 +231,25 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     page.screenshot(path=str(SHOTS / "change.png"), full_page=True)
     assert errors == [], errors
 
+    # the loop's next turn: the diagnosis starts from mm+erosion, and "apply" adds to it
+    page.fill("#diag-candidates", "erosion,erosion_time")
+    page.click("#diag-run")
+    page.wait_for_function(  # (the first diagnosis's status said "done ... mm:")
+        "document.querySelector('#diag-status').textContent.includes('mm+erosion:')",
+        timeout=120_000,
+    )
+    assert page.locator("#diag-status").inner_text().startswith("done")
+    specs = page.eval_on_selector_all(
+        "#diag-candidates-table button.apply", "bs => bs.map(b => b.dataset.spec)"
+    )
+    assert specs == ["erosion_time"], specs  # erosion is in the model already
+    page.screenshot(path=str(SHOTS / "diagnosis2.png"), full_page=True)
+    page.locator('#diag-candidates-table button.apply[data-spec="erosion_time"]').click()
+    page.wait_for_function(
+        "document.querySelector('#well-model').dataset.model === 'mm+erosion+erosion_time'",
+        timeout=120_000,
+    )
+
     # a well test far below the MPFM readings near it, posted from the page: an alarm
     mpfm = served.frame[(served.frame["well"] == "W01") & (served.frame["source"] == "mpfm")]
     last = mpfm["time"].iloc[-1]

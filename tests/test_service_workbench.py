@@ -196,6 +196,43 @@ def test_diagnosis_job_lifecycle(live: Live) -> None:
     second = live.http.post("/wells/W01/diagnosis", json=body, headers=AUTH)
     assert second.status_code == 409 and job in second.json()["detail"]
 
+    state, seen = _finished(live, job)
+    assert state["state"] == "done", state
+    assert any(0 < p < 1 for p in seen), seen  # progress was reported on the way
+    assert seen == sorted(seen)
+    diag = state["diagnosis"]
+    assert {"verdict", "candidates", "baseline", "drivers"} <= set(diag)
+    assert [c["spec"] for c in diag["candidates"]] == ["erosion"]
+    assert diag["base_effects"] == [] and state["request"]["base_effects"] == []
+    report = live.http.get(state["report"])
+    assert report.status_code == 200 and "<html" in report.text.lower()
+    assert live.http.get("/diagnosis/nope").status_code == 404
+
+    # the loop's next turn: add what it found, and the next diagnosis starts from the model
+    # as it runs now (its effects), so it looks for what is still missing
+    changed = live.http.put("/wells/W01/model", json={"effects": ["erosion"]}, headers=AUTH)
+    assert changed.status_code == 200, changed.text
+    assert live.http.get("/wells/W01").json()["effects"] == ["erosion"]
+    bad = live.http.post("/wells/W01/diagnosis", json={"base_effects": ["erosoin"]}, headers=AUTH)
+    assert bad.status_code == 422 and "erosoin" in bad.json()["detail"]
+    again = live.http.post(
+        "/wells/W01/diagnosis",
+        json={"candidates": ["erosion", "slip"], "suggest": False},
+        headers=AUTH,
+    )
+    assert again.status_code == 202  # once done, the next one may start
+    state, _ = _finished(live, again.json()["job"])
+    assert state["state"] == "done", state
+    diag = state["diagnosis"]
+    assert diag["base_effects"] == ["erosion"] and state["request"]["base_effects"] == ["erosion"]
+    assert [c["spec"] for c in diag["candidates"]] == ["slip"]
+    assert [s["effect"] for s in diag["skipped"]] == ["erosion"]
+    assert "already in the model" in diag["skipped"][0]["reason"]
+    assert "mm+erosion" in diag["drivers_on"]
+
+
+def _finished(live: Live, job: str) -> tuple[dict[str, Any], list[float]]:
+    """The job's last state once done or failed (or after 4 minutes), and its progress."""
     seen: list[float] = []
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline:
@@ -204,15 +241,4 @@ def test_diagnosis_job_lifecycle(live: Live) -> None:
         if state["state"] in ("done", "failed"):
             break
         time.sleep(0.3)
-    assert state["state"] == "done", state
-    assert any(0 < p < 1 for p in seen), seen  # progress was reported on the way
-    assert seen == sorted(seen)
-    diag = state["diagnosis"]
-    assert {"verdict", "candidates", "baseline", "drivers"} <= set(diag)
-    assert [c["spec"] for c in diag["candidates"]] == ["erosion"]
-    report = live.http.get(state["report"])
-    assert report.status_code == 200 and "<html" in report.text.lower()
-    assert live.http.get("/diagnosis/nope").status_code == 404
-    # once done, the next one may start
-    again = live.http.post("/wells/W01/diagnosis", json=body, headers=AUTH)
-    assert again.status_code == 202
+    return state, seen

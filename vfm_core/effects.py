@@ -361,6 +361,14 @@ class ValveFamily(Effect):
         ref = torch.clamp(inputs.u_ref, 1e-3, 1.0)
         return curve(u) / torch.clamp(curve(ref), min=1e-9) * ref / u
 
+    def describe(self, values: Mapping[str, float]) -> str:
+        w = values["weight"]
+        family = self.family.replace("_", " ")
+        return (
+            f"The valve's area curve is {w:.2f} x the {family} curve + {1.0 - w:.2f} x linear "
+            f"(1 would be the {family} family itself, 0 the linear valve)."
+        )
+
 
 def _valve_family(family: str) -> type[Effect]:
     return type(

@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from typing import Any
 
@@ -49,7 +49,7 @@ from vfm_core.models import MODELS
 from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import from_ns, iso
 
-__all__ = ["ModelChanges", "effect_module"]
+__all__ = ["ModelChanges", "check_effect_modules", "effect_module"]
 
 logger = logging.getLogger("vfm.service.engine")
 
@@ -58,6 +58,20 @@ def effect_module(text: str) -> str | None:
     """The module an effect spec names (``mypkg.effects:Scale[:k=v]``), None for a library effect."""
     base = text.split("=", 1)[0].rsplit(":", 1)[0] if "=" in text else text
     return base.split(":", 1)[0] if ":" in base else None
+
+
+def check_effect_modules(texts: Sequence[str], allowed: Sequence[str], what: str) -> None:
+    """NotAllowed for an effect spec (``what``: "effect", "candidate", ...) that names a
+    module outside ``allowed`` (``model.effect_modules``): over HTTP only the library's
+    effects and classes from those modules are imported."""
+    for text in texts:
+        module = effect_module(text)
+        if module is not None and module not in allowed:
+            raise NotAllowed(
+                f"The {what} '{text}' names the module '{module}', which is not in "
+                "model.effect_modules; over HTTP only the library's effects and classes from "
+                "those modules can be used."
+            )
 
 
 class ModelChanges:
@@ -133,15 +147,7 @@ class ModelChanges:
         if field_problem is not None:
             raise InvalidRequest(field_problem)
         effects = list(effects or [])
-        allowed = set(self.settings.model.effect_modules)
-        for text in effects:
-            module = effect_module(text)
-            if module is not None and module not in allowed:
-                raise NotAllowed(
-                    f"The effect '{text}' names the module '{module}', which is not in "
-                    "model.effect_modules; over HTTP only the library's effects and classes from "
-                    "those modules can be used."
-                )
+        check_effect_modules(effects, self.settings.model.effect_modules, "effect")
         old = st.learner
         model = model or old.model_name
         problem = method_problem(

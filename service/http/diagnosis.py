@@ -27,7 +27,7 @@ router = APIRouter(tags=["diagnosis"])
 
 
 class DiagnosisIn(BaseModel):
-    """What to diagnose: the base model, the candidate effects, the split."""
+    """What to diagnose: the base model and its effects, the candidate effects, the split."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -40,6 +40,13 @@ class DiagnosisIn(BaseModel):
         default=None,
         max_length=50,
         description="candidate effects (library names, e.g. erosion); default: the library's set",
+    )
+    base_effects: list[str] | None = Field(
+        default=None,
+        max_length=20,
+        description="effects the model already has: every run has them and the diagnosis "
+        "looks for what is missing beyond them; default: the effects in the well's model now "
+        "([] for the bare model)",
     )
     split: str | None = Field(default=None, description="first day scored, e.g. 2019-01-01")
     suggest: bool = Field(
@@ -89,9 +96,18 @@ JobPath = Annotated[str, Path(max_length=64, description="the job id POST answer
     },
 )
 def start_diagnosis(
-    well: KnownWell, _: TokenDep, jobs: JobsDep, body: DiagnosisIn | None = None
+    well: KnownWell,
+    _: TokenDep,
+    jobs: JobsDep,
+    service: ServiceDep,
+    body: DiagnosisIn | None = None,
 ) -> dict[str, Any]:
     body = body or DiagnosisIn()
+    base = body.base_effects
+    if base is None:  # the model as it runs: what is missing beyond the effects added
+        engine = service.engine
+        st = engine.wells.get(well) if engine is not None else None
+        base = list(st.snapshot.get("effects") or []) if st is not None else []
     job = jobs.start(
         well,
         model=body.model,
@@ -99,6 +115,7 @@ def start_diagnosis(
         candidates=body.candidates,
         split=body.split,
         suggest=body.suggest,
+        base_effects=base,
     )
     return job.view() | {"status": f"/diagnosis/{job.id}"}
 

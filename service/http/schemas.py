@@ -115,6 +115,11 @@ class MpfmCheckOut(BaseModel):
 class WellSummary(BaseModel):
     well: str
     model: str
+    effects: list[str] = Field(
+        default_factory=list,
+        description="the effects in the model, as PUT /wells/{well}/model takes them (a "
+        "diagnosis of the well starts from them)",
+    )
     method: str
     ready: bool
     version: int

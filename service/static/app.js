@@ -570,7 +570,8 @@ async function followDiagnosis(id) {
 function showDiagnosis(j) {
   const d = j.diagnosis;
   $("#diag-verdict").textContent = d.verdict.text;
-  $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % ` +
+  const diagnosed = [d.model, ...(d.base_effects || [])].join("+");
+  $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 ${esc(diagnosed)}: MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % ` +
     `(${esc(d.headline ? d.headline.protocol : "")}) ` +
     (j.report ? `\u00b7 <a href="${j.report}" target="_blank">full report (residual panels)</a>` : "");
   const rows = (d.candidates || []).map((c, i) => `<tr><td>${esc(c.effect)}</td><td class="num">${fmt(c.mape, 2)}</td>
@@ -597,10 +598,12 @@ async function applyEffect(button) {
   const out = $("#change-result");
   if (needToken(out)) return;
   const spec = button.dataset.spec;
+  // added to the effects the model has (found by earlier turns of the loop), not in their place
+  const effects = [...(state.view.effects || []).filter((x) => x !== spec), spec];
   out.className = "result"; out.textContent = `fitting ${state.view.model} with ${spec} on the stored history...`;
   document.querySelectorAll("button.apply").forEach((b) => { b.disabled = true; });
   try {
-    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, { effects: [spec] });
+    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, { effects });
     const h = c.holdout || {};
     out.textContent = `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
       `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after. ` +

@@ -319,9 +319,17 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     #: where the data came from: {"kind": "file" | "store" | "frame", "path", "well"}
     source: dict[str, Any] = field(default_factory=dict)
+    #: effects already in the model (their specs): every run has them, the candidates
+    #: are what is missing beyond them
+    base_effects: list[str] = field(default_factory=list)
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
+
+    @property
+    def model_label(self) -> str:
+        """The model as diagnosed: ``mm``, or ``mm+erosion`` with base effects."""
+        return "+".join([self.model, *self.base_effects])
 
     @property
     def material_rule(self) -> dict[str, float]:
@@ -370,6 +378,7 @@ class Diagnosis:
         out: dict[str, Any] = {
             "format": "vfm-diagnosis/2",
             "model": self.model,
+            "base_effects": list(self.base_effects),
             "method": self.method,
             "targets": self.targets,
             "split": self.split.isoformat(),
@@ -392,7 +401,7 @@ class Diagnosis:
             "headline": self.headline,
             "floor": self.floor,
             "drivers": self.drivers,
-            "drivers_on": f"the residual of {self.model} under {self.candidate_method}, "
+            "drivers_on": f"the residual of {self.model_label} under {self.candidate_method}, "
             "after a straight line in time per well and meter",
             "noise_test": self.noise_test,
             "candidates": [c.to_json() for c in self.candidates],
@@ -989,6 +998,7 @@ def run_diagnosis(
     suggest: bool = True,
     shifts: int = stats.SHIFTS,
     source: dict[str, Any] | None = None,
+    base_effects: Sequence[str | type[Effect]] = (),
 ) -> Diagnosis:
     """Diagnose ``model`` (mm, hem or ham) on an observation frame; see the module docstring.
 
@@ -999,11 +1009,16 @@ def run_diagnosis(
     ``progress``: True for a progress bar, or a callback ``(fraction, text)`` called as each
     run starts and once at the end with 1.0 (for a service's background job). ``suggest``:
     fit a correction for a driver outside the library; ``shifts``: circular shifts of the
-    chance test (0: none). Same split, settings and seed everywhere.
+    chance test (0: none). Same split, settings and seed everywhere. ``base_effects``:
+    effects the model already has (found by an earlier diagnosis and added): every run
+    has them, so the verdict is about what is missing beyond them; a candidate among them
+    is skipped.
     """
     started = time.perf_counter()
     cand_classes = [resolve_effect(c) for c in candidates]
     ext_classes = resolve_effects(list(effects)) if effects else []
+    base_classes = resolve_effects(list(base_effects)) if base_effects else []
+    in_model = {c.name for c in base_classes}
     split_ts, split_note = _choose_split(frame, targets, split)
     notes = [split_note] if split_note else []
     train_rows = _training_rows(frame, targets, split_ts)
@@ -1011,12 +1026,16 @@ def run_diagnosis(
     offered: list[type[Effect]] = []
     skipped: list[dict[str, str]] = []
     for cls in cand_classes:
-        reason = _offer_reason(cls, train_frame)
+        reason = (
+            f"{cls.name} is already in the model ({'+'.join([model, *sorted(in_model)])})."
+            if cls.name in in_model
+            else _offer_reason(cls, train_frame)
+        )
         if reason is None:
             offered.append(cls)
         else:
             skipped.append({"effect": cls.name, "reason": reason})
-    frame = _with_features(frame, [*offered, *ext_classes])
+    frame = _with_features(frame, [*base_classes, *offered, *ext_classes])
     cand_method = candidate_method or CANDIDATE_METHOD
     cand_train = _comparison_train(model, train)
     kw: dict[str, Any] = dict(targets=targets, split=split_ts, online=online, seed=seed)
@@ -1034,7 +1053,9 @@ def run_diagnosis(
         key: str, classes: list[type[Effect]], how: str, settings: TrainSettings | None
     ) -> RunResult:
         bar.start(f"fitting {key.strip('_')}")
-        out = run_prequential(frame, model, how, effects=classes, train=settings, **kw)
+        out = run_prequential(
+            frame, model, how, effects=[*base_classes, *classes], train=settings, **kw
+        )
         bar.step()
         return out
 
@@ -1081,15 +1102,16 @@ def run_diagnosis(
     floor["on"] = (
         "the comparison baseline"
         if floor is floors[0] or best_fit is None
-        else f"{model}+{best_fit.effect}"
+        else "+".join([model, *(effect_spec(c) for c in base_classes), best_fit.effect])
     )
     for c in results:
         _judge(c, comp_mape, floor.get("mape"))
     results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
-    # variants of the best material candidate: other forms of the same physics
-    best = next((c for c in results if c.material), None)
-    if best is not None and best.effect in VARIANTS:
-        tried = {c.effect for c in results} | {s["effect"] for s in skipped}
+    # other forms of the same physics: the variants of the best material candidate, or of
+    # a flexible candidate that shows the effect everywhere but on the reference's BIC
+    best = _variant_source(results, comp_mape)
+    if best is not None:
+        tried = {c.effect for c in results} | {s["effect"] for s in skipped} | in_model
         extra = []
         for name in VARIANTS[best.effect]:
             if name in tried or name not in EFFECTS:
@@ -1224,6 +1246,7 @@ def run_diagnosis(
         protocol,
         notes,
         source or {"kind": "frame"},
+        [effect_spec(c) for c in base_classes],
     )
 
 
@@ -1255,6 +1278,26 @@ def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
     c.material = _is_material(
         c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, c.share_above_floor
     )
+
+
+def _variant_source(results: Sequence[CandidateResult], base_mape: float) -> CandidateResult | None:
+    """The candidate whose :data:`VARIANTS` are tried next (``results`` best first): the
+    best material one, if it has variants; else the best one with variants that lowers the
+    MAPE by a material amount and the BIC over every measurement by more than
+    :data:`MATERIAL_BIC`, failing only the BIC on the reference. That is a flexible form
+    (a learned curve per well: the valve's 6 slopes a well) paying for its parameters on
+    few well tests; a few-parameter form of the same physics is then judged on its own."""
+    best = next((c for c in results if c.material), None)
+    if best is not None and best.effect in VARIANTS:
+        return best
+    for c in results:
+        if (
+            c.effect in VARIANTS
+            and c.delta_bic_all < -MATERIAL_BIC
+            and c.delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
+        ):
+            return c
+    return None
 
 
 def _share(base: float, with_: float, floor: float | None) -> float:
@@ -1537,7 +1580,7 @@ def format_summary(diag: Diagnosis) -> str:
     with_text = f"; with {h['with']}: {h['with_mape']:.2f} %" if h["with_mape"] is not None else ""
     floor = f"; noise floor {h['floor_mape']:.2f} %" if h["floor_mape"] is not None else ""
     lines.append(
-        f"Headline ({diag.candidate_method}): baseline {diag.model} MAPE "
+        f"Headline ({diag.candidate_method}): baseline {diag.model_label} MAPE "
         f"{diag.candidate_baseline_mape:.2f} %{with_text}{floor}."
     )
     lines.append(
@@ -1593,8 +1636,10 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     if candidates == ["none"]:
         candidates = []
     effects = split_list(args.effects)
+    base_effects = split_list(args.base_effects)
     # resolve names before loading data, so a typo fails at once
     resolve_effects(effects)
+    resolve_effects(base_effects)
     for c in candidates:
         resolve_effect(c)
     if args.store is not None:
@@ -1622,6 +1667,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not args.quiet,
         source=source,
+        base_effects=base_effects,
     )
     written = write_diagnosis(diag, args.out, report=not args.no_report)
     print(format_summary(diag))
@@ -1683,6 +1729,12 @@ def register(subparsers: Any) -> None:
         action="append",
         help="effects to add to the model and compare side by side, e.g. erosion,real_gas, "
         "suggest:driver=t_up or mypkg.effects:Scale",
+    )
+    p.add_argument(
+        "--base-effects",
+        action="append",
+        help="effects the model already has (e.g. the one an earlier diagnosis found and you "
+        "added): every run has them, and the diagnosis looks for what is missing beyond them",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
