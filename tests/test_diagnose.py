@@ -564,6 +564,9 @@ def test_base_effects_turn_the_diagnosis_to_what_is_still_missing() -> None:
     ends = pd.DataFrame({"t_up": [55.0, 65.0]})
     true = math.log(_temperature(ends)[1] / _temperature(ends)[0])
     assert fitted == pytest.approx(true, rel=0.2), (fitted, true)
+    # an effect both compared and in the base is a mistake said at once, before any fit
+    with pytest.raises(ConfigError, match="in the base effects already"):
+        run_diagnosis(frame, "mm", effects=["erosion"], base_effects=["erosion"])
 
 
 @pytest.mark.parametrize("name", list(HANDMADE))

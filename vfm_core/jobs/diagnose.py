@@ -1019,6 +1019,13 @@ def run_diagnosis(
     ext_classes = resolve_effects(list(effects)) if effects else []
     base_classes = resolve_effects(list(base_effects)) if base_effects else []
     in_model = {c.name for c in base_classes}
+    label = "+".join([model, *(c.name for c in base_classes)])
+    twice = [c.name for c in ext_classes if c.name in in_model]
+    if twice:
+        raise ConfigError(
+            f"The effect(s) {', '.join(twice)} are in the base effects already ({label}); "
+            "give the effects to compare beyond them."
+        )
     split_ts, split_note = _choose_split(frame, targets, split)
     notes = [split_note] if split_note else []
     train_rows = _training_rows(frame, targets, split_ts)
@@ -1027,7 +1034,7 @@ def run_diagnosis(
     skipped: list[dict[str, str]] = []
     for cls in cand_classes:
         reason = (
-            f"{cls.name} is already in the model ({'+'.join([model, *sorted(in_model)])})."
+            f"{cls.name} is already in the model ({label})."
             if cls.name in in_model
             else _offer_reason(cls, train_frame)
         )
