@@ -147,8 +147,11 @@ class DiagnosisJobs:
         candidates: list[str] | None,
         split: str | None,
         base_effects: list[str] | None = None,
+        base_from_model: bool = False,
     ) -> list[str] | None:
-        """Refuse a bad request before any work (an unknown model or effect, a module not allowed)."""
+        """Refuse a bad request before any work (an unknown model or effect, a module not
+        allowed). ``base_from_model``: the base effects are the well's own model's (set by
+        the configuration or an allowed change), so their modules are not checked again."""
         if model not in MODELS:
             raise InvalidRequest(
                 f"The diagnosis takes the model mm, hem or ham, not '{model}'; the effects "
@@ -158,7 +161,8 @@ class DiagnosisJobs:
 
         allowed = self.settings.model.effect_modules
         for what, texts in (("candidate", candidates or []), ("base effect", base_effects or [])):
-            check_effect_modules(texts, allowed, what)
+            if what == "candidate" or not base_from_model:
+                check_effect_modules(texts, allowed, what)
             for text in texts:
                 try:
                     resolve_effect(text)
@@ -191,11 +195,13 @@ class DiagnosisJobs:
         suggest: bool = True,
         report: bool = True,
         base_effects: list[str] | None = None,
+        base_from_model: bool = False,
     ) -> Job:
         """Start a diagnosis of ``well``'s stored history; Conflict while another runs.
         ``base_effects``: the effects already in the model (see :func:`run_diagnosis
-        <vfm_core.jobs.diagnose.run_diagnosis>`)."""
-        checked = self.check(model, candidates, split, base_effects)
+        <vfm_core.jobs.diagnose.run_diagnosis>`); ``base_from_model``: they are the well's
+        model's own (see :meth:`check`)."""
+        checked = self.check(model, candidates, split, base_effects, base_from_model)
         if self._stopping.is_set():
             raise Stopping("The service is stopping; retry after it restarts.")
         with self._lock:

@@ -23,7 +23,9 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from replay.replayer import replay_frame
 from service.app import running
+from service.diagnosis import DiagnosisJobs
 from service.engine.observe import Observer
+from service.errors import InvalidRequest, NotAllowed
 from service.store import InsertMeasurement, InsertSample, MarkLearned, SampleRow
 from service.testing import loopback_settings
 from service.transport import MemoryTransport
@@ -242,3 +244,21 @@ def _finished(live: Live, job: str) -> tuple[dict[str, Any], list[float]]:
             break
         time.sleep(0.3)
     return state, seen
+
+
+def test_a_wells_own_effect_module_is_no_reason_to_refuse_its_diagnosis(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An effect class set by the configuration (``model.effects``) need not be in
+    ``model.effect_modules``, which governs what HTTP may name. As the well's own base it is
+    accepted; named in a request body, the same module is refused (403)."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "examples"))
+    jobs = DiagnosisJobs(loopback_settings(tmp_path))
+    own = ["my_effects:TemperatureScale"]
+    assert jobs.check("mm", None, None, own, base_from_model=True) is None
+    with pytest.raises(NotAllowed, match="base effect 'my_effects:TemperatureScale'"):
+        jobs.check("mm", None, None, own)
+    with pytest.raises(NotAllowed, match="candidate"):
+        jobs.check("mm", own, None, own, base_from_model=True)
+    with pytest.raises(InvalidRequest, match="erosoin"):
+        jobs.check("mm", None, None, ["erosoin"], base_from_model=True)

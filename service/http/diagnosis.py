@@ -104,6 +104,7 @@ def start_diagnosis(
 ) -> dict[str, Any]:
     body = body or DiagnosisIn()
     base = body.base_effects
+    own = base is None
     if base is None:  # the model as it runs: what is missing beyond the effects added
         engine = service.engine
         st = engine.wells.get(well) if engine is not None else None
@@ -116,6 +117,7 @@ def start_diagnosis(
         split=body.split,
         suggest=body.suggest,
         base_effects=base,
+        base_from_model=own,
     )
     return job.view() | {"status": f"/diagnosis/{job.id}"}
 
