@@ -1288,20 +1288,19 @@ def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
 
 
 def _variant_source(results: Sequence[CandidateResult], base_mape: float) -> CandidateResult | None:
-    """The candidate whose :data:`VARIANTS` are tried next (``results`` best first): the
-    best material one, if it has variants; else the best one with variants that lowers the
-    MAPE by a material amount and the BIC over every measurement by more than
-    :data:`MATERIAL_BIC`, failing only the BIC on the reference. That is a flexible form
-    (a learned curve per well: the valve's 6 slopes a well) paying for its parameters on
-    few well tests; a few-parameter form of the same physics is then judged on its own."""
-    best = next((c for c in results if c.material), None)
-    if best is not None and best.effect in VARIANTS:
-        return best
+    """The candidate whose :data:`VARIANTS` are tried (``results`` best first): the best
+    one with variants that is material, or that lowers the MAPE by a material amount and
+    the BIC over every measurement by more than :data:`MATERIAL_BIC`, failing only the BIC
+    on the reference. That is a flexible form (a learned curve per well: the valve's 6
+    slopes a well) paying for its parameters on few well tests; a few-parameter form of the
+    same physics is then judged on its own."""
     for c in results:
-        if (
-            c.effect in VARIANTS
-            and c.delta_bic_all < -MATERIAL_BIC
-            and c.delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
+        if c.effect in VARIANTS and (
+            c.material
+            or (
+                c.delta_bic_all < -MATERIAL_BIC
+                and c.delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape)
+            )
         ):
             return c
     return None
