@@ -160,19 +160,15 @@ class DiagnosisJobs:
         from vfm_core.effects import resolve_effect, resolve_effects
 
         allowed = self.settings.model.effect_modules
-        for what, texts in (("candidate", candidates or []), ("base effect", base_effects or [])):
-            if what == "candidate" or not base_from_model:
-                check_effect_modules(texts, allowed, what)
-            for text in texts:
-                try:
-                    resolve_effect(text)
-                except VFMError as exc:
-                    raise InvalidRequest(str(exc)) from None
-        if base_effects:
-            try:
-                resolve_effects(base_effects)
-            except VFMError as exc:
-                raise InvalidRequest(str(exc)) from None
+        check_effect_modules(candidates or [], allowed, "candidate")
+        if not base_from_model:
+            check_effect_modules(base_effects or [], allowed, "base effect")
+        try:
+            for text in candidates or []:
+                resolve_effect(text)
+            resolve_effects(base_effects or [])  # (each, and none twice)
+        except VFMError as exc:
+            raise InvalidRequest(str(exc)) from None
         if split is not None:
             import pandas as pd
 
