@@ -19,6 +19,11 @@ standard conditions, times UTC):
 * measurements still pending or never paired have no inputs and are left out (their
   count is in ``DataFrame.attrs["left_out"]``).
 
+``DataFrame.attrs["models"]`` holds each well's model as its latest checkpoint has it:
+``{well: {"model": "mm", "effects": ["erosion"], "method": "ol"}}`` (a well without a
+checkpoint, or one from before effects were recorded, is not in it), so that
+``vfm diagnose --store`` starts from the model the service runs.
+
 Extra columns (the observation format keeps and ignores them): ``predicted`` (the
 service's q_total at the sample, before learning from the measurement, Sm3/h; empty
 while the well had no model), ``predicted_std``, ``predicted_p05``, ``predicted_p95``
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
@@ -194,6 +200,38 @@ def _left_out(con: sqlite3.Connection, well: str | None) -> int:
     return int(con.execute(sql, params).fetchone()[0])
 
 
+def stored_models(con: sqlite3.Connection, well: str | None = None) -> dict[str, dict[str, Any]]:
+    """Each well's model as its latest checkpoint records it (``extra.spec``: the base
+    model, its effects as the texts that rebuild them, the method); ``well``: that one only."""
+    sql = (
+        "SELECT c.well, c.extra FROM checkpoints c JOIN (SELECT well, MAX(id) AS id FROM"
+        " checkpoints GROUP BY well) m ON c.id = m.id"
+    )
+    params: list[Any] = []
+    if well is not None:
+        sql += " WHERE c.well = ?"
+        params.append(well)
+    out: dict[str, dict[str, Any]] = {}
+    try:
+        rows = con.execute(sql, params).fetchall()
+    except sqlite3.OperationalError:  # a store without checkpoints
+        return out
+    for name, extra in rows:
+        try:
+            spec = json.loads(extra).get("spec")
+        except (ValueError, AttributeError):
+            continue
+        if (
+            isinstance(spec, list)
+            and len(spec) == 3
+            and isinstance(spec[0], str)
+            and isinstance(spec[1], list)
+            and all(isinstance(e, str) for e in spec[1])
+        ):
+            out[str(name)] = {"model": spec[0], "effects": list(spec[1]), "method": str(spec[2])}
+    return out
+
+
 def load_store(path: str, well: str | None = None) -> pd.DataFrame:
     """A service store's history as an observation frame (see the module docstring); one
     well's with ``well``. The ``vfm.sources`` entry point ``store``."""
@@ -209,6 +247,7 @@ def load_store(path: str, well: str | None = None) -> pd.DataFrame:
                 )
         frame = pd.DataFrame(list(iter_rows(con, well)), columns=list(COLUMNS))
         left_out = _left_out(con, well)
+        models = stored_models(con, well)
     finally:
         con.close()
     frame["time"] = pd.to_datetime(frame["time"].astype("int64"), unit="ns", utc=True)
@@ -217,6 +256,7 @@ def load_store(path: str, well: str | None = None) -> pd.DataFrame:
     frame["well"] = frame["well"].astype(str)
     frame["version"] = frame["version"].astype("Int64")
     frame.attrs["left_out"] = left_out
+    frame.attrs["models"] = models
     frame.attrs["source"] = str(path)
     return frame
 

@@ -304,6 +304,8 @@ def describe(learner: Learner) -> dict[str, Any]:
     last: datetime | None = learner.last_update
     return {
         "model": learner.name,
+        # the model without its effects (mm, hem, ham, ...; what a diagnosis starts from)
+        "base_model": getattr(learner, "model_name", None),
         # the effects in the model, as the texts that rebuild them (what PUT .../model takes)
         "effects": list(getattr(learner, "effects", [])),
         "method": learner.method.text,

@@ -851,6 +851,44 @@ def test_store_source_through_the_entry_point(
     assert pd.Timestamp(data["split"]) > pd.Timestamp("2023-03-01", tz="UTC")
 
 
+def test_store_diagnosis_starts_from_the_model_the_service_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--store`` without ``--model``/``--base-effects`` takes the well's model from its
+    latest checkpoint (the loader's ``attrs["models"]``), says so, and skips what it has;
+    ``--base-effects none`` starts bare; wells on different models start from bare mm."""
+    field = simulate_field(wells=2, years=0.8, seed=5, start="2023-03-01")
+    runs = {
+        "W01": {"model": "mm", "effects": ["slip"], "method": "ol"},
+        "W02": {"model": "mm", "effects": ["erosion"], "method": "ol"},
+    }
+
+    def load_store(path: str, well: str | None) -> pd.DataFrame:
+        frame = field.observations
+        frame = (frame if well is None else frame[frame["well"] == well]).copy()
+        frame.attrs["models"] = {w: r for w, r in runs.items() if well in (None, w)}
+        return frame
+
+    _fake_sources(monkeypatch, load_store)
+
+    def diagnose(out: str, *extra: str) -> dict[str, Any]:
+        argv = ["diagnose", "--store", str(tmp_path / "s.sqlite"), "--out", str(tmp_path / out)]
+        argv += ["--quiet", "--method", METHOD, "--candidates", "erosion", "--no-report"]
+        args = _parser().parse_args([*argv, *extra])
+        assert args.handler(args) == 0
+        return json.loads((tmp_path / out / "diagnosis.json").read_text())  # type: ignore[no-any-return]
+
+    own = diagnose("own", "--well", "W02")
+    assert "The service runs mm+erosion" in capsys.readouterr().out
+    assert own["model"] == "mm" and own["base_effects"] == ["erosion"]
+    assert [s["effect"] for s in own["skipped"]] == ["erosion"]  # it has it already
+    bare = diagnose("bare", "--well", "W02", "--base-effects", "none")
+    assert bare["base_effects"] == [] and [c["spec"] for c in bare["candidates"]] == ["erosion"]
+    both = diagnose("both")
+    assert "The wells run different models (mm+erosion, mm+slip)" in capsys.readouterr().out
+    assert both["base_effects"] == []
+
+
 def test_store_source_missing_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> None:
     _fake_sources(monkeypatch, None)
     with pytest.raises(ConfigError, match="No data source 'store' is installed"):
@@ -924,6 +962,12 @@ def test_store_end_to_end(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     assert args.handler(args) == 0
     data = json.loads((out / "diagnosis.json").read_text())
     assert data["source"]["kind"] == "store"
+    # the service ran `last`, which a diagnosis cannot take: bare mm, as its checkpoints say
+    assert data["model"] == "mm" and data["base_effects"] == []
+    from service.export import load_store
+
+    stored = load_store(str(settings.store.path)).attrs["models"]
+    assert stored == {w: {"model": "last", "effects": [], "method": "ol"} for w in measured}
     assert data["baseline"]["n"] > 100 and data["verdict"]["kind"] in ("effect", "driver", "noise")
 
 

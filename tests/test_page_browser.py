@@ -233,7 +233,9 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
 
     # the loop's next turn: the diagnosis starts from mm+erosion, and "apply" adds to it
     page.fill("#diag-candidates", "erosion,erosion_time")
+    assert page.input_value("#diag-model") == "mm"  # the well's base model
     page.click("#diag-run")
+    assert page.locator("#change-result").inner_text() == ""  # the last change's message goes
     page.wait_for_function(  # (the first diagnosis's status said "done ... mm:")
         "document.querySelector('#diag-status').textContent.includes('mm+erosion:')",
         timeout=120_000,

@@ -26,6 +26,7 @@ from service.app import running
 from service.diagnosis import DiagnosisJobs
 from service.engine.observe import Observer
 from service.errors import InvalidRequest, NotAllowed
+from service.http.diagnosis import request_base
 from service.store import InsertMeasurement, InsertSample, MarkLearned, SampleRow
 from service.testing import loopback_settings
 from service.transport import MemoryTransport
@@ -231,6 +232,21 @@ def test_diagnosis_job_lifecycle(live: Live) -> None:
     assert [s["effect"] for s in diag["skipped"]] == ["erosion"]
     assert "already in the model" in diag["skipped"][0]["reason"]
     assert "mm+erosion" in diag["drivers_on"]
+    assert state["request"]["model"] == live.http.get("/wells/W01").json()["base_model"] == "mm"
+
+
+def test_a_diagnosis_request_starts_from_the_model_the_well_runs() -> None:
+    """Without a model or base effects a diagnosis takes the well's: its physics model with
+    the effects it has; a model the diagnosis cannot take (nn, last, ...) gives bare mm; a
+    base model other than the well's starts without effects; what a request gives wins."""
+    ham = {"base_model": "ham", "effects": ["erosion", "slip"]}
+    assert request_base(ham, None, None) == ("ham", ["erosion", "slip"], True)
+    assert request_base(ham, "ham", None) == ("ham", ["erosion", "slip"], True)
+    assert request_base(ham, "mm", None) == ("mm", [], True)
+    assert request_base(ham, None, []) == ("ham", [], False)
+    assert request_base(ham, "hem", ["valve"]) == ("hem", ["valve"], False)
+    assert request_base({"base_model": "nn", "effects": []}, None, None) == ("mm", [], True)
+    assert request_base({}, None, None) == ("mm", [], True)  # a well without a model yet
 
 
 def _finished(live: Live, job: str) -> tuple[dict[str, Any], list[float]]:

@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, HTTPException, Path
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.diagnosis import KEEP_JOBS, DiagnosisJobs, Job
+from service.diagnosis import KEEP_JOBS, MODELS, DiagnosisJobs, Job
 from service.errors import Starting
 from service.http.deps import KnownWell, ServiceDep, TokenDep
 from service.http.schemas import ErrorOut
@@ -31,7 +31,11 @@ class DiagnosisIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    model: str = Field(default="mm", description="base model: mm, hem or ham")
+    model: str | None = Field(
+        default=None,
+        description="base model: mm, hem or ham; default: the well's model when it is one of "
+        "these, else mm",
+    )
     method: str = Field(
         default="ol",
         description="learning method of the online run (where it fails): ol or pbl:<period>",
@@ -52,6 +56,21 @@ class DiagnosisIn(BaseModel):
     suggest: bool = Field(
         default=True, description="fit a generic correction for a driver outside the library"
     )
+
+
+def request_base(
+    running: dict[str, Any], model: str | None, base: list[str] | None
+) -> tuple[str, list[str], bool]:
+    """The base model and effects of a diagnosis request, and whether the effects are the
+    well's own: what the request gives, else the model the well runs (``running``, its
+    API snapshot) when it is mm, hem or ham, else mm; its effects only with its own base
+    model (another base model starts without effects)."""
+    runs = running.get("base_model")
+    if model is None:
+        model = runs if runs in MODELS else "mm"
+    if base is not None:
+        return model, list(base), False
+    return model, list(running.get("effects") or []) if model == runs else [], True
 
 
 def get_jobs(service: ServiceDep) -> DiagnosisJobs:
@@ -103,15 +122,14 @@ def start_diagnosis(
     body: DiagnosisIn | None = None,
 ) -> dict[str, Any]:
     body = body or DiagnosisIn()
-    base = body.base_effects
-    own = base is None
-    if base is None:  # the model as it runs: what is missing beyond the effects added
-        engine = service.engine
-        st = engine.wells.get(well) if engine is not None else None
-        base = list(st.snapshot.get("effects") or []) if st is not None else []
+    engine = service.engine
+    st = engine.wells.get(well) if engine is not None else None
+    model, base, own = request_base(
+        st.snapshot if st is not None else {}, body.model, body.base_effects
+    )
     job = jobs.start(
         well,
-        model=body.model,
+        model=model,
         method=body.method,
         candidates=body.candidates,
         split=body.split,

@@ -115,6 +115,11 @@ class MpfmCheckOut(BaseModel):
 class WellSummary(BaseModel):
     well: str
     model: str
+    base_model: str | None = Field(
+        default=None,
+        description="the model without its effects (mm, hem, ham, lr, nn, last, mtl): a "
+        "diagnosis of the well starts from it when it is mm, hem or ham",
+    )
     effects: list[str] = Field(
         default_factory=list,
         description="the effects in the model, as PUT /wells/{well}/model takes them (a "

@@ -439,6 +439,7 @@ function markersFromView(v) {
 
 async function loadWell(well) {
   state.well = well; state.preds = []; state.meas = []; state.markers = []; state.zoomed = false; state.params = null;
+  state.diagnosed = null;
   $("#field-view").hidden = true; $("#well-view").hidden = false;
   $("#csv-link").href = `/wells/${encodeURIComponent(well)}/history.csv`;
   $("#csv-link").setAttribute("download", `${well}-history.csv`);
@@ -447,7 +448,7 @@ async function loadWell(well) {
   makeCharts();
   try {
     const v = await api("GET", "/wells/" + encodeURIComponent(well));
-    state.view = v; renderWellHeader(); renderParams();
+    state.view = v; renderWellHeader(); renderParams(); syncDiagModel(v);
     loadParams(well, true);
     const days = Number($("#span").value);
     let query = "?limit=100000";
@@ -537,6 +538,14 @@ async function postWellTest(e) {
 }
 
 /* ---------------------------------------------------------------- diagnosis */
+/* The form's base model follows the well's (mm, hem or ham; else mm), so that what it shows
+   is what the diagnosis starts from with the effects the well has. */
+function syncDiagModel(v) {
+  const select = $("#diag-model");
+  const base = v && v.base_model;
+  select.value = [...select.options].some((o) => o.value === base) ? base : "mm";
+}
+
 async function runDiagnosis(e) {
   e.preventDefault();
   const status = $("#diag-status");
@@ -546,6 +555,7 @@ async function runDiagnosis(e) {
   const body = { model: $("#diag-model").value, suggest: $("#diag-suggest").checked };
   if (cands.length) body.candidates = cands;
   $("#diag-run").disabled = true; $("#diag-verdict").textContent = ""; $("#diag-candidates-table").hidden = true;
+  $("#change-result").textContent = ""; $("#change-result").className = "result";
   try {
     const job = await api("POST", `/wells/${encodeURIComponent(state.well)}/diagnosis`, body);
     state.diagJob = job.job;
@@ -569,6 +579,7 @@ async function followDiagnosis(id) {
 
 function showDiagnosis(j) {
   const d = j.diagnosis;
+  state.diagnosed = d;
   $("#diag-verdict").textContent = d.verdict.text;
   const diagnosed = [d.model, ...(d.base_effects || [])].join("+");
   $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 ${esc(diagnosed)}: MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % ` +
@@ -598,18 +609,22 @@ async function applyEffect(button) {
   const out = $("#change-result");
   if (needToken(out)) return;
   const spec = button.dataset.spec;
-  // added to the effects the model has (found by earlier turns of the loop), not in their place
-  const effects = [...(state.view.effects || []).filter((x) => x !== spec), spec];
-  out.className = "result"; out.textContent = `fitting ${state.view.model} with ${spec} on the stored history...`;
+  // the model diagnosed (the well's, with the effects found by earlier turns of the loop,
+  // or the base model chosen in the form) with the effect added, not in their place
+  const d = state.diagnosed || {};
+  const model = d.model || state.view.base_model;
+  const base = d.model ? (d.base_effects || []) : (state.view.effects || []);
+  const effects = [...base.filter((x) => x !== spec), spec];
+  out.className = "result"; out.textContent = `fitting ${[model, ...effects].join("+")} on the stored history...`;
   document.querySelectorAll("button.apply").forEach((b) => { b.disabled = true; });
   try {
-    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, { effects });
+    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, model ? { model, effects } : { effects });
     const h = c.holdout || {};
     out.textContent = `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
       `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after. ` +
       `Watch the error-over-time chart right of the red marker.`;
     const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
-    state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams();
+    state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams(); syncDiagModel(v);
     loadParams(state.well, false);
     if (!state.markers.some((m) => m.kind === "model" && m.version === c.version_after)) {
       state.markers.push(...markersFromView(v).filter((m) => m.kind === "model" && m.version === c.version_after));

@@ -140,6 +140,8 @@ MATERIAL_SHARE = 1.0 / 3.0
 MATERIAL_MAPE_NEAR_FLOOR = 0.1
 #: the comparison protocol: fit once before the split, never update (100-year period)
 CANDIDATE_METHOD = "pbl:36500d"
+#: the base models a diagnosis takes (the physics models effects extend)
+MODEL_CHOICES = ("mm", "hem", "ham")
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
 MIN_WELL_TESTS = 20
 #: Library variants tried after a material candidate: other forms of the same physics.
@@ -1642,16 +1644,19 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     if candidates == ["none"]:
         candidates = []
     effects = split_list(args.effects)
-    base_effects = split_list(args.base_effects)
+    given_base = split_list(args.base_effects) if args.base_effects is not None else None
+    base_effects = [] if given_base == ["none"] else list(given_base or [])
     # resolve names before loading data, so a typo fails at once
     resolve_effects(effects)
     resolve_effects(base_effects)
     for c in candidates:
         resolve_effect(c)
+    model = args.model or "mm"
     if args.store is not None:
         frame = load_source("store", args.store, args.well)
         source = {"kind": "store", "path": str(args.store), "well": args.well}
         print(f"{args.store}: {len(frame):,} rows from the service's store.")
+        model, base_effects = _store_model(frame, args.model, given_base, base_effects)
     else:
         loaded = load_observations(args.data)
         print(loaded.summary())
@@ -1663,7 +1668,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                 raise DataError(f"The file {args.data} has no rows of well {args.well}.")
     diag = run_diagnosis(
         frame,
-        args.model,
+        model,
         method=args.method,
         candidate_method=args.candidate_method,
         targets=args.targets,
@@ -1679,6 +1684,44 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     print(format_summary(diag))
     print(f"Diagnosis took {diag.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
     return 0
+
+
+def _store_model(
+    frame: pd.DataFrame, model: str | None, given_base: list[str] | None, base: list[str]
+) -> tuple[str, list[str]]:
+    """The base model and effects of ``vfm diagnose --store``: what the user gave, else the
+    model the service runs for the wells diagnosed (their latest checkpoints, in the
+    frame's ``attrs["models"]``), said in one line; ``mm`` when they run no physics model
+    or different ones."""
+    stored = frame.attrs.get("models") or {}
+    wells = sorted(set(frame[WELL].astype(str)))
+    runs = {w: stored[w] for w in wells if w in stored}
+    kinds = {(r["model"], tuple(r["effects"])) for r in runs.values()}
+    if len(kinds) != 1:
+        if len(kinds) > 1:
+            print(
+                f"The wells run different models ({', '.join(sorted('+'.join([m, *e]) for m, e in kinds))}); "
+                f"diagnosing {'+'.join([model or 'mm', *base])} (give --well to start from one "
+                "well's model)."
+            )
+        return model or "mm", base
+    name, effects = next(iter(kinds))
+    running = "+".join([name, *effects])
+    if name not in MODEL_CHOICES:
+        if model is None:
+            print(f"The service runs {running}, not a physics model: diagnosing mm.")
+        return model or "mm", base
+    chosen = model or name
+    if given_base is None and chosen == name and effects:
+        resolve_effects(list(effects))  # an effect the store names must still be importable
+        print(
+            f"The service runs {running}: the diagnosis starts from it and looks for what is "
+            "still missing (--base-effects none for the bare model)."
+        )
+        return chosen, list(effects)
+    if (chosen, base) != (name, list(effects)):
+        print(f"The service runs {running}; diagnosing {'+'.join([chosen, *base])} as asked.")
+    return chosen, base
 
 
 def register(subparsers: Any) -> None:
@@ -1700,7 +1743,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--well", default=None, help="diagnose this well only")
     p.add_argument("--out", required=True, help="output folder (diagnosis.json, report.html)")
     p.add_argument(
-        "--model", default="mm", choices=["mm", "hem", "ham"], help="base model (default mm)"
+        "--model",
+        default=None,
+        choices=list(MODEL_CHOICES),
+        help="base model (default mm; with --store, the model the service runs when it is "
+        "one of these)",
     )
     p.add_argument(
         "--method",
@@ -1740,7 +1787,8 @@ def register(subparsers: Any) -> None:
         "--base-effects",
         action="append",
         help="effects the model already has (e.g. the one an earlier diagnosis found and you "
-        "added): every run has them, and the diagnosis looks for what is missing beyond them",
+        "added): every run has them, and the diagnosis looks for what is missing beyond them; "
+        "with --store, default the effects the service's model has ('none' for none)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-report", action="store_true", help="skip report.html")
