@@ -1712,11 +1712,11 @@ def _store_model(
             print(f"The service runs {running}, not a physics model: diagnosing mm.")
         return model or "mm", base
     chosen = model or name
-    if given_base is None and chosen == name and effects:
+    if given_base is None and chosen == name:
         resolve_effects(list(effects))  # an effect the store names must still be importable
         print(
             f"The service runs {running}: the diagnosis starts from it and looks for what is "
-            "still missing (--base-effects none for the bare model)."
+            "still missing (--model and --base-effects none for another start)."
         )
         return chosen, list(effects)
     if (chosen, base) != (name, list(effects)):
