@@ -72,27 +72,43 @@ class _Stop(Exception):
         self.signum = signum
 
 
+#: the signal received during this run of the demo (empty: none), see :func:`run_demo`
+_received: list[int] = []
+
+
+def _stop_if_signalled() -> None:
+    """Raise :class:`_Stop` again for a signal whose exception was swallowed: raised while
+    the main thread was inside native code that called back into Python (a Zenoh put, for
+    one), it is printed as "Exception ignored" and the run would go on. Called between the
+    demo's steps."""
+    if _received:
+        raise _Stop(_received[0])
+
+
 def run_demo(args: argparse.Namespace) -> int:
     """The demo, stopping its service child on SIGTERM and SIGINT (see the module docstring)."""
     if threading.current_thread() is not threading.main_thread():
         return _run_demo(args)
-    stopping = threading.Event()
+    _received.clear()
 
     def on_signal(signum: int, frame: Any) -> None:
-        if stopping.is_set():  # already unwinding: let the child's stop finish
+        if _received:  # already unwinding: let the child's stop finish
             return
-        stopping.set()
+        _received.append(signum)
         raise _Stop(signum)
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        return _run_demo(args)
+        code = _run_demo(args)
+        _stop_if_signalled()  # received at the very end, or swallowed on the way
+        return code
     except _Stop as stop:
         print(f"vfm demo: {stop} received; the service was stopped.", file=sys.stderr, flush=True)
         return 128 + stop.signum
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        _received.clear()
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -166,6 +182,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         result = replay_frame(
             frame, connect=[zenoh_ep], start=split, speed=None, progress=not args.quiet
         )
+        _stop_if_signalled()
         health = httpx.get(f"{http_url}/health", timeout=10).json()
         wells = httpx.get(f"{http_url}/wells", timeout=10).json()
 
@@ -191,6 +208,7 @@ def _run_demo(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 data_path=str(data),
             )
+            _stop_if_signalled()
             written = write_study(study, out / "study")
             report_path = next((p for p in written if p.name == "report.html"), None)
             preds = study.predictions
@@ -261,10 +279,15 @@ def _run_demo(args: argparse.Namespace) -> int:
             )
             print(f"  Zenoh      {zenoh_ep}  (vfm replay DATA --connect {zenoh_ep})")
             print("The service keeps running; press Ctrl-C to stop it.", flush=True)
+            interrupted = False
             try:
-                while proc.proc is not None and proc.proc.poll() is None:
+                while proc.proc is not None and proc.proc.poll() is None and not _received:
                     time.sleep(0.5)
             except (KeyboardInterrupt, _Stop):
+                interrupted = True
+            if interrupted or _received:
+                # Ctrl-C is how this mode ends: the service stops and the demo exits with 0
+                _received.clear()
                 print("\nStopping the service ...", flush=True)
         else:
             print(

@@ -750,7 +750,8 @@ def test_command_line_parser() -> None:
             "well_test",
         ]
     )
-    assert args.model == "mm" and args.method == "ol" and args.targets == "well_test"
+    # no --model: mm, or with --store the model the service runs (see _store_model)
+    assert args.model is None and args.method == "ol" and args.targets == "well_test"
     assert args.effects == ["erosion,real_gas"] and callable(args.handler)
     args = _parser().parse_args(["diagnose", "--store", "s.sqlite", "--well", "W1", "--out", "d"])
     assert args.data is None and args.store == "s.sqlite" and args.well == "W1"
