@@ -35,13 +35,14 @@ from service.config import Settings
 from service.engine.model_change import check_effect_modules
 from service.errors import Conflict, InvalidRequest, Stopping
 from vfm_core.errors import VFMError
+from vfm_core.models import EFFECT_MODELS
 
 __all__ = ["DiagnosisJobs", "Job", "MODELS", "KEEP_JOBS"]
 
 logger = logging.getLogger("vfm.service.diagnosis")
 
-#: base models the diagnosis takes
-MODELS = ("mm", "hem", "ham")
+#: base models the diagnosis takes: those effects extend
+MODELS = EFFECT_MODELS
 #: jobs remembered for GET /diagnosis/{job}
 KEEP_JOBS = 20
 

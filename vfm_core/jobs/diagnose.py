@@ -100,7 +100,7 @@ from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES, rank_drivers
 from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
 from vfm_core.learning import DEFAULT_TRAIN, OnlineSettings, TrainSettings
-from vfm_core.models import ChokeModel
+from vfm_core.models import EFFECT_MODELS, ChokeModel
 from vfm_core.schema import INPUT_COLUMNS, MPFM, SOURCE, TIME, WELL, WELL_TEST
 
 __all__ = [
@@ -140,8 +140,6 @@ MATERIAL_SHARE = 1.0 / 3.0
 MATERIAL_MAPE_NEAR_FLOOR = 0.1
 #: the comparison protocol: fit once before the split, never update (100-year period)
 CANDIDATE_METHOD = "pbl:36500d"
-#: the base models a diagnosis takes (the physics models effects extend)
-MODEL_CHOICES = ("mm", "hem", "ham")
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
 MIN_WELL_TESTS = 20
 #: Library variants tried after a material candidate: other forms of the same physics.
@@ -1707,7 +1705,7 @@ def _store_model(
         return model or "mm", base
     name, effects = next(iter(kinds))
     running = "+".join([name, *effects])
-    if name not in MODEL_CHOICES:
+    if name not in EFFECT_MODELS:
         if model is None:
             print(f"The service runs {running}, not a physics model: diagnosing mm.")
         return model or "mm", base
@@ -1745,7 +1743,7 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--model",
         default=None,
-        choices=list(MODEL_CHOICES),
+        choices=list(EFFECT_MODELS),
         help="base model (default mm; with --store, the model the service runs when it is "
         "one of these)",
     )
