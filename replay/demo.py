@@ -217,7 +217,8 @@ def _run_demo(args: argparse.Namespace) -> int:
                 (str(m), str(meth)): mape(g["predicted"], g["measured"])
                 for (m, meth), g in preds.groupby(["model", "method"], sort=False)
             }
-        last_by_well = {r["well"]: r["mape"] for r in metrics_records(last)}
+        # the total's record of each well: phase records (``"target": "q_oil"`` ...) follow it
+        last_by_well = {r["well"]: r["mape"] for r in metrics_records(last) if "target" not in r}
         last_all = mape(last["predicted"], last["measured"])
 
         print(f"{n_steps}/{n_steps} Results")

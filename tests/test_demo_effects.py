@@ -9,6 +9,7 @@ fail before anything runs, with a sentence.
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -50,6 +51,19 @@ def test_demo_with_an_effect_agrees_with_the_offline_run(tmp_path: Path) -> None
     served, reference = float(found.group(1)), float(found.group(2))
     assert served == pytest.approx(reference, abs=0.011)  # printed to two decimals
     assert "rejected 0, dropped 0" in text
+    # each well's `last` figure is its total's record in the study's metrics.json (the phase
+    # records that follow it there are not the total's)
+    metrics = json.loads((out / "study" / "metrics.json").read_text())
+    last = {
+        r["well"]: r["mape"]
+        for r in metrics["records"]
+        if r["model"] == "last" and r["method"] == "ol" and "target" not in r and "outage" not in r
+    }
+    assert any("target" in r for r in metrics["records"])  # the field has phases to mix up
+    rows = re.findall(r"^  (W\d+)\s+(\d+\.\d+)\s+(\d+\.\d+)\s+[\d,]+$", text, re.MULTILINE)
+    assert sorted(w for w, _, _ in rows) == sorted(last)
+    for well, _, printed in rows:
+        assert float(printed) == pytest.approx(last[well], abs=0.006), well
 
 
 @pytest.mark.parametrize(
