@@ -12,7 +12,7 @@ LINTED := vfm_core service replay tests benchmarks examples
 # `make test PYTEST_ARGS=` runs it in one process
 PYTEST_ARGS ?= -n 2 --dist loadfile
 
-.PHONY: install demo test lint bench clean
+.PHONY: install demo test lint bench bench-docs docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,5 +43,22 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	$(PY) benchmarks/bench_study.py
 
+# The documentation site (docs/, mkdocs.yml) into site/, warnings as errors; offline: open
+# site/index.html. The docs extra goes into the same .venv, with a stamp of its own.
+DOCS_STAMP := $(VENV)/.installed-docs
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	@# not --quiet: it hides the warnings that --strict counts
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+	@echo "make docs: site/index.html"
+
+# The benchmark figures the documentation includes, written by the scripts themselves.
+bench-docs: $(STAMP)
+	$(PY) -m pip install --quiet -e '.[dev,bench]'
+	$(PY) benchmarks/bench_speed.py --markdown docs/benchmarks/generated/speed.md
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info site

@@ -25,7 +25,11 @@ the median over ``--calls`` calls on a simulated well's stream after a short fit
 call learns from the next measurement, as in the study), after ``--warmup`` calls.
 
     python benchmarks/bench_speed.py [--wells 10,100] [--calls 300] [--models mm,hem,ham]
-        [--streaming-wells 100,1000] [--learning-wells 10,100]
+        [--streaming-wells 100,1000] [--learning-wells 10,100] [--markdown PATH]
+
+``--markdown PATH`` also writes the tables as a Markdown fragment (the command, the date,
+the machine's load and the figures of this run), which the documentation site includes
+(``docs/benchmarks/speed.md``): its figures are the script's, never copied by hand.
 
 One torch thread (as the ``vfm`` command and the service run).
 """
@@ -36,6 +40,7 @@ import argparse
 import contextlib
 import gc
 import os
+import re
 import statistics
 import time
 from collections.abc import Callable
@@ -46,6 +51,7 @@ import numpy as np
 import torch
 
 from vfm_core.data import Batch, make_batch, target_mask
+from vfm_core.fileio import write_text_atomic
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, parse_method
 from vfm_core.models import make_model
@@ -270,6 +276,9 @@ def main() -> None:
         "--streaming-wells", default="100,1000", help="(f): wells per predict_many call"
     )
     parser.add_argument("--learning-wells", default="10,100", help="(g): wells per learn_many call")
+    parser.add_argument(
+        "--markdown", metavar="PATH", help="also write the tables as a Markdown fragment here"
+    )
     args = parser.parse_args()
     configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
     print(
@@ -365,6 +374,83 @@ def main() -> None:
         for what, _, predict in rows:
             if predict is not None:
                 print(f"  {what:<60} {predict / river:8.1f} x")
+    if args.markdown:
+        text = markdown_tables(args, rows, naive, river, streaming, learning)
+        write_text_atomic(args.markdown, text)
+        print(f"\nwrote {args.markdown}")
+
+
+def _md_us(value: float) -> str:
+    """A cost in microseconds as the tables print it: a thousands comma, one decimal below 100."""
+    return f"{value:,.1f}" if value < 100 else f"{value:,.0f}"
+
+
+def markdown_tables(
+    args: argparse.Namespace,
+    rows: list[tuple[str, float, float | None]],
+    naive: float,
+    river: float | str,
+    streaming: list[tuple[str, int, float, float]],
+    learning: list[tuple[str, str, int, float, float]],
+) -> str:
+    """This run's tables as a Markdown fragment (microseconds; the command and machine first)."""
+    import platform
+    import sys
+    from datetime import UTC, datetime
+
+    argv = " ".join(sys.argv[1:])
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    lines = [
+        f"Written by `python benchmarks/bench_speed.py {argv}` on "
+        f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC: torch {torch.__version__}, one thread, "
+        f"{os.cpu_count()} CPUs ({platform.machine()}), load average {load:.1f} at the end. "
+        f"Median of {args.calls} calls after {args.warmup} warm-up calls, microseconds; "
+        "(a) / update: how many times cheaper than the naive loop (higher is cheaper).",
+        "",
+        "| per call | update, µs | (a) / update | prediction, µs |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for what, update, predict in rows:
+        pred = "" if predict is None else _md_us(predict)
+        lines.append(f"| {what} | {_md_us(update)} | {naive / update:,.2f} | {pred} |")
+    if isinstance(river, str):
+        lines += ["", f"(b) river: skipped, {river}."]
+    lines += [
+        "",
+        "(f) The service's prediction path, µs per sample:",
+        "",
+        "| learner | wells per call | `predict`, 1 well | `predict_many`, per well | ratio |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for what, n_wells, one_us, many_us in streaming:
+        lines.append(
+            f"| {what} | {n_wells:,} | {_md_us(one_us)} | {_md_us(many_us)} | "
+            f"{one_us / many_us:.1f} |"
+        )
+    lines += [
+        "",
+        "(g) The service's learning path, µs per measurement:",
+        "",
+        "| learner | wells per call | `learn`, 1 well | `learn_many`, per well | ratio |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for what, _, n_wells, one_us, many_us in learning:
+        lines.append(
+            f"| {what} | {n_wells:,} | {_md_us(one_us)} | {_md_us(many_us)} | "
+            f"{one_us / many_us:.1f} |"
+        )
+    if not isinstance(river, str):
+        lines += [
+            "",
+            f"(b) river's predict + learn took {_md_us(river)} µs; each prediction above over it: "
+            + ", ".join(
+                f"{re.sub(r', E=[0-9]+', '', what.replace(', 1 well', ''))} {predict / river:.1f}x"
+                for what, _, predict in rows
+                if predict is not None and "wells in one call" not in what
+            )
+            + ".",
+        ]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
