@@ -50,6 +50,7 @@ __all__ = [
     "QueueSettings",
     "DriftSettings",
     "AlarmSettings",
+    "ResidualAlarmSettings",
     "load_settings",
     "is_loopback_host",
     "endpoint_host",
@@ -545,7 +546,9 @@ class QueueSettings(_Section):
 
 
 class DriftSettings(_Section):
-    """The per-well streaming Hotelling drift test on the inputs of paired measurements."""
+    """The per-well streaming Hotelling T^2 test on the inputs of paired measurements: a
+    notice "operating point outside the training data", not an alarm (the alarm is
+    ``residual_alarm``)."""
 
     enabled: bool = True
     reference_size: int = Field(default=200, ge=3)
@@ -572,6 +575,117 @@ class AlarmSettings(_Section):
     )
 
 
+class TrialSettings(_Section):
+    """The trial of a model change against the model it replaced, run as a shadow
+    (``docs/guide/trials.md``; :mod:`service.engine.trial`)."""
+
+    enabled: bool = Field(
+        default=True,
+        description="after a model change over HTTP, keep the replaced model running as a "
+        "shadow on the same samples and compare both",
+    )
+    duration_s: float = Field(
+        default=30 * 86_400.0,
+        gt=0,
+        description="the trial's length in data time (sample timestamps), s",
+    )
+    min_pairs: int = Field(
+        default=30,
+        ge=1,
+        description="the trial goes on past duration_s until this many measurements are "
+        "paired with both models' predictions",
+    )
+    max_duration_s: float = Field(
+        default=180 * 86_400.0,
+        gt=0,
+        description="the trial ends at this data time after its start even with fewer pairs, s",
+    )
+    block_s: float = Field(
+        default=86_400.0,
+        gt=0,
+        description="the paired differences are averaged over blocks of this much data time, "
+        "s, before the test (meter errors are correlated within a day)",
+    )
+    alpha: float = Field(
+        default=0.05,
+        gt=0,
+        lt=1,
+        description="level of the one-sided test 'the shadow is better'; a rollback when p < alpha",
+    )
+    rule: Literal["block_t", "keep"] = Field(
+        default="block_t",
+        description="block_t: roll back when the one-sided t-test on block means says the "
+        "shadow is better; keep: never roll back automatically (the trial only reports)",
+    )
+    keep_versions: int = Field(
+        default=10,
+        ge=1,
+        le=1000,
+        description="earlier model versions kept per well for a rollback",
+    )
+
+
+class ResidualAlarmSettings(_Section):
+    """The alarm on the model's standardised residuals: a self-starting two-sided CUSUM
+    per well and meter (:mod:`vfm_core.residual_alarm`; ``docs/guide/alarms.md``)."""
+
+    enabled: bool = True
+    arl0: float = Field(
+        default=1000.0,
+        ge=10,
+        le=1e7,
+        description="target in-control run length: periods between false alarms of one "
+        "meter's stream when nothing changed; sets the CUSUM threshold h (Siegmund)",
+    )
+    k: float = Field(
+        default=0.5,
+        gt=0,
+        le=3,
+        description="CUSUM reference, in standard deviations of a period's mean residual "
+        "(0.5: tuned to a shift of one standard deviation)",
+    )
+    mpfm_period_s: float = Field(
+        default=86_400.0,
+        ge=0,
+        le=30 * 86_400.0,
+        description="MPFM residuals are averaged over periods of this length, s (0: none)",
+    )
+    well_test_period_s: float = Field(
+        default=0.0,
+        ge=0,
+        le=30 * 86_400.0,
+        description="well-test residuals are averaged over periods of this length, s (0: none)",
+    )
+    window: int = Field(
+        default=365, ge=5, le=100_000, description="period means in the self-starting scale"
+    )
+    min_periods: int = Field(
+        default=30, ge=5, le=100_000, description="periods before a meter's stream is tested"
+    )
+    clip: float = Field(
+        default=4.0, gt=0, le=100, description="bound on a standardised period mean"
+    )
+    lags: int = Field(
+        default=3,
+        ge=0,
+        le=30,
+        description="lags of the long-run (autocorrelation-corrected) scale, periods",
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ResidualAlarmSettings:
+        if self.min_periods > self.window:
+            raise ValueError(
+                f"residual_alarm.min_periods ({self.min_periods}) must not exceed "
+                f"residual_alarm.window ({self.window})"
+            )
+        if self.clip <= self.k:
+            raise ValueError(
+                f"residual_alarm.clip ({self.clip}) must exceed residual_alarm.k ({self.k})"
+            )
+        return self
+
+
 class Settings(BaseSettings):
     """Everything ``vfm serve`` can be told; see the module docstring for the sources."""
 
@@ -588,6 +702,8 @@ class Settings(BaseSettings):
     queues: QueueSettings = Field(default_factory=QueueSettings)
     drift: DriftSettings = Field(default_factory=DriftSettings)
     alarms: AlarmSettings = Field(default_factory=AlarmSettings)
+    trial: TrialSettings = Field(default_factory=TrialSettings)
+    residual_alarm: ResidualAlarmSettings = Field(default_factory=ResidualAlarmSettings)
     rolling_window: int = Field(
         default=50, ge=1, description="paired measurements in the rolling MAPE"
     )

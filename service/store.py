@@ -16,7 +16,9 @@ What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures ba
 - ``checkpoints``: :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors
   and plain values, read back with ``weights_only``; never pickle), with the
   ``learn_seq`` they include and a JSON side-car (drift detector state).
-- ``drift_events``: confirmed drifts per well.
+- ``drift_events``: confirmed input drifts per well (the T^2 "operating point" notice).
+- ``residual_alarms``: the start and end of each residual alarm per well and meter
+  (created on opening any store, like the tables below; an older service ignores it).
 - ``parameter_history``: a well's physical parameters over time (``parameters``: JSON
   ``{name: {value, std, unit, low, high, at_bound}}``, SI units), with the data time of the
   measurement they follow (``time_ns``), the model version and name; written in the same
@@ -37,6 +39,18 @@ Schema versions (``meta.schema``): 1, the first; 2 adds the interval columns of
 service opens it (columns added, nothing rewritten); a store of a later version than this
 code knows is refused with a sentence. 3 adds ``parameter_history`` (a table, nothing
 rewritten).
+
+Two tables came later without a new schema version, since they are created on opening
+any store and change nothing that exists (an older service ignores them):
+
+- ``model_versions``: the model a well ran before each model change or rollback, as a
+  checkpoint (``blob``, the ``learn_seq`` it includes, the data time of the change, its
+  specification ``[model, effects, method]`` as JSON and a note saying why it was
+  replaced); the latest ``trial.keep_versions`` per well, for
+  ``POST /wells/{well}/model/rollback``.
+- ``trials``: each ended trial of a model change against its shadow (see
+  :mod:`service.engine.trial`): its start and end (data time), both models, the outcome
+  and the summary GET /wells/{well} shows (JSON).
 """
 
 from __future__ import annotations
@@ -66,6 +80,8 @@ __all__ = [
     "CheckpointRow",
     "DriftEventRow",
     "ParameterRow",
+    "ModelVersionRow",
+    "TrialRow",
     "HistorySample",
     "HistoryMeasurement",
     # writes
@@ -78,8 +94,12 @@ __all__ = [
     "InsertCheckpoint",
     "PruneCheckpoints",
     "InsertDriftEvent",
+    "InsertResidualAlarm",
     "InsertParameters",
     "PruneParameters",
+    "InsertModelVersion",
+    "PruneModelVersions",
+    "InsertTrial",
     "RetireWell",
     "DeleteWellRows",
     "purge_ops",
@@ -127,6 +147,12 @@ CREATE TABLE IF NOT EXISTS drift_events (
     well TEXT NOT NULL, time_ns INTEGER NOT NULL, statistic REAL, p_value REAL, action TEXT NOT NULL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS drift_events_key ON drift_events (well, time_ns);
+CREATE TABLE IF NOT EXISTS residual_alarms (
+    id INTEGER PRIMARY KEY,
+    well TEXT NOT NULL, time_ns INTEGER NOT NULL, source TEXT NOT NULL, kind TEXT NOT NULL,
+    direction TEXT NOT NULL, statistic REAL, threshold REAL
+);
+CREATE UNIQUE INDEX IF NOT EXISTS residual_alarms_key ON residual_alarms (well, source, time_ns, kind);
 CREATE TABLE IF NOT EXISTS parameter_history (
     id INTEGER PRIMARY KEY,
     well TEXT NOT NULL, time_ns INTEGER NOT NULL, version INTEGER NOT NULL,
@@ -134,6 +160,20 @@ CREATE TABLE IF NOT EXISTS parameter_history (
 );
 CREATE INDEX IF NOT EXISTS parameter_history_time ON parameter_history (well, time_ns);
 CREATE INDEX IF NOT EXISTS parameter_history_id ON parameter_history (well, id);
+CREATE TABLE IF NOT EXISTS model_versions (
+    id INTEGER PRIMARY KEY,
+    well TEXT NOT NULL, version INTEGER NOT NULL, created_ns INTEGER NOT NULL,
+    data_time_ns INTEGER, learn_seq INTEGER NOT NULL, model TEXT NOT NULL,
+    method TEXT NOT NULL, spec TEXT NOT NULL, note TEXT NOT NULL, blob BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS model_versions_well ON model_versions (well, id);
+CREATE TABLE IF NOT EXISTS trials (
+    id INTEGER PRIMARY KEY,
+    well TEXT NOT NULL, created_ns INTEGER NOT NULL, since_ns INTEGER NOT NULL,
+    ended_ns INTEGER, model TEXT NOT NULL, shadow_model TEXT NOT NULL,
+    outcome TEXT NOT NULL, summary TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS trials_well ON trials (well, id);
 """
 
 SCHEMA_VERSION = "3"
@@ -242,6 +282,34 @@ class HistoryMeasurement(NamedTuple):
     sample_time_ns: int | None
     predicted: float | None
     version_after: int | None
+
+
+class ModelVersionRow(NamedTuple):
+    """An earlier model of a well (``model_versions``); ``blob`` is empty when not asked for."""
+
+    well: str
+    version: int
+    created_ns: int
+    data_time_ns: int | None
+    learn_seq: int
+    model: str
+    method: str
+    spec: str  # JSON [model, effects, method]
+    note: str
+    blob: bytes
+
+
+class TrialRow(NamedTuple):
+    """An ended trial (``trials``); ``summary`` is its JSON view."""
+
+    well: str
+    created_ns: int
+    since_ns: int
+    ended_ns: int | None
+    model: str
+    shadow_model: str
+    outcome: str
+    summary: str
 
 
 @dataclass(frozen=True)
@@ -439,6 +507,26 @@ class InsertDriftEvent(Op):
 
 
 @dataclass(frozen=True, slots=True)
+class InsertResidualAlarm(Op):
+    """A residual alarm began (``kind`` start) or ended (end) on a well's meter stream
+    (:mod:`service.engine.residual_alarms`); ``time_ns`` is the data time."""
+
+    well: str
+    time_ns: int
+    source: str
+    kind: str  # start | end
+    direction: str  # high: measured above the model | low
+    statistic: float
+    threshold: float
+
+    SQL: ClassVar[str] = (
+        "INSERT OR IGNORE INTO residual_alarms"
+        " (well, time_ns, source, kind, direction, statistic, threshold)"
+        " VALUES (:well, :time_ns, :source, :kind, :direction, :statistic, :threshold)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class InsertParameters(Op):
     """A well's physical parameters at a data time (see ``parameter_history``)."""
 
@@ -484,7 +572,10 @@ _WELL_TABLES = (
     "measurements",
     "checkpoints",
     "drift_events",
+    "residual_alarms",
     "parameter_history",
+    "model_versions",
+    "trials",
     "wells",
 )
 
@@ -512,6 +603,61 @@ class DeleteWellRows(Op):
 def purge_ops(well: str) -> list[Op]:
     """The writes that remove every row of a well (samples, measurements, checkpoints, ...)."""
     return [DeleteWellRows(well=well, table=t) for t in _WELL_TABLES]
+
+
+@dataclass(frozen=True, slots=True)
+class InsertModelVersion(Op):
+    """Keep the model a well ran until a model change or a rollback (``model_versions``)."""
+
+    well: str
+    version: int
+    created_ns: int
+    data_time_ns: int | None
+    learn_seq: int
+    model: str
+    method: str
+    spec: str
+    note: str
+    blob: bytes
+
+    SQL: ClassVar[str] = (
+        "INSERT INTO model_versions (well, version, created_ns, data_time_ns, learn_seq, model,"
+        " method, spec, note, blob) VALUES (:well, :version, :created_ns, :data_time_ns,"
+        " :learn_seq, :model, :method, :spec, :note, :blob)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class PruneModelVersions(Op):
+    """Keep only the well's latest ``keep`` earlier model versions."""
+
+    well: str
+    keep: int
+
+    SQL: ClassVar[str] = (
+        "DELETE FROM model_versions WHERE well = :well AND id NOT IN"
+        " (SELECT id FROM model_versions WHERE well = :well ORDER BY id DESC LIMIT :keep)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class InsertTrial(Op):
+    """An ended trial of a model change against its shadow (``trials``)."""
+
+    well: str
+    created_ns: int
+    since_ns: int
+    ended_ns: int | None
+    model: str
+    shadow_model: str
+    outcome: str
+    summary: str  # JSON
+
+    SQL: ClassVar[str] = (
+        "INSERT INTO trials (well, created_ns, since_ns, ended_ns, model, shadow_model, outcome,"
+        " summary) VALUES (:well, :created_ns, :since_ns, :ended_ns, :model, :shadow_model,"
+        " :outcome, :summary)"
+    )
 
 
 # -- reading helpers --------------------------------------------------------------------------
@@ -732,6 +878,37 @@ class Store:
                 CheckpointRow,
             )
         return rows[0] if rows else None
+
+    def model_versions(self, well: str) -> list[ModelVersionRow]:
+        """The well's kept earlier models, newest first, without their blobs."""
+        with self.reader() as con:
+            rows = con.execute(
+                "SELECT well, version, created_ns, data_time_ns, learn_seq, model, method, spec,"
+                " note FROM model_versions WHERE well = ? ORDER BY id DESC",
+                (well,),
+            ).fetchall()
+        return [ModelVersionRow(*(*r, b"")) for r in rows]
+
+    def model_version(self, well: str, version: int) -> ModelVersionRow | None:
+        """One kept earlier model of the well, with its checkpoint; None if not kept."""
+        with self.reader() as con:
+            r = con.execute(
+                "SELECT well, version, created_ns, data_time_ns, learn_seq, model, method, spec,"
+                " note, blob FROM model_versions WHERE well = ? AND version = ?"
+                " ORDER BY id DESC LIMIT 1",
+                (well, version),
+            ).fetchone()
+        return ModelVersionRow(*r) if r is not None else None
+
+    def trials(self, well: str, limit: int = 20) -> list[TrialRow]:
+        """The well's ended trials, newest first."""
+        with self.reader() as con:
+            rows = con.execute(
+                "SELECT well, created_ns, since_ns, ended_ns, model, shadow_model, outcome,"
+                " summary FROM trials WHERE well = ? ORDER BY id DESC LIMIT ?",
+                (well, limit),
+            ).fetchall()
+        return [TrialRow(*r) for r in rows]
 
     def learned_after(self, well: str, learn_seq: int) -> list[LearnedRow]:
         """Learned measurements after ``learn_seq``, in learning order, with their samples."""

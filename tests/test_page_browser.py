@@ -5,7 +5,10 @@ temporary store) is fitted on the first months of a small simulated field (three
 eroding choke on W01) and fed the rest by a replay over Zenoh while the page is open. The
 page is checked as a user would use it: the field view lists every well, the well chart
 gains points as the replay streams, a diagnosis runs from the page and shows its verdict,
-applying the effect it found changes the model shown and puts a marker on the chart,
+applying the candidate it offers first changes the model shown and puts a marker on the
+chart, the change's trial against the replaced model (its shadow) shows both errors and
+ends, "apply" of a change its held-out check calls worse asks the user before confirming,
+a rollback button brings the first model back,
 ``/docs`` renders its operations with every non-loopback request blocked, ``/metrics``
 parses, and the browser's console stays free of errors throughout.
 
@@ -194,63 +197,143 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     assert served.thread is not None
     served.thread.join(120)  # the diagnosis reads the history stored so far
 
-    # a diagnosis runs from the page (token typed, kept in memory) and shows its verdict
+    # a diagnosis runs from the page (token typed, kept in memory) and shows its verdict;
+    # what it names is the diagnosis's business (tested elsewhere): the loop below applies
+    # whichever candidate it offers first
+    dialogs: list[str] = []
+    answer = {"accept": True}
+
+    def on_dialog(dialog: Any) -> None:
+        dialogs.append(dialog.message)
+        dialog.accept() if answer["accept"] else dialog.dismiss()
+
+    page.on("dialog", on_dialog)
     page.fill("#token", TOKEN)
     page.fill("#diag-candidates", "erosion")
     page.uncheck("#diag-suggest")
     page.click("#diag-run")
     page.wait_for_function(
-        "document.querySelector('#diag-verdict').textContent.length > 20", timeout=120_000
+        "document.querySelector('#diag-verdict').textContent.length > 20"
+        " || document.querySelector('#diag-status').classList.contains('error')",
+        timeout=240_000,
     )
-    verdict = page.locator("#diag-verdict").inner_text()
-    assert "erosion" in verdict, verdict
+    status = page.locator("#diag-status").inner_text()
+    assert "error" not in (page.locator("#diag-status").get_attribute("class") or ""), status
     assert page.locator("#diag-candidates-table button.apply").count() >= 1
     page.screenshot(path=str(SHOTS / "diagnosis.png"), full_page=True)
 
-    # applying it changes the model shown and puts a marker on the chart
-    page.locator('#diag-candidates-table button.apply[data-spec="erosion"]').click()
-    page.wait_for_function(
-        "document.querySelector('#well-model').dataset.model === 'mm+erosion'", timeout=120_000
+    # applying it (confirmed if its held-out check says worse) changes the model shown,
+    # puts a marker on the chart and starts a trial against plain mm as the shadow
+    button = page.locator("#diag-candidates-table button.apply").first
+    assert button.get_attribute("data-spec")
+    button.click()
+    page.wait_for_function(  # the model name says which effect (and its settings) it got
+        "document.querySelector('#well-model').dataset.model.startsWith('mm+')", timeout=120_000
     )
+    applied = page.locator("#well-model").get_attribute("data-model")
     page.wait_for_function("window.vfm.markers.some(m => m.kind === 'model')")
-    assert "mm+erosion" in page.locator("#change-result").inner_text()
-    # the parameter history marks the change, and the effect's parameter appears
+    assert applied in page.locator("#change-result").inner_text()
+    assert all("worse" in d and "confirm_worse" not in d for d in dialogs), dialogs
+    trial_line = page.locator("#well-trial")
     page.wait_for_function(
-        "window.vfm.params && window.vfm.params.model_changes.length >= 1"
-        " && [...document.querySelectorAll('#param-name option')].some(o => o.value === 'erosion.rate')",
-        timeout=30_000,
+        "document.querySelector('#well-trial').dataset.outcome === 'running'", timeout=15_000
+    )
+    assert f"Trial of {applied} against its shadow mm" in trial_line.inner_text()
+    # the replaced model is kept as an earlier version, with a rollback button
+    page.wait_for_selector("#versions-table button.rollback")
+    assert "mm" in page.locator("#versions-table tbody tr").first.inner_text()
+    # the parameter history marks the change
+    page.wait_for_function(
+        "window.vfm.params && window.vfm.params.model_changes.length >= 1", timeout=30_000
     )
 
-    # the rest of the field streams in: errors of the new model right of the marker
+    # the rest of the field streams in: errors of the new model right of the marker, and
+    # the trial (30 days of data) ends with both errors on the page, as the API gives them
     marker = page.evaluate("window.vfm.markers.find(m => m.kind === 'model').t")
     _replay(served, served.frame[served.frame["time"] >= pd.Timestamp(MID, tz="UTC")], None)
     page.wait_for_function(
         f"window.vfm.meas.filter(m => m.predicted != null && m.t > {marker}).length >= 10"
     )
+    page.wait_for_function(
+        "['kept', 'rolled_back'].includes(document.querySelector('#well-trial').dataset.outcome)",
+        timeout=30_000,
+    )
+    trial = httpx.get(served.proc.http_url + "/wells/W01", timeout=10).json()["trial"]
+    assert trial["n"] >= 10 and trial["mape"] is not None and trial["shadow_mape"] is not None
+    shown = trial_line.inner_text()
+    assert f"MAPE {trial['mape']:.2f} % against the shadow's {trial['shadow_mape']:.2f} %" in shown
+    assert f"over {trial['n']} paired" in shown and "Rule:" in shown
     page.wait_for_timeout(1200)  # one redraw
     page.screenshot(path=str(SHOTS / "change.png"), full_page=True)
     assert errors == [], errors
 
-    # the loop's next turn: the diagnosis starts from mm+erosion, and "apply" adds to it
-    page.fill("#diag-candidates", "erosion,erosion_time")
-    assert page.input_value("#diag-model") == "mm"  # the well's base model
-    page.click("#diag-run")
-    assert page.locator("#change-result").inner_text() == ""  # the last change's message goes
-    page.wait_for_function(  # (the first diagnosis's status said "done ... mm:")
-        "document.querySelector('#diag-status').textContent.includes('mm+erosion:')",
-        timeout=120_000,
-    )
-    assert page.locator("#diag-status").inner_text().startswith("done")
-    specs = page.eval_on_selector_all(
-        "#diag-candidates-table button.apply", "bs => bs.map(b => b.dataset.spec)"
-    )
-    assert specs == ["erosion_time"], specs  # erosion is in the model already
-    page.screenshot(path=str(SHOTS / "diagnosis2.png"), full_page=True)
-    page.locator('#diag-candidates-table button.apply[data-spec="erosion_time"]').click()
+    # "apply" of a change its held-out check calls worse asks first. Which candidate the
+    # diagnosis offers, and how its check comes out, is not fixed; so the page is handed the
+    # service's own refusal of a deliberately worse change for its next request (on
+    # another, eroding, well: erosion added, then taken away again), then the user's
+    # answer decides
+    auth = {"Authorization": f"Bearer {TOKEN}"}
+    w02 = served.proc.http_url + "/wells/W02/model"
+    added = httpx.put(w02, json={"effects": ["erosion"]}, headers=auth, timeout=120)
+    assert added.status_code == 200, added.text
+    refusal = httpx.put(w02, json={"effects": []}, headers=auth, timeout=120)
+    assert refusal.status_code == 409 and "confirm_worse" in refusal.text, refusal.text
+    bodies: list[Any] = []
+
+    def refuse_once(route: Any) -> None:
+        bodies.append(route.request.post_data_json)
+        if len(bodies) == 1:
+            route.fulfill(status=409, body=refusal.text, content_type="application/json")
+        else:
+            route.continue_()
+
+    model_before = page.locator("#well-model").get_attribute("data-model")
+    page.route("**/wells/W01/model", refuse_once)
+    try:
+        answer["accept"] = False  # cancelled: nothing is sent again, nothing changes
+        page.evaluate(
+            "(s) => { const b = document.createElement('button'); b.dataset.spec = s; applyEffect(b); }",
+            "erosion_time",
+        )
+        page.wait_for_function(
+            "document.querySelector('#change-result').textContent.startsWith('Not applied')"
+        )
+        assert (
+            len(bodies) == 1
+            and page.locator("#well-model").get_attribute("data-model") == model_before
+        )
+        bodies.clear()
+        answer["accept"] = True  # confirmed: sent again with confirm_worse, applied
+        page.evaluate(
+            "(s) => { const b = document.createElement('button'); b.dataset.spec = s; applyEffect(b); }",
+            "erosion_time",
+        )
+        page.wait_for_function(
+            "document.querySelector('#well-model').dataset.model.endsWith('+erosion_time')",
+            timeout=120_000,
+        )
+    finally:
+        page.unroute("**/wells/W01/model")
+    assert [b.get("confirm_worse") for b in bodies] == [None, True], bodies
+    assert len(dialogs) >= 2 and "worse" in dialogs[-1] and " %" in dialogs[-1], dialogs
+    # the browser logs each refused request; one per question asked, nothing else
+    conflicts = [e for e in errors if "status of 409 (Conflict)" in e]
+    assert len(conflicts) == len(dialogs), (conflicts, dialogs)
+    errors[:] = [e for e in errors if e not in conflicts]
+
+    # one click brings the first model (plain mm) back
     page.wait_for_function(
-        "document.querySelector('#well-model').dataset.model === 'mm+erosion+erosion_time'",
-        timeout=120_000,
+        "document.querySelectorAll('#versions-table button.rollback').length >= 2", timeout=15_000
     )
+    versions = httpx.get(served.proc.http_url + "/wells/W01", timeout=10).json()["versions"]
+    first = versions[-1]
+    assert first["model"] == "mm", versions
+    page.locator(f'#versions-table button.rollback[data-version="{first["version"]}"]').click()
+    page.wait_for_function(
+        "document.querySelector('#well-model').dataset.model === 'mm'", timeout=120_000
+    )
+    assert "Rolled back" in page.locator("#rollback-result").inner_text()
+    page.screenshot(path=str(SHOTS / "rollback.png"), full_page=True)
 
     # a well test far below the MPFM readings near it, posted from the page: an alarm
     mpfm = served.frame[(served.frame["well"] == "W01") & (served.frame["source"] == "mpfm")]
@@ -271,7 +354,7 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     page.goto(url + "/#")
     page.wait_for_function(
         "document.querySelector('#field-table tr[data-well=\"W01\"]')"
-        " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('mm+erosion')"
+        " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('mm')"
         " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('MPFM reads')"
     )
     assert "MPFM reads" not in page.locator('#field-table tr[data-well="W02"]').inner_text()
@@ -314,8 +397,26 @@ def test_metrics_parse(served: Served) -> None:
     text = httpx.get(served.proc.http_url + "/metrics", timeout=10).text
     families = {f.name: f for f in text_string_to_metric_families(text)}
     mape = {s.labels["well"]: s.value for s in families["vfm_well_rolling_mape_percent"].samples}
-    assert set(mape) == set(served.frame["well"].unique())
-    assert all(0 <= v < 100 for v in mape.values()), mape
+    # a well whose model changed after the replay has no rolling error yet (it restarts)
+    views = {
+        w: httpx.get(f"{served.proc.http_url}/wells/{w}", timeout=10).json()
+        for w in served.frame["well"].unique()
+    }
+    rolling = {w: v["rolling_mape"]["value"] for w, v in views.items()}
+    assert mape == pytest.approx({w: x for w, x in rolling.items() if x is not None}), mape
+    assert len(mape) >= 2 and all(0 <= v < 100 for v in mape.values()), mape
+    # the trials side by side: the new model's error and its shadow's, per well
+    trial = {
+        (s.labels["well"], s.labels["role"]): s.value
+        for s in families["vfm_well_trial_mape_percent"].samples
+    }
+    for w, v in views.items():
+        t = v["trial"]
+        if t is not None and t["mape"] is not None:
+            assert trial[(w, "model")] == pytest.approx(t["mape"]), (w, t)
+            assert trial[(w, "shadow")] == pytest.approx(t["shadow_mape"]), (w, t)
+    ended = {s.labels["outcome"]: s.value for s in families["vfm_trials"].samples}
+    assert ended.get("kept", 0) + ended.get("rolled_back", 0) >= 1, ended  # W01's first
     latency = families["vfm_prediction_latency_seconds"]
     count = next(s.value for s in latency.samples if s.name.endswith("_count"))
     assert count > 0

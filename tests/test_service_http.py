@@ -73,7 +73,7 @@ class FakeEngine:
             }
         ]
 
-    def change_model(self, well: str, *args: Any) -> dict[str, Any]:
+    def change_model(self, well: str, *args: Any, **kwargs: Any) -> dict[str, Any]:
         assert self.error is not None
         raise self.error
 

@@ -3,8 +3,10 @@ transactions as the data.
 
 A checkpoint is :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors and
 plain values, never pickle) with a JSON side-car: the drift detector's state and
-reference inputs, the drift events, the model changes made over HTTP, and the model's
-specification ``[model, effects, method]``. It is written every
+reference inputs, the drift events, the model changes made over HTTP, the model's
+specification ``[model, effects, method]``, and the trial of the last change with its
+shadow's own checkpoint (base64) while it runs (:mod:`service.engine.trial`; restored with
+the configured retrain budget, or ended ``interrupted`` when it cannot be). It is written every
 ``store.checkpoint_every`` model updates, after a model change and at a clean stop, and
 the latest ``store.keep_checkpoints`` of a well are kept. Since it goes into the same
 transaction as the data, the store never holds a model that is ahead of its data.
@@ -30,9 +32,10 @@ import weakref
 from collections.abc import Iterable
 from typing import Any
 
-from service.config import Settings
+from service.config import ModelSettings, Settings
 from service.engine.parameters import ParameterHistory
 from service.engine.state import WellState
+from service.learning import apply_budget
 from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
 from vfm_core.effects import effect_spec, resolve_effects
 from vfm_core.errors import VFMError
@@ -83,6 +86,7 @@ class Checkpoints:
     """Writes each well's checkpoint when due, and reads its side-car back."""
 
     def __init__(self, settings: Settings) -> None:
+        self.model = settings.model
         self.every = settings.store.checkpoint_every
         self.keep = settings.store.keep_checkpoints
         self.parameters = ParameterHistory(settings)
@@ -118,6 +122,10 @@ class Checkpoints:
             "drift_events": list(st.drift_events),
             "model_changes": list(st.model_changes),
             "spec": [learner.model_name, list(learner.effects), learner.method.text],
+            # the running trial with its shadow's checkpoint, and the ended ones
+            # (service.engine.trial)
+            "trial": st.trial.state() if st.trial is not None else None,
+            "trials": list(st.trials),
         }
         st.checkpoint_version = learner.version
         return [
@@ -152,8 +160,7 @@ class Checkpoints:
                 ops.extend(self.ops(st))
         return ops
 
-    @staticmethod
-    def restore_side_car(st: WellState, extra: str) -> None:
+    def restore_side_car(self, st: WellState, extra: str) -> None:
         """Put a checkpoint's side-car back: drift state and events, learned inputs, changes."""
         try:
             data = json.loads(extra)
@@ -169,3 +176,27 @@ class Checkpoints:
         st.learned_inputs.extend(tuple(x) for x in data.get("learned_inputs", []))
         st.drift_events.extend(data.get("drift_events", []))
         st.model_changes.extend(data.get("model_changes", []))
+        st.trials.extend(data.get("trials", []))
+        if data.get("trial"):
+            _restore_trial(st, data["trial"], self.model)
+
+
+def _restore_trial(st: WellState, data: dict[str, Any], model: ModelSettings) -> None:
+    """Put a running trial back with its shadow, which then re-learns from the store with
+    the live model; one whose shadow cannot be restored ends ``interrupted`` (the change kept)."""
+    from service.engine.trial import Trial
+
+    try:
+        trial, problem = Trial.restore(data)
+    except (KeyError, TypeError, ValueError) as exc:
+        logger.warning("The trial of %s could not be restored (%s); it ends.", st.well, exc)
+        return
+    if problem is None:
+        assert trial.shadow is not None
+        apply_budget(trial.shadow, model)  # the configured retrain budget and memory bound
+        st.trial = trial
+        return
+    trial.outcome = "interrupted"
+    trial.why = f"The trial was interrupted by a restart: {problem}; the change is kept."
+    st.trials.append(trial.summary())
+    logger.warning("Trial of %s on %s: %s", trial.model, st.well, trial.why)

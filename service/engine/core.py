@@ -166,12 +166,27 @@ class Engine:
         model: str | None = None,
         effects: list[str] | None = None,
         method: str | None = None,
+        confirm_worse: bool = False,
     ) -> dict[str, Any]:
-        """Replace a well's model (see :mod:`service.engine.model_change`); blocks until done."""
-        change = self._model_changes.change(well, model, effects, method)
+        """Replace a well's model (see :mod:`service.engine.model_change`); blocks until done.
+        A change the held-out check finds worse is refused unless ``confirm_worse``."""
+        change = self._model_changes.change(
+            well, model, effects, method, confirm_worse=confirm_worse
+        )
+        self._observe_change(well, change)
+        return change
+
+    def rollback_model(self, well: str, version: int) -> dict[str, Any]:
+        """Bring back the well's kept model ``version`` (``POST /wells/{well}/model/rollback``,
+        see :meth:`service.engine.model_change.ModelChanges.rollback`); blocks until done."""
+        change = self._model_changes.rollback(well, version)
+        self._observe_change(well, change)
+        return change
+
+    def _observe_change(self, well: str, change: dict[str, Any]) -> None:
+        """Tell the live events (``GET /events``) and /metrics about a change of model."""
         st = self._wells.get(well)
         self.observer.model_changed(well, change, st.last_time_ns if st is not None else None)
-        return change
 
     def retire_well(self, well: str, purge: bool = False, timeout: float = 30.0) -> dict[str, Any]:
         """Stop serving a well (``DELETE /wells/{well}``) after what is queued for it: its

@@ -15,8 +15,10 @@
   order of one-by-one handling.
 * :meth:`Learning.apply`: the learning step itself, also used to re-learn after a
   checkpoint on start: learn, score the prediction made at the sample (the rolling
-  error), and feed the well's streaming Hotelling T^2 detector; a confirmed drift is
-  stored and, with ``drift.on_drift = "retrain"``, retrains the well.
+  error), feed the well's residual alarm (:mod:`service.engine.residual_alarms`: an
+  alarm that begins or ends is stored, counted and logged) and its streaming Hotelling
+  T^2 test on the inputs (an "operating point outside the training data" notice, stored
+  as a drift event; with ``drift.on_drift = "retrain"`` it retrains the well).
 
 A worker must never hang on one well. Each fit of a live well has a wall-clock budget
 (``model.retrain_budget_s``, see :func:`service.learning.train_settings`) on top of its
@@ -46,7 +48,7 @@ from service.engine.items import Batch, DeferredLearn
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.learning import Learner
-from service.store import InsertDriftEvent, MarkLearned, Op
+from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
 from vfm_core.field_learner import FieldWell
 from vfm_core.streaming import WellLearner, learn_many, predict_many
 from vfm_core.timeutil import from_ns, iso
@@ -56,6 +58,13 @@ __all__ = ["Learning"]
 logger = logging.getLogger("vfm.service.engine")
 
 Rates = dict[str, float | None]
+
+
+def _wants_sd(st: WellState) -> bool:
+    """True when the residual alarm standardises by the prediction's sd (a method that
+    gives one, ``bayes``): the prediction before learning is then made for it."""
+    method = getattr(st.learner, "method", None)
+    return st.residual_alarm is not None and bool(getattr(method, "intervals", False))
 
 
 def _kept(learner: Learner) -> str:
@@ -180,7 +189,9 @@ class Learning:
             self.run_deferred(b)
         learner = st.learner
         version_before = learner.version
-        before = learner.predict(list(sample.inputs)) if p.future is not None else {}
+        # the prediction before learning: for the caller, and its sd for the residual alarm
+        wants = p.future is not None or _wants_sd(st)
+        before = learner.predict(list(sample.inputs)) if wants else {}
         if self.batch_learns and isinstance(learner, WellLearner):
             self.catch_up(learner, p.time_ns)
             b.learns.append(DeferredLearn(st, p, sample, version_before, before))
@@ -216,7 +227,8 @@ class Learning:
             try:
                 if isinstance(result, BaseException):
                     raise result
-                self._after_step(d.st, d.sample, p.q_total, p.time_ns, b.ops, p.source)
+                sd = d.before.get("q_total_std") if d.before else None
+                self._after_step(d.st, d.sample, p.q_total, p.time_ns, b.ops, p.source, sd)
                 self._record(d.st, p, d.sample, b, d.version_before, d.before)
             except Exception as exc:  # one well's failure must not stop the others
                 logger.exception(
@@ -286,9 +298,10 @@ class Learning:
         learner = st.learner
         started = time.monotonic()
         self.catch_up(learner, time_ns)
+        sd = learner.predict(list(sample.inputs)).get("q_total_std") if _wants_sd(st) else None
         learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
         self._timed(st, started, "Learning a measurement")
-        self._after_step(st, sample, q_total, time_ns, ops, source)
+        self._after_step(st, sample, q_total, time_ns, ops, source, sd)
 
     def _after_step(
         self,
@@ -298,13 +311,19 @@ class Learning:
         time_ns: int,
         ops: list[Op],
         source: str,
+        sd: float | None = None,
     ) -> None:
         """What follows the learning step: note it for a model change in progress, score
-        the earlier prediction, run the drift test."""
+        the earlier prediction, run the residual alarm (``sd``: the predictive sd, Sm3/h,
+        at the sample before learning, for a method that gives one) and the T^2 input test."""
         if st.catch_up is not None:
             st.catch_up.append((sample.inputs, q_total, time_ns, source))
         if sample.predicted is not None and q_total:
             st.errors.append(abs(sample.predicted - q_total) / abs(q_total))
+        if st.trial is not None:  # the shadow learns it too (service.engine.trial)
+            st.trial.on_learned(self, st, sample, q_total, time_ns, source, ops)
+        if st.residual_alarm is not None:
+            self._residual(st, sample, q_total, time_ns, ops, source, sd)
         st.learned_inputs.append(sample.inputs)
         det = st.detector
         if det is None:
@@ -338,7 +357,8 @@ class Learning:
             )
         )
         logger.info(
-            "Drift confirmed on %s at %s (T2 = %.1f, p = %.2g); %s.",
+            "Operating point of %s outside its training data at %s (input T2 = %.1f, p = %.2g); "
+            "%s.",
             st.well,
             event["time"],
             event["statistic"],
@@ -348,6 +368,52 @@ class Learning:
         self.counters.event("drifts")
         ref = np.asarray(st.learned_inputs, dtype=float)
         det.reset(ref if len(ref) >= self.settings.drift.reference_size else None)
+
+    def _residual(
+        self,
+        st: WellState,
+        sample: Sample,
+        q_total: float,
+        time_ns: int,
+        ops: list[Op],
+        source: str,
+        sd: float | None,
+    ) -> None:
+        """Feed the residual alarm; store, count and log an alarm that begins or ends."""
+        alarm = st.residual_alarm
+        assert alarm is not None
+        for kind, src, event in alarm.update(source, q_total, sample.predicted, sd, time_ns):
+            ops.append(
+                InsertResidualAlarm(
+                    well=st.well,
+                    time_ns=time_ns,
+                    source=src,
+                    kind=kind,
+                    direction=event["direction"],
+                    statistic=float(event["statistic"]),
+                    threshold=float(event["threshold"]),
+                )
+            )
+            if kind == "start":
+                self.counters.event("residual alarms")
+                logger.warning(
+                    "Residual alarm on %s from %s: the %s readings are %s the model's "
+                    "predictions beyond their usual scatter (CUSUM %.1f > %.2f); the model "
+                    "does not follow a change of the well or of the meter.",
+                    st.well,
+                    event["start"],
+                    src,
+                    "above" if event["direction"] == "high" else "below",
+                    event["statistic"],
+                    event["threshold"],
+                )
+            else:
+                logger.info(
+                    "Residual alarm on %s (%s) ended at %s: the residuals are back in control.",
+                    st.well,
+                    src,
+                    event["end"],
+                )
 
     def seed_reference(self, st: WellState, inputs: np.ndarray) -> None:
         """After a history fit: the latest measured rows' inputs [n, 6] as the drift reference."""

@@ -14,7 +14,20 @@ goes unanswered and no measurement is skipped:
 4. *swap*: the worker commits what its batch holds, then the new model's checkpoint, and
    only then swaps it in with a higher version; the rolling error restarts with it.
 
-A failed or abandoned fit sends a *cancel* step instead. A change to or from a
+A failed or abandoned fit sends a *cancel* step instead. When the held-out check says the
+new model is worse (its MAPE above the current one's), the change is refused
+(:class:`~service.errors.Conflict`, 409, both MAPEs in the sentence) unless the request
+confirms it (``confirm_worse``).
+
+After the swap the replaced model runs on as the *shadow* of a trial
+(:mod:`service.engine.trial`) that keeps the change or rolls it back; the replaced model
+is also kept in the store as an earlier version (``model_versions``, the latest
+``trial.keep_versions``), and :meth:`ModelChanges.rollback` (``POST
+/wells/{well}/model/rollback``) brings any kept version back: its checkpoint re-learns,
+off the worker, every measurement the well learned since it was replaced (in learning
+order, from the store), then catches up and is swapped in as a change is, with a higher
+version; a rollback starts no trial. :func:`install` is the swap both share with a
+trial's own rollback (:func:`service.engine.trial.install`). A change to or from a
 field-wide model (``mtl``) is refused (:class:`~service.errors.InvalidRequest`): its
 network is shared by every well, so it is chosen for all of them in the config. The method is checked by the
 same rule as the config (:func:`service.config.method_problem`: a registered method the
@@ -40,14 +53,15 @@ from service.engine.checkpoints import Checkpoints, configured_spec
 from service.engine.fairqueue import FairQueue
 from service.engine.items import Batch, ModelStep
 from service.engine.state import WellState
+from service.engine.trial import Trial, install
 from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
 from service.learning import Learner, apply_budget, fit_budget
-from service.store import Store
+from service.store import Op, Store
 from vfm_core.errors import VFMError
 from vfm_core.field_learner import FieldWell
 from vfm_core.models import MODELS
 from vfm_core.streaming import WellLearner
-from vfm_core.timeutil import from_ns, iso
+from vfm_core.timeutil import from_ns
 
 __all__ = ["ModelChanges", "check_effect_modules", "effect_module"]
 
@@ -133,12 +147,15 @@ class ModelChanges:
         model: str | None = None,
         effects: list[str] | None = None,
         method: str | None = None,
+        confirm_worse: bool = False,
     ) -> dict[str, Any]:
         """Replace a well's model: fit the new one on the well's stored history, then swap.
 
         Returns the change (models and versions before and after, held-out MAPE, what was
-        caught up), checkpointed before this returns. Effects given as ``module:Class``
-        must come from a module listed in ``model.effect_modules``.
+        caught up, the trial started), checkpointed before this returns. Effects given as
+        ``module:Class`` must come from a module listed in ``model.effect_modules``. When
+        the held-out check says the new model is worse, the change is refused
+        (:class:`~service.errors.Conflict`) unless ``confirm_worse``.
         """
         st = self.wells.get(well)
         if st is None:
@@ -159,20 +176,7 @@ class ModelChanges:
             WellLearner(well, model, method or old.method.text, effects=effects)
         except VFMError as exc:
             raise InvalidRequest(str(exc)) from None
-        if self.stopping.is_set():
-            raise Stopping("The service is stopping; retry after it restarts.")
-        with self._lock:
-            if well in self._changing:
-                raise Conflict(
-                    f"A model change of {well} is already running; wait for it to finish."
-                )
-            if not self._slots.acquire(blocking=False):
-                raise Busy(
-                    f"{self.settings.http.max_model_changes} model change(s) are being fitted "
-                    "(http.max_model_changes); retry when they have finished."
-                )
-            self._changing.add(well)
-        fit = _Fit(self, well)
+        fit = self._begin(well)
         try:
             copy: WellLearner = self._step(st, "snapshot")
             logger.info(
@@ -197,6 +201,17 @@ class ModelChanges:
                 raise
             apply_budget(new, self.settings.model)
             scores["fit_s"] = round(time.perf_counter() - started, 2)
+            worse = _worse(scores)
+            if worse and not confirm_worse:
+                self._step(st, "cancel")
+                raise Conflict(
+                    f"The held-out check says {new.name} is worse than {old.name} for {well}: "
+                    f"MAPE {scores['before']:.2f} % now against {scores['after']:.2f} % with "
+                    f"the change, on the latest {scores.get('holdout_rows')} stored "
+                    "measurement(s). Nothing was changed; send the request again with "
+                    '"confirm_worse": true to apply it anyway (its trial will compare both).'
+                )
+            scores["confirmed_worse"] = bool(worse)
             change: dict[str, Any] = self._step(st, "swap", new, scores)
             return change
         finally:
@@ -242,6 +257,12 @@ class ModelChanges:
             st.catch_up = None
             item.future.set_result(None)
             return
+        if item.kind == "mark":  # a rollback: what the store holds up to now is committed
+            flush(b)
+            b.clear()
+            st.catch_up = []
+            item.future.set_result(st.learn_seq)
+            return
         self._swap(st, item, b, flush)
 
     def _swap(
@@ -249,6 +270,10 @@ class ModelChanges:
     ) -> None:
         new, old = item.learner, st.learner
         assert new is not None
+        scores = dict(item.scores)
+        kind = str(scores.pop("_kind", "change"))
+        note = str(scores.pop("_note", "") or f"replaced by {new.name} over HTTP")
+        extra = scores.pop("_extra", None)
         try:
             caught_up = list(st.catch_up or [])
             for inputs, q_total, time_ns, source in caught_up:
@@ -257,53 +282,162 @@ class ModelChanges:
                 new.learn(list(inputs), q_total, from_ns(time_ns), source)
         finally:
             st.catch_up = None
-        new.version = max(new.version, old.version + 1)
-        before = st.rolling_mape()
-        change = {
-            "time": iso(time.time_ns()),
-            "model_before": old.name,
-            "model_after": new.name,
-            "effects": list(new.effects),
-            "method": new.method.text,
-            "version_before": old.version,
-            "version_after": new.version,
-            "holdout": item.scores,
-            "caught_up": len(caught_up),
-            "rolling_mape_before": before["value"],
-            "config": configured_spec(self.settings),
-        }
         # commit what the batch holds so far, then the new model's checkpoint on its own:
         # the swap happens only once that checkpoint is in the store
         flush(b)
         b.clear()
-        saved_version = st.checkpoint_version
-        st.learner = new
-        st.model_changes.append(change)
-        st.refresh()
-        when = st.last_time_ns if st.last_time_ns is not None else time.time_ns()
-        try:
-            self.store.write(
-                [*self.checkpoints.ops(st), *self.checkpoints.parameters.ops(st, when)]
+        saved = (
+            st.checkpoint_version,
+            list(st.model_changes),
+            list(st.trials),
+            list(st.errors),
+        )
+        running = st.trial
+        when = st.last_time_ns
+        ops: list[Op] = []
+        shadow = running.shadow if running is not None else None
+        if running is not None:
+            running.supersede(
+                st, ops, when, f"The model was replaced ({kind}) by {new.name} while it ran."
             )
-        except Exception:
-            st.learner, st.checkpoint_version = old, saved_version
-            st.model_changes.pop()
+        new.version = max(new.version, old.version + 1)
+        trial: Trial | None = None
+        if kind == "change" and self.settings.trial.enabled and isinstance(old, WellLearner):
+            # the replaced model runs on as the trial's shadow (see service.engine.trial)
+            trial = Trial(
+                well=st.well,
+                since_ns=when if when is not None else 0,
+                model=new.name,
+                shadow_model=old.name,
+                version=new.version,
+                shadow_version=old.version,
+                shadow=old,
+                settings=self.settings.trial,
+            )
+            st.trial = trial
+        try:
+            change = install(
+                st,
+                new,
+                self.checkpoints,
+                ops,
+                when,
+                kind=kind,
+                note=note,
+                keep_versions=self.settings.trial.keep_versions,
+                config=configured_spec(self.settings),
+                holdout=scores,
+                caught_up=len(caught_up),
+                extra=extra,
+            )
+            self.store.write(ops)
+        except Exception:  # nothing was stored: the well goes on as before
+            st.learner = old
+            st.checkpoint_version = saved[0]
+            st.model_changes.clear()
+            st.model_changes.extend(saved[1])
+            st.trial = running
+            if running is not None:  # it goes on
+                running.outcome, running.shadow, running.ended_ns = "running", shadow, None
+            st.trials.clear()
+            st.trials.extend(saved[2])
             st.params_version = None  # the next learning step records the old one again
+            st.errors.clear()
+            st.errors.extend(saved[3])
             st.refresh()
             raise
-        st.errors.clear()  # the rolling error from now on is the new model's
-        st.refresh()
-        logger.info(
-            "Model of %s changed from %s (version %d) to %s (version %d); held-out MAPE %s -> %s %%.",
-            st.well,
-            old.name,
-            old.version,
-            new.name,
-            new.version,
-            item.scores.get("before"),
-            item.scores.get("after"),
-        )
-        b.answer(item.future, change)
+        out = dict(change)
+        out["trial"] = trial.view() if trial is not None else None
+        b.answer(item.future, out)
+
+    def rollback(self, well: str, version: int) -> dict[str, Any]:
+        """Bring back an earlier model version of a well (``POST /wells/{well}/model/rollback``).
+
+        The kept checkpoint of ``version`` (``model_versions``) re-learns, off the worker,
+        every measurement the well learned since that model was replaced, from the store
+        in learning order (as it would have learned them live); then it catches up with
+        what arrived meanwhile and is swapped in with a higher version. A running trial
+        ends ``superseded``; a rollback starts none. Returns the change."""
+        st = self.wells.get(well)
+        if st is None:
+            raise unknown_well(well)
+        if isinstance(st.learner, FieldWell):
+            raise InvalidRequest(self._field_wide_problem(well, st.learner, None) or "")
+        row = self.store.model_version(well, version)
+        if row is None:
+            kept = [r.version for r in self.store.model_versions(well)]
+            raise InvalidRequest(
+                f"Version {version} of {well} is not kept; the kept earlier versions are "
+                f"{', '.join(map(str, kept)) if kept else 'none'} (the latest "
+                f"trial.keep_versions = {self.settings.trial.keep_versions} are kept)."
+            )
+        fit = self._begin(well)
+        try:
+            seq: int = self._step(st, "mark")
+
+            def relearn() -> tuple[WellLearner, int]:
+                learner = WellLearner.restore(row.blob)
+                n = 0
+                for r in self.store.learned_after(well, row.learn_seq):
+                    if r.learn_seq > seq:  # learned after the mark: taught at the swap
+                        break
+                    if self.catch_up is not None:
+                        self.catch_up(learner, r.time_ns)
+                    learner.learn(list(r.sample.inputs), r.q_total, from_ns(r.time_ns), r.source)
+                    n += 1
+                return learner, n
+
+            logger.info(
+                "Rollback of %s to version %d (%s, %s): re-learning what it learned since.",
+                well,
+                version,
+                row.model,
+                row.method,
+            )
+            try:
+                learner, n = fit.run(relearn)
+            except BaseException as exc:
+                self._step(st, "cancel")
+                if isinstance(exc, VFMError):
+                    raise InvalidRequest(str(exc)) from None
+                raise
+            apply_budget(learner, self.settings.model)
+            scores = {
+                "holdout_rows": 0,
+                "unit": "%",
+                "_kind": "rollback",
+                "_note": f"rolled back over HTTP to version {version} ({row.model}, {row.method}), "
+                f"which re-learned the {n} measurement(s) learned since it was replaced",
+                "_extra": {"rolled_back_to": version, "relearned": n},
+            }
+            change: dict[str, Any] = self._step(st, "swap", learner, scores)
+            return change
+        finally:
+            fit.release()
+
+    def _begin(self, well: str) -> _Fit:
+        """Take the well's 'changing' mark and a fit slot (``http.max_model_changes``)."""
+        if self.stopping.is_set():
+            raise Stopping("The service is stopping; retry after it restarts.")
+        with self._lock:
+            if well in self._changing:
+                raise Conflict(
+                    f"A model change of {well} is already running; wait for it to finish."
+                )
+            if not self._slots.acquire(blocking=False):
+                raise Busy(
+                    f"{self.settings.http.max_model_changes} model change(s) are being fitted "
+                    "(http.max_model_changes); retry when they have finished."
+                )
+            self._changing.add(well)
+        return _Fit(self, well)
+
+
+def _worse(scores: Mapping[str, Any]) -> bool:
+    """The held-out check says the new model is worse: its MAPE above the current one's as
+    the reply shows them (%, two decimals; a difference below that is no verdict)."""
+    before, after = scores.get("before"), scores.get("after")
+    return before is not None and after is not None and round(after, 2) > round(before, 2)
 
 
 class _Fit:

@@ -11,7 +11,9 @@ lock, and never serializes, sends or sleeps.
   ``prediction`` (a stored sample with its prediction, Sm3/h, and interval),
   ``measurement`` (an MPFM reading or well test stored), ``learned`` (a measurement
   learned from: the prediction made at its sample, the measured rate, the version after),
-  ``drift`` (a confirmed drift) and ``model`` (a model change over HTTP).
+  ``drift`` (a confirmed input drift: the operating point left the training data),
+  ``alarm`` (a residual alarm began, ``kind`` start, or ended, ``end``; see
+  :mod:`service.engine.residual_alarms`) and ``model`` (a model change over HTTP).
 * **Numbers** the per-well state does not keep: the interval coverage (share of learned
   measurements inside the 90 % interval p05..p95 predicted at their sample, over the last
   ``rolling_window`` that had an interval), drift events and model changes since start,
@@ -31,7 +33,15 @@ import numpy as np
 from prometheus_client.core import Metric
 from prometheus_client.utils import floatToGoString
 
-from service.store import InsertDriftEvent, InsertMeasurement, InsertSample, MarkLearned, Op
+from service.store import (
+    InsertDriftEvent,
+    InsertMeasurement,
+    InsertResidualAlarm,
+    InsertSample,
+    InsertTrial,
+    MarkLearned,
+    Op,
+)
 from vfm_core.timeutil import iso
 
 __all__ = ["Observer", "Subscription", "LatencyHistogram", "LATENCY_BUCKETS_S"]
@@ -129,6 +139,7 @@ class Observer:
         self._measured: OrderedDict[tuple[str, str, int], float] = OrderedDict()
         self._coverage: dict[str, deque[bool]] = {}
         self.drift_events: Counter[str] = Counter()
+        self.residual_alarms: Counter[str] = Counter()  # alarms raised per well since start
         self.model_changes: Counter[str] = Counter()
         self.dropped = 0
         self.closed = threading.Event()
@@ -192,6 +203,27 @@ class Observer:
                         )
                 elif isinstance(op, MarkLearned):
                     self._learned(op, live)
+                elif isinstance(op, InsertResidualAlarm):
+                    if op.kind == "start":
+                        self.residual_alarms[op.well] += 1
+                    if live:
+                        self._emit(
+                            {
+                                "type": "alarm",
+                                "well": op.well,
+                                "time": iso(op.time_ns),
+                                "kind": op.kind,
+                                "source": op.source,
+                                "direction": op.direction,
+                                "statistic": op.statistic,
+                                "threshold": op.threshold,
+                            }
+                        )
+                elif isinstance(op, InsertTrial):  # a trial ended (service.engine.trial)
+                    if op.outcome == "rolled_back":  # the shadow is live again
+                        self.model_changes[op.well] += 1
+                    if live:
+                        self._trial_ended(op)
                 elif isinstance(op, InsertDriftEvent):
                     self.drift_events[op.well] += 1
                     if live:
@@ -206,6 +238,31 @@ class Observer:
                             }
                         )
         self.latency.observe_many(waited)
+
+    def _trial_ended(self, op: InsertTrial) -> None:  # under self._lock
+        """A ``trial`` event; a rollback by the trial is also a ``model`` event (a marker)."""
+        when = iso(op.ended_ns)
+        self._emit(
+            {
+                "type": "trial",
+                "well": op.well,
+                "time": when,
+                "outcome": op.outcome,
+                "model": op.model,
+                "shadow_model": op.shadow_model,
+            }
+        )
+        if op.outcome == "rolled_back":
+            self._emit(
+                {
+                    "type": "model",
+                    "well": op.well,
+                    "time": when,
+                    "model_before": op.model,
+                    "model_after": op.shadow_model,
+                    "version_after": None,
+                }
+            )
 
     def _sample(self, op: InsertSample, now_ns: int, live: bool, waited: list[float]) -> None:
         if op.q_total is None:

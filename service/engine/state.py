@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from service.config import Settings
+from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.learning import Learner, describe
 from service.store import SampleRow
 from vfm_core.drift import StreamingHotelling
@@ -97,10 +98,18 @@ class WellState:
                 reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm
             )
         self.drift_events: deque[dict[str, Any]] = deque(maxlen=20)
+        # the alarm on the model's standardised residuals (service.engine.residual_alarms)
+        self.residual_alarm: WellResidualAlarm | None = (
+            WellResidualAlarm(settings.residual_alarm) if settings.residual_alarm.enabled else None
+        )
         # model changes over HTTP: what was swapped in, when, and its held-out scores
         self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
         # while a new model is fitted off the worker: what the old one learned meanwhile
         self.catch_up: list[CatchUp] | None = None
+        # the running trial of the last model change against its shadow (None when none
+        # runs; the hot path reads only this) and the ended ones (service.engine.trial)
+        self.trial: Any = None
+        self.trials: deque[dict[str, Any]] = deque(maxlen=10)
         self.samples = 0
         self.measurements = 0
         # the parameter history: version and model of the well's last recorded row
@@ -176,6 +185,11 @@ class WellState:
             "n_seen": int(det.n_seen),
             "events": list(self.drift_events),
         }
+
+    def residual_alarm_state(self) -> dict[str, Any]:
+        """The residual alarm for the API (GET /wells/{well} ``residual_alarm``)."""
+        alarm = self.residual_alarm
+        return disabled_view() if alarm is None else alarm.view()
 
     def rolling_mape(self) -> dict[str, Any]:
         """MAPE (%) of the predictions made at the last paired measurements' samples."""

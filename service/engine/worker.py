@@ -433,7 +433,12 @@ class Workers:
             t, x = t[keep], x[keep]
         learner = st.learner
         rates = None
-        if not st.pending and model_fixed_when_predicting(learner) and learner.ready:
+        if (
+            st.trial is None  # on trial: one by one, so that the shadow sees every row
+            and not st.pending
+            and model_fixed_when_predicting(learner)
+            and learner.ready
+        ):
             try:
                 rates = self.learning.predict_block(st, x, t)
             except Exception as exc:  # the rows one by one say what fails
@@ -585,6 +590,8 @@ class Workers:
                 t, q_total, q_gas, q_oil, q_water, learner.name, version, std, p05, p95
             )
             b.outbox.append((item.well, message))
+        if st.trial is not None:  # a model change on trial: its shadow predicts the sample too
+            st.trial.on_sample(self.learning, t, inputs)
         if st.pending:
             self.pairing.resolve(st, b, upto=t)
 

@@ -11,9 +11,16 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
 ``vfm_well_interval_coverage_ratio{well}``   share of those measurements inside the 90 %
                                              interval p05..p95 (methods with intervals only)
 ``vfm_well_model_version{well,model,method}``  the model's version (1 per series)
-``vfm_well_drift_events_total{well}``        confirmed drifts since the service started
+``vfm_well_drift_events_total{well}``        confirmed input drifts (operating-point notices)
+                                             since the service started
+``vfm_well_residual_alarm_active{well}``     1 while the well's residual alarm is active
+``vfm_well_residual_alarms_total{well}``     residual alarms raised since the start
 ``vfm_well_model_changes_total{well}``       model changes over HTTP since the start
 ``vfm_well_samples_total{well}``             samples handled since the start (per well)
+``vfm_well_trial_mape_percent{well,role,outcome}``  the running (or latest) trial's MAPE, %:
+                                             role ``model`` (new) and ``shadow`` (replaced)
+``vfm_well_trial_pairs{well,outcome}``       that trial's paired measurements
+``vfm_trials_total{outcome}``                trials ended since the start, by outcome
 ``vfm_inputs_accepted_total{kind}``          accepted sensors / measurements / well_tests
 ``vfm_inputs_rejected_total{reason}``        refused inputs by reason (``GET /health``)
 ``vfm_events_total{event}``                  other events (learned, overflow, drifts, ...)
@@ -108,6 +115,16 @@ class ServiceCollector(Collector):
         drifts = CounterMetricFamily(
             "vfm_well_drift_events", "Confirmed drifts since the start.", labels=["well"]
         )
+        alarm_active = GaugeMetricFamily(
+            "vfm_well_residual_alarm_active",
+            "1 while the well's residual alarm is active (any meter), else 0.",
+            labels=["well"],
+        )
+        alarms = CounterMetricFamily(
+            "vfm_well_residual_alarms",
+            "Residual alarms raised since the start.",
+            labels=["well"],
+        )
         changes = CounterMetricFamily(
             "vfm_well_model_changes", "Model changes over HTTP since the start.", labels=["well"]
         )
@@ -125,9 +142,44 @@ class ServiceCollector(Collector):
                 [well, str(s.get("model")), str(s.get("method"))], s.get("version", 0)
             )
             drifts.add_metric([well], obs.drift_events.get(well, 0))
+            if st.residual_alarm is not None:
+                alarm_active.add_metric([well], 1.0 if st.residual_alarm.active else 0.0)
+                alarms.add_metric([well], obs.residual_alarms.get(well, 0))
             changes.add_metric([well], obs.model_changes.get(well, 0))
             samples.add_metric([well], st.samples)
-        yield from (mape, cover, version, drifts, changes, samples)
+        yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
+        # the trials of model changes against their shadows (service.engine.trial)
+        trial_mape = GaugeMetricFamily(
+            "vfm_well_trial_mape_percent",
+            "MAPE over the paired measurements of the well's running (or latest) trial, %: "
+            "role=model the new model, role=shadow the model it replaced.",
+            labels=["well", "role", "outcome"],
+        )
+        trial_n = GaugeMetricFamily(
+            "vfm_well_trial_pairs",
+            "Measurements paired with both models' predictions in the well's trial.",
+            labels=["well", "outcome"],
+        )
+        for well, st in sorted(wells.items()):
+            running, ended = st.trial, list(st.trials)
+            view = running.view() if running is not None else (ended[-1] if ended else None)
+            if view is None:
+                continue
+            outcome = str(view.get("outcome"))
+            for role, key in (("model", "mape"), ("shadow", "shadow_mape")):
+                if view.get(key) is not None:
+                    trial_mape.add_metric([well, role, outcome], view[key])
+            trial_n.add_metric([well, outcome], view.get("n") or 0)
+        trials = CounterMetricFamily(
+            "vfm_trials",
+            "Trials ended since the start, by outcome (kept, rolled_back, superseded, "
+            "interrupted).",
+            labels=["outcome"],
+        )
+        for name, n in sorted(snap["events"].items()):
+            if name.startswith("trials "):
+                trials.add_metric([name.removeprefix("trials ")], n)
+        yield from (trial_mape, trial_n, trials)
         yield GaugeMetricFamily(
             "vfm_live_clients", "Clients of GET /events.", value=obs.subscribers
         )

@@ -22,6 +22,9 @@ __all__ = [
     "ModelMarkOut",
     "ParameterHistoryOut",
     "ModelChangeIn",
+    "RollbackIn",
+    "TrialOut",
+    "ModelVersionOut",
     "HoldoutOut",
     "ModelChangeOut",
     "SampleOut",
@@ -156,6 +159,68 @@ class ModelChangeIn(BaseModel):
     method: str | None = Field(
         default=None, description="ol or pbl:<period> (default: the current one)"
     )
+    confirm_worse: bool = Field(
+        default=False,
+        description="apply the change even when its held-out check says the new model is "
+        "worse (without it such a change is refused with 409 and both held-out MAPEs)",
+    )
+
+
+class RollbackIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    version: int = Field(
+        ge=0,
+        le=2**62,
+        description="the earlier model version to bring back (GET /wells/{well}: versions)",
+    )
+
+
+class TrialOut(BaseModel):
+    """A model change on trial against the model it replaced, run as a shadow."""
+
+    model_config = ConfigDict(protected_namespaces=())
+
+    since: str | None = Field(description="data time of the change (the well's latest sample)")
+    until: str | None = Field(
+        default=None, description="data time the trial is due to end (with enough pairs)"
+    )
+    model: str = Field(description="the new model (live)")
+    shadow_model: str = Field(description="the replaced model, running as the shadow")
+    n: int = Field(description="measurements paired with both models' predictions")
+    mape: float | None = Field(description="MAPE (%) of the new model over those")
+    shadow_mape: float | None = Field(description="MAPE (%) of the shadow over the same")
+    outcome: str = Field(
+        description="running | kept | rolled_back | superseded | interrupted (a restart "
+        "without the shadow)"
+    )
+    version: int | None = Field(default=None, description="the new model's version at the change")
+    shadow_version: int | None = None
+    blocks: int | None = Field(default=None, description="blocks of data time with pairs")
+    p_value: float | None = Field(
+        default=None, description="one-sided p of 'the shadow is better' (block t-test)"
+    )
+    mean_diff: float | None = Field(
+        default=None, description="mean of the block means of APE(new) - APE(shadow), points"
+    )
+    rule: str | None = Field(default=None, description="the rule, as a sentence")
+    min_pairs: int | None = None
+    last_paired: str | None = None
+    ended: str | None = Field(default=None, description="data time the trial ended")
+    why: str | None = Field(default=None, description="why it ended so, as a sentence")
+
+
+class ModelVersionOut(BaseModel):
+    """A model the well ran before, kept for a rollback."""
+
+    model_config = ConfigDict(protected_namespaces=())
+
+    version: int = Field(description="its version when it was replaced (POST .../rollback)")
+    model: str
+    effects: list[str] = Field(default_factory=list)
+    method: str
+    replaced: str | None = Field(description="data time it was replaced")
+    note: str = Field(description="why it was replaced")
 
 
 class HoldoutOut(BaseModel):
@@ -189,6 +254,17 @@ class ModelChangeOut(BaseModel):
     rolling_mape_before: float | None = Field(
         description="rolling MAPE (%) of the replaced model at the change"
     )
+    kind: str = Field(
+        default="change", description="change | rollback (over HTTP) | trial rollback"
+    )
+    note: str | None = Field(default=None, description="why, as a sentence")
+    rolled_back_to: int | None = Field(default=None, description="a rollback's version")
+    relearned: int | None = Field(
+        default=None, description="a rollback: measurements re-learned since the version"
+    )
+    trial: TrialOut | None = Field(
+        default=None, description="the change's reply: the trial it started (None: none)"
+    )
 
 
 class WellOut(WellSummary):
@@ -202,11 +278,31 @@ class WellOut(WellSummary):
     model_changes: list[ModelChangeOut] = Field(
         description="models set over HTTP, oldest first; the rolling MAPE restarts at each"
     )
-    drift: dict[str, Any]
+    drift: dict[str, Any] = Field(
+        description="the T^2 test on the inputs: a notice that the operating point left the "
+        "training data, not an alarm"
+    )
+    residual_alarm: dict[str, Any] | None = Field(
+        default=None,
+        description="the alarm on the model's standardised residuals: enabled, active, "
+        "statistic, threshold, since, direction, source, streams (per meter), events",
+    )
     samples: int = Field(description="samples accepted since start")
     measurements: int = Field(description="measurements accepted since start")
     last_sample_time: str | None
     pending_measurements: int
+    trial: TrialOut | None = Field(
+        default=None,
+        description="the running trial of the last model change against its shadow, else the "
+        "latest ended one (None: no trial yet)",
+    )
+    trials: list[TrialOut] = Field(
+        default_factory=list, description="the ended trials, oldest first (the latest 10)"
+    )
+    versions: list[ModelVersionOut] = Field(
+        default_factory=list,
+        description="earlier models kept for a rollback, newest first (trial.keep_versions)",
+    )
 
 
 class ParameterSeries(BaseModel):

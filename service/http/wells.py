@@ -25,6 +25,7 @@ from service.http.deps import (
     TokenDep,
     WellPath,
 )
+from service.http.model_changes import versions_of
 from service.http.schemas import (
     ErrorOut,
     HistoryOut,
@@ -55,10 +56,20 @@ def list_wells(engine: MaybeEngineDep) -> list[dict[str, Any]]:
     summary="One well's model state",
     responses={404: {"model": ErrorOut}},
 )
-def well_state(well: WellPath, engine: MaybeEngineDep) -> dict[str, Any]:
+def well_state(well: WellPath, engine: MaybeEngineDep, service: ServiceDep) -> dict[str, Any]:
     if engine is None:
         raise unknown_well(well)
-    return engine.well_view(well)
+    out = engine.well_view(well)
+    st = engine.wells.get(well)
+    if st is not None:  # the trial of the last model change (service.engine.trial)
+        running = st.trial
+        ended = list(st.trials)
+        out["trial"] = running.view() if running is not None else (ended[-1] if ended else None)
+        out["trials"] = ended
+    out["versions"] = versions_of(service.store, well) if service.store is not None else []
+    if st is not None:  # the alarm on the residuals (service.engine.residual_alarms)
+        out["residual_alarm"] = st.residual_alarm_state()
+    return out
 
 
 def _parse_time(value: str | None, name: str, default: datetime) -> datetime:

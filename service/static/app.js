@@ -53,7 +53,14 @@ function needToken(out) {
 function alarmsOf(v) {
   const out = [];
   if (!v) return out;
-  if (v.drift && v.drift.active) out.push("drift");
+  // the residual alarm is the alarm; the T^2 input test (v.drift) is only a notice that the
+  // operating point left the training data, shown in the drift column, not here
+  const ra = v.residual_alarm;
+  if (ra && ra.active) {
+    const side = ra.direction === "high" ? "above" : "below";
+    const meter = ra.source === "well_test" ? "well tests" : (ra.source || "measurements").toUpperCase();
+    out.push(`residual alarm: ${meter} ${side} the model since ${(ra.since || "").slice(0, 10)}`);
+  }
   for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
   if (!v.ready) out.push("no model yet");
@@ -74,7 +81,9 @@ function widthOf(well) {
 
 function fieldRow(well) {
   const v = state.wells[well] || {};
-  const drift = v.drift ? (v.drift.active ? "active" : (v.drift.detected ? "seen" : (v.drift.enabled ? "none" : "off"))) : "";
+  // the operating point inside/outside the training data: a notice, not an alarm, in plain
+  // text (renderField colours only "active"/"seen")
+  const drift = v.drift ? (v.drift.active ? "outside" : (v.drift.enabled ? "inside" : "off")) : "";
   return {
     well, model: v.model, method: v.method, version: v.version, last_update: v.last_update || "",
     mape: v.rolling_mape ? v.rolling_mape.value : null, mape_n: v.rolling_mape ? v.rolling_mape.n : 0,
@@ -163,25 +172,55 @@ function wheelZoomPlugin() {
   };
 }
 
-const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a" };
+const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a", alarm: "rgba(179,38,30,0.75)" };
 
-function markersPlugin(source = () => state.markers) {
+/* The residual alarms of the well on view as spans {t0, t1, source, direction}, t1 null while
+   active (drawn to the chart's right edge). From GET /wells/{well}, refreshed every 5 s. */
+function alarmBands() {
+  const ra = state.view && state.view.residual_alarm;
+  return ((ra && ra.events) || []).map((e) => ({
+    t0: secs(e.start), t1: e.end && e.end !== "reset" ? secs(e.end) : null, source: e.source, direction: e.direction,
+  }));
+}
+
+/* Markers on a time chart: a model change is a line with its label; a scheduled retrain a
+   dashed grey line; an operating-point notice (the T^2 input test, kind "drift") a short tick
+   at the bottom, no label; residual alarms a thin red band along the top over their span. */
+function markersPlugin(source = () => state.markers, bands = alarmBands) {
   return {
     hooks: {
       draw: (u) => {
-        const ctx = u.ctx; const { top, height } = u.bbox;
+        const ctx = u.ctx; const { left, top, width, height } = u.bbox;
+        const dpr = devicePixelRatio;
+        const xmin = u.scales.x.min, xmax = u.scales.x.max;
+        ctx.save();
+        ctx.fillStyle = MARK_COLORS.alarm;
+        for (const b of bands()) {
+          const t1 = b.t1 == null ? xmax : b.t1;
+          if (t1 < xmin || b.t0 > xmax) continue;
+          const x0 = Math.max(left, u.valToPos(b.t0, "x", true));
+          const x1 = Math.min(left + width, u.valToPos(t1, "x", true));
+          ctx.fillRect(x0, top, Math.max(2 * dpr, x1 - x0), 5 * dpr);
+        }
+        ctx.restore();
         for (const m of source()) {
-          if (m.t < u.scales.x.min || m.t > u.scales.x.max) continue;
+          if (m.t < xmin || m.t > xmax) continue;
           const x = Math.round(u.valToPos(m.t, "x", true));
           ctx.save();
           ctx.strokeStyle = MARK_COLORS[m.kind] || "#000";
-          ctx.lineWidth = m.kind === "retrain" ? 1 : 2 * devicePixelRatio;
+          if (m.kind === "drift") {  // a notice: a tick at the bottom edge
+            ctx.lineWidth = 1.5 * dpr;
+            ctx.beginPath(); ctx.moveTo(x, top + height); ctx.lineTo(x, top + height - 6 * dpr); ctx.stroke();
+            ctx.restore();
+            continue;
+          }
+          ctx.lineWidth = m.kind === "retrain" ? 1 : 2 * dpr;
           if (m.kind === "retrain") ctx.setLineDash([4, 4]);
           ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + height); ctx.stroke();
           if (m.kind !== "retrain") {
             ctx.fillStyle = MARK_COLORS[m.kind];
-            ctx.font = `${11 * devicePixelRatio}px system-ui`;
-            ctx.fillText(m.label, x + 4, top + 12 * devicePixelRatio);
+            ctx.font = `${11 * dpr}px system-ui`;
+            ctx.fillText(m.label, x + 4, top + 18 * dpr);  // below the alarm band
           }
           ctx.restore();
         }
@@ -407,6 +446,53 @@ function renderWellHeader() {
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
   $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
+  renderTrial(v); renderVersions(v);
+}
+
+/* The trial of the last model change against its shadow (the model it replaced), both
+   errors side by side on the same paired measurements. */
+function renderTrial(v) {
+  const t = v.trial, el = $("#well-trial");
+  el.hidden = !t;
+  if (!t) { el.textContent = ""; return; }
+  const what = { running: "running", kept: "kept", rolled_back: "rolled back", superseded: "superseded", interrupted: "interrupted" }[t.outcome] || t.outcome;
+  const test = t.p_value == null ? "" : ` (one-sided p ${fmt(t.p_value, 3)} that the shadow is better)`;
+  el.className = "trial " + t.outcome;
+  el.dataset.outcome = t.outcome;
+  el.textContent = `Trial of ${t.model} against its shadow ${t.shadow_model} since ${(t.since || "").replace("+00:00", "Z")}: ` +
+    `MAPE ${fmt(t.mape, 2)} % against the shadow's ${fmt(t.shadow_mape, 2)} % over ${t.n} paired measurement(s)${test}. ` +
+    `Outcome: ${what}` + (t.outcome === "running" ? ` until ${(t.until || "").replace("+00:00", "Z")} of data (at least ${t.min_pairs ?? ""} pairs).` : ".") +
+    (t.why ? " " + t.why : "") + (t.rule ? ` Rule: ${t.rule}` : "");
+}
+
+function renderVersions(v) {
+  const rows = v.versions || [];
+  const key = JSON.stringify([state.well, rows.map((r) => r.version)]);
+  if (state.versionsKey === key) return;   // unchanged: keep the buttons under the cursor
+  state.versionsKey = key;
+  $("#versions-table tbody").innerHTML = rows.map((r) => `<tr><td class="num">${esc(r.version)}</td><td>${esc(r.model)}</td>
+    <td>${esc(r.method)}</td><td>${esc((r.replaced || "").replace("+00:00", "Z"))}</td><td>${esc(r.note)}</td>
+    <td><button class="rollback" data-version="${esc(r.version)}" title="POST /wells/${esc(state.well)}/model/rollback">roll back</button></td></tr>`).join("") ||
+    `<tr><td colspan="6" class="hint">No earlier model yet: the well runs the model it started with.</td></tr>`;
+  document.querySelectorAll("#versions-table button.rollback").forEach((b) => b.addEventListener("click", () => rollbackTo(b)));
+}
+
+async function rollbackTo(button) {
+  const out = $("#rollback-result");
+  if (needToken(out)) return;
+  const version = Number(button.dataset.version);
+  out.className = "result"; out.textContent = `rolling back to version ${version} (re-learning what came since)...`;
+  document.querySelectorAll("button.rollback").forEach((b) => { b.disabled = true; });
+  try {
+    const c = await api("POST", `/wells/${encodeURIComponent(state.well)}/model/rollback`, { version });
+    out.textContent = `Rolled back: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}); ` +
+      `it re-learned ${c.relearned ?? 0} measurement(s) since it was replaced.`;
+    const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
+    state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams(); syncDiagModel(v);
+    loadParams(state.well, false);
+    state.dirty = true;
+  } catch (err) { out.className = "result error"; out.textContent = err.message; }
+  finally { document.querySelectorAll("button.rollback").forEach((b) => { b.disabled = false; }); }
 }
 
 function renderParams() {
@@ -420,7 +506,8 @@ function renderParams() {
 
 function markersFromView(v) {
   const out = [];
-  for (const d of (v.drift && v.drift.events) || []) out.push({ t: secs(d.time), kind: "drift", label: "drift" });
+  // operating-point notices (the T^2 input test): drawn as ticks without a label
+  for (const d of (v.drift && v.drift.events) || []) out.push({ t: secs(d.time), kind: "drift", label: "operating point" });
   for (const c of v.model_changes || []) {
     // the change's own time is the wall clock; place it at the first prediction of its version
     const first = state.preds.find((p) => p.version != null && p.version >= c.version_after);
@@ -582,26 +669,58 @@ function showDiagnosis(j) {
   state.diagnosed = d;
   $("#diag-verdict").textContent = d.verdict.text;
   const diagnosed = [d.model, ...(d.base_effects || [])].join("+");
-  $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 ${esc(diagnosed)}: MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % ` +
-    `(${esc(d.headline ? d.headline.protocol : "")}) ` +
+  // one error, the one the operator sees: the well's own method replayed (live), the outage
+  // error beside it; the fit-once figure only as evidence
+  const lv = d.live || {}, ou = d.outage || {};
+  const mine = (x) => (x.well_mape != null ? x.well_mape : x.mape);
+  const errors = d.live ? `live MAPE ${fmt(mine(lv), 2)} % (${esc(lv.method || d.method)} replayed` +
+      (lv.service_well_mape != null ? `; the service recorded ${fmt(lv.service_well_mape, 2)} %` : "") + ")" +
+      (d.outage && ou.mape != null ? ` \u00b7 in ${esc(ou.label)} outages ${fmt(mine(ou), 2)} %` : "") +
+      ` \u00b7 fit-once evidence ${fmt(d.baseline && d.baseline.candidate_mape, 2)} %`
+    : `MAPE without a candidate ${fmt(d.baseline && d.baseline.candidate_mape, 2)} % (${esc(d.headline ? d.headline.protocol : "")})`;
+  const pool = d.pool && d.pool.focus && (d.pool.wells || []).length > 1 ? ` \u00b7 evidence pooled over ${d.pool.wells.length} wells` : "";
+  $("#diag-status").innerHTML = `done in ${fmt(j.elapsed_s, 0)} s \u00b7 ${esc(diagnosed)}: ${errors}${pool} ` +
     (j.report ? `\u00b7 <a href="${j.report}" target="_blank">full report (residual panels)</a>` : "");
-  const rows = (d.candidates || []).map((c, i) => `<tr><td>${esc(c.effect)}</td><td class="num">${fmt(c.mape, 2)}</td>
-    <td class="num">${fmt(c.delta_mape, 2)}</td><td class="num">${fmt(c.delta_bic, 1)}</td><td>${esc(c.meaning)}${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.join("; ")) + "</span>" : ""}</td>
-    <td><button class="apply" data-spec="${esc(c.spec || c.effect)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(c.spec || c.effect)}]">apply</button></td></tr>`);
+  const focus = d.pool && d.pool.focus;
+  const mineTest = (c, p) => {
+    const t = (c.tests || {})[p];
+    if (!t) return null;
+    return focus && t.per_well && t.per_well[focus] ? t.per_well[focus] : t;
+  };
+  const change = (t) => !t || t.change == null ? "\u2013" :
+    `${t.change > 0 ? "+" : ""}${fmt(t.change, 2)}` + (t.low != null ? ` [${fmt(t.low, 2)}, ${fmt(t.high, 2)}]` : "");
+  const evidence = (c) => {
+    const f = (c.tests || {}).live, w = mineTest(c, "live");
+    if (!c.replayed || !f) return "not replayed";
+    return `p ${fmt(f.p_value, 3)}, q ${fmt(f.q_value, 3)} (field, ${f.n_blocks} blocks)` +
+      (focus && w !== f && w ? `; this well p ${fmt(w.p_value, 3)} (${w.n_blocks} blocks)` : "");
+  };
+  const action = (c, spec) => c.offer
+    ? `<button class="apply" data-spec="${esc(spec)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(spec)}]">apply</button>`
+    : `<span class="hint">${c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"}</span>`;
+  $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
+    <th class="num">&Delta; live [95 %]</th><th class="num">&Delta; outage [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
+  const rows = (d.candidates || []).map((c) => `<tr${c.raises_error ? ' class="worse"' : ""}><td>${esc(c.effect)}</td>
+    <td class="num">${c.replayed ? fmt((mineTest(c, "live") || {}).mape, 2) : "\u2013"}</td>
+    <td class="num">${change(mineTest(c, "live"))}</td><td class="num">${change((c.tests || {}).outage)}</td>
+    <td>${esc(c.meaning)} <span class="hint">(${esc(evidence(c))}; fit-once ${fmt(c.delta_mape, 2)})</span>${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.join("; ")) + "</span>" : ""}</td>
+    <td>${action(c, c.spec || c.effect)}</td></tr>`);
   if (d.suggestion) {
     const s = d.suggestion;
-    rows.push(`<tr><td>suggested: ${esc(s.form)}</td><td class="num">${fmt(s.mape, 2)}</td><td class="num">${fmt(s.delta_mape, 2)}</td>
-      <td class="num">${fmt(s.delta_bic, 1)}</td><td>a correction outside the library (${esc(s.driver)})</td>
-      <td><button class="apply" data-spec="${esc(s.effects)}">apply</button></td></tr>`);
+    rows.push(`<tr><td>suggested: ${esc(s.form)}</td><td class="num">${s.replayed ? fmt((mineTest(s, "live") || {}).mape, 2) : fmt(s.mape, 2)}</td>
+      <td class="num">${change(mineTest(s, "live"))}</td><td class="num">${change((s.tests || {}).outage)}</td>
+      <td>a correction outside the library (${esc(s.driver)}) <span class="hint">(${esc(evidence(s))})</span></td>
+      <td>${action(s, s.effects)}</td></tr>`);
   }
   $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="6" class="hint">No candidate could be tried.</td></tr>`;
   $("#diag-candidates-table").hidden = false;
   const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
     .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
   const real = (d.drivers || []).filter((x) => x.role === "driver" && x.score > 0 && x.p_value != null && x.p_value < 0.05);
-  $("#diag-drivers").textContent = !drivers.length ? "" : real.length
+  $("#diag-drivers").textContent = (!drivers.length ? "" : real.length
     ? "Inputs the residual depends on beyond chance: " + real.map((x) => `${x.name} (p ${fmt(x.p_value, 3)})`).join(", ") + "."
-    : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".";
+    : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".") +
+    (d.fdr && d.fdr.procedure ? ` False discoveries: ${d.fdr.procedure}; ${d.fdr.rejected} of ${d.fdr.tests} tests rejected.` : "");
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
 }
 
@@ -618,10 +737,25 @@ async function applyEffect(button) {
   out.className = "result"; out.textContent = `fitting ${[model, ...effects].join("+")} on the stored history...`;
   document.querySelectorAll("button.apply").forEach((b) => { b.disabled = true; });
   try {
-    const c = await api("PUT", `/wells/${encodeURIComponent(state.well)}/model`, model ? { model, effects } : { effects });
+    const body = model ? { model, effects } : { effects };
+    const path = `/wells/${encodeURIComponent(state.well)}/model`;
+    let c;
+    try {
+      c = await api("PUT", path, body);
+    } catch (err) {
+      // 409 with both held-out MAPEs: the change's own check says worse; ask before forcing it
+      if (err.status !== 409 || !/confirm_worse/.test(err.message)) throw err;
+      if (!window.confirm(err.message.replace(/ ?Nothing was changed;.*$/, "") + "\n\nApply it anyway? Its trial then compares it with the current model.")) {
+        out.className = "result"; out.textContent = "Not applied: " + err.message; return;
+      }
+      out.textContent = `fitting ${[model, ...effects].join("+")} again, confirmed...`;
+      c = await api("PUT", path, { ...body, confirm_worse: true });
+    }
     const h = c.holdout || {};
     out.textContent = `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
-      `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after. ` +
+      `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after` +
+      (h.confirmed_worse ? " (worse: applied as confirmed)" : "") + ". " +
+      (c.trial ? `On trial against ${c.trial.shadow_model} as a shadow until ${(c.trial.until || "").replace("+00:00", "Z")} of data. ` : "") +
       `Watch the error-over-time chart right of the red marker.`;
     const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
     state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams(); syncDiagModel(v);

@@ -1,0 +1,153 @@
+"""The well's residual alarm: has the model's error changed beyond what the learner absorbs?
+
+Per well, one :class:`vfm_core.residual_alarm.ResidualCusum` per meter (``mpfm``,
+``well_test``; created at a meter's first measurement), fed on the well's worker after
+each learning step with the measurement's residual against the prediction made at its
+sample (standardised by the predictive sd for a method that gives one, ``bayes``; the
+relative error ``ln(measured / predicted)`` otherwise). The rule, its parameters
+(``residual_alarm.*`` in the settings) and the measured false-alarm rates and delays are
+in ``docs/guide/alarms.md``.
+
+An alarm that begins or ends is a row of the store's ``residual_alarms`` table (event
+``alarm`` on ``GET /events``), a log line, and counts in ``/metrics``
+(``vfm_well_residual_alarm_active{well}``, ``vfm_well_residual_alarms_total{well}``).
+GET /wells/{well} shows :meth:`WellResidualAlarm.view` as ``residual_alarm``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+from service.config import ResidualAlarmSettings
+from vfm_core.residual_alarm import ResidualCusum, cusum_threshold, standardised_residual
+from vfm_core.timeutil import iso
+
+__all__ = ["WellResidualAlarm", "Transition", "disabled_view"]
+
+#: (kind "start" | "end", source, the event as the API shows it)
+Transition = tuple[str, str, dict[str, Any]]
+
+_EVENTS_KEPT = 20
+
+
+class WellResidualAlarm:
+    """The residual alarms of one well, one detector per meter (owned by its worker)."""
+
+    def __init__(self, settings: ResidualAlarmSettings) -> None:
+        self.settings = settings
+        self.detectors: dict[str, ResidualCusum] = {}
+        self.events: deque[dict[str, Any]] = deque(maxlen=_EVENTS_KEPT)
+        self._open: dict[str, dict[str, Any]] = {}  # source -> its active event
+        self.alarms = 0  # alarms raised since start
+
+    def _period_s(self, source: str) -> float:
+        s = self.settings
+        return s.mpfm_period_s if source == "mpfm" else s.well_test_period_s
+
+    def detector(self, source: str) -> ResidualCusum:
+        det = self.detectors.get(source)
+        if det is None:
+            s = self.settings
+            det = ResidualCusum(
+                s.arl0, s.k, self._period_s(source), s.window, s.min_periods, s.clip, s.lags
+            )
+            self.detectors[source] = det
+        return det
+
+    def update(
+        self,
+        source: str,
+        measured: float,
+        predicted: float | None,
+        sd: float | None,
+        time_ns: int,
+    ) -> list[Transition]:
+        """One learned measurement (Sm3/h, data time epoch ns) and the prediction made at
+        its sample with its predictive sd (Sm3/h; None without one): what began or ended."""
+        if predicted is None:
+            return []
+        residual = standardised_residual(float(measured), float(predicted), sd)
+        det = self.detector(source)
+        before = len(det.events)
+        was = det.alarm
+        det.update(residual, time_ns)
+        out: list[Transition] = []
+        if was and not det.alarm:  # one period closes per update: an end or a start
+            event = self._open.pop(source, None)
+            if event is not None:
+                end_ns = det.events[-1].end_ns
+                event["end"] = iso(end_ns if end_ns is not None else time_ns)
+                out.append(("end", source, event))
+        if len(det.events) > before:
+            new = det.events[-1]
+            self.alarms += 1
+            event = {
+                "source": source,
+                "start": iso(new.start_ns),
+                "end": None,
+                "direction": new.direction,
+                "statistic": float(new.statistic),
+                "threshold": float(det.threshold),
+            }
+            self.events.append(event)
+            self._open[source] = event
+            out.append(("start", source, event))
+        return out
+
+    @property
+    def active(self) -> bool:
+        return any(d.alarm for d in self.detectors.values())
+
+    def reset(self) -> None:
+        """Start over (a new model's residuals are a new stream); past events stay listed."""
+        for event in self._open.values():
+            event["end"] = event.get("end") or "reset"
+        self._open.clear()
+        self.detectors.clear()
+
+    def view(self) -> dict[str, Any]:
+        """What GET /wells/{well} shows as ``residual_alarm``."""
+        s = self.settings
+        streams: dict[str, Any] = {}
+        lead: tuple[float, str] | None = None
+        for source, det in sorted(self.detectors.items()):
+            stat = float(det.statistic)
+            streams[source] = {
+                "active": det.alarm,
+                "statistic": stat,
+                "threshold": float(det.threshold),
+                "direction": det.direction,
+                "since": iso(det.since_ns),
+                "ready": det.ready,
+                "readings": det.n_readings,
+                "periods": det.n_periods,
+                "period_s": det.period_s,
+            }
+            rank = (stat / det.threshold if det.threshold > 0 else 0.0) + (2.0 if det.alarm else 0)
+            if lead is None or rank > lead[0]:
+                lead = (rank, source)
+        top = streams.get(lead[1]) if lead is not None else None
+        active = [st for st in streams.values() if st["active"]]
+        first = min(active, key=lambda st: st["since"] or "") if active else None
+        return {
+            "enabled": True,
+            "active": bool(active),
+            "statistic": top["statistic"] if top else None,
+            "threshold": top["threshold"] if top else float(self.detector_threshold()),
+            "since": first["since"] if first else None,
+            "direction": first["direction"] if first else None,
+            "source": (lead[1] if lead is not None and active else None),
+            "arl0": s.arl0,
+            "k": s.k,
+            "streams": streams,
+            "events": list(self.events),
+        }
+
+    def detector_threshold(self) -> float:
+        return cusum_threshold(self.settings.arl0, self.settings.k)
+
+
+def disabled_view() -> dict[str, Any]:
+    """``residual_alarm`` when ``residual_alarm.enabled`` is false."""
+    return {"enabled": False, "active": False, "note": "disabled"}

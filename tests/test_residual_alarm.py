@@ -1,0 +1,159 @@
+"""The residual alarm (self-starting two-sided CUSUM): its design, false alarms, delays, state."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vfm_core.errors import ConfigError
+from vfm_core.residual_alarm import (
+    ResidualCusum,
+    alarms_from_predictions,
+    cusum_arl0,
+    cusum_threshold,
+    standardised_residual,
+)
+
+DAY_NS = 86_400 * 10**9
+
+
+def feed(det: ResidualCusum, values: np.ndarray, start: int = 0) -> None:
+    for i, v in enumerate(values):
+        det.update(float(v), (start + i) * DAY_NS)
+
+
+def test_threshold_from_the_target_run_length_by_hand() -> None:
+    # Siegmund, two-sided, k = 0.5: ARL = (e^(h + 1.166) - (h + 1.166) - 1) / (2 * 0.25) / 2
+    h = 5.0
+    assert cusum_arl0(h, 0.5) == pytest.approx((math.exp(6.166) - 6.166 - 1.0), rel=1e-12)
+    assert cusum_threshold(cusum_arl0(h, 0.5), 0.5) == pytest.approx(h, abs=1e-6)
+    assert cusum_threshold(1000.0) == pytest.approx(5.75, abs=0.005)
+    # a longer target run length asks for more evidence
+    assert cusum_threshold(10_000.0) > cusum_threshold(1000.0) > cusum_threshold(100.0)
+    with pytest.raises(ConfigError, match="arl0"):
+        cusum_threshold(1.0)
+
+
+def test_in_control_run_length_matches_the_design_on_iid_gaussian_residuals() -> None:
+    # 60 000 periods of N(0, 1): at a design ARL of 200 periods, ~300 alarms are expected.
+    # The self-starting scale (estimated, not known) and the active spans move the rate a
+    # little; the measured run length must lie within 35 % of the design.
+    arl0 = 200.0
+    det = ResidualCusum(arl0=arl0, period_s=0.0, window=365)
+    rng = np.random.default_rng(20261125)
+    n = 60_000
+    feed(det, rng.standard_normal(n))
+    tested = n - det.min_periods
+    run_length = tested / len(det.events)
+    assert 0.65 * arl0 < run_length < 1.35 * arl0, (run_length, len(det.events))
+
+
+def test_one_spike_alone_does_not_raise_an_alarm() -> None:
+    det = ResidualCusum(period_s=0.0)
+    rng = np.random.default_rng(3)
+    feed(det, rng.standard_normal(100))
+    det.update(50.0, 100 * DAY_NS)  # a meter spike: clipped at 4 standard deviations
+    assert not det.alarm and det.statistic < det.threshold
+
+
+def test_a_step_of_two_sd_is_found_within_the_expected_delay() -> None:
+    # A shift of delta = 2 sd with k = 0.5, h = 5.75: the mean delay is about
+    # (h + 1.166) / (delta - k) = 4.6 periods (Siegmund's approximation of the out-of-control
+    # run length for large h); allow up to 12 over 50 repetitions' 95th percentile.
+    delays = []
+    for seed in range(50):
+        rng = np.random.default_rng(1000 + seed)
+        det = ResidualCusum(period_s=0.0)
+        feed(det, rng.standard_normal(200))
+        if det.alarm:  # a false alarm still active at the step: it says nothing of the delay
+            continue
+        for i in range(100):
+            det.update(float(rng.standard_normal()) + 2.0, (200 + i) * DAY_NS)
+            if det.alarm:
+                delays.append(i + 1)
+                assert det.direction == "high"
+                break
+        else:
+            pytest.fail(f"seed {seed}: a step of 2 sd was not found in 100 periods")
+    assert len(delays) >= 45
+    assert 3.0 <= float(np.mean(delays)) <= 7.0
+    assert float(np.percentile(delays, 95)) <= 12
+
+
+def test_daily_periods_average_the_readings_and_the_alarm_clears() -> None:
+    det = ResidualCusum(period_s=86_400.0, min_periods=20)
+    rng = np.random.default_rng(7)
+    four_a_day = DAY_NS // 4
+    t = 0
+    for _ in range(60 * 4):  # 60 days, 4 readings a day
+        det.update(0.03 * float(rng.standard_normal()), t)
+        t += four_a_day
+    assert det.n_periods == 59 and not det.alarm  # the 60th day is still open
+    for _ in range(10 * 4):  # readings 6 % below the model for 10 days
+        det.update(-0.06 + 0.03 * float(rng.standard_normal()), t)
+        t += four_a_day
+    assert det.alarm and det.direction == "low"
+    since = det.since_ns
+    assert since is not None and 60 * DAY_NS <= since <= 64 * DAY_NS
+    for _ in range(40 * 4):  # back in control: the sums decay to 0 and the alarm ends
+        det.update(0.03 * float(rng.standard_normal()), t)
+        t += four_a_day
+    assert not det.alarm
+    (event,) = det.events
+    assert event.end_ns is not None and event.end_ns > since
+
+
+def test_state_round_trip_continues_identically() -> None:
+    rng = np.random.default_rng(11)
+    values = np.concatenate([rng.standard_normal(80), rng.standard_normal(40) + 1.5])
+    a = ResidualCusum(period_s=0.0)
+    feed(a, values[:90])
+    b = ResidualCusum()
+    b.load_state_dict(a.state_dict())
+    feed(a, values[90:], start=90)
+    feed(b, values[90:], start=90)
+    assert (a.alarm, a.statistic, len(a.events)) == (b.alarm, b.statistic, len(b.events))
+    assert a.alarm  # the shift was found
+
+
+def test_residuals_and_settings() -> None:
+    assert standardised_residual(110.0, 100.0, 5.0) == pytest.approx(2.0)
+    assert standardised_residual(110.0, 100.0) == pytest.approx(math.log(1.1))
+    assert math.isnan(standardised_residual(110.0, float("nan")))
+    assert math.isnan(standardised_residual(0.0, 100.0))
+    with pytest.raises(ConfigError, match="min_periods"):
+        ResidualCusum(window=10, min_periods=20)
+    with pytest.raises(ConfigError, match="clip"):
+        ResidualCusum(k=0.5, clip=0.5)
+
+
+def test_alarms_from_predictions_per_well_and_meter() -> None:
+    rng = np.random.default_rng(5)
+    times = pd.date_range("2020-01-01", periods=300, freq="12h", tz="UTC")
+    rows = []
+    for well, shift in (("A", 0.0), ("B", 0.08)):
+        measured = 100.0 * np.exp(0.02 * rng.standard_normal(len(times)))
+        measured[200:] *= 1.0 + shift  # B: 8 % above the model from day 100
+        rows.append(
+            pd.DataFrame(
+                {
+                    "time": times,
+                    "well": well,
+                    "source": "mpfm",
+                    "predicted": 100.0,
+                    "measured": measured,
+                }
+            )
+        )
+    alarms = alarms_from_predictions(pd.concat(rows, ignore_index=True))
+    # A may have a false alarm (a design rate of one per 1000 days); it ends again, while
+    # B's shift holds on: its alarm is still active at the end of the data
+    assert all(a["end"] is not None for a in alarms if a["well"] == "A")
+    (a,) = [a for a in alarms if a["well"] == "B"]
+    assert a["direction"] == "high" and a["source"] == "mpfm" and a["end"] is None
+    assert (
+        pd.Timestamp("2020-04-10", tz="UTC") <= a["start"] <= pd.Timestamp("2020-04-14", tz="UTC")
+    )

@@ -1,0 +1,162 @@
+"""The residual alarm in the service: GET /wells/{well}, /metrics, the store, the events, and
+the same alarms as the offline detector over the same predictions.
+
+The well runs ``mm`` with a retrain period longer than the data (``pbl:3650d``): fitted on
+its first measurement, it predicts the same rate at the same inputs until the end, so the
+residuals are the meter's own scatter (3 %) until the measured rate steps up by 12 % on
+day 70 (a change the model does not follow).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pandas as pd
+import pytest
+
+from replay.client import FieldClient, sample_of
+from service.app import Service
+from service.config import load_settings
+from service.http import create_app
+from service.testing import loopback_settings, wait_until
+from service.transport import MemoryTransport
+from vfm_core.errors import ConfigError
+from vfm_core.messages import Measurement
+from vfm_core.residual_alarm import alarms_from_predictions
+from vfm_core.timeutil import iso, to_ns
+
+pytestmark = pytest.mark.timeout(180)
+
+T0 = datetime(2021, 5, 1, 0, 0, tzinfo=UTC)
+INPUTS = (0.4, 120.0, 30.0, 60.0, 0.1, 0.6)  # fraction, bar a, bar a, degC, -, -
+STEP_DAY = 70
+DAYS = 90
+
+
+@contextmanager
+def running(folder: Path, **overrides: Any) -> Iterator[tuple[Service, FieldClient]]:
+    settings = loopback_settings(folder, model={"name": "mm", "method": "pbl:3650d"}, **overrides)
+    bus = MemoryTransport(settings.prefix)
+    service = Service(settings, bus)
+    service.start()
+    try:
+        with FieldClient(bus, settings.prefix) as client:
+            client.wait_for_service("W01")
+            yield service, client
+    finally:
+        service.stop()
+
+
+def http_get(service: Service, path: str) -> httpx.Response:
+    app = create_app(service)
+
+    async def go() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            return await client.get(path)
+
+    return asyncio.run(go())
+
+
+def send_field(client: FieldClient, seed: int) -> list[datetime]:
+    """Two MPFM readings a day with 3 % noise around 1000 Sm3/h, +12 % from STEP_DAY."""
+    rng = np.random.default_rng(seed)
+    times = [T0 + timedelta(hours=12 * i + 3) for i in range(2 * DAYS)]
+    for t in times:
+        level = 1000.0 * (1.12 if t >= T0 + timedelta(days=STEP_DAY) else 1.0)
+        q = level * float(np.exp(0.03 * rng.standard_normal()))
+        client.send_sample("W01", sample_of(t, INPUTS))
+        client.send_measurement("W01", "mpfm", Measurement(time=t, q_total=q))
+    return times
+
+
+def test_a_step_raises_the_residual_alarm_everywhere_it_is_shown(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="vfm.service.engine")
+    with running(tmp_path) as (service, client):
+        assert service.engine is not None
+        sub = service.engine.observer.subscribe("W01")
+        times = send_field(client, seed=2)
+        store = service.store
+        assert store is not None
+
+        def all_learned() -> bool:
+            rows = store.history("W01", 0, 2**62, 10_000)[1]
+            return len(rows) == len(times) and all(m.status == "learned" for m in rows)
+
+        wait_until(all_learned, 60, "every measurement to be learned")
+        view = http_get(service, "/wells/W01").json()
+        alarm = view["residual_alarm"]
+        assert alarm["enabled"] and alarm["active"]
+        assert alarm["direction"] == "high" and alarm["source"] == "mpfm"
+        assert alarm["statistic"] == pytest.approx(alarm["threshold"])  # capped while active
+        since = pd.Timestamp(alarm["since"])
+        step = pd.Timestamp(T0 + timedelta(days=STEP_DAY))
+        assert step <= since <= step + pd.Timedelta(days=4), since
+        (event,) = alarm["events"]
+        assert event["start"] == alarm["since"] and event["end"] is None
+        assert event["statistic"] > event["threshold"]
+        assert alarm["streams"]["mpfm"]["ready"] and alarm["streams"]["mpfm"]["periods"] >= 80
+        # the T^2 input test stays, under its old field and keys (inputs never moved here)
+        assert {"enabled", "detected", "active", "events"} <= set(view["drift"])
+        # /metrics: the gauge and the counter
+        text = http_get(service, "/metrics").text
+        assert 'vfm_well_residual_alarm_active{well="W01"} 1.0' in text
+        assert 'vfm_well_residual_alarms_total{well="W01"} 1.0' in text
+        # the store row, the live event, the log line
+        with store.reader() as con:
+            rows = con.execute(
+                "SELECT time_ns, source, kind, direction FROM residual_alarms WHERE well = 'W01'"
+            ).fetchall()
+        assert rows == [(to_ns(since.to_pydatetime()), "mpfm", "start", "high")]
+        events, _ = sub.take()
+        (live,) = [e for e in events if e["type"] == "alarm"]
+        assert (live["kind"], live["time"], live["direction"]) == ("start", alarm["since"], "high")
+        assert any("Residual alarm on W01" in r.getMessage() for r in caplog.records)
+
+        # the service's alarms are the offline detector's over the same predictions
+        learned = store.history("W01", 0, 2**62, 10_000)[1]
+        predictions = pd.DataFrame(
+            {
+                "time": pd.to_datetime([m.time_ns for m in learned], utc=True),
+                "well": "W01",
+                "source": [m.source for m in learned],
+                "predicted": [m.predicted for m in learned],
+                "measured": [m.q_total for m in learned],
+            }
+        )
+        offline = alarms_from_predictions(predictions, flush=False)
+        assert [(a["source"], iso(to_ns(a["start"].to_pydatetime()))) for a in offline] == [
+            ("mpfm", alarm["since"])
+        ]
+
+
+def test_the_residual_alarm_can_be_switched_off(tmp_path: Path) -> None:
+    with running(tmp_path, residual_alarm={"enabled": False}) as (service, client):
+        client.send_sample("W01", sample_of(T0, INPUTS))
+        engine = service.engine
+        assert engine is not None
+        wait_until(lambda: engine.has_well("W01"), 10, "W01 to be created")
+        view = http_get(service, "/wells/W01").json()
+        assert view["residual_alarm"] == {"enabled": False, "active": False, "note": "disabled"}
+        assert (
+            'vfm_well_residual_alarm_active{well="W01"}' not in http_get(service, "/metrics").text
+        )
+
+
+def test_settings_are_checked_with_a_sentence() -> None:
+    settings = load_settings(residual_alarm={"arl0": 3000, "k": 0.25})
+    assert (settings.residual_alarm.arl0, settings.residual_alarm.k) == (3000, 0.25)
+    with pytest.raises(ConfigError, match=r"min_periods \(400\) must not exceed"):
+        load_settings(residual_alarm={"min_periods": 400, "window": 100})
+    with pytest.raises(ConfigError, match="arl0"):
+        load_settings(residual_alarm={"arl0": 1})
