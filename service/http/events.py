@@ -5,8 +5,9 @@ committed, never by the workers directly: each client has a bounded queue (drop-
 the drops are sent as a ``dropped`` event and counted in ``/metrics``), and the stream
 reads it every :data:`POLL_S` seconds, so a slow or stalled client never holds a worker.
 Each event is ``event: <type>`` and ``data: <one JSON object>``; types ``prediction``,
-``measurement``, ``learned``, ``drift``, ``model`` (see :mod:`service.engine.observe`) and
-``dropped``. A comment line every :data:`KEEPALIVE_S` s keeps proxies from closing an
+``measurement``, ``learned``, ``drift`` (the operating point left the training data),
+``model``, ``alarm`` (a residual alarm started or ended), ``trial`` (a model change's trial
+ended) (see :mod:`service.engine.observe`) and ``dropped``. A comment line every :data:`KEEPALIVE_S` s keeps proxies from closing an
 idle stream. The stream ends when the service stops; browsers reconnect by themselves.
 """
 

@@ -587,6 +587,8 @@ function onEvent(type, ev) {
     else state.meas.push({ t, q: ev.q_total, source: ev.source, status: "learned", predicted: ev.predicted, inputs });
   } else if (type === "drift") {
     state.markers.push({ t, kind: "drift", label: "drift" });
+  } else if (type === "alarm" || type === "trial") {
+    refreshField();  // the alarm's band and the trial's line come with the well's view
   } else if (type === "model") {
     state.markers.push({ t, kind: "model", label: "\u2192 " + ev.model_after, version: ev.version_after });
     refreshField();
@@ -600,7 +602,7 @@ function connect() {
   const es = new EventSource("/events");
   es.onopen = () => { live.textContent = "live"; live.className = "live on"; };
   es.onerror = () => { live.textContent = "live: reconnecting"; live.className = "live off"; };
-  for (const type of ["prediction", "measurement", "learned", "drift", "model"]) {
+  for (const type of ["prediction", "measurement", "learned", "drift", "model", "alarm", "trial"]) {
     es.addEventListener(type, (e) => onEvent(type, JSON.parse(e.data)));
   }
   es.addEventListener("dropped", (e) => {
