@@ -160,3 +160,30 @@ def test_settings_are_checked_with_a_sentence() -> None:
         load_settings(residual_alarm={"min_periods": 400, "window": 100})
     with pytest.raises(ConfigError, match="arl0"):
         load_settings(residual_alarm={"arl0": 1})
+
+
+def test_a_restart_resumes_the_residual_alarm(tmp_path: Path) -> None:
+    """The detectors go into the well's checkpoint: after a clean stop and a start, the alarm
+    is still active with its start, and the stream tests at once (no new self-starting
+    period of ``min_periods``)."""
+    with running(tmp_path) as (service, client):
+        times = send_field(client, seed=2)
+        store = service.store
+        assert store is not None
+        wait_until(
+            lambda: (
+                sum(m.status == "learned" for m in store.history("W01", 0, 2**62, 10_000)[1])
+                == len(times)
+            ),
+            60,
+            "every measurement to be learned",
+        )
+        before = http_get(service, "/wells/W01").json()["residual_alarm"]
+    assert before["active"]
+    with running(tmp_path) as (service, _):
+        after = http_get(service, "/wells/W01").json()["residual_alarm"]
+    assert after["active"] and after["since"] == before["since"]
+    assert after["direction"] == before["direction"]
+    assert after["events"] == before["events"]
+    mpfm = after["streams"]["mpfm"]
+    assert mpfm["ready"] and mpfm["periods"] == before["streams"]["mpfm"]["periods"]

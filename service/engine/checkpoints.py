@@ -6,7 +6,8 @@ plain values, never pickle) with a JSON side-car: the drift detector's state and
 reference inputs, the drift events, the model changes made over HTTP, the model's
 specification ``[model, effects, method]``, and the trial of the last change with its
 shadow's own checkpoint (base64) while it runs (:mod:`service.engine.trial`; restored with
-the configured retrain budget, or ended ``interrupted`` when it cannot be). It is written every
+the configured retrain budget, or ended ``interrupted`` when it cannot be), and the residual
+alarm's detectors (:mod:`service.engine.residual_alarms`). It is written every
 ``store.checkpoint_every`` model updates, after a model change and at a clean stop, and
 the latest ``store.keep_checkpoints`` of a well are kept. Since it goes into the same
 transaction as the data, the store never holds a model that is ahead of its data.
@@ -126,6 +127,8 @@ class Checkpoints:
             # (service.engine.trial)
             "trial": st.trial.state() if st.trial is not None else None,
             "trials": list(st.trials),
+            # the residual alarm's detectors (service.engine.residual_alarms)
+            "residual_alarm": st.residual_alarm.state() if st.residual_alarm is not None else None,
         }
         st.checkpoint_version = learner.version
         return [
@@ -177,6 +180,8 @@ class Checkpoints:
         st.drift_events.extend(data.get("drift_events", []))
         st.model_changes.extend(data.get("model_changes", []))
         st.trials.extend(data.get("trials", []))
+        if data.get("residual_alarm") and st.residual_alarm is not None:
+            st.residual_alarm.restore(data["residual_alarm"])
         if data.get("trial"):
             _restore_trial(st, data["trial"], self.model)
 

@@ -106,6 +106,32 @@ class WellResidualAlarm:
         self._open.clear()
         self.detectors.clear()
 
+    def state(self) -> dict[str, Any]:
+        """Plain values (JSON) for the well's checkpoint side-car: each meter's detector and
+        the events listed, so that a restart resumes the test where it was (the self-starting
+        scale would otherwise need ``min_periods`` periods again before it tests)."""
+        return {
+            "detectors": {src: det.state_dict() for src, det in self.detectors.items()},
+            "events": list(self.events),
+        }
+
+    def restore(self, data: dict[str, Any]) -> None:
+        """Resume from :meth:`state`. A detector saved under other settings (``arl0``, ``k``,
+        the periods, the window ...) starts afresh: its statistic would mean something else."""
+        s = self.settings
+        for source, saved in (data.get("detectors") or {}).items():
+            design = (s.arl0, s.k, self._period_s(source), s.window, s.min_periods, s.clip, s.lags)
+            keys = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags")
+            if tuple(saved.get(k) for k in keys) != design:
+                continue
+            det = self.detector(source)
+            det.load_state_dict(saved)
+        self.events.extend(dict(e) for e in data.get("events") or [])
+        for event in self.events:  # the alarms still active go on
+            det = self.detectors.get(str(event.get("source")))
+            if event.get("end") is None and det is not None and det.alarm:
+                self._open[str(event["source"])] = event
+
     def view(self) -> dict[str, Any]:
         """What GET /wells/{well} shows as ``residual_alarm``."""
         s = self.settings
