@@ -1,6 +1,6 @@
 # Two commands do all the set-up on a fresh machine:
 #   make demo   runs the main job on an embedded default (nothing else to install)
-#   make test   runs the test suite
+#   make test   runs the test suite (make test-fast: without the slow tests, the inner loop)
 # Each creates .venv (or reuses it) and installs the CPU build of torch first.
 PYTHON ?= python3
 VENV ?= .venv
@@ -12,7 +12,7 @@ LINTED := vfm_core service replay tests benchmarks examples
 # `make test PYTEST_ARGS=` runs it in one process
 PYTEST_ARGS ?= -n 2 --dist loadfile
 
-.PHONY: install demo test lint bench bench-docs docs clean
+.PHONY: install demo test test-fast lint bench bench-docs docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,14 @@ test: $(STAMP)
 	@# pytest exits 5 when it collects no test: that is a broken suite, say so.
 	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no test" >&2; fi; exit $$rc
+
+# The inner loop: the suite without the tests marked slow (the long end-to-end ones, chosen
+# from measured durations in tests/conftest.py). CI runs `make test`, everything.
+test-fast: $(STAMP)
+	$(VENV)/bin/ruff check $(LINTED)
+	$(VENV)/bin/ruff format --check $(LINTED)
+	@$(PY) -m pytest $(PYTEST_ARGS) -m "not slow"; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test-fast: pytest collected no test" >&2; fi; exit $$rc
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check $(LINTED)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from vfm_core import physics as ph
+from vfm_core.checks import EFFECT_CHECKS, check_effect
 from vfm_core.data import make_batch
 from vfm_core.effects import (
     DEFAULT_CANDIDATES,
@@ -164,6 +165,45 @@ def test_projection_keeps_bounds_and_gradients_flow(small: pd.DataFrame) -> None
         ext.effect_params["erosion"].z[:] = -5.0  # type: ignore[index]
     ext.project_()
     assert float(ext.physical_parameters()["erosion.rate"].min()) == 0.0  # wear never shrinks
+
+
+#: every registered effect (``suggest`` with the driver it needs), and a user's class
+CONTRACT = [
+    *(("suggest:driver=t_up" if name == "suggest" else name) for name in EFFECTS),
+    "my_effects:TemperatureScale",
+]
+CASES = [(effect, check) for effect in CONTRACT for check in EFFECT_CHECKS]
+
+
+@pytest.mark.parametrize(
+    ("effect", "check"),
+    CASES,
+    ids=[f"{e}-{c.__name__.removeprefix('check_effect_')}" for e, c in CASES],
+)
+def test_effect_contract(effect: str, check, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The public check suite (vfm_core.checks) over every effect: a valid prior; mm, hem
+    and ham take it (name, finite rates, its parameters reported, rebuilt from their
+    hyperparameters); gradients reach its parameters and the projection keeps them
+    in bounds; and the model contract of mm with it, fast paths included (one stacked
+    update of many wells equals each well's own)."""
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    assert check_effect(effect, checks=[check]) == [check.__name__]
+    sys.modules.pop("my_effects", None)
+
+
+def test_the_effect_checks_can_fail() -> None:
+    """An effect whose parameter never reaches the rate is caught."""
+    from vfm_core.checks import check_effect_gradients_and_bounds
+
+    class Idle(Effect):
+        name = "idle"
+        parameters = {"k": Prior(0.0, 0.1, -1.0, 1.0, "-", "a scale nothing uses")}
+
+        def output_factor(self, inputs, p):  # type: ignore[no-untyped-def]
+            return torch.ones_like(inputs.u) + 0.0 * p["k"].detach()
+
+    with pytest.raises(AssertionError, match="no (finite )?gradient reaches its parameters"):
+        check_effect(Idle, checks=[check_effect_gradients_and_bounds])
 
 
 def test_hem_and_ham_take_effects(small: pd.DataFrame) -> None:

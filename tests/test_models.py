@@ -7,12 +7,13 @@ import pandas as pd
 import pytest
 import torch
 
+from vfm_core.checks import check_model, model_checks_for
 from vfm_core.data import make_batch, target_mask
 from vfm_core.effects import add_features
 from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_TRAIN, fit_batch, parse_method
-from vfm_core.models import MODELS, load_model, make_model, save_model
+from vfm_core.models import MODELS, make_model
 from vfm_core.simulate import simulate_field
 
 #: every registered model, and physics models with effects (built through the registry)
@@ -30,13 +31,10 @@ def field() -> pd.DataFrame:
     return add_features(frame, ["erosion", "mpfm_bias"])
 
 
-def _batch(field: pd.DataFrame, rows: np.ndarray, model) -> object:
-    return make_batch(field, wells_of(field), rows, extra_columns=model.extra_columns)
+def _quick(model_name: str):
+    from dataclasses import replace
 
-
-def _model(spec: tuple[str, tuple[str, ...]], wells: list[str], seed: int = 0):
-    name, effects = spec
-    return make_model(name, wells, seed=seed, effects=effects)
+    return replace(DEFAULT_TRAIN[model_name], max_iter=30, patience=10, default_iter=20)
 
 
 @pytest.fixture(scope="module")
@@ -49,102 +47,52 @@ def train_batch(field: pd.DataFrame, train_rows: np.ndarray):
     return make_batch(field, wells_of(field), train_rows)
 
 
-def _quick(model_name: str):
-    from dataclasses import replace
-
-    return replace(DEFAULT_TRAIN[model_name], max_iter=30, patience=10, default_iter=20)
-
-
-@pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_predict_before_learning(spec, field, train_rows) -> None:
-    model = _model(spec, wells_of(field))
-    batch = _batch(field, train_rows, model)
-    before = model.predict_batch(batch)
-    assert before.shape == batch.y.shape
-    assert torch.isnan(before).all(), "a model with no data must say so (NaN), not guess"
-    model.setup(batch)  # statistics only, no learning
-    q = model.predict_batch(batch)
-    assert torch.isfinite(q[batch.mask]).all()
-    assert (q[batch.mask] > 0).all()
-
-
-@pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_input_not_mutated(spec, field, train_rows) -> None:
-    model = _model(spec, wells_of(field))
-    batch = _batch(field, train_rows, model)
-    x, y, extra = batch.x.clone(), batch.y.clone(), batch.extra.clone()
-    fit_batch(model, batch, _quick(spec[0]))
-    model.predict_batch(batch)
-    torch.testing.assert_close(batch.x, x, rtol=0, atol=0)
-    torch.testing.assert_close(batch.y, y, rtol=0, atol=0)
-    torch.testing.assert_close(batch.extra, extra, rtol=0, atol=0)
-
-
-@pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_save_load_keeps_predictions(spec, field, train_rows, tmp_path) -> None:
-    model = _model(spec, wells_of(field), seed=1)
-    batch = _batch(field, train_rows, model)
-    fit_batch(model, batch, _quick(spec[0]))
-    path = save_model(model, tmp_path / "model.pt")
-    # the file is a plain tensor archive: torch refuses pickled objects with weights_only
-    torch.load(path, weights_only=True)
-    loaded = load_model(path)
-    assert loaded.name == model.name
-    torch.testing.assert_close(
-        loaded.predict_batch(batch), model.predict_batch(batch), rtol=0, atol=0, equal_nan=True
-    )
-
-
-@pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_same_seed_same_result(spec, field, train_rows) -> None:
-    preds = []
-    for _ in range(2):
-        model = _model(spec, wells_of(field), seed=7)
-        batch = _batch(field, train_rows, model)
-        fit_batch(model, batch, _quick(spec[0]))
-        preds.append(model.predict_batch(batch))
-    torch.testing.assert_close(preds[0], preds[1], rtol=0, atol=0, equal_nan=True)
-
-
-@pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_one_online_step_lowers_error_on_that_observation(spec, field, train_rows) -> None:
-    wells = wells_of(field)
-    model = _model(spec, wells)
-    fit_batch(model, _batch(field, train_rows, model), _quick(spec[0]))
-    # a new observation per well, 10 % above what the model predicts (a clear surprise)
-    rows = np.flatnonzero(target_mask(field, "all") & (field["time"] >= "2019-01-01").to_numpy())
-    new = _batch(field, rows, model)
-    one = new.select(torch.cumsum(new.mask.long(), 1) == 1)
-    pred = model.predict_batch(one)
-    one.y = torch.where(one.mask, pred * 1.10, one.y)
-    err_before = (model.predict_batch(one) - one.y).abs()[one.mask]
-    parse_method("ol").bind(model).on_measurement(one)
-    err_after = (model.predict_batch(one) - one.y).abs()[one.mask]
-    assert (err_after < err_before).all(), f"{spec}: {err_before} -> {err_after}"
+#: (spec, check) for every spec and every check of vfm_core.checks that applies to it
+CASES = [(spec, check) for spec in SPECS for check in model_checks_for(spec[0], spec[1])]
 
 
 @pytest.mark.parametrize(
-    "spec",
-    [s for s in SPECS if not MODELS[s[0]].gradient_free],
-    ids=lambda s: "+".join([s[0], *s[1]]),
+    ("spec", "check"),
+    CASES,
+    ids=[f"{'+'.join([s[0], *s[1]])}-{c.__name__.removeprefix('check_model_')}" for s, c in CASES],
 )
-def test_batch_fit_learns_a_shift(spec, field, train_rows) -> None:
-    """Set up on the data, then fit to targets 15 % higher: the error must at least halve."""
-    from dataclasses import replace
+def test_model_contract(spec, check, field) -> None:
+    """The public check suite (vfm_core.checks) over every registered model and the
+    physics models with effects: NaN before learning, inputs unchanged, a model file
+    predicts the same, same seed same fit, one online step lowers the error, a batch fit
+    follows a shift, and the fast paths (stacked and compiled updates) equal the plain one."""
+    assert check_model(spec[0], effects=spec[1], checks=[check], frame=field) == [check.__name__]
 
-    model = _model(spec, wells_of(field))
-    batch = _batch(field, train_rows, model)
-    model.setup(batch)
-    shifted = replace(batch, y=batch.y * 1.15)
-    m = batch.mask
 
-    def err() -> float:
-        q = model.predict_batch(shifted)
-        return float(((q - shifted.y).abs() / shifted.y.abs())[m].mean())
+def test_the_model_checks_can_fail(field) -> None:
+    """A model that changes its input, and one that guesses before learning, are caught."""
+    from vfm_core.checks import (
+        check_model_input_not_mutated,
+        check_model_predicts_nan_before_learning,
+    )
 
-    before = err()
-    fit_batch(model, shifted, DEFAULT_TRAIN[spec[0]])
-    assert err() < 0.5 * before, (before, err())
+    def meddling(wells, seed):
+        model = make_model("lr", wells, seed=seed)
+        plain = model.predict_batch
+
+        def predict_batch(batch):
+            batch.y.mul_(1.0 + 1e-9)
+            return plain(batch)
+
+        model.predict_batch = predict_batch
+        return model
+
+    with pytest.raises(AssertionError, match="changed batch.y"):
+        check_model(meddling, checks=[check_model_input_not_mutated], frame=field)
+
+    def guessing(wells, seed):
+        model = make_model("lr", wells, seed=seed)
+        plain = model.predict_batch
+        model.predict_batch = lambda batch: torch.nan_to_num(plain(batch), nan=1.0)
+        return model
+
+    with pytest.raises(AssertionError, match="must say so"):
+        check_model(guessing, checks=[check_model_predicts_nan_before_learning], frame=field)
 
 
 def test_effects_are_a_constructor_argument_of_the_physics_models_only() -> None:

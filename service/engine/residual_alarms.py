@@ -128,8 +128,8 @@ class WellResidualAlarm:
             det.load_state_dict(saved)
         self.events.extend(dict(e) for e in data.get("events") or [])
         for event in self.events:  # the alarms still active go on
-            det = self.detectors.get(str(event.get("source")))
-            if event.get("end") is None and det is not None and det.alarm:
+            resumed = self.detectors.get(str(event.get("source")))
+            if event.get("end") is None and resumed is not None and resumed.alarm:
                 self._open[str(event["source"])] = event
 
     def view(self) -> dict[str, Any]:

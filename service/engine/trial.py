@@ -45,21 +45,51 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from scipy import stats
 
-from service.config import TrialSettings
+from service.config import Settings, TrialSettings
 from service.store import InsertModelVersion, InsertTrial, Op, PruneModelVersions
 from vfm_core.errors import VFMError
 from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import from_ns, iso
 
 if TYPE_CHECKING:
-    from service.engine.checkpoints import Checkpoints
-    from service.engine.learning import Learning
+    from service.engine.parameters import ParameterHistory
     from service.engine.state import Sample, WellState
+
+
+class Checkpoints(Protocol):
+    """What a trial needs of :class:`service.engine.checkpoints.Checkpoints` (a protocol,
+    so that this module imports neither it nor :mod:`service.engine.learning`, which import
+    this one)."""
+
+    @property
+    def parameters(self) -> ParameterHistory: ...
+
+    def ops(self, st: WellState) -> list[Op]: ...
+
+
+class _Counters(Protocol):
+    def event(self, name: str, n: int = 1) -> None: ...
+
+
+class Learning(Protocol):
+    """What a trial needs of :class:`service.engine.learning.Learning`."""
+
+    @property
+    def checkpoints(self) -> Checkpoints: ...
+
+    @property
+    def settings(self) -> Settings: ...
+
+    @property
+    def counters(self) -> _Counters: ...
+
+    def catch_up(self, learner: WellLearner, time_ns: int) -> bool: ...
+
 
 __all__ = ["OUTCOMES", "Trial", "block_test", "decide", "install", "rule_text", "version_ops"]
 

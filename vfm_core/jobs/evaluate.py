@@ -35,7 +35,6 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +44,7 @@ from tqdm import tqdm
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
+from vfm_core.jobs.results import StudyResult
 from vfm_core.jobs.study import (
     OUTAGE_FRACTIONS,
     PHASES,
@@ -73,65 +73,6 @@ __all__ = [
 DEFAULT_METHODS: tuple[str, ...] = ("ol", "pbl:14d", "pbl:182d")
 #: what a study worker imports before it takes a model (see vfm_core.jobs.workers)
 PRELOAD: tuple[str, ...] = (__name__,)
-
-
-@dataclass
-class StudyResult:
-    """Everything one study produced; :func:`write_study` turns it into files."""
-
-    split: pd.Timestamp
-    targets: str
-    records: list[dict[str, Any]]
-    summary: list[dict[str, Any]]
-    predictions: pd.DataFrame
-    #: times of periodic retrains per method (the same for every model)
-    updates: dict[str, list[pd.Timestamp]]
-    #: well-test times per well, from the data (for the days-between-tests view)
-    well_tests: dict[str, list[pd.Timestamp]]
-    runtime_s: float
-    #: physical parameter traces (time, well, model, method, name, value), may be empty
-    parameters: pd.DataFrame = field(default_factory=pd.DataFrame)
-    data_path: str = ""
-    #: the outage protocol's scored rows (inside the windows), with ``outage`` and
-    #: ``days_since``; empty without outages
-    outage_predictions: pd.DataFrame = field(default_factory=pd.DataFrame)
-    #: every outage window (outage, well, start, end, rows); empty without outages
-    outage_windows: pd.DataFrame = field(default_factory=pd.DataFrame)
-    #: the outage lengths as asked (``["7d", "30d"]``) and how the fractions were taken
-    outages: list[str] = field(default_factory=list)
-    outage_fractions: str = "held"
-    #: the phase rates scored beside the total (empty when the data have none)
-    phases: list[str] = field(default_factory=list)
-    #: per run: model, method, (outage,) runtime_s, retrains
-    runs: list[dict[str, Any]] = field(default_factory=list)
-
-    def metrics(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "data": self.data_path,
-            "split": self.split.isoformat(),
-            "targets": self.targets,
-            "records": self.records,
-            "summary": self.summary,
-            "runtime_s": round(self.runtime_s, 3),
-            "runs": [{**r, "runtime_s": round(float(r["runtime_s"]), 3)} for r in self.runs],
-        }
-        if self.phases:
-            out["phases"] = list(self.phases)
-        if self.outages:
-            out["outages"] = list(self.outages)
-            out["outage_fractions"] = self.outage_fractions
-            windows = self.outage_windows
-            out["outage_windows"] = [
-                {
-                    "outage": str(r.outage),
-                    "well": str(r.well),
-                    "start": pd.Timestamp(r.start).isoformat(),
-                    "end": pd.Timestamp(r.end).isoformat(),
-                    "rows": int(r.rows),
-                }
-                for r in windows.itertuples()
-            ]
-        return out
 
 
 #: record keys that tell apart scores of the same model and method (absent = the default)

@@ -1,11 +1,12 @@
 """Worker processes that share a list of tasks with the process that asks for them.
 
 ``vfm evaluate --jobs N`` runs the study's model groups N at a time: the calling process
-takes groups itself while N - 1 spawned workers start (importing torch and the kernels
-takes a few seconds); a worker gets a group only once it is ready, so a small study never
-waits for a worker to start: at worst the caller ran everything alone. Workers are spawned,
-never forked (torch, tqdm and numba hold threads), and live until :meth:`StudyWorkers.close`,
-so the two cases of one ``vfm evaluate`` share them.
+takes groups itself while N - 1 workers of a :class:`~concurrent.futures.ProcessPoolExecutor`
+start (spawned, never forked: torch, tqdm and numba hold threads; the executor's
+``initializer`` imports the study and warms the kernels, a few seconds). A worker gets a
+group only once it is ready, so a small study never waits for a worker to start: at worst
+the caller ran everything alone. The workers live until :meth:`StudyWorkers.close`, so the
+two cases of one ``vfm evaluate`` share them.
 
 A task's function must be a module-level callable ``fn(task, report)``; ``report(n)`` adds
 ``n`` to the caller's progress. Tasks and results travel pickled between this process and
@@ -13,11 +14,18 @@ its own workers only (nothing from outside is unpickled). An exception in a task
 again in the caller, with the worker's traceback as a note; a worker that dies (killed, out
 of memory) ends the run with an error naming its exit code. Ctrl-C reaches the caller only
 (workers ignore SIGINT) and the caller stops the workers.
+
+What the executor does not give, and this module adds: the readiness of each worker and
+the progress of a running task (a message queue handed to the initializer), the caller
+taking tasks itself, and, because Python 3.11's executor can neither terminate its workers
+(``shutdown`` waits for a running task; ``terminate_workers`` came in 3.14) nor say which
+worker died with which exit code, the handles of the processes it spawned (read from
+:func:`multiprocessing.active_children` as they start).
 """
 
 from __future__ import annotations
 
-import logging
+import functools
 import multiprocessing as mp
 import os
 import signal
@@ -26,16 +34,18 @@ import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 __all__ = ["StudyWorkers", "usable_cpus"]
 
-logger = logging.getLogger("vfm.workers")
-
 #: a worker sends its progress at most this often, s
 _PROGRESS_EVERY_S = 0.25
-#: how often the caller checks that its workers are alive while it waits, s
+#: how often the caller checks on its run while it waits, s
 _POLL_S = 0.5
+#: a worker's end of the message queue to the caller (set by :func:`_init_worker`)
+_messages: Any = None
 
 
 def usable_cpus() -> int:
@@ -46,18 +56,10 @@ def usable_cpus() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _worker_main(  # noqa: PLR0913 - what a spawned worker is given
-    tasks: Any,
-    results: Any,
-    threads: int,
-    preload: tuple[str, ...],
-    gate: Any = None,
-    flags: Any = None,
-    slot: int = 0,
-) -> None:
-    """A worker: import what the tasks need, say it is ready, then run tasks until told to
-    stop. ``gate``, ``flags``: see :meth:`StudyWorkers.close` (flags[0]: closing;
-    flags[1 + slot]: this worker may take from the task queue)."""
+# -- in a worker -----------------------------------------------------------------------------
+def _init_worker(messages: Any, threads: int, preload: tuple[str, ...]) -> None:
+    """The executor's initializer: import what the tasks need, then say it is ready."""
+    global _messages
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller handles Ctrl-C and stops us
     import importlib
 
@@ -69,35 +71,35 @@ def _worker_main(  # noqa: PLR0913 - what a spawned worker is given
     from vfm_core.learning import kernels
 
     kernels.warm()
-    if gate is not None:
-        with gate:  # once marked, close() sends this worker its stop, never terminates it
-            if flags[0]:
-                return
-            flags[1 + slot] = 1
-    results.put(("ready", os.getpid()))
-    while True:
-        item = tasks.get()
-        if item is None:
-            return
-        index, fn, task = item
-        results.put(("took", index, os.getpid()))
-        pending = [0, time.monotonic()]
+    _messages = messages
+    messages.put(("ready", os.getpid()))
 
-        def report(n: int, pending: list[Any] = pending) -> None:
-            pending[0] += n
-            now = time.monotonic()
-            if now - pending[1] >= _PROGRESS_EVERY_S:
-                results.put(("progress", pending[0]))
-                pending[0], pending[1] = 0, now
 
-        try:
-            out = fn(task, report)
-        except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
-            results.put(("error", index, _portable(exc), traceback.format_exc()))
-        else:
-            if pending[0]:
-                results.put(("progress", pending[0]))
-            results.put(("done", index, out))
+def _start() -> None:
+    """A first task that makes the executor spawn a worker (it spawns one per submission)."""
+
+
+def _run_task(fn: Callable[[Any, Callable[[int], None]], Any], index: int, task: Any) -> tuple:
+    """Run one task in a worker: ``("done", out)`` or ``("error", exc, traceback)``; its
+    progress, then ``finished``, go to the caller's message queue before the result does."""
+    _messages.put(("took", index, os.getpid()))
+    pending = [0, time.monotonic()]
+
+    def report(n: int) -> None:
+        pending[0] += n
+        now = time.monotonic()
+        if now - pending[1] >= _PROGRESS_EVERY_S:
+            _messages.put(("progress", pending[0]))
+            pending[0], pending[1] = 0, now
+
+    try:
+        answer: tuple = ("done", fn(task, report))
+    except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
+        answer = ("error", _portable(exc), traceback.format_exc())
+    if pending[0]:
+        _messages.put(("progress", pending[0]))
+    _messages.put(("finished", index))
+    return answer
 
 
 def _portable(exc: BaseException) -> BaseException:
@@ -109,6 +111,24 @@ def _portable(exc: BaseException) -> BaseException:
     except Exception:  # noqa: BLE001 - any pickling failure
         return RuntimeError(f"{type(exc).__name__}: {exc}")
     return exc
+
+
+# -- in the caller ---------------------------------------------------------------------------
+class _Run:
+    """One :meth:`StudyWorkers.map` call: its tasks, results and progress."""
+
+    def __init__(self, fn: Callable, tasks: Sequence[Any], progress: Callable[[int], None]):
+        self.fn = fn
+        self.pending: deque[tuple[int, Any]] = deque(enumerate(tasks))
+        self.results: dict[int, Any] = {}
+        self.futures: dict[int, Future] = {}
+        #: tasks whose worker said ``finished`` (their progress has all arrived)
+        self.finished: set[int] = set()
+        self.outstanding = 0
+        #: index -> pid of the worker running it
+        self.running: dict[int, int] = {}
+        self.error: BaseException | None = None
+        self.progress = progress
 
 
 class StudyWorkers:
@@ -134,100 +154,76 @@ class StudyWorkers:
         self.workers = int(workers)
         self._threads = int(threads)
         self._preload = tuple(preload)
+        self._executor: ProcessPoolExecutor | None = None
         self._procs: list[Any] = []
-        self._tasks: Any = None
-        self._results: Any = None
+        self._messages: Any = None
         self._reader: threading.Thread | None = None
         self._cond = threading.Condition()
         self._idle = 0
-        #: close() and the workers' ready marks (see close): a lock and [closing, ready...]
-        self._gate: Any = None
-        self._flags: Any = None
+        self._ready: set[int] = set()
         self._closed = False
-        self._run: dict[str, Any] | None = None
+        self._run: _Run | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     def start(self) -> StudyWorkers:
-        if self._procs or self.workers == 0:
+        if self._executor is not None or self.workers == 0:
             return self
         ctx = mp.get_context("spawn")
-        self._tasks, self._results = ctx.Queue(), ctx.Queue()
-        self._gate, self._flags = ctx.Lock(), ctx.Array("b", self.workers + 1, lock=False)
-        for i in range(self.workers):
-            proc = ctx.Process(
-                target=_worker_main,
-                args=(
-                    self._tasks,
-                    self._results,
-                    self._threads,
-                    self._preload,
-                    self._gate,
-                    self._flags,
-                    i,
-                ),
-                daemon=True,
-                name="vfm-study-worker",
-            )
-            proc.start()
-            self._procs.append(proc)
+        self._messages = ctx.Queue()
+        self._executor = ProcessPoolExecutor(
+            self.workers,
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(self._messages, self._threads, self._preload),
+        )
+        before = {p.pid for p in mp.active_children()}
+        for _ in range(self.workers):
+            self._executor.submit(_start)
+        self._procs = [p for p in mp.active_children() if p.pid not in before]
         self._reader = threading.Thread(target=self._read, name="vfm-study-results", daemon=True)
         self._reader.start()
         return self
 
     def close(self) -> None:
-        """Stop the workers: idle ones are told to end (a worker killed while it waits on
-        the task queue may hold the queue's lock, and then the others never get their
-        stop); one still importing is terminated (it has not touched the queue: under the
-        shared ``gate`` it either marked itself ready before ``close`` looked, or sees the
-        closing flag and ends); a task still running is abandoned, its worker terminated."""
+        """Stop the workers: idle ones are told to end; when one is still importing or a
+        task is still running (an error, Ctrl-C), they are all terminated."""
         with self._cond:
             if self._closed:
                 return
             self._closed = True
-            busy = self._run is not None and bool(self._run["outstanding"])
+            busy = self._run is not None and self._run.outstanding > 0
+            starting = len(self._ready) < self.workers
             self._cond.notify_all()
-        if not busy and self._tasks is not None:
-            # no worker marks itself ready from here on; the workers not marked never take
-            # from the task queue, so they hold none of its locks and may be terminated. A
-            # gate that stays taken means a worker was killed from outside inside it: then
-            # none is known to be safe, and all are terminated.
-            got = self._gate.acquire(timeout=5.0)
-            self._flags[0] = 1
-            marked = [got and bool(self._flags[1 + i]) for i in range(len(self._procs))]
-            if got:
-                self._gate.release()
-            for _ in self._procs:
-                self._tasks.put(None)
-            for proc, ready in zip(self._procs, marked, strict=True):
-                if not ready:
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            if busy or starting:  # the executor then ends the others itself
+                for proc in self._procs:
                     proc.terminate()
             deadline = time.monotonic() + 10.0
             for proc in self._procs:
                 proc.join(timeout=max(0.0, deadline - time.monotonic()))
-        for proc in self._procs:
-            if proc.is_alive():
-                proc.terminate()
-        for proc in self._procs:
-            proc.join(timeout=5)
-        if self._results is not None:
-            self._results.put(("closed",))
+            for proc in self._procs:
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join(timeout=5)
+        if self._messages is not None:
+            self._messages.put(("closed",))
         if self._reader is not None:
             self._reader.join(timeout=5)
-        for q in (self._tasks, self._results):
-            if q is not None:
-                q.cancel_join_thread()
-                q.close()
+        if self._messages is not None:
+            self._messages.cancel_join_thread()
+            self._messages.close()
 
     def ready(self, timeout: float | None = None) -> bool:
         """Wait until every worker is ready for a task (or ``timeout`` s); True if they are."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._idle < self.workers and not self._closed:
+            while len(self._ready) < self.workers and not self._closed:
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return False
                 self._cond.wait(_POLL_S if left is None else min(left, _POLL_S))
-            return self._idle >= self.workers and not self._closed
+            return len(self._ready) >= self.workers and not self._closed
 
     def __enter__(self) -> StudyWorkers:
         return self.start()
@@ -235,52 +231,105 @@ class StudyWorkers:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- the reader thread -----------------------------------------------------------------
+    # -- the reader thread and the executor's callbacks ------------------------------------
     def _read(self) -> None:
         while True:
             try:
-                msg = self._results.get()
+                msg = self._messages.get()
             except (EOFError, OSError):  # pragma: no cover - the queue went away at close
                 return
             kind = msg[0]
             if kind == "closed":
                 return
+            run = self._run
             if kind == "progress":
-                run = self._run
                 if run is not None:
-                    run["progress"](msg[1])
-                continue
-            if kind == "took":
-                with self._cond:
-                    if self._run is not None:
-                        self._run["running"][msg[1]] = msg[2]
+                    run.progress(msg[1])
                 continue
             with self._cond:
-                self._idle += 1  # a worker ready for its first task, or done with one
-                if kind != "ready":
-                    run = self._run
-                    if run is not None:
-                        run["outstanding"] -= 1
-                        run["running"].pop(msg[1], None)
-                        if kind == "done":
-                            run["results"][msg[1]] = msg[2]
-                        elif run["error"] is None:
-                            exc = msg[2]
-                            exc.add_note(f"In a study worker:\n{msg[3]}")
-                            run["error"] = exc
-                self._dispatch()
+                if kind == "took" and run is not None:
+                    run.running[msg[1]] = msg[2]
+                elif kind in ("ready", "finished"):
+                    self._idle += 1  # a worker ready for its first task, or done with one
+                    if kind == "ready":
+                        self._ready.add(msg[1])
+                    elif run is not None:
+                        run.finished.add(msg[1])
+                        self._settle(run, msg[1])
+                    self._dispatch()
                 self._cond.notify_all()
+
+    def _on_done(self, run: _Run, index: int, future: Future) -> None:
+        with self._cond:
+            self._settle(run, index)
+            self._cond.notify_all()
+
+    def _settle(self, run: _Run, index: int) -> None:
+        """Take a task's result once both its future and its last message are in (called
+        with the condition held)."""
+        future = run.futures.get(index)
+        if future is None or not future.done() or index in run.results:
+            return
+        failed = future.cancelled() or future.exception() is not None
+        if not failed and index not in run.finished:
+            return  # the result came before the task's last progress: wait for it
+        run.outstanding -= 1
+        run.running.pop(index, None)
+        if failed:
+            if run.error is None:
+                run.error = self._death(run, future)
+            run.results[index] = None
+            return
+        answer = future.result()
+        if answer[0] == "done":
+            run.results[index] = answer[1]
+        else:
+            run.results[index] = None
+            if run.error is None:
+                exc = answer[1]
+                exc.add_note(f"In a study worker:\n{answer[2]}")
+                run.error = exc
+
+    def _death(self, run: _Run, future: Future) -> BaseException:
+        """The error for a task that no worker finished: a worker died (the executor then
+        ends the others, with SIGTERM)."""
+        if future.cancelled():
+            return RuntimeError("A study task was cancelled because the workers are closing.")
+        busy = set(run.running.values())
+        dead: list[Any] = []
+        deadline = time.monotonic() + 2.0  # its pipe closes a moment before it can be reaped
+        while not dead and time.monotonic() < deadline:
+            dead = [p for p in self._procs if p.pid in busy and p.exitcode is not None]
+            dead = dead or [p for p in self._procs if p.exitcode not in (None, -signal.SIGTERM)]
+            time.sleep(0.0 if dead else 0.02)
+        codes = ", ".join(f"pid {p.pid}, exit code {p.exitcode}" for p in dead) or "unknown"
+        error = RuntimeError(
+            f"A study worker died ({codes}) while running a task; run again with "
+            "--jobs 1 to run everything in this process."
+        )
+        error.__cause__ = future.exception()
+        return error
 
     def _dispatch(self) -> None:
         """Hand pending tasks to idle workers (called with the condition held)."""
         run = self._run
-        if run is None or run["error"] is not None or self._closed:
+        if run is None or run.error is not None or self._closed or self._executor is None:
             return
-        while self._idle > 0 and run["pending"]:
-            index, task = run["pending"].popleft()
+        while self._idle > 0 and run.pending:
+            index, task = run.pending.popleft()
+            try:
+                future = self._executor.submit(_run_task, run.fn, index, task)
+            except BrokenProcessPool as exc:
+                run.pending.appendleft((index, task))
+                run.error = RuntimeError(
+                    "The study workers are gone (one died); run again with --jobs 1 to run "
+                    f"everything in this process ({exc})."
+                )
+                return
             self._idle -= 1
-            run["outstanding"] += 1
-            self._tasks.put((index, run["fn"], task))
+            run.outstanding += 1
+            run.futures[index] = future
+            future.add_done_callback(functools.partial(self._on_done, run, index))
 
     # -- running ---------------------------------------------------------------------------
     def map(
@@ -297,15 +346,7 @@ class StudyWorkers:
             with lock:
                 progress(n)
 
-        run: dict[str, Any] = {
-            "fn": fn,
-            "pending": deque(enumerate(tasks)),
-            "results": {},
-            "outstanding": 0,
-            "running": {},
-            "error": None,
-            "progress": locked,
-        }
+        run = _Run(fn, tasks, locked)
         with self._cond:
             if self._closed:
                 raise RuntimeError("These study workers are closed.")
@@ -314,32 +355,19 @@ class StudyWorkers:
         try:
             while True:
                 with self._cond:
-                    if run["error"] is not None or not run["pending"]:
+                    if run.error is not None or not run.pending:
                         break
-                    index, task = run["pending"].popleft()
-                run["results"][index] = fn(task, locked)
-            self._wait(run)
-            if run["error"] is not None:
-                raise run["error"]
+                    index, task = run.pending.popleft()
+                run.results[index] = fn(task, locked)
+            with self._cond:
+                while run.outstanding > 0 and run.error is None:
+                    self._cond.wait(_POLL_S)
+            if run.error is not None:
+                raise run.error
         except BaseException:
             self.close()  # another worker may still be running a task of this run
             raise
         finally:
             with self._cond:
                 self._run = None
-        return [run["results"][i] for i in range(len(tasks))]
-
-    def _wait(self, run: dict[str, Any]) -> None:
-        with self._cond:
-            while run["outstanding"] > 0 and run["error"] is None:
-                self._cond.wait(_POLL_S)
-                busy = set(run["running"].values())
-                dead = [p for p in self._procs if p.pid in busy and not p.is_alive()]
-                if not any(p.is_alive() for p in self._procs):  # a task no one can take
-                    dead = list(self._procs)
-                if dead:
-                    codes = ", ".join(f"pid {p.pid}, exit code {p.exitcode}" for p in dead)
-                    run["error"] = RuntimeError(
-                        f"A study worker died ({codes}) while running a task; run again with "
-                        "--jobs 1 to run everything in this process."
-                    )
+        return [run.results[i] for i in range(len(tasks))]

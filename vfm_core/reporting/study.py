@@ -1,7 +1,7 @@
 """The study report: one self-contained HTML page with the paper's tables and figures.
 
 Owns what the study page shows and computes: :func:`build_report` renders a
-:class:`vfm_core.jobs.evaluate.StudyResult` for a production engineer: a computed summary
+:class:`vfm_core.jobs.results.StudyResult` for a production engineer: a computed summary
 in plain words, the mean MAPE table (the paper's Tables 2/3), the per-well MAPE table
 (Table C1/C2), per-well MAPE box plots, the 14-day rolling error against time, the days
 between well tests (Figure and Table C3), predicted against measured rates per well and,
@@ -19,7 +19,7 @@ import math
 import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -29,11 +29,9 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
+from vfm_core.jobs.results import StudyResult
 from vfm_core.reporting import page
 from vfm_core.reporting.page import Png
-
-if TYPE_CHECKING:
-    from vfm_core.jobs.evaluate import StudyResult
 
 __all__ = ["build_report", "calibration_curve", "BENCHMARK"]
 
