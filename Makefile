@@ -67,6 +67,8 @@ docs: $(DOCS_STAMP)
 bench-docs: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	$(PY) benchmarks/bench_speed.py --markdown docs/benchmarks/generated/speed.md
+	$(PY) benchmarks/bench_alarms.py --markdown docs/benchmarks/generated/alarms.md
+	$(PY) benchmarks/bench_alarms.py --arl0 3000 --markdown docs/benchmarks/generated/alarms_arl3000.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info site
