@@ -68,7 +68,9 @@ bench-docs: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	$(PY) benchmarks/bench_speed.py --markdown docs/benchmarks/generated/speed.md
 	$(PY) benchmarks/bench_alarms.py --markdown docs/benchmarks/generated/alarms.md
-	$(PY) benchmarks/bench_alarms.py --arl0 3000 --markdown docs/benchmarks/generated/alarms_arl3000.md
+	$(PY) benchmarks/bench_alarms.py --models ham --methods ol --arl0 3000 \
+		--fields 'none:41:6:4,none:42:4:5,none:43:8:3,erosion;step=0.1:44:6:4,erosion;rate=0;step=0.1:47:8:4' \
+		--markdown docs/benchmarks/generated/alarms_arl3000.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info site
