@@ -13,9 +13,13 @@ seed 0), and hand-made fields that are not this simulator's: a clean field (seed
 rates are multiplied by a factor the library has no effect for (a temperature-dependent
 discharge coefficient, weak and strong; a dependence on the separator pressure; a yearly
 wave), or by another form of a library effect (an equal-percentage valve of rangeability 50
-instead of 30, wear growing with time^1.5, a van der Waals gas instead of Papay's Z). Run:
+instead of 30, wear growing with time^1.5, a van der Waals gas instead of Papay's Z). Each line also gives the live baseline (the method replayed, ``--method``, default ``ol``)
+and the outage baseline, the verdict's live and outage changes, and the run time with the
+replay (format 3) and, with ``--before``, without it (``replay_top=0``: the fit-once verdict
+of format 2): the cost of the replay. Run:
 
-    python benchmarks/bench_diagnose.py [--cases none,erosion,tempcd] [--out runs/bench-diagnose]
+    python benchmarks/bench_diagnose.py [--cases none,erosion,tempcd] [--model mm] [--method ol]
+        [--wells 10] [--years 6] [--before] [--out runs/bench-diagnose]
 """
 
 from __future__ import annotations
@@ -99,13 +103,15 @@ HANDMADE: dict[str, Callable[[pd.DataFrame, SimulatedField], np.ndarray]] = {
 }
 
 
-def _case(name: str) -> tuple[pd.DataFrame, float]:
+def _case(name: str, wells: int = 10, years: float = 6.0) -> tuple[pd.DataFrame, float]:
     """The observations of a case and the truth's noise floor (MAPE %) after the split."""
     if name in LIBRARY:
-        field = simulate_field(hidden=[] if name == "none" else [name], seed=0)
+        field = simulate_field(
+            hidden=[] if name == "none" else [name], seed=0, wells=wells, years=years
+        )
         factor = np.ones(len(field.observations))
     else:
-        field = simulate_field(seed=3)
+        field = simulate_field(seed=3, wells=wells, years=years)
         factor = HANDMADE[name](field.observations, field)
     obs = field.observations.copy()
     obs["q_total"] = obs["q_total"] * factor
@@ -115,19 +121,36 @@ def _case(name: str) -> tuple[pd.DataFrame, float]:
     return obs, mape((truth * meter)[scored], obs["q_total"][scored])
 
 
+def _num(value: object) -> float:
+    return float(value) if isinstance(value, int | float) else float("nan")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", default=",".join([*LIBRARY, *HANDMADE]))
     parser.add_argument("--out", default="runs/bench-diagnose")
+    parser.add_argument("--model", default="mm")
+    parser.add_argument("--method", default="ol")
+    parser.add_argument("--wells", type=int, default=10)
+    parser.add_argument("--years", type=float, default=6.0)
+    parser.add_argument(
+        "--before", action="store_true", help="also time the fit-once verdict alone (format 2)"
+    )
     args = parser.parse_args()
     print(
         f"{'case':<16} {'verdict':<34} {'baseline %':>10} {'with %':>7} {'floor est':>9} "
-        f"{'floor truth':>11} {'removed':>8} {'time s':>7}"
+        f"{'floor truth':>11} {'removed':>8} {'time s':>7} {'outage %':>8} {'d live':>7} "
+        f"{'d outage':>8} {'fit-once s':>10}"
     )
     for name in [c.strip() for c in args.cases.split(",") if c.strip()]:
-        obs, truth_floor = _case(name)
+        obs, truth_floor = _case(name, args.wells, args.years)
+        before = float("nan")
+        if args.before:
+            started = time.perf_counter()
+            run_diagnosis(obs, args.model, method=args.method, replay_top=0)
+            before = time.perf_counter() - started
         started = time.perf_counter()
-        diag = run_diagnosis(obs, "mm")
+        diag = run_diagnosis(obs, args.model, method=args.method)
         elapsed = time.perf_counter() - started
         write_diagnosis(diag, Path(args.out) / name)
         h = diag.headline
@@ -140,7 +163,10 @@ def main() -> None:
         print(
             f"{name:<16} {diag.verdict_kind + ' ' + what:<34} {h['baseline_mape']:>10.2f} "
             f"{(h['with_mape'] or float('nan')):>7.2f} {(h['floor_mape'] or float('nan')):>9.2f} "
-            f"{truth_floor:>11.2f} {100 * removed:>7.0f}% {elapsed:>7.0f}",
+            f"{truth_floor:>11.2f} {100 * removed:>7.0f}% {elapsed:>7.0f} "
+            f"{_num(h.get('outage_baseline_mape')):>8.2f} "
+            f"{_num((h.get('live_change') or {}).get('change')):>+7.2f} "
+            f"{_num((h.get('outage_change') or {}).get('change')):>+8.2f} {before:>10.0f}",
             flush=True,
         )
         (Path(args.out) / name / "headline.json").write_text(

@@ -1,6 +1,8 @@
 """Diagnoses started over HTTP (``POST /wells/{well}/diagnosis``): background jobs with progress.
 
-A job runs ``vfm diagnose --store <the service's store> --well W`` in a process of its own
+A job runs ``vfm diagnose --store <the service's store> --well W`` (the well beside the
+other wells that run the same model and method; the well's own learning method replayed)
+in a process of its own
 (``python -m service.diagnosis``, never a fork after Zenoh opened), so it never holds the
 engine's workers or the GIL: the child reads the well's stored history through
 :func:`service.export.load_store` (a read-only connection), runs
@@ -94,14 +96,20 @@ def _child(request: dict[str, Any]) -> None:
 
         configure(1)  # torch's threads, glibc's malloc
         from service.export import load_store
-        from vfm_core.jobs.diagnose import run_diagnosis, write_diagnosis
+        from vfm_core.jobs.diagnose import pool_frame, run_diagnosis, stored_method, write_diagnosis
 
         say("progress", 0.0, "reading the stored history")
-        frame = load_store(request["store"], request["well"])
+        pooled = request.get("pool", True)
+        frame = load_store(request["store"], None if pooled else request["well"])
+        if pooled:
+            frame, note = pool_frame(frame, request["well"])
+            say("progress", 0.0, note)
+        method = request.get("method") or stored_method(frame, request["well"]) or "ol"
         diag = run_diagnosis(
             frame,
             request["model"],
-            method=request["method"],
+            method=method,
+            well=request["well"],
             split=request["split"],
             candidates=request["candidates"],
             base_effects=request.get("base_effects") or [],
@@ -186,19 +194,27 @@ class DiagnosisJobs:
         self,
         well: str,
         model: str = "mm",
-        method: str = "ol",
+        method: str | None = None,
         candidates: list[str] | None = None,
         split: str | None = None,
         suggest: bool = True,
         report: bool = True,
         base_effects: list[str] | None = None,
         base_from_model: bool = False,
+        pool: bool = True,
     ) -> Job:
         """Start a diagnosis of ``well``'s stored history; Conflict while another runs.
         ``base_effects``: the effects already in the model (see :func:`run_diagnosis
         <vfm_core.jobs.diagnose.run_diagnosis>`); ``base_from_model``: they are the well's
         model's own (see :meth:`check`)."""
         checked = self.check(model, candidates, split, base_effects, base_from_model)
+        if method is not None:
+            from vfm_core.learning import parse_method
+
+            try:
+                parse_method(method)
+            except VFMError as exc:
+                raise InvalidRequest(str(exc)) from None
         if self._stopping.is_set():
             raise Stopping("The service is stopping; retry after it restarts.")
         with self._lock:
@@ -218,6 +234,7 @@ class DiagnosisJobs:
                 "base_effects": list(base_effects or []),
                 "split": split,
                 "suggest": suggest,
+                "pool": pool,
             }
             job = Job(job_id, well, request, folder)
             self._jobs[job_id] = job

@@ -708,9 +708,11 @@ def test_outputs_follow_the_contract(tmp_path: Path) -> None:
     v = data["verdict"]
     assert v["kind"] == "effect" and v["effect"] == "erosion" and v["driver"] is None
     assert v["text"] == diag.verdict
-    h = data["headline"]
-    assert h["baseline_mape"] == pytest.approx(diag.candidate_baseline_mape)
+    h = data["headline"]  # under the live protocol (the method replayed); fit-once beside it
+    assert h["baseline_mape"] == pytest.approx(diag.live["mape"])
+    assert h["fit_once_baseline_mape"] == pytest.approx(diag.candidate_baseline_mape)
     assert h["with"] == "erosion" and h["with_mape"] < h["baseline_mape"]
+    assert h["live_change"]["change"] < 0 and h["live_change"]["high"] is not None
     assert data["floor"]["mape"] > 0 and "consecutive readings" in data["floor"]["method"]
     assert data["noise_test"]["shifts"] > 0 and data["suggestion"] is None
     html = (tmp_path / "out" / "report.html").read_text()
@@ -750,8 +752,10 @@ def test_command_line_parser() -> None:
             "well_test",
         ]
     )
-    # no --model: mm, or with --store the model the service runs (see _store_model)
-    assert args.model is None and args.method == "ol" and args.targets == "well_test"
+    # no --model: mm, or with --store the model the service runs (see _store_model); no
+    # --method: with --store the method the service runs for the well, else ol
+    assert args.model is None and args.method is None and args.targets == "well_test"
+    assert args.replay_top == 3 and args.outage == "30d" and not args.no_pool
     assert args.effects == ["erosion,real_gas"] and callable(args.handler)
     args = _parser().parse_args(["diagnose", "--store", "s.sqlite", "--well", "W1", "--out", "d"])
     assert args.data is None and args.store == "s.sqlite" and args.well == "W1"
@@ -786,7 +790,8 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     assert sorted(c["effect"] for c in data_json["candidates"]) == ["erosion", "mpfm_bias"]
     assert data_json["extended"]["effect"] == "erosion"
     assert data_json["method"] == "pbl:182d" and data_json["baseline"]["candidate_method"] == METHOD
-    assert data_json["verdict"]["kind"] in ("effect", "driver", "noise")
+    assert data_json["verdict"]["kind"] in ("effect", "driver", "carried", "noise")
+    assert data_json["format"] == "vfm-diagnosis/3" and data_json["live"]["method"] == "pbl:182d"
     html = (tmp_path / "d" / "report.html").read_text()
     assert "Before and after" in html and "MAPE after" in html
 

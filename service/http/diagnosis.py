@@ -5,7 +5,10 @@ The job (:mod:`service.diagnosis`) runs ``vfm diagnose`` on the well's stored hi
 process of its own; one runs at a time (409 for a second) within
 ``http.diagnosis_budget_s``. Once done, the answer carries the diagnosis JSON (the fields
 ``vfm diagnose`` writes to diagnosis.json) and a link to its report; each candidate's
-``spec`` is what ``PUT /wells/{well}/model`` takes as an effect.
+``spec`` is what ``PUT /wells/{well}/model`` takes as an effect. The diagnosis replays the
+well's own learning method (the live error the service shows, and the outage error) and
+tests each candidate on the other wells that run the same model too (the field's evidence
+beside the well's): see the diagnosis guide.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from service.errors import Starting
 from service.http.deps import KnownWell, ServiceDep, TokenDep
 from service.http.schemas import ErrorOut
 
-__all__ = ["router", "DiagnosisIn"]
+__all__ = ["router", "DiagnosisIn", "request_method"]
 
 router = APIRouter(tags=["diagnosis"])
 
@@ -36,9 +39,16 @@ class DiagnosisIn(BaseModel):
         description="base model: mm, hem or ham; default: the well's model when it is one of "
         "these, else mm",
     )
-    method: str = Field(
-        default="ol",
-        description="learning method of the online run (where it fails): ol or pbl:<period>",
+    method: str | None = Field(
+        default=None,
+        max_length=40,
+        description="the learning method replayed for the live and outage errors (ol, "
+        "pbl:<period>, bayes, ...); default: the well's own, as the service runs it",
+    )
+    pool: bool = Field(
+        default=True,
+        description="test the candidates on every well that runs the same model and method "
+        "too (the field's evidence beside the well's); false: the well's data alone",
     )
     candidates: list[str] | None = Field(
         default=None,
@@ -71,6 +81,15 @@ def request_base(
     if base is not None:
         return model, list(base), False
     return model, list(running.get("effects") or []) if model == runs else [], True
+
+
+def request_method(running: dict[str, Any], method: str | None) -> str:
+    """The learning method a diagnosis replays: the request's, else the well's own (its
+    API snapshot), else ol."""
+    if method is not None:
+        return method
+    own = running.get("method")
+    return own if isinstance(own, str) and own else "ol"
 
 
 def get_jobs(service: ServiceDep) -> DiagnosisJobs:
@@ -124,13 +143,13 @@ def start_diagnosis(
     body = body or DiagnosisIn()
     engine = service.engine
     st = engine.wells.get(well) if engine is not None else None
-    model, base, own = request_base(
-        st.snapshot if st is not None else {}, body.model, body.base_effects
-    )
+    snapshot = st.snapshot if st is not None else {}
+    model, base, own = request_base(snapshot, body.model, body.base_effects)
     job = jobs.start(
         well,
         model=model,
-        method=body.method,
+        method=request_method(snapshot, body.method),
+        pool=body.pool,
         candidates=body.candidates,
         split=body.split,
         suggest=body.suggest,

@@ -1,16 +1,40 @@
 """Diagnose a choke model: where it fails, which physical effect is missing, and what adding it gives.
 
-``vfm diagnose DATA --model mm --out DIR`` (or ``--store PATH`` for a running service's
-data) answers with one verdict, of three kinds:
+``vfm diagnose DATA --model mm --method ol --out DIR`` (or ``--store PATH`` for a running
+service's data) answers with one verdict, of four kinds:
 
-* ``effect``: a library effect (:mod:`vfm_core.effects`) is missing; it is named, with the
-  error before and after adding it and its fitted parameters with their uncertainty;
-* ``driver``: no library effect explains the residual, but a variable does, beyond time,
-  well and chance; a generic correction in that variable is fitted and offered, as an
-  effect to apply (``--effects suggest:driver=...``) and as code to start one's own;
-* ``noise``: neither; what is left is measurement noise and meter drift.
+* ``effect``: adding a library effect (:mod:`vfm_core.effects`) lowers the error the
+  operator sees (live) or the error while the meter is out (outage) beyond chance, and
+  raises neither; it is named with both changes and their intervals, the evidence, and
+  its fitted parameters with their uncertainty;
+* ``driver``: no library effect does, but a variable explains the residual beyond time,
+  well and chance, and a generic correction in it (fitted, offered as an effect
+  ``--effects suggest:driver=...`` and as code to start one's own) passes the same test;
+* ``carried``: the fit-once evidence names an effect, but adding it to the model the well
+  runs lowers neither error beyond chance (the learner, or a hybrid's network, already
+  carries it), or raises one: not offered;
+* ``noise``: none of these.
 
-How:
+**The verdict's protocols** (format ``vfm-diagnosis/3``): the well's own learning method
+(``method``) is replayed over the history (:func:`vfm_core.jobs.study.run_prequential`:
+every measurement after the split predicted before it is learned, as the service runs it),
+so that the baseline is the live error the service shows (**live**), and again with
+:data:`OUTAGE` windows without a measurement (**outage**), scored inside them. The baseline
+and the best :data:`REPLAY_TOP` candidates by the fit-once evidence (plus a suggested
+correction) are replayed; each is compared with the baseline by paired block tests of the
+per-measurement differences of absolute percentage error, for the field and for each well,
+all tests of a diagnosis in one Benjamini-Hochberg family (:mod:`vfm_core.jobs.diagnose_live`,
+which states each rule and its reason). A candidate is *offered* (the page's "apply") only
+when neither error rises and a test finds a lower one beyond chance (:func:`_offer`).
+``well`` diagnoses one well beside its pool (the other wells of the data, which a store
+narrows to those running the same model and method): the field's evidence and the well's,
+side by side (``well_verdicts`` holds each well's). Hybrids (:data:`HYBRIDS`) are
+identified on their mechanistic core (``mm`` with the same effects) and replayed as they
+are. The fit-once protocol below is kept as **evidence**: it names and ranks the
+candidates, finds the drivers and fits the correction; ``fit_once.verdict`` in the JSON is
+the verdict it alone would give (format 2's rule); ``replay_top=0`` gives only that.
+
+How the fit-once evidence is taken:
 
 1. **One protocol for every comparison** (``--candidate-method``, default
    :data:`CANDIDATE_METHOD`): the model is fitted once on the measurements before the split
@@ -51,7 +75,11 @@ How:
    (:func:`vfm_core.jobs.diagnose_stats.noise_floor`), so that "how much of the error above
    the floor the effect removes" can be read.
 
-Outputs (written atomically): ``DIR/diagnosis.json`` (format ``vfm-diagnosis/2``: ``model``,
+Outputs (written atomically): ``DIR/diagnosis.json`` (format ``vfm-diagnosis/3``; every field
+of format 2 kept, the headline now under the live protocol with the fit-once figures beside
+it, plus ``live``, ``outage``, ``fdr``, ``pool``, ``well_verdicts``, ``fit_once`` and per
+candidate ``replayed``, ``offer``, ``raises_error``, ``live``, ``outage``, ``tests``;
+format 2's fields: ``model``,
 ``baseline``, ``drivers``, ``candidates`` as before, plus ``verdict`` ``{"kind", "effect",
 "driver", "text"}``, ``headline``, ``suggestion`` ``{"driver", "form", "parameters", "mape",
 ...}``, ``floor``, ``noise_test``, ``skipped``, ``notes``) and ``DIR/report.html``.
@@ -96,9 +124,10 @@ from vfm_core.effects import (
 )
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.features import STANDARD_FEATURES, standard_features
+from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES, rank_drivers
-from vfm_core.jobs.study import RunResult, mape, resolve_split, run_prequential
+from vfm_core.jobs.study import RunResult, mape, plan_outages, resolve_split, run_prequential
 from vfm_core.learning import DEFAULT_TRAIN, OnlineSettings, TrainSettings
 from vfm_core.models import EFFECT_MODELS, ChokeModel
 from vfm_core.schema import INPUT_COLUMNS, MPFM, SOURCE, TIME, WELL, WELL_TEST
@@ -110,6 +139,9 @@ __all__ = [
     "MATERIAL_BIC",
     "MIN_WELL_TESTS",
     "CANDIDATE_METHOD",
+    "REPLAY_TOP",
+    "OUTAGE",
+    "HYBRIDS",
     "VARIANTS",
     "reference_bic",
     "CandidateResult",
@@ -140,6 +172,16 @@ MATERIAL_SHARE = 1.0 / 3.0
 MATERIAL_MAPE_NEAR_FLOOR = 0.1
 #: the comparison protocol: fit once before the split, never update (100-year period)
 CANDIDATE_METHOD = "pbl:36500d"
+#: Candidates replayed under the well's own learning method (live and outage), best first by
+#: the fit-once BIC among those that lowered the fit-once error: a compute budget, not a test
+#: (the others count in the false-discovery family with p = 1).
+REPLAY_TOP = 3
+#: The outage protocol's window: a month without a measurement (a failed MPFM's repair).
+OUTAGE = "30d"
+#: Hybrid models whose network absorbs what a missing effect would explain: their candidates
+#: are identified on the mechanistic core (mm with the same effects), fit once, and replayed
+#: on the hybrid itself (what adding the effect does to the model the well runs).
+HYBRIDS = ("ham", "hem")
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
 MIN_WELL_TESTS = 20
 #: Library variants tried after a material candidate: other forms of the same physics.
@@ -199,6 +241,17 @@ class CandidateResult:
     share_above_floor: float = float("nan")
     #: the variable the effect acts through (its before/after panel)
     driver: str | None = None
+    #: paired block tests against the baseline per protocol (``fit_once``, ``live``,
+    #: ``outage``): change, interval, p, q, rejected, per_well (see diagnose_live)
+    tests: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: replayed under the well's own learning method (live and outage)
+    replayed: bool = False
+    #: adding it is offered (it lowers the live or outage error beyond chance, raises neither)
+    offer: bool = False
+    #: the replay says it raises the live error (point estimate above 0)
+    raises_error: bool | None = None
+    live_run: RunResult | None = field(default=None, repr=False)
+    outage_run: RunResult | None = field(default=None, repr=False)
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -214,8 +267,21 @@ class CandidateResult:
             "share": MATERIAL_SHARE,
         }
 
+    def test(self, protocol: str, well: str | None = None) -> dict[str, Any] | None:
+        """The paired test of a protocol, the field's (``well`` None) or one well's."""
+        t = self.tests.get(protocol)
+        if not t or well is None:
+            return t
+        return t.get("per_well", {}).get(well, t if not t.get("per_well") else None)
+
     def to_json(self) -> dict[str, Any]:
         return {
+            "replayed": self.replayed,
+            "offer": self.offer,
+            "raises_error": self.raises_error,
+            "live": _brief(self.test("live")),
+            "outage": _brief(self.test("outage")),
+            "tests": self.tests,
             "effect": self.effect,
             "spec": self.spec or self.effect,
             "mape": self.mape,
@@ -273,6 +339,12 @@ class Suggestion:
             "variants": self.variants,
             "code": self.code,
             "warnings": list(self.result.warnings),
+            "replayed": self.result.replayed,
+            "offer": self.result.offer,
+            "raises_error": self.result.raises_error,
+            "live": _brief(self.result.test("live")),
+            "outage": _brief(self.result.test("outage")),
+            "tests": self.result.tests,
         }
 
 
@@ -322,6 +394,22 @@ class Diagnosis:
     #: effects already in the model (their specs): every run has them, the candidates
     #: are what is missing beyond them
     base_effects: list[str] = field(default_factory=list)
+    #: the live protocol's baseline: {"protocol", "method", "mape", "n", "service_mape", ...}
+    live: dict[str, Any] = field(default_factory=dict)
+    #: the outage protocol's baseline: {"label", "windows", "mape", "n", ...} (empty: none)
+    outage: dict[str, Any] = field(default_factory=dict)
+    #: the false-discovery control: {"procedure", "q", "tests", "rejected"}
+    fdr: dict[str, Any] = field(default_factory=dict)
+    #: the wells diagnosed together: {"wells", "focus", "note"}
+    pool: dict[str, Any] = field(default_factory=dict)
+    #: each well's own verdict (what a diagnosis of that well says): {well: {...}}
+    well_verdicts: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: the verdict the fit-once evidence alone gives (format 2's rule), as evidence
+    fit_once_verdict: dict[str, Any] = field(default_factory=dict)
+    #: the model the candidates are identified on (fit once): the model, or mm for a hybrid
+    screen_model: str = ""
+    #: the verdict's numbers: {"effect", "live", "outage", "evidence"} (None for noise)
+    verdict_detail: dict[str, Any] | None = None
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -354,7 +442,7 @@ class Diagnosis:
     def with_effect(self) -> CandidateResult | None:
         """The "with" of the headline: the verdict's effect, the suggestion, or (noise) the
         best candidate."""
-        if self.verdict_kind == "effect":
+        if self.verdict_kind in ("effect", "carried"):
             return next((c for c in self.candidates if c.effect == self.verdict_effect), None)
         if self.suggestion is not None and self.verdict_kind == "driver":
             return self.suggestion.result
@@ -362,21 +450,49 @@ class Diagnosis:
 
     @property
     def headline(self) -> dict[str, Any]:
-        """One baseline and one "with" figure, both under the comparison protocol."""
+        """One baseline and one "with" figure, both under the live protocol (the well's own
+        learning method replayed, what the operator sees) when the diagnosis replayed, else
+        under the fit-once comparison; the outage figures beside them."""
         w = self.with_effect
+        if not self.live:
+            return {
+                "protocol": self.protocol,
+                "method": self.candidate_method,
+                "baseline_mape": self.candidate_baseline_mape,
+                "with": None if w is None else (w.spec or w.effect),
+                "with_mape": None if w is None else w.mape,
+                "floor_mape": self.floor.get("mape"),
+                "n": int(len(self.residuals)),
+            }
+        focus = self.pool.get("focus")
+        replayed = w is not None and w.replayed
+        lt = None if w is None else w.test("live", focus)
+        ot = None if w is None else w.test("outage", focus)
+        base = self.live.get("well_mape", self.live["mape"]) if focus else self.live["mape"]
+        out_base = (
+            self.outage.get("well_mape", self.outage.get("mape"))
+            if focus
+            else self.outage.get("mape")
+        )
         return {
-            "protocol": self.protocol,
-            "method": self.candidate_method,
-            "baseline_mape": self.candidate_baseline_mape,
+            "protocol": self.live["protocol"],
+            "method": self.method,
+            "baseline_mape": base,
             "with": None if w is None else (w.spec or w.effect),
-            "with_mape": None if w is None else w.mape,
+            "with_mape": None if lt is None or not replayed else lt["mape"],
             "floor_mape": self.floor.get("mape"),
-            "n": int(len(self.residuals)),
+            "n": int(self.live.get("well_n" if focus else "n", len(self.residuals))),
+            "live_change": _brief(lt) if replayed else None,
+            "outage_baseline_mape": out_base,
+            "outage_with_mape": None if ot is None or not replayed else ot.get("mape"),
+            "outage_change": _brief(ot) if replayed else None,
+            "fit_once_baseline_mape": self.candidate_baseline_mape,
+            "fit_once_with_mape": None if w is None else w.mape,
         }
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "format": "vfm-diagnosis/2",
+            "format": "vfm-diagnosis/3",
             "model": self.model,
             "base_effects": list(self.base_effects),
             "method": self.method,
@@ -411,7 +527,22 @@ class Diagnosis:
             "findings": self.findings,
             "notes": self.notes,
             "runtime_s": self.runtime_s,
+            "live": self.live,
+            "outage": self.outage,
+            "fdr": self.fdr,
+            "pool": self.pool,
+            "well_verdicts": self.well_verdicts,
+            "fit_once": {
+                "protocol": self.protocol,
+                "method": self.candidate_method,
+                "model": self.screen_model or self.model,
+                "baseline_mape": self.candidate_baseline_mape,
+                "verdict": self.fit_once_verdict,
+                "role": "evidence: identifies candidates and drivers; the verdict is taken "
+                "under the live and outage protocols",
+            },
         }
+        out["verdict"].update(self.verdict_detail or {})
         if self.extended is not None:
             out["extended"] = self.extended.to_json()
         return out
@@ -999,6 +1130,10 @@ def run_diagnosis(
     shifts: int = stats.SHIFTS,
     source: dict[str, Any] | None = None,
     base_effects: Sequence[str | type[Effect]] = (),
+    replay_top: int = REPLAY_TOP,
+    outage: str | None = OUTAGE,
+    well: str | None = None,
+    screen_model: str | None = None,
 ) -> Diagnosis:
     """Diagnose ``model`` (mm, hem or ham) on an observation frame; see the module docstring.
 
@@ -1013,6 +1148,15 @@ def run_diagnosis(
     effects the model already has (found by an earlier diagnosis and added): every run
     has them, so the verdict is about what is missing beyond them; a candidate among them
     is skipped.
+
+    The verdict is taken under the well's own learning method (``method``) replayed over
+    the history (live) and with :data:`OUTAGE` windows without a measurement (outage): the
+    baseline and the best ``replay_top`` candidates by the fit-once evidence (0: none, the
+    fit-once verdict of format 2 only), each compared with paired block tests under one
+    Benjamini-Hochberg family (:mod:`vfm_core.jobs.diagnose_live`). ``well``: the well the
+    diagnosis is for; the other wells of ``frame`` are its pool (the field's evidence beside
+    the well's). ``screen_model``: the model the candidates are identified on, fit once
+    (default: ``model``, or mm for the hybrids in :data:`HYBRIDS`).
     """
     started = time.perf_counter()
     cand_classes = [resolve_effect(c) for c in candidates]
@@ -1028,6 +1172,20 @@ def run_diagnosis(
         )
     split_ts, split_note = _choose_split(frame, targets, split)
     notes = [split_note] if split_note else []
+    pool_wells = sorted(set(frame.loc[target_mask(frame, targets), WELL].astype(str)))
+    if well is not None and well not in pool_wells:
+        raise DataError(
+            f"The data hold no measurement of well {well} (they hold {', '.join(pool_wells[:20])})."
+        )
+    screen = screen_model or ("mm" if model in HYBRIDS else model)
+    if screen not in EFFECT_MODELS:
+        raise ConfigError(f"The screen model must be one of {', '.join(EFFECT_MODELS)}.")
+    if screen != model:
+        notes.append(
+            f"The candidates are identified on {screen}, the mechanistic core of {model}, fit "
+            f"once (its network would absorb what a missing effect explains); what adding one "
+            f"does is measured on {model} itself, replayed with {method}."
+        )
     train_rows = _training_rows(frame, targets, split_ts)
     train_frame = frame.iloc[train_rows]
     offered: list[type[Effect]] = []
@@ -1044,30 +1202,45 @@ def run_diagnosis(
             skipped.append({"effect": cls.name, "reason": reason})
     frame = _with_features(frame, [*base_classes, *offered, *ext_classes])
     cand_method = candidate_method or CANDIDATE_METHOD
-    cand_train = _comparison_train(model, train)
+    cand_train = _comparison_train(screen, train)
     kw: dict[str, Any] = dict(targets=targets, split=split_ts, online=online, seed=seed)
-    jobs: list[tuple[str, list[type[Effect]], str, TrainSettings | None]] = [
-        ("baseline", [], method, train)
+    jobs: list[tuple[str, list[type[Effect]], str, TrainSettings | None, str]] = [
+        ("baseline", [], method, train, model)
     ]
-    jobs.append(("__comparison__", [], cand_method, cand_train))
-    jobs += [(c.name, [c], cand_method, cand_train) for c in offered]
+    jobs.append(("__comparison__", [], cand_method, cand_train, screen))
+    jobs += [(c.name, [c], cand_method, cand_train, screen) for c in offered]
     if ext_classes:
-        jobs.append(("__extended__", ext_classes, method, train))
-    bar = _Progress(progress, len(jobs) + 1)
+        jobs.append(("__extended__", ext_classes, method, train, model))
+    # the replays (live and outage, baseline and the shortlist) are the slow runs: count them
+    # from the start so that the progress does not jump back
+    n_replays = (2 * max(replay_top, 0) + 1) if replay_top > 0 else 0
+    bar = _Progress(progress, len(jobs) + 1 + n_replays)
     runs: dict[str, RunResult] = {}
 
     def run(
-        key: str, classes: list[type[Effect]], how: str, settings: TrainSettings | None
+        key: str,
+        classes: list[type[Effect]],
+        how: str,
+        settings: TrainSettings | None,
+        name: str = screen,
+        plan: Any = None,
     ) -> RunResult:
         bar.start(f"fitting {key.strip('_')}")
         out = run_prequential(
-            frame, model, how, effects=[*base_classes, *classes], train=settings, **kw
+            frame,
+            name,
+            how,
+            effects=[*base_classes, *classes],
+            train=settings,
+            outage=plan,
+            **kw,
         )
         bar.step()
         return out
 
-    for key, classes, how, settings in jobs:
-        runs[key] = run(key, classes, how, settings)
+    for key, classes, how, settings, name in jobs:
+        runs[key] = run(key, classes, how, settings, name)
+    classes_of: dict[str, list[type[Effect]]] = {c.name: [c] for c in offered}
     base = runs["baseline"]
     base_p = base.predictions
     base_mape = mape(base_p["predicted"], base_p["measured"])
@@ -1129,6 +1302,7 @@ def run_diagnosis(
         frame = _with_features(frame, extra)
         bar.add(len(extra))
         for cls in extra:
+            classes_of[cls.name] = [cls]
             r_ = run(cls.name, [cls], cand_method, cand_train)
             cand = _score(cls.name, r_, [cls], comp_mape, comp, train_batch(r_))
             cand.variant_of = best.effect
@@ -1154,7 +1328,46 @@ def run_diagnosis(
         "score": None if top is None else top["score"],
         "p_value": None if top is None else top["p_value"],
     }
-    material = [c for c in results if c.material]
+    # --- the replay: the well's own method, live and in outages ----------------------------
+    plan = None
+    if replay_top > 0 and outage:
+        plan = plan_outages(frame, outage, targets=targets, split=split_ts, seed=seed)
+        if plan.windows.empty:
+            notes.append(
+                f"No well has {outage} outage windows after the split (a well needs three times "
+                "the window's length of measurements): the outage protocol is left out."
+            )
+            plan = None
+    base_out = None
+    if replay_top > 0 and plan is None:
+        bar.add(-1)
+    if replay_top > 0 and plan is not None:
+        base_out = run(f"baseline with {outage} outages", [], method, train, model, plan)
+    shortlist = [c for c in results if c.run is not None and c.delta_mape < 0][: max(replay_top, 0)]
+    if n_replays:  # the runs counted at the start, made exact now
+        bar.add(len(shortlist) * (2 if plan is not None else 1) - 2 * max(replay_top, 0))
+
+    def replay(c: CandidateResult, classes: list[type[Effect]]) -> None:
+        c.live_run = run(f"{c.effect} with {method}", classes, method, train, model)
+        if plan is not None:
+            c.outage_run = run(f"{c.effect} with outages", classes, method, train, model, plan)
+        c.replayed = True
+
+    if replay_top > 0:
+        for c in shortlist:
+            replay(c, classes_of[c.effect])
+        for c in results:
+            _test_candidate(c, comp, base, base_out, pool_wells, seed)
+    suggest_slots = 1 if suggest and replay_top > 0 else 0
+    if replay_top > 0:
+        fdr = _fdr(results, None, suggest_slots, len(pool_wells))
+        offered_any = any(_offer(c, None)[0] for c in results) or any(
+            _offer(c, w)[0] for c in results for w in pool_wells
+        )
+    else:
+        fdr = {}
+        offered_any = any(c.material for c in results)
+
     significant = (
         top is not None
         and top["p_value"] is not None
@@ -1164,7 +1377,7 @@ def run_diagnosis(
     suggestion = None
     if (
         suggest
-        and not material
+        and not offered_any
         and significant
         and top is not None
         and top["name"] in SUGGEST_DRIVERS
@@ -1191,6 +1404,13 @@ def run_diagnosis(
         )
     if suggestion is not None:
         _judge(suggestion.result, comp_mape, floor.get("mape"))
+        if replay_top > 0:
+            s_cls = [resolve_effect(suggestion.spec)]
+            frame = _with_features(frame, s_cls)
+            bar.add(2 if plan is not None else 1)
+            replay(suggestion.result, s_cls)
+            _test_candidate(suggestion.result, comp, base, base_out, pool_wells, seed)
+            fdr = _fdr(results, suggestion.result, suggest_slots, len(pool_wells))
     noise_test["confirmed"] = None if suggestion is None else suggestion.result.material
 
     extended = None
@@ -1222,6 +1442,69 @@ def run_diagnosis(
         scored_on,
         trend_share,
     )
+    fit_once_verdict = {"kind": kind, "effect": effect_name, "driver": driver_name, "text": text}
+    live_info: dict[str, Any] = {}
+    outage_info: dict[str, Any] = {}
+    well_verdicts: dict[str, dict[str, Any]] = {}
+    detail: dict[str, Any] | None = None
+    if replay_top > 0:
+        live_info = _baseline_info(base, pool_wells, well)
+        live_info["protocol"] = (
+            f"{model_label(model, base_classes)} learning with {method} from {split_ts.date()}, as "
+            "the service runs it: every measurement after the split predicted before it is "
+            f"learned ({live_info['n']:,} measurements)"
+        )
+        live_info["method"] = str(method)
+        live_info.update(_service_error(frame, targets, split_ts, pool_wells, well))
+        if base_out is not None and plan is not None:
+            outage_info = _baseline_info(base_out, pool_wells, well, in_outage=True)
+            outage_info.update(
+                {
+                    "label": plan.label,
+                    "length_days": plan.length / pd.Timedelta(days=1),
+                    "windows": int(len(plan.windows)),
+                    "protocol": f"windows of {plan.label} without a measurement (a failed "
+                    f"meter), {len(plan.windows)} over the wells after the split; scored inside "
+                    "them, the learner learning from the rest",
+                }
+            )
+        ctx = _VerdictContext(
+            model_label(model, base_classes),
+            str(method),
+            live_info,
+            outage_info,
+            floor.get("mape"),
+            len(pool_wells),
+        )
+        for w in [None, *pool_wells] if len(pool_wells) > 1 else [None]:
+            well_verdicts["field" if w is None else w] = _live_verdict(
+                results,
+                suggestion,
+                w,
+                ctx,
+                fit_once_verdict,
+                None if w is None else well_verdicts["field"]["effect"],
+            )
+        if len(pool_wells) == 1:
+            well_verdicts[pool_wells[0]] = well_verdicts["field"]
+        picked = well_verdicts[well if well is not None else "field"]
+        kind, effect_name, driver_name, text = (
+            picked["kind"],
+            picked["effect"],
+            picked["driver"],
+            picked["text"],
+        )
+        detail = {k: v for k, v in picked.items() if k not in ("kind", "effect", "driver", "text")}
+        for c in [*results, *([suggestion.result] if suggestion is not None else [])]:
+            c.offer = _offer(c, well)[0]
+            lt = c.test("live", well)
+            c.raises_error = (
+                None if not c.replayed or lt is None or lt["change"] is None else lt["change"] > 0
+            )
+        if well is not None and len(pool_wells) > 1:
+            field_v = well_verdicts["field"]
+            if field_v["kind"] != kind or field_v["effect"] != effect_name:
+                text += f" The field's verdict over its {len(pool_wells)} wells: {field_v['text']}"
     bar.finish(f"verdict: {kind}")
     return Diagnosis(
         model,
@@ -1254,6 +1537,23 @@ def run_diagnosis(
         notes,
         source or {"kind": "frame"},
         [effect_spec(c) for c in base_classes],
+        live_info,
+        outage_info,
+        fdr,
+        {
+            "wells": pool_wells,
+            "focus": well,
+            "note": (
+                f"the diagnosis of {well} takes the {len(pool_wells) - 1} other well(s) of the "
+                "data with the same model as its pool: the field's evidence beside the well's"
+                if well is not None and len(pool_wells) > 1
+                else None
+            ),
+        },
+        well_verdicts,
+        fit_once_verdict,
+        screen,
+        detail,
     )
 
 
@@ -1311,6 +1611,390 @@ def _share(base: float, with_: float, floor: float | None) -> float:
     if floor is None or not math.isfinite(floor) or base - floor <= 1e-9:
         return float("nan")
     return (base - with_) / (base - floor)
+
+
+# --- the live and outage protocols: tests, false discoveries, verdicts ------------------------
+def model_label(model: str, classes: Sequence[type[Effect]]) -> str:
+    """``mm``, or ``mm+erosion`` with effects."""
+    return "+".join([model, *(effect_spec(c) for c in classes)])
+
+
+_BRIEF_KEYS = (
+    "change",
+    "low",
+    "high",
+    "p_value",
+    "q_value",
+    "rejected",
+    "n",
+    "n_blocks",
+    "block_days",
+    "base_mape",
+    "mape",
+    "replayed",
+)
+
+
+def _brief(t: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A test without its per-well breakdown."""
+    if t is None:
+        return None
+    return {k: t[k] for k in _BRIEF_KEYS if k in t}
+
+
+def _untested(wells: Sequence[str], reason: str) -> dict[str, Any]:
+    one: dict[str, Any] = {
+        "change": None,
+        "low": None,
+        "high": None,
+        "p_value": 1.0,
+        "n": 0,
+        "n_blocks": 0,
+        "replayed": False,
+        "reason": reason,
+    }
+    return {**one, "per_well": {w: dict(one) for w in wells} if len(wells) > 1 else {}}
+
+
+def _protocol_test(
+    base: pd.DataFrame,
+    cand: pd.DataFrame,
+    wells: Sequence[str],
+    seed: int,
+    in_outage: bool = False,
+) -> dict[str, Any]:
+    """The paired block test of one candidate under one protocol: the field's (pooled over
+    the wells) with each well's own beside it (same block length)."""
+    if in_outage:
+        keep = base["in_outage"].to_numpy(dtype=bool)
+        base, cand = base[keep], cand[keep]
+    pairs = live.paired_differences(base, cand)
+    pooled = live.paired_test(pairs, seed=seed)
+    per_well: dict[str, Any] = {}
+    if len(wells) > 1:
+        days = pooled["block_days"]
+        for w in wells:
+            per_well[w] = live.paired_test(pairs[pairs["well"] == w], days, seed=seed)
+            per_well[w]["replayed"] = True
+    return {**pooled, "replayed": True, "per_well": per_well}
+
+
+def _test_candidate(
+    c: CandidateResult,
+    comp: RunResult,
+    base: RunResult,
+    base_out: RunResult | None,
+    wells: Sequence[str],
+    seed: int,
+) -> None:
+    """Fill ``c.tests``: fit-once against the comparison baseline; live and outage against
+    the replayed baseline (untested, p = 1, when the candidate was not replayed)."""
+    if c.run is not None:
+        c.tests["fit_once"] = _protocol_test(comp.predictions, c.run.predictions, wells, seed)
+    why = (
+        f"not replayed: only the best {REPLAY_TOP} candidates by the fit-once evidence that "
+        "lowered the fit-once error are"
+    )
+    if c.replayed and c.live_run is not None:
+        c.tests["live"] = _protocol_test(base.predictions, c.live_run.predictions, wells, seed)
+    else:
+        c.tests["live"] = _untested(wells, why)
+    if base_out is not None:
+        if c.replayed and c.outage_run is not None:
+            c.tests["outage"] = _protocol_test(
+                base_out.predictions, c.outage_run.predictions, wells, seed, in_outage=True
+            )
+        else:
+            c.tests["outage"] = _untested(wells, why)
+
+
+def _fdr(
+    results: Sequence[CandidateResult],
+    suggestion: CandidateResult | None,
+    slots: int,
+    n_wells: int,
+) -> dict[str, Any]:
+    """Benjamini-Hochberg over every test of the diagnosis; writes ``q_value`` and
+    ``rejected`` into each. A correction not fitted (``slots``) still counts, with p = 1:
+    the family is fixed before the data decide what is fitted."""
+    tests: list[dict[str, Any]] = []
+    protocols: set[str] = set()
+    for c in [*results, *([suggestion] if suggestion is not None else [])]:
+        for proto, t in c.tests.items():
+            protocols.add(proto)
+            tests.append(t)
+            tests += list(t.get("per_well", {}).values())
+    extra = 0
+    if slots and suggestion is None:
+        extra = slots * len(protocols) * (1 + (n_wells if n_wells > 1 else 0))
+    p = [float(t.get("p_value", 1.0)) for t in tests] + [1.0] * extra
+    rejected, q = live.benjamini_hochberg(p, live.FDR_Q)
+    for i, t in enumerate(tests):
+        t["q_value"] = float(q[i])
+        t["rejected"] = bool(rejected[i])
+    return {
+        "procedure": live.PROCEDURE,
+        "q": live.FDR_Q,
+        "tests": len(p),
+        "rejected": int(rejected.sum()),
+    }
+
+
+def _gain(*tests: dict[str, Any] | None) -> bool:
+    """Some test (the field's, a well's) finds a lower error beyond chance (BH-rejected)."""
+    return any(
+        t is not None and t.get("rejected") and t.get("change") is not None and t["change"] < 0
+        for t in tests
+    )
+
+
+def _offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
+    """Whether adding ``c`` is offered for ``well`` (None: the field), and why (not).
+
+    Offered when the replay raises neither error (the live change of that well, or of the
+    field, and the field's outage change at most 0: never a change that raises the error
+    under a reported protocol; a single well's few outage windows are too few to sign its
+    own outage change, so the field's is used) and the field's or the well's own test finds
+    a lower live or outage error beyond chance (BH over the diagnosis's family). Field-wide
+    evidence counts for a well whose own live estimate agrees in sign: physical effects are
+    field-wide, and one well's months are weak evidence alone. And only a candidate the
+    fit-once evidence names (*material*: the BIC on the reference meter, which charges
+    every parameter, and a minimum size): a flexible candidate can lower a learner's error
+    a little by absorbing misfit that is not its physics (on clean fields a tenth of a
+    point, significant with years of data); the replay says what adding it does, the
+    fit-once evidence what it is."""
+    if not c.replayed:
+        return False, "not replayed"
+    if not c.material:
+        return False, "not material by the fit-once evidence"
+    lt, ot = c.test("live", well), c.test("outage", well)
+    if lt is None or lt.get("change") is None:
+        return False, "no replayed measurement"
+    if lt["change"] > 0:
+        return False, "raises the live error"
+    of = c.test("outage")
+    if of is not None and of.get("change") is not None and of["change"] > 0:
+        return False, "raises the outage error"
+    if _gain(c.test("live"), lt if well is not None else None):
+        return True, "live"
+    if _gain(c.test("outage"), ot if well is not None else None):
+        return True, "outage"
+    return False, "within noise"
+
+
+@dataclass
+class _VerdictContext:
+    label: str
+    method: str
+    live: dict[str, Any]
+    outage: dict[str, Any]
+    floor: float | None
+    n_wells: int
+
+
+def _change_text(t: dict[str, Any] | None, what: str) -> str:
+    if t is None or t.get("change") is None:
+        return f"{what}: not measured"
+    interval = (
+        f", 95 % interval {t['low']:+.2f} to {t['high']:+.2f}"
+        if t.get("low") is not None and math.isfinite(t["low"])
+        else ""
+    )
+    return f"{what} {t['base_mape']:.2f} -> {t['mape']:.2f} % ({t['change']:+.2f} points{interval})"
+
+
+def _evidence(c: CandidateResult, protocol: str, well: str | None, n_wells: int) -> dict[str, Any]:
+    """The field's and the well's test of one protocol, side by side."""
+    f, w = c.test(protocol), c.test(protocol, well) if well is not None else None
+    out: dict[str, Any] = {"protocol": protocol, "field": _brief(f), "wells": n_wells}
+    if well is not None and n_wells > 1:
+        out["well"] = _brief(w)
+    return out
+
+
+def _evidence_text(ev: dict[str, Any]) -> str:
+    def one(t: dict[str, Any] | None, who: str) -> str:
+        if t is None or not t.get("n_blocks"):
+            return f"{who}: no blocks"
+        return (
+            f"{who} p = {t['p_value']:.2g} (q = {t.get('q_value', float('nan')):.2g}) over "
+            f"{t['n_blocks']} blocks of {t['block_days']:g} days"
+        )
+
+    text = one(ev["field"], f"the field's {ev['wells']} well(s)" if ev["wells"] > 1 else "the well")
+    if "well" in ev:
+        text += "; " + one(ev["well"], "this well alone")
+    return text
+
+
+def _live_verdict(
+    results: Sequence[CandidateResult],
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: _VerdictContext,
+    fit_once: dict[str, Any],
+    prefer: str | None = None,
+) -> dict[str, Any]:
+    """One verdict (the field's, or ``well``'s) under the live and outage protocols:
+    ``effect`` (an offered candidate: ``prefer``, the field's effect, when it is offered for
+    the well, else the first by the fit-once evidence, ``results`` being in BIC order: the
+    BIC, which charges each parameter, names the form; the replay confirms that adding it
+    helps), ``driver`` (an
+    offered correction), ``carried`` (the fit-once evidence names an effect, but adding it
+    to the model the well runs lowers neither error beyond chance, or raises one), or
+    ``noise``."""
+    who = "" if well is None else f" for {well}"
+    out_label = ctx.outage.get("label", "outage")
+    offered = [c for c in results if _offer(c, well)[0]]
+
+    def numbers(c: CandidateResult) -> dict[str, Any]:
+        return {
+            "live": _brief(c.test("live", well)),
+            "outage": _brief(c.test("outage", well)),
+            "evidence": [_evidence(c, p, well, ctx.n_wells) for p in ("live", "outage")],
+            "offer": _offer(c, well)[0],
+            "reason": _offer(c, well)[1],
+        }
+
+    if offered:
+        best = next((c for c in offered if c.effect == prefer), offered[0])
+        num = numbers(best)
+        why = num["reason"]
+        ev = next(e for e in num["evidence"] if e["protocol"] == why)
+        text = (
+            f"Add {best.spec or best.effect} to {ctx.label}{who}. Replayed with {ctx.method}, "
+            f"{_change_text(num['live'], 'the live MAPE goes')}; "
+            f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence ({why}): "
+            f"{_evidence_text(ev)}. {best.meaning}"
+        )
+        if why == "outage":
+            text += (
+                f" Online, {ctx.method} already follows what it explains (no live gain beyond "
+                "noise); it pays off when the meter fails."
+            )
+        if best.warnings:
+            text += " Check its parameters: " + best.warnings[0]
+        return {"kind": "effect", "effect": best.effect, "driver": None, "text": text, **num}
+    if suggestion is not None and _offer(suggestion.result, well)[0]:
+        s = suggestion.result
+        num = numbers(s)
+        ev = next(e for e in num["evidence"] if e["protocol"] == num["reason"])
+        text = (
+            f"No library effect lowers the error{who}; the residual depends mostly on "
+            f"{suggestion.driver}. A correction {suggestion.text}, replayed with {ctx.method}: "
+            f"{_change_text(num['live'], 'the live MAPE goes')}; "
+            f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence: "
+            f"{_evidence_text(ev)}. Apply it with --effects {suggestion.spec}, or start your "
+            "own effect from the code in the report."
+        )
+        return {"kind": "driver", "effect": None, "driver": suggestion.driver, "text": text, **num}
+    named = [
+        c
+        for c in results
+        if c.material and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+    ]
+    if named:
+        c = next((x for x in named if x.effect == prefer), named[0])
+        num = numbers(c)
+        fo = c.test("fit_once", well) or c.test("fit_once")
+        if c.replayed:
+            lt = num["live"]
+            worse = lt is not None and lt.get("change") is not None and lt["change"] > 0
+            tail = (
+                f"adding it to {ctx.label}{who} with {ctx.method}: "
+                f"{_change_text(lt, 'live MAPE')}; "
+                f"{_change_text(num['outage'], f'in {out_label} outages')}. "
+                + (
+                    "Its live change is above zero (it does not lower the error the operator "
+                    "sees): not offered."
+                    if worse
+                    else f"{ctx.method} (and any network) already carries what it explains: "
+                    "neither error falls beyond chance; adding it would add a physical "
+                    "parameter to read (interpretability), not accuracy."
+                )
+            )
+        else:
+            tail = "it was not replayed under the live protocol."
+        text = (
+            f"The fit-once evidence names {c.effect} ({_change_text(fo, 'fit-once MAPE')}), but "
+            + tail
+        )
+        return {"kind": "carried", "effect": c.effect, "driver": None, "text": text, **num}
+    base = (
+        ctx.live.get("per_well", {}).get(well, {}).get("mape", float("nan"))
+        if well is not None
+        else ctx.live.get("mape", float("nan"))
+    )
+    floor = f"; noise floor about {ctx.floor:.2f} %" if ctx.floor is not None else ""
+    text = (
+        f"No candidate explains the residual{who}: none lowers the live or the outage error "
+        f"beyond chance (Benjamini-Hochberg at q = {live.FDR_Q:g} over the diagnosis's tests): what is left "
+        f"(live MAPE {base:.2f} %{floor}) is measurement noise, meter drift and what "
+        f"{ctx.method} follows."
+    )
+    if fit_once.get("kind") == "driver" or (suggestion is not None and not suggestion.result.offer):
+        if suggestion is not None:
+            text += (
+                f" A correction in {suggestion.driver} was fitted but does not lower the error "
+                f"the operator sees beyond chance ({_change_text(suggestion.result.test('live', well), 'live MAPE')})."
+            )
+    return {
+        "kind": "noise",
+        "effect": None,
+        "driver": None,
+        "text": text,
+        "live": None,
+        "outage": None,
+        "evidence": [],
+        "offer": False,
+        "reason": None,
+    }
+
+
+def _baseline_info(
+    run: RunResult, wells: Sequence[str], well: str | None, in_outage: bool = False
+) -> dict[str, Any]:
+    p = run.predictions
+    if in_outage:
+        p = p[p["in_outage"].to_numpy(dtype=bool)]
+    out: dict[str, Any] = {
+        "mape": mape(p["predicted"], p["measured"]),
+        "n": int(len(p)),
+        "per_well": {
+            w: {"mape": mape(g["predicted"], g["measured"]), "n": int(len(g))}
+            for w, g in p.groupby("well", sort=True)
+        },
+    }
+    if well is not None:
+        mine = out["per_well"].get(well, {"mape": float("nan"), "n": 0})
+        out["well_mape"], out["well_n"] = mine["mape"], mine["n"]
+    return out
+
+
+def _service_error(
+    frame: pd.DataFrame,
+    targets: str,
+    split: pd.Timestamp,
+    wells: Sequence[str],
+    well: str | None,
+) -> dict[str, Any]:
+    """The error the service recorded on the same measurements (a store's ``predicted``
+    column: the prediction it made before learning each one), beside the replay's."""
+    if "predicted" not in frame.columns:
+        return {}
+    rows = np.flatnonzero(target_mask(frame, targets) & (frame[TIME] >= split).to_numpy())
+    scored = frame.iloc[rows]
+    pred = pd.to_numeric(scored["predicted"], errors="coerce").to_numpy(dtype=float)
+    meas = scored["q_total"].to_numpy(dtype=float)
+    w = scored[WELL].astype(str).to_numpy()
+    ok = np.isfinite(pred)
+    if not ok.any():
+        return {}
+    out: dict[str, Any] = {"service_mape": mape(pred[ok], meas[ok]), "service_n": int(ok.sum())}
+    if well is not None:
+        mine = ok & (w == well)
+        out["service_well_mape"] = mape(pred[mine], meas[mine]) if mine.any() else None
+    return out
 
 
 def _per_well_values(
@@ -1593,6 +2277,49 @@ def format_summary(diag: Diagnosis) -> str:
         f"Online ({diag.method}, {diag.targets}): MAPE {diag.baseline_mape:.2f} % on "
         f"{len(diag.residuals):,} observations (where it fails in operation)."
     )
+    if diag.live:
+        out = (
+            f"; in {diag.outage['label']} outages {diag.outage['mape']:.2f} % on "
+            f"{diag.outage['n']:,} measurements"
+            if diag.outage
+            else ""
+        )
+        service = (
+            f"; the service recorded {diag.live['service_mape']:.2f} %"
+            if diag.live.get("service_mape") is not None
+            else ""
+        )
+        lines.append(
+            f"Live ({diag.method} replayed): MAPE {diag.live['mape']:.2f} %{service}{out}."
+        )
+        lines.append(f"False discoveries: {diag.fdr['procedure']}.")
+        lines.append("Replayed candidates (change of the error, points, 95 % interval, q):")
+        focus = diag.pool.get("focus")
+        shown = [c for c in diag.candidates if c.replayed]
+        if diag.suggestion is not None and diag.suggestion.result.replayed:
+            shown.append(diag.suggestion.result)
+        for c in shown:
+            parts = []
+            for proto in ("live", "outage"):
+                t = c.test(proto, focus if proto == "live" else None)
+                if t and t.get("change") is not None:
+                    parts.append(
+                        f"{proto} {t['change']:+.2f} [{t['low']:+.2f}, {t['high']:+.2f}] "
+                        f"q {t.get('q_value', float('nan')):.3g}"
+                    )
+            flag = (
+                "offered" if c.offer else ("raises the error" if c.raises_error else "not offered")
+            )
+            lines.append(f"  {(c.spec or c.effect):<24} " + "; ".join(parts) + f"  ({flag})")
+        if len(diag.pool.get("wells") or []) > 1:
+            lines.append(
+                "Each well's verdict: "
+                + ", ".join(
+                    f"{w} {v['kind']}"
+                    + (f" {v['effect'] or v['driver']}" if v["effect"] or v["driver"] else "")
+                    for w, v in diag.well_verdicts.items()
+                )
+            )
     lines.append(
         "Drivers beyond per-well trends (out-of-sample R^2, p): "
         + ", ".join(
@@ -1650,24 +2377,34 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     for c in candidates:
         resolve_effect(c)
     model = args.model or "mm"
+    method = args.method
     if args.store is not None:
-        frame = load_source("store", args.store, args.well)
+        frame = load_source("store", args.store, None if args.no_pool else args.well)
         source = {"kind": "store", "path": str(args.store), "well": args.well}
+        if args.well is not None and not args.no_pool:
+            frame, note = pool_frame(frame, args.well)
+            print(note)
         print(f"{args.store}: {len(frame):,} rows from the service's store.")
         model, base_effects = _store_model(frame, args.model, given_base, base_effects)
+        if method is None:
+            method = stored_method(frame, args.well)
     else:
         loaded = load_observations(args.data)
         print(loaded.summary())
         frame = loaded.frame
         source = {"kind": "file", "path": str(args.data), "well": args.well}
         if args.well is not None:
-            frame = frame[frame[WELL].astype(str) == args.well].reset_index(drop=True)
-            if frame.empty:
+            if not (frame[WELL].astype(str) == args.well).any():
                 raise DataError(f"The file {args.data} has no rows of well {args.well}.")
+            if args.no_pool:
+                frame = frame[frame[WELL].astype(str) == args.well].reset_index(drop=True)
+    if method is None:
+        method = "ol"
+        print("Replaying with ol (give --method for the well's own learning method).")
     diag = run_diagnosis(
         frame,
         model,
-        method=args.method,
+        method=method,
         candidate_method=args.candidate_method,
         targets=args.targets,
         split=args.split,
@@ -1677,11 +2414,56 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         source=source,
         base_effects=base_effects,
+        replay_top=args.replay_top,
+        outage=None if args.outage == "none" else args.outage,
+        well=args.well,
+        screen_model=args.screen_model,
     )
     written = write_diagnosis(diag, args.out, report=not args.no_report)
     print(format_summary(diag))
     print(f"Diagnosis took {diag.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
     return 0
+
+
+def pool_frame(frame: pd.DataFrame, well: str) -> tuple[pd.DataFrame, str]:
+    """The rows of ``well`` and of every other well that runs the same model (base model,
+    effects and learning method, as the store's checkpoints say: ``attrs["models"]``), and a
+    sentence saying which. Without a record of ``well``'s model, every well of the frame."""
+    wells = frame[WELL].astype(str)
+    if not (wells == well).any():
+        raise DataError(f"The data hold no rows of well {well}.")
+    stored = frame.attrs.get("models") or {}
+    mine = stored.get(well)
+    if mine is None:
+        pool = sorted(set(wells))
+        why = "its model is not recorded, so every well of the data"
+    else:
+        key = (mine["model"], tuple(mine["effects"]), mine.get("method"))
+        pool = sorted(
+            w
+            for w in set(wells)
+            if w in stored
+            and (stored[w]["model"], tuple(stored[w]["effects"]), stored[w].get("method")) == key
+        )
+        why = "the wells that run the same model and method"
+    out = frame[wells.isin(pool).to_numpy()].reset_index(drop=True)
+    out.attrs = dict(frame.attrs)
+    others = [w for w in pool if w != well]
+    return out, (
+        f"Diagnosing {well} beside its pool ({why}): "
+        + (", ".join(others[:10]) + (" ..." if len(others) > 10 else "") if others else "none")
+        + "."
+    )
+
+
+def stored_method(frame: pd.DataFrame, well: str | None) -> str | None:
+    """The learning method the service runs for ``well`` (or for every well of the frame,
+    when they agree), from the store's checkpoints; None when not recorded."""
+    stored = frame.attrs.get("models") or {}
+    if well is not None:
+        return (stored.get(well) or {}).get("method")
+    methods = {r.get("method") for w, r in stored.items() if w in set(frame[WELL].astype(str))}
+    return next(iter(methods)) if len(methods) == 1 else None
 
 
 def _store_model(
@@ -1727,9 +2509,11 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="find where a model fails and which physical effect is missing",
-        description="Fit the model once before the split and score it after; try each candidate "
-        "effect under the same protocol; rank what the residual depends on beyond time and well; "
-        "suggest a correction for an effect outside the library; give one verdict.",
+        description="Fit the model once before the split and score it after (the evidence); try "
+        "each candidate effect under the same protocol; rank what the residual depends on beyond "
+        "time and well; suggest a correction for an effect outside the library; replay the "
+        "well's learning method with the best candidates (live and with outages) and test them "
+        "with false-discovery control; give one verdict.",
     )
     p.add_argument("data", nargs="?", default=None, help="observation file (.parquet or .csv)")
     p.add_argument(
@@ -1749,9 +2533,35 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--method",
-        default="ol",
-        help="learning method of the online run (where it fails in operation): ol, "
-        "pbl:<period>, bayes, ... (default ol)",
+        default=None,
+        help="the well's learning method, replayed for the live and outage errors and where "
+        "it fails: ol, pbl:<period>, bayes, ... (default: with --store the method the service "
+        "runs for the well, else ol)",
+    )
+    p.add_argument(
+        "--replay-top",
+        type=int,
+        default=REPLAY_TOP,
+        help=f"candidates replayed under --method, live and with outages (default {REPLAY_TOP}; "
+        "0: the fit-once verdict only, as format 2)",
+    )
+    p.add_argument(
+        "--outage",
+        default=OUTAGE,
+        help=f"the outage protocol's window (default {OUTAGE}; 'none' to leave it out)",
+    )
+    p.add_argument(
+        "--no-pool",
+        action="store_true",
+        help="with --well: diagnose that well's data alone (default: beside the other wells "
+        "that run the same model, the field's evidence beside the well's)",
+    )
+    p.add_argument(
+        "--screen-model",
+        default=None,
+        choices=list(EFFECT_MODELS),
+        help="the model the candidates are identified on, fit once (default: --model, or mm "
+        "for ham and hem, whose network absorbs a missing effect)",
     )
     p.add_argument(
         "--candidate-method",

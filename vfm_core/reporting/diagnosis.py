@@ -316,6 +316,46 @@ def _parameter_rows(diag: Diagnosis) -> list[dict[str, Any]]:
     return rows
 
 
+def _replay_context(diag: Diagnosis) -> dict[str, Any]:
+    """The live and outage tables: one row per replayed candidate (the field's tests, or the
+    diagnosed well's with a pool), and the per-well panel."""
+    if not getattr(diag, "live", None):
+        return {"replay": [], "per_well": [], "replay_top": 0}
+    focus = diag.pool.get("focus")
+    rows = []
+    cands = [c for c in diag.candidates if c.replayed]
+    if diag.suggestion is not None and diag.suggestion.result.replayed:
+        cands.append(diag.suggestion.result)
+    empty = {"change": None, "low": None, "high": None, "p_value": None, "q_value": None}
+    for c in cands:
+        rows.append(
+            {
+                "effect": c.spec or c.effect,
+                "live": {**empty, **(c.test("live", focus) or {})},
+                "outage": {**empty, **(c.test("outage") or {})},
+                "offer": "yes" if c.offer else ("no: raises the error" if c.raises_error else "no"),
+                "candidate": c,
+            }
+        )
+    per_well = []
+    wells = diag.pool.get("wells") or []
+    if len(wells) > 1:
+        for w in wells:
+            v = diag.well_verdicts.get(w, {})
+            cells = [{**empty, **(c.test("live", w) or {})} for c in cands]
+            per_well.append(
+                {
+                    "well": w + (" (diagnosed)" if w == focus else ""),
+                    "mape": diag.live.get("per_well", {}).get(w, {}).get("mape"),
+                    "cells": cells,
+                    "verdict": " ".join(
+                        x for x in (v.get("kind"), v.get("effect") or v.get("driver")) if x
+                    ),
+                }
+            )
+    return {"replay": rows, "per_well": per_well, "replay_top": len(cands)}
+
+
 def build_report(diag: Diagnosis, path: Path) -> Path:
     """Write the diagnosis as one self-contained HTML page at ``path`` (PNG figures inline,
     written atomically) and return the path."""
@@ -367,5 +407,6 @@ def build_report(diag: Diagnosis, path: Path) -> Path:
                 grid_source, diag.drivers, diag.driver_variables, ext_res if comp is None else None
             ),
             "time_grid": _time_grid(res, ext_res),
+            **_replay_context(diag),
         }
     return page.write_page(path, page.render("diagnosis.html.j2", **context))
