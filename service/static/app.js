@@ -105,7 +105,7 @@ function renderField() {
     <td><a href="#well=${encodeURIComponent(r.well)}">${esc(r.well)}</a></td><td>${esc(r.model)}</td>
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
-    <td class="${r.drift === "active" ? "alarm" : r.drift === "seen" ? "warn" : ""}">${esc(r.drift)}</td>
+    <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
     <td class="${r.alarms.length ? "alarm" : "ok"}">${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
