@@ -9,6 +9,10 @@ engine's workers or the GIL: the child reads the well's stored history through
 :func:`vfm_core.jobs.diagnose.run_diagnosis` with a progress callback, and writes
 ``diagnosis.json`` and ``report.html`` with
 :func:`~vfm_core.jobs.diagnose.write_diagnosis` into ``<store folder>/diagnoses/<job>/``.
+When the service was fitted on a history file (``model.history``, ``model.history_until``),
+that history goes in front of the store (:func:`~vfm_core.jobs.diagnose.with_history`) and
+the replay starts at ``history_until``, where the service started: the diagnosis's baseline
+is then the error the service recorded, not a fresh fit's.
 Progress comes back as JSON lines on its stdout; its stderr goes to ``diagnose.log`` there.
 
 One diagnosis runs at a time (a second request is refused with
@@ -105,17 +109,33 @@ def _child(request: dict[str, Any]) -> None:
             frame, note = pool_frame(frame, request["well"])
             say("progress", 0.0, note)
         method = request.get("method") or stored_method(frame, request["well"]) or "ol"
+        split = request["split"]
+        source: dict[str, Any] = {
+            "kind": "store",
+            "path": request["store"],
+            "well": request["well"],
+        }
+        if request.get("history") and request.get("history_until"):
+            from vfm_core.jobs.diagnose import with_history
+            from vfm_core.observations import load_observations
+
+            say("progress", 0.0, "reading the history the service was fitted on")
+            history = load_observations(request["history"]).frame
+            frame, history_split, note = with_history(frame, history, request["history_until"])
+            say("progress", 0.0, note)
+            split = split or history_split
+            source.update(history=request["history"], history_until=str(history_split), note=note)
         diag = run_diagnosis(
             frame,
             request["model"],
             method=method,
             well=request["well"],
-            split=request["split"],
+            split=split,
             candidates=request["candidates"],
             base_effects=request.get("base_effects") or [],
             suggest=request["suggest"],
             progress=lambda fraction, text: say("progress", float(fraction), str(text)),
-            source={"kind": "store", "path": request["store"], "well": request["well"]},
+            source=source,
         )
         say("progress", 0.99, "writing diagnosis.json and report.html")
         write_diagnosis(diag, request["folder"], report=request["report"])
@@ -245,6 +265,9 @@ class DiagnosisJobs:
             **request,
             "candidates": checked if checked is not None else _default_candidates(),
             "store": str(self.settings.store.path),
+            # the history the service was fitted on: the replay starts where the service did
+            "history": _history(self.settings),
+            "history_until": _history_until(self.settings),
             "well": well,
             "folder": str(folder),
             "report": report,
@@ -336,6 +359,16 @@ class DiagnosisJobs:
         deadline = time.monotonic() + timeout
         while self._running is not None and time.monotonic() < deadline:
             time.sleep(0.05)
+
+
+def _history(settings: Settings) -> str | None:
+    path = settings.model.history
+    return str(path) if path is not None and Path(path).is_file() else None
+
+
+def _history_until(settings: Settings) -> str | None:
+    until = settings.model.history_until
+    return None if until is None else until.isoformat()
 
 
 def _default_candidates() -> list[str]:

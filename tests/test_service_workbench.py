@@ -207,6 +207,12 @@ def test_diagnosis_job_lifecycle(live: Live) -> None:
     assert {"verdict", "candidates", "baseline", "drivers"} <= set(diag)
     assert [c["spec"] for c in diag["candidates"]] == ["erosion"]
     assert diag["base_effects"] == [] and state["request"]["base_effects"] == []
+    # one error: the replay starts where the service started (its history joined in front
+    # of the store, the split at history_until), so its baseline is the error the service
+    # recorded on the same measurements
+    assert any("joined in front of the store" in n for n in diag["notes"]), diag["notes"]
+    assert diag["live"]["n"] == diag["live"]["service_n"] > 20
+    assert diag["live"]["mape"] == pytest.approx(diag["live"]["service_mape"], rel=0.02)
     report = live.http.get(state["report"])
     assert report.status_code == 200 and "<html" in report.text.lower()
     assert live.http.get("/diagnosis/nope").status_code == 404

@@ -699,7 +699,7 @@ function showDiagnosis(j) {
   };
   const action = (c, spec) => c.offer
     ? `<button class="apply" data-spec="${esc(spec)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(spec)}]">apply</button>`
-    : `<span class="hint">${c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"}</span>`;
+    : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
     <th class="num">&Delta; live [95 %]</th><th class="num">&Delta; outage [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
   const rows = (d.candidates || []).map((c) => `<tr${c.raises_error ? ' class="worse"' : ""}><td>${esc(c.effect)}</td>

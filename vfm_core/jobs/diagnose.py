@@ -250,6 +250,8 @@ class CandidateResult:
     offer: bool = False
     #: the replay says it raises the live error (point estimate above 0)
     raises_error: bool | None = None
+    #: why adding it is not offered, in words (None when offered)
+    offer_note: str | None = None
     live_run: RunResult | None = field(default=None, repr=False)
     outage_run: RunResult | None = field(default=None, repr=False)
 
@@ -279,6 +281,7 @@ class CandidateResult:
             "replayed": self.replayed,
             "offer": self.offer,
             "raises_error": self.raises_error,
+            "offer_note": self.offer_note,
             "live": _brief(self.test("live")),
             "outage": _brief(self.test("outage")),
             "tests": self.tests,
@@ -341,6 +344,7 @@ class Suggestion:
             "warnings": list(self.result.warnings),
             "replayed": self.result.replayed,
             "offer": self.result.offer,
+            "offer_note": self.result.offer_note,
             "raises_error": self.result.raises_error,
             "live": _brief(self.result.test("live")),
             "outage": _brief(self.result.test("outage")),
@@ -1172,6 +1176,8 @@ def run_diagnosis(
         )
     split_ts, split_note = _choose_split(frame, targets, split)
     notes = [split_note] if split_note else []
+    if source and source.get("note"):
+        notes.append(str(source["note"]))
     pool_wells = sorted(set(frame.loc[target_mask(frame, targets), WELL].astype(str)))
     if well is not None and well not in pool_wells:
         raise DataError(
@@ -1495,8 +1501,26 @@ def run_diagnosis(
             picked["text"],
         )
         detail = {k: v for k, v in picked.items() if k not in ("kind", "effect", "driver", "text")}
+        # one change is offered: the verdict's (the fit-once evidence names the physics; a
+        # flexible candidate that lets the learner follow the same misfit also lowers the
+        # replayed error, and is shown, not offered)
+        chosen = (
+            effect_name
+            if kind == "effect"
+            else (suggestion.result.effect if kind == "driver" and suggestion is not None else None)
+        )
         for c in [*results, *([suggestion.result] if suggestion is not None else [])]:
-            c.offer = _offer(c, well)[0]
+            ok, reason = _offer(c, well)
+            c.offer = ok and c.effect == chosen
+            c.offer_note = (
+                None
+                if c.offer
+                else (
+                    f"also lowers the error, but the fit-once evidence names {chosen}"
+                    if ok and chosen is not None
+                    else reason
+                )
+            )
             lt = c.test("live", well)
             c.raises_error = (
                 None if not c.replayed or lt is None or lt["change"] is None else lt["change"] > 0
@@ -2378,6 +2402,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         resolve_effect(c)
     model = args.model or "mm"
     method = args.method
+    split = args.split
     if args.store is not None:
         frame = load_source("store", args.store, None if args.no_pool else args.well)
         source = {"kind": "store", "path": str(args.store), "well": args.well}
@@ -2388,6 +2413,20 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         model, base_effects = _store_model(frame, args.model, given_base, base_effects)
         if method is None:
             method = stored_method(frame, args.well)
+        if args.history is not None:
+            if args.history_until is None:
+                raise ConfigError(
+                    "--history needs --history-until: the time the service's fit ended "
+                    "(its model.history_until)."
+                )
+            frame, history_split, note = with_history(
+                frame, load_observations(args.history).frame, args.history_until
+            )
+            print(note)
+            split = args.split or history_split
+            source.update(history=str(args.history), history_until=str(history_split), note=note)
+    elif args.history is not None:
+        raise ConfigError("--history goes with --store (the history a service was fitted on).")
     else:
         loaded = load_observations(args.data)
         print(loaded.summary())
@@ -2407,7 +2446,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         method=method,
         candidate_method=args.candidate_method,
         targets=args.targets,
-        split=args.split,
+        split=split,
         candidates=candidates,
         effects=effects,
         seed=args.seed,
@@ -2454,6 +2493,39 @@ def pool_frame(frame: pd.DataFrame, well: str) -> tuple[pd.DataFrame, str]:
         + (", ".join(others[:10]) + (" ..." if len(others) > 10 else "") if others else "none")
         + "."
     )
+
+
+def with_history(
+    frame: pd.DataFrame, history: pd.DataFrame, until: str | pd.Timestamp
+) -> tuple[pd.DataFrame, pd.Timestamp, str]:
+    """A service's store with the history it was fitted on in front: the history file's rows
+    of the store's wells before ``until`` (the service's ``model.history_until``) and the
+    store's rows from ``until`` on. Diagnosed with the split at ``until``, the replay starts
+    where the service started (the same fit on the same rows) and learns the same
+    measurements, so its baseline is the error the service ran at (not a fresh fit on the
+    store's first months). Returns the frame (the store's ``attrs`` kept), the split and a
+    sentence saying what was joined."""
+    ts = pd.Timestamp(until)
+    ts = ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+    wells = set(frame[WELL].astype(str))
+    old = history[
+        (history[TIME] < ts).to_numpy() & history[WELL].astype(str).isin(wells).to_numpy()
+    ]
+    old = old[[c for c in old.columns if c in frame.columns]]
+    new = frame[(frame[TIME] >= ts).to_numpy()]
+    dropped = len(frame) - len(new)
+    out = pd.concat([old, new], ignore_index=True).sort_values([TIME, WELL], kind="stable")
+    out = out.reset_index(drop=True)
+    out.attrs = dict(frame.attrs)
+    measured = int(target_mask(old, "all").sum()) if len(old) else 0
+    note = (
+        f"The history the service was fitted on ({measured:,} measurements of these wells "
+        f"before {ts.date()}) is joined in front of the store, and the replay starts at "
+        f"{ts.date()}, where the service started: its baseline is the error the service ran at."
+    )
+    if dropped:
+        note += f" ({dropped:,} stored rows before {ts.date()} are left out: the history has them.)"
+    return out, ts, note
 
 
 def stored_method(frame: pd.DataFrame, well: str | None) -> str | None:
@@ -2521,6 +2593,19 @@ def register(subparsers: Any) -> None:
         default=None,
         metavar="PATH",
         help="a service's SQLite store instead of a file (read through the vfm.sources entry point)",
+    )
+    p.add_argument(
+        "--history",
+        default=None,
+        metavar="FILE",
+        help="with --store: the observation file the service was fitted on (its model.history); "
+        "joined in front of the store so that the replay starts where the service started",
+    )
+    p.add_argument(
+        "--history-until",
+        default=None,
+        metavar="DATE",
+        help="with --history: the end of the service's fit (its model.history_until); the split",
     )
     p.add_argument("--well", default=None, help="diagnose this well only")
     p.add_argument("--out", required=True, help="output folder (diagnosis.json, report.html)")
