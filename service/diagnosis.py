@@ -18,8 +18,9 @@ Progress comes back as JSON lines on its stdout; its stderr goes to ``diagnose.l
 One diagnosis runs at a time (a second request is refused with
 :class:`~service.errors.Conflict`), and each has a wall-clock budget
 (``http.diagnosis_budget_s``) after which its process is stopped and the job fails with a
-sentence saying so. The last :data:`KEEP_JOBS` jobs are remembered (in memory; their
-folders stay on disk).
+sentence saying so. The last :data:`KEEP_JOBS` jobs are remembered: each job's folder holds
+its record (``job.json``, :mod:`service.diagnosis_records`), from which the list is rebuilt
+when the service starts again (a job that was running then comes back failed, saying so).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from service.config import Settings
+from service.diagnosis_records import load_jobs, save_job
 from service.engine.model_change import check_effect_modules
 from service.errors import Conflict, InvalidRequest, Stopping
 from vfm_core.errors import VFMError
@@ -110,6 +112,7 @@ def _child(request: dict[str, Any]) -> None:
             say("progress", 0.0, note)
         method = request.get("method") or stored_method(frame, request["well"]) or "ol"
         split = request["split"]
+        screen_split = None
         source: dict[str, Any] = {
             "kind": "store",
             "path": request["store"],
@@ -124,6 +127,7 @@ def _child(request: dict[str, Any]) -> None:
             frame, history_split, note = with_history(frame, history, request["history_until"])
             say("progress", 0.0, note)
             split = split or history_split
+            screen_split = "auto"  # identified where both sides span the operating range
             source.update(history=request["history"], history_until=str(history_split), note=note)
         diag = run_diagnosis(
             frame,
@@ -131,6 +135,7 @@ def _child(request: dict[str, Any]) -> None:
             method=method,
             well=request["well"],
             split=split,
+            screen_split=screen_split,
             candidates=request["candidates"],
             base_effects=request.get("base_effects") or [],
             suggest=request["suggest"],
@@ -166,6 +171,8 @@ class DiagnosisJobs:
         self._jobs: dict[str, Job] = {}
         self._running: Job | None = None
         self._stopping = threading.Event()
+        # the jobs of earlier runs, from their folders (service.diagnosis_records)
+        self._jobs.update(load_jobs(self.folder, KEEP_JOBS, Job))
 
     def get(self, job_id: str) -> Job | None:
         return self._jobs.get(job_id)
@@ -282,6 +289,7 @@ class DiagnosisJobs:
 
     def _watch(self, job: Job, request: dict[str, Any]) -> None:
         job.folder.mkdir(parents=True, exist_ok=True)
+        save_job(job)
         lines: queue.Queue[tuple[str, float, str]] = queue.Queue()
         proc: subprocess.Popen[str] | None = None
         finished_ok = False
@@ -348,6 +356,7 @@ class DiagnosisJobs:
                 job.finished = time.time()
                 job.state = "done" if finished_ok else "failed"
                 self._running = None
+            save_job(job)
             if finished_ok:
                 logger.info("Diagnosis %s of %s done.", job.id, job.well)
             else:

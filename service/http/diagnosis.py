@@ -107,8 +107,8 @@ def _job(job: str, jobs: DiagnosisJobs) -> Job:
     if found is None:
         raise HTTPException(
             404,
-            f"No diagnosis job '{job[:40]}' is known (the last {KEEP_JOBS} are kept until a "
-            "restart); start one with POST /wells/{well}/diagnosis.",
+            f"No diagnosis job '{job[:40]}' is known (the last {KEEP_JOBS} are kept, across "
+            "restarts); start one with POST /wells/{well}/diagnosis.",
         )
     return found
 

@@ -697,8 +697,16 @@ function showDiagnosis(j) {
     return `p ${fmt(f.p_value, 3)}, q ${fmt(f.q_value, 3)} (field, ${f.n_blocks} blocks)` +
       (focus && w !== f && w ? `; this well p ${fmt(w.p_value, 3)} (${w.n_blocks} blocks)` : "");
   };
+  // a "carried" verdict names the physics, but the learner already follows it: adding it
+  // is the operator's choice (a parameter to read, outages), offered as such when it raises
+  // neither error; its trial against the shadow then shows what it does
+  const carried = (c) => !c.offer && d.verdict && d.verdict.kind === "carried" &&
+    d.verdict.effect === c.effect && c.replayed && !c.raises_error &&
+    !(((c.tests || {}).outage || {}).change > 0);
   const action = (c, spec) => c.offer
     ? `<button class="apply" data-spec="${esc(spec)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(spec)}]">apply</button>`
+    : carried(c)
+    ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter to read and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
     <th class="num">&Delta; live [95 %]</th><th class="num">&Delta; outage [95 %]</th><th>meaning and evidence</th><th></th></tr>`;

@@ -1105,6 +1105,26 @@ def _choose_split(
     )
 
 
+def _screen_split(
+    frame: pd.DataFrame,
+    targets: str,
+    screen_split: str | pd.Timestamp | None,
+    split_ts: pd.Timestamp,
+) -> pd.Timestamp:
+    """The fit-once evidence's split: ``split_ts`` (None), the time before which 60 % of the
+    measurements lie (``"auto"``), or the time given."""
+    if screen_split is None:
+        return split_ts
+    if isinstance(screen_split, str) and screen_split == "auto":
+        times = frame.loc[target_mask(frame, targets), TIME]
+        if times.empty:
+            return split_ts
+        ts = pd.Timestamp(times.quantile(0.6)).floor("D")
+    else:
+        ts = pd.Timestamp(screen_split)
+    return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+
+
 def _with_features(frame: pd.DataFrame, classes: Sequence[type[Effect]]) -> pd.DataFrame:
     """The frame with the standard features and every column the effects need."""
     out = add_features(frame, classes)
@@ -1138,6 +1158,7 @@ def run_diagnosis(
     outage: str | None = OUTAGE,
     well: str | None = None,
     screen_model: str | None = None,
+    screen_split: str | pd.Timestamp | None = None,
 ) -> Diagnosis:
     """Diagnose ``model`` (mm, hem or ham) on an observation frame; see the module docstring.
 
@@ -1160,7 +1181,12 @@ def run_diagnosis(
     Benjamini-Hochberg family (:mod:`vfm_core.jobs.diagnose_live`). ``well``: the well the
     diagnosis is for; the other wells of ``frame`` are its pool (the field's evidence beside
     the well's). ``screen_model``: the model the candidates are identified on, fit once
-    (default: ``model``, or mm for the hybrids in :data:`HYBRIDS`).
+    (default: ``model``, or mm for the hybrids in :data:`HYBRIDS`). ``screen_split``: the
+    split of the fit-once evidence (default: ``split``; ``"auto"``: where 60 % of the
+    measurements lie before it). A service's store joined to its history is replayed from
+    the service's start (``split``), but identified where both sides hold enough of the
+    operating range: a valve curve cannot be told from C_D on a history whose choke hardly
+    moved.
     """
     started = time.perf_counter()
     cand_classes = [resolve_effect(c) for c in candidates]
@@ -1176,6 +1202,12 @@ def run_diagnosis(
         )
     split_ts, split_note = _choose_split(frame, targets, split)
     notes = [split_note] if split_note else []
+    screen_ts = _screen_split(frame, targets, screen_split, split_ts)
+    if screen_ts != split_ts:
+        notes.append(
+            f"The fit-once evidence is fitted before {screen_ts.date()} and scored after it "
+            f"(60 % of the measurements before); the replay starts at {split_ts.date()}."
+        )
     if source and source.get("note"):
         notes.append(str(source["note"]))
     pool_wells = sorted(set(frame.loc[target_mask(frame, targets), WELL].astype(str)))
@@ -1192,7 +1224,7 @@ def run_diagnosis(
             f"once (its network would absorb what a missing effect explains); what adding one "
             f"does is measured on {model} itself, replayed with {method}."
         )
-    train_rows = _training_rows(frame, targets, split_ts)
+    train_rows = _training_rows(frame, targets, screen_ts)
     train_frame = frame.iloc[train_rows]
     offered: list[type[Effect]] = []
     skipped: list[dict[str, str]] = []
@@ -1209,14 +1241,14 @@ def run_diagnosis(
     frame = _with_features(frame, [*base_classes, *offered, *ext_classes])
     cand_method = candidate_method or CANDIDATE_METHOD
     cand_train = _comparison_train(screen, train)
-    kw: dict[str, Any] = dict(targets=targets, split=split_ts, online=online, seed=seed)
-    jobs: list[tuple[str, list[type[Effect]], str, TrainSettings | None, str]] = [
-        ("baseline", [], method, train, model)
+    kw: dict[str, Any] = dict(targets=targets, online=online, seed=seed)
+    jobs: list[tuple[str, list[type[Effect]], str, TrainSettings | None, str, pd.Timestamp]] = [
+        ("baseline", [], method, train, model, split_ts)
     ]
-    jobs.append(("__comparison__", [], cand_method, cand_train, screen))
-    jobs += [(c.name, [c], cand_method, cand_train, screen) for c in offered]
+    jobs.append(("__comparison__", [], cand_method, cand_train, screen, screen_ts))
+    jobs += [(c.name, [c], cand_method, cand_train, screen, screen_ts) for c in offered]
     if ext_classes:
-        jobs.append(("__extended__", ext_classes, method, train, model))
+        jobs.append(("__extended__", ext_classes, method, train, model, split_ts))
     # the replays (live and outage, baseline and the shortlist) are the slow runs: count them
     # from the start so that the progress does not jump back
     n_replays = (2 * max(replay_top, 0) + 1) if replay_top > 0 else 0
@@ -1230,6 +1262,7 @@ def run_diagnosis(
         settings: TrainSettings | None,
         name: str = screen,
         plan: Any = None,
+        at: pd.Timestamp = screen_ts,
     ) -> RunResult:
         bar.start(f"fitting {key.strip('_')}")
         out = run_prequential(
@@ -1239,13 +1272,14 @@ def run_diagnosis(
             effects=[*base_classes, *classes],
             train=settings,
             outage=plan,
+            split=at,
             **kw,
         )
         bar.step()
         return out
 
-    for key, classes, how, settings, name in jobs:
-        runs[key] = run(key, classes, how, settings, name)
+    for key, classes, how, settings, name, at in jobs:
+        runs[key] = run(key, classes, how, settings, name, at=at)
     classes_of: dict[str, list[type[Effect]]] = {c.name: [c] for c in offered}
     base = runs["baseline"]
     base_p = base.predictions
@@ -1257,7 +1291,7 @@ def run_diagnosis(
     comp = runs["__comparison__"]
     comp_mape = mape(comp.predictions["predicted"], comp.predictions["measured"])
     comp_res = residual_frame(
-        frame, comp.predictions, targets=targets, split=split_ts, p_cr=_p_cr(comp)
+        frame, comp.predictions, targets=targets, split=screen_ts, p_cr=_p_cr(comp)
     )
 
     batches: dict[tuple[str, ...], Batch] = {}
@@ -1348,15 +1382,19 @@ def run_diagnosis(
     if replay_top > 0 and plan is None:
         bar.add(-1)
     if replay_top > 0 and plan is not None:
-        base_out = run(f"baseline with {outage} outages", [], method, train, model, plan)
+        base_out = run(
+            f"baseline with {outage} outages", [], method, train, model, plan, at=split_ts
+        )
     shortlist = [c for c in results if c.run is not None and c.delta_mape < 0][: max(replay_top, 0)]
     if n_replays:  # the runs counted at the start, made exact now
         bar.add(len(shortlist) * (2 if plan is not None else 1) - 2 * max(replay_top, 0))
 
     def replay(c: CandidateResult, classes: list[type[Effect]]) -> None:
-        c.live_run = run(f"{c.effect} with {method}", classes, method, train, model)
+        c.live_run = run(f"{c.effect} with {method}", classes, method, train, model, at=split_ts)
         if plan is not None:
-            c.outage_run = run(f"{c.effect} with outages", classes, method, train, model, plan)
+            c.outage_run = run(
+                f"{c.effect} with outages", classes, method, train, model, plan, at=split_ts
+            )
         c.replayed = True
 
     if replay_top > 0:
@@ -1431,10 +1469,10 @@ def run_diagnosis(
         )
     scored_on = reference_bic(comp.predictions, 0)[1]
     protocol = (
-        f"fitted once on the measurements before {split_ts.date()} and scored on the "
+        f"fitted once on the measurements before {screen_ts.date()} and scored on the "
         f"{len(comp_res):,} measurements after it, never updated ({cand_method})"
         if cand_method == CANDIDATE_METHOD
-        else f"learned with {cand_method} from {split_ts.date()} on, scored on the "
+        else f"learned with {cand_method} from {screen_ts.date()} on, scored on the "
         f"{len(comp_res):,} measurements after the split (each predicted before it is learned)"
     )
     kind, effect_name, driver_name, text = _verdict(
@@ -1504,20 +1542,20 @@ def run_diagnosis(
         # one change is offered: the verdict's (the fit-once evidence names the physics; a
         # flexible candidate that lets the learner follow the same misfit also lowers the
         # replayed error, and is shown, not offered)
-        chosen = (
+        offered_effect = (
             effect_name
             if kind == "effect"
             else (suggestion.result.effect if kind == "driver" and suggestion is not None else None)
         )
         for c in [*results, *([suggestion.result] if suggestion is not None else [])]:
             ok, reason = _offer(c, well)
-            c.offer = ok and c.effect == chosen
+            c.offer = ok and c.effect == offered_effect
             c.offer_note = (
                 None
                 if c.offer
                 else (
-                    f"also lowers the error, but the fit-once evidence names {chosen}"
-                    if ok and chosen is not None
+                    f"also lowers the error, but the fit-once evidence names {offered_effect}"
+                    if ok and offered_effect is not None
                     else reason
                 )
             )
@@ -2403,6 +2441,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     model = args.model or "mm"
     method = args.method
     split = args.split
+    screen_split = None
     if args.store is not None:
         frame = load_source("store", args.store, None if args.no_pool else args.well)
         source = {"kind": "store", "path": str(args.store), "well": args.well}
@@ -2424,6 +2463,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
             )
             print(note)
             split = args.split or history_split
+            screen_split = "auto"
             source.update(history=str(args.history), history_until=str(history_split), note=note)
     elif args.history is not None:
         raise ConfigError("--history goes with --store (the history a service was fitted on).")
@@ -2447,6 +2487,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         candidate_method=args.candidate_method,
         targets=args.targets,
         split=split,
+        screen_split=screen_split,
         candidates=candidates,
         effects=effects,
         seed=args.seed,

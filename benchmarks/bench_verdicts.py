@@ -1,0 +1,180 @@
+"""Is the diagnosis's verdict right? Fields with a known cause, the well's model and method.
+
+For each case, physics and seed a field is simulated (``vfm simulate``), diagnosed as the
+service diagnoses a well (the well's model and learning method replayed from the split, its
+pool of wells beside it; the default candidates and settings, nothing tuned here), and the
+field's verdict and every well's own verdict are checked against the cause put in:
+
+* ``none``: a clean field; right is ``noise`` (for the field and for each well).
+* ``erosion``, ``valve``, ``real_gas``: the simulator's hidden effect; right is a verdict
+  (``effect``, or ``carried`` when the learner already follows it) naming that physics
+  (erosion or erosion_time; any valve family; real_gas).
+* ``tempcd``: a discharge coefficient that grows 6.8 % per 10 K of upstream temperature, an
+  effect outside the library; right is ``driver`` t_up.
+
+``--physics`` takes the simulator's truths (``sachdeva``, and the second physics of
+``vfm simulate --physics``); on a physics without an effect the case is skipped with a note.
+Prints one line per diagnosis and a summary; ``--markdown PATH`` writes the table. Run:
+
+    python benchmarks/bench_verdicts.py [--cases none,erosion,valve,real_gas,tempcd]
+        [--combos mm:ol,mm:bayes,ham:ol] [--seeds 61,62] [--physics sachdeva]
+        [--wells 4] [--years 3] [--split 2017-07-01] [--markdown PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from vfm_core.errors import ConfigError
+from vfm_core.jobs.diagnose import run_diagnosis
+from vfm_core.simulate import simulate_field
+
+EXPECTED = {
+    "none": "noise",
+    "erosion": "erosion",
+    "valve": "valve",
+    "real_gas": "real_gas",
+    "tempcd": "driver t_up",
+}
+
+
+def _field(case: str, physics: str, seed: int, wells: int, years: float) -> pd.DataFrame:
+    hidden = [] if case in ("none", "tempcd") else [case]
+    field = simulate_field(wells=wells, years=years, seed=seed, hidden=hidden, physics=physics)
+    obs = field.observations.copy()
+    if case == "tempcd":  # C_D(t_up): the true rate times 1 + 0.068 per 10 K above 60 degC
+        obs["q_total"] = obs["q_total"] * (1.0 + 0.068 * (obs["t_up"].to_numpy() - 60.0) / 10.0)
+    return obs
+
+
+def right(case: str, verdict: dict[str, Any]) -> bool:
+    """Whether a verdict ({kind, effect, driver}) names the cause put in."""
+    kind, effect = verdict.get("kind"), verdict.get("effect") or ""
+    if case == "none":
+        return kind == "noise"
+    if case == "tempcd":
+        return kind == "driver" and verdict.get("driver") == "t_up"
+    if kind not in ("effect", "carried"):
+        return False
+    if case == "erosion":
+        return effect.startswith("erosion")
+    if case == "valve":
+        return effect.startswith("valve")
+    return effect == case
+
+
+def _label(v: dict[str, Any]) -> str:
+    return f"{v.get('kind')} {v.get('effect') or v.get('driver') or ''}".strip()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cases", default="none,erosion,valve,real_gas,tempcd")
+    parser.add_argument("--combos", default="mm:ol,mm:bayes,ham:ol")
+    parser.add_argument("--seeds", default="61")
+    parser.add_argument("--physics", default="sachdeva")
+    parser.add_argument("--wells", type=int, default=4)
+    parser.add_argument("--years", type=float, default=3.0)
+    parser.add_argument("--split", default="2017-07-01")
+    parser.add_argument("--markdown", default=None, help="write the table here (Markdown)")
+    args = parser.parse_args()
+    rows: list[dict[str, Any]] = []
+    print(
+        f"{'physics':<9} {'case':<9} {'seed':>4} {'model':<5} {'method':<6} "
+        f"{'field verdict':<26} {'field':>5} {'wells right':>11} {'live %':>7} {'d live':>7} "
+        f"{'time s':>6}"
+    )
+    for physics in args.physics.split(","):
+        for case in args.cases.split(","):
+            for seed in [int(s) for s in args.seeds.split(",")]:
+                try:
+                    obs = _field(case, physics, seed, args.wells, args.years)
+                except ConfigError as exc:
+                    print(f"{physics:<9} {case:<9} {seed:>4} skipped: {exc}")
+                    continue
+                for combo in args.combos.split(","):
+                    model, method = combo.split(":")
+                    started = time.perf_counter()
+                    diag = run_diagnosis(obs, model, method=method, split=args.split)
+                    elapsed = time.perf_counter() - started
+                    verdicts = diag.well_verdicts or {"field": {"kind": diag.verdict_kind}}
+                    field_v = verdicts["field"]
+                    wells = {w: v for w, v in verdicts.items() if w != "field"}
+                    n_right = sum(right(case, v) for v in wells.values())
+                    live_change = ((field_v.get("live") or {}) or {}).get("change")
+                    row = {
+                        "physics": physics,
+                        "case": case,
+                        "seed": seed,
+                        "model": model,
+                        "method": method,
+                        "verdict": _label(field_v),
+                        "right": right(case, field_v),
+                        "wells_right": n_right,
+                        "wells": len(wells),
+                        "live": diag.live.get("mape", float("nan")),
+                        "change": np.nan if live_change is None else float(live_change),
+                        "time_s": elapsed,
+                        "well_verdicts": {w: _label(v) for w, v in wells.items()},
+                    }
+                    rows.append(row)
+                    print(
+                        f"{physics:<9} {case:<9} {seed:>4} {model:<5} {method:<6} "
+                        f"{row['verdict']:<26} {'yes' if row['right'] else 'NO':>5} "
+                        f"{n_right:>5}/{len(wells):<5} {row['live']:>7.2f} "
+                        f"{row['change']:>+7.2f} {elapsed:>6.0f}",
+                        flush=True,
+                    )
+    if not rows:
+        return
+    fields_right = sum(r["right"] for r in rows)
+    wells_right = sum(r["wells_right"] for r in rows)
+    wells_all = sum(r["wells"] for r in rows)
+    summary = (
+        f"{fields_right} of {len(rows)} field verdicts right; {wells_right} of {wells_all} "
+        f"single-well verdicts right"
+    )
+    clean = [r for r in rows if r["case"] == "none"]
+    if clean:
+        summary += (
+            f"; clean fields: {sum(r['wells_right'] for r in clean)} of "
+            f"{sum(r['wells'] for r in clean)} wells 'noise'"
+        )
+    print(summary)
+    if args.markdown:
+        lines = [
+            "# Diagnosis verdicts on fields with a known cause",
+            "",
+            "Written by `python benchmarks/bench_verdicts.py "
+            f"--cases {args.cases} --combos {args.combos} --seeds {args.seeds} "
+            f"--physics {args.physics} --wells {args.wells} --years {args.years} "
+            f"--split {args.split} --markdown ...` (seeds no test uses). Right: "
+            + ", ".join(f"{k} -> {v}" for k, v in EXPECTED.items())
+            + " (`effect` or `carried` naming it).",
+            "",
+            "| physics | case | seed | model | method | field verdict | right | wells right "
+            "| live MAPE % | change of live MAPE (points) | time s |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for r in rows:
+            change = "" if not np.isfinite(r["change"]) else f"{r['change']:+.2f}"
+            lines.append(
+                f"| {r['physics']} | {r['case']} | {r['seed']} | {r['model']} | {r['method']} "
+                f"| {r['verdict']} | {'yes' if r['right'] else 'no'} "
+                f"| {r['wells_right']}/{r['wells']} | {r['live']:.2f} | {change} "
+                f"| {r['time_s']:.0f} |"
+            )
+        lines += ["", summary + ".", ""]
+        Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.markdown).write_text("\n".join(lines), encoding="utf-8")
+        print(f"Wrote {args.markdown}.")
+
+
+if __name__ == "__main__":
+    main()
