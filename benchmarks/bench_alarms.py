@@ -6,7 +6,7 @@ do not use), model and method it runs the prequential study
 service does) from ``--split-years`` after the field's start, feeds the predictions to the
 residual alarm (:func:`vfm_core.residual_alarm.alarms_from_predictions`, the service's
 defaults) and the inputs of the same measurements to the service's T^2 input test
-(:class:`vfm_core.drift.StreamingHotelling` with ``drift.*`` defaults, its reference the
+(:class:`vfm_core.hotelling.StreamingHotelling` with ``drift.*`` defaults, its reference the
 well's last measured inputs before the split, reset after each confirmed drift as the
 service does), and reports:
 
@@ -47,7 +47,7 @@ import numpy as np
 import pandas as pd
 
 from service.config import DriftSettings
-from vfm_core.drift import StreamingHotelling
+from vfm_core.hotelling import StreamingHotelling
 from vfm_core.jobs.study import run_prequential
 from vfm_core.observations import validate_frame
 from vfm_core.residual_alarm import ResidualCusum, alarms_from_predictions, cusum_threshold

@@ -105,24 +105,7 @@ def replay_frame(
     validate_prefix(prefix)
     if speed is not None and not (math.isfinite(speed) and speed > 0):
         raise ConfigError(f"--speed must be a positive number, not {speed}.")
-    start_ts = None
-    rows = frame
-    if start is not None:
-        try:
-            start_ts = utc_timestamp(start)
-        except (ValueError, TypeError):
-            raise ConfigError(
-                f"--start '{start}' is not a date; write it like 2019-01-01."
-            ) from None
-        rows = frame[frame[TIME] >= start_ts]
-    if rows.empty:
-        raise DataError(
-            "No rows to replay"
-            + (f" on or after {start_ts.date()}" if start_ts is not None else "")
-            + "."
-        )
-    rows = rows.reset_index(drop=True)
-
+    rows, start_ts = _rows_from(frame, start)
     opened: ZenohBus | None = None
     if bus is None:
         bus = opened = ZenohBus.connect(
@@ -161,6 +144,30 @@ def replay_frame(
         elapsed=elapsed,
         skipped=sent.skipped,
     )
+
+
+def _rows_from(
+    frame: pd.DataFrame, start: str | pd.Timestamp | None
+) -> tuple[pd.DataFrame, pd.Timestamp | None]:
+    """The rows to replay (those on or after ``start``, all without it), indexed from 0,
+    and ``start`` as a UTC time; a sentence for a start that is no date or leaves no row."""
+    start_ts = None
+    rows = frame
+    if start is not None:
+        try:
+            start_ts = utc_timestamp(start)
+        except (ValueError, TypeError):
+            raise ConfigError(
+                f"--start '{start}' is not a date; write it like 2019-01-01."
+            ) from None
+        rows = frame[frame[TIME] >= start_ts]
+    if rows.empty:
+        raise DataError(
+            "No rows to replay"
+            + (f" on or after {start_ts.date()}" if start_ts is not None else "")
+            + "."
+        )
+    return rows.reset_index(drop=True), start_ts
 
 
 def _score(

@@ -8,6 +8,7 @@ model change that cannot run now)::
 
     ServiceError            anything the service refuses, with a sentence
     +-- InvalidRequest      a value is wrong: a bad payload or time, an unknown model or effect
+    |   +-- NotJson         an HTTP body declared as something else than JSON (Content-Type)
     +-- UnknownWell         the well is not known to this service
     +-- Duplicate           the same sample or measurement arrived before
     +-- Conflict            the request clashes with one still running (a second model change)
@@ -19,8 +20,9 @@ model change that cannot run now)::
         +-- Starting        the service is not running yet
         +-- Stopping        the service is stopping
 
-The HTTP layer maps each class to a status in one table (:mod:`service.http.errors`):
-422, 404, 409, 409, 403, 401 and 503 for the three kinds of ``Unavailable``.
+The HTTP layer maps each class to a status in one table (:mod:`service.http.error_responses`):
+422 (415 for ``NotJson``), 404, 409, 409, 403, 401 and 503 for the three kinds of
+``Unavailable``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ __all__ = [
     "REASONS",
     "ServiceError",
     "InvalidRequest",
+    "NotJson",
     "UnknownWell",
     "Duplicate",
     "Conflict",
@@ -44,6 +47,8 @@ __all__ = [
 #: Every reason an input can be refused for, with what it means (the rejection counters).
 REASONS: dict[str, str] = {
     "malformed JSON": "the payload is not valid JSON",
+    "not declared JSON": "an HTTP body's Content-Type is not application/json (nor another "
+    "JSON type such as application/merge-patch+json)",
     "payload too large": "the payload is larger than inputs.max_payload_bytes (Zenoh) or "
     "http.max_body_bytes (HTTP)",
     "too deeply nested": "the JSON nests deeper than inputs.max_json_depth",
@@ -79,6 +84,8 @@ REASONS: dict[str, str] = {
     "or its well id is not valid",
     "unknown source": "the measurement source is not mpfm or well_test",
     "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
+    "sensor fault at the sample": "an input of the paired sample has an instrument fault "
+    "(vfm_core.sensor_faults): the measurement is stored (status held), not learned from",
     "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
     "well flooding": "the well sends faster than its share: its own queue (queues.well_capacity) "
     "stayed full for queues.block_s, or it exceeded inputs.well_rate_hz",
@@ -98,6 +105,10 @@ class ServiceError(Exception):
 
 class InvalidRequest(ServiceError):
     """A value is wrong: a payload that fails its checks, a bad time, an unknown model or effect."""
+
+
+class NotJson(InvalidRequest):
+    """An HTTP request body whose Content-Type says it is not JSON (the API takes JSON only)."""
 
 
 class UnknownWell(ServiceError):

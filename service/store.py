@@ -91,6 +91,7 @@ __all__ = [
     "InsertMeasurement",
     "MarkLearned",
     "MarkUnpaired",
+    "MarkHeld",
     "InsertCheckpoint",
     "PruneCheckpoints",
     "InsertDriftEvent",
@@ -278,7 +279,7 @@ class HistoryMeasurement(NamedTuple):
     q_total: float
     received_ns: int
     via: str
-    status: str  # pending | learned | unpaired
+    status: str  # pending | learned | unpaired | held (an instrument fault at its sample)
     sample_time_ns: int | None
     predicted: float | None
     version_after: int | None
@@ -458,6 +459,21 @@ class MarkUnpaired(Op):
 
     SQL: ClassVar[str] = (
         "UPDATE measurements SET status = 'unpaired'"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class MarkHeld(Op):
+    """A measurement not learned from: its sample's inputs had an instrument fault
+    (:mod:`vfm_core.sensor_faults`). Stored with status ``held``."""
+
+    well: str
+    source: str
+    time_ns: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE measurements SET status = 'held'"
         " WHERE well = :well AND source = :source AND time_ns = :time_ns"
     )
 

@@ -29,6 +29,8 @@ SLOW_FILES: frozenset[str] = frozenset(
         "test_demo_effects.py",  # vfm demo end to end: 107 s
         "test_service_demo_signals.py",  # the demo stopped by signals: 57 s each
         "test_report.py",  # a study per report test: 15-28 s of set-up each
+        # vfm serve and Debian's Prometheus, an alert firing and resolving: 26-32 s
+        "test_prometheus_real.py",
     }
 )
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from vfm_core.drift import StreamingHotelling, estimate_update_period, hotelling_two_sample
 from vfm_core.errors import ConfigError, DataError
+from vfm_core.hotelling import StreamingHotelling, estimate_update_period, hotelling_two_sample
 
 
 def test_one_dimension_equals_students_pooled_t_test() -> None:

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 
 import vfm_core
 from vfm_core.jobs.diagnose import DRIVER_VARIABLES, CandidateResult, Diagnosis
-from vfm_core.reporting import diagnosis, drift, page
+from vfm_core.reporting import diagnosis, drift_report, page
 
 NASTY_WELL = "<b>W1</b>"
 NASTY_EFFECT = "<script>alert(1)</script>"
@@ -262,7 +262,7 @@ def _drift_result() -> dict[str, object]:
 
 
 def test_drift_page_escapes_text_and_keeps_its_table(tmp_path: Path) -> None:
-    path = drift.build_report(_drift_result(), tmp_path / "report.html", NASTY_PATH)
+    path = drift_report.build_report(_drift_result(), tmp_path / "report.html", NASTY_PATH)
     html = path.read_text(encoding="utf-8")
     assert_self_contained(html)
     assert NASTY_WELL not in html and "<observations>" not in html

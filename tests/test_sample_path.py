@@ -243,8 +243,11 @@ def test_latency_histogram_counts_as_prometheus_does() -> None:
     ours = LatencyHistogram("lat_seconds", "latency", LATENCY_BUCKETS_S)
     registry = CollectorRegistry()
     theirs = Histogram("lat_seconds", "latency", buckets=LATENCY_BUCKETS_S, registry=registry)
-    for start in range(0, len(values), 256):  # a commit at a time
-        ours.observe_many(values[start : start + 256])
+    start = 0
+    while start < len(values):  # a commit at a time, small ones (no numpy) and large ones
+        size = rng.choice([1, 2, 15, 16, 256])
+        ours.observe_many(values[start : start + size])
+        start += size
     ours.observe_many([])
     for v in values:
         theirs.observe(v)

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from vfm_core.errors import VFMError
+from vfm_core.errors import ConfigError, VFMError
 from vfm_core.runtime import configure
 
 __all__ = ["main", "build_parser"]
@@ -53,12 +53,47 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         hidden=hidden,
         start=args.start,
         progress=not args.quiet,
+        physics=args.physics,
+        valves=_split_list(args.valves),
+        gas_lift=args.gas_lift,
     )
+    field = _with_faults(field, args.fault or [])
     paths = write_field(field, args.out)
     elapsed = time.perf_counter() - started
     print(field.summary())
     print(f"Wrote {', '.join(str(p) for p in paths)} in {elapsed:.1f} s.")
     return 0
+
+
+def _with_faults(field: Any, specs: Sequence[str]) -> Any:
+    """``--fault WELL,SENSOR,KIND,START[,SIZE[,DAYS]]``: instrument faults put into the
+    observations (:func:`vfm_core.faults_sim.inject_fault`), the truth's ``faults`` listing
+    them; the true rates are left as they were."""
+    if not specs:
+        return field
+    from dataclasses import replace
+
+    from vfm_core.faults_sim import inject_fault
+
+    frame, faults = field.observations, []
+    for spec in specs:
+        parts = [p.strip() for p in spec.split(",")]
+        if not 4 <= len(parts) <= 6:
+            raise ConfigError(
+                f"--fault {spec[:80]!r}: write WELL,SENSOR,KIND,START[,SIZE[,DAYS]], e.g. "
+                "W01,p_down,frozen,2017-03-01,,30."
+            )
+        well, sensor, kind, start, *rest = parts
+        try:
+            size = float(rest[0]) if rest and rest[0] else None
+            days = float(rest[1]) if len(rest) > 1 and rest[1] else None
+        except ValueError:
+            raise ConfigError(f"--fault {spec[:80]!r}: SIZE and DAYS must be numbers.") from None
+        frame, truth = inject_fault(frame, well, sensor, kind, start, size=size, days=days)
+        faults.append(truth)
+    field = replace(field, observations=frame)
+    field.truth["faults"] = faults
+    return field
 
 
 # --- import-volve -------------------------------------------------------------------------
@@ -95,6 +130,7 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
     )
     from vfm_core.models import MODELS
     from vfm_core.observations import load_observations
+    from vfm_core.sensor_faults import write_sensor_faults
 
     loaded = load_observations(args.data)
     print(loaded.summary())
@@ -127,6 +163,7 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
+        written.append(write_sensor_faults(loaded.frame, out))  # vfm_core.sensor_faults
         print(format_summary(result))
         for sentence in slow_runs(result.runs):
             print(f"Slow run: {sentence}")
@@ -166,9 +203,53 @@ def build_parser() -> argparse.ArgumentParser:
         help="hidden effect(s), e.g. erosion, valve:family=sigmoid, real_gas, slip, "
         "mpfm_bias, critical_ratio, or none; repeat or comma-separate",
     )
+    p.add_argument(
+        "--physics",
+        default="sachdeva",
+        metavar="NAME",
+        help="truth physics: sachdeva (default, the model mm carries), bernoulli (Bernoulli "
+        "choke, Simpson's multiplier, fixed critical ratio, Hall-Yarborough real gas), or "
+        "gilbert (Gilbert/Ros/Baxendell/Achong bean correlations)",
+    )
+    p.add_argument(
+        "--valves",
+        action="append",
+        metavar="FAMILY",
+        help="valve characteristics given to the wells in turn: linear, equal_percentage, "
+        "quick_opening, convex, sigmoid, or mixed (all in turn); comma-separate",
+    )
+    p.add_argument(
+        "--gas-lift",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of wells on gas lift, 0..1 (lift gas raises the gas fraction at the "
+        "choke; default 0)",
+    )
+    p.add_argument(
+        "--fault",
+        action="append",
+        metavar="WELL,SENSOR,KIND,START[,SIZE[,DAYS]]",
+        help="an instrument fault in the observations (kinds frozen, spike, drift, offset, "
+        "out_of_range; sensors choke, p_up, p_down, t_up, eta_gas, eta_oil), e.g. "
+        "W01,p_down,frozen,2017-03-01,,30; repeat for more",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_simulate)
 
+    _add_import_volve(sub)
+    _add_evaluate(sub)
+
+    for module in _INTERNAL_COMMANDS:
+        import importlib
+
+        importlib.import_module(module).register(sub)
+    _register_plugins(sub)
+    return parser
+
+
+def _add_import_volve(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """``vfm import-volve SRC --out FILE``."""
     p = sub.add_parser("import-volve", help="convert Equinor's Volve daily production CSV")
     p.add_argument("src", help="volve_daily_production.csv")
     p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
@@ -182,6 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(handler=_cmd_import_volve)
 
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """``vfm evaluate DATA --out DIR``: the study and its options."""
     p = sub.add_parser("evaluate", help="run the study: models x learning methods, prequentially")
     p.add_argument("data", help="observation file (.parquet or .csv)")
     p.add_argument("--out", required=True, help="output folder")
@@ -245,18 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_evaluate)
 
-    for module in _INTERNAL_COMMANDS:
-        import importlib
-
-        importlib.import_module(module).register(sub)
-    _register_plugins(sub)
-    return parser
-
 
 #: vfm_core modules that bring their own subcommands (each has ``register(subparsers)``).
 _INTERNAL_COMMANDS: tuple[str, ...] = (
     "vfm_core.jobs.tune",
-    "vfm_core.jobs.drift",
+    "vfm_core.jobs.drift_period",
     "vfm_core.jobs.diagnose",
 )
 

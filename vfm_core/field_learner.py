@@ -44,7 +44,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 import torch
@@ -64,7 +64,7 @@ from vfm_core.learning import (
     parse_method,
 )
 from vfm_core.models import MODELS, ChokeModel, make_model
-from vfm_core.streaming import phase_split
+from vfm_core.streaming import Learner, phase_split
 from vfm_core.timeutil import utc_timestamp
 
 __all__ = ["FieldLearner", "FieldWell", "FIELD_CHECKPOINT_FORMAT", "DAY_NS"]
@@ -712,6 +712,10 @@ class FieldWell:
     def checkpoint(self) -> bytes:
         """The whole field's checkpoint (see :meth:`FieldLearner.checkpoint`)."""
         return self.field.checkpoint()
+
+
+if TYPE_CHECKING:  # a FieldWell keeps the Learner protocol (mypy checks the assignment)
+    _KEEPS_PROTOCOL: type[Learner] = FieldWell
 
 
 # -- helpers ---------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 What the operator cares about is whether the model's error changed in a way the learner
 does not absorb (a sand event, a choke that wears faster than the model follows, a meter
 that starts to read off), not whether the inputs moved (depletion, choke changes: the
-model handles those; :mod:`vfm_core.drift` tests the inputs and says "operating point
+model handles those; :mod:`vfm_core.hotelling` tests the inputs and says "operating point
 outside the training data").
 
 The rule, per well and per meter (MPFM and well tests are separate streams: they differ

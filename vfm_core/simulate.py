@@ -58,6 +58,16 @@ model with the well's parameters reproduces ``q_true`` to rounding. Each hidden 
 size is measured on the rows themselves (the truth with and without it, same inputs) and
 stored in ``truth["hidden"][name]["size"]``.
 
+Another truth (``physics``): with ``physics="bernoulli"`` or ``"gilbert"`` the row's
+truth is :func:`vfm_core.sim_physics.choke_rates` instead (a Bernoulli choke with Simpson's
+multiplier, a fixed critical ratio and a Hall-Yarborough real gas; or the Gilbert-type bean
+correlations), on the same inputs and with the same per-well draws; the operators aim at
+that physics' own rate at the initial opening. ``valves`` gives the wells valve
+characteristics in turn and ``gas_lift`` puts a share of the wells on gas lift (lift gas
+adds to the gas-oil ratio at the choke from a random start). The truth JSON's ``physics``
+block names the physics, its references and these options. The defaults reproduce the
+Sachdeva field as it was before these options, file for file.
+
 The simulator is calibrated for horizons of about 1-10 years; much longer runs deplete
 the wells to a few bar (every row still passes the loader's filters).
 
@@ -72,7 +82,7 @@ import json
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +93,7 @@ from scipy.signal import lfilter
 from scipy.special import expit
 from tqdm import tqdm
 
-from vfm_core import physics, schema, units
+from vfm_core import physics, schema, sim_physics, units
 from vfm_core.errors import ConfigError
 from vfm_core.fileio import write_with
 from vfm_core.timeutil import utc_timestamp
@@ -95,6 +105,7 @@ __all__ = [
     "parse_hidden",
     "SimulatedField",
     "simulate_field",
+    "parse_valves",
     "write_field",
     "truth_paths",
     "load_truth",
@@ -407,6 +418,9 @@ _WELL_TEST_BINS: tuple[tuple[float, float, float], ...] = (
     (274.0, 365.0, 0.008),
 )
 
+#: Lift gas injected on a gas-lifted well, kg of gas per kg of produced liquid (low, high).
+_LIFT_GAS_PER_LIQUID = (0.03, 0.15)
+
 _GRID_DAYS = 0.25  # resolution of the slow processes and the operator's view, days
 _CHOKE_STEPS = 200  # choke positions are set in steps of 1/200 = 0.5 %
 _U_MIN = 0.02  # the smallest opening the operators use
@@ -422,6 +436,7 @@ _STREAMS = (
     "row_noise",
     "meter",
     "effects",
+    "gas_lift",
 )
 
 
@@ -436,6 +451,7 @@ class _Active:
     real_gas: bool = False
     slip: bool = False
     critical_ratio: bool = False
+    physics: str = sim_physics.DEFAULT_PHYSICS
 
 
 @dataclass(frozen=True)
@@ -447,6 +463,7 @@ class _Fluid:
     p_cr: float
     c_d: float
     a_max_m2: float
+    well_index: int = 0
 
 
 def _tensor(values: Any) -> torch.Tensor:
@@ -468,7 +485,10 @@ def _choke_truth(
     ``eta_gas`` and ``eta_oil`` (-); ``c_d`` is the true discharge coefficient.
     ``critical_iterations`` bisection steps solve Sachdeva's critical ratio (when that
     effect is on); the operators' own searches use fewer, the truth of a row the default.
+    Physics other than Sachdeva's come from :func:`sim_physics.choke_rates`.
     """
+    if active.physics != sim_physics.DEFAULT_PHYSICS:
+        return _other_truth(fluid, active, inputs, c_d, phases=phases)
     p1 = units.bar_to_pa(_tensor(inputs["p_up_bar"]))
     p2 = units.bar_to_pa(_tensor(inputs["p_down_bar"]))
     t1 = units.degc_to_k(_tensor(inputs["t_up_degc"]))
@@ -518,6 +538,47 @@ def _choke_truth(
             area=area.numpy(),
             z=z.numpy(),
             p_cr=p_cr.numpy(),
+        )
+    return out
+
+
+def _other_truth(
+    fluid: _Fluid,
+    active: _Active,
+    inputs: Mapping[str, np.ndarray],
+    c_d: np.ndarray | float,
+    *,
+    phases: bool = False,
+) -> dict[str, np.ndarray]:
+    """:func:`_choke_truth` for a physics of :mod:`vfm_core.sim_physics` (same outputs)."""
+    fraction = physics.area_fraction(_tensor(inputs["u"]), active.family).numpy()
+    area = np.asarray(c_d, dtype=np.float64) * fluid.a_max_m2 * fraction
+    well = sim_physics.WellConstants(
+        rho_oil=fluid.rho_oil,
+        rho_wat=fluid.rho_wat,
+        m_gas=fluid.m_gas,
+        p_cr=fluid.p_cr,
+        c_d=fluid.c_d,
+        well_index=fluid.well_index,
+    )
+    si = {
+        "area_eff_m2": area,
+        "p_up_pa": units.bar_to_pa(np.asarray(inputs["p_up_bar"], dtype=np.float64)),
+        "p_down_pa": units.bar_to_pa(np.asarray(inputs["p_down_bar"], dtype=np.float64)),
+        "t_up_k": units.degc_to_k(np.asarray(inputs["t_up_degc"], dtype=np.float64)),
+        "eta_gas": np.asarray(inputs["eta_gas"], dtype=np.float64),
+        "eta_oil": np.asarray(inputs["eta_oil"], dtype=np.float64),
+    }
+    rates = sim_physics.choke_rates(active.physics, well, si)
+    out = {"q": units.per_s_to_per_h(rates.q_total)}
+    if phases:
+        out.update(
+            q_gas=units.per_s_to_per_h(rates.q_gas),
+            q_oil=units.per_s_to_per_h(rates.q_oil),
+            q_water=units.per_s_to_per_h(rates.q_wat),
+            area=area,
+            z=rates.z,
+            p_cr=rates.p_cr,
         )
     return out
 
@@ -622,6 +683,10 @@ class _Well:
         t_end: float,
         hidden: Mapping[str, Mapping[str, ParamValue]],
         sampling_quantile: float,
+        *,
+        physics_name: str = sim_physics.DEFAULT_PHYSICS,
+        valve_family: str | None = None,
+        gas_lift: bool = False,
     ) -> None:
         self.name = name
         self._sampling_quantile = sampling_quantile
@@ -631,12 +696,17 @@ class _Well:
         self._seed = seed
         self._index = index
         self.cumulative: np.ndarray | None = None
+        if valve_family is None:
+            valve_family = str(hidden["valve"]["family"]) if "valve" in hidden else "linear"
         self.active = _Active(
-            family=str(hidden["valve"]["family"]) if "valve" in hidden else "linear",
+            family=valve_family,
             real_gas="real_gas" in hidden,
             slip="slip" in hidden,
             critical_ratio="critical_ratio" in hidden,
+            physics=physics_name,
         )
+        self.gas_lift = gas_lift
+        self.lift: dict[str, Any] | None = None
 
     def rng(self, stream: str) -> np.random.Generator:
         key = (1, self._index, _STREAMS.index(stream))
@@ -665,6 +735,7 @@ class _Well:
             p_cr=d["p_cr"],
             c_d=d["c_d"],
             a_max_m2=physics.choke_area_m2(d["bore_diameter_mm"] / 1000.0),
+            well_index=self._index,
         )
         self.decline_per_year = -math.log(d["remaining_after_5y"]) / 5.0
         duration_years = (self.t1 - self.t0) / DAYS_PER_YEAR
@@ -735,6 +806,38 @@ class _Well:
             + _ou(rng, n, 1.0, 10.0)
         )
         self.flowing = ~_inside(grid, self.shut_ins)[0]
+        if self.gas_lift:
+            self._add_gas_lift()
+
+    def _add_gas_lift(self) -> None:
+        """Lift gas injected into the well reaches the choke: it adds to the gas-oil ratio.
+
+        The injection starts at the well's start (probability 0.3) or at a random time in
+        the first half of its life, at 0.03-0.15 kg of lift gas per kg of liquid, and is
+        changed 0-3 times by x0.7..1.3 (from its own random stream, so the other draws stay
+        as they are). The recorded ``eta_gas`` includes the lift gas, as an MPFM at the
+        choke measures it; the wellhead pressure is left as it is (no well model here).
+        """
+        rng = self.rng("gas_lift")
+        grid = self.grid
+        span = self.t1 - self.t0
+        from_start = bool(rng.uniform() < 0.3)
+        t_lift = self.t0 if from_start else self.t0 + rng.uniform(0.0, 0.5) * span
+        low, high = _LIFT_GAS_PER_LIQUID
+        ratio0 = float(rng.uniform(low, high))
+        changes = int(rng.integers(0, 4))
+        when = np.sort(rng.uniform(t_lift, self.t1, changes))
+        factors = rng.uniform(0.7, 1.3, changes)
+        ratio = np.where(grid >= t_lift, ratio0, 0.0)
+        for t_change, factor in zip(when, factors, strict=True):
+            ratio = np.where(grid >= t_change, ratio * factor, ratio)
+        water_oil = self.water_cut / (1.0 - self.water_cut)
+        self.gor = self.gor + ratio * (1.0 + water_oil)
+        self.lift = {
+            "start_day": float(t_lift),
+            "gas_per_liquid_kg_kg": ratio0,
+            "changes": [[float(t), float(f)] for t, f in zip(when, factors, strict=True)],
+        }
 
     # ---- operations ----
 
@@ -832,7 +935,7 @@ class _Well:
 
         # The target: the plain model's rate at the initial opening and start state.
         t_first = np.array([self.t0])
-        plain = _Active()
+        plain = _Active(physics=self.active.physics)
         u0 = np.array([_round_choke(np.array([d["initial_choke"]]))[0]])
         start = self._state(t_first, u0, self.t_base[:1])
         self.target = float(_choke_truth(self.fluid, plain, start, self.fluid.c_d)["q"][0])
@@ -987,13 +1090,13 @@ class _Well:
             if effect == "erosion":
                 c_d_eff = np.full(n, self.fluid.c_d)
             elif effect == "valve":
-                active = _Active("linear", active.real_gas, active.slip, active.critical_ratio)
+                active = replace(active, family="linear")
             else:
-                active = _Active(
-                    active.family,
-                    active.real_gas and effect != "real_gas",
-                    active.slip and effect != "slip",
-                    active.critical_ratio and effect != "critical_ratio",
+                active = replace(
+                    active,
+                    real_gas=active.real_gas and effect != "real_gas",
+                    slip=active.slip and effect != "slip",
+                    critical_ratio=active.critical_ratio and effect != "critical_ratio",
                 )
             q_without[effect] = _choke_truth(self.fluid, active, inputs, c_d_eff)["q"]
         q_plain = _choke_truth(self.fluid, _Active(), inputs, self.fluid.c_d)["q"]
@@ -1151,12 +1254,18 @@ def simulate_field(
     hidden: Mapping[str, Mapping[str, Any]] | Sequence[str] = (),
     start: str = "2016-01-01",
     progress: bool = False,
+    physics: str = sim_physics.DEFAULT_PHYSICS,
+    valves: Sequence[str] | str = (),
+    gas_lift: float = 0.0,
 ) -> SimulatedField:
     """Simulate ``wells`` wells from ``start`` for ``years`` years (see the module docstring).
 
     ``hidden`` names the hidden effects, as CLI strings (``["erosion:rate=0.06", "slip"]``,
     see :func:`parse_hidden`) or as ``{name: {parameter: value}}`` (missing parameters take
-    their defaults). The same arguments give identical frames.
+    their defaults). ``physics`` names the truth (:data:`sim_physics.TRUTH_PHYSICS`);
+    ``valves`` gives the wells' valve characteristics in turn (see :func:`parse_valves`);
+    ``gas_lift`` is the share (0..1) of wells on gas lift. The same arguments give identical
+    frames; the defaults give the same frames as before these options existed.
     """
     if isinstance(seed, bool) or int(seed) != seed or seed < 0:
         raise ConfigError(f"seed must be a whole number of at least 0, not {seed!r}.")
@@ -1165,6 +1274,18 @@ def simulate_field(
     if not (math.isfinite(years) and 1.0 / 12.0 <= years <= 50.0):
         raise ConfigError(f"years must lie between 1/12 and 50, not {years!r}.")
     effects = _resolve_hidden(hidden)
+    spec = sim_physics.physics_spec(physics)
+    _check_physics_effects(spec.name, effects)
+    families = parse_valves(valves)
+    if families and "valve" in effects:
+        raise ConfigError(
+            "Give the valve characteristic either per well (valves) or as the hidden effect "
+            "'valve' for every well, not both."
+        )
+    if not (isinstance(gas_lift, int | float) and math.isfinite(gas_lift) and 0 <= gas_lift <= 1):
+        raise ConfigError(
+            f"gas_lift is the share of wells on gas lift; give a number in 0..1, not {gas_lift!r}."
+        )
     try:
         t_origin = utc_timestamp(start)
     except ValueError:
@@ -1179,11 +1300,24 @@ def simulate_field(
     width = max(2, len(str(int(wells))))
     names = [f"W{j + 1:0{width}d}" for j in range(int(wells))]
 
+    lifted = _lifted_wells(seed, int(wells), float(gas_lift))
+    well_objects: list[_Well] = []
     results: list[_WellResult] = []
     for j in tqdm(range(int(wells)), desc="simulating wells", disable=not progress):
-        results.append(
-            _Well(names[j], j, seed, float(starts[j]), horizon, effects, float(sampling[j])).run()
+        well = _Well(
+            names[j],
+            j,
+            seed,
+            float(starts[j]),
+            horizon,
+            effects,
+            float(sampling[j]),
+            physics_name=spec.name,
+            valve_family=families[j % len(families)] if families else None,
+            gas_lift=bool(lifted[j]),
         )
+        results.append(well.run())
+        well_objects.append(well)
 
     def to_time(days: np.ndarray) -> pd.Series:
         seconds = np.round(np.asarray(days) * 86400.0).astype(np.int64)
@@ -1237,8 +1371,98 @@ def simulate_field(
         "truth_versus_plain_model": combined,
         "wells": per_well,
         "ranges": {key: list(value) for key, value in _RANGES.items()},
+        "physics": _physics_truth(spec, families, float(gas_lift), names, well_objects, iso),
     }
     return SimulatedField(observations=observations, truth_samples=samples, truth=_jsonable(truth))
+
+
+def parse_valves(valves: Sequence[str] | str) -> list[str]:
+    """Valve characteristics given to the wells in turn (W01 the first, W02 the second...).
+
+    Names of :data:`vfm_core.physics.AREA_FUNCTIONS`, comma-separated or as a list;
+    ``mixed`` stands for all of them in their registry order. Empty: every well's valve
+    is linear (or the ``valve`` hidden effect's family). An unknown name raises
+    ConfigError listing the valid ones.
+    """
+    items = [valves] if isinstance(valves, str) else list(valves)
+    out: list[str] = []
+    for item in items:
+        for name in str(item).split(","):
+            name = name.strip()
+            if not name:
+                continue
+            if name == "mixed":
+                out.extend(physics.AREA_FUNCTIONS)
+            elif name in physics.AREA_FUNCTIONS:
+                out.append(name)
+            else:
+                raise ConfigError(
+                    f"Unknown valve characteristic '{name}'; choose from "
+                    f"{', '.join(physics.AREA_FUNCTIONS)}, or mixed (all of them in turn)."
+                )
+    return out
+
+
+#: Hidden effects that change the Sachdeva truth only (the other physics have their own gas
+#: law, slip and critical ratio built in).
+_SACHDEVA_ONLY_EFFECTS = ("real_gas", "slip", "critical_ratio")
+
+
+def _check_physics_effects(name: str, effects: Mapping[str, Any]) -> None:
+    if name == sim_physics.DEFAULT_PHYSICS:
+        return
+    clash = [e for e in effects if e in _SACHDEVA_ONLY_EFFECTS]
+    if clash:
+        raise ConfigError(
+            f"The hidden effect(s) {', '.join(clash)} change the Sachdeva truth only; the "
+            f"'{name}' physics has its own gas law, slip and critical ratio. Use them with "
+            f"--physics sachdeva, or choose from erosion, valve, mpfm_bias with '{name}'."
+        )
+
+
+def _lifted_wells(seed: int, wells: int, share: float) -> np.ndarray:
+    """Which wells are on gas lift: round(share * wells) of them (at least one for a
+    positive share), chosen from a field stream of their own."""
+    lifted = np.zeros(wells, dtype=bool)
+    if share <= 0.0:
+        return lifted
+    count = min(wells, max(1, round(share * wells)))
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2,)))
+    lifted[rng.permutation(wells)[:count]] = True
+    return lifted
+
+
+def _physics_truth(
+    spec: sim_physics.PhysicsSpec,
+    families: Sequence[str],
+    gas_lift: float,
+    names: Sequence[str],
+    wells: Sequence[_Well],
+    iso: Any,
+) -> dict[str, Any]:
+    """The truth JSON's ``physics`` block: which truth, its references and the well options."""
+    out: dict[str, Any] = {
+        "name": spec.name,
+        "description": spec.description,
+        "references": list(spec.references),
+        "critical_ratio": spec.critical_ratio,
+        "valves": {n: w.active.family for n, w in zip(names, wells, strict=True)},
+        "valves_given": list(families),
+        "gas_lift_share": gas_lift,
+        "gas_lift": {},
+    }
+    if spec.name == "gilbert":
+        out["gilbert_correlation"] = {
+            n: sim_physics.gilbert_correlation(w.fluid.well_index).name
+            for n, w in zip(names, wells, strict=True)
+        }
+    for n, w in zip(names, wells, strict=True):
+        if w.lift is not None:
+            lift = dict(w.lift)
+            lift["start"] = iso(lift.pop("start_day"))
+            lift["changes"] = [[iso(t), f] for t, f in lift["changes"]]
+            out["gas_lift"][n] = lift
+    return out
 
 
 def _measured_sizes(

@@ -276,21 +276,57 @@ def convert_volve(
         _P_DOWN_NONPOSITIVE: p_down <= 0,
         _P_DOWN_NOT_BELOW: p_down >= p_up,
     }
-    keep = pd.Series(True, index=raw.index)
+    keep, removed = _sift(failures, time, well, num[_DP], min_choke_dp_bar)
+    return _observations(
+        keep,
+        time=time,
+        well=well,
+        inputs={"choke": choke, "p_up": p_up, "p_down": p_down, "t_up": num[_WHT]},
+        hours=hours,
+        volumes=volumes,
+    ), removed
+
+
+def _sift(
+    failures: dict[str, pd.Series],
+    time: pd.Series,
+    well: pd.Series,
+    dp_bar: pd.Series,
+    min_choke_dp_bar: float,
+) -> tuple[pd.Series, dict[str, int]]:
+    """The rows kept, and how many rows each reason removed: every row is counted under
+    the first reason it fails (in the order of ``failures``), then the repeated (time,
+    well) pairs, then the days whose choke pressure drop ``dp_bar`` is below the minimum."""
+    keep = pd.Series(True, index=time.index)
     removed: dict[str, int] = {}
     for reason, failed in failures.items():
         hit = keep & failed.fillna(False).astype(bool)
         removed[reason] = int(hit.sum())
         keep &= ~hit
     duplicate = keep & pd.DataFrame({"t": time, "w": well})[keep].duplicated().reindex(
-        raw.index, fill_value=False
+        time.index, fill_value=False
     )
     removed[_DUPLICATE] = int(duplicate.sum())
     keep &= ~duplicate
-    low_dp = keep & (num[_DP] < min_choke_dp_bar)
+    low_dp = keep & (dp_bar < min_choke_dp_bar)
     removed[_LOW_DP] = int(low_dp.sum())
     keep &= ~low_dp
+    return keep, removed
 
+
+def _observations(
+    keep: pd.Series,
+    *,
+    time: pd.Series,
+    well: pd.Series,
+    inputs: dict[str, pd.Series],
+    hours: pd.Series,
+    volumes: pd.DataFrame,
+) -> pd.DataFrame:
+    """The kept rows as observations: the choke inputs (``inputs``: choke fraction, bar a,
+    bar a, degC), the mass fractions from the day's volumes and the standard densities,
+    and the rates (Sm3/h: the day's volumes over its hours on stream), sorted by time
+    then well."""
     kept_hours = hours[keep]
     oil, gas, wat = (volumes.loc[keep, c] for c in _VOLUMES)
     mass_oil = oil * RHO_OIL
@@ -303,10 +339,7 @@ def convert_volve(
         {
             schema.TIME: time[keep],
             schema.WELL: well[keep].astype(str),
-            "choke": choke[keep],
-            "p_up": p_up[keep],
-            "p_down": p_down[keep],
-            "t_up": num.loc[keep, _WHT],
+            **{name: values[keep] for name, values in inputs.items()},
             "eta_gas": mass_gas / mass_total,
             "eta_oil": mass_oil / mass_total,
             schema.TARGET: q_oil + q_gas + q_water,
@@ -316,8 +349,7 @@ def convert_volve(
             "q_water": q_water,
         }
     )
-    frame = frame.sort_values([schema.TIME, schema.WELL], kind="stable").reset_index(drop=True)
-    return frame, removed
+    return frame.sort_values([schema.TIME, schema.WELL], kind="stable").reset_index(drop=True)
 
 
 @dataclass(frozen=True)

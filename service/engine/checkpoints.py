@@ -129,6 +129,8 @@ class Checkpoints:
             "trials": list(st.trials),
             # the residual alarm's detectors (service.engine.residual_alarms)
             "residual_alarm": st.residual_alarm.state() if st.residual_alarm is not None else None,
+            # the instrument-fault detectors (vfm_core.sensor_faults)
+            "sensor_faults": st.sensor_faults.state(),
         }
         st.checkpoint_version = learner.version
         return [
@@ -182,6 +184,13 @@ class Checkpoints:
         st.trials.extend(data.get("trials", []))
         if data.get("residual_alarm") and st.residual_alarm is not None:
             st.residual_alarm.restore(data["residual_alarm"])
+        if data.get("sensor_faults"):
+            try:
+                st.sensor_faults.restore(data["sensor_faults"])
+            except (KeyError, TypeError, ValueError, VFMError) as exc:
+                logger.warning(
+                    "Sensor-fault state of %s not restored (%s); it starts over.", st.well, exc
+                )
         if data.get("trial"):
             _restore_trial(st, data["trial"], self.model)
 

@@ -51,7 +51,7 @@ from service.engine.fairqueue import FairQueue
 from service.engine.items import MeasurementItem, SensorBlockItem, SensorItem
 from service.engine.registry import Registry
 from service.engine.state import WellTestResult
-from service.errors import Busy, InvalidRequest, ServiceError
+from service.errors import Busy, InvalidRequest, ServiceError, UnknownWell
 from service.inputs import (
     Counters,
     Limits,
@@ -198,15 +198,22 @@ class Intake:
         """Queue a well test; the future answers after it is stored (and learned).
 
         Raises (before queueing) :class:`InvalidRequest` for a bad time, rate or well id,
-        :class:`UnknownWell` for a well this service does not hold (HTTP never creates
-        one), or :class:`Busy` when the queue stays full.
+        :class:`UnknownWell` for a well this service does not serve (HTTP never creates
+        one; a well still being created from its first Zenoh message is not served yet, as
+        for every other endpoint), or :class:`Busy` when the queue stays full.
         """
         problem = well_id_problem(well)
         if problem is not None:
             raise InvalidRequest(problem, "unparseable key")
         self.check_time(measurement.time, "well test")
         self.check_rate(measurement.q_total, well)
-        self.registry.admit(well, create=False)
+        self.registry.admit(well, create=False)  # a retired or unknown well: refused
+        if well not in self.registry.wells:  # admitted as new over Zenoh, not built yet
+            raise UnknownWell(
+                f"The well {well} is not served yet: it is being created from its first "
+                "Zenoh message. Retry once GET /wells lists it.",
+                "unknown well",
+            )
         fut: Future[WellTestResult] = Future()
         item = MeasurementItem(
             well, measurement, "well_test", time.time_ns(), via="http", future=fut

@@ -5,7 +5,8 @@ within ``inputs.pair_tolerance_s``: from the recent samples in memory, else from
 store. If no sample at or after its time has arrived yet it waits, stored as ``pending``
 (at most ``inputs.pending_max`` per well, ``inputs.pending_timeout_s`` of wall time), and
 is settled when a later sample arrives or the wait runs out: learned from if a sample
-lies within the tolerance, else marked ``unpaired``. A rate far from the well's recent
+lies within the tolerance (``held`` instead, not learned, when an input of that sample has
+an instrument fault: :mod:`vfm_core.sensor_faults`), else marked ``unpaired``. A rate far from the well's recent
 ones (:meth:`~service.engine.state.WellState.rate_problem`) is refused before anything
 is stored (``implausible rate``). A stored well test is compared with the MPFM readings
 near it (:mod:`service.engine.alarms`). A sample is always predicted before
@@ -24,7 +25,7 @@ from service.engine.learning import Learning
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.errors import Duplicate, InvalidRequest
 from service.inputs import Counters
-from service.store import InsertMeasurement, MarkUnpaired, Store
+from service.store import InsertMeasurement, MarkHeld, MarkUnpaired, Store
 from vfm_core.timeutil import iso, to_ns
 
 __all__ = ["Pairing", "nearest_in"]
@@ -137,7 +138,7 @@ class Pairing:
                 self.alarms.on_mpfm(st, t, b.ops)
         p = Pending(t, item.source, m.q_total, item.via, time.monotonic(), item.future)
         if sample is not None:
-            self.learning.learn_paired(st, p, sample, b)
+            self._learn_unless_held(st, p, sample, b)
             return
         if len(st.pending) >= self.pending_max:
             oldest = st.pending.pop(0)
@@ -191,4 +192,21 @@ class Pairing:
             )
             refuse(self.counters, error, st.well, b, p.future)
             return
-        self.learning.learn_paired(st, p, sample, b)
+        self._learn_unless_held(st, p, sample, b)
+
+    def _learn_unless_held(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
+        """Learn from the measurement, unless its sample has an input with an instrument
+        fault (vfm_core.sensor_faults): then it is kept (status ``held``), counted, not
+        learned from (learn nothing wrong)."""
+        fault = st.sensor_faults.suspect(sample.time_ns)
+        if fault is None:
+            self.learning.learn_paired(st, p, sample, b)
+            return
+        b.ops.append(MarkHeld(well=st.well, source=p.source, time_ns=p.time_ns))
+        error = InvalidRequest(
+            f"The {p.source} measurement of {st.well} at {iso(p.time_ns)} is stored but "
+            f"not learned from: at its sample ({iso(sample.time_ns)}) {fault.sensor} had a "
+            f"{fault.kind} fault since {iso(fault.start_ns)}. {fault.evidence}",
+            "sensor fault at the sample",
+        )
+        refuse(self.counters, error, st.well, b, p.future)

@@ -11,6 +11,7 @@ below.
 
 from __future__ import annotations
 
+import logging
 import math
 import statistics
 from collections import OrderedDict, deque
@@ -24,7 +25,8 @@ from service.config import Settings
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.learning import Learner, describe
 from service.store import SampleRow
-from vfm_core.drift import StreamingHotelling
+from vfm_core.hotelling import StreamingHotelling
+from vfm_core.sensor_faults import SensorFault, WellSensorFaults
 
 __all__ = [
     "RECENT_SAMPLES",
@@ -35,6 +37,8 @@ __all__ = [
     "WellState",
     "CatchUp",
 ]
+
+logger = logging.getLogger("vfm.service.engine")
 
 RECENT_SAMPLES = 512  # per well, in memory, for pairing; older ones are looked up in the store
 SEEN_MEASUREMENTS = 1024  # per well, recent measurement keys for the duplicate check
@@ -102,6 +106,8 @@ class WellState:
         self.residual_alarm: WellResidualAlarm | None = (
             WellResidualAlarm(settings.residual_alarm) if settings.residual_alarm.enabled else None
         )
+        # instrument faults of the well's inputs (vfm_core.sensor_faults), fed every sample
+        self.sensor_faults = WellSensorFaults()
         # model changes over HTTP: what was swapped in, when, and its held-out scores
         self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
         # while a new model is fitted off the worker: what the old one learned meanwhile
@@ -190,6 +196,23 @@ class WellState:
         """The residual alarm for the API (GET /wells/{well} ``residual_alarm``)."""
         alarm = self.residual_alarm
         return disabled_view() if alarm is None else alarm.view()
+
+    def watch_sensors(self, time_ns: int, inputs: tuple[float, ...]) -> list[SensorFault]:
+        """Feed one accepted sample (epoch ns, the six inputs) to the instrument-fault
+        detectors; the faults that began or ended at it (each logged)."""
+        events = self.sensor_faults.update(time_ns, inputs)
+        for e in events:
+            if e.end_ns is None:
+                logger.warning(
+                    "Sensor fault on %s: %s %s. %s", self.well, e.sensor, e.kind, e.evidence
+                )
+            else:
+                logger.info("Sensor fault on %s ended: %s %s.", self.well, e.sensor, e.kind)
+        return events
+
+    def sensor_faults_view(self) -> list[dict[str, Any]]:
+        """GET /wells/{well} ``sensor_faults``: the recent faults, ``end`` null while active."""
+        return self.sensor_faults.view()
 
     def rolling_mape(self) -> dict[str, Any]:
         """MAPE (%) of the predictions made at the last paired measurements' samples."""

@@ -484,6 +484,7 @@ class Workers:
             payload = json.dumps(message, allow_nan=False).encode()
         recent, ops, well, received = st.recent, b.ops, item.well, item.received_ns
         for i, (ti, row) in enumerate(zip(times, rows, strict=True)):
+            st.watch_sensors(ti, row)  # instrument faults (vfm_core.sensor_faults)
             if ok[i]:
                 q = q_total[i]
                 recent.append(Sample(ti, row, q))
@@ -562,6 +563,7 @@ class Workers:
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
+        st.watch_sensors(t, inputs)  # instrument faults (vfm_core.sensor_faults)
         if not rates or q_total is None:
             b.ops.append(InsertSample(item.well, t, inputs, item.received_ns, *_NOT_READY))
             self.counters.event("model not ready")

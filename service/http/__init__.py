@@ -3,7 +3,7 @@
 ``create_app(service)`` (:mod:`service.http.app`) builds the application; the routers are
 :mod:`~service.http.health`, :mod:`~service.http.wells`, :mod:`~service.http.well_tests`
 and :mod:`~service.http.model_changes`; :mod:`~service.http.deps` holds what they depend
-on and :mod:`~service.http.errors` the status of each domain error. This package never
+on and :mod:`~service.http.error_responses` the status of each domain error. This package never
 imports :mod:`service.app`: the service is handed in.
 """
 

@@ -25,7 +25,7 @@
 =======================================  =====================================================
 
 Errors answer ``{"detail": "<a sentence>", "reason": "<counter key>"}`` with the status
-of :data:`service.http.errors.STATUS`; a body above ``http.max_body_bytes`` gets 413. Dependencies (:mod:`.deps`) are injected with
+of :data:`service.http.error_responses.STATUS`; a body above ``http.max_body_bytes`` gets 413. Dependencies (:mod:`.deps`) are injected with
 ``Annotated[..., Depends()]``, so tests override them.
 """
 
@@ -48,7 +48,7 @@ from service.http import (
     workbench,
 )
 from service.http.deps import ServiceView
-from service.http.errors import BodyLimit, install_error_handlers
+from service.http.error_responses import BodyLimit, install_error_handlers
 
 __all__ = ["create_app"]
 

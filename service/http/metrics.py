@@ -15,14 +15,25 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
                                              since the service started
 ``vfm_well_residual_alarm_active{well}``     1 while the well's residual alarm is active
 ``vfm_well_residual_alarms_total{well}``     residual alarms raised since the start
+``vfm_well_sensor_fault_active{well,sensor,kind}``  1 while the well has that instrument
+                                             fault (``vfm_core.sensor_faults``)
+``vfm_sensor_faults_total{sensor,kind}``     instrument faults raised, all wells (kept
+                                             across restarts by the checkpoints)
 ``vfm_well_model_changes_total{well}``       model changes over HTTP since the start
 ``vfm_well_samples_total{well}``             samples handled since the start (per well)
+``vfm_well_predictions_total{well}``         predictions stored since the start (per well;
+                                             0 for a served well with none yet)
+``vfm_well_mpfm_alarm_active{well}``         1 while the well's MPFM disagrees with its
+                                             latest well test (wells with a comparison)
+``vfm_well_mpfm_difference_ratio{well}``     (MPFM median - well test) / well test of it
 ``vfm_well_trial_mape_percent{well,role,outcome}``  the running (or latest) trial's MAPE, %:
                                              role ``model`` (new) and ``shadow`` (replaced)
 ``vfm_well_trial_pairs{well,outcome}``       that trial's paired measurements
 ``vfm_trials_total{outcome}``                trials ended since the start, by outcome
+                                             (every outcome, 0 until it happens)
 ``vfm_inputs_accepted_total{kind}``          accepted sensors / measurements / well_tests
-``vfm_inputs_rejected_total{reason}``        refused inputs by reason (``GET /health``)
+``vfm_inputs_rejected_total{reason}``        refused inputs by reason (``GET /health``;
+                                             every reason of ``REASONS``, 0 until it happens)
 ``vfm_events_total{event}``                  other events (learned, overflow, drifts, ...)
 ``vfm_queue_depth{worker}``                  items waiting per worker queue
 ``vfm_queue_capacity``                       capacity of each worker queue
@@ -31,6 +42,10 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
                                              events dropped for slow ones
 ``vfm_prediction_latency_seconds``           histogram: sample arrival to stored prediction
 ===========================================  ================================================
+
+A counter whose series appeared only at its first event would hide that event from
+Prometheus's ``increase()`` (it needs two points), so the reasons and outcomes an alert
+watches (``docker/alerts.yml``) are there from the start at 0.
 """
 
 from __future__ import annotations
@@ -43,6 +58,9 @@ from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
+
+from service.engine.trial import OUTCOMES
+from service.errors import REASONS
 
 __all__ = ["router", "registry_for", "ServiceCollector"]
 
@@ -67,8 +85,8 @@ class ServiceCollector(Collector):
         rejected = CounterMetricFamily(
             "vfm_inputs_rejected", "Inputs refused, by reason (see GET /health).", labels=["reason"]
         )
-        for reason, n in sorted(snap["rejected"].items()):
-            rejected.add_metric([reason], n)
+        for reason in sorted(REASONS.keys() | snap["rejected"].keys()):
+            rejected.add_metric([reason], snap["rejected"].get(reason, 0))
         yield rejected
         events = CounterMetricFamily(
             "vfm_events", "Other events of the engine, by name.", labels=["event"]
@@ -131,6 +149,23 @@ class ServiceCollector(Collector):
         samples = CounterMetricFamily(
             "vfm_well_samples", "Sensor samples handled since the start.", labels=["well"]
         )
+        predictions = CounterMetricFamily(
+            "vfm_well_predictions",
+            "Predictions stored since the start (a sample answered by the well's model).",
+            labels=["well"],
+        )
+        mpfm_alarm = GaugeMetricFamily(
+            "vfm_well_mpfm_alarm_active",
+            "1 while the well's MPFM disagrees with its latest well test by more than "
+            "alarms.mpfm_well_test_rel, else 0 (wells with a comparison only).",
+            labels=["well"],
+        )
+        mpfm_diff = GaugeMetricFamily(
+            "vfm_well_mpfm_difference_ratio",
+            "(median of the MPFM readings near the latest well test - the well test) / the "
+            "well test (wells with a comparison only).",
+            labels=["well"],
+        )
         for well, st in sorted(wells.items()):
             rolling = st.rolling_mape()
             if rolling["value"] is not None:
@@ -147,7 +182,13 @@ class ServiceCollector(Collector):
                 alarms.add_metric([well], obs.residual_alarms.get(well, 0))
             changes.add_metric([well], obs.model_changes.get(well, 0))
             samples.add_metric([well], st.samples)
+            predictions.add_metric([well], obs.predictions.get(well, 0))
+            check = st.mpfm_check
+            if check is not None:
+                mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
+                mpfm_diff.add_metric([well], check["relative_difference"])
         yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
+        yield from (predictions, mpfm_alarm, mpfm_diff, *_sensor_fault_metrics(wells))
         # the trials of model changes against their shadows (service.engine.trial)
         trial_mape = GaugeMetricFamily(
             "vfm_well_trial_mape_percent",
@@ -176,9 +217,12 @@ class ServiceCollector(Collector):
             "interrupted).",
             labels=["outcome"],
         )
-        for name, n in sorted(snap["events"].items()):
+        by_outcome = {o: 0 for o in OUTCOMES if o != "running"}
+        for name, n in snap["events"].items():
             if name.startswith("trials "):
-                trials.add_metric([name.removeprefix("trials ")], n)
+                by_outcome[name.removeprefix("trials ")] = n
+        for outcome, n in sorted(by_outcome.items()):
+            trials.add_metric([outcome], n)
         yield from (trial_mape, trial_n, trials)
         yield GaugeMetricFamily(
             "vfm_live_clients", "Clients of GET /events.", value=obs.subscribers
@@ -210,3 +254,34 @@ def registry_for(service: Any) -> CollectorRegistry:
 def metrics(request: Request) -> Response:
     registry: CollectorRegistry = request.app.state.metrics
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+def _sensor_fault_metrics(wells: dict[str, Any]) -> Iterator[Any]:
+    """The instrument faults (vfm_core.sensor_faults): active per well, sensor and kind
+    (every sensor and kind of a served well, 0 when clear) and raised per sensor and kind."""
+    from vfm_core.sensor_faults import KINDS, SENSORS
+
+    active = GaugeMetricFamily(
+        "vfm_well_sensor_fault_active",
+        "1 while the well's input (sensor) has an instrument fault of that kind, else 0.",
+        labels=["well", "sensor", "kind"],
+    )
+    total = CounterMetricFamily(
+        "vfm_sensor_faults",
+        "Instrument faults raised per sensor and kind, all wells.",
+        labels=["sensor", "kind"],
+    )
+    counts: dict[str, int] = {}
+    for well, st in sorted(wells.items()):
+        det = st.sensor_faults
+        now = det.flagged_kinds()
+        for sensor in SENSORS:
+            for kind in KINDS:
+                active.add_metric([well, sensor, kind], 1.0 if (sensor, kind) in now else 0.0)
+        for key, n in dict(det.raised).items():
+            counts[key] = counts.get(key, 0) + n
+    for sensor in SENSORS:
+        for kind in KINDS:
+            total.add_metric([sensor, kind], counts.get(f"{sensor}/{kind}", 0))
+    yield active
+    yield total

@@ -287,6 +287,12 @@ class WellOut(WellSummary):
         description="the alarm on the model's standardised residuals: enabled, active, "
         "statistic, threshold, since, direction, source, streams (per meter), events",
     )
+    sensor_faults: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="instrument faults of the well's inputs, oldest first (the latest 50): "
+        "sensor, kind (frozen, spike, drift, offset, out_of_range), start, end (null while "
+        "active), evidence, detected",
+    )
     samples: int = Field(description="samples accepted since start")
     measurements: int = Field(description="measurements accepted since start")
     last_sample_time: str | None

@@ -2,8 +2,11 @@
 
 The body is read raw and checked by :func:`service.inputs.parse_measurement`, the very
 function that checks a Zenoh measurement (with the same size and depth limits), so both
-paths refuse the same inputs with the same reasons. HTTP never creates a well: a well test
-of an unknown well (a typo) answers 404.
+paths refuse the same inputs with the same reasons. A body declared as anything but JSON
+answers 415 (``not declared JSON``, :func:`service.http.deps.require_json_body`). HTTP never
+creates a well: a well test of a well that ``GET /wells`` does not list (a typo, or a well
+still being created from its first Zenoh message) answers 404 (``unknown well``), as every
+other endpoint about that well would.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ router = APIRouter(prefix="/wells", tags=["wells"])
         404: {"model": ErrorOut},
         409: {"model": ErrorOut},
         413: {"model": ErrorOut, "description": "the body is larger than http.max_body_bytes"},
+        415: {"model": ErrorOut, "description": "the body is declared as something else than JSON"},
         422: {"model": ErrorOut},
         503: {"model": ErrorOut},
     },

@@ -69,6 +69,7 @@ def well_state(well: WellPath, engine: MaybeEngineDep, service: ServiceDep) -> d
     out["versions"] = versions_of(service.store, well) if service.store is not None else []
     if st is not None:  # the alarm on the residuals (service.engine.residual_alarms)
         out["residual_alarm"] = st.residual_alarm_state()
+        out["sensor_faults"] = st.sensor_faults_view()  # vfm_core.sensor_faults
     return out
 
 

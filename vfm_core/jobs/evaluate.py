@@ -35,6 +35,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,7 @@ from vfm_core.jobs.results import StudyResult
 from vfm_core.jobs.study import (
     OUTAGE_FRACTIONS,
     PHASES,
+    Outage,
     RunResult,
     has_phases,
     metrics_records,
@@ -162,6 +164,149 @@ def run_study(
     """
     _check_names(models, methods)
     split_ts = resolve_split(targets, split, frame)
+    lengths = _outage_lengths(outages, outage_fractions)
+    started = time.perf_counter()
+    plan = _plan_runs(
+        frame,
+        targets=targets,
+        split=split_ts,
+        models=models,
+        methods=methods,
+        effects=effects,
+        lengths=lengths,
+        seed=seed,
+        fractions=outage_fractions,
+    )
+    common = {
+        "targets": targets,
+        "split": split_ts,
+        "seed": seed,
+        "track_parameters": track_parameters,
+        "params": params,
+        "effects": list(effects),
+        "phases": plan.phases,
+        "run_kwargs": dict(run_kwargs or {}),
+        "n_test": plan.n_test,
+    }
+    bar = tqdm(
+        total=plan.n_test * len(plan.order),
+        disable=not progress,
+        unit="obs",
+        desc=f"evaluate [{targets}]",
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+    tasks = [
+        {"frame": plan.frame, "runs": runs, "plans": plan.outages, "common": common}
+        for runs in plan.groups.values()
+    ]
+    results = _run_groups(tasks, jobs, workers, bar)
+    gathered = _gather(plan.order, results, plan.outages, track_parameters)
+    return _study_result(plan, gathered, split_ts, targets, started, data_path, outage_fractions)
+
+
+@dataclass
+class _Plan:
+    """The runs of a study: the frame (with the effects' features), the (model, method,
+    label, outage plan or -1) runs in serial order and their groups (see
+    :func:`_serial_order`), the outage plans, the rows scored, whether phases are scored."""
+
+    frame: pd.DataFrame
+    order: list[tuple[str, str, str, int]]
+    groups: dict[str, list[tuple[int, str, str, str, int]]]
+    outages: list[Outage]
+    lengths: list[tuple[str, pd.Timedelta]]
+    n_test: int
+    phases: bool
+
+
+def _plan_runs(
+    frame: pd.DataFrame,
+    *,
+    targets: str,
+    split: pd.Timestamp,
+    models: Sequence[str],
+    methods: Sequence[str],
+    effects: Sequence[str],
+    lengths: list[tuple[str, pd.Timedelta]],
+    seed: int,
+    fractions: str,
+) -> _Plan:
+    """Every run of the study, its outage windows (seeded) and what it scores."""
+    test_mask = target_mask(frame, targets) & (frame[TIME] >= split).to_numpy()
+    phases = has_phases(frame, np.flatnonzero(test_mask))
+    frame, combos = _combinations(frame, models, methods, effects)
+    plans = [
+        plan_outages(
+            frame, span, targets=targets, split=split, seed=seed, fractions=fractions, label=label
+        )
+        for label, span in lengths
+    ]
+    order, groups = _serial_order(combos, len(plans))
+    return _Plan(frame, order, groups, plans, lengths, int(test_mask.sum()), phases)
+
+
+def _study_result(
+    plan: _Plan,
+    gathered: _Gathered,
+    split: pd.Timestamp,
+    targets: str,
+    started: float,
+    data_path: str,
+    outage_fractions: str,
+) -> StudyResult:
+    """The study's result from its runs' outputs: the scores of both protocols, the
+    summary, the well tests' times, the runtime since ``started`` (perf_counter, s)."""
+    preds = pd.concat(gathered.predictions, ignore_index=True)
+    records = metrics_records(preds)
+    outage_preds = _concat(gathered.outage_predictions)
+    if not outage_preds.empty:
+        records += metrics_records(outage_preds)
+    tests = plan.frame[plan.frame[SOURCE] == WELL_TEST]
+    well_tests = {str(w): list(g[TIME]) for w, g in tests.groupby(WELL, sort=False)}
+    return StudyResult(
+        split=split,
+        targets=targets,
+        records=records,
+        summary=summarise(records),
+        predictions=preds,
+        updates=gathered.updates,
+        well_tests=well_tests,
+        runtime_s=time.perf_counter() - started,
+        parameters=_concat(gathered.parameters),
+        data_path=data_path,
+        outage_predictions=outage_preds,
+        outage_windows=_concat([p.windows for p in plan.outages]),
+        outages=[label for label, _ in plan.lengths],
+        outage_fractions=outage_fractions,
+        phases=list(PHASES) if plan.phases else [],
+        runs=gathered.runs,
+    )
+
+
+def _concat(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """The frames one after the other (a new index); an empty frame for none."""
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _serial_order(
+    combos: list[tuple[str, str, str]], n_plans: int
+) -> tuple[list[tuple[str, str, str, int]], dict[str, list[tuple[int, str, str, str, int]]]]:
+    """The runs (model, method, label, outage plan or -1 for the ordinary protocol) in the
+    order of a serial study, and the groups: one model label's runs (they share the
+    initial fit), the unit that a worker takes, each run with its index in that order."""
+    order = [(model, meth, label, k) for model, meth, label in combos for k in range(-1, n_plans)]
+    groups: dict[str, list[tuple[int, str, str, str, int]]] = {}
+    for index, (model, meth, label, k) in enumerate(order):
+        groups.setdefault(label, []).append((index, model, meth, label, k))
+    return order, groups
+
+
+def _outage_lengths(
+    outages: str | Sequence[str], outage_fractions: str
+) -> list[tuple[str, pd.Timedelta]]:
+    """The outage lengths asked for (label, span), none for an empty request; a
+    :class:`ConfigError` for an unknown ``outage_fractions``."""
     asked = [outages] if isinstance(outages, str) else list(outages)
     lengths = parse_outages(asked) if any(str(a).strip() for a in asked) else []
     if outage_fractions not in OUTAGE_FRACTIONS:
@@ -169,11 +314,15 @@ def run_study(
             f"Unknown outage fractions '{outage_fractions}'; choose one of "
             f"{', '.join(OUTAGE_FRACTIONS)}."
         )
-    started = time.perf_counter()
-    is_target = target_mask(frame, targets)
-    test_mask = is_target & (frame[TIME] >= split_ts).to_numpy()
-    n_test = int(test_mask.sum())
-    phases = has_phases(frame, np.flatnonzero(test_mask))
+    return lengths
+
+
+def _combinations(
+    frame: pd.DataFrame, models: Sequence[str], methods: Sequence[str], effects: Sequence[str]
+) -> tuple[pd.DataFrame, list[tuple[str, str, str]]]:
+    """The (model, method, label) runs of the study, and the frame with the features the
+    ``effects`` need: with effects, ``mm``, ``hem`` and ``ham`` also run extended (label
+    e.g. ``mm+erosion``) beside the plain model."""
     effect_label = ""
     if effects:
         from vfm_core.effects import add_features, resolve_effects
@@ -186,48 +335,14 @@ def run_study(
             combos.append((m, meth, m))
             if effects and m in ("mm", "hem", "ham"):
                 combos.append((m, meth, f"{m}+{effect_label}"))
-    plans = [
-        plan_outages(
-            frame,
-            span,
-            targets=targets,
-            split=split_ts,
-            seed=seed,
-            fractions=outage_fractions,
-            label=label,
-        )
-        for label, span in lengths
-    ]
-    bar = tqdm(
-        total=n_test * len(combos) * (1 + len(plans)),
-        disable=not progress,
-        unit="obs",
-        desc=f"evaluate [{targets}]",
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
-    # the runs in the order of a serial study; a group is one model's runs (they share the
-    # initial fit), the unit that a worker takes
-    order: list[tuple[str, str, str, int]] = [
-        (model, meth, label, k) for model, meth, label in combos for k in range(-1, len(plans))
-    ]
-    groups: dict[str, list[tuple[int, str, str, str, int]]] = {}
-    for index, (model, meth, label, k) in enumerate(order):
-        groups.setdefault(label, []).append((index, model, meth, label, k))
-    common = {
-        "targets": targets,
-        "split": split_ts,
-        "seed": seed,
-        "track_parameters": track_parameters,
-        "params": params,
-        "effects": list(effects),
-        "phases": phases,
-        "run_kwargs": dict(run_kwargs or {}),
-        "n_test": n_test,
-    }
-    tasks = [
-        {"frame": frame, "runs": runs, "plans": plans, "common": common} for runs in groups.values()
-    ]
+    return frame, combos
+
+
+def _run_groups(
+    tasks: list[dict[str, Any]], jobs: int, workers: StudyWorkers | None, bar: tqdm
+) -> dict[int, RunResult]:
+    """Every run of the study by its index in the serial order: in this process, or on
+    ``workers`` (or ``jobs - 1`` workers started and closed here) a model group each."""
     own = workers is None and jobs > 1 and len(tasks) > 1
     pool = StudyWorkers(min(jobs, len(tasks)) - 1, preload=PRELOAD).start() if own else workers
     try:
@@ -240,16 +355,33 @@ def run_study(
         bar.close()
         if own and pool is not None:
             pool.close()
-    results: dict[int, RunResult] = {i: r for part in done for i, r in part.items()}
-    predictions = []
-    outage_predictions = []
-    parameters = []
-    updates: dict[str, list[pd.Timestamp]] = {}
-    runs: list[dict[str, Any]] = []
+    return {i: r for part in done for i, r in part.items()}
+
+
+@dataclass
+class _Gathered:
+    """The runs' outputs in the serial order, apart by protocol (see :func:`_gather`)."""
+
+    predictions: list[pd.DataFrame] = field(default_factory=list)
+    outage_predictions: list[pd.DataFrame] = field(default_factory=list)
+    parameters: list[pd.DataFrame] = field(default_factory=list)
+    updates: dict[str, list[pd.Timestamp]] = field(default_factory=dict)
+    runs: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _gather(
+    order: list[tuple[str, str, str, int]],
+    results: dict[int, RunResult],
+    plans: list[Outage],
+    track_parameters: bool,
+) -> _Gathered:
+    """The ordinary runs' predictions, updates and parameters, the outage runs' predictions
+    inside their windows, and one ``runs`` entry per run (its cost)."""
+    out = _Gathered()
     for index, (_, meth, label, k) in enumerate(order):
         result = results[index]
         plan = None if k < 0 else plans[k]
-        runs.append(
+        out.runs.append(
             {
                 "model": label,
                 "method": meth,
@@ -260,41 +392,13 @@ def run_study(
         )
         if plan is not None:
             inside = result.predictions["in_outage"].to_numpy(dtype=bool)
-            outage_predictions.append(result.predictions[inside].drop(columns="in_outage"))
+            out.outage_predictions.append(result.predictions[inside].drop(columns="in_outage"))
             continue
-        predictions.append(result.predictions)
-        updates[meth] = result.updates
+        out.predictions.append(result.predictions)
+        out.updates[meth] = result.updates
         if track_parameters and not result.parameters.empty:
-            parameters.append(result.parameters.assign(model=label, method=meth))
-    preds = pd.concat(predictions, ignore_index=True)
-    records = metrics_records(preds)
-    outage_preds = (
-        pd.concat(outage_predictions, ignore_index=True) if outage_predictions else pd.DataFrame()
-    )
-    if not outage_preds.empty:
-        records += metrics_records(outage_preds)
-    tests = frame[frame[SOURCE] == WELL_TEST]
-    well_tests = {str(w): list(g[TIME]) for w, g in tests.groupby(WELL, sort=False)}
-    return StudyResult(
-        split=split_ts,
-        targets=targets,
-        records=records,
-        summary=summarise(records),
-        predictions=preds,
-        updates=updates,
-        well_tests=well_tests,
-        runtime_s=time.perf_counter() - started,
-        parameters=pd.concat(parameters, ignore_index=True) if parameters else pd.DataFrame(),
-        data_path=data_path,
-        outage_predictions=outage_preds,
-        outage_windows=(
-            pd.concat([p.windows for p in plans], ignore_index=True) if plans else pd.DataFrame()
-        ),
-        outages=[label for label, _ in lengths],
-        outage_fractions=outage_fractions,
-        phases=list(PHASES) if phases else [],
-        runs=runs,
-    )
+            out.parameters.append(result.parameters.assign(model=label, method=meth))
+    return out
 
 
 class _BarReport:

@@ -1,7 +1,7 @@
 """How models learn: MAP batch training and the learning methods that keep a model current.
 
 - :mod:`vfm_core.learning.training`: :func:`fit_batch` (MAP, early stopping), the batch
-  settings per model (:data:`DEFAULT_TRAIN`).
+  settings per model (:data:`DEFAULT_TRAIN`, from each model's ``train_defaults``).
 - :mod:`vfm_core.learning.method`: the learning-method protocol (:class:`LearningMethod`),
   the registry (:data:`METHODS`) and :func:`parse_method`.
 - One module per method: :mod:`~vfm_core.learning.online` (``ol``),
@@ -9,6 +9,8 @@
   :mod:`~vfm_core.learning.triggered` (``pbl:auto``), :mod:`~vfm_core.learning.bayes`
   (``bayes``: a Kalman filter with drift and predictive intervals).
 - :mod:`vfm_core.learning.memory`: the measurements a retrain reads.
+- :mod:`vfm_core.learning.stacking`: many one-well models run as one multi-well model
+  (what the methods' group operations use).
 """
 
 from vfm_core.learning.bayes import BayesianFilter

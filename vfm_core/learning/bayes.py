@@ -51,7 +51,9 @@ updated mean, which measured no better on the choke models), ``huber`` (3), ``ga
 
 from __future__ import annotations
 
+import copy
 import math
+from collections.abc import Hashable, Sequence
 from typing import Any
 
 import numpy as np
@@ -74,8 +76,10 @@ from vfm_core.learning.method import (
     Forecast,
     LearningMethod,
     parse_options,
+    ready_for_group,
     register,
 )
+from vfm_core.learning.stacking import stack_for_learning, stacked_rates
 from vfm_core.models import ChokeModel
 from vfm_core.models.base import FilterBlock
 
@@ -93,6 +97,10 @@ _NS_PER_YEAR = 365.25 * 86400e9
 _FD_STEP = 1e-4
 #: refusals in a row after which a well is taken to have changed
 _RESET_AFTER = 3
+#: the per-well state a prediction reads (leading dimension: the well)
+_PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
+#: ... and an update changes (its counters aside)
+_LEARN_STATE = (*_PREDICT_STATE, "_run")
 
 
 def _flat(blocks: list[FilterBlock], n_wells: int) -> torch.Tensor:
@@ -488,7 +496,10 @@ class BayesianFilter(LearningMethod):
             head = [model.phys.z, net.weights[-1], net.biases[-1]]
             if len(params) != 3 or not all(p is q for p, q in zip(params, head, strict=True)):
                 return None
-            kind, lower = (2 if model.key == "ham" else 1), (net.weights[0], net.biases[0])
+            kind, lower = (
+                (2 if model.compiled_as() == "ham" else 1),
+                (net.weights[0], net.biases[0]),
+            )
         else:
             return None
         pos, mu, sigma = physics_layout(model)
@@ -587,6 +598,11 @@ class BayesianFilter(LearningMethod):
         mean = predict_rates(self.model, batch)
         if self._dim == 0 or self.model.gradient_free:
             return Forecast(mean)
+        return self._forecast(mean, batch)
+
+    def _forecast(self, mean: torch.Tensor, batch: Batch) -> Forecast:
+        """The forecast of the rates ``mean`` [W, N] of ``batch``: their spread from the
+        filter's state."""
         kernel = compiled()
         if kernel is not None:  # the same numbers, compiled (any model)
             return self._compiled_spread(kernel, mean, batch)
@@ -610,6 +626,91 @@ class BayesianFilter(LearningMethod):
         noise = torch.gather(self._noise, 1, src) ** 2
         var = hph.unsqueeze(1) + hqh.unsqueeze(1) * dt + noise
         return var.clamp(min=0).sqrt() * torch.exp(torch.gather(self._scale, 1, src))
+
+    # -- many wells at once ----------------------------------------------------------------------
+    def group_key(self) -> Hashable | None:
+        """Filters of the same text and drift on models of one specification predict together
+        (their means in one model call, their spreads from their stacked states); a model
+        with nothing to filter predicts with the model alone."""
+        if type(self).predict is not BayesianFilter.predict:
+            return None
+        model = self.model
+        cached = self.__dict__.get("_group")
+        if cached is not None and cached[0] is model and cached[1] is self._q:
+            return cached[2]  # type: ignore[no-any-return]
+        if model.gradient_free or self._dim == 0:
+            key: Hashable = ("bayes-mean", model.stack_key())
+        else:
+            key = ("bayes", model.stack_key(), self.text, tuple(self._q.tolist()))
+        self.__dict__["_group"] = (model, self._q, key)
+        return key
+
+    @classmethod
+    def predict_group(cls, methods: Sequence[LearningMethod], batch: Batch) -> Forecast:
+        mean = stacked_rates([m.model for m in methods], batch)
+        first = methods[0]
+        assert isinstance(first, BayesianFilter)
+        if first.model.gradient_free or first._dim == 0:
+            return Forecast(mean)
+        return cls._joined(methods, _PREDICT_STATE)._forecast(mean, batch)
+
+    @staticmethod
+    def _joined(methods: Sequence[LearningMethod], names: tuple[str, ...]) -> BayesianFilter:
+        """A copy of the first filter with the filters' states ``names`` stacked by well."""
+        filters = [m for m in methods if isinstance(m, BayesianFilter)]
+        assert len(filters) == len(methods)
+        joint = copy.copy(filters[0])
+        for name in names:
+            setattr(joint, name, torch.cat([getattr(f, name) for f in filters], 0))
+        return joint
+
+    def _on(self, model: ChokeModel) -> None:
+        """Run this (joined) filter on ``model``: its filter blocks are the model's."""
+        self._model = model
+        self._rebind(model)
+
+    def learn_key(self) -> Hashable | None:
+        """Filters of exactly this class with the same text (every option) on gradient models
+        of one specification learn together: the Kalman step written for many wells, on
+        their stacked states."""
+        if type(self) is not BayesianFilter or self.model.gradient_free or self._dim == 0:
+            return None
+        return ("bayes", self.model.stack_key(), self.text)
+
+    @classmethod
+    def learn_group(
+        cls,
+        methods: Sequence[LearningMethod],
+        batches: Sequence[Batch],
+        memories: Sequence[Memory | None],
+    ) -> list[bool | None]:
+        """The Kalman steps of the wells that are ready, as one multi-well step on the stacked
+        models with the filters' states stacked (as the study updates a field's wells in one
+        call); each well's parameters and filter state are written back after it ran."""
+        ready = ready_for_group(methods, batches)
+        out: list[bool | None] = [None] * len(methods)
+        if len(ready) < 2:
+            return out
+        filters = [methods[k] for k in ready]
+        stacked, batch = stack_for_learning([m.model for m in filters], [batches[k] for k in ready])
+        joint = cls._joined(filters, _LEARN_STATE)
+        joint._on(stacked.model)
+        joint._counts = {
+            name: torch.cat([f._counts[name] for f in filters], 0)  # type: ignore[attr-defined]
+            for name in joint._counts
+        }
+        changed = joint._learn(batch, None)
+        # every step ran: each well's parameters, then its filter state
+        stacked.store([m.model for m in filters])
+        for name in _LEARN_STATE:
+            for f, row in zip(filters, getattr(joint, name).split(1, 0), strict=True):
+                setattr(f, name, row.clone())
+        for name, value in joint._counts.items():
+            for f, row in zip(filters, value.split(1, 0), strict=True):
+                f._counts[name] = row.clone()  # type: ignore[attr-defined]
+        for k, moved in zip(ready, changed.tolist(), strict=True):
+            out[k] = bool(moved)
+        return out
 
     # -- learning -----------------------------------------------------------------------------
     def _learn(self, batch: Batch, memory: Memory | None) -> torch.Tensor:

@@ -159,16 +159,11 @@ def mm_online_applies(model: Any) -> bool:
 
 
 def plain_mm(model: Any) -> bool:
-    """True for exactly the plain ``mm`` (no effects, no subclass) in float64: what the
-    kernels compute (whether they are enabled or not)."""
-    from vfm_core.models.physical import PHYSICAL_NAMES, Mechanistic
+    """True for exactly the plain ``mm`` (:meth:`~vfm_core.models.base.ChokeModel.compiled_as`
+    says so): what the kernels compute (whether they are enabled or not)."""
+    from vfm_core.models.physical import PHYSICAL_NAMES
 
-    return (
-        type(model) is Mechanistic
-        and not model.effects
-        and tuple(model.phys.names) == PHYSICAL_NAMES == _NAMES
-        and model.phys.z.dtype == torch.float64
-    )
+    return model.compiled_as() == "mm" and PHYSICAL_NAMES == _NAMES
 
 
 def mm_online_steps(
@@ -245,22 +240,9 @@ def hybrid_applies(model: Any) -> bool:
 
 
 def plain_hybrid(model: Any) -> bool:
-    """True for exactly ``hem`` or ``ham`` without effects, a network of one hidden layer
-    on the six inputs, in float64: what the kernels compute."""
-    from vfm_core.models.physical import HybridArea, HybridError
-
-    if type(model) not in (HybridError, HybridArea) or model.effects or model.net is None:
-        return False
-    weights = model.net.weights
-    names = tuple(model.phys.names)
-    return (
-        len(weights) == 2
-        and weights[0].shape[1] == 6
-        and weights[1].shape[2] == 1
-        and names == _NAMES[: len(names)]
-        and len(names) == (5 if type(model) is HybridArea else 6)
-        and weights[0].dtype == model.phys.z.dtype == torch.float64
-    )
+    """True for exactly ``hem`` or ``ham`` in the kernels' shape (the model's
+    :meth:`~vfm_core.models.base.ChokeModel.compiled_as` says so): what the kernels compute."""
+    return model.compiled_as() in ("hem", "ham")
 
 
 def hybrid_parameters(model: Any) -> list[torch.nn.Parameter]:
@@ -291,8 +273,6 @@ def hybrid_online_steps(
     advanced by ``steps``; ``moments`` None is SGD. Wells in ``hold`` keep their
     parameters. ``params``: :func:`hybrid_parameters` of the model, when the caller has
     them (the lookup costs more than the step). The moments are updated in place."""
-    from vfm_core.models.physical import HybridArea
-
     kernel = _kernel()
     assert kernel is not None
     params = hybrid_parameters(model) if params is None else params
@@ -305,7 +285,7 @@ def hybrid_online_steps(
         else:  # (optimiser state, in no graph: written in place)
             state = [_in_place(t) for pair in moments for t in pair]
         kernel.hybrid_online(
-            2 if type(model) is HybridArea else 1,
+            2 if model.compiled_as() == "ham" else 1,
             *values,
             *state,
             counts,
@@ -353,27 +333,15 @@ def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
 
 
 def plain_lr(model: Any) -> bool:
-    """True for exactly ``lr`` in float64: what
+    """True for exactly ``lr`` in float64 (the model's ``compiled_as``): what
     :func:`vfm_core.learning._mm_numba.lr_fit_steps` computes."""
-    from vfm_core.models.networks import LinearRegression
-
-    return type(model) is LinearRegression and model.w.dtype == model.b.dtype == torch.float64
+    return model.compiled_as() == "lr"  # type: ignore[no-any-return]
 
 
 def plain_nn(model: Any) -> bool:
-    """True for exactly ``nn`` with two hidden layers, in float64: what
-    :func:`vfm_core.learning._mm_numba.nn_fit_steps` computes."""
-    from vfm_core.models.networks import NeuralNet
-
-    if type(model) is not NeuralNet:
-        return False
-    weights = model.net.weights
-    return (
-        len(weights) == 3
-        and weights[0].shape[1] == 6
-        and weights[2].shape[2] == 1
-        and all(w.dtype == torch.float64 for w in weights)
-    )
+    """True for exactly ``nn`` with two hidden layers, in float64 (the model's
+    ``compiled_as``): what :func:`vfm_core.learning._mm_numba.nn_fit_steps` computes."""
+    return model.compiled_as() == "nn"  # type: ignore[no-any-return]
 
 
 def sgd_online_steps(
@@ -407,16 +375,10 @@ def sgd_online_steps(
 
 
 def plain_mtl(model: Any) -> bool:
-    """True for exactly ``mtl`` with two residual blocks, in float64, the kernels enabled:
-    what :func:`vfm_core.learning._mm_numba.mtl_online` computes."""
-    from vfm_core.models.networks import MultiTask
-
-    return (
-        type(model) is MultiTask
-        and len(model.w1) == len(model.w2) == 2
-        and all(p.dtype == torch.float64 for p in model.parameters())
-        and _lazy("mtl_online") is not None
-    )
+    """True for exactly ``mtl`` with two residual blocks, in float64 (the model's
+    ``compiled_as``), the kernels enabled: what
+    :func:`vfm_core.learning._mm_numba.mtl_online` computes."""
+    return model.compiled_as() == "mtl" and _lazy("mtl_online") is not None
 
 
 def mtl_parameters(model: Any) -> list[torch.nn.Parameter]:
@@ -528,13 +490,11 @@ class FitSteps:
     def __init__(
         self, model: Any, params: list[torch.nn.Parameter], opt: torch.optim.Optimizer
     ) -> None:
-        from vfm_core.models.physical import HybridArea
-
         self.model, self.params = model, params
         self.adam, self.hyper = _optimiser_settings(opt)
         self.network = len(params) == 6  # nn: W1, b1, W2, b2, W3, b3
         self.linear = len(params) == 2  # lr: w, b
-        self.kind = 0 if len(params) <= 2 else (2 if type(model) is HybridArea else 1)
+        self.kind = 0 if len(params) <= 2 else (2 if model.compiled_as() == "ham" else 1)
         self.n_w = int(params[0].shape[0])
 
     def _begin(self) -> None:
@@ -867,8 +827,6 @@ def physics_layout(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
     """The rate [W, N] (Sm3/h) of ``hem`` or ``ham`` (see :func:`hybrid_applies`), what
     ``model.forward_batch`` gives, without a graph."""
-    from vfm_core.models.physical import HybridArea
-
     kernel = _kernel()
     assert kernel is not None
     phys, net = model.phys, model.net
@@ -889,7 +847,7 @@ def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
             net.weights[1].detach().numpy(),
             net.biases[1].detach().numpy(),
             model.y_scale.numpy(),
-            type(model) is HybridArea,
+            model.compiled_as() == "ham",
             out,
         )
     return torch.from_numpy(out)

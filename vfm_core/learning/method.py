@@ -26,6 +26,14 @@ Life of a method, for a model of W wells::
   run; ``pbl:auto`` is one: the service has its own drift test (``drift.on_drift``).
 - ``state_dict()`` / ``load_state_dict()``: tensors and plain values only (checkpoints
   are read back with ``torch.load(weights_only=True)``).
+- Many wells at once (the service holds one method per well, each on a one-well model):
+  ``group_key()`` / ``predict_group(methods, batch)`` and ``learn_key()`` /
+  ``learn_group(methods, batches, memories)``, as river's mini-batch estimators add
+  ``predict_many`` / ``learn_many``. Each method stacks its own calls (``ol`` and
+  ``bayes`` in their modules, the models through :mod:`vfm_core.learning.stacking`); the
+  defaults predict with the stacked models and learn one well at a time, so a new method
+  is correct without them (:func:`vfm_core.streaming.predict_many`,
+  :func:`vfm_core.streaming.learn_many`).
 
 Methods register with :func:`register`; :func:`parse_method` finds a method by the start
 of its text and lists the valid ones for an unknown text. A new method is a subclass in
@@ -37,7 +45,7 @@ from __future__ import annotations
 import copy
 import re
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import replace
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
@@ -48,7 +56,8 @@ from vfm_core.data import Batch
 from vfm_core.errors import ConfigError
 from vfm_core.learning.kernels import predict_rates
 from vfm_core.learning.memory import Memory
-from vfm_core.learning.training import DEFAULT_TRAIN, TrainSettings, fit_batch
+from vfm_core.learning.stacking import stacked_rates
+from vfm_core.learning.training import TrainSettings, fit_batch, train_defaults
 from vfm_core.models import ChokeModel
 
 __all__ = [
@@ -60,6 +69,7 @@ __all__ = [
     "parse_span",
     "parse_options",
     "NEVER",
+    "ready_for_group",
 ]
 
 #: "no time yet": later than every int64 nanosecond time
@@ -183,7 +193,7 @@ class LearningMethod(ABC):
         settings as further keywords (``online`` for ``ol``) and ignore the others.
         """
         self._model = model
-        self.train = train or DEFAULT_TRAIN.get(model.key, TrainSettings())
+        self.train = train or train_defaults(model)
         self.iterations = torch.full(
             (len(model.wells),), self.train.default_iter, dtype=torch.int64
         )
@@ -298,6 +308,50 @@ class LearningMethod(ABC):
         """The predicted rate for every sample of ``batch`` (NaN where a well has no model)."""
         return Forecast(predict_rates(self.model, batch), None)
 
+    # -- many wells at once ----------------------------------------------------------------------
+    # A service holds one method per well, each bound to its own one-well model. Methods whose
+    # group keys are equal may be asked for many wells' predictions, or updates, in one call
+    # (as river's mini-batch estimators add ``predict_many`` / ``learn_many``); each method
+    # decides how its own calls stack. The answers equal the one-by-one answers (to
+    # rounding, 1e-12 relative), and so does every state they leave.
+
+    def group_key(self) -> Hashable | None:
+        """What methods (each bound to a one-well model) must share for :meth:`predict_group`
+        to predict their wells in one call; None: never grouped. The default: a method that
+        predicts with its model alone groups with every such method on a model of the same
+        specification (:meth:`~vfm_core.models.base.ChokeModel.stack_key`)."""
+        if type(self).predict is not LearningMethod.predict:  # its own predict: alone
+            return None
+        return ("model", self.model.stack_key())
+
+    @classmethod
+    def predict_group(cls, methods: Sequence[LearningMethod], batch: Batch) -> Forecast:
+        """:meth:`predict` of K methods with equal :meth:`group_key`, row k of ``batch`` (a
+        K-well batch) for ``methods[k]``; the forecast [K, N]. The default stacks the wells'
+        models into one model call (:mod:`vfm_core.learning.stacking`), or predicts well by
+        well where they cannot be stacked."""
+        return Forecast(stacked_rates([m.model for m in methods], batch))
+
+    def learn_key(self) -> Hashable | None:
+        """What methods must share for :meth:`learn_group` to learn their wells' measurements
+        in one call; None (the default): this method learns one well at a time."""
+        return None
+
+    @classmethod
+    def learn_group(
+        cls,
+        methods: Sequence[LearningMethod],
+        batches: Sequence[Batch],
+        memories: Sequence[Memory | None],
+    ) -> list[bool | None]:
+        """:meth:`on_measurement` of K methods with equal :meth:`learn_key`, ``batches[k]``
+        (a one-well batch) and ``memories[k]`` for ``methods[k]``. Per method: whether its
+        model changed, or None where it was left to learn by itself (the caller then calls
+        its :meth:`on_measurement`). An error must come before any method's state changes
+        (the caller then lets each learn by itself). The default leaves every one to learn
+        by itself: a new method is correct without this, only slower."""
+        return [None] * len(methods)
+
     # -- tuning ----------------------------------------------------------------------------------
     def tuning(self, grid: str) -> list[dict[str, Any]]:
         """The settings ``vfm tune`` tries for this method with the grid ``grid`` (``small`` or
@@ -336,6 +390,19 @@ class LearningMethod(ABC):
             ).clone()
         self.retrains = [int(t) for t in state.get("retrains", [])]
         self.n_retrains = int(state.get("n_retrains", len(self.retrains)))
+
+
+def ready_for_group(methods: Sequence[LearningMethod], batches: Sequence[Batch]) -> list[int]:
+    """For a stacked update (``learn_group``): set up each method's model on its one-well
+    batch (as its own update does first), and return the places of those whose model is
+    ready and that have a measurement: the ones a stacked step moves."""
+    ready = []
+    for k, (method, batch) in enumerate(zip(methods, batches, strict=True)):
+        model = method.model
+        model.setup(batch)
+        if bool(model.ready[0]) and int(batch.count()[0]) > 0:
+            ready.append(k)
+    return ready
 
 
 #: a retrain chooses a well's iteration count again by early stopping once the well holds

@@ -8,6 +8,7 @@ from one measurement to the next and is part of the method's state.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,9 +19,11 @@ import torch.optim.optimizer as _torch_optimizer
 from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.kernels import (
     fit_parameters,
+    hybrid_applies,
     hybrid_online_steps,
     hybrid_parameters,
     kernels_enabled,
+    mm_online_applies,
     mm_online_steps,
     mtl_online_steps,
     mtl_parameters,
@@ -32,7 +35,8 @@ from vfm_core.learning.kernels import (
     sgd_online_steps,
 )
 from vfm_core.learning.memory import Memory
-from vfm_core.learning.method import LearningMethod, register
+from vfm_core.learning.method import LearningMethod, ready_for_group, register
+from vfm_core.learning.stacking import StackedModel, stack_for_learning
 from vfm_core.learning.training import (
     MapObjective,
     clip_per_well_,
@@ -41,9 +45,9 @@ from vfm_core.learning.training import (
     plain_optimizer,
     split_parameters,
 )
-from vfm_core.models import ChokeModel
+from vfm_core.models import MODELS, ChokeModel
 
-__all__ = ["OnlineSettings", "DEFAULT_ONLINE", "OnlineLearning"]
+__all__ = ["OnlineSettings", "DEFAULT_ONLINE", "OnlineLearning", "online_defaults"]
 
 
 @dataclass(frozen=True)
@@ -60,17 +64,15 @@ class OnlineSettings:
     max_grad_norm: float = 1.0
 
 
-#: Online defaults per model, chosen by `vfm tune --grid small --methods ol` on a
-#: development field (`vfm simulate --seed 1`), never on the field the study reports
-#: (seed 0); `vfm tune` on your own data improves on them.
+def online_defaults(model: ChokeModel | type[ChokeModel]) -> OnlineSettings:
+    """The online settings a model starts from: its class's ``online_defaults``."""
+    return OnlineSettings(**model.online_defaults)
+
+
+#: Online defaults per registered model, by name: each model's own ``online_defaults``
+#: (see :attr:`vfm_core.models.base.ChokeModel.online_defaults`)
 DEFAULT_ONLINE: dict[str, OnlineSettings] = {
-    "last": OnlineSettings(),
-    "lr": OnlineSettings(optimizer="sgd", lr=1e-4, steps=10),
-    "nn": OnlineSettings(optimizer="sgd", lr=1e-4, steps=10),
-    "mtl": OnlineSettings(lr=1e-4, steps=10),
-    "mm": OnlineSettings(lr=1e-3, steps=10),
-    "hem": OnlineSettings(lr=1e-4, steps=1),
-    "ham": OnlineSettings(lr=1e-4, steps=1),
+    name: online_defaults(cls) for name, cls in MODELS.items()
 }
 
 
@@ -106,7 +108,7 @@ class OnlineLearning(LearningMethod):
         self, model: ChokeModel, *, online: OnlineSettings | None = None, **kw: Any
     ) -> OnlineLearning:
         super().bind(model, **kw)
-        self.online = online or DEFAULT_ONLINE.get(model.key, OnlineSettings())
+        self.online = online or online_defaults(model)
         self._opt, self._sched = None, None
         return self
 
@@ -303,6 +305,59 @@ class OnlineLearning(LearningMethod):
         for p in steps:
             p.grad = None
 
+    # -- many wells at once ----------------------------------------------------------------------
+    def learn_key(self) -> Hashable | None:
+        """Methods of exactly this class with the same online settings and optimiser
+        hyperparameters, on gradient models of one specification, learn together: the E
+        steps on the stacked models, each well with its own optimiser state. None (one at a
+        time): a learning-rate schedule, an optimiser other than torch's plain Adam or SGD,
+        more than one parameter group."""
+        if type(self) is not OnlineLearning or self.model.gradient_free:
+            return None
+        s = self.online
+        opt = self._optimiser()
+        if s.schedule_power != 0 or self._sched is not None or len(opt.param_groups) != 1:
+            return None
+        if not isinstance(opt, torch.optim.Adam | torch.optim.SGD) or not plain_optimizer(opt):
+            return None
+        group = opt.param_groups[0]
+        hyper: tuple[Any, ...]
+        if isinstance(opt, torch.optim.Adam):
+            hyper = ("adam", group["lr"], tuple(group["betas"]), group["eps"])
+        else:
+            hyper = ("sgd", group["lr"], None, None)
+        return ("ol", self.model.stack_key(), s.steps, s.noise, s.max_grad_norm, *hyper)
+
+    @classmethod
+    def learn_group(
+        cls,
+        methods: Sequence[LearningMethod],
+        batches: Sequence[Batch],
+        memories: Sequence[Memory | None],
+    ) -> list[bool | None]:
+        """The E steps of the wells that are ready, on their models stacked into one (each
+        well with its own Adam moments and step count, so its own bias correction, its own
+        gradient clipping and projection); then each well's parameters and optimiser state
+        are written back, as learning one by one leaves them."""
+        learners = [m for m in methods if isinstance(m, OnlineLearning)]
+        assert len(learners) == len(methods)
+        for m in learners:
+            m._optimiser()  # (what _learn does first, with the model's set-up)
+        ready = ready_for_group(methods, batches)
+        out: list[bool | None] = [None] * len(methods)
+        if len(ready) < 2:
+            return out
+        group = [learners[k] for k in ready]
+        models = [m.model for m in group]
+        stacked, batch = stack_for_learning(models, [batches[k] for k in ready])
+        finish = _stacked_steps(stacked, group, batch)
+        stacked.store(models)
+        finish()
+        for k in ready:
+            learners[k].updates += 1
+            out[k] = True
+        return out
+
     def tuning(self, grid: str) -> list[dict[str, Any]]:
         """Step size gamma, steps E and optimiser (the paper's grid, or a small one)."""
         if grid == "paper":
@@ -329,3 +384,140 @@ class OnlineLearning(LearningMethod):
         self._opt, self._sched = None, None
         if state.get("optimizer"):
             self._optimiser().load_state_dict(state["optimizer"])
+
+
+def _same_parameters(a: list[torch.nn.Parameter], b: list[torch.nn.Parameter]) -> bool:
+    """True when ``a`` and ``b`` hold the same parameters (in any order)."""
+    return len(a) == len(b) and {id(p) for p in a} == {id(p) for p in b}
+
+
+def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's Adam per well
+    stacked: StackedModel, learners: list[OnlineLearning], batch: Batch
+) -> Callable[[], None]:
+    """``ol``'s E optimiser steps (:meth:`OnlineLearning._learn`) on the stacked model, each
+    well with its own Adam moments and step count (its own bias correction), its own
+    gradient clipping and projection. Returns what writes the optimiser states back."""
+    model = stacked.model
+    trainable = [w for w in stacked.parameters() if stacked.tensor(model, w).requires_grad]
+    if not trainable:
+        raise ValueError("The model has no parameters to learn.")
+    opts = [lrn._optimiser() for lrn in learners]
+    group = opts[0].param_groups[0]
+    adam = isinstance(opts[0], torch.optim.Adam)
+    lr = group["lr"]
+    betas = tuple(group["betas"]) if adam else (0.9, 0.999)
+    eps = group["eps"] if adam else 1e-8
+    k = len(learners)
+    # the stacked parameters and, per parameter, the wells' Adam states and step counts
+    params: list[torch.nn.Parameter] = []
+    own: list[list[torch.nn.Parameter]] = []  # per stacked parameter: each learner's own
+    moments: list[tuple[torch.Tensor, torch.Tensor] | None] = []
+    steps: list[list[float]] = []
+    for where in trainable:
+        mine = [stacked.tensor(lrn.model, where) for lrn in learners]
+        params.append(stacked.tensor(model, where))  # type: ignore[arg-type]
+        own.append(mine)  # type: ignore[arg-type]
+        if not adam:
+            moments.append(None)
+            steps.append([])
+            continue
+        states = [opt.state.get(q) or {} for opt, q in zip(opts, mine, strict=True)]
+        pairs = list(zip(states, mine, strict=True))
+        moments.append(
+            (
+                torch.cat([st["exp_avg"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+                torch.cat([st["exp_avg_sq"] if st else torch.zeros_like(q) for st, q in pairs], 0),
+            )
+        )
+        steps.append([float(st["step"]) if st else 0.0 for st in states])
+    stepped = [0] * len(params)  # steps each parameter took (torch's Adam skips no-gradient ones)
+    s = learners[0].online
+    groups = split_parameters(model)
+    objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
+    factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
+    if len(params) == 1 and mm_online_applies(model):  # the same steps, compiled
+        before = np.array(steps[0] if adam else [0.0] * k, dtype=np.float64)
+        mm_online_steps(
+            model, batch, moments[0], before, np.zeros(k, dtype=bool), steps=s.steps,
+            noise=s.noise, lr=lr, betas=betas, eps=eps, max_norm=s.max_grad_norm,
+        )  # fmt: skip
+        if adam:
+            steps[0] = before.tolist()
+        stepped[0] = s.steps
+    elif hybrid_applies(model) and _same_parameters(params, order := hybrid_parameters(model)):
+        index = [[id(p) for p in params].index(id(q)) for q in order]
+        before_all = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
+        hybrid_online_steps(  # the same steps, compiled
+            model, batch, [moments[j] for j in index] if adam else None,  # type: ignore[misc, arg-type]
+            before_all, np.zeros(k, dtype=bool), steps=s.steps, noise=s.noise, lr=lr,
+            betas=betas, eps=eps, max_norm=s.max_grad_norm, params=order,
+        )  # fmt: skip
+        for j in index:
+            stepped[j] = s.steps
+    elif (
+        not adam
+        and all(lrn._nn and lrn._compiled for lrn in learners)
+        and _same_parameters(params, fit_parameters(model) or [])
+    ):
+        # the plain nn or lr with SGD: the same steps, compiled, as each learner's own
+        # OnlineLearning takes them one by one
+        sgd_online_steps(
+            model, batch, np.zeros(k, dtype=bool), steps=s.steps, lr=lr, max_norm=s.max_grad_norm
+        )
+        stepped = [s.steps] * len(params)
+    for _ in range(0 if stepped[0] else s.steps):
+        objective.gradients_(params)
+        clip_per_well_(model, s.max_grad_norm, groups)
+        with torch.no_grad():
+            for j, p in enumerate(params):
+                g = p.grad
+                if g is None:  # no gradient this step: torch's Adam skips the parameter
+                    continue
+                stepped[j] += 1
+                if not adam:
+                    p.add_(g, alpha=-lr)
+                    continue
+                beta1, beta2 = betas
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                counts = steps[j] = [c + 1.0 for c in steps[j]]
+                exp_avg.lerp_(g, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+                fk = (p.dim(), *counts)
+                if fk not in factors:  # each well's bias correction, as torch's Adam's
+                    shape = (k, *([1] * (p.dim() - 1)))
+                    size = [-(lr / (1 - beta1**c)) for c in counts]
+                    root = [(1 - beta2**c) ** 0.5 for c in counts]
+                    factors[fk] = (
+                        torch.tensor(size, dtype=p.dtype).reshape(shape),
+                        torch.tensor(root, dtype=p.dtype).reshape(shape),
+                    )
+                neg_step_size, bias_correction2_sqrt = factors[fk]
+                # torch: param.addcdiv_(exp_avg, denom, value=-step_size), per well here
+                denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
+                p.addcdiv_(exp_avg * neg_step_size, denom)
+        model.project_()
+
+    def finish() -> None:
+        """Each well's optimiser state, in place (the learners' tensors stay their own)."""
+        if not adam:
+            return
+        scalar = _torch_optimizer._get_scalar_dtype()
+        with torch.no_grad():
+            for j in range(len(params)):
+                if not stepped[j]:
+                    continue
+                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
+                states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
+                for st, q in zip(states, own[j], strict=True):
+                    if not st:  # its first step: the state torch's Adam would create
+                        st["step"] = torch.tensor(0.0, dtype=scalar)
+                        st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                        st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                # (integer step counts: adding them at once is adding one per step)
+                torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
+                torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
+                torch._foreach_copy_(
+                    [st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0))
+                )
+
+    return finish

@@ -24,11 +24,12 @@ import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
-from vfm_core.models import ChokeModel
+from vfm_core.models import MODELS, ChokeModel
 
 __all__ = [
     "TrainSettings",
     "DEFAULT_TRAIN",
+    "train_defaults",
     "fit_batch",
     "make_optimizer",
     "optimizer_step_",
@@ -88,17 +89,15 @@ class TrainSettings:
     time_budget_s: float = 0.0
 
 
-#: Batch defaults per model, from the paper's Tables B.1-B.2 adapted to this
-#: implementation's scaling (physical parameters in prior standard deviations, rates
-#: scaled by the well's median); `vfm tune` on your own data improves on them.
+def train_defaults(model: ChokeModel | type[ChokeModel]) -> TrainSettings:
+    """The batch settings a model starts from: its class's ``train_defaults``."""
+    return TrainSettings(**model.train_defaults)
+
+
+#: Batch defaults per registered model, by name: each model's own ``train_defaults``
+#: (see :attr:`vfm_core.models.base.ChokeModel.train_defaults`)
 DEFAULT_TRAIN: dict[str, TrainSettings] = {
-    "last": TrainSettings(),
-    "lr": TrainSettings(lr=0.05),
-    "nn": TrainSettings(lr=3e-3),
-    "mtl": TrainSettings(lr=3e-3),
-    "mm": TrainSettings(lr=3e-2),
-    "hem": TrainSettings(lr=1e-2),
-    "ham": TrainSettings(lr=1e-2),
+    name: train_defaults(cls) for name, cls in MODELS.items()
 }
 
 

@@ -1,7 +1,7 @@
 """Drift-triggered batch learning (``pbl:auto[:alpha=..:confirm=..:reference=..:window=..]``).
 
 Each well carries a streaming Hotelling T^2 test on its inputs
-(:class:`vfm_core.drift.StreamingHotelling`), its reference window the latest
+(:class:`vfm_core.hotelling.StreamingHotelling`), its reference window the latest
 ``reference`` inputs of the initial fit. When the test confirms that the inputs left
 the reference (``confirm`` consecutive detections at level ``alpha``), the well is
 retrained before its next measurement on every measurement up to the one that confirmed
@@ -18,7 +18,7 @@ import pandas as pd
 import torch
 
 from vfm_core.data import Batch
-from vfm_core.drift import StreamingHotelling
+from vfm_core.hotelling import StreamingHotelling
 from vfm_core.learning.memory import Memory
 from vfm_core.learning.method import (
     NEVER,

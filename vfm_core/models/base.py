@@ -32,8 +32,9 @@ updates every well at once and independently. The protocol:
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -114,6 +115,18 @@ class ChokeModel(nn.Module):
     shared: ClassVar[bool] = False
     #: True when the model learns by ``observe`` rather than by gradients.
     gradient_free: ClassVar[bool] = False
+    #: the model's batch-training settings where they differ from
+    #: :class:`vfm_core.learning.TrainSettings`' defaults (field: value): the paper's
+    #: Tables B.1-B.2 adapted to this implementation's scaling (physical parameters in
+    #: prior standard deviations, rates scaled by the well's median). The learning methods
+    #: start from them (:data:`vfm_core.learning.DEFAULT_TRAIN` lists them by name);
+    #: ``vfm tune`` on your own data improves on them.
+    train_defaults: ClassVar[Mapping[str, Any]] = {}
+    #: the model's online-learning (``ol``) settings where they differ from
+    #: :class:`vfm_core.learning.OnlineSettings`' defaults, chosen by
+    #: ``vfm tune --grid small --methods ol`` on a development field (``vfm simulate
+    #: --seed 1``), never on the field the study reports (seed 0)
+    online_defaults: ClassVar[Mapping[str, Any]] = {}
     # buffers (registered in __init__), per well: set up, the rate scale, input statistics
     ready: torch.Tensor
     y_scale: torch.Tensor
@@ -207,6 +220,30 @@ class ChokeModel(nn.Module):
     def per_well_parameters(self) -> list[torch.nn.Parameter]:
         """Parameters with a leading well dimension (all of them unless shared)."""
         return [] if self.shared else list(self.parameters())
+
+    def compiled_as(self) -> str | None:
+        """Which compiled arithmetic of :mod:`vfm_core.learning.kernels` computes exactly
+        this model (``mm``, ``hem``, ``ham``, ``nn``, ``lr``, ``mtl``), or None: torch runs
+        it. Only the exact class that declares it answers (a subclass may change the rate),
+        without effects, in float64 and in the shape the kernels were written for; whether
+        the kernels are enabled is theirs to say."""
+        return None
+
+    def stack_key(self) -> Hashable:
+        """What another model must share with this one for the two to run as one
+        multi-well model (:mod:`vfm_core.learning.stacking`): the class, the feature
+        columns and the hyperparameters but the seed (it only draws the initial
+        parameters, which stacking replaces). Kept: the hyperparameters do not change."""
+        key = self.__dict__.get("_stack_key")
+        if key is None:
+            hyper = {k: v for k, v in self.hyper.items() if k != "seed"}
+            key = (
+                type(self),
+                json.dumps(hyper, sort_keys=True, default=str),
+                tuple(self.extra_columns),
+            )
+            self.__dict__["_stack_key"] = key
+        return key
 
     def filter_blocks(self) -> list[FilterBlock]:
         """What a Bayesian learning method tracks per well (see :class:`FilterBlock`); a

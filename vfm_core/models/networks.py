@@ -64,6 +64,8 @@ class LinearRegression(ChokeModel):
     """
 
     key = "lr"
+    train_defaults = {"lr": 0.05}
+    online_defaults = {"optimizer": "sgd", "lr": 1e-4, "steps": 10}
 
     def __init__(self, wells: Sequence[str], *, seed: int = 0) -> None:
         super().__init__(wells, seed=seed)
@@ -79,6 +81,11 @@ class LinearRegression(ChokeModel):
         if physical_only:
             return super().prior_penalty()
         return (self.w**2).sum(1) + (self.b - 1.0) ** 2
+
+    def compiled_as(self) -> str | None:
+        """``lr`` for exactly this class in float64 (see :meth:`ChokeModel.compiled_as`)."""
+        plain = type(self) is LinearRegression
+        return "lr" if plain and self.w.dtype == self.b.dtype == torch.float64 else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if not self._own_closed_form(LinearRegression):
@@ -115,6 +122,8 @@ class NeuralNet(ChokeModel):
     """q = y_scale (1 + MLP(x_norm)): a ReLU network per well (paper eq. nn-model)."""
 
     key = "nn"
+    train_defaults = {"lr": 3e-3}
+    online_defaults = {"optimizer": "sgd", "lr": 1e-4, "steps": 10}
 
     def __init__(
         self, wells: Sequence[str], *, seed: int = 0, hidden: Sequence[int] = (32, 32)
@@ -128,6 +137,20 @@ class NeuralNet(ChokeModel):
 
     def prior_penalty(self, physical_only: bool = False) -> torch.Tensor:
         return super().prior_penalty() if physical_only else self.net.prior_penalty()
+
+    def compiled_as(self) -> str | None:
+        """``nn`` for exactly this class with two hidden layers on the six inputs, in
+        float64 (see :meth:`ChokeModel.compiled_as`)."""
+        if type(self) is not NeuralNet:
+            return None
+        weights = self.net.weights
+        plain = (
+            len(weights) == 3
+            and weights[0].shape[1] == 6
+            and weights[2].shape[2] == 1
+            and all(w.dtype == torch.float64 for w in weights)
+        )
+        return "nn" if plain else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if not self._own_closed_form(NeuralNet):
@@ -156,6 +179,8 @@ class MultiTask(ChokeModel):
 
     key = "mtl"
     shared = True
+    train_defaults = {"lr": 3e-3}
+    online_defaults = {"lr": 1e-4, "steps": 10}
 
     def __init__(
         self,
@@ -225,6 +250,16 @@ class MultiTask(ChokeModel):
 
     def per_well_parameters(self) -> list[torch.nn.Parameter]:
         return [self.beta]
+
+    def compiled_as(self) -> str | None:
+        """``mtl`` for exactly this class with two residual blocks, in float64 (see
+        :meth:`ChokeModel.compiled_as`)."""
+        plain = (
+            type(self) is MultiTask
+            and len(self.w1) == len(self.w2) == 2
+            and all(p.dtype == torch.float64 for p in self.parameters())
+        )
+        return "mtl" if plain else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if not self._own_closed_form(MultiTask):

@@ -216,6 +216,8 @@ class Mechanistic(ChokeModel):
     """
 
     key = "mm"
+    train_defaults = {"lr": 3e-2}
+    online_defaults = {"lr": 1e-3, "steps": 10}
     physical_names: ClassVar[tuple[str, ...]] = PHYSICAL_NAMES
     # buffers (registered in _build): each well's full-open area, m2, and, with valve
     # effects, its reference opening
@@ -390,6 +392,29 @@ class Mechanistic(ChokeModel):
         return blocks
 
     # -- closed-form gradients (no effects) ---------------------------------------------
+    def compiled_as(self) -> str | None:
+        """``mm`` for exactly this class without effects, its six parameters in the order
+        of :data:`PHYSICAL_NAMES`, in float64 (see :meth:`ChokeModel.compiled_as`)."""
+        if type(self) is not Mechanistic or self.effects:
+            return None
+        plain = tuple(self.phys.names) == PHYSICAL_NAMES and self.phys.z.dtype == torch.float64
+        return "mm" if plain else None
+
+    def _one_hidden_layer(self, n_phys: int) -> bool:
+        """A hybrid the kernels compute: no effects, a network of one hidden layer on the
+        six inputs, the first ``n_phys`` physical parameters, all in float64."""
+        if self.effects or self.net is None:
+            return False
+        weights = self.net.weights
+        names = tuple(self.phys.names)
+        return (
+            len(weights) == 2
+            and weights[0].shape[1] == 6
+            and weights[1].shape[2] == 1
+            and names == PHYSICAL_NAMES[:n_phys]
+            and weights[0].dtype == self.phys.z.dtype == torch.float64
+        )
+
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if self.effects or not self._own_closed_form(Mechanistic):
             return None
@@ -432,6 +457,8 @@ class HybridError(Mechanistic):
     """
 
     key = "hem"
+    train_defaults = {"lr": 1e-2}
+    online_defaults = {"lr": 1e-4, "steps": 1}
 
     def __init__(
         self,
@@ -448,6 +475,11 @@ class HybridError(Mechanistic):
         return self.mechanistic(batch) + self.y_scale.unsqueeze(1) * self.net(
             self.normalise(batch.x)
         )
+
+    def compiled_as(self) -> str | None:
+        """``hem`` for exactly this class in the kernels' shape (one hidden layer on the six
+        inputs, no effects, float64; see :meth:`ChokeModel.compiled_as`)."""
+        return "hem" if type(self) is HybridError and self._one_hidden_layer(6) else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if self.effects or not self._own_closed_form(HybridError):
@@ -481,6 +513,8 @@ class HybridArea(Mechanistic):
     """
 
     key = "ham"
+    train_defaults = {"lr": 1e-2}
+    online_defaults = {"lr": 1e-4, "steps": 1}
     physical_names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr")
 
     def __init__(
@@ -497,6 +531,11 @@ class HybridArea(Mechanistic):
         assert self.net is not None
         factor = torch.exp(self.net(self.normalise(x)))
         return (ph.PRIORS["c_d"].mean * self.a_max).unsqueeze(1) * x[..., 0] * factor
+
+    def compiled_as(self) -> str | None:
+        """``ham`` for exactly this class in the kernels' shape (one hidden layer on the six
+        inputs, no effects, float64; see :meth:`ChokeModel.compiled_as`)."""
+        return "ham" if type(self) is HybridArea and self._one_hidden_layer(5) else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
         if self.effects or not self._own_closed_form(HybridArea):

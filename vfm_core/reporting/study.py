@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -377,35 +378,8 @@ def _summary(study: _Study) -> dict[str, Any]:
     if mean.empty or not np.isfinite(mean.to_numpy(dtype=float)).any():
         return facts
     facts["empty"] = False
-
     if study.all_column is not None and study.all_column.notna().any():
-        col = study.all_column.dropna().sort_values()
-        facts["methods_ranked"] = [(str(m), float(v)) for m, v in col.items()]
-        best_m = str(col.index[0])
-        if len(col) > 1:
-            # The mean across wells is at the mercy of a single diverged well; the median is not.
-            rec = study.records[study.records["model"].isin(study.models)]
-            med = rec.groupby(["model", "method"])["mape"].median().groupby("method").mean()
-            med = med.reindex(study.methods).dropna().sort_values()
-            if len(med) > 1 and str(med.index[0]) != best_m:
-                facts["median_best"] = (
-                    str(med.index[0]),
-                    float(med.iloc[0]),
-                    float(med.get(best_m, math.nan)),
-                    best_m,
-                )
-            per_model = (
-                study.mean[study.models].idxmin(axis=0, skipna=True).dropna()
-                if study.mean[study.models].notna().any().any()
-                else pd.Series(dtype=str)
-            )
-            per_model = per_model[study.mean[study.models].notna().any(axis=0)]
-            if len(per_model) > 1:
-                groups: dict[str, list[str]] = {}
-                for model, meth in per_model.items():
-                    groups.setdefault(str(meth), []).append(str(model))
-                facts["best_method_per_model"] = list(groups.items())
-
+        facts.update(_method_findings(study, study.all_column))
     models_block = mean[study.models] if study.models else pd.DataFrame()
     if not models_block.empty and np.isfinite(models_block.to_numpy(dtype=float)).any():
         stacked = models_block.stack().dropna()
@@ -415,23 +389,8 @@ def _summary(study: _Study) -> dict[str, Any]:
         best_model = study.best_model()
         if best_model is not None and len(study.models) > 1:
             facts["best_model"] = (best_model, _model_label(best_model))
-
     if study.has_benchmark:
-        bench = mean[BENCHMARK].dropna()
-        if not bench.empty:
-            b_val = float(bench.min())
-            beaten: tuple[int, int] | None = None
-            if not models_block.empty:
-                vals = models_block.to_numpy(dtype=float).ravel()
-                vals = vals[np.isfinite(vals)]
-                if vals.size:
-                    beaten = (int((vals < b_val).sum()), int(vals.size))
-            facts["benchmark"] = {
-                "name": BENCHMARK,
-                "method": str(bench.idxmin()),
-                "mape": b_val,
-                "beaten": beaten,
-            }
+        facts["benchmark"] = _benchmark_finding(mean[BENCHMARK].dropna(), models_block)
 
     # The mean hides how the wells differ: name divergent wells and the spread.
     rec = study.records
@@ -446,6 +405,55 @@ def _summary(study: _Study) -> dict[str, Any]:
         key=_natural_key,
     )
     return facts
+
+
+def _method_findings(study: _Study, all_column: pd.Series) -> dict[str, Any]:
+    """The methods ranked by their mean MAPE over all models; the method best by the
+    median when it is another; which method is best for which model."""
+    facts: dict[str, Any] = {}
+    col = all_column.dropna().sort_values()
+    facts["methods_ranked"] = [(str(m), float(v)) for m, v in col.items()]
+    best_m = str(col.index[0])
+    if len(col) < 2:
+        return facts
+    # The mean across wells is at the mercy of a single diverged well; the median is not.
+    rec = study.records[study.records["model"].isin(study.models)]
+    med = rec.groupby(["model", "method"])["mape"].median().groupby("method").mean()
+    med = med.reindex(study.methods).dropna().sort_values()
+    if len(med) > 1 and str(med.index[0]) != best_m:
+        facts["median_best"] = (
+            str(med.index[0]),
+            float(med.iloc[0]),
+            float(med.get(best_m, math.nan)),
+            best_m,
+        )
+    per_model = (
+        study.mean[study.models].idxmin(axis=0, skipna=True).dropna()
+        if study.mean[study.models].notna().any().any()
+        else pd.Series(dtype=str)
+    )
+    per_model = per_model[study.mean[study.models].notna().any(axis=0)]
+    if len(per_model) > 1:
+        groups: dict[str, list[str]] = {}
+        for model, meth in per_model.items():
+            groups.setdefault(str(meth), []).append(str(model))
+        facts["best_method_per_model"] = list(groups.items())
+    return facts
+
+
+def _benchmark_finding(bench: pd.Series, models_block: pd.DataFrame) -> dict[str, Any] | None:
+    """The benchmark's best mean MAPE (``bench``: per method, NaN dropped) and how many of
+    the models' model-method means beat it; None without a benchmark score."""
+    if bench.empty:
+        return None
+    b_val = float(bench.min())
+    beaten: tuple[int, int] | None = None
+    if not models_block.empty:
+        vals = models_block.to_numpy(dtype=float).ravel()
+        vals = vals[np.isfinite(vals)]
+        if vals.size:
+            beaten = (int((vals < b_val).sum()), int(vals.size))
+    return {"name": BENCHMARK, "method": str(bench.idxmin()), "mape": b_val, "beaten": beaten}
 
 
 def _mean_table(study: _Study) -> dict[str, Any] | None:
@@ -510,33 +518,10 @@ def _box_plot(study: _Study) -> dict[str, Any] | None:
     if rec.empty:
         return None
     groups = study.models + ([BENCHMARK] if study.has_benchmark else [])
-    n_meth = max(len(study.methods), 1)
-    width = 0.8 / n_meth
-    stats, positions, colours, raw, raw_wells, labels = [], [], [], [], [], []
-    for gi, model in enumerate(groups):
-        for mi, meth in enumerate(study.methods):
-            sel = rec[(rec["model"] == model) & (rec["method"] == meth)]
-            values = sel["mape"].to_numpy(dtype=float)
-            if values.size == 0:
-                continue
-            p10, p25, p50, p75, p90 = np.percentile(values, [10, 25, 50, 75, 90])
-            stats.append(
-                {
-                    "med": p50,
-                    "q1": p25,
-                    "q3": p75,
-                    "whislo": p10,
-                    "whishi": p90,
-                    "fliers": values[(values < p10) | (values > p90)],
-                    "label": "",
-                }
-            )
-            positions.append(gi + (mi - (n_meth - 1) / 2) * width)
-            colours.append(study.colours[meth])
-            raw.append(values)
-            raw_wells.append(sel["well"].astype(str).to_numpy())
-            labels.append(f"{model}, {meth}")
-    top = _axis_top(np.concatenate(raw), [s["med"] for s in stats])
+    width = 0.8 / max(len(study.methods), 1)
+    boxes = _boxes(study, rec, groups, width)
+    stats, positions, colours = boxes.stats, boxes.positions, boxes.colours
+    top = _axis_top(np.concatenate(boxes.values), [s["med"] for s in stats])
     fig = Figure(figsize=(max(7.0, 1.5 * len(groups) + 3), 4.8))
     ax = fig.subplots()
     parts = ax.bxp(
@@ -559,24 +544,7 @@ def _box_plot(study: _Study) -> dict[str, Any] | None:
     off_scale: list[tuple[str, str, float]] = []
     if top is not None:
         ax.set_ylim(0, top)
-        for pos, values, wells, label in zip(positions, raw, raw_wells, labels, strict=True):
-            above = values > top
-            if above.any():
-                off_scale += [
-                    (str(w), label, float(v))
-                    for w, v in zip(wells[above], values[above], strict=True)
-                ]
-                ax.annotate(
-                    f"{int(above.sum())} off scale ↑",
-                    xy=(pos, top),
-                    xytext=(0, -4),
-                    textcoords="offset points",
-                    ha="center",
-                    va="top",
-                    rotation=90,
-                    fontsize=7,
-                    color="#b00",
-                )
+        off_scale = _mark_off_scale(ax, top, boxes)
     if study.has_benchmark and study.models:
         ax.axvline(len(study.models) - 0.5, color="#888", linestyle=":", linewidth=1)
     ax.set_xticks(range(len(groups)))
@@ -613,6 +581,75 @@ def _box_plot(study: _Study) -> dict[str, Any] | None:
         "off_scale": off_scale[:_MAX_OFF_SCALE_NAMED],
         "n_off_scale_more": max(len(off_scale) - _MAX_OFF_SCALE_NAMED, 0),
     }
+
+
+@dataclass
+class _Boxes:
+    """The boxes of :func:`_box_plot`, one entry per model and method with scores: the
+    matplotlib box statistics (P10-P90 whiskers), the x position and colour, and the
+    per-well MAPE (%) with the wells' names and the box's label."""
+
+    stats: list[dict[str, Any]] = field(default_factory=list)
+    positions: list[float] = field(default_factory=list)
+    colours: list[str] = field(default_factory=list)
+    values: list[np.ndarray] = field(default_factory=list)
+    wells: list[np.ndarray] = field(default_factory=list)
+    labels: list[str] = field(default_factory=list)
+
+
+def _boxes(study: _Study, rec: pd.DataFrame, groups: list[str], width: float) -> _Boxes:
+    """One box per model (a group on the x axis) and method (side by side, ``width`` apart)."""
+    n_meth = max(len(study.methods), 1)
+    out = _Boxes()
+    for gi, model in enumerate(groups):
+        for mi, meth in enumerate(study.methods):
+            sel = rec[(rec["model"] == model) & (rec["method"] == meth)]
+            values = sel["mape"].to_numpy(dtype=float)
+            if values.size == 0:
+                continue
+            p10, p25, p50, p75, p90 = np.percentile(values, [10, 25, 50, 75, 90])
+            out.stats.append(
+                {
+                    "med": p50,
+                    "q1": p25,
+                    "q3": p75,
+                    "whislo": p10,
+                    "whishi": p90,
+                    "fliers": values[(values < p10) | (values > p90)],
+                    "label": "",
+                }
+            )
+            out.positions.append(gi + (mi - (n_meth - 1) / 2) * width)
+            out.colours.append(study.colours[meth])
+            out.values.append(values)
+            out.wells.append(sel["well"].astype(str).to_numpy())
+            out.labels.append(f"{model}, {meth}")
+    return out
+
+
+def _mark_off_scale(ax: Any, top: float, boxes: _Boxes) -> list[tuple[str, str, float]]:
+    """Mark above each box how many of its wells lie above ``top`` (%); those wells, named."""
+    off_scale: list[tuple[str, str, float]] = []
+    for pos, values, wells, label in zip(
+        boxes.positions, boxes.values, boxes.wells, boxes.labels, strict=True
+    ):
+        above = values > top
+        if above.any():
+            off_scale += [
+                (str(w), label, float(v)) for w, v in zip(wells[above], values[above], strict=True)
+            ]
+            ax.annotate(
+                f"{int(above.sum())} off scale ↑",
+                xy=(pos, top),
+                xytext=(0, -4),
+                textcoords="offset points",
+                ha="center",
+                va="top",
+                rotation=90,
+                fontsize=7,
+                color="#b00",
+            )
+    return off_scale
 
 
 def _rolling_frames(study: _Study, scored: pd.DataFrame) -> dict[tuple[str, str], pd.DataFrame]:
@@ -839,68 +876,17 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     any_clipped = False
     banded = False
     for ax, well in zip(axes.flat, wells, strict=False):
-        meas = measured[measured["well"] == well]
-        meas_q = pd.to_numeric(meas["measured"], errors="coerce").to_numpy(dtype=float)
-        finite_meas = meas_q[np.isfinite(meas_q)]
-        is_test = (meas["source"].astype(str) == "well_test").to_numpy()
-        mpfm = meas[~is_test]
-        idx = _thin_index(len(mpfm), per_series)
-        ax.plot(
-            _naive_utc(mpfm["time"].iloc[idx]),
-            mpfm["measured"].iloc[idx],
-            linestyle="none",
-            marker=".",
-            markersize=2.5,
-            color="#9a9a9a",
-            zorder=1,
-        )
-        tests = meas[is_test]
-        ax.plot(
-            _naive_utc(tests["time"]),
-            tests["measured"],
-            linestyle="none",
-            marker="D",
-            markersize=3.5,
-            color="black",
-            zorder=4,
-        )
+        finite_meas = _plot_measured(ax, measured[measured["well"] == well], per_series)
         drawn = False
         clipped = False
         y_lo, y_hi = _rate_limits(finite_meas, sub.loc[sub["well"] == well, "predicted"])
         for meth in study.methods:
             g = sub[(sub["well"] == well) & (sub["method"] == meth)].sort_values("time")
-            q = pd.to_numeric(g["predicted"], errors="coerce").to_numpy(dtype=float)
-            ok = np.isfinite(q)
-            if not ok.any():
+            line = _plot_predicted(ax, g, study.colours[meth], per_series)
+            if line is None:
                 continue
-            times = _naive_utc(g["time"]).to_numpy()[ok]
-            q = q[ok]
-            idx = _thin_index(len(q), per_series)
-            if {"predicted_p05", "predicted_p95"} <= set(g.columns):
-                lo = pd.to_numeric(g["predicted_p05"], errors="coerce").to_numpy(dtype=float)[ok]
-                hi = pd.to_numeric(g["predicted_p95"], errors="coerce").to_numpy(dtype=float)[ok]
-                if np.isfinite(lo).any() and np.isfinite(hi).any():
-                    band_t, band_lo = _break_gaps(times[idx], lo[idx])
-                    _, band_hi = _break_gaps(times[idx], hi[idx])
-                    ax.fill_between(
-                        band_t,
-                        band_lo,
-                        band_hi,
-                        color=study.colours[meth],
-                        alpha=0.18,
-                        linewidth=0,
-                        zorder=2,
-                    )
-                    banded = True
-            line_t, line_q = _break_gaps(times[idx], q[idx])
-            ax.plot(
-                line_t,
-                line_q,
-                color=study.colours[meth],
-                linewidth=0.9,
-                alpha=0.85,
-                zorder=3,
-            )
+            q, with_band = line
+            banded = banded or with_band
             drawn = True
             if np.isfinite(y_hi) and ((q > y_hi) | (q < y_lo)).any():
                 clipped = True
@@ -918,6 +904,81 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     for ax in axes.flat[len(wells) :]:
         ax.set_visible(False)
     _date_axes_below(axes, len(wells))
+    fig.suptitle(f"Predicted and measured total rate per well, model {model}", fontsize=12)
+    page.bottom_legend(fig, _rates_legend(study, banded))
+    return {
+        "model": model,
+        "label": _model_label(model),
+        "why": why,
+        "png": page.png(fig),
+        "per_series": per_series,
+        "clipped": any_clipped,
+        "banded": banded,
+    }
+
+
+def _plot_measured(ax: Any, meas: pd.DataFrame, per_series: int) -> np.ndarray:
+    """One well's measured rates on ``ax`` (MPFM grey dots thinned to ``per_series``, well
+    tests black diamonds); the finite measured rates, Sm3/h."""
+    meas_q = pd.to_numeric(meas["measured"], errors="coerce").to_numpy(dtype=float)
+    is_test = (meas["source"].astype(str) == "well_test").to_numpy()
+    mpfm = meas[~is_test]
+    idx = _thin_index(len(mpfm), per_series)
+    ax.plot(
+        _naive_utc(mpfm["time"].iloc[idx]),
+        mpfm["measured"].iloc[idx],
+        linestyle="none",
+        marker=".",
+        markersize=2.5,
+        color="#9a9a9a",
+        zorder=1,
+    )
+    tests = meas[is_test]
+    ax.plot(
+        _naive_utc(tests["time"]),
+        tests["measured"],
+        linestyle="none",
+        marker="D",
+        markersize=3.5,
+        color="black",
+        zorder=4,
+    )
+    return meas_q[np.isfinite(meas_q)]
+
+
+def _plot_predicted(
+    ax: Any, g: pd.DataFrame, colour: str, per_series: int
+) -> tuple[np.ndarray, bool] | None:
+    """One method's predictions for one well on ``ax`` (``g`` sorted by time): a line thinned
+    to ``per_series`` points and broken at gaps, under it the 90 % interval where the method
+    gives one. The finite predicted rates (Sm3/h) and whether a band was drawn; None when
+    no prediction is finite."""
+    q = pd.to_numeric(g["predicted"], errors="coerce").to_numpy(dtype=float)
+    ok = np.isfinite(q)
+    if not ok.any():
+        return None
+    times = _naive_utc(g["time"]).to_numpy()[ok]
+    q = q[ok]
+    idx = _thin_index(len(q), per_series)
+    banded = False
+    if {"predicted_p05", "predicted_p95"} <= set(g.columns):
+        lo = pd.to_numeric(g["predicted_p05"], errors="coerce").to_numpy(dtype=float)[ok]
+        hi = pd.to_numeric(g["predicted_p95"], errors="coerce").to_numpy(dtype=float)[ok]
+        if np.isfinite(lo).any() and np.isfinite(hi).any():
+            band_t, band_lo = _break_gaps(times[idx], lo[idx])
+            _, band_hi = _break_gaps(times[idx], hi[idx])
+            ax.fill_between(
+                band_t, band_lo, band_hi, color=colour, alpha=0.18, linewidth=0, zorder=2
+            )
+            banded = True
+    line_t, line_q = _break_gaps(times[idx], q[idx])
+    ax.plot(line_t, line_q, color=colour, linewidth=0.9, alpha=0.85, zorder=3)
+    return q, banded
+
+
+def _rates_legend(study: _Study, banded: bool) -> list[Artist]:
+    """The legend of the rates grid: the two kinds of measurement, one line per method,
+    and the interval's band when one was drawn."""
     handles: list[Artist] = [
         Line2D(
             [],
@@ -944,17 +1005,7 @@ def _rates_grid(study: _Study, model: str, why: str) -> dict[str, Any] | None:
     ]
     if banded:
         handles.append(Patch(facecolor="#888", alpha=0.3, label="90 % predictive interval"))
-    fig.suptitle(f"Predicted and measured total rate per well, model {model}", fontsize=12)
-    page.bottom_legend(fig, handles)
-    return {
-        "model": model,
-        "label": _model_label(model),
-        "why": why,
-        "png": page.png(fig),
-        "per_series": per_series,
-        "clipped": any_clipped,
-        "banded": banded,
-    }
+    return handles
 
 
 def _rates_section(study: _Study) -> list[dict[str, Any]]:
@@ -1088,28 +1139,10 @@ def _outage_section(study: _Study) -> dict[str, Any] | None:
         return None
     if not {"days_since", "predicted", "measured", "model", "method"} <= set(preds.columns):
         return None
-    q = pd.to_numeric(preds["predicted"], errors="coerce").to_numpy(dtype=float)
-    m = pd.to_numeric(preds["measured"], errors="coerce").to_numpy(dtype=float)
-    since = pd.to_numeric(preds["days_since"], errors="coerce").to_numpy(dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ape = np.abs(q - m) / np.abs(m) * 100.0
-    ok = np.isfinite(ape) & np.isfinite(since)
-    if not ok.any():
+    binned = _outage_curves(preds)
+    if binned is None:
         return None
-    data = pd.DataFrame(
-        {
-            "model": preds["model"].astype(str).to_numpy()[ok],
-            "method": preds["method"].astype(str).to_numpy()[ok],
-            "since": since[ok],
-            "ape": ape[ok],
-        }
-    )
-    top_days = float(data["since"].max())
-    edges = [e for e in _SINCE_EDGES if e < top_days] + [top_days + 1e-9]
-    data["bin"] = pd.cut(data["since"], bins=edges, right=False, labels=False)
-    mids = np.array([(a + b) / 2 for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    curves = data.groupby(["model", "method", "bin"])["ape"].agg(["mean", "size"]).reset_index()
-    curves = curves[curves["size"] >= 5]  # a bin of a handful of points says little
+    curves, edges, mids = binned
     panels = [mdl for mdl in study.models if (curves["model"] == mdl).any()]
     bench = curves[curves["model"] == BENCHMARK]
     if bench.empty and not panels:
@@ -1122,31 +1155,7 @@ def _outage_section(study: _Study) -> dict[str, Any] | None:
     axes = fig.subplots(nrows, ncols, sharex=True, sharey=True, squeeze=False)
     top = _axis_top(curves["mean"], curves.groupby("model")["mean"].median())
     for ax, model in zip(axes.flat, panels, strict=False):
-        for meth in study.methods:
-            g = curves[(curves["model"] == model) & (curves["method"] == meth)]
-            if g.empty:
-                continue
-            ax.plot(
-                mids[g["bin"].to_numpy(dtype=int)],
-                g["mean"],
-                color=study.colours.get(meth, "#555"),
-                marker="o",
-                markersize=3,
-                linewidth=1.3,
-            )
-        if model != BENCHMARK and not bench.empty:
-            b = bench.groupby("bin")["mean"].min()
-            ax.plot(
-                mids[b.index.to_numpy(dtype=int)],
-                b.to_numpy(dtype=float),
-                color="black",
-                linestyle="--",
-                linewidth=1.2,
-            )
-        ax.set_title(model if model != BENCHMARK else f"{model} (benchmark)", fontsize=10)
-        ax.set_xscale("symlog", linthresh=1.0)
-        ax.grid(alpha=0.3)
-        ax.set_ylabel("MAPE in the bin (%)")
+        _outage_panel(ax, study, curves, mids, model, bench)
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
     for ax in axes[-1, :]:
@@ -1174,6 +1183,71 @@ def _outage_section(study: _Study) -> dict[str, Any] | None:
         "fractions": str(study.result.outage_fractions),
         "edges": [int(e) if float(e).is_integer() else e for e in edges[1:-1]],
     }
+
+
+def _outage_curves(preds: pd.DataFrame) -> tuple[pd.DataFrame, list[float], np.ndarray] | None:
+    """The mean APE (%) per model, method and bin of days since the last measurement, over
+    the bins with at least 5 points; the bin edges and mid-points (days). None when no row
+    has a finite error."""
+    q = pd.to_numeric(preds["predicted"], errors="coerce").to_numpy(dtype=float)
+    m = pd.to_numeric(preds["measured"], errors="coerce").to_numpy(dtype=float)
+    since = pd.to_numeric(preds["days_since"], errors="coerce").to_numpy(dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ape = np.abs(q - m) / np.abs(m) * 100.0
+    ok = np.isfinite(ape) & np.isfinite(since)
+    if not ok.any():
+        return None
+    data = pd.DataFrame(
+        {
+            "model": preds["model"].astype(str).to_numpy()[ok],
+            "method": preds["method"].astype(str).to_numpy()[ok],
+            "since": since[ok],
+            "ape": ape[ok],
+        }
+    )
+    top_days = float(data["since"].max())
+    edges = [e for e in _SINCE_EDGES if e < top_days] + [top_days + 1e-9]
+    data["bin"] = pd.cut(data["since"], bins=edges, right=False, labels=False)
+    mids = np.array([(a + b) / 2 for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    curves = data.groupby(["model", "method", "bin"])["ape"].agg(["mean", "size"]).reset_index()
+    curves = curves[curves["size"] >= 5]  # a bin of a handful of points says little
+    return curves, edges, mids
+
+
+def _outage_panel(
+    ax: Any,
+    study: _Study,
+    curves: pd.DataFrame,
+    mids: np.ndarray,
+    model: str,
+    bench: pd.DataFrame,
+) -> None:
+    """One model's panel: a line per method, and the benchmark's best curve dashed."""
+    for meth in study.methods:
+        g = curves[(curves["model"] == model) & (curves["method"] == meth)]
+        if g.empty:
+            continue
+        ax.plot(
+            mids[g["bin"].to_numpy(dtype=int)],
+            g["mean"],
+            color=study.colours.get(meth, "#555"),
+            marker="o",
+            markersize=3,
+            linewidth=1.3,
+        )
+    if model != BENCHMARK and not bench.empty:
+        b = bench.groupby("bin")["mean"].min()
+        ax.plot(
+            mids[b.index.to_numpy(dtype=int)],
+            b.to_numpy(dtype=float),
+            color="black",
+            linestyle="--",
+            linewidth=1.2,
+        )
+    ax.set_title(model if model != BENCHMARK else f"{model} (benchmark)", fontsize=10)
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.grid(alpha=0.3)
+    ax.set_ylabel("MAPE in the bin (%)")
 
 
 def _phase_grid(study: _Study) -> dict[str, Any] | None:

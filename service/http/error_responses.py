@@ -7,6 +7,7 @@ The statuses (the engine knows none of them):
 error                  status  when
 =====================  ======  ==================================================
 ``InvalidRequest``     422     a bad value (payload, time, model, effect, method)
+``NotJson``            415     a body declared with a Content-Type that is not JSON
 ``UnknownWell``        404     the well is not known to this service (a well of
                                another instance: the sentence names its owner)
 ``Duplicate``          409     the same sample or measurement arrived before
@@ -44,6 +45,7 @@ from service.errors import (
     InvalidRequest,
     NotAllowed,
     NotAuthenticated,
+    NotJson,
     ServiceError,
     Starting,
     Stopping,
@@ -57,6 +59,7 @@ __all__ = ["STATUS", "status_of", "install_error_handlers", "BodyLimit", "BodyTo
 #: the HTTP status of each domain error class (a subclass takes its nearest ancestor's)
 STATUS: dict[type[ServiceError], int] = {
     InvalidRequest: 422,
+    NotJson: 415,
     UnknownWell: 404,
     Duplicate: 409,
     Conflict: 409,

@@ -1,4 +1,5 @@
-"""``vfm drift DATA --out DIR``: Algorithm A.1 per well, and the T^2 statistic over time.
+"""``vfm drift DATA --out DIR``: the retraining period per well (Algorithm A.1 of
+:mod:`vfm_core.hotelling`), and the T^2 statistic over time.
 
 For each well, the reference window is the first part of its data before the split
 (``--reference``, a fraction); every later observation is tested against it with the
@@ -20,8 +21,8 @@ import pandas as pd
 from scipy import stats
 
 from vfm_core.data import target_mask
-from vfm_core.drift import estimate_update_period
 from vfm_core.fileio import staging_dir
+from vfm_core.hotelling import estimate_update_period
 from vfm_core.jobs.study import resolve_split
 from vfm_core.schema import INPUT_COLUMNS, TIME, WELL
 
@@ -96,7 +97,7 @@ def drift_study(
 def write_drift(result: dict[str, Any], out: Path, data_path: str) -> list[Path]:
     """drift.json and report.html in ``out``, both or neither (written in a staging folder)."""
     # Imported here: matplotlib and the templates are only needed for the report.
-    from vfm_core.reporting.drift import build_report
+    from vfm_core.reporting.drift_report import build_report
 
     with staging_dir(out) as staging:
         (staging / "drift.json").write_text(json.dumps(result, indent=1))

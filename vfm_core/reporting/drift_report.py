@@ -1,6 +1,6 @@
 """The drift report: one self-contained HTML page of ``vfm drift`` (Hotelling T^2 per well).
 
-Owns how the result of :func:`vfm_core.jobs.drift.drift_study` is shown: the settings, the
+Owns how the result of :func:`vfm_core.jobs.drift_period.drift_study` is shown: the settings, the
 median estimated retraining period, a table per well and the T^2 statistic over time with
 the detections coloured (as in the paper's appendix A figures). The page is
 ``templates/drift.html.j2`` on the shared layout of :mod:`vfm_core.reporting.page`, which

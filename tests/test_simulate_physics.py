@@ -1,0 +1,391 @@
+"""The simulator's second and third truth physics (vfm_core.sim_physics, `--physics`):
+hand-checked numbers, limits, monotonicity, the choked regime, the per-well options (valves,
+gas lift), the CLI, and the default (Sachdeva) field unchanged byte for byte."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from vfm_core import physics, sim_physics
+from vfm_core.cli import main
+from vfm_core.errors import ConfigError
+from vfm_core.observations import load_observations
+from vfm_core.simulate import load_truth, parse_valves, simulate_field, write_field
+
+SMALL = dict(wells=3, years=1.0, seed=13)
+
+
+def _inputs(**over: float | np.ndarray) -> dict[str, np.ndarray]:
+    """SI inputs of choke_rates; defaults of the hand-worked bernoulli case."""
+    base = {
+        "area_eff_m2": 0.8 * math.pi / 4.0 * 0.05**2 * 0.5,
+        "p_up_pa": 50e5,
+        "p_down_pa": 20e5,
+        "t_up_k": 333.15,
+        "eta_gas": 0.05,
+        "eta_oil": 0.60,
+    }
+    base.update(over)
+    shape = np.broadcast_shapes(*(np.shape(v) for v in base.values()))
+    return {k: np.broadcast_to(np.asarray(v, dtype=np.float64), shape) for k, v in base.items()}
+
+
+WELL = sim_physics.WellConstants(rho_oil=850.0, rho_wat=1020.0, m_gas=0.020, p_cr=0.55, c_d=0.8)
+
+
+# --- hand-checked numbers ---------------------------------------------------------------
+
+
+def test_bernoulli_hand_worked_example() -> None:
+    """One case worked by hand (tolerance 0.05 %, the digits below carry five figures).
+
+    Inputs: p_up 50 bar, p_down 20 bar, t_up 60 degC (333.15 K), eta_gas 0.05, eta_oil
+    0.60 (eta_wat 0.35), rho_oil 850, rho_wat 1020 kg/m3, M_gas 0.020 kg/mol, p_cr 0.55,
+    C_D 0.8, a 50 mm bore half open (linear valve).
+
+    1. Liquid: rho_L = 0.95 / (0.60/850 + 0.35/1020) = 0.95 / 1.04902e-3 = 905.61 kg/m3.
+    2. Standing (1977), gravity g = 0.020/0.0289647 = 0.69050: T_pc = 168 + 325 g -
+       12.5 g^2 = 386.45 degR = 214.70 K; p_pc = 677 + 15 g - 37.5 g^2 = 669.48 psia =
+       46.159 bar; T_pr = 1.5517, p_pr = 1.0832. Hall-Yarborough: Z = 0.90688 (the
+       Standing-Katz chart reads about 0.91 there; checked below by the residual).
+    3. rho_G = p M / (Z R T) = 50e5 * 0.020 / (0.90688 * 8.31446 * 333.15) = 39.809 kg/m3.
+    4. Simpson: S = (905.61/39.809)^(1/6) = 1.6833; Phi = (1 + 0.05 * 0.6833) *
+       (1 + 0.05 * (1.6833^5 - 1)) = 1.0342 * 1.6257 = 1.6813.
+    5. p_down/p_up = 0.4 < 0.55: choked, dp = 50e5 * (1 - 0.55) = 22.5e5 Pa.
+    6. C_D A = 0.8 * pi/4 * 0.05^2 * 0.5 = 7.8540e-4 m2;
+       mdot = 7.8540e-4 * sqrt(2 * 905.61 * 22.5e5 / 1.6813) = 38.668 kg/s.
+    7. rho_gas,sc = 101325 * 0.020 / (8.31446 * 288.15) = 0.84585 kg/Sm3;
+       Q = 3600 * 38.668 * (0.05/0.84585 + 0.60/850 + 0.35/1020)
+         = 8228.6 + 98.26 + 47.77 = 8374.6 Sm3/h.
+    """
+    z = float(sim_physics.z_factor_hall_yarborough(50e5, 333.15, 0.020))
+    assert z == pytest.approx(0.90688, rel=5e-5)
+    t_pc, p_pc = sim_physics.pseudo_critical_standing(0.020)
+    assert t_pc == pytest.approx(214.70, rel=5e-5)
+    assert p_pc == pytest.approx(46.159e5, rel=5e-5)
+    rates = sim_physics.choke_rates("bernoulli", WELL, _inputs())
+    per_h = 3600.0
+    assert float(rates.q_gas[()]) * per_h == pytest.approx(8228.6, rel=5e-4)
+    assert float(rates.q_oil[()]) * per_h == pytest.approx(98.26, rel=5e-4)
+    assert float(rates.q_wat[()]) * per_h == pytest.approx(47.77, rel=5e-4)
+    assert float(rates.q_total[()]) * per_h == pytest.approx(8374.6, rel=5e-4)
+    assert float(rates.z[()]) == pytest.approx(0.90688, rel=5e-5)
+    mdot, _ = sim_physics.bernoulli_mass_flow(
+        7.8540e-4, 50e5, 20e5, 333.15, 0.05, 0.60, rho_oil=850, rho_wat=1020, m_gas=0.02, p_cr=0.55
+    )
+    assert float(mdot) == pytest.approx(38.668, rel=5e-4)
+
+
+def test_gilbert_hand_worked_example() -> None:
+    """Gilbert (1954): p_up 100 bar absolute = (100e5 - 101325)/6894.757 = 1435.68 psig;
+    a 1 inch bean = 64/64 in; GLR 100 Sm3/Sm3 = 100 * 5.6146 = 561.46 scf/STB;
+    p_down 30 bar (ratio 0.3 < 0.588, critical flow).
+    q_L = 1435.68 * 64^1.89 / (10 * 561.46^0.546) = 1435.68 * 2591.7 / (10 * 31.700)
+        = 11738 STB/d = 11738 * 0.158987 / 24 = 77.76 Sm3/h (tolerance 0.05 %).
+    """
+    q = sim_physics.gilbert_liquid_rate(100e5, 30e5, 0.0254, 100.0)
+    assert float(q) * 3600.0 == pytest.approx(77.76, rel=5e-4)
+    # Ros's coefficients (a 17.4, b 0.5, c 2.0): 1435.68 * 4096 / (17.4 * 23.695)
+    # = 14263 STB/d = 94.48 Sm3/h.
+    ros = sim_physics.GILBERT_CORRELATIONS[1]
+    q_ros = sim_physics.gilbert_liquid_rate(100e5, 30e5, 0.0254, 100.0, ros)
+    assert float(q_ros) * 3600.0 == pytest.approx(94.48, rel=5e-4)
+
+
+def test_hall_yarborough_solves_its_equation_and_agrees_with_papay() -> None:
+    p = np.linspace(1e5, 200e5, 40)[:, None]
+    t = np.linspace(313.15, 363.15, 5)[None, :]
+    z = sim_physics.z_factor_hall_yarborough(p, t, 0.020)
+    t_pc, p_pc = sim_physics.pseudo_critical_standing(0.020)
+    tt = t_pc / t
+    a_ppr = 0.06125 * tt * np.exp(-1.2 * (1.0 - tt) ** 2) * p / p_pc
+    residual, _ = sim_physics._hall_yarborough_residual(
+        a_ppr / z, a_ppr, np.broadcast_to(tt, z.shape)
+    )
+    assert np.abs(residual).max() < 1e-10
+    # Z -> 1 as p -> 0 (1 bar: within 0.5 %); a real gas at wellhead conditions has Z < 1.
+    assert np.all(np.abs(z[0] - 1.0) < 5e-3)
+    assert np.all(z[1:] < 1.0)
+    # Papay's correlation (vfm_core.physics, another fit to the same Standing-Katz chart, with
+    # Sutton's pseudo-critical properties) agrees within 6 % over wellhead conditions.
+    papay = physics.z_factor_papay(
+        torch.as_tensor(np.broadcast_to(p, z.shape).copy()),
+        torch.as_tensor(np.broadcast_to(t, z.shape).copy()),
+        0.020,
+    ).numpy()
+    assert np.abs(z / papay - 1.0).max() < 0.06
+
+
+def test_simpson_multiplier_limits() -> None:
+    rho_l, rho_g = 900.0, 40.0
+    assert float(sim_physics.simpson_multiplier(0.0, rho_l, rho_g)) == pytest.approx(1.0)
+    # All gas: the gas-only pressure drop at the same mass flux, rho_L / rho_G times the liquid's.
+    assert float(sim_physics.simpson_multiplier(1.0, rho_l, rho_g)) == pytest.approx(rho_l / rho_g)
+    x = np.linspace(0.0, 1.0, 101)
+    assert np.all(np.diff(sim_physics.simpson_multiplier(x, rho_l, rho_g)) > 0)
+
+
+def test_bernoulli_limits_are_the_single_phase_orifice() -> None:
+    area = 1e-3
+    # All liquid (water): mdot = C_D A sqrt(2 rho dp).
+    liquid = sim_physics.choke_rates(
+        "bernoulli", WELL, _inputs(area_eff_m2=area, eta_gas=0.0, eta_oil=0.0, p_down_pa=40e5)
+    )
+    expected = area * math.sqrt(2.0 * 1020.0 * 10e5) / 1020.0
+    assert float(liquid.q_total[()]) == pytest.approx(expected, rel=1e-12)
+    # All gas: mdot = C_D A sqrt(2 rho_G dp) with the real-gas density.
+    gas = sim_physics.choke_rates(
+        "bernoulli", WELL, _inputs(area_eff_m2=area, eta_gas=1.0, eta_oil=0.0, p_down_pa=40e5)
+    )
+    z = float(sim_physics.z_factor_hall_yarborough(50e5, 333.15, 0.020))
+    rho_g = 50e5 * 0.020 / (z * sim_physics.R_GAS * 333.15)
+    rho_sc = sim_physics.P_SC_PA * 0.020 / (sim_physics.R_GAS * sim_physics.T_SC_K)
+    assert float(gas.q_total[()]) == pytest.approx(
+        area * math.sqrt(2.0 * rho_g * 10e5) / rho_sc, rel=1e-9
+    )
+
+
+# --- shape of the physics ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["bernoulli", "gilbert"])
+def test_rate_rises_with_dp_and_is_flat_when_choked(name: str) -> None:
+    critical = 0.55 if name == "bernoulli" else sim_physics.GILBERT_CRITICAL_RATIO
+    ratio = np.linspace(0.05, 0.999, 400)
+    rates = sim_physics.choke_rates(name, WELL, _inputs(p_down_pa=50e5 * ratio)).q_total
+    sub = ratio > critical + 1e-9
+    assert np.all(np.diff(rates[sub]) < 0)  # less dp (higher p_down): less flow
+    assert np.all(rates[sub] < rates[0])
+    # Choked: the same rate for every p_down below the critical ratio.
+    choked = rates[ratio <= critical]
+    assert len(choked) > 50
+    assert np.ptp(choked) <= 1e-12 * choked.max()
+    # ... and continuous at the critical ratio.
+    edge = sim_physics.choke_rates(name, WELL, _inputs(p_down_pa=50e5 * (critical + 1e-7)))
+    assert float(edge.q_total[()]) == pytest.approx(float(choked[-1]), rel=1e-3)
+    # More upstream pressure at a fixed p_down: more flow.
+    p_up = np.linspace(25e5, 150e5, 100)
+    more = sim_physics.choke_rates(name, WELL, _inputs(p_up_pa=p_up)).q_total
+    assert np.all(np.diff(more) > 0)
+
+
+@pytest.mark.parametrize("name", ["bernoulli", "gilbert"])
+@pytest.mark.parametrize("family", list(physics.AREA_FUNCTIONS))
+def test_rate_rises_with_opening(name: str, family: str) -> None:
+    u = np.linspace(0.02, 1.0, 99)
+    fraction = physics.area_fraction(torch.as_tensor(u), family).numpy()
+    area = 0.8 * math.pi / 4.0 * 0.05**2 * fraction
+    for ratio in (0.3, 0.8):  # choked and not
+        q = sim_physics.choke_rates(
+            name, WELL, _inputs(area_eff_m2=area, p_down_pa=50e5 * ratio)
+        ).q_total
+        assert np.all(np.diff(q) > 0)
+
+
+def test_physics_differ_from_sachdeva_in_shape_not_only_scale() -> None:
+    """The new truths are not Sachdeva times a constant: their ratio to Sachdeva moves with
+    the gas fraction by more than a few percent (else they would test nothing new)."""
+    eta_gas = np.linspace(0.02, 0.3, 8)
+    inputs = _inputs(eta_gas=eta_gas, eta_oil=0.6 * (1.0 - eta_gas))
+    sachdeva_mdot = physics.choke_mass_flow(
+        torch.as_tensor(inputs["area_eff_m2"].copy()),
+        torch.as_tensor(inputs["p_up_pa"].copy()),
+        torch.as_tensor(inputs["p_down_pa"].copy()),
+        torch.as_tensor(inputs["t_up_k"].copy()),
+        torch.as_tensor(eta_gas),
+        torch.as_tensor(inputs["eta_oil"].copy()),
+        rho_oil=850.0,
+        rho_wat=1020.0,
+        kappa=1.28,
+        m_gas=0.020,
+        p_cr=0.55,
+    )
+    per_kg = physics.standard_volume_per_mass(
+        torch.as_tensor(eta_gas),
+        torch.as_tensor(inputs["eta_oil"].copy()),
+        rho_oil=850.0,
+        rho_wat=1020.0,
+        m_gas=0.020,
+    )
+    q_sachdeva = (sachdeva_mdot * per_kg).numpy()
+    for name in ("bernoulli", "gilbert"):
+        ratio = sim_physics.choke_rates(name, WELL, inputs).q_total / q_sachdeva
+        assert ratio.max() / ratio.min() > 1.05, name
+
+
+# --- the simulator with --physics ---------------------------------------------------------
+
+
+# Hashes of the files `simulate_field(wells=3, years=0.5, seed=20261, hidden=...)` wrote as
+# CSV before --physics existed (commit of session 36, before this module), and of the truth
+# JSON (sorted keys, without the new "physics" block). If a dependency upgrade changes the
+# last bits of the floats, regenerate them from that code, not from the current one.
+_BEFORE = {
+    (): (
+        "5453e9699ea8d352ef0cc16cf51ebfdbaf7f808feb45c19c4eac2f8c209420c6",
+        "f8badfa6d0844af5746a0f9b0786f556effa32beb9be784b1e058e6992f2defb",
+        "613a38cfb2b655f266a4a023fecdd34938ad953c6ffe17fd04cc9abbb12b3b3e",
+    ),
+    (
+        "erosion:step=0.1",
+        "valve:family=sigmoid",
+        "real_gas",
+        "slip",
+        "mpfm_bias",
+        "critical_ratio",
+    ): (
+        "1a41983a7c7be69c88dd08b90f0a347836c35ad34fbe46ee3426e819b1765ae9",
+        "8a44679c0cd25d80440d09700d1464d35a5149518d1b1b0a409148bf8a9a5f70",
+        "b034d3a1a16b06062032eabb7cc843c48d0e8b68a0af5c82e2a0c19b3f513b99",
+    ),
+}
+
+
+@pytest.mark.parametrize("hidden", list(_BEFORE), ids=["plain", "all-effects"])
+def test_default_physics_unchanged_byte_for_byte(tmp_path, hidden: tuple[str, ...]) -> None:
+    field = simulate_field(wells=3, years=0.5, seed=20261, hidden=list(hidden))
+    obs, truth_json, samples = write_field(field, tmp_path / "field.csv")
+    digest = [hashlib.sha256(p.read_bytes()).hexdigest() for p in (obs, samples)]
+    truth = json.loads(truth_json.read_text(encoding="utf-8"))
+    assert truth.pop("physics")["name"] == "sachdeva"
+    digest.append(hashlib.sha256(json.dumps(truth, sort_keys=True).encode()).hexdigest())
+    assert tuple(digest) == _BEFORE[hidden]
+    explicit = simulate_field(
+        wells=3, years=0.5, seed=20261, hidden=list(hidden), physics="sachdeva"
+    )
+    pd.testing.assert_frame_equal(explicit.observations, field.observations)
+
+
+@pytest.fixture(scope="module")
+def fields() -> dict[str, object]:
+    return {
+        name: simulate_field(**SMALL, physics=name) for name in ("sachdeva", "bernoulli", "gilbert")
+    }
+
+
+@pytest.mark.parametrize("name", ["bernoulli", "gilbert"])
+def test_field_of_other_physics(fields, name: str) -> None:
+    field = fields[name]
+    plain = fields["sachdeva"]
+    obs = field.observations
+    # Same format: columns, dtypes, row times (the sampling does not depend on the truth).
+    assert list(obs.columns) == list(plain.observations.columns)
+    assert (obs.dtypes == plain.observations.dtypes).all()
+    pd.testing.assert_series_equal(obs["time"], plain.observations["time"])
+    assert field.truth["physics"]["name"] == name
+    assert field.truth["physics"]["references"]
+    # The truth is this physics on the rows' own inputs.
+    wells = field.truth["wells"]
+    samples = field.truth_samples
+    for k, well in enumerate(sorted(wells)):
+        info = wells[well]
+        rows = (obs["well"] == well).to_numpy()
+        sub = obs[rows]
+        constants = sim_physics.WellConstants(
+            info["rho_oil"], info["rho_wat"], info["m_gas"], info["p_cr"], info["c_d"], k
+        )
+        fraction = sub["choke"].to_numpy()  # linear valve
+        si = {
+            "area_eff_m2": info["c_d"] * info["a_max_m2"] * fraction,
+            "p_up_pa": sub["p_up"].to_numpy() * 1e5,
+            "p_down_pa": sub["p_down"].to_numpy() * 1e5,
+            "t_up_k": sub["t_up"].to_numpy() + 273.15,
+            "eta_gas": sub["eta_gas"].to_numpy(),
+            "eta_oil": sub["eta_oil"].to_numpy(),
+        }
+        expected = sim_physics.choke_rates(name, constants, si).q_total * 3600.0
+        np.testing.assert_allclose(samples.loc[rows, "q_true"], expected, rtol=1e-10)
+    # Not the Sachdeva truth: the rates differ from the plain mechanistic model.
+    assert field.truth["truth_versus_plain_model"]["mean_abs_rel_change"] > 0.02
+    # Measurements are noisy readings of this truth (MPFM within a few percent).
+    mpfm = (obs["source"] == "mpfm").to_numpy()
+    rel = obs.loc[mpfm, "q_total"].to_numpy() / samples.loc[mpfm, "q_true"].to_numpy() - 1.0
+    assert 0.01 < np.std(rel) < 0.08
+
+
+def test_operators_hold_the_new_truth_on_plateau(fields) -> None:
+    """Operators aim at the chosen physics' own rate: the target is that physics at the
+    initial opening, so openings stay in range (not all pinned open or shut)."""
+    for name in ("bernoulli", "gilbert"):
+        choke = fields[name].observations["choke"]
+        assert 0.05 < choke.median() < 0.95
+
+
+def test_valves_per_well_and_gas_lift(tmp_path) -> None:
+    base = simulate_field(wells=4, years=1.5, seed=13, physics="bernoulli")
+    lifted = simulate_field(
+        wells=4,
+        years=1.5,
+        seed=13,
+        physics="bernoulli",
+        valves=["linear,sigmoid"],
+        gas_lift=0.5,
+    )
+    phys = lifted.truth["physics"]
+    assert phys["valves"] == {"W01": "linear", "W02": "sigmoid", "W03": "linear", "W04": "sigmoid"}
+    assert lifted.truth["wells"]["W02"]["valve_family"] == "sigmoid"
+    assert len(phys["gas_lift"]) == 2
+    for well, lift in phys["gas_lift"].items():
+        start = pd.Timestamp(lift["start"])
+        a = base.observations[(base.observations["well"] == well)]
+        b = lifted.observations[(lifted.observations["well"] == well)]
+        after_a = a[a["time"] >= start]["eta_gas"].to_numpy()
+        after_b = b[b["time"] >= start]["eta_gas"].to_numpy()
+        # Lift gas at the choke: a higher gas fraction once the injection starts ...
+        assert np.median(after_b) > np.median(after_a) * 1.02
+        before = b[b["time"] < start - pd.Timedelta(days=1)]["eta_gas"].to_numpy()
+        if len(before):  # ... and the same one before (same random streams).
+            ref = a[a["time"] < start - pd.Timedelta(days=1)]["eta_gas"].to_numpy()
+            assert np.median(before) == pytest.approx(np.median(ref), rel=0.05)
+    unlifted = [w for w in ("W01", "W02", "W03", "W04") if w not in phys["gas_lift"]]
+    for well in unlifted:
+        if well == "W01" or well == "W03":  # linear valve and no lift: the same well
+            pd.testing.assert_frame_equal(
+                base.observations[base.observations["well"] == well].reset_index(drop=True),
+                lifted.observations[lifted.observations["well"] == well].reset_index(drop=True),
+            )
+    # The files keep their format and load.
+    path = tmp_path / "lifted.parquet"
+    write_field(lifted, path)
+    assert len(load_observations(path).frame) == len(lifted.observations)
+    truth, _ = load_truth(path)
+    assert truth["physics"]["gas_lift_share"] == 0.5
+
+
+def test_option_errors_list_the_choices() -> None:
+    with pytest.raises(ConfigError, match="sachdeva, bernoulli, gilbert"):
+        simulate_field(**SMALL, physics="ideal")
+    with pytest.raises(ConfigError, match="linear, equal_percentage, quick_opening"):
+        parse_valves("linear,butterfly")
+    with pytest.raises(ConfigError, match="Sachdeva truth only"):
+        simulate_field(**SMALL, physics="bernoulli", hidden=["slip"])
+    with pytest.raises(ConfigError, match="not both"):
+        simulate_field(**SMALL, valves="sigmoid", hidden=["valve"])
+    with pytest.raises(ConfigError, match="0..1"):
+        simulate_field(**SMALL, gas_lift=1.5)
+    assert parse_valves("mixed") == list(physics.AREA_FUNCTIONS)
+
+
+def test_cli_physics_option(tmp_path, capsys) -> None:
+    out = tmp_path / "f.csv"
+    argv = ["simulate", "--out", str(out), "--wells", "2", "--years", "0.5", "--seed", "13"]
+    rc = main([*argv, "--physics", "gilbert", "--valves", "mixed", "--gas-lift", "0.5", "--quiet"])
+    assert rc == 0
+    truth, samples = load_truth(out)
+    assert truth["physics"]["name"] == "gilbert"
+    assert truth["physics"]["gilbert_correlation"] == {"W01": "gilbert", "W02": "ros"}
+    assert truth["physics"]["valves"] == {"W01": "linear", "W02": "equal_percentage"}
+    assert len(samples) == len(load_observations(out).frame)
+    capsys.readouterr()
+    rc = main([*argv, "--physics", "ideal_gas", "--quiet"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "Unknown simulator physics 'ideal_gas'" in err
+    assert "sachdeva, bernoulli, gilbert" in err

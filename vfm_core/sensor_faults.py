@@ -1,0 +1,924 @@
+"""Instrument faults per well: frozen, spiking, drifting, offset and out-of-range inputs.
+
+A VFM reads its rate from a handful of transmitters, and they fail in familiar ways (see
+``docs/guide/sensor-faults.md``). :class:`WellSensorFaults` watches one well's sensor
+samples as they come (streaming, pure: no clock, no I/O) and says which input is suspect,
+how, since when and why, as :class:`SensorFault` events. The service keeps one per well
+(``GET /wells/{well}`` ``sensor_faults``); ``vfm evaluate`` runs one per well over the whole
+study (``sensor_faults.json``); :func:`faults_of_frame` runs it over a frame.
+
+Inputs (units as in :mod:`vfm_core.schema`): ``choke`` (fraction), ``p_up``, ``p_down``
+(bar a), ``t_up`` (degC), ``eta_gas``, ``eta_oil`` (mass fractions).
+
+The tests and their thresholds
+------------------------------
+
+Every statistical test gets a share of one false-alarm budget: ``false_per_well_year``
+(default 0.1, at most one false fault per ten well-years) is split evenly over the
+``21`` tests that run per well (frozen on 6 inputs, spike on 5, drift on 5, offset on 5).
+A test that looks at every sample gets a per-sample false-alarm probability
+``alpha = share / samples_per_year``, with the samples per year taken from the well's own
+median interval between samples (so the thresholds hold whether a sample comes every
+minute or every half day). A test on daily means gets ``share / 365.25`` per day.
+
+* ``out_of_range`` (no statistics): a value outside its physical span (``ranges``;
+  choke 0..1, pressures 0..1500 bar a, temperature -60..250 degC, fractions 0..1).
+  The event lasts while the value is outside; such a sample feeds no other test.
+* ``frozen``: a live transmitter carries noise, so a run of unchanged values (a change of
+  at most ``1e-9`` relative) longer than the input's own history makes plausible is a
+  stuck transmitter or link. The model is a two-state Markov chain of "unchanged" steps
+  fitted to the input's history (exponential memory of ``frozen_memory`` steps, Jeffreys
+  priors): ``p0`` = P(unchanged | changed before), ``q`` = P(unchanged | unchanged
+  before). A run reaches length ``L`` with probability ``p0 q^(L-1)``; the threshold is the
+  smallest ``L >= 3`` with ``p0 q^(L-1) <= alpha``. An input that never repeats (a
+  pressure) is frozen after a handful of equal values; one that is constant for weeks by
+  nature (a choke between moves, fractions set from a PVT table) needs a run far longer
+  than its usual ones. A choke at a bound (0 or 1) and a fraction at 0 are not tested
+  (fully open is stuck by design), nor is an input before 50 steps of history. The steps
+  of a run that raised an event are not learned.
+* ``spike``: one sample that jumps away from both neighbours and comes back. The model is
+  the robust spread of the input's one-step changes (``s = 1.4826 MAD`` over the last
+  ``spike_window`` changes, none at a choke move, none flagged). Sample ``t`` is a spike
+  when ``|x_t - x_(t-1)|`` and ``|x_t - x_(t+1)|`` both exceed ``z s`` on the same side and
+  ``x_(t+1)`` came back at least halfway, with ``z`` the two-sided Gaussian quantile of
+  ``alpha``, and neither interval is a gap (longer than both 3 median intervals and two
+  days: a shut-in or an outage may hide a real change). It is decided when sample ``t+1``
+  arrives (and ends there). A jump at a choke
+  move is the process answering the operator, not a fault; the choke itself (a set point:
+  a manual change of a few hours is one sample up and back) is not tested for spikes.
+* ``offset`` (a step of one input): the daily means of each input and their day-to-day
+  changes (divided by the square root of the days between, since a process wanders so),
+  robust-scaled by the last year's changes (median, 1.4826 MAD). A change beyond the
+  Gaussian quantile of the daily share, on a day when the choke did not move and no
+  other input's daily mean moved beyond 3 robust sd of its own changes (several inputs
+  moving at once is the process changing, not one transmitter: the other inputs are the
+  witnesses), is a candidate; it is an offset when the level holds (at least halfway)
+  for two more days. The event ends when the level comes back (halfway).
+* ``drift``: a self-starting two-sided CUSUM (:class:`vfm_core.residual_alarm.ResidualCusum`:
+  robust centre and scale of the last year, Bartlett long-run factor over ``lags`` days,
+  ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
+  ``365.25 / share`` days: a ramp shifts their mean. Centring on the recent median means
+  a well's own slow trend (depletion) is not news; a change of trend is.
+* Drift and offset are not tested on the choke (its steps are the operator's; a choke
+  re-zeroed wrongly shows only in the rate, see below). An offset or drift open for
+  ``accept_days`` is closed and the new level taken as real (a set point that moved; the
+  evidence says so). While one input has an active fault, the others' daily tests pause:
+  one fault at a time is located.
+
+What this does not do (yet): use the rate model's residual and its sensitivity to each
+input to locate a fault that only the measured rate reveals (a choke offset, a slow
+``p_up`` drift that looks like the well's own decline), or a field-wide comparison of the
+wells on one manifold (a separator set-point change moves every well's ``p_down``; a
+transmitter offset moves one).
+
+The object follows the project's small protocol: ``update(time_ns, values)`` returns the
+events that began or ended at that sample; ``active`` lists the open ones; ``state()`` /
+``restore()`` give and take plain JSON values for a checkpoint.
+
+>>> det = WellSensorFaults()
+>>> import numpy as np
+>>> rng = np.random.default_rng(1)
+>>> hour = 3_600 * 10**9
+>>> found = []
+>>> for i in range(400):
+...     x = [0.5, 100 + rng.normal(0, 0.3), 30 + rng.normal(0, 0.2), 60 + rng.normal(0, 0.2),
+...          0.1 + rng.normal(0, 1e-3), 0.6 + rng.normal(0, 1e-3)]
+...     if i >= 300:
+...         x[2] = last_p_down  # p_down stuck at its last reading
+...     last_p_down = x[2]
+...     found += det.update(i * 12 * hour, x)
+>>> [(e.sensor, e.kind) for e in found]
+[('p_down', 'frozen')]
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from statistics import NormalDist
+from typing import Any
+
+import numpy as np
+
+from vfm_core.errors import ConfigError
+from vfm_core.residual_alarm import ResidualCusum
+from vfm_core.schema import INPUT_COLUMNS
+from vfm_core.timeutil import iso
+
+__all__ = [
+    "SENSORS",
+    "KINDS",
+    "HOLD_KINDS",
+    "DEFAULT_RANGES",
+    "SensorFault",
+    "WellSensorFaults",
+    "faults_of_frame",
+    "write_sensor_faults",
+]
+
+#: the sensors watched, in the order of :data:`vfm_core.schema.INPUT_COLUMNS`
+SENSORS: tuple[str, ...] = INPUT_COLUMNS
+KINDS: tuple[str, ...] = ("frozen", "spike", "drift", "offset", "out_of_range")
+#: the kinds whose samples are not learned from (their false-alarm rate was measured within
+#: the budget, see docs/guide/sensor-faults.md); drift and offset are shown, not acted on
+HOLD_KINDS: tuple[str, ...] = ("frozen", "spike")
+
+#: physical span of each input (units of the observation format)
+DEFAULT_RANGES: dict[str, tuple[float, float]] = {
+    "choke": (0.0, 1.0),
+    "p_up": (0.0, 1500.0),
+    "p_down": (0.0, 1500.0),
+    "t_up": (-60.0, 250.0),
+    "eta_gas": (0.0, 1.0),
+    "eta_oil": (0.0, 1.0),
+}
+_UNITS = {
+    "choke": "",
+    "p_up": " bar",
+    "p_down": " bar",
+    "t_up": " degC",
+    "eta_gas": "",
+    "eta_oil": "",
+}
+_CHOKE = 0
+_NS_PER_DAY = 86_400 * 10**9
+_DEFAULT_INTERVAL_NS = 12 * 3_600 * 10**9  # before the well's own interval is known
+_MAD_TO_SD = 1.4826
+_SAME = 1e-9  # relative change below which two readings are the same value
+_SPIKE_MIN_CHANGES = 30
+_FROZEN_MIN_STEPS = 50
+_N_TESTS = 21  # frozen x6, spike x5, drift x5, offset x5 (the choke: frozen only)
+_MIN_DAYS = 30  # day-to-day changes before the drift and offset tests run
+_GAP_NS = 2 * 86_400 * 10**9  # an interval above this and 3 median intervals is a gap
+_MAX_DAY_GAP = 3  # days; a longer gap starts the day-to-day changes afresh
+_CONFIRM_DAYS = 2  # days a step must hold after its day before it is an offset
+_CO_MOVE = 3.0  # robust sd of a raw daily change: another input moving with a step excuses it
+
+
+@lru_cache(maxsize=256)
+def _z_two_sided(alpha: float) -> float:
+    """The two-sided standard normal quantile of a false-alarm probability ``alpha``."""
+    return NormalDist().inv_cdf(1.0 - alpha / 2.0)
+
+
+@dataclass
+class SensorFault:
+    """One instrument fault: which ``sensor``, what ``kind``, when it began (``start_ns``,
+    epoch ns data time; for drift and offset the estimated onset) and ended (``end_ns``,
+    None while active), when it was detected (``detected_ns``) and ``evidence`` (a sentence
+    with the numbers)."""
+
+    sensor: str
+    kind: str
+    start_ns: int
+    detected_ns: int
+    evidence: str
+    end_ns: int | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The event as the API and ``sensor_faults.json`` show it (ISO 8601 UTC times)."""
+        return {
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "start": iso(self.start_ns),
+            "end": iso(self.end_ns),
+            "evidence": self.evidence,
+            "detected": iso(self.detected_ns),
+        }
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "start_ns": self.start_ns,
+            "detected_ns": self.detected_ns,
+            "evidence": self.evidence,
+            "end_ns": self.end_ns,
+        }
+
+    @classmethod
+    def from_state(cls, d: Mapping[str, Any]) -> SensorFault:
+        end = d.get("end_ns")
+        return cls(
+            str(d["sensor"]),
+            str(d["kind"]),
+            int(d["start_ns"]),
+            int(d["detected_ns"]),
+            str(d["evidence"]),
+            None if end is None else int(end),
+        )
+
+
+@dataclass
+class _Frozen:
+    """Markov counts of unchanged steps of one input (exponentially forgotten)."""
+
+    n_c: float = 0.0  # steps after a changed step
+    n_cu: float = 0.0  # ... that were unchanged
+    n_u: float = 0.0  # steps after an unchanged step
+    n_uu: float = 0.0  # ... that were unchanged
+    run: int = 1  # samples in the current run of one value
+    run_start_ns: int = 0
+    # the current run's transitions, learned only when it ends without an event
+    pend_c: float = 0.0
+    pend_cu: float = 0.0
+    pend_u: float = 0.0
+    pend_uu: float = 0.0
+    prev_unchanged: bool = False
+    steps: int = 0
+
+
+@dataclass
+class _Pending:
+    """The previous sample, waiting for the next one to decide whether it was a spike."""
+
+    time_ns: int
+    values: list[float]
+    choke_moved: bool
+    gap_ok: bool
+
+
+class WellSensorFaults:
+    """The sensor-fault detectors of one well (see the module docstring for the rules).
+
+    Hyperparameters are exactly the ``__init__`` arguments: ``false_per_well_year``
+    (false faults per well-year the thresholds allow, all tests together), ``ranges``
+    (physical span per sensor), ``frozen_memory`` (steps of history of the frozen test),
+    ``spike_window`` (one-step changes in the spike test's scale), ``lags`` (days in the
+    long-run factor of the drift CUSUM), ``accept_days`` (days after which a drift or
+    offset is closed and the new level taken as real).
+    """
+
+    def __init__(
+        self,
+        false_per_well_year: float = 0.1,
+        ranges: Mapping[str, tuple[float, float]] | None = None,
+        frozen_memory: int = 2000,
+        spike_window: int = 200,
+        lags: int = 3,
+        accept_days: float = 30.0,
+    ) -> None:
+        if not (math.isfinite(false_per_well_year) and 0 < false_per_well_year <= 10):
+            raise ConfigError(
+                "false_per_well_year must lie in (0, 10] false faults per well-year, "
+                f"got {false_per_well_year}."
+            )
+        merged = {**DEFAULT_RANGES, **(ranges or {})}
+        unknown = sorted(set(merged) - set(SENSORS))
+        if unknown:
+            raise ConfigError(f"Unknown sensors {unknown} in ranges; valid: {list(SENSORS)}.")
+        for name, (low, high) in merged.items():
+            if not (math.isfinite(low) and math.isfinite(high) and low < high):
+                raise ConfigError(
+                    f"The range of {name} must be finite low < high, got {low, high}."
+                )
+        if frozen_memory < 100 or spike_window < 50:
+            raise ConfigError("frozen_memory must be >= 100 and spike_window >= 50 samples.")
+        if not accept_days > 0:
+            raise ConfigError(f"accept_days must be a positive number of days, got {accept_days}.")
+        self.false_per_well_year = float(false_per_well_year)
+        self.ranges = {k: (float(v[0]), float(v[1])) for k, v in merged.items()}
+        self.frozen_memory = int(frozen_memory)
+        self.spike_window = int(spike_window)
+        self.lags = int(lags)
+        self.accept_days = float(accept_days)
+        #: false alarms per well-year allowed to one test
+        self.budget = self.false_per_well_year / _N_TESTS
+        self.arl0_days = 365.25 / self.budget
+        # a day's change beyond this many robust sd is a step candidate (two-sided, per day)
+        self._z_day = NormalDist().inv_cdf(1.0 - self.budget / 365.25 / 2.0)
+        self._reset()
+
+    # -- the protocol -------------------------------------------------------------------------
+    def _reset(self) -> None:
+        n = len(SENSORS)
+        self.samples = 0
+        self.intervals: deque[int] = deque(maxlen=64)
+        self.last_ns: int | None = None
+        self.last_values: list[float] | None = None
+        self.frozen = [_Frozen() for _ in SENSORS]
+        self.changes: list[deque[float]] = [deque(maxlen=self.spike_window) for _ in SENSORS]
+        self.changes_added = [0] * n
+        self.scale = [0.0] * n
+        self.scale_at = [-1] * n  # changes_added when the scale was computed (-1: never)
+        self.pending: _Pending | None = None
+        self._interval_cache = (-1, float(_DEFAULT_INTERVAL_NS))
+        self._robust_cache: dict[tuple[str, int], tuple[int, float, float]] = {}
+        self.last_values_before: list[float] | None = None  # the sample before the pending
+        self.cusums = [self._new_cusum() for _ in SENSORS]
+        self.cusum_zero_ns: list[int | None] = [None] * n
+        # the open day of each input, the last closed one, a step candidate
+        self.day_index = [0] * n
+        self.day_start_ns = [0] * n
+        self.day_sum = [0.0] * n
+        self.day_n = [0] * n
+        self.day_prev: list[tuple[int, float, int] | None] = [None] * n
+        self.diffs: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.cand: list[tuple[float, float, int, float, int] | None] = [None] * n
+        self.offset_level: list[tuple[float, float] | None] = [None] * n
+        # raw daily means (the co-movement check of the step test)
+        self.raw_day, self.raw_n, self.raw_sum = 0, 0, np.zeros(n)
+        self.raw_choke = self.prev_raw_choke = False
+        self.raw_prev: tuple[int, np.ndarray] | None = None
+        self.raw_diffs: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.day_moved: tuple[set[int], bool] = (set(), False)
+        self.open: dict[tuple[str, str], SensorFault] = {}
+        self.events: deque[SensorFault] = deque(maxlen=50)
+        #: faults raised per "sensor/kind" (kept across restarts through the state)
+        self.raised: dict[str, int] = {}
+
+    def _new_cusum(self) -> ResidualCusum:
+        # each day's change is its own period (period_s 0): the daily means are made here
+        return ResidualCusum(
+            arl0=self.arl0_days,
+            k=0.5,
+            period_s=0.0,
+            window=365,
+            min_periods=_MIN_DAYS,
+            lags=self.lags,
+        )
+
+    @property
+    def active(self) -> list[SensorFault]:
+        """The faults open now."""
+        return list(self.open.values())
+
+    def flagged_kinds(self) -> set[tuple[str, str]]:
+        """The (sensor, kind) pairs with an open fault."""
+        return set(list(self.open))
+
+    def suspect(self, time_ns: int, kinds: Sequence[str] = HOLD_KINDS) -> SensorFault | None:
+        """The fault of one of ``kinds`` (active or recent) whose span covers the sample at
+        ``time_ns`` (epoch ns), if any: a measurement paired with that sample would teach the
+        model the fault. By default only the kinds whose false-alarm rate is measured within
+        the budget (:data:`HOLD_KINDS`): a false offset would hold a month of learning."""
+        t = int(time_ns)
+        for e in reversed(list(self.events)):
+            if e.kind not in kinds:
+                continue
+            if e.start_ns <= t and (e.end_ns is None or t < e.end_ns):
+                return e
+            if e.kind == "spike" and e.start_ns == t:
+                return e
+        return None
+
+    def flagged(self) -> set[str]:
+        """The sensors with an open fault."""
+        return {sensor for sensor, _ in self.open}
+
+    def update(self, time_ns: int, values: Sequence[float]) -> list[SensorFault]:
+        """Feed one sample (epoch ns, data time, in time order; ``values`` in the order of
+        :data:`SENSORS`, units of the observation format). Returns the events that began or
+        ended at it (an ended one has ``end_ns`` set)."""
+        t = int(time_ns)
+        x = [float(v) for v in values]
+        if len(x) != len(SENSORS):
+            raise ConfigError(f"A sample has {len(SENSORS)} values ({', '.join(SENSORS)}).")
+        if self.last_ns is not None and t <= self.last_ns:
+            return []  # not after the previous sample: the caller refuses it
+        out: list[SensorFault] = []
+        bad = self._range(t, x, out)
+        if bad:  # nothing else learns from a sample with an impossible value
+            return out
+        if self.last_ns is not None:
+            self.intervals.append(t - self.last_ns)
+        alpha = self._alpha()
+        prev = self.last_values
+        choke_moved = prev is not None and abs(x[_CHOKE] - prev[_CHOKE]) > _SAME
+        # a gap (a shut-in, a historian outage) may hide a real change: no spike across it
+        gap_ok = prev is not None and (t - (self.last_ns or t)) <= max(
+            3 * self._interval_ns(), _GAP_NS
+        )
+        if prev is not None:
+            self._frozen(t, x, prev, alpha, out)
+        # the previous sample is decided now that its successor is known
+        if self.pending is not None:
+            spiked = self._spike(t, x, gap_ok, alpha, out)
+            self._daily(self.pending, spiked, out)
+            self._learn_changes(self.pending, spiked)
+        self.pending = _Pending(t, x, choke_moved, gap_ok)
+        self.last_ns, self.last_values = t, x
+        self.samples += 1
+        return out
+
+    # -- helpers ------------------------------------------------------------------------------
+    def _interval_ns(self) -> float:
+        """The median of the last 64 intervals between samples, ns (recomputed every 16)."""
+        if not self.intervals:
+            return float(_DEFAULT_INTERVAL_NS)
+        at, value = self._interval_cache
+        if at < 0 or self.samples - at >= 16:
+            value = float(np.median(np.fromiter(self.intervals, dtype=float)))
+            self._interval_cache = (self.samples, value)
+        return value
+
+    def samples_per_year(self) -> float:
+        """Samples per year at the well's median interval between samples."""
+        return 365.25 * _NS_PER_DAY / max(self._interval_ns(), 1e9)
+
+    def _alpha(self) -> float:
+        """Per-sample false-alarm probability of one per-sample test."""
+        return self.budget / self.samples_per_year()
+
+    def _raise(self, fault: SensorFault, out: list[SensorFault]) -> None:
+        self.open[(fault.sensor, fault.kind)] = fault
+        self.events.append(fault)
+        key = f"{fault.sensor}/{fault.kind}"
+        self.raised[key] = self.raised.get(key, 0) + 1
+        out.append(fault)
+
+    def _close(self, sensor: str, kind: str, t: int, out: list[SensorFault]) -> None:
+        fault = self.open.pop((sensor, kind), None)
+        if fault is not None:
+            fault.end_ns = t
+            out.append(fault)
+
+    def _range(self, t: int, x: list[float], out: list[SensorFault]) -> bool:
+        bad = False
+        for i, name in enumerate(SENSORS):
+            low, high = self.ranges[name]
+            v = x[i]
+            outside = not (math.isfinite(v) and low <= v <= high)
+            key = (name, "out_of_range")
+            if outside:
+                bad = True
+                if key not in self.open:
+                    unit = _UNITS[name]
+                    self._raise(
+                        SensorFault(
+                            name,
+                            "out_of_range",
+                            t,
+                            t,
+                            f"{name} read {v:.6g}{unit}, outside its physical span "
+                            f"{low:g}..{high:g}{unit}.",
+                        ),
+                        out,
+                    )
+            elif key in self.open:
+                self._close(name, "out_of_range", t, out)
+        return bad
+
+    # -- frozen ---------------------------------------------------------------------------------
+    def _frozen(
+        self, t: int, x: list[float], prev: list[float], alpha: float, out: list[SensorFault]
+    ) -> None:
+        decay = 1.0 - 1.0 / self.frozen_memory
+        for i, name in enumerate(SENSORS):
+            f = self.frozen[i]
+            unchanged = abs(x[i] - prev[i]) <= _SAME * max(1.0, abs(prev[i]))
+            key = (name, "frozen")
+            if f.prev_unchanged:
+                f.pend_u += 1.0
+                f.pend_uu += float(unchanged)
+            else:
+                f.pend_c += 1.0
+                f.pend_cu += float(unchanged)
+            f.prev_unchanged = unchanged
+            f.steps += 1
+            if unchanged:
+                if f.run == 1:
+                    f.run_start_ns = self.last_ns if self.last_ns is not None else t
+                f.run += 1
+                if key in self.open or f.n_c + f.n_u < _FROZEN_MIN_STEPS or self._at_bound(i, x[i]):
+                    continue
+                p0 = (f.n_cu + 0.5) / (f.n_c + 1.0)
+                q = min((f.n_uu + 0.5) / (f.n_u + 1.0), 1.0 - 1e-12)
+                limit = max(3, 1 + math.ceil(math.log(alpha / p0) / math.log(q)))
+                if f.run >= limit:
+                    days = (t - f.run_start_ns) / _NS_PER_DAY
+                    self._raise(
+                        SensorFault(
+                            name,
+                            "frozen",
+                            f.run_start_ns,
+                            t,
+                            f"{name} has read {x[i]:.6g}{_UNITS[name]} for {f.run} samples "
+                            f"({days:.1f} days); its history makes a run of {limit} unchanged "
+                            f"values less likely than {alpha:.2g} per sample (P(repeat) "
+                            f"{p0:.3g}, P(repeat again) {q:.3g}).",
+                        ),
+                        out,
+                    )
+                    f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0  # the fault is not history
+                continue
+            # the value changed: the run ends
+            if key in self.open:
+                self._close(name, "frozen", t, out)
+                f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0
+            f.run = 1
+            f.n_c = f.n_c * decay**f.pend_c + f.pend_c
+            f.n_cu = f.n_cu * decay**f.pend_c + f.pend_cu
+            f.n_u = f.n_u * decay**f.pend_u + f.pend_u
+            f.n_uu = f.n_uu * decay**f.pend_u + f.pend_uu
+            f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0
+
+    def _at_bound(self, i: int, v: float) -> bool:
+        name = SENSORS[i]
+        if name == "choke":
+            return v <= 0.0 or v >= 1.0
+        if name in ("eta_gas", "eta_oil"):
+            return v <= 0.0
+        return False
+
+    # -- spike ------------------------------------------------------------------------------
+    def _spike(
+        self, t: int, x: list[float], gap_ok: bool, alpha: float, out: list[SensorFault]
+    ) -> set[int]:
+        """Was the pending sample a spike on some input? Decided with its successor ``x``."""
+        p = self.pending
+        before = self.last_values_before
+        spiked: set[int] = set()
+        if p is None or before is None or not (p.gap_ok and gap_ok):
+            return spiked
+        if p.choke_moved or abs(x[_CHOKE] - p.values[_CHOKE]) > _SAME:
+            return spiked  # the process answers the operator
+        z = _z_two_sided(alpha)
+        for i, name in enumerate(SENSORS):
+            if i == _CHOKE or len(self.changes[i]) < _SPIKE_MIN_CHANGES:
+                continue
+            s = self._spike_scale(i)
+            if not s > 0:
+                continue
+            up = p.values[i] - before[i]
+            back = p.values[i] - x[i]
+            if (
+                abs(up) > z * s
+                and abs(back) > z * s
+                and up * back > 0
+                and abs(x[i] - before[i]) < 0.5 * min(abs(up), abs(back))
+            ):
+                spiked.add(i)
+                fault = SensorFault(
+                    name,
+                    "spike",
+                    p.time_ns,
+                    t,
+                    f"{name} jumped by {up:+.4g}{_UNITS[name]} and came back by {-back:+.4g} "
+                    f"at the next sample, {abs(up) / s:.1f} times the robust spread of its "
+                    f"one-step changes ({s:.3g}{_UNITS[name]}; threshold {z:.2f}), with the "
+                    "choke unmoved.",
+                    end_ns=t,
+                )
+                self.events.append(fault)
+                self.raised[f"{name}/spike"] = self.raised.get(f"{name}/spike", 0) + 1
+                out.append(fault)
+        return spiked
+
+    def _spike_scale(self, i: int) -> float:
+        """1.4826 MAD of input ``i``'s recent one-step changes (recomputed every 16 new ones:
+        the median of a few hundred values is the costliest step per sample)."""
+        n = self.changes_added[i]
+        if self.scale_at[i] < 0 or n - self.scale_at[i] >= 16:
+            ch = np.fromiter(self.changes[i], dtype=float)
+            self.scale[i] = _MAD_TO_SD * float(np.median(np.abs(ch - np.median(ch))))
+            self.scale_at[i] = n
+        return self.scale[i]
+
+    def _learn_changes(self, p: _Pending, spiked: set[int]) -> None:
+        before = self.last_values_before
+        if before is not None and p.gap_ok and not p.choke_moved:
+            flagged = self.flagged()
+            for i, name in enumerate(SENSORS):
+                if i not in spiked and name not in flagged:
+                    self.changes[i].append(p.values[i] - before[i])
+                    self.changes_added[i] += 1
+        self.last_values_before = p.values
+
+    # -- drift and offset (daily) -------------------------------------------------------------------
+    def _daily(self, p: _Pending, spiked: set[int], out: list[SensorFault]) -> None:
+        """The daily drift and offset tests, fed the decided sample ``p``."""
+        if spiked:
+            return  # a spiked sample is not part of any day's mean
+        x = np.asarray(p.values)
+        t = p.time_ns
+        day = t // _NS_PER_DAY
+        self._day_context(day, x, p.choke_moved)
+        flagged = self.flagged()
+        for i, name in enumerate(SENSORS):
+            # a frozen input is the frozen test's; another's fault would only repeat it
+            if i == _CHOKE or any(s != name for s in flagged) or (name, "frozen") in self.open:
+                self.day_n[i], self.day_sum[i], self.cand[i] = 0, 0.0, None
+                continue
+            if self.day_n[i] and day != self.day_index[i]:
+                self._close_day(i, name, t, out)
+            if not self.day_n[i]:
+                self.day_index[i], self.day_start_ns[i] = day, t
+            self.day_sum[i] += float(x[i])
+            self.day_n[i] += 1
+
+    def _robust(self, key: tuple[str, int], ref: deque[float]) -> tuple[float, float]:
+        """Median and 1.4826 MAD of a reference of daily values, recomputed weekly (a
+        week's new days barely move the median of a year's)."""
+        hit = self._robust_cache.get(key)
+        if (
+            hit is not None
+            and self.samples - hit[0] < 7 * self._samples_per_day()
+            and len(ref) > 60
+        ):
+            return hit[1], hit[2]
+        r = np.fromiter(ref, dtype=float)
+        centre = float(np.median(r))
+        scale = _MAD_TO_SD * float(np.median(np.abs(r - centre)))
+        self._robust_cache[key] = (self.samples, centre, scale)
+        return centre, scale
+
+    def _samples_per_day(self) -> float:
+        return max(1.0, _NS_PER_DAY / max(self._interval_ns(), 1.0))
+
+    def _day_context(self, day: int, x: np.ndarray, choke_moved: bool) -> None:
+        """Raw daily means of all inputs: when a day closes, which inputs moved beyond
+        ``_CO_MOVE`` robust sd of their own day-to-day changes (several moving at once is
+        the process changing, not one transmitter), and whether the choke moved."""
+        if self.raw_n and day != self.raw_day:
+            mean = self.raw_sum / self.raw_n
+            moved: set[int] = set()
+            prev = self.raw_prev
+            if prev is not None and day - prev[0] <= _MAX_DAY_GAP + 1:
+                diff = mean - prev[1]
+                for j in range(len(SENSORS)):
+                    ref = self.raw_diffs[j]
+                    if len(ref) >= _MIN_DAYS:
+                        c, sc = self._robust(("raw", j), ref)
+                        if sc > 0 and abs(diff[j] - c) > _CO_MOVE * sc:
+                            moved.add(j)
+                    ref.append(float(diff[j]))
+            self.day_moved = (moved, self.raw_choke or self.prev_raw_choke)
+            self.prev_raw_choke = self.raw_choke
+            self.raw_prev = (self.raw_day, mean)
+            self.raw_sum, self.raw_n, self.raw_choke = np.zeros(len(SENSORS)), 0, False
+        if not self.raw_n:
+            self.raw_day = day
+        self.raw_sum = self.raw_sum + x
+        self.raw_n += 1
+        self.raw_choke = self.raw_choke or choke_moved
+
+    def _confirm_step(
+        self, i: int, name: str, mean: float, t: int, open_kind: str | None, out: list[SensorFault]
+    ) -> bool:
+        """A step candidate (a day when no other input moved and the choke stayed) is an
+        offset once the level has held (at least halfway) for _CONFIRM_DAYS more days.
+        True when it was raised now."""
+        cand = self.cand[i]
+        self.cand[i] = None
+        if cand is None or open_kind is not None:
+            return False
+        step, level_before, c_start, z, held = cand
+        level = mean - level_before
+        if not (level * step > 0 and abs(level) > 0.5 * abs(step)):
+            return False
+        held += 1
+        if held < _CONFIRM_DAYS:
+            self.cand[i] = (step, level_before, c_start, z, held)
+            return False
+        unit = _UNITS[name]
+        self._raise(
+            SensorFault(
+                name,
+                "offset",
+                c_start,
+                t,
+                f"{name} stepped by {step:+.4g}{unit} in a day ({z:.1f} times the "
+                f"robust spread of its day-to-day changes, threshold "
+                f"{self._z_day:.2f}) and held there for {held} more days "
+                f"({level:+.4g}{unit}); on the day of the step no other input "
+                f"moved beyond {_CO_MOVE:g} sd of its own and the choke stayed.",
+            ),
+            out,
+        )
+        self.offset_level[i] = (level_before, step)
+        return True
+
+    def _close_day(self, i: int, name: str, t: int, out: list[SensorFault]) -> None:
+        """A day of input ``i`` is complete: test its mean against the day before."""
+        mean = self.day_sum[i] / self.day_n[i]
+        day, start = self.day_index[i], self.day_start_ns[i]
+        self.day_sum[i], self.day_n[i] = 0.0, 0
+        prev = self.day_prev[i]
+        self.day_prev[i] = (day, mean, start)
+        if prev is None or day - prev[0] > _MAX_DAY_GAP:
+            self.cand[i] = None
+            return
+        # per square-root day between the two: the wander of a process grows so with time,
+        # and a day-to-day change across a gap of two or three days must not look bigger
+        diff = (mean - prev[1]) / math.sqrt(day - prev[0])
+        cus = self.cusums[i]
+        was = cus.alarm
+        open_kind = next(
+            (k for (s, k) in self.open if s == name and k in ("drift", "offset")), None
+        )
+        moved, choke = self.day_moved
+        alone = not choke and not (moved - {i})
+        if self._confirm_step(i, name, mean, t, open_kind, out):
+            open_kind = "offset"
+        # the day-to-day change, robust-scaled by the last year's changes
+        ref = self.diffs[i]
+        if len(ref) >= _MIN_DAYS:
+            centre, scale = self._robust(("diff", i), ref)
+            if scale > 0:
+                z = (diff - centre) / scale
+                fresh = self.cand[i] is None and open_kind is None
+                if fresh and abs(z) > self._z_day and alone:
+                    self.cand[i] = (mean - prev[1], prev[1], start, abs(z), 0)
+        if not (self.cand[i] is not None or open_kind is not None):
+            ref.append(diff)
+        # a drift: a CUSUM on the day-to-day changes (a ramp shifts their mean)
+        if open_kind != "offset":
+            cus.update(diff, t)
+        if cus.alarm and not was and open_kind is None:
+            self._raise(
+                SensorFault(
+                    name,
+                    "drift",
+                    self.cusum_zero_ns[i] or start,
+                    t,
+                    f"{name} has moved {'up' if cus.direction == 'high' else 'down'} day after "
+                    f"day beyond its own history (CUSUM of its daily changes "
+                    f"{cus.statistic:.2f} > threshold {cus.threshold:.2f}, "
+                    f"{self.arl0_days:.0f} days between false alarms).",
+                ),
+                out,
+            )
+        elif open_kind == "drift" and not cus.alarm:
+            self._close(name, "drift", t, out)
+        elif open_kind == "offset":
+            level_before, step = self.offset_level[i] or (0.0, 0.0)
+            if abs(mean - level_before) < 0.5 * abs(step):
+                self._close(name, "offset", t, out)
+        if cus.statistic == 0.0:
+            self.cusum_zero_ns[i] = t
+        fault = self.open.get((name, open_kind)) if open_kind else None
+        if fault is not None and (t - fault.detected_ns) / _NS_PER_DAY >= self.accept_days:
+            fault.evidence += (
+                f" After {self.accept_days:g} days the new level is taken as real "
+                "(a set point moved, or the fault stays): the tests start again from it."
+            )
+            self._close(name, str(open_kind), t, out)
+            self.cusums[i] = self._new_cusum()
+            self.cusum_zero_ns[i] = t
+
+    # -- state --------------------------------------------------------------------------------
+    def hyperparameters(self) -> dict[str, Any]:
+        return {
+            "false_per_well_year": self.false_per_well_year,
+            "ranges": {k: list(v) for k, v in self.ranges.items()},
+            "frozen_memory": self.frozen_memory,
+            "spike_window": self.spike_window,
+            "lags": self.lags,
+            "accept_days": self.accept_days,
+        }
+
+    def state(self) -> dict[str, Any]:
+        """Plain values (JSON) to resume the detectors where they were after a restart."""
+        p = self.pending
+        return {
+            "hyperparameters": self.hyperparameters(),
+            "samples": self.samples,
+            "intervals": list(self.intervals),
+            "last_ns": self.last_ns,
+            "last_values": self.last_values,
+            "last_values_before": self.last_values_before,
+            "frozen": [vars(f).copy() for f in self.frozen],
+            "changes": [list(c) for c in self.changes],
+            "pending": None
+            if p is None
+            else {"time_ns": p.time_ns, "values": p.values, "moved": p.choke_moved, "ok": p.gap_ok},
+            "cusums": [c.state_dict() for c in self.cusums],
+            "cusum_zero_ns": self.cusum_zero_ns,
+            "day": [self.day_index, self.day_start_ns, self.day_sum, self.day_n],
+            "day_prev": [None if d is None else list(d) for d in self.day_prev],
+            "diffs": [list(d) for d in self.diffs],
+            "cand": [None if c is None else list(c) for c in self.cand],
+            "offset_level": [None if c is None else list(c) for c in self.offset_level],
+            "raw": [
+                self.raw_day,
+                self.raw_n,
+                self.raw_sum.tolist(),
+                self.raw_choke,
+                self.prev_raw_choke,
+            ],
+            "raw_prev": None
+            if self.raw_prev is None
+            else [self.raw_prev[0], self.raw_prev[1].tolist()],
+            "raw_diffs": [list(d) for d in self.raw_diffs],
+            "day_moved": [sorted(self.day_moved[0]), self.day_moved[1]],
+            "events": [e.state() for e in self.events],
+            "open": [[s, k] for (s, k) in self.open],
+            "raised": dict(self.raised),
+        }
+
+    def restore(self, data: Mapping[str, Any]) -> bool:
+        """Resume from :meth:`state`. Returns False (and starts afresh) when the state was
+        saved under other hyperparameters: its thresholds would mean something else."""
+        if data.get("hyperparameters") != self.hyperparameters():
+            self._reset()
+            return False
+        self._reset()
+        self.samples = int(data["samples"])
+        self.intervals.extend(int(v) for v in data["intervals"])
+        self.last_ns = data["last_ns"]
+        self.last_values = data["last_values"]
+        self.last_values_before = data["last_values_before"]
+        self.frozen = [_Frozen(**f) for f in data["frozen"]]
+        for dq, saved in zip(self.changes, data["changes"], strict=True):
+            dq.extend(float(v) for v in saved)
+        p = data.get("pending")
+        self.pending = (
+            None
+            if p is None
+            else _Pending(int(p["time_ns"]), list(p["values"]), bool(p["moved"]), bool(p["ok"]))
+        )
+        for cus, saved in zip(self.cusums, data["cusums"], strict=True):
+            cus.load_state_dict(saved)
+        self.cusum_zero_ns = list(data["cusum_zero_ns"])
+        index, start, total, count = data["day"]
+        self.day_index, self.day_start_ns = [int(v) for v in index], [int(v) for v in start]
+        self.day_sum, self.day_n = [float(v) for v in total], [int(v) for v in count]
+        self.day_prev = [
+            None if d is None else (int(d[0]), float(d[1]), int(d[2])) for d in data["day_prev"]
+        ]
+        for dq, saved in zip(self.diffs, data["diffs"], strict=True):
+            dq.extend(float(v) for v in saved)
+        self.cand = [
+            None if c is None else (float(c[0]), float(c[1]), int(c[2]), float(c[3]), int(c[4]))
+            for c in data["cand"]
+        ]
+        self.offset_level = [
+            None if c is None else (float(c[0]), float(c[1])) for c in data["offset_level"]
+        ]
+        self.events.extend(SensorFault.from_state(e) for e in data["events"])
+        by_key = {(e.sensor, e.kind): e for e in self.events if e.end_ns is None}
+        for s, k in data["open"]:
+            if (s, k) in by_key:
+                self.open[(s, k)] = by_key[(s, k)]
+        self.raised = {str(k): int(v) for k, v in data["raised"].items()}
+        raw_day, raw_n, raw_sum, self.raw_choke, self.prev_raw_choke = data["raw"]
+        self.raw_day, self.raw_n, self.raw_sum = int(raw_day), int(raw_n), np.asarray(raw_sum)
+        rp = data["raw_prev"]
+        self.raw_prev = None if rp is None else (int(rp[0]), np.asarray(rp[1], dtype=float))
+        for dq, saved in zip(self.raw_diffs, data["raw_diffs"], strict=True):
+            dq.extend(float(v) for v in saved)
+        self.day_moved = ({int(j) for j in data["day_moved"][0]}, bool(data["day_moved"][1]))
+        for i in range(len(SENSORS)):
+            self.scale_at[i] = -1
+        return True
+
+    def view(self) -> list[dict[str, Any]]:
+        """The recent events, newest last, as ``GET /wells/{well}`` shows ``sensor_faults``."""
+        return [e.as_dict() for e in list(self.events)]  # a copy: the worker appends
+
+
+def faults_of_frame(frame: Any, **hyperparameters: Any) -> list[dict[str, Any]]:
+    """Run one :class:`WellSensorFaults` per well over an observation frame (columns
+    ``time``, ``well`` and the six inputs) in time order, as the service does live.
+    Returns every event as a dict (:meth:`SensorFault.as_dict` plus ``well``)."""
+    import pandas as pd
+
+    out: list[dict[str, Any]] = []
+    f = frame.sort_values(["well", "time"], kind="stable")
+    for well, g in f.groupby("well", sort=True):
+        det = WellSensorFaults(**hyperparameters)
+        times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
+        values = g[list(SENSORS)].to_numpy(dtype=float)
+        seen: dict[int, SensorFault] = {}
+        for t, row in zip(times.tolist(), values.tolist(), strict=True):
+            for e in det.update(t, row):
+                seen[id(e)] = e
+        for e in seen.values():
+            out.append({"well": str(well), **e.as_dict()})
+    out.sort(key=lambda d: (d["well"], d["start"] or "", d["sensor"], d["kind"]))
+    return out
+
+
+def write_sensor_faults(frame: Any, out_dir: Any, **hyperparameters: Any) -> Any:
+    """Write ``out_dir/sensor_faults.json``: ``{"sensor_faults": [{well, sensor, kind,
+    start, end, evidence, detected}], "hyperparameters", "wells", "well_years"}`` over the
+    whole frame (every well, every row in time order). Returns the path."""
+    import json
+    import os
+    import tempfile
+    from pathlib import Path
+
+    import pandas as pd
+
+    faults = faults_of_frame(frame, **hyperparameters)
+    times = pd.to_datetime(frame["time"], utc=True)
+    spans = times.groupby(frame["well"]).agg(["min", "max"])
+    well_years = float(((spans["max"] - spans["min"]).dt.total_seconds() / 86_400 / 365.25).sum())
+    doc = {
+        "sensor_faults": faults,
+        "hyperparameters": WellSensorFaults(**hyperparameters).hyperparameters(),
+        "wells": int(len(spans)),
+        "well_years": well_years,
+    }
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "sensor_faults.json"
+    fd, temp = tempfile.mkstemp(prefix=".sensor_faults-", dir=out)
+    with os.fdopen(fd, "w") as fh:
+        json.dump(doc, fh, indent=2)
+    os.replace(temp, path)
+    return path
