@@ -51,6 +51,7 @@ __all__ = [
     "DriftSettings",
     "AlarmSettings",
     "ResidualAlarmSettings",
+    "SensorFaultSettings",
     "load_settings",
     "is_loopback_host",
     "endpoint_host",
@@ -625,6 +626,24 @@ class TrialSettings(_Section):
     )
 
 
+class SensorFaultSettings(_Section):
+    """The instrument-fault detectors, per well and input (:mod:`vfm_core.sensor_faults`;
+    ``docs/guide/sensor-faults.md``): frozen, spike, offset, drift, out of range."""
+
+    enabled: bool = Field(
+        default=True,
+        description="run the detectors on every sample (about 25 us of CPU per sample at one "
+        "a minute; false: no instrument faults, nothing held)",
+    )
+    false_per_well_year: float = Field(
+        default=0.1,
+        gt=0,
+        le=10,
+        description="false faults per well-year allowed over all of a well's tests (sets "
+        "every test's threshold)",
+    )
+
+
 class ResidualAlarmSettings(_Section):
     """The alarm on the model's standardised residuals: a self-starting two-sided CUSUM
     per well and meter (:mod:`vfm_core.residual_alarm`; ``docs/guide/alarms.md``)."""
@@ -704,6 +723,7 @@ class Settings(BaseSettings):
     alarms: AlarmSettings = Field(default_factory=AlarmSettings)
     trial: TrialSettings = Field(default_factory=TrialSettings)
     residual_alarm: ResidualAlarmSettings = Field(default_factory=ResidualAlarmSettings)
+    sensor_faults: SensorFaultSettings = Field(default_factory=SensorFaultSettings)
     rolling_window: int = Field(
         default=50, ge=1, description="paired measurements in the rolling MAPE"
     )

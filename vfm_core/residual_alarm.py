@@ -55,6 +55,7 @@ the service does live.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Iterable
@@ -99,6 +100,11 @@ def cusum_threshold(arl0: float, k: float = 0.5) -> float:
     >>> round(cusum_threshold(1000.0, 0.5), 2)
     5.75
     """
+    return _threshold(float(arl0), float(k))
+
+
+@functools.lru_cache(maxsize=64)
+def _threshold(arl0: float, k: float) -> float:
     if not (math.isfinite(arl0) and arl0 >= 2.0):
         raise ConfigError(f"The in-control run length arl0 must be at least 2 periods, got {arl0}.")
     if not (math.isfinite(k) and 0.0 < k <= 3.0):
@@ -233,6 +239,10 @@ class ResidualCusum:
         self.n_periods = 0
         self.events: list[AlarmEvent] = []
         self._active: AlarmEvent | None = None
+        # the reference's robust centre and scale (long-run factor included), and the
+        # periods added to the reference since they were computed (see _scale)
+        self._robust: tuple[float, float] | None = None
+        self._robust_added = 0
 
     @property
     def alarm(self) -> bool:
@@ -287,19 +297,36 @@ class ResidualCusum:
         return self.alarm
 
     # -- the test ---------------------------------------------------------------------------
+    def _scale(self) -> tuple[float, float]:
+        """The reference's median and robust sd (1.4826 MAD times the long-run factor),
+        recomputed once a twentieth of the reference is new (every 18 periods with a year's
+        reference, every period while it is short): a median of n values moves by a small
+        fraction of its spread when n/20 of them change, and the cost per period (two
+        medians and the autocorrelations of up to 365 values) falls as much. The instrument
+        -fault detectors run one of these per input and day, so it matters there."""
+        if self._robust is None or self._robust_added >= max(1, len(self._ref) // 20):
+            ref = np.fromiter(self._ref, dtype=float, count=len(self._ref))
+            centre = float(np.median(ref))
+            scale = _MAD_TO_SD * float(np.median(np.abs(ref - centre)))
+            if scale > 0:
+                scale *= _long_run_factor(ref, centre, scale, self.lags)
+            self._robust, self._robust_added = (centre, scale), 0
+        return self._robust
+
+    def _append(self, mean: float) -> None:
+        self._ref.append(mean)
+        self._robust_added += 1
+
     def _close(self, mean: float, time_ns: int) -> None:
         self.n_periods += 1
         if len(self._ref) < self.min_periods:
-            self._ref.append(mean)
+            self._append(mean)
             return
-        ref = np.fromiter(self._ref, dtype=float, count=len(self._ref))
-        centre = float(np.median(ref))
-        scale = _MAD_TO_SD * float(np.median(np.abs(ref - centre)))
+        centre, scale = self._scale()
         if not scale > 0:
             # residuals that never vary (a model that repeats the meter): nothing to test
-            self._ref.append(mean)
+            self._append(mean)
             return
-        scale *= _long_run_factor(ref, centre, scale, self.lags)
         x = max(-self.clip, min(self.clip, (mean - centre) / scale))
         self.last_x = x
         self.pos = max(0.0, self.pos + x - self.k)
@@ -312,7 +339,7 @@ class ResidualCusum:
                 self.events.append(self._active)
                 self.pos, self.neg = min(self.pos, h), min(self.neg, h)
             else:
-                self._ref.append(mean)
+                self._append(mean)
             return
         self.pos, self.neg = min(self.pos, h), min(self.neg, h)
         if abs(x) > abs(self._active.peak):
@@ -342,6 +369,8 @@ class ResidualCusum:
             "n_periods": self.n_periods,
             "events": [e.as_dict() for e in self.events[-20:]],
             "active": self._active is not None,
+            "robust": None if self._robust is None else list(self._robust),
+            "robust_added": self._robust_added,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -360,6 +389,9 @@ class ResidualCusum:
         self.pos, self.neg = float(state.get("pos", 0.0)), float(state.get("neg", 0.0))
         self.n_readings = int(state.get("n_readings", 0))
         self.n_periods = int(state.get("n_periods", 0))
+        robust = state.get("robust")
+        self._robust = None if robust is None else (float(robust[0]), float(robust[1]))
+        self._robust_added = int(state.get("robust_added", 0))
         self.events = [
             AlarmEvent(
                 int(e["start_ns"]),

@@ -611,13 +611,13 @@ class WellSensorFaults:
             self.day_n[i] += 1
 
     def _robust(self, key: tuple[str, int], ref: deque[float]) -> tuple[float, float]:
-        """Median and 1.4826 MAD of a reference of daily values, recomputed weekly (a
-        week's new days barely move the median of a year's)."""
+        """Median and 1.4826 MAD of a reference of daily values, recomputed once about a
+        twentieth of the reference is new (every 18 days with a year's, every day while it
+        is under 40 days): n/20 new values barely move the median of n, and the cost per
+        sample falls as much."""
         hit = self._robust_cache.get(key)
-        if (
-            hit is not None
-            and self.samples - hit[0] < 7 * self._samples_per_day()
-            and len(ref) > 60
+        if hit is not None and self.samples - hit[0] < max(1, len(ref) // 20) * (
+            self._samples_per_day()
         ):
             return hit[1], hit[2]
         r = np.fromiter(ref, dtype=float)

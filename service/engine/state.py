@@ -107,7 +107,10 @@ class WellState:
             WellResidualAlarm(settings.residual_alarm) if settings.residual_alarm.enabled else None
         )
         # instrument faults of the well's inputs (vfm_core.sensor_faults), fed every sample
-        self.sensor_faults = WellSensorFaults()
+        self.sensor_faults = WellSensorFaults(
+            false_per_well_year=settings.sensor_faults.false_per_well_year
+        )
+        self.watch_faults = settings.sensor_faults.enabled
         # model changes over HTTP: what was swapped in, when, and its held-out scores
         self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
         # while a new model is fitted off the worker: what the old one learned meanwhile
@@ -199,7 +202,10 @@ class WellState:
 
     def watch_sensors(self, time_ns: int, inputs: tuple[float, ...]) -> list[SensorFault]:
         """Feed one accepted sample (epoch ns, the six inputs) to the instrument-fault
-        detectors; the faults that began or ended at it (each logged)."""
+        detectors; the faults that began or ended at it (each logged). Nothing when
+        ``sensor_faults.enabled`` is false."""
+        if not self.watch_faults:
+            return []
         events = self.sensor_faults.update(time_ns, inputs)
         for e in events:
             if e.end_ns is None:
