@@ -6,7 +6,10 @@ on it for both target cases (1: MPFM and well tests, ``all``; 2: well tests only
 ``well_test``) and prints, per case and method, each model's mean MAPE (%, mean over
 wells, as in ``metrics.json``'s summary) and, where the method gives predictive intervals,
 the 90 % interval's coverage (% of all scored measurements inside [p05, p95], pooled over
-wells) and median width (% of the prediction, pooled). Asserts nothing: these are
+wells), median width (% of the prediction, pooled) and CRPS (% of the measured rate, mean over
+all scored measurements, for the log-normal the interval gives: ``crps`` of
+:func:`vfm_core.jobs.study.probabilistic_scores`, which judges width and coverage together;
+smaller is better). Asserts nothing: these are
 figures to read (issue 38 asks for coverage in 85-95 % and ``bayes`` no worse than the best
 of the other methods; this script only measures).
 
@@ -33,11 +36,13 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from vfm_core.errors import ConfigError
+from vfm_core.jobs.study import probabilistic_scores
 from vfm_core.simulate import simulate_field, write_field
 
 CASES = (("all", "1 (MPFM + well tests)"), ("well_test", "2 (well tests only)"))
@@ -91,8 +96,9 @@ def parse_fields(text: str) -> list[FieldSpec]:
 
 
 def interval_stats(predictions: pd.DataFrame) -> pd.DataFrame:
-    """Coverage (%) and median width (% of the prediction) of the 90 % intervals, pooled over
-    wells, per (model, method); only runs with finite intervals."""
+    """Coverage (%), median width (% of the prediction) and CRPS (% of the measured rate) of
+    the 90 % intervals, pooled over wells, per (model, method); only runs with finite
+    intervals."""
     rows = []
     for (model, method), g in predictions.groupby(["model", "method"], sort=False):
         if "predicted_p05" not in g:
@@ -106,23 +112,25 @@ def interval_stats(predictions: pd.DataFrame) -> pd.DataFrame:
             continue
         inside = (m[ok] >= lo[ok]) & (m[ok] <= hi[ok])
         width = (hi[ok] - lo[ok]) / q[ok] * 100.0
+        _, crps = probabilistic_scores(m[ok], lo[ok], hi[ok])
         rows.append(
             {
                 "model": model,
                 "method": method,
                 "coverage": 100.0 * float(inside.mean()),
                 "width": float(np.median(width)),
+                "crps": crps,
                 "n": int(ok.sum()),
             }
         )
-    return pd.DataFrame(rows, columns=["model", "method", "coverage", "width", "n"])
+    return pd.DataFrame(rows, columns=["model", "method", "coverage", "width", "crps", "n"])
 
 
 def run_field(
     spec: FieldSpec, args: argparse.Namespace, folder: Path
-) -> tuple[dict[str, pd.DataFrame], dict[str, float]]:
+) -> tuple[dict[str, pd.DataFrame], dict[str, Any]]:
     """Simulate the field, evaluate both cases; per case a frame of (model, method, mape,
-    coverage, width) and the wall times."""
+    coverage, width, crps) and the wall times (s) and splits (ISO dates)."""
     started = time.perf_counter()
     field = simulate_field(
         wells=args.wells,
@@ -134,7 +142,7 @@ def run_field(
     )
     data = folder / "field.parquet"
     write_field(field, data)
-    times = {"simulate_s": time.perf_counter() - started}
+    times: dict[str, Any] = {"simulate_s": time.perf_counter() - started}
     out_dir = folder / "eval"
     command = [
         str(Path(sys.executable).with_name("vfm")),
@@ -178,7 +186,7 @@ def markdown_table(
     tables: dict[str, pd.DataFrame], models: list[str], methods: list[str], what: str
 ) -> str:
     """One table: rows case x method, columns the models; ``what`` is mean_mape or
-    ``coverage/width``."""
+    ``coverage`` (coverage / width / CRPS)."""
     head = "| case | method | " + " | ".join(models) + " |"
     lines = [head, "| --- | --- | " + " | ".join("---" for _ in models) + " |"]
     for case, label in CASES:
@@ -194,7 +202,10 @@ def markdown_table(
                     cells.append(_cell(float(row["mean_mape"])))
                 else:
                     cov, wid = float(row["coverage"]), float(row["width"])
-                    cells.append("-" if not math.isfinite(cov) else f"{cov:.0f} / {wid:.0f}")
+                    crps = float(row["crps"])
+                    cells.append(
+                        "-" if not math.isfinite(cov) else f"{cov:.0f} / {wid:.0f} / {_cell(crps)}"
+                    )
             lines.append(f"| {label} | {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -218,8 +229,9 @@ def main() -> int:
         f"Fields of {args.wells} wells over {args.years:g} years, seed {args.seed}; models "
         f"{', '.join(models)}; methods {', '.join(methods)}. Case 1 learns from and is "
         f"scored on MPFM readings and well tests, case 2 on well tests only. Mean MAPE in % "
-        f"(mean over wells); 90 % intervals as coverage % / median width % (pooled over "
-        f"wells, '-' where the method gives no interval).",
+        f"(mean over wells); 90 % intervals as coverage % / median width % / CRPS % (pooled "
+        f"over wells; CRPS of the log-normal the interval gives, in % of the measured rate, "
+        f"smaller is better; '-' where the method gives no interval).",
         "",
         "Command: `nice -n 10 .venv/bin/python benchmarks/bench_physics.py "
         f"--fields {args.fields} --wells {args.wells} --years {args.years:g} "
@@ -246,7 +258,7 @@ def main() -> int:
                 "",
                 markdown_table(tables, models, methods, "mean_mape"),
                 "",
-                "90 % intervals, coverage % / median width %:",
+                "90 % intervals, coverage % / median width % / CRPS %:",
                 "",
                 markdown_table(tables, models, methods, "coverage"),
             ]

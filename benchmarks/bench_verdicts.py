@@ -10,7 +10,8 @@ field's verdict and every well's own verdict are checked against the cause put i
   (``effect``, or ``carried`` when the learner already follows it) naming that physics
   (erosion or erosion_time; any valve family; real_gas).
 * ``tempcd``: a discharge coefficient that grows 6.8 % per 10 K of upstream temperature, an
-  effect outside the library; right is ``driver`` t_up.
+  effect outside the library; right is ``driver`` t_up (or ``carried`` naming t_up: the
+  correction found, the learner already following it).
 
 ``--physics`` takes the simulator's truths (``sachdeva``, and the second physics of
 ``vfm simulate --physics``); on a physics without an effect the case is skipped with a note.
@@ -40,7 +41,7 @@ EXPECTED = {
     "erosion": "erosion",
     "valve": "valve",
     "real_gas": "real_gas",
-    "tempcd": "driver t_up",
+    "tempcd": "driver (or carried) t_up",
 }
 
 
@@ -59,7 +60,7 @@ def right(case: str, verdict: dict[str, Any]) -> bool:
     if case == "none":
         return kind == "noise"
     if case == "tempcd":
-        return kind == "driver" and verdict.get("driver") == "t_up"
+        return kind in ("driver", "carried") and verdict.get("driver") == "t_up"
     if kind not in ("effect", "carried"):
         return False
     if case == "erosion":

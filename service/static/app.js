@@ -65,6 +65,7 @@ function alarmsOf(v) {
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
   if (!v.ready) out.push("no model yet");
   if (v.mpfm_check && v.mpfm_check.alarm) out.push(v.mpfm_check.alarm);
+  for (const f of activeFaults(v)) out.push(`instrument fault: ${f.sensor} ${f.kind} since ${day(f.start)}`);
   const bad = Object.entries(v.rejected || {});
   if (bad.length) {
     const n = bad.reduce((a, [, k]) => a + k, 0);
@@ -72,6 +73,12 @@ function alarmsOf(v) {
   }
   return out;
 }
+
+/* Instrument faults (GET /wells/{well} sensor_faults, vfm_core/sensor_faults.py): the
+   active ones have no end. A spike begins and ends at its sample. */
+function activeFaults(v) { return ((v && v.sensor_faults) || []).filter((f) => f.end == null); }
+const day = (iso) => (iso || "").slice(0, 10);
+const minute = (iso) => (iso || "").slice(0, 16).replace("T", " ");
 
 function widthOf(well) {
   const p = state.latest[well];
@@ -88,6 +95,7 @@ function fieldRow(well) {
     well, model: v.model, method: v.method, version: v.version, last_update: v.last_update || "",
     mape: v.rolling_mape ? v.rolling_mape.value : null, mape_n: v.rolling_mape ? v.rolling_mape.n : 0,
     width: widthOf(well), drift, alarms: alarmsOf(v),
+    faults: activeFaults(v).map((f) => `${f.sensor} ${f.kind}: ${f.evidence}`),
   };
 }
 
@@ -106,7 +114,7 @@ function renderField() {
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
     <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
-    <td class="${r.alarms.length ? "alarm" : "ok"}">${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}</td></tr>`).join("");
+    <td class="${r.alarms.length ? "alarm" : "ok"}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
     th.classList.toggle("asc", th.dataset.key === key && dir > 0);
@@ -172,7 +180,9 @@ function wheelZoomPlugin() {
   };
 }
 
-const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a", alarm: "rgba(179,38,30,0.75)" };
+const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a", alarm: "rgba(179,38,30,0.75)",
+  fault: "rgba(106,27,154,0.8)" };
+const BAND_PX = 5;  // height of the alarm band and of the fault band under it (CSS px)
 
 /* The residual alarms of the well on view as spans {t0, t1, source, direction}, t1 null while
    active (drawn to the chart's right edge). From GET /wells/{well}, refreshed every 5 s. */
@@ -183,25 +193,52 @@ function alarmBands() {
   }));
 }
 
+/* The instrument faults of the well on view as spans {t0, t1, sensor, kind, evidence}, t1 null
+   while active (drawn to the chart's right edge). From GET /wells/{well}, refreshed every 5 s. */
+function faultBands() {
+  return ((state.view && state.view.sensor_faults) || []).map((f) => ({
+    t0: secs(f.start), t1: f.end == null ? null : secs(f.end), sensor: f.sensor, kind: f.kind,
+    evidence: f.evidence, start: f.start, end: f.end,
+  }));
+}
+
+function faultText(f) {
+  const when = f.end == null ? `since ${minute(f.start)}` : f.kind === "spike" ? `at ${minute(f.start)}`
+    : `${minute(f.start)} to ${minute(f.end)}`;
+  return `${f.sensor} ${f.kind} ${when} UTC${f.end == null ? " (active)" : ""}: ${f.evidence}`;
+}
+
 /* Markers on a time chart: a model change is a line with its label; a scheduled retrain a
    dashed grey line; an operating-point notice (the T^2 input test, kind "drift") a short tick
-   at the bottom, no label; residual alarms a thin red band along the top over their span. */
-function markersPlugin(source = () => state.markers, bands = alarmBands) {
+   at the bottom, no label; residual alarms a thin red band along the top over their span,
+   instrument faults a thin purple band right under it (no text on the chart: the fault's
+   sensor, kind and evidence show on hover and in the list line under the rate chart).
+   u.faultSpans keeps the fault bands drawn, in canvas pixels, for hover and for tests. */
+function markersPlugin(source = () => state.markers, bands = alarmBands, faults = faultBands) {
+  const spans = (u, list, y, color) => {
+    const ctx = u.ctx; const { left, width } = u.bbox; const dpr = devicePixelRatio;
+    const xmin = u.scales.x.min, xmax = u.scales.x.max, out = [];
+    ctx.fillStyle = color;
+    for (const b of list) {
+      const t1 = b.t1 == null ? xmax : b.t1;
+      if (b.t0 == null || t1 < xmin || b.t0 > xmax) continue;
+      const x0 = Math.max(left, u.valToPos(b.t0, "x", true));
+      const x1 = Math.min(left + width, u.valToPos(t1, "x", true));
+      const w = Math.max(2 * dpr, x1 - x0);
+      ctx.fillRect(x0, y, w, BAND_PX * dpr);
+      out.push({ ...b, x0, x1: x0 + w, y0: y, y1: y + BAND_PX * dpr });
+    }
+    return out;
+  };
   return {
     hooks: {
       draw: (u) => {
-        const ctx = u.ctx; const { left, top, width, height } = u.bbox;
+        const ctx = u.ctx; const { top, height } = u.bbox;
         const dpr = devicePixelRatio;
         const xmin = u.scales.x.min, xmax = u.scales.x.max;
         ctx.save();
-        ctx.fillStyle = MARK_COLORS.alarm;
-        for (const b of bands()) {
-          const t1 = b.t1 == null ? xmax : b.t1;
-          if (t1 < xmin || b.t0 > xmax) continue;
-          const x0 = Math.max(left, u.valToPos(b.t0, "x", true));
-          const x1 = Math.min(left + width, u.valToPos(t1, "x", true));
-          ctx.fillRect(x0, top, Math.max(2 * dpr, x1 - x0), 5 * dpr);
-        }
+        spans(u, bands(), top, MARK_COLORS.alarm);
+        u.faultSpans = spans(u, faults(), top + (BAND_PX + 1) * dpr, MARK_COLORS.fault);
         ctx.restore();
         for (const m of source()) {
           if (m.t < xmin || m.t > xmax) continue;
@@ -220,10 +257,18 @@ function markersPlugin(source = () => state.markers, bands = alarmBands) {
           if (m.kind !== "retrain") {
             ctx.fillStyle = MARK_COLORS[m.kind];
             ctx.font = `${11 * dpr}px system-ui`;
-            ctx.fillText(m.label, x + 4, top + 18 * dpr);  // below the alarm band
+            ctx.fillText(m.label, x + 4, top + 22 * dpr);  // below the alarm and fault bands
           }
           ctx.restore();
         }
+      },
+      // hovering a fault band names the fault (the chart's title attribute: no text drawn)
+      setCursor: (u) => {
+        const dpr = devicePixelRatio, { left, top } = u.cursor;
+        const x = left * dpr + u.bbox.left, y = top * dpr + u.bbox.top;
+        const hit = (u.faultSpans || []).filter((s) => left >= 0 && x >= s.x0 - dpr && x <= s.x1 + dpr && y >= s.y0 - 3 * dpr && y <= s.y1 + 3 * dpr);
+        const title = hit.map((s) => "Instrument fault: " + faultText(s)).join("\n");
+        if (u.over.title !== title) u.over.title = title;
       },
     },
   };
@@ -446,7 +491,24 @@ function renderWellHeader() {
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
   $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
-  renderTrial(v); renderVersions(v);
+  renderTrial(v); renderVersions(v); renderFaults(v);
+}
+
+/* The well's instrument faults as lines under the rate chart, newest first (the latest 8;
+   the API keeps the latest 50). */
+function renderFaults(v) {
+  const list = ((v && v.sensor_faults) || []).slice().reverse();
+  const el = $("#well-faults");
+  const key = JSON.stringify([state.well, list]);
+  if (state.faultsKey === key) return;  // unchanged: no redraw
+  state.faultsKey = key;
+  el.hidden = !list.length;
+  const shown = list.slice(0, 8);
+  el.innerHTML = !list.length ? "" : `<span class="mk fault"><b>Instrument faults</b></span> <span class="hint">(newest first; GET /wells/${esc(state.well)}: sensor_faults)</span>` +
+    `<ul>${shown.map((f) => `<li class="${f.end == null ? "active" : "past"}" data-sensor="${esc(f.sensor)}" data-kind="${esc(f.kind)}"` +
+      ` data-start="${esc(f.start)}" data-active="${f.end == null}">${esc(faultText(f))}</li>`).join("")}</ul>` +
+    (list.length > shown.length ? `<span class="hint">and ${list.length - shown.length} earlier</span>` : "");
+  state.dirty = true;  // the bands come with the view: redraw
 }
 
 /* The trial of the last model change against its shadow (the model it replaced), both

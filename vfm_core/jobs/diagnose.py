@@ -1898,13 +1898,10 @@ def _live_verdict(
     prefer: str | None = None,
 ) -> dict[str, Any]:
     """One verdict (the field's, or ``well``'s) under the live and outage protocols:
-    ``effect`` (an offered candidate: ``prefer``, the field's effect, when it is offered for
-    the well, else the first by the fit-once evidence, ``results`` being in BIC order: the
-    BIC, which charges each parameter, names the form; the replay confirms that adding it
-    helps), ``driver`` (an
-    offered correction), ``carried`` (the fit-once evidence names an effect, but adding it
-    to the model the well runs lowers neither error beyond chance, or raises one), or
-    ``noise``."""
+    ``effect`` (an offered candidate: ``prefer``, the field's, when offered for the well, else
+    the first in BIC order, which names the form; the replay confirms it helps), ``driver``
+    (an offered correction), ``carried`` (the fit-once evidence names an effect or a driver,
+    but adding it lowers neither error beyond chance, or raises one), or ``noise``."""
     who = "" if well is None else f" for {well}"
     out_label = ctx.outage.get("label", "outage")
     offered = [c for c in results if _offer(c, well)[0]]
@@ -1982,6 +1979,9 @@ def _live_verdict(
             + tail
         )
         return {"kind": "carried", "effect": c.effect, "driver": None, "text": text, **num}
+    carried = _carried_driver(suggestion, well, ctx, numbers)
+    if carried is not None:
+        return carried
     base = (
         ctx.live.get("per_well", {}).get(well, {}).get("mape", float("nan"))
         if well is not None
@@ -2011,6 +2011,48 @@ def _live_verdict(
         "offer": False,
         "reason": None,
     }
+
+
+def _carried_driver(
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: _VerdictContext,
+    numbers: Callable[[CandidateResult], dict[str, Any]],
+) -> dict[str, Any] | None:
+    """The ``carried`` verdict of a driver outside the library: the fit-once evidence finds
+    the correction (material, lower beyond chance), but the model the well runs (a network,
+    a filter) already follows it, so the replay shows no gain beyond chance; None otherwise."""
+    if not (
+        suggestion is not None
+        and suggestion.result.replayed
+        and suggestion.result.material
+        and _gain(
+            suggestion.result.test("fit_once"),
+            suggestion.result.test("fit_once", well) if well else None,
+        )
+    ):
+        return None
+    who = "" if well is None else f" for {well}"
+    out_label = ctx.outage.get("label", "outage")
+    s = suggestion.result
+    num = numbers(s)
+    lt = num["live"]
+    worse = lt is not None and lt.get("change") is not None and lt["change"] > 0
+    fo = s.test("fit_once", well) or s.test("fit_once")
+    text = (
+        f"The fit-once evidence finds the residual depending on {suggestion.driver} (a "
+        f"correction {suggestion.text}: {_change_text(fo, 'fit-once MAPE')}), but adding "
+        f"it to {ctx.label}{who} with {ctx.method}: {_change_text(lt, 'live MAPE')}; "
+        f"{_change_text(num['outage'], f'in {out_label} outages')}. "
+        + (
+            "Its live change is above zero: not offered."
+            if worse
+            else f"{ctx.method} (and any network) already carries what it explains: "
+            "neither error falls beyond chance; the correction would add a parameter to "
+            "read, not accuracy."
+        )
+    )
+    return {"kind": "carried", "effect": None, "driver": suggestion.driver, "text": text, **num}
 
 
 def _baseline_info(

@@ -18,8 +18,14 @@ nothing half-written):
 Records of ``metrics.json`` beyond ``{model, method, well, mape, n}`` (extensions, never
 renames): ``"target": "q_oil"`` (etc.) for a phase's score (absent for the total, which
 stays the default record), ``"outage": "30d"`` for the outage protocol's score (absent for
-the ordinary one), and ``coverage90`` (fraction 0..1) and ``width90`` (%) on the total's
-records of methods with predictive intervals. The summary carries the same keys.
+the ordinary one), and ``coverage90`` (fraction 0..1), ``width90`` (%),
+``interval_score90`` and ``crps`` (both % of the measured rate, mean over the scored
+measurements; smaller is better) on the total's records of methods with predictive intervals.
+``interval_score90`` is the interval score of [p05, p95] (Gneiting and Raftery 2007, eq. 43,
+alpha 0.1: the width plus 20 times any miss), ``crps`` the continuous ranked probability score
+of the log-normal predictive distribution those quantiles give (closed form of Baran and Lerch
+2015); both judge width and coverage together, and ``crps`` reduces to MAPE for a point
+forecast. The summary carries the same keys.
 
 ``metrics.json`` also has ``"runs"``: one entry per model and method run, ``{model, method,
 runtime_s, retrains}`` (plus ``outage`` for a run of the outage protocol), so the cost of
@@ -86,8 +92,9 @@ def summarise(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
     Records with a ``target`` (phase) or ``outage`` key are summarised apart and their
     summary rows carry the same keys; the default rows (total, ordinary protocol) are exactly
-    as before. With intervals, ``coverage90`` is the mean across wells (fraction) and
-    ``width90`` the median across wells (%).
+    as before. With intervals, ``coverage90`` is the mean across wells (fraction),
+    ``width90`` the median across wells (%), and ``interval_score90`` and ``crps`` the mean
+    across wells (%, like ``mean_mape``).
     """
     df = pd.DataFrame(records)
     if df.empty:
@@ -112,6 +119,9 @@ def summarise(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if "coverage90" in g.columns and g["coverage90"].notna().any():
             row["coverage90"] = float(g["coverage90"].dropna().mean())
             row["width90"] = float(g["width90"].dropna().median())
+            for score in ("interval_score90", "crps"):
+                if score in g.columns and g[score].notna().any():
+                    row[score] = float(g[score].dropna().mean())
         out.append(row)
     return out
 

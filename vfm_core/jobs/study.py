@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
+from scipy.special import ndtr
 
 from vfm_core.data import TARGET_CASES, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
@@ -58,6 +59,12 @@ __all__ = [
     "mape",
     "metrics_records",
     "interval_scores",
+    "interval_score",
+    "crps_normal",
+    "crps_lognormal",
+    "lognormal_from_interval",
+    "probabilistic_scores",
+    "ALPHA90",
     "parse_outages",
     "plan_outages",
     "has_phases",
@@ -681,6 +688,130 @@ def interval_scores(
     return coverage, width
 
 
+#: The two tails together of the central 90 % interval (the interval score's alpha).
+ALPHA90 = 0.1
+
+
+def interval_score(
+    lower: np.ndarray | pd.Series,
+    upper: np.ndarray | pd.Series,
+    measured: np.ndarray | pd.Series,
+    alpha: float = ALPHA90,
+) -> np.ndarray:
+    """The interval score of central (1 - alpha) intervals [lower, upper], per row, in the
+    unit of the rates (Gneiting and Raftery 2007, eq. 43):
+
+    (u - l) + (2 / alpha) (l - y) 1{y < l} + (2 / alpha) (y - u) 1{y > u}.
+
+    The width plus a penalty for every measurement outside, so a narrow interval that misses
+    and a wide one that always covers both score badly; smaller is better, and a forecaster
+    scores best by giving its true alpha/2 and 1 - alpha/2 quantiles (a proper score).
+    Example: [90, 110] Sm3/h at alpha 0.1 scores 20 for y = 100 and 20 + 20 x 5 = 120 for
+    y = 115.
+    """
+    lo = np.asarray(lower, dtype=float)
+    hi = np.asarray(upper, dtype=float)
+    y = np.asarray(measured, dtype=float)
+    below = np.where(y < lo, lo - y, 0.0)
+    above = np.where(y > hi, y - hi, 0.0)
+    return (hi - lo) + (2.0 / alpha) * (below + above)
+
+
+def crps_normal(
+    mean: np.ndarray | pd.Series | float,
+    sd: np.ndarray | pd.Series | float,
+    measured: np.ndarray | pd.Series | float,
+) -> np.ndarray:
+    """The continuous ranked probability score of a normal forecast N(mean, sd^2) for the
+    measurement y, in the unit of y (Gneiting and Raftery 2007, Sect. 4.2):
+
+    sd [z (2 Phi(z) - 1) + 2 phi(z) - 1 / sqrt(pi)],  z = (y - mean) / sd.
+
+    At y = mean it is sd (sqrt(2) - 1) / sqrt(pi) = 0.2337 sd; with sd = 0 it is |y - mean|
+    (the CRPS of a point forecast is its absolute error).
+    """
+    mu = np.asarray(mean, dtype=float)
+    s = np.asarray(sd, dtype=float)
+    y = np.asarray(measured, dtype=float)
+    safe = np.where(s > 0, s, 1.0)
+    z = (y - mu) / safe
+    pdf = np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi)
+    spread = safe * (z * (2.0 * ndtr(z) - 1.0) + 2.0 * pdf - 1.0 / np.sqrt(np.pi))
+    return np.where(s > 0, spread, np.abs(y - mu))
+
+
+def crps_lognormal(
+    mu_log: np.ndarray | pd.Series | float,
+    sigma_log: np.ndarray | pd.Series | float,
+    measured: np.ndarray | pd.Series | float,
+) -> np.ndarray:
+    """The CRPS of a log-normal forecast (log X ~ N(mu_log, sigma_log^2)) for a measurement
+    y > 0, in the unit of y (closed form of Baran and Lerch 2015, Sect. 2.2):
+
+    y (2 Phi(w) - 1) - 2 exp(mu_log + sigma_log^2 / 2) [Phi(w - sigma_log)
+    + Phi(sigma_log / sqrt(2)) - 1],  w = (log y - mu_log) / sigma_log.
+
+    With sigma_log = 0 it is |y - exp(mu_log)|. NaN where y <= 0.
+    """
+    mu = np.asarray(mu_log, dtype=float)
+    s = np.asarray(sigma_log, dtype=float)
+    y = np.asarray(measured, dtype=float)
+    positive = y > 0
+    log_y = np.log(np.where(positive, y, 1.0))
+    safe = np.where(s > 0, s, 1.0)
+    w = (log_y - mu) / safe
+    mean = np.exp(mu + 0.5 * safe * safe)
+    spread = y * (2.0 * ndtr(w) - 1.0) - 2.0 * mean * (
+        ndtr(w - safe) + ndtr(safe / np.sqrt(2.0)) - 1.0
+    )
+    score = np.where(s > 0, spread, np.abs(y - np.exp(mu)))
+    return np.where(positive, score, np.nan)
+
+
+def lognormal_from_interval(
+    p05: np.ndarray | pd.Series, p95: np.ndarray | pd.Series
+) -> tuple[np.ndarray, np.ndarray]:
+    """The log-normal whose 5 % and 95 % quantiles are ``p05`` and ``p95`` (both > 0):
+    ``(mu_log, sigma_log)``, mu_log = (log p05 + log p95) / 2 and sigma_log =
+    (log p95 - log p05) / (2 x 1.6449).
+
+    This is the predictive distribution of ``bayes``: its rate is the median of a
+    log-normal and its interval the rate x exp(+-1.6449 sd), sd the spread in log space
+    (:mod:`vfm_core.learning.bayes`, "Prediction"), so the two quantiles give it back exactly.
+    """
+    log_lo = np.log(np.asarray(p05, dtype=float))
+    log_hi = np.log(np.asarray(p95, dtype=float))
+    return 0.5 * (log_lo + log_hi), (log_hi - log_lo) / (2.0 * _Z95)
+
+
+def probabilistic_scores(
+    measured: np.ndarray | pd.Series,
+    p05: np.ndarray | pd.Series,
+    p95: np.ndarray | pd.Series,
+) -> tuple[float, float]:
+    """Scores of the predictive distribution, each relative to the measured rate:
+    ``(interval_score90, crps)``, both in percent.
+
+    ``interval_score90``: mean over rows of 100 x IS / y, IS the :func:`interval_score` of
+    [p05, p95] at alpha 0.1. ``crps``: mean of 100 x CRPS / y for the log-normal that has
+    p05 and p95 as its 5 % and 95 % quantiles (:func:`lognormal_from_interval`,
+    :func:`crps_lognormal`). Both judge width and coverage together (smaller is better); the
+    CRPS of a point forecast is its absolute error, so ``crps`` can be read beside MAPE. Over
+    rows with a finite positive measurement and 0 < p05 <= p95; NaN when there are none.
+    """
+    y = np.asarray(measured, dtype=float)
+    lo = np.asarray(p05, dtype=float)
+    hi = np.asarray(p95, dtype=float)
+    ok = np.isfinite(y) & np.isfinite(lo) & np.isfinite(hi) & (y > 0) & (lo > 0) & (hi >= lo)
+    if not ok.any():
+        return float("nan"), float("nan")
+    y, lo, hi = y[ok], lo[ok], hi[ok]
+    mu_log, sigma_log = lognormal_from_interval(lo, hi)
+    relative_is = interval_score(lo, hi, y) / y
+    relative_crps = crps_lognormal(mu_log, sigma_log, y) / y
+    return float(np.mean(relative_is) * 100.0), float(np.mean(relative_crps) * 100.0)
+
+
 def metrics_records(predictions: pd.DataFrame) -> list[dict[str, Any]]:
     """MAPE per model, method and well: ``[{model, method, well, mape, n}]``.
 
@@ -693,7 +824,9 @@ def metrics_records(predictions: pd.DataFrame) -> list[dict[str, Any]]:
     - ``outage`` column (an outage run): every record gains ``"outage": "<label>"`` and is
       scored on the rows inside the windows only (``in_outage``).
     - interval columns ``predicted_p05``/``predicted_p95`` with values: the total's record
-      gains ``coverage90`` (fraction 0..1) and ``width90`` (%), see :func:`interval_scores`.
+      gains ``coverage90`` (fraction 0..1) and ``width90`` (%), see :func:`interval_scores`,
+      and ``interval_score90`` and ``crps`` (% of the measured rate, smaller is better), see
+      :func:`probabilistic_scores`.
     - phase columns ``predicted_q_oil``/``measured_q_oil`` etc.: after each total record,
       one record per phase with ``"target": "q_oil"`` (MAPE against the measured phase
       rate; ``n`` counts rows with a finite prediction and a nonzero measured phase rate).
@@ -719,6 +852,11 @@ def metrics_records(predictions: pd.DataFrame) -> list[dict[str, Any]]:
             )
             total["coverage90"] = coverage
             total["width90"] = width
+            score90, crps = probabilistic_scores(
+                g["measured"], g["predicted_p05"], g["predicted_p95"]
+            )
+            total["interval_score90"] = score90
+            total["crps"] = crps
         records.append(total)
         for phase in phases:
             q = g[f"predicted_{phase}"].to_numpy(dtype=float)

@@ -31,6 +31,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from vfm_core.jobs.results import StudyResult
+from vfm_core.jobs.study import probabilistic_scores
 from vfm_core.reporting import page
 from vfm_core.reporting.page import Png
 
@@ -213,8 +214,10 @@ def _default_rows(frame: pd.DataFrame) -> pd.DataFrame:
 def _protocol_frame(frame: pd.DataFrame) -> pd.DataFrame:
     """Records or summary rows with explicit ``protocol`` (``ordinary`` or the outage
     length) and ``target`` (``q_total`` for the total) columns."""
-    outage = frame["outage"] if "outage" in frame.columns else pd.Series(np.nan, frame.index)
-    target = frame["target"] if "target" in frame.columns else pd.Series(np.nan, frame.index)
+    # object dtype: filling a float column of NaN with a string is deprecated in pandas
+    absent = pd.Series(np.nan, frame.index, dtype=object)
+    outage = frame["outage"] if "outage" in frame.columns else absent
+    target = frame["target"] if "target" in frame.columns else absent
     return frame.assign(
         protocol=outage.fillna("ordinary").astype(str),
         target=target.fillna(_TOTAL).astype(str),
@@ -1355,7 +1358,12 @@ def _calibration_section(study: _Study) -> dict[str, Any] | None:
                 g["predicted_p95"].to_numpy(dtype=float),
             )
             if np.isfinite(cov).any():
-                curves.append((protocol, str(model), str(meth), cov))
+                crps = float("nan")
+                if "predicted_p05" in g.columns:
+                    _, crps = probabilistic_scores(
+                        g["measured"], g["predicted_p05"], g["predicted_p95"]
+                    )
+                curves.append((protocol, str(model), str(meth), cov, crps))
     if not curves:
         return None
     fig = Figure(figsize=(6.4, 5.4))
@@ -1363,9 +1371,9 @@ def _calibration_section(study: _Study) -> dict[str, Any] | None:
     levels = np.array(_LEVELS) * 100
     ax.plot([0, 100], [0, 100], color="#888", linewidth=1, linestyle=":")
     markers = "osD^v<>ph*"
-    pairs = list(dict.fromkeys((mdl, meth) for _, mdl, meth, _ in curves))
+    pairs = list(dict.fromkeys((mdl, meth) for _, mdl, meth, _, _ in curves))
     rows = []
-    for protocol, model, meth, cov in curves:
+    for protocol, model, meth, cov, crps in curves:
         k = pairs.index((model, meth))
         ax.plot(
             levels,
@@ -1376,7 +1384,7 @@ def _calibration_section(study: _Study) -> dict[str, Any] | None:
             linestyle="-" if protocol == "ordinary" else "--",
             label=f"{model}, {meth}" + ("" if protocol == "ordinary" else " (outages)"),
         )
-        rows.append((model, meth, protocol, float(cov[_LEVELS.index(0.9)]) * 100))
+        rows.append((model, meth, protocol, float(cov[_LEVELS.index(0.9)]) * 100, crps))
     ax.set_xlim(0, 100)
     ax.set_ylim(0, 100)
     ax.set_xlabel("nominal coverage of the central interval (%)")
