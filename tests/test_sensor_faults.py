@@ -160,13 +160,13 @@ T0 = datetime(2021, 5, 1, tzinfo=UTC)
 
 
 @contextmanager
-def running(folder: Path) -> Iterator[tuple[Any, Any]]:
+def running(folder: Path, **sections: Any) -> Iterator[tuple[Any, Any]]:
     from replay.client import FieldClient
     from service.app import Service
     from service.testing import loopback_settings
     from service.transport import MemoryTransport
 
-    settings = loopback_settings(folder, model={"name": "mm", "method": "pbl:3650d"})
+    settings = loopback_settings(folder, model={"name": "mm", "method": "pbl:3650d"}, **sections)
     bus = MemoryTransport(settings.prefix)
     service = Service(settings, bus)
     service.start()
@@ -192,32 +192,63 @@ def http_get(service: Any, path: str) -> httpx.Response:
 
 
 @pytest.mark.timeout(180)
+def _send_stuck_p_down(client: Any, n: int, stuck_from: int) -> None:
+    """Noisy samples of W01 twice a day, p_down stuck at its last reading from ``stuck_from``."""
+    from replay.client import sample_of
+
+    rng = np.random.default_rng(12)
+    p_down = 0.0
+    for i in range(n):
+        t = T0 + timedelta(hours=12 * i + 3)
+        if i < stuck_from:
+            p_down = 30.0 + 0.2 * float(rng.standard_normal())
+        inputs = (
+            0.4,
+            120.0 + 0.4 * float(rng.standard_normal()),
+            p_down,
+            60.0 + 0.2 * float(rng.standard_normal()),
+            0.1 + 0.001 * float(rng.standard_normal()),
+            0.6 + 0.001 * float(rng.standard_normal()),
+        )
+        client.send_sample("W01", sample_of(t, inputs))
+
+
+def test_detection_off_finds_nothing_and_holds_nothing(tmp_path: Path) -> None:
+    """``[sensor_faults] enabled = false``: the same stuck transmitter gives no fault, and a
+    measurement at a sample inside it is learned as any other."""
+    from service.testing import wait_until
+    from vfm_core.messages import Measurement
+
+    with running(tmp_path, sensor_faults={"enabled": False}) as (service, client):
+        _send_stuck_p_down(client, 240, 200)
+        engine = service.engine
+        assert engine is not None
+        wait_until(
+            lambda: engine.has_well("W01") and engine.wells["W01"].samples == 240, 60, "samples"
+        )
+        assert http_get(service, "/wells/W01").json()["sensor_faults"] == []
+        inside = T0 + timedelta(hours=12 * 230 + 3)
+        client.send_measurement("W01", "mpfm", Measurement(time=inside, q_total=900.0))
+        store = service.store
+        assert store is not None
+        wait_until(
+            lambda: [m.status for m in store.history("W01", 0, 2**62, 10)[1]] == ["learned"],
+            60,
+            "the measurement to be learned",
+        )
+
+
 def test_the_service_shows_a_frozen_transmitter(tmp_path: Path) -> None:
     """Noisy samples twice a day for 120 days, p_down stuck at its last reading from day 100:
     GET /wells/W01 lists the fault (open), /metrics has the gauge and the counter, and a
     measurement at a sample inside the fault is held, not learned."""
-    from replay.client import sample_of
     from service.testing import wait_until
     from vfm_core.messages import Measurement
     from vfm_core.timeutil import to_ns
 
-    rng = np.random.default_rng(12)
     n, stuck_from = 240, 200
     with running(tmp_path) as (service, client):
-        p_down = 0.0
-        for i in range(n):
-            t = T0 + timedelta(hours=12 * i + 3)
-            if i < stuck_from:
-                p_down = 30.0 + 0.2 * float(rng.standard_normal())
-            inputs = (
-                0.4,
-                120.0 + 0.4 * float(rng.standard_normal()),
-                p_down,
-                60.0 + 0.2 * float(rng.standard_normal()),
-                0.1 + 0.001 * float(rng.standard_normal()),
-                0.6 + 0.001 * float(rng.standard_normal()),
-            )
-            client.send_sample("W01", sample_of(t, inputs))
+        _send_stuck_p_down(client, n, stuck_from)
         engine = service.engine
         assert engine is not None
         wait_until(

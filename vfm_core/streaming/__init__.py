@@ -31,7 +31,7 @@ the methods (:meth:`vfm_core.learning.LearningMethod.predict_group`,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
@@ -147,18 +147,25 @@ def _finished(results: list[Any], return_exceptions: bool) -> list[Any]:
     return results
 
 
+def _by_key(items: Sequence[Any], key_of: Callable[[Any], Any]) -> dict[Any, list[int]]:
+    """The positions of ``items`` grouped by ``key_of(item)`` (a method's group or learn
+    key); an item whose key is None, or whose method fails to give one, is alone."""
+    groups: dict[Any, list[int]] = {}
+    for k, item in enumerate(items):
+        try:
+            key = key_of(item)
+        except Exception:
+            key = None
+        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    return groups
+
+
 def _run_waiting(
     waiting: list[_Waiting],
     results: list[Rates | BaseException | None],
 ) -> None:
     """Predict the prepared samples, one call per group of methods with equal group keys."""
-    groups: dict[Any, list[int]] = {}
-    for k, (_, learner, _, _) in enumerate(waiting):
-        try:
-            key = learner.method.group_key()
-        except Exception:
-            key = None
-        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    groups = _by_key(waiting, lambda w: w[1].method.group_key())
     for key, members in groups.items():
         if len(members) > 1 and key[0] != "alone":
             try:
@@ -305,13 +312,7 @@ def _learn_batchable(learner: Any) -> bool:
 
 def _learn_waiting(waiting: list[_Taken], results: list[bool | BaseException | None]) -> None:
     """Learn the taken measurements, one group call per group of methods with equal keys."""
-    groups: dict[Any, list[int]] = {}
-    for k, (_, learner, _, _, _) in enumerate(waiting):
-        try:
-            key = learner.method.learn_key()
-        except Exception:
-            key = None
-        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    groups = _by_key(waiting, lambda w: w[1].method.learn_key())
     for key, members in groups.items():
         if len(members) > 1 and key[0] != "alone":
             try:
