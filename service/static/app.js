@@ -70,7 +70,7 @@ function alarmsOf(v) {
   const bad = Object.entries(v.rejected || {});
   if (bad.length) {
     const n = bad.reduce((a, [, k]) => a + k, 0);
-    out.push(n + " bad input(s): " + bad.map(([r, k]) => r + " " + k).join(", "));
+    out.push(n + " input(s) refused since the service started: " + bad.map(([r, k]) => r + " " + k).join(", "));
   }
   return out;
 }
