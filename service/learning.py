@@ -30,13 +30,13 @@ import torch
 from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
 from vfm_core.features import FeatureTracker, standard_features
-from vfm_core.field_learner import FieldLearner, FieldWell
+from vfm_core.field_learner import FieldLearner
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
-from vfm_core.streaming import WellLearner
+from vfm_core.streaming import Learner, WellLearner
 
 __all__ = [
     "Learner",
@@ -51,9 +51,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger("vfm.service.learning")
-
-#: what serves one well: its own learner, or its facade on the field-wide model
-Learner = WellLearner | FieldWell
 
 #: the field-wide learner of each live ModelSettings object (one engine each), by id; an
 #: entry goes when its settings do
@@ -81,8 +78,7 @@ def apply_budget(learner: Learner, cfg: ModelSettings) -> Learner:
         learner.train = replace(learner.train, time_budget_s=budget)
     if learner.method.train.time_budget_s != budget:
         learner.method.train = replace(learner.method.train, time_budget_s=budget)
-    if isinstance(learner, WellLearner):  # and the configured bound on what it remembers
-        learner.memory.set_max_rows(cfg.remember_max)
+    learner.remember_at_most(cfg.remember_max)  # where it can bound them alone
     return learner
 
 
@@ -227,8 +223,8 @@ def fit_history(
     return wells
 
 
-def _per_well(learner: Learner) -> WellLearner:
-    if not isinstance(learner, WellLearner):  # pragma: no cover - the config decides for all
+def _per_well(learner: Learner) -> Learner:
+    if learner.shares_model:  # pragma: no cover - the config decides for all
         raise TypeError(f"{learner.well} has a field-wide learner among per-well ones.")
     return learner
 
@@ -239,15 +235,9 @@ def _fit_field(
     """The field-wide model fitted on every well's history at once, as ``vfm evaluate`` fits
     it before its split: the same rows, wells in the same order (first appearance), the
     same settings, and retrains on split + k periods (the split: ``model.history_until``)."""
-    facades = [learners[w] for w in wells]
-    fields = {id(f.field): f.field for f in facades if isinstance(f, FieldWell)}
-    if (
-        len(fields) != 1
-        or len(facades) != len(wells)
-        or not all(isinstance(f, FieldWell) for f in facades)
-    ):  # pragma: no cover - the engine builds every learner of the field from one field
+    field = field_of(cfg)  # the engine builds every learner of the field from this one
+    if any(learners[w].checkpoint_group is not field for w in wells):  # pragma: no cover
         raise ValueError("the wells of a field-wide model must share one FieldLearner")
-    (field,) = fields.values()
     rows = {}
     for well in wells:
         own = measured[measured[WELL] == well]
@@ -275,7 +265,7 @@ def _features(rows: pd.DataFrame) -> torch.Tensor:
 
 
 def _adopt_fit(
-    learner: WellLearner,
+    learner: Learner,
     rows: pd.DataFrame,
     iterations: torch.Tensor,
     split: datetime | None,

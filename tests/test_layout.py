@@ -409,3 +409,48 @@ def test_the_private_read_check_finds_a_read() -> None:
         "    return method._q, model._buffers, torch._foreach_add_\n"
     )
     assert _private_reads(ast.parse(source)) == [(8, "method._q")]
+
+
+#: the concrete learner classes the service holds through ``vfm_core.streaming.Learner``
+CONCRETE_LEARNERS = {"WellLearner", "FieldWell"}
+
+
+def _learner_class_checks(tree: ast.AST) -> list[tuple[int, str]]:
+    """``isinstance`` / ``issubclass`` calls in ``tree`` naming a concrete learner class
+    (alone, in a tuple or a union, or as ``module.Class``): line and text."""
+    found = []
+    for node in ast.walk(tree):
+        if not (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id in ("isinstance", "issubclass")
+            and len(node.args) == 2
+        ):
+            continue
+        named = {n.id for n in ast.walk(node.args[1]) if isinstance(n, ast.Name)}
+        named |= {n.attr for n in ast.walk(node.args[1]) if isinstance(n, ast.Attribute)}
+        if named & CONCRETE_LEARNERS:
+            found.append((node.lineno, ast.unparse(node)))
+    return found
+
+
+def test_the_service_asks_the_learner_protocol_not_its_class() -> None:
+    """No module under service/ branches on a learner's class (issue 37): what differs
+    between a well's own learner and a well of the field-wide model (a shared model, a
+    checkpoint group, steps in groups, ...) is asked of the ``Learner`` protocol, so a third
+    kind of learner needs no service edit. The check finds such calls in an example."""
+    example = (
+        "from vfm_core.streaming import WellLearner\n"
+        "import vfm_core.field_learner as fl\n"
+        "def f(st, learner):\n"
+        "    if isinstance(st.learner, WellLearner):\n"
+        "        return 1\n"
+        "    return isinstance(learner, (int, fl.FieldWell)) or isinstance(learner, Learner)\n"
+    )
+    assert [line for line, _ in _learner_class_checks(ast.parse(example))] == [4, 6]
+    offences = []
+    for module, path in sorted(_modules().items()):
+        if module.split(".")[0] == "service":
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            offences += [f"{module}:{n}: {text}" for n, text in _learner_class_checks(tree)]
+    assert not offences, "\n".join(offences)

@@ -46,6 +46,7 @@ from dataclasses import replace
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -680,11 +681,68 @@ class FieldWell:
     def ready(self) -> bool:
         return self.field.is_ready(self.well)
 
+    # -- what it can do (see vfm_core.streaming.protocol.Learner) ----------------------------------
+    #: the field's network is shared: a step for this well changes every well's predictions
+    shares_model = True
+    #: its predictions and updates go through the field, never through a shared model call
+    predicts_in_groups = False
+    learns_in_groups = False
+
+    @property
+    def checkpoint_group(self) -> FieldLearner:
+        """The field: this well's checkpoint is the field's snapshot, which serves every well."""
+        return self.field
+
+    def renumber(self, at_least: int) -> None:
+        """Refused: the version is the field's, moved by every well's steps."""
+        raise ConfigError(
+            f"Well {self.well} is served by the field-wide model {self.name}, whose version is "
+            "the whole field's; it cannot be renumbered for one well."
+        )
+
+    def remember_at_most(self, rows: int | None) -> None:
+        """Nothing: the field keeps every well's measurements (its retrains refit the whole
+        field on them, and its snapshot holds them); the bound is a per-well learner's."""
+
+    def deferred_note(self) -> str:
+        """A per-measurement method learns with the field's day round; ``pbl`` at its retrain."""
+        if self.field.method.per_measurement:
+            return (
+                "Stored; the field-wide model learns it with the other wells' measurements of "
+                "its day when the day ends."
+            )
+        return (
+            "Stored; the model keeps it for its next periodic retrain "
+            f"(method {self.field.method.text})."
+        )
+
+    def fit_history(self, *args: Any, **kwargs: Any) -> None:
+        """Refused: the field is fitted as a whole (:meth:`FieldLearner.fit_history`)."""
+        raise ConfigError(self._fitted_with_field())
+
+    def adopt_fit(self, *args: Any, **kwargs: Any) -> None:
+        """Refused: the field is fitted as a whole (:meth:`FieldLearner.fit_history`)."""
+        raise ConfigError(self._fitted_with_field())
+
+    def _fitted_with_field(self) -> str:
+        return (
+            f"Well {self.well} is served by the field-wide model {self.name}, which is fitted "
+            "on every well's history at once (FieldLearner.fit_history), not one well at a time."
+        )
+
     # -- streaming ---------------------------------------------------------------------------------
     def predict(
         self, inputs: Sequence[float] | torch.Tensor, when: datetime | None = None
     ) -> dict[str, float | None]:
         return self.field.predict(self.well, inputs, when)
+
+    def predict_block(self, inputs: np.ndarray, times_ns: np.ndarray) -> dict[str, np.ndarray]:
+        """Refused (ValueError): a well of the field is predicted sample by sample, since the
+        field's clock (its day rounds, its retrains) moves with every sample of any well."""
+        raise ValueError(
+            f"predict_block is not available for {self.well}, a well of the field-wide model "
+            f"{self.name}: its samples are predicted one by one."
+        )
 
     def learn(
         self,

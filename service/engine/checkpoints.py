@@ -18,10 +18,12 @@ the configured model (see :mod:`service.engine.recovery`).
 A well of a field-wide model (``mtl``) checkpoints the whole field: its blob is the
 :meth:`vfm_core.field_learner.FieldLearner.checkpoint` snapshot (every well's part, the
 shared network, the method, the round still open and how many measurements of each well
-it holds). Since every step of the shared model moves every well's version, a snapshot
-is due when the *field* has moved ``store.checkpoint_every`` versions since its last
-one, and it is written once, in the row of the well whose message made it due (at a
-clean stop, once for the field); recovery restores the newest one.
+it holds). Such a learner names the field as its checkpoint group
+(:attr:`vfm_core.streaming.Learner.checkpoint_group`). Since every step of the shared
+model moves every well's version, a snapshot is due when the *group* has moved
+``store.checkpoint_every`` versions since its last one, and it is written once, in the
+row of the well whose message made it due (at a clean stop, once for the group); recovery
+restores the newest one.
 """
 
 from __future__ import annotations
@@ -40,7 +42,6 @@ from service.learning import apply_budget
 from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
 from vfm_core.effects import effect_spec, resolve_effects
 from vfm_core.errors import VFMError
-from vfm_core.field_learner import FieldLearner, FieldWell
 
 __all__ = ["Checkpoints", "configured_spec", "usable"]
 
@@ -91,32 +92,32 @@ class Checkpoints:
         self.every = settings.store.checkpoint_every
         self.keep = settings.store.keep_checkpoints
         self.parameters = ParameterHistory(settings)
-        #: per field-wide learner, the version of its latest snapshot
-        self._field_saved: weakref.WeakKeyDictionary[FieldLearner, int] = (
-            weakref.WeakKeyDictionary()
-        )
+        #: per checkpoint group (a field-wide learner), the version of its latest snapshot
+        self._group_saved: weakref.WeakKeyDictionary[object, int] = weakref.WeakKeyDictionary()
 
     def saved_version(self, st: WellState) -> int:
-        """The version the well's model had at its last checkpoint (for a field-wide model,
-        the field's at its last snapshot, whichever well's row holds it)."""
-        learner = st.learner
-        if isinstance(learner, FieldWell):
-            return self._field_saved.get(learner.field, st.checkpoint_version)
+        """The version the well's model had at its last checkpoint (for a learner of a
+        checkpoint group, a field-wide model, the group's at its last snapshot, whichever
+        well's row holds it)."""
+        group = st.learner.checkpoint_group
+        if group is not None:
+            return self._group_saved.get(group, st.checkpoint_version)
         return st.checkpoint_version
 
     def once(self, st: WellState) -> list[Op]:
-        """:meth:`ops` of a well whose model was built at start-up; for a field-wide model
-        only the first of its wells writes (one snapshot holds the whole field)."""
-        learner = st.learner
-        if isinstance(learner, FieldWell) and learner.field in self._field_saved:
+        """:meth:`ops` of a well whose model was built at start-up; for a checkpoint group (a
+        field-wide model) only the first of its wells writes (one snapshot holds them all)."""
+        group = st.learner.checkpoint_group
+        if group is not None and group in self._group_saved:
             return []
         return self.ops(st)
 
     def ops(self, st: WellState) -> list[Op]:
         """The writes of a checkpoint of the well's model now (and of pruning older ones)."""
         learner = st.learner
-        if isinstance(learner, FieldWell):
-            self._field_saved[learner.field] = learner.version
+        group = learner.checkpoint_group
+        if group is not None:
+            self._group_saved[group] = learner.version
         extra = {
             "drift": st.detector.state_dict() if st.detector is not None else None,
             "learned_inputs": [list(x) for x in st.learned_inputs],

@@ -6,7 +6,8 @@
 * :meth:`Learning.learn_paired`: learn from a measurement paired with its sample, record
   it as learned (its place in the learning order, the sample, the prediction made there)
   and answer a waiting well-test caller with the prediction before and after. The
-  learning step of a :class:`~vfm_core.streaming.WellLearner` is deferred to the end of
+  learning step of a learner whose model is its own (not
+  :attr:`~vfm_core.streaming.Learner.shares_model`) is deferred to the end of
   the worker's batch (:meth:`Learning.run_deferred`), where the batch's learns of all
   wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' ``ol`` or
   ``bayes`` updates stacked into one multi-well update, each well's result what its own
@@ -29,8 +30,10 @@ so far replaces the missed ones, keeping the calendar's phase (the missed ones w
 train on the same data). Steps slower than a second are counted (``slow learning steps``)
 and logged.
 
-This module uses only the public surface of :class:`vfm_core.streaming.WellLearner`, which
-:class:`vfm_core.field_learner.FieldWell` (a well of the field-wide ``mtl``) also has.
+This module uses only the :class:`vfm_core.streaming.Learner` protocol, which
+:class:`vfm_core.streaming.WellLearner` and :class:`vfm_core.field_learner.FieldWell` (a
+well of the field-wide ``mtl``) both keep (a block of samples in one call is asked
+only of a learner whose model predicting cannot change; another refuses it).
 """
 
 from __future__ import annotations
@@ -49,8 +52,7 @@ from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.learning import Learner
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
-from vfm_core.field_learner import FieldWell
-from vfm_core.streaming import WellLearner, learn_many, predict_many
+from vfm_core.streaming import learn_many, predict_many
 from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
@@ -65,18 +67,6 @@ def _wants_sd(st: WellState) -> bool:
     gives one, ``bayes``): the prediction before learning is then made for it."""
     method = getattr(st.learner, "method", None)
     return st.residual_alarm is not None and bool(getattr(method, "intervals", False))
-
-
-def _kept(learner: Learner) -> str:
-    """What became of a measurement the model did not learn from at once, as a sentence."""
-    if isinstance(learner, FieldWell) and learner.method.per_measurement:
-        return (
-            "Stored; the field-wide model learns it with the other wells' measurements of its "
-            "day when the day ends."
-        )
-    return (
-        f"Stored; the model keeps it for its next periodic retrain (method {learner.method.text})."
-    )
 
 
 class Learning:
@@ -175,16 +165,18 @@ class Learning:
         """Rates (Sm3/h) for a block of one well's samples in one model call (see
         :meth:`vfm_core.streaming.WellLearner.predict_block`), timed as a learning step."""
         started = time.monotonic()
-        out: dict[str, np.ndarray] = st.learner.predict_block(inputs, times_ns)  # type: ignore[union-attr]
+        out: dict[str, np.ndarray] = st.learner.predict_block(inputs, times_ns)
         self._timed(st, started, f"A block of {len(times_ns)} prediction(s)")
         return out
 
     def learn_paired(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
         """Learn from a measurement paired with ``sample``; record it; answer its caller.
 
-        The learning step of a :class:`~vfm_core.streaming.WellLearner` waits in ``b`` for
-        the batch's one learning call (:meth:`run_deferred`); everything around it runs in
-        the order of learning at once."""
+        The learning step of a learner whose model is its own (not
+        :attr:`~vfm_core.streaming.Learner.shares_model`: nothing else reads it meanwhile)
+        waits in ``b`` for the batch's one learning call (:meth:`run_deferred`); everything
+        around it runs in the order of learning at once. A field-wide well learns at once:
+        its step moves the other wells' model, in arrival order."""
         if st.well in b.learn_wells:  # the well's earlier measurement is learned first
             self.run_deferred(b)
         learner = st.learner
@@ -192,7 +184,7 @@ class Learning:
         # the prediction before learning: for the caller, and its sd for the residual alarm
         wants = p.future is not None or _wants_sd(st)
         before = learner.predict(list(sample.inputs)) if wants else {}
-        if self.batch_learns and isinstance(learner, WellLearner):
+        if self.batch_learns and not learner.shares_model:
             self.catch_up(learner, p.time_ns)
             b.learns.append(DeferredLearn(st, p, sample, version_before, before))
             b.learn_wells.add(st.well)
@@ -275,7 +267,9 @@ class Learning:
                 iso(p.time_ns) or "",
                 p.q_total,
                 "learned",
-                "Stored and learned from: the model was updated." if changed else _kept(learner),
+                "Stored and learned from: the model was updated."
+                if changed
+                else learner.deferred_note(),
                 paired_sample_time=iso(sample.time_ns),
                 before=before,
                 after=after,

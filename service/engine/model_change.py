@@ -58,7 +58,6 @@ from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping,
 from service.learning import Learner, apply_budget, fit_budget
 from service.store import Op, Store
 from vfm_core.errors import VFMError
-from vfm_core.field_learner import FieldWell
 from vfm_core.models import MODELS
 from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import from_ns
@@ -126,7 +125,7 @@ class ModelChanges:
         as a sentence; None when the change is per well. Its network is shared by every well
         of the field and learns from them in time order: one well cannot leave or join it
         alone without changing the others' predictions."""
-        if isinstance(learner, FieldWell):
+        if learner.shares_model:
             return (
                 f"Well {well} is served by the field-wide model {learner.name}, whose network is "
                 "shared with every other well of this service; its model cannot be changed for "
@@ -300,10 +299,10 @@ class ModelChanges:
             running.supersede(
                 st, ops, when, f"The model was replaced ({kind}) by {new.name} while it ran."
             )
-        new.version = max(new.version, old.version + 1)
+        new.renumber(old.version + 1)
         trial: Trial | None = None
-        if kind == "change" and self.settings.trial.enabled and isinstance(old, WellLearner):
-            # the replaced model runs on as the trial's shadow (see service.engine.trial)
+        if kind == "change" and self.settings.trial.enabled and not old.shares_model:
+            # the replaced model (its own, not shared) runs on as the trial's shadow
             trial = Trial(
                 well=st.well,
                 since_ns=when if when is not None else 0,
@@ -361,8 +360,9 @@ class ModelChanges:
         st = self.wells.get(well)
         if st is None:
             raise unknown_well(well)
-        if isinstance(st.learner, FieldWell):
-            raise InvalidRequest(self._field_wide_problem(well, st.learner, None) or "")
+        field_problem = self._field_wide_problem(well, st.learner, None)
+        if field_problem is not None:
+            raise InvalidRequest(field_problem)
         row = self.store.model_version(well, version)
         if row is None:
             kept = [r.version for r in self.store.model_versions(well)]

@@ -81,8 +81,8 @@ class Recovery:
         self.learning = learning
         self.checkpoints = checkpoints
         self.worker_of = worker_of
-        #: a field-wide model was restored from a snapshot (it is not fitted on the history)
-        self._field_restored = False
+        #: the field-wide model restored from a snapshot (it is not fitted on the history)
+        self._field_restored: FieldLearner | None = None
 
     def load(self, retired: set[str] | None = None) -> dict[str, WellState]:
         """Every known well (but the ``retired``), restored or fitted and caught up, in a
@@ -128,8 +128,8 @@ class Recovery:
             learners, checkpoints = self._restore(names)
         fresh = [w for w in names if w not in checkpoints]
         fitted: list[str] = []
-        if field_wide and self._field_restored and history is not None and fresh:
-            self._remember_history(learners, fresh, history)
+        if field_wide and self._field_restored is not None and history is not None and fresh:
+            self._remember_history(self._field_restored, fresh, history)
         elif history is not None and fresh:
             started = time.perf_counter()
             fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
@@ -231,7 +231,7 @@ class Recovery:
                     row.well,
                     exc,
                 )
-        self._field_restored = field is not None
+        self._field_restored = field
         field = new_field(cfg.model, field)
         known = set(field.wells)
         field.add(names)
@@ -253,7 +253,7 @@ class Recovery:
         return learners, checkpoints
 
     def _remember_history(
-        self, learners: dict[str, Learner], wells: list[str], history: pd.DataFrame
+        self, field: FieldLearner, wells: list[str], history: pd.DataFrame
     ) -> None:
         """Wells a restored field does not know: their history rows are remembered (for the
         next retrain) but not fitted, since a fit of the field would discard what it learned."""
@@ -261,10 +261,9 @@ class Recovery:
         added = []
         for well in wells:
             own = measured[measured[WELL].astype(str) == well]
-            learner = learners[well]
-            if own.empty or isinstance(learner, WellLearner):
+            if own.empty:
                 continue
-            learner.field.remember(
+            field.remember(
                 well,
                 own[list(INPUT_COLUMNS)].to_numpy(dtype=float),
                 own[TARGET].to_numpy(dtype=float),

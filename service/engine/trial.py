@@ -53,7 +53,7 @@ from scipy import stats
 from service.config import Settings, TrialSettings
 from service.store import InsertModelVersion, InsertTrial, Op, PruneModelVersions
 from vfm_core.errors import VFMError
-from vfm_core.streaming import WellLearner
+from vfm_core.streaming import Learner, WellLearner
 from vfm_core.timeutil import from_ns, iso
 
 if TYPE_CHECKING:
@@ -88,7 +88,7 @@ class Learning(Protocol):
     @property
     def counters(self) -> _Counters: ...
 
-    def catch_up(self, learner: WellLearner, time_ns: int) -> bool: ...
+    def catch_up(self, learner: Learner, time_ns: int) -> bool: ...
 
 
 __all__ = ["OUTCOMES", "Trial", "block_test", "decide", "install", "rule_text", "version_ops"]
@@ -185,7 +185,7 @@ class Trial:
         shadow_model: str,
         version: int,
         shadow_version: int,
-        shadow: WellLearner | None,
+        shadow: Learner | None,
         settings: TrialSettings,
     ) -> None:
         self.well = well
@@ -471,7 +471,7 @@ class Trial:
 
 def version_ops(
     st: WellState,
-    learner: WellLearner,
+    learner: Learner,
     when_ns: int | None,
     note: str,
     keep: int,
@@ -498,7 +498,7 @@ def version_ops(
 
 def install(
     st: WellState,
-    new: WellLearner,
+    new: Learner,
     checkpoints: Checkpoints,
     ops: list[Op],
     when_ns: int | None,
@@ -520,7 +520,7 @@ def install(
     ``learn_seq``: the measurements both models have learned (by default the well's; one
     more when this runs within a learning step, before it is recorded)."""
     old = st.learner
-    new.version = max(new.version, old.version + 1)
+    new.renumber(old.version + 1)
     before = st.rolling_mape()
     change: dict[str, Any] = {
         "time": iso(time.time_ns()),
@@ -542,7 +542,7 @@ def install(
         **(extra or {}),
     }
     seq = st.learn_seq if learn_seq is None else learn_seq
-    if isinstance(old, WellLearner):
+    if old.checkpoint_group is None:  # a checkpoint of its own: it can be brought back alone
         ops.extend(version_ops(st, old, when_ns, note, keep_versions, seq))
     st.learner = new
     st.model_changes.append(change)

@@ -81,7 +81,7 @@ from service.inputs import Counters
 from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
 from vfm_core.messages import prediction_json
-from vfm_core.streaming import WellLearner, model_fixed_when_predicting
+from vfm_core.streaming import model_fixed_when_predicting
 from vfm_core.timeutil import iso, iso_many
 
 if TYPE_CHECKING:  # the engine knows no transport; a Source is what it is handed
@@ -249,10 +249,10 @@ class Workers:
         elif isinstance(item, SensorBlockItem):
             first = item.well in b.sample_wells  # a block is answered at once, in order
         elif isinstance(item, MeasurementItem) and item.well not in b.sample_wells:
-            # a measurement changes its own well's model only, unless the model is
-            # field-wide (mtl): the other wells' samples taken so far need not wait
+            # a measurement changes its own well's model only, unless the model is shared
+            # (field-wide, mtl): the other wells' samples taken so far need not wait
             st = self.wells.get(item.well)
-            first = st is None or not isinstance(st.learner, WellLearner)
+            first = st is None or st.learner.shares_model
         else:
             first = True
         if first:

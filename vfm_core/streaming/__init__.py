@@ -40,7 +40,6 @@ import pandas as pd
 import torch
 
 from vfm_core.data import DTYPE, Batch
-from vfm_core.learning import LearningMethod
 from vfm_core.streaming.learner import (
     CHECKPOINT_FORMATS,
     PARAMETER_UNITS,
@@ -96,8 +95,9 @@ def predict_many(
     1e-12 relative). A learner may come more than once (a well's consecutive samples):
     if its next sample may change its model (a scheduled retrain, see
     :func:`model_fixed_when_predicting`), what waits is predicted first. Anything else
-    (not a :class:`WellLearner`, a subclass with its own ``predict``) answers through its
-    own ``predict``.
+    (a learner that does not predict in groups, :attr:`Learner.predicts_in_groups`: a
+    field-wide well, a subclass with its own ``predict``) answers through its own
+    ``predict``.
 
     ``inputs``: each sample's six inputs in file units; ``whens``: each sample's time (or
     None), a datetime or epoch ns (an int). With ``return_exceptions`` a learner that fails gets its exception in its place
@@ -218,9 +218,6 @@ def _predict_group(members: list[_Waiting], results: list[Rates | BaseException 
 
 
 # -- many wells' updates in one call --------------------------------------------------------------
-#: :meth:`WellLearner.learn` as defined here (a subclass may learn its own way)
-_WELL_LEARN = WellLearner.learn
-
 #: a measurement taken and waiting for its group's update: its place, learner, the
 #: measurement as a one-well batch, its time, and whether a retrain already changed the model
 _Taken = tuple[int, "WellLearner", Batch, pd.Timestamp, bool]
@@ -300,14 +297,11 @@ def learn_many(
 
 
 def _learn_batchable(learner: Any) -> bool:
-    """A :class:`WellLearner` learning with :meth:`WellLearner.learn` itself, whose method
-    learns in groups (its class has a ``learn_key``), on a gradient model."""
-    return (
-        isinstance(learner, WellLearner)
-        and type(learner).learn is _WELL_LEARN
-        and type(learner.method).learn_key is not LearningMethod.learn_key
-        and not learner.model.gradient_free
-    )
+    """True when ``learner`` says its learn can be split around one update shared with
+    others (:attr:`Learner.learns_in_groups`: a :class:`WellLearner` learning with
+    :meth:`WellLearner.learn` itself, whose method learns in groups, on a gradient model);
+    anything without the capability learns through its own ``learn``."""
+    return bool(getattr(learner, "learns_in_groups", False))
 
 
 def _learn_waiting(waiting: list[_Taken], results: list[bool | BaseException | None]) -> None:

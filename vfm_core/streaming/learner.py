@@ -135,6 +135,47 @@ class WellLearner:
         self.__dict__["_ready"] = (flag, flag._version, value)
         return value
 
+    # -- what it can do (see vfm_core.streaming.protocol.Learner) ---------------------------
+    #: its model is its own: a step for this well changes no other well's predictions
+    shares_model = False
+    #: its checkpoint holds this well alone and restores it alone (:meth:`restore`)
+    checkpoint_group = None
+
+    @property
+    def predicts_in_groups(self) -> bool:
+        """True while :meth:`predict` is the one defined here (not a subclass's own, nor a
+        replacement): it is then the steps :meth:`prepare_sample`, one model call
+        (shareable with other learners) and :meth:`answer`."""
+        return type(self).predict is _WELL_PREDICT
+
+    @property
+    def learns_in_groups(self) -> bool:
+        """True when :meth:`learn` is the one defined here (not a subclass's own, nor a
+        replacement), the method learns in groups (its class has a ``learn_key``) and the
+        model takes gradient steps: the update of :meth:`take_measurement`'s batch can then
+        be stacked with other wells'."""
+        return (
+            type(self).learn is _WELL_LEARN
+            and type(self.method).learn_key is not LearningMethod.learn_key
+            and not self.model.gradient_free
+        )
+
+    def renumber(self, at_least: int) -> None:
+        """Version ``at_least`` if the model's own is lower (it replaces a model of that
+        version less one, and versions keep rising)."""
+        self.version = max(self.version, at_least)
+
+    def remember_at_most(self, rows: int | None) -> None:
+        """Keep at most ``rows`` measurements, the latest (None: all); see
+        :meth:`vfm_core.learning.WellMemory.set_max_rows`."""
+        self.memory.set_max_rows(rows)
+
+    def deferred_note(self) -> str:
+        """A measurement the model did not learn from at once waits for its next retrain."""
+        return (
+            f"Stored; the model keeps it for its next periodic retrain (method {self.method.text})."
+        )
+
     # -- history --------------------------------------------------------------------------
     def fit_history(
         self,
@@ -624,21 +665,26 @@ class WellLearner:
         return learner
 
 
-#: :meth:`WellLearner.predict` as defined here (a subclass may answer its own way)
+#: :meth:`WellLearner.predict` and :meth:`WellLearner.learn` as defined here (a subclass,
+#: or a replacement patched onto the class, predicts or learns its own way)
 _WELL_PREDICT = WellLearner.predict
+_WELL_LEARN = WellLearner.learn
 
 
 def model_fixed_when_predicting(learner: Any) -> bool:
-    """True when predicting cannot change ``learner``'s model: a :class:`WellLearner` whose
-    method has no scheduled retrains (``ol``, ``bayes``). Several samples of such a well
-    can then be predicted in one call (:func:`predict_many`); with ``pbl`` a sample may
-    first retrain the model, so each sample waits for the one before."""
+    """True when predicting cannot change ``learner``'s model: a learner that predicts in
+    groups (:func:`predicts_in_groups`) whose method has no scheduled retrains (``ol``,
+    ``bayes``). Several samples of such a well can then be predicted in one call
+    (:func:`predict_many`); with ``pbl`` a sample may first retrain the model, so each
+    sample waits for the one before."""
     return predicts_in_groups(learner) and (
         type(learner.method).retrain_due is LearningMethod.retrain_due
     )
 
 
 def predicts_in_groups(learner: Any) -> bool:
-    """A :class:`WellLearner` that predicts with :meth:`WellLearner.predict` itself (not a
-    subclass's own, nor a replacement): its steps can be split around one model call."""
-    return isinstance(learner, WellLearner) and type(learner).predict is _WELL_PREDICT
+    """True when ``learner`` says its predict can be split around one model call
+    (:attr:`vfm_core.streaming.Learner.predicts_in_groups`: a :class:`WellLearner` that
+    predicts with :meth:`WellLearner.predict` itself); anything without the capability
+    answers through its own ``predict``."""
+    return bool(getattr(learner, "predicts_in_groups", False))
