@@ -132,7 +132,9 @@ class Recovery:
             self._remember_history(self._field_restored, fresh, history)
         elif history is not None and fresh:
             started = time.perf_counter()
-            fitted = fit_history({w: learners[w] for w in fresh}, history, cfg.model)
+            subset = {w: learners[w] for w in fresh}
+            fitted = fit_history(subset, history, cfg.model)
+            learners.update(subset)  # the well-by-well fallback replaces learners in it
             if fitted:
                 logger.info(
                     "Fitted %d well(s) on the history in %.1f s.",
