@@ -71,6 +71,8 @@ bench-docs: $(STAMP)
 	$(PY) benchmarks/bench_alarms.py --models ham --methods ol --arl0 3000 \
 		--fields 'none:41:6:4,none:42:4:5,none:43:8:3,erosion;step=0.1:44:6:4,erosion;rate=0;step=0.1:47:8:4' \
 		--markdown docs/benchmarks/generated/alarms_arl3000.md
+	$(PY) benchmarks/bench_study.py --markdown docs/benchmarks/generated/study.md
+	$(PY) benchmarks/bench_service.py --markdown docs/benchmarks/generated/service.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info site

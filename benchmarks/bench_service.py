@@ -35,15 +35,30 @@ Prints figures; asserts nothing (shared 2-core machines are noisy). Usage::
         --flood-block 200 --inputs 'well_rate_hz = 100'   # with a per-well quota
     .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 [--profile 30]
     .venv/bin/python benchmarks/bench_service.py --scenario engine --wells 1000 --block 1,40
+    .venv/bin/python benchmarks/bench_service.py --markdown docs/benchmarks/generated/service.md
+
+With ``--markdown PATH`` it runs the set of measurements the documentation's page on the
+service's performance shows, and writes them there as a Markdown fragment (the command,
+the date, the machine's CPUs and load, then the tables; about 8-10 minutes on a 2-core
+machine): over Zenoh, ``--wells`` (1,000) at 1 Hz for ``--seconds`` (20), then a burst
+(``--burst``, 30,000 samples) per message size of ``--block`` (1, 40, 200), with the
+defaults beside a receiver thread (``queues.receiver = "thread"``) and beside ``mm``'s
+online step in torch (``VFM_KERNELS=0``); in-process, the same wells' burst
+(``--engine-burst``, 20,000) with the defaults beside sensor blocks, beside batches of one
+message (``queues.batch_max = 1``: no cross-well batching) and beside the torch step, then
+a measurement learned with every sample (``--learn-wells`` 100, ``--learn-burst`` 5,000),
+batched and not; and the fairness of a flood of one well.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import tempfile
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -164,6 +179,7 @@ def run_field(
     history_rows: int,
     queues: str = "",
     blocks: tuple[int, ...] = (1,),
+    env: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="vfm-bench-") as tmp:
         folder = Path(tmp)
@@ -186,7 +202,7 @@ workers = {workers}
 {queues}
 """)
         started = time.perf_counter()
-        serve = ServeProcess(cfg, folder / "serve.log").start(timeout=1800)
+        serve = ServeProcess(cfg, folder / "serve.log", env=env).start(timeout=1800)
         startup = time.perf_counter() - started
         plant = Plant(serve.zenoh)
         names = sorted(inputs)
@@ -596,13 +612,214 @@ def run_engine(
     return out
 
 
+@contextlib.contextmanager
+def environment(**values: str) -> Iterator[None]:
+    """``os.environ`` with ``values`` set inside the block (the engine in this process)."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+#: the rows over Zenoh of ``--markdown``: a label, [queues] lines, the service's environment
+ZENOH_ROWS: tuple[tuple[str, str, dict[str, str]], ...] = (
+    ("defaults (the worker takes the messages from Zenoh)", "", {}),
+    ('a receiver thread (`queues.receiver = "thread"`)', 'receiver = "thread"', {}),
+    ("`mm`'s online step in torch (`VFM_KERNELS=0`)", "", {"VFM_KERNELS": "0"}),
+)
+
+
+def markdown_suite(args: argparse.Namespace) -> str:
+    """Run what the docs' page shows (see the module docstring); return it as Markdown."""
+    import platform
+    import sys
+
+    started = time.perf_counter()
+    wells = int(args.wells.split(",")[0])
+    blocks = tuple(int(b) for b in args.block.split(","))
+    zenoh_rows = []
+    for label, queues, env in ZENOH_ROWS:
+        print(f"\nover Zenoh: {label}", flush=True)
+        r = run_field(
+            wells,
+            args.seconds,
+            args.burst,
+            args.measure_every,
+            args.workers,
+            args.synchronous or "full",
+            args.history_rows,
+            "\n".join(q for q in (args.queues, queues) if q),
+            blocks,
+            env,
+        )
+        print(json.dumps({k: v for k, v in r.items()}, default=str), flush=True)
+        zenoh_rows.append((label, r))
+
+    def engine(wells: int, burst: int, every: float, block: int, queues: str) -> dict[str, Any]:
+        r = run_engine(
+            wells, burst, every, args.history_rows, 0, queues, block, args.synchronous or "normal"
+        )
+        print(
+            f"  {r['received']:,} of {r['sent']:,} in {r['elapsed_s']:.1f} s = "
+            f"{r['rate']:,.0f} samples/s, {r['cpu_us']:.0f} us CPU a sample",
+            flush=True,
+        )
+        return r
+
+    engine_rows: list[tuple[str, str, dict[str, Any]]] = []
+    groups = (
+        (
+            f"{wells:,} wells, a burst of {args.engine_burst:,} samples, a measurement every "
+            f"{args.measure_every:g} s per well",
+            wells,
+            args.engine_burst,
+            args.measure_every,
+            [
+                ("defaults, one sample a message", 1, "", {}),
+                *[(f"sensor blocks of {b}", b, "", {}) for b in blocks if b > 1],
+                ("batches of one message (`queues.batch_max = 1`)", 1, "batch_max = 1", {}),
+                ("`mm`'s online step in torch (`VFM_KERNELS=0`)", 1, "", {"VFM_KERNELS": "0"}),
+            ],
+        ),
+        (
+            f"{args.learn_wells:,} wells, a burst of {args.learn_burst:,} samples, a "
+            "measurement with every sample (all learned online)",
+            args.learn_wells,
+            args.learn_burst,
+            1.0,
+            [
+                ("defaults (the batch's measurements learned in one call)", 1, "", {}),
+                ("batches of one message (`queues.batch_max = 1`)", 1, "batch_max = 1", {}),
+            ],
+        ),
+    )
+    for title, n, burst, every, rows in groups:
+        for label, block, queues, env in rows:
+            print(f"\nin-process, {title}: {label}", flush=True)
+            with environment(**env):
+                r = engine(n, burst, every, block, "\n".join(q for q in (args.queues, queues) if q))
+            engine_rows.append((title, label, r))
+
+    print("\nfairness: a flood of one well", flush=True)
+    flood = run_flood(
+        "samples",
+        5.0,
+        args.flood_seconds,
+        0.05,
+        args.queues,
+        args.flood_block,
+        "max_block_samples = 1000",
+    )
+
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    argv = " ".join(sys.argv[1:])
+    store = args.synchronous or "full"
+    lines = [
+        f"Written by `python benchmarks/bench_service.py {argv}` on "
+        f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC in {(time.perf_counter() - started) / 60:.1f} "
+        f"min: {os.cpu_count()} CPUs ({platform.machine()}), load average (1, 5, 15 min) "
+        f"{load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f} at the end. Model `mm`, method `ol`, "
+        f"{args.history_rows} history rows per well for the initial fit; every line a run "
+        "of its own, one after the other.",
+        "",
+        f'**Two processes over Zenoh** (`vfm serve`, store `synchronous = "{store}"`, and '
+        f"this process as the plant, on the same cores): {wells:,} wells at 1 Hz for "
+        f"{args.seconds:g} s, each well's samples spread over the second and a measurement "
+        f"every {args.measure_every:g} s per well learned online; latency from putting a "
+        "sample to receiving its prediction; *in the service within 10 ms*: the share of "
+        "predictions stored within 10 ms of their sample's arrival (the service's own "
+        f"`vfm_prediction_latency_seconds`). Then bursts of {args.burst:,} samples as fast "
+        "as Zenoh's BLOCK lets the plant send them (the messages made before the clock "
+        "starts), samples answered a second:",
+        "",
+        "| service | 1 Hz lost | p50 | p99 | max | in the service within 10 ms | "
+        + " | ".join(
+            "burst, one sample a message" if b == 1 else f"burst, blocks of {b}" for b in blocks
+        )
+        + " |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len(blocks),
+    ]
+    for label, r in zenoh_rows:
+        cells = " | ".join(
+            f"{u['rate']:,.0f}" + ("" if not u["lost"] else f" ({u['lost']:,} lost)")
+            for u in r["bursts"]
+        )
+        lines.append(
+            f"| {label} | {r['steady_lost']} of {r['steady_sent']:,} | "
+            f"{r['steady_p50_ms']:.1f} ms | {r['steady_p99_ms']:.1f} ms | "
+            f"{r['steady_max_ms']:.1f} ms | {100 * r['steady_service_within_10ms']:.2f} % | "
+            f"{cells} |"
+        )
+    lines += [
+        "",
+        "**The engine in one process** (the in-memory transport, no Zenoh, store "
+        f'`synchronous = "{args.synchronous or "normal"}"`): a burst put as fast as the '
+        "receive queue takes it (the messages made before the clock starts); the rate at "
+        "which its predictions are published, the process's CPU time per sample, and the "
+        "rate over the first line's of its group (higher is faster):",
+    ]
+    first: dict[str, float] = {}
+    for title, label, r in engine_rows:
+        if title not in first:
+            first[title] = r["rate"]
+            lines += [
+                "",
+                f"{title}:",
+                "",
+                "| service | samples/s | CPU a sample | rate / the first line's |",
+                "| --- | ---: | ---: | ---: |",
+            ]
+        lost = r["sent"] - r["received"]
+        note = f" ({lost:,} unanswered)" if lost else ""
+        lines.append(
+            f"| {label} | {r['rate']:,.0f}{note} | {r['cpu_us']:,.0f} µs | "
+            f"{r['rate'] / first[title]:.2f} |"
+        )
+    lines += [
+        "",
+        f"**Fairness**: a good well sends a sample every 50 ms while another process floods "
+        f"one other well as fast as Zenoh's BLOCK lets it for {flood['flood_s']:g} s "
+        f"({flood['flood_sent']:,} samples sent, {flood['flood_sent'] / flood['flood_s']:,.0f} "
+        "a second); the good well's latency, send to prediction:",
+        "",
+        "| the good well | answered | p50 | p99 | max |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for phase in ("before", "during"):
+        r = flood[phase]
+        lines.append(
+            f"| {phase} the flood | {r['answered']} of {r['sent']} | {r['p50_ms']:.1f} ms | "
+            f"{r['p99_ms']:.1f} ms | {r['max_ms']:.1f} ms |"
+        )
+    lines += [
+        "",
+        f"The service accepted {flood['accepted']} and refused "
+        f"{json.dumps(flood['rejected']) if flood['rejected'] else 'nothing'} "
+        f"(overflow: {json.dumps(flood['overflow'])}).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--wells", default="100,1000", help="comma-separated field sizes")
-    parser.add_argument("--seconds", type=float, default=30.0, help="length of the 1 Hz run")
-    parser.add_argument("--burst", type=int, default=20_000, help="samples in the burst")
+    parser.add_argument(
+        "--wells", default=None, help="comma-separated field sizes (100,1000; --markdown: 1000)"
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=None, help="length of the 1 Hz run (30; --markdown: 20)"
+    )
+    parser.add_argument(
+        "--burst", type=int, default=None, help="samples in the burst (20,000; --markdown: 30,000)"
+    )
     parser.add_argument(
         "--measure-every", type=float, default=180.0, help="seconds between a well's MPFM readings"
     )
@@ -622,9 +839,10 @@ def main() -> None:
     )
     parser.add_argument(
         "--block",
-        default="1",
+        default=None,
         help="samples per sensor message in the burst (engine and load scenarios), "
-        "comma-separated sizes run side by side (1: one sample a message; more: sensor blocks)",
+        "comma-separated sizes run side by side (1: one sample a message; more: sensor blocks; "
+        "default 1, with --markdown 1,40,200)",
     )
     parser.add_argument("--flood-kind", default="samples", choices=["samples", "names", "blocks"])
     parser.add_argument(
@@ -639,7 +857,33 @@ def main() -> None:
         default="",
         help="flood: TOML lines for [inputs], e.g. 'well_rate_hz = 100' (a per-well quota)",
     )
+    parser.add_argument(
+        "--markdown",
+        metavar="PATH",
+        default=None,
+        help="run the measurements the docs' page shows and write them as Markdown here",
+    )
+    parser.add_argument(
+        "--engine-burst", type=int, default=20_000, help="--markdown: samples of the engine's burst"
+    )
+    parser.add_argument(
+        "--learn-wells", type=int, default=100, help="--markdown: wells of the learning burst"
+    )
+    parser.add_argument(
+        "--learn-burst", type=int, default=5_000, help="--markdown: samples of the learning burst"
+    )
     args = parser.parse_args()
+    md = args.markdown is not None
+    args.wells = args.wells or ("1000" if md else "100,1000")
+    args.seconds = args.seconds if args.seconds is not None else (20.0 if md else 30.0)
+    args.burst = args.burst if args.burst is not None else (30_000 if md else 20_000)
+    args.block = args.block or ("1,40,200" if md else "1")
+    if md:
+        from vfm_core.fileio import write_text_atomic
+
+        write_text_atomic(args.markdown, markdown_suite(args))
+        print(f"\nwrote {args.markdown}")
+        return
     if args.scenario == "engine":
         print(
             "vfm engine in this process (in-memory transport, no Zenoh): mm + ol, "

@@ -5,7 +5,7 @@ within one run). Usage:
 
     .venv/bin/python benchmarks/bench_study.py [--wells 10] [--years 5] [--models ...] [--cases all,well_test]
         [--outages 7d,30d,90d] [--data field.parquet | --hidden erosion] [--per-run]
-        [--jobs 1,2] [--matmul torch,numpy] [--fit-kernel 0,1]
+        [--jobs 1,2] [--matmul torch,numpy] [--fit-kernel 0,1] [--markdown PATH]
 
 With ``--jobs 1,2`` the whole study runs once per value, as ``vfm evaluate --jobs`` runs it
 (this process and N - 1 workers taking the models in turn), and the ratios of the wall
@@ -25,6 +25,18 @@ ratio of the wall times is printed: the protocol adds one prequential run per mo
 method and outage length (the initial fit is shared), so the ratio should stay near
 1 + the number of lengths, whatever the number of windows.
 
+With ``--markdown PATH`` the run measures what the documentation's page on the study's
+speed shows and writes it there as a Markdown fragment (the command, the date, the
+machine's CPUs and load, then the tables): the cost of one online update per model; every
+model x method run of each case timed alone in this process (``--per-run``); the whole
+study with ``--jobs`` (2 unless given) against the same runs in one process; and the
+choices that make the study fast, each undone in a process of its own (``--variants``:
+the compiled training loops, numpy's BLAS for the networks' products, glibc's malloc
+settings, one torch thread) on a few runs, with their time and mean MAPE beside the
+defaults'. About 6-10 minutes on a 2-core machine shared with other work::
+
+    python benchmarks/bench_study.py --markdown docs/benchmarks/generated/study.md
+
 River (a benchmark-only extra: ``pip install -e '.[bench]'``) gives a reference: its
 ``LinearRegression.learn_one`` on the same stream.
 """
@@ -32,6 +44,7 @@ River (a benchmark-only extra: ``pip install -e '.[bench]'``) gives a reference:
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import subprocess
@@ -42,6 +55,7 @@ import numpy as np
 import torch
 
 from vfm_core.data import make_batch, target_mask
+from vfm_core.fileio import write_text_atomic
 from vfm_core.jobs.evaluate import PRELOAD, format_summary, run_study
 from vfm_core.jobs.study import run_prequential, wells_of
 from vfm_core.jobs.workers import StudyWorkers
@@ -102,7 +116,9 @@ def warm_up(frame, models: list[str], methods: list[str]) -> None:
     print(f"warm-up (once per process, not in the table): {time.perf_counter() - started:.1f} s")
 
 
-def per_run_times(frame, models: list[str], methods: list[str], case: str) -> None:
+def per_run_times(
+    frame, models: list[str], methods: list[str], case: str
+) -> dict[tuple[str, str], float]:
     """Seconds of each model x method run of one case, and the slowest over the median."""
     initial_fits: dict = {}
     times: dict[tuple[str, str], float] = {}
@@ -130,6 +146,28 @@ def per_run_times(frame, models: list[str], methods: list[str], case: str) -> No
         f"slowest {heaviest} {per_model[heaviest]:.1f} s = "
         f"{per_model[heaviest] / max(model_median, 1e-9):.1f} x median"
     )
+    return times
+
+
+#: the choices that make the study fast, each undone alone (``--variants``): a label, the
+#: environment variable and its value (``threads`` is this script's own ``--threads``)
+VARIANTS: dict[str, tuple[str, str]] = {
+    "defaults": ("", ""),
+    "training loops in torch": ("VFM_FIT_KERNEL", "0"),
+    "no compiled kernel at all": ("VFM_KERNELS", "0"),
+    "networks' products in torch (MKL)": ("VFM_MATMUL", "torch"),
+    "glibc's malloc defaults": ("VFM_MALLOC", "default"),
+    "two torch threads": ("threads", "2"),
+}
+
+#: what ``--markdown`` undoes, on ``--variant-runs``, when ``--variants`` is not given
+MARKDOWN_VARIANTS = (
+    "defaults,training loops in torch,networks' products in torch (MKL),"
+    "glibc's malloc defaults,two torch threads"
+)
+
+#: marks the one line of JSON a variant's process prints for its parent
+VARIANT_MARK = "VARIANT_JSON "
 
 
 def main() -> None:
@@ -148,9 +186,9 @@ def main() -> None:
     parser.add_argument("--per-run", action="store_true", help="time each model x method run")
     parser.add_argument(
         "--jobs",
-        default="1",
+        default=None,
         help="processes for the whole study (as vfm evaluate --jobs); a list (1,2) runs "
-        "it once per value and prints the ratios",
+        "it once per value and prints the ratios (default 1; 2 with --markdown)",
     )
     parser.add_argument(
         "--matmul",
@@ -164,7 +202,31 @@ def main() -> None:
         help="1: the mm and hybrids' training steps compiled (the default), 0: torch's loop, "
         "or a list (0,1), side by side (VFM_FIT_KERNEL; vfm_core.learning.kernels.FitSteps)",
     )
+    parser.add_argument(
+        "--markdown",
+        metavar="PATH",
+        default=None,
+        help="measure what the docs' page shows (update costs, --per-run, the whole study, "
+        "the variants) and write it as a Markdown fragment here",
+    )
+    parser.add_argument(
+        "--variants",
+        default=None,
+        help=f"comma-separated labels of {sorted(VARIANTS)}: each in a process of its own on "
+        f"--variant-runs (default with --markdown: {MARKDOWN_VARIANTS})",
+    )
+    parser.add_argument(
+        "--variant-runs",
+        default="nn:pbl:14d:all,mm:pbl:14d:all,mtl:pbl:14d:well_test",
+        help="model:method:case runs the variants time",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (vfm's default 1)")
+    parser.add_argument("--variant-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.jobs is None:
+        args.jobs = "2" if args.markdown else "1"
+    if args.variants is None:
+        args.variants = MARKDOWN_VARIANTS if args.markdown else ""
     for option, variable in (("--matmul", "VFM_MATMUL"), ("--fit-kernel", "VFM_FIT_KERNEL")):
         values = [v.strip() for v in getattr(args, option[2:].replace("-", "_")).split(",")]
         values = [v for v in values if v]
@@ -178,53 +240,265 @@ def main() -> None:
         if values:
             os.environ[variable] = values[0]
     models = args.models.split(",")
-    configure(1)  # torch's threads, glibc's malloc: as the vfm command (vfm_core.runtime)
-    print(
+    configure(args.threads)  # torch's threads, glibc's malloc: as the vfm command
+    setting = (
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"malloc kept for reuse: {tune_malloc()} (VFM_MALLOC=default: glibc's defaults), "
         f"matmul {'torch' if not numpy_enabled() else 'numpy where faster'} (VFM_MATMUL), "
         f"numpy's BLAS {blas_kernels()}, compiled training steps "
         f"{'off' if os.environ.get('VFM_FIT_KERNEL', '1') == '0' else 'on'} (VFM_FIT_KERNEL)"
     )
+    print(setting, flush=not args.variant_json)
     started = time.perf_counter()
-    if args.data:
-        frame = load_observations(args.data).frame
-    else:
-        hidden = [h for h in args.hidden.split(",") if h]
-        field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=hidden)
-        frame = validate_frame(field.observations).frame
+    frame = load_field(args)
     print(f"field: {len(frame):,} rows in {time.perf_counter() - started:.2f} s")
-    if args.per_run:
+    if args.variant_json:  # a child of --variants: time the runs, one line of JSON
+        print(VARIANT_MARK + json.dumps(time_runs(frame, args.variant_runs)), flush=True)
+        return
+    report: dict = {"rows": len(frame), "models": models, "methods": args.methods.split(",")}
+    if args.per_run or args.markdown:
         warm_up(frame, models, args.methods.split(","))
-        for case in args.cases.split(","):
-            per_run_times(frame, models, args.methods.split(","), case)
+        report["per_run"] = {
+            case: per_run_times(frame, models, args.methods.split(","), case)
+            for case in args.cases.split(",")
+        }
         print(
             f"\nall runs: {time.perf_counter() - started:.1f} s wall, peak RSS {peak_rss_mb():.0f} MB"
         )
-        return
+        if not args.markdown:
+            return
 
     print("\none online update (one well, one observation, E steps), microseconds:")
+    report["updates"] = {}
     for name in models:
-        print(
-            f"  {name:5s} {ol_update_cost(frame, name):10.0f} us  (E={DEFAULT_ONLINE[name].steps})"
-        )
+        report["updates"][name] = ol_update_cost(frame, name)
+        print(f"  {name:5s} {report['updates'][name]:10.0f} us  (E={DEFAULT_ONLINE[name].steps})")
     ref = river_cost(frame)
+    report["river"] = ref
     if ref is None:
         print("  river: not installed (pip install -e '.[bench]')")
     else:
         print(f"  river LinearRegression.learn_one (+predict_one, scaled): {ref:8.0f} us")
 
-    if args.skip_study:
-        return
-    walls = {}
-    for jobs in [int(j) for j in args.jobs.split(",")]:
-        walls[jobs] = whole_study(frame, models, args, jobs)
-    if len(walls) > 1:
-        first = next(iter(walls))
-        print(
-            "\nwall time of the whole study by --jobs: "
-            + ", ".join(f"{j}: {w:.1f} s ({walls[first] / w:.2f}x)" for j, w in walls.items())
+    if not args.skip_study:
+        walls = {}
+        for jobs in [int(j) for j in args.jobs.split(",")]:
+            walls[jobs] = whole_study(frame, models, args, jobs)
+        report["walls"] = walls
+        report["peak_rss_mb"] = peak_rss_mb()
+        if len(walls) > 1:
+            first = next(iter(walls))
+            print(
+                "\nwall time of the whole study by --jobs: "
+                + ", ".join(f"{j}: {w:.1f} s ({walls[first] / w:.2f}x)" for j, w in walls.items())
+            )
+    labels = [v.strip() for v in args.variants.split(",") if v.strip()]
+    if labels:
+        report["variants"] = run_variants(args, labels)
+    if args.markdown:
+        report["wall_s"] = time.perf_counter() - started
+        write_text_atomic(args.markdown, markdown_report(args, setting, report))
+        print(f"\nwrote {args.markdown}")
+
+
+def load_field(args: argparse.Namespace):
+    """The observation frame the benchmark runs on: ``--data``, or a simulated field."""
+    if args.data:
+        return load_observations(args.data).frame
+    hidden = [h for h in args.hidden.split(",") if h]
+    field = simulate_field(wells=args.wells, years=args.years, seed=args.seed, hidden=hidden)
+    return validate_frame(field.observations).frame
+
+
+def mean_mape(predictions) -> float:
+    """Mean over wells of each well's mean absolute percentage error (%) of its scored rows."""
+    p = predictions[predictions["measured"].abs() > 0]
+    err = ((p["predicted"] - p["measured"]).abs() / p["measured"].abs()).groupby(p["well"])
+    return float(err.mean().mean() * 100.0)
+
+
+def time_runs(frame, spec: str) -> list[dict]:
+    """Each ``model:method:case`` of ``spec`` run once after a warm-up on the field's first
+    300 days: seconds and mean MAPE (%)."""
+    runs = [r.split(":") for r in spec.split(",") if r]
+    runs = [(r[0], ":".join(r[1:-1]), r[-1]) for r in runs]
+    warm_up(frame, sorted({m for m, _, _ in runs}), sorted({k for _, k, _ in runs}))
+    out = []
+    for model, method, case in runs:
+        started, cpu = time.perf_counter(), time.process_time()
+        result = run_prequential(frame, model, method, targets=case, initial_fits={})
+        seconds, cpu = time.perf_counter() - started, time.process_time() - cpu
+        out.append(
+            {
+                "model": model,
+                "method": method,
+                "case": case,
+                "seconds": seconds,
+                "cpu_s": cpu,
+                "mape": mean_mape(result.predictions),
+            }
         )
+        print(f"  {case:<9} {model:<5} {method:<10} {seconds:8.1f} s, CPU {cpu:.1f} s", flush=True)
+    return out
+
+
+def run_variants(args: argparse.Namespace, labels: list[str]) -> dict[str, list[dict]]:
+    """Each variant in a process of its own (nothing compiled, cached or allocated is
+    shared), one after the other, the runs of ``--variant-runs`` timed in each."""
+    unknown = [v for v in labels if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"Unknown variants {unknown}; the variants are {sorted(VARIANTS)}.")
+    out = {}
+    for label in labels:
+        variable, value = VARIANTS[label]
+        env = {k: v for k, v in os.environ.items() if k not in {"VFM_FIT_KERNEL", "VFM_MATMUL"}}
+        argv = [
+            sys.argv[0],
+            "--variant-json",
+            f"--wells={args.wells}",
+            f"--years={args.years}",
+            f"--seed={args.seed}",
+            f"--hidden={args.hidden}",
+            f"--variant-runs={args.variant_runs}",
+        ]
+        if args.data:
+            argv.append(f"--data={args.data}")
+        if variable == "threads":
+            argv.append(f"--threads={value}")
+        elif variable:
+            env[variable] = value
+        print(f"\n=== variant: {label} ({variable}={value})" if variable else "\n=== defaults")
+        done = subprocess.run(
+            [sys.executable, *argv], env=env, check=True, capture_output=True, text=True
+        )
+        print(done.stdout, end="", flush=True)
+        lines = [x for x in done.stdout.splitlines() if x.startswith(VARIANT_MARK)]
+        out[label] = json.loads(lines[-1][len(VARIANT_MARK) :])
+    return out
+
+
+def markdown_report(args: argparse.Namespace, setting: str, report: dict) -> str:
+    """The run's tables as a Markdown fragment, the command and the machine first."""
+    import platform
+    from datetime import UTC, datetime
+
+    argv = " ".join(sys.argv[1:])
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    methods = report["methods"]
+    lines = [
+        f"Written by `python benchmarks/bench_study.py {argv}` on "
+        f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC in {report['wall_s'] / 60:.1f} min: "
+        f"{os.cpu_count()} CPUs ({platform.machine()}), load average (1, 5, 15 min) "
+        f"{load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f} at the end; {setting}. The field: "
+        + (
+            f"`{args.data}`"
+            if args.data
+            else f"`simulate_field(wells={args.wells}, years={args.years:g}, seed={args.seed}"
+            + (f", hidden={args.hidden!r}" if args.hidden else "")
+            + ")`"
+        )
+        + f", {report['rows']:,} rows. Seconds of wall time unless named otherwise.",
+        "",
+    ]
+    if "updates" in report:
+        lines += [
+            "**One online update** (`ol`, one well, one observation, E steps), microseconds:",
+            "",
+            "| model | E | µs per update |",
+            "| --- | ---: | ---: |",
+        ]
+        for name, us in report["updates"].items():
+            lines.append(f"| `{name}` | {DEFAULT_ONLINE[name].steps} | {us:,.0f} |")
+        if report.get("river") is not None:
+            lines.append(
+                f"| river `LinearRegression` (`predict_one` + `learn_one`, scaled) |  | "
+                f"{report['river']:,.1f} |"
+            )
+        lines.append("")
+    for case, times in report.get("per_run", {}).items():
+        values = sorted(times.values())
+        median = float(np.median(values))
+        slowest = max(times, key=times.__getitem__)
+        per_model = {m: sum(times[m, k] for k in methods) for m in report["models"]}
+        model_median = float(np.median(list(per_model.values())))
+        heaviest = max(per_model, key=per_model.__getitem__)
+        lines += [
+            f"**Every run of case `{case}` timed alone** (`--per-run`: one process, the initial "
+            "fit shared between methods with the same window, after an untimed warm-up), "
+            "seconds:",
+            "",
+            "| model | " + " | ".join(f"`{m}`" for m in methods) + " | the model's runs |",
+            "| --- |" + " ---: |" * (len(methods) + 1),
+        ]
+        for model in report["models"]:
+            cells = " | ".join(f"{times[model, m]:.1f}" for m in methods)
+            lines.append(f"| `{model}` | {cells} | {per_model[model]:.1f} |")
+        lines += [
+            "",
+            f"Case `{case}`: {sum(values):.1f} s in {len(values)} runs. Slowest run "
+            f"`{slowest[0]}` `{slowest[1]}` {times[slowest]:.1f} s = "
+            f"**{times[slowest] / median:.1f}x** the median run ({median:.1f} s); slowest "
+            f"model `{heaviest}` {per_model[heaviest]:.1f} s = "
+            f"**{per_model[heaviest] / max(model_median, 1e-9):.1f}x** the median model "
+            f"({model_median:.1f} s).",
+            "",
+        ]
+    if "walls" in report:
+        in_one = sum(sum(t.values()) for t in report.get("per_run", {}).values())
+        lines += [
+            "**The whole study** (both cases, as `vfm evaluate --jobs N` runs it: this process "
+            "and N - 1 workers taking the models in turn):",
+            "",
+            "| how | wall, s | the runs one by one in one process / this |",
+            "| --- | ---: | ---: |",
+        ]
+        if in_one:
+            lines.append(
+                f"| every run timed alone in one process (the tables above) | {in_one:.1f} | 1.00 |"
+            )
+        for jobs, wall in report["walls"].items():
+            ratio = f"{in_one / wall:.2f}" if in_one else ""
+            lines.append(f"| the whole study, `--jobs {jobs}` | {wall:.1f} | {ratio} |")
+        lines += ["", f"Peak memory of this process: {report['peak_rss_mb']:,.0f} MB.", ""]
+    if "variants" in report:
+        variants = report["variants"]
+        base = variants.get("defaults")
+        runs = next(iter(variants.values()))
+        names = [f"`{r['model']}` `{r['method']}` case `{r['case']}`" for r in runs]
+        lines += [
+            "**Each choice undone alone** (each line a process of its own, one after the "
+            "other, one warm-up each): each run's wall time / the process's CPU time "
+            "(user and system, every thread; on a loaded machine it moves less than the "
+            "wall time), seconds, and in brackets its mean MAPE across wells (%), which "
+            "shows that a choice changes the time, not the results (beyond rounding)"
+            + (
+                "; then the runs' wall and CPU time over the defaults' (higher: the choice "
+                "saves more)."
+                if base
+                else "."
+            ),
+            "",
+            "| variant | "
+            + " | ".join(names)
+            + (" | wall / defaults' | CPU / defaults' |" if base else " |"),
+            "| --- |" + " ---: |" * (len(names) + (2 if base else 0)),
+        ]
+        for label, rs in variants.items():
+            variable, value = VARIANTS[label]
+            how = f" (`{variable}={value}`)" if variable and variable != "threads" else ""
+            if variable == "threads":
+                how = f" (`--threads {value}`)"
+            cells = " | ".join(
+                f"{r['seconds']:.1f} / {r['cpu_s']:.1f} ({r['mape']:.3f} %)" for r in rs
+            )
+            ratio = ""
+            if base:
+                wall = sum(r["seconds"] for r in rs) / sum(r["seconds"] for r in base)
+                cpu = sum(r["cpu_s"] for r in rs) / sum(r["cpu_s"] for r in base)
+                ratio = f" | {wall:.2f}x | {cpu:.2f}x"
+            lines.append(f"| {label}{how} | {cells}{ratio} |")
+        lines.append("")
+    return "\n".join(lines)
 
 
 def blas_kernels() -> str:
