@@ -46,7 +46,19 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     hidden = parse_hidden(args.hidden or ["none"])
     started = time.perf_counter()
-    field = simulate_field(
+    simulate: Any = simulate_field
+    if args.separator is not None or args.separators is not None:
+        from functools import partial
+
+        from vfm_core.separator_sim import simulate_separator_field
+
+        simulate = partial(
+            simulate_separator_field,
+            separators=args.separators or 1,
+            name=args.separator or "SEP",
+            noise=args.separator_noise,
+        )
+    field = simulate(
         wells=args.wells,
         years=args.years,
         seed=args.seed,
@@ -164,11 +176,50 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
         written.append(write_sensor_faults(loaded.frame, out))  # vfm_core.sensor_faults
+        if loaded.separators:  # the separators' totals: learned from and allocated
+            from vfm_core.jobs.evaluate import write_allocation
+
+            path, lines = write_allocation(
+                loaded.frame,
+                loaded.separators,
+                out,
+                models=models,
+                methods=methods,
+                split=args.split,
+                seed=args.seed,
+            )
+            written.append(path)
+            print("\n".join(lines))
         print(format_summary(result))
         for sentence in slow_runs(result.runs):
             print(f"Slow run: {sentence}")
         print(f"Study took {result.runtime_s:.1f} s. Wrote {', '.join(str(p) for p in written)}.")
     return 0
+
+
+def _add_separator_options(p: argparse.ArgumentParser) -> None:
+    """``vfm simulate --separator [NAME] [--separators K] [--separator-noise REL]``."""
+    p.add_argument(
+        "--separator",
+        nargs="?",
+        const="SEP",
+        metavar="NAME",
+        help="all wells flow to one separator (name default SEP): daily synchronised "
+        "samples, per-well rates hidden, well tests as usual, one total a day (Sm3/h)",
+    )
+    p.add_argument(
+        "--separators",
+        type=int,
+        metavar="K",
+        help="with --separator: K separators (NAME1..NAMEK), wells shared out in turn",
+    )
+    p.add_argument(
+        "--separator-noise",
+        type=float,
+        default=0.015,
+        metavar="REL",
+        help="relative sd of the separator's total (default 0.015 = 1.5 %%)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -234,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
         "out_of_range; sensors choke, p_up, p_down, t_up, eta_gas, eta_oil), e.g. "
         "W01,p_down,frozen,2017-03-01,,30; repeat for more",
     )
+    _add_separator_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_simulate)
 

@@ -60,6 +60,7 @@ __all__ = [
     "Prior",
     "Effect",
     "EffectInputs",
+    "CompiledFactor",
     "Erosion",
     "ErosionTime",
     "Valve",
@@ -136,6 +137,38 @@ class EffectInputs:
         return torch.clamp(wat / torch.clamp(self.eta_oil + wat, min=1e-9), 0.0, 1.0)
 
 
+@dataclass(frozen=True)
+class CompiledFactor:
+    """How the compiled kernels (:mod:`vfm_core.learning.kernels`) compute an effect that
+    only multiplies the rate (its ``area_factor`` or ``output_factor``), with the same
+    arithmetic: ``code`` one of the constants below, ``column`` the feature column it
+    reads (or None), ``settings`` up to two integers (a knot count, a family's index, a
+    step time in ns). An effect returns one from :meth:`Effect.compiled_factor`; any other
+    effect runs the torch path (the same numbers, slower)."""
+
+    EROSION: ClassVar[int] = 1  # max(1 + p0 x, 0.05) [* max(1 + p1 [t >= settings[1]], 0.05)]
+    VALVE: ClassVar[int] = 2  # Valve's piecewise-linear curve, settings[0] knots
+    FAMILY: ClassVar[int] = 3  # ValveFamily, settings[0] the index in AREA_FUNCTIONS
+    BIAS: ClassVar[int] = 4  # MeterBias: 1 + p0 + p1 x on MPFM rows, 1 on well tests
+
+    code: int
+    column: str | None = None
+    settings: tuple[int, int] = (0, 0)
+
+
+_HOOKS = ("area_factor", "gas_z", "slip", "critical_ratio", "output_factor")
+
+
+def _hooks_of(effect: Effect, owner: type[Effect]) -> bool:
+    """True when every hook of ``effect`` is ``owner``'s or the base class's: a subclass
+    that rewrites a hook has other arithmetic than the compiled form of ``owner``."""
+    cls = type(effect)
+    return all(
+        getattr(cls, h) is getattr(owner, h) or getattr(cls, h) is getattr(Effect, h)
+        for h in _HOOKS
+    )
+
+
 class Effect:
     """Base class of a candidate effect; see the module docstring for the protocol.
 
@@ -201,6 +234,12 @@ class Effect:
     def output_factor(
         self, inputs: EffectInputs, p: dict[str, torch.Tensor]
     ) -> torch.Tensor | None:
+        return None
+
+    def compiled_factor(self) -> CompiledFactor | None:
+        """The compiled form of this effect (:class:`CompiledFactor`), or None (the default:
+        a model with this effect learns and predicts through torch). Only for an effect
+        that multiplies the rate, with exactly the arithmetic of its hooks."""
         return None
 
     def describe(self, values: Mapping[str, float]) -> str:
@@ -276,6 +315,14 @@ class Erosion(Effect):
             factor = factor * torch.clamp(1.0 + p["step"] * after, min=0.05)
         return factor
 
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, Erosion) or list(self.parameters)[:1] != ["rate"]:
+            return None
+        step = self.step_at_ns is not None
+        return CompiledFactor(
+            CompiledFactor.EROSION, self.basis, (int(step), int(self.step_at_ns or 0))
+        )
+
     def describe(self, values: Mapping[str, float]) -> str:
         unit = (
             "per year-equivalent of throughput" if self.basis == "throughput_years" else "per year"
@@ -336,6 +383,12 @@ class Valve(Effect):
         a_ref = self._curve(torch.clamp(inputs.u_ref, 1e-3, 1.0), slopes)
         return a_u / torch.clamp(a_ref, min=1e-9) * inputs.u_ref / u
 
+    def compiled_factor(self) -> CompiledFactor | None:
+        names = [f"log_slope_{k + 1}" for k in range(self.knots)]
+        if not _hooks_of(self, Valve) or list(self.parameters) != names:
+            return None
+        return CompiledFactor(CompiledFactor.VALVE, None, (self.knots, 0))
+
     def describe(self, values: Mapping[str, float]) -> str:
         gains = [math.exp(values[f"log_slope_{k + 1}"]) for k in range(self.knots)]
         text = ", ".join(f"{g:.2g}" for g in gains)
@@ -361,6 +414,16 @@ class ValveFamily(Effect):
         ref = torch.clamp(inputs.u_ref, 1e-3, 1.0)
         return curve(u) / torch.clamp(curve(ref), min=1e-9) * ref / u
 
+    def compiled_factor(self) -> CompiledFactor | None:
+        if (
+            not _hooks_of(self, ValveFamily)
+            or self.family not in _COMPILED_FAMILIES
+            or list(self.parameters) != ["weight"]
+        ):
+            return None
+        index = _COMPILED_FAMILIES.index(self.family)
+        return CompiledFactor(CompiledFactor.FAMILY, None, (index, 0))
+
     def describe(self, values: Mapping[str, float]) -> str:
         w = values["weight"]
         family = self.family.replace("_", " ")
@@ -368,6 +431,11 @@ class ValveFamily(Effect):
             f"The valve's area curve is {w:.2f} x the {family} curve + {1.0 - w:.2f} x linear "
             f"(1 would be the {family} family itself, 0 the linear valve)."
         )
+
+
+#: the valve families the kernels compute (``_mm_numba.valve_family``, by index here),
+#: with physics.AREA_FUNCTIONS' default shapes
+_COMPILED_FAMILIES = ("linear", "equal_percentage", "quick_opening", "convex", "sigmoid")
 
 
 def _valve_family(family: str) -> type[Effect]:
@@ -456,6 +524,11 @@ class MeterBias(Effect):
     def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         factor = 1.0 + p["bias"] + p["drift"] * inputs.feature("years_on")
         return torch.where(inputs.well_test, torch.ones_like(factor), factor)
+
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, MeterBias) or list(self.parameters) != ["bias", "drift"]:
+            return None
+        return CompiledFactor(CompiledFactor.BIAS, "years_on")
 
     def describe(self, values: Mapping[str, float]) -> str:
         bias, drift = values["bias"], values["drift"]

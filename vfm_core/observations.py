@@ -16,6 +16,12 @@ What a loaded frame holds:
   float64 in the units of ``schema.UNITS``, NaN where the cell is empty.
 * any other column, kept as it was read and otherwise ignored.
 * rows sorted by (time, well) with a stable sort, index 0..n-1.
+* separator readings (``source`` = ``separator``, ``well`` = the separator's name, inputs
+  empty) are not in ``frame``: they are checked and returned apart, in
+  ``LoadResult.separators`` (see :mod:`vfm_core.separator_format`, which also says how a
+  reading counts the wells' samples and shut-in wells); an optional ``separator`` column on
+  the wells' rows, or the ``separators`` mapping (well -> separator), says which wells flow
+  into which separator.
 
 Row numbers in messages count the header as row 1, so the first data row is row 2. In a
 CSV file without blank lines or quoted line breaks this is the line number. For Parquet
@@ -57,6 +63,12 @@ from vfm_core.schema import (
     TIME,
     UNITS,
     WELL,
+)
+from vfm_core.separator_format import (
+    SEPARATOR_COLUMN,
+    SEPARATOR_SOURCE,
+    SeparatorData,
+    split_separator_rows,
 )
 
 __all__ = ["LoadResult", "load_observations", "validate_frame", "save_observations"]
@@ -129,6 +141,8 @@ class LoadResult:
     n_read: int
     removed: dict[str, int] = field(default_factory=dict)
     reordered: bool = False
+    #: the separators' readings and member wells (empty without separator rows)
+    separators: SeparatorData = field(default_factory=SeparatorData)
 
     def summary(self) -> str:
         """One short sentence block for people, e.g. for a CLI or a log line."""
@@ -138,17 +152,25 @@ class LoadResult:
         if n_removed:
             reasons = ", ".join(f"{reason}: {count:,}" for reason, count in self.removed.items())
             text += f"; removed {n_removed:,} ({reasons})"
+        if self.separators:
+            text += f"; {len(self.separators.readings):,} separator readings set apart"
         if self.reordered:
             text += "; rows were re-sorted into time order"
         return text + "."
 
 
-def load_observations(path: str | os.PathLike[str], *, filter_illogical: bool = True) -> LoadResult:
+def load_observations(
+    path: str | os.PathLike[str],
+    *,
+    filter_illogical: bool = True,
+    separators: dict[str, str] | None = None,
+) -> LoadResult:
     """Read an observation file (``.csv``, ``.csv.gz``, ``.parquet`` or ``.pq``) and check it.
 
     Raises :class:`DataError` if the file does not exist and
     :class:`ObservationFormatError` if it breaks the format; see the module docstring for
-    what is checked, what is removed and how rows are numbered in messages.
+    what is checked, what is removed and how rows are numbered in messages. ``separators``
+    maps wells to separators, as for :func:`validate_frame`.
     """
     file = Path(path)
     name = str(path)
@@ -161,16 +183,21 @@ def load_observations(path: str | os.PathLike[str], *, filter_illogical: bool = 
     if not file.is_file():
         raise DataError(f"{name} is not a file; give the path of an observation file.")
     raw = _read_csv(file, name) if kind == "csv" else _read_parquet(file, name)
-    return validate_frame(raw, name=name, filter_illogical=filter_illogical)
+    return validate_frame(raw, name=name, filter_illogical=filter_illogical, separators=separators)
 
 
 def validate_frame(
-    frame: pd.DataFrame, *, name: str = "<frame>", filter_illogical: bool = True
+    frame: pd.DataFrame,
+    *,
+    name: str = "<frame>",
+    filter_illogical: bool = True,
+    separators: dict[str, str] | None = None,
 ) -> LoadResult:
     """Check, type, filter and sort an observation frame held in memory.
 
     Accepts text columns (as read from CSV) as well as typed ones. ``name`` stands for
-    the file in messages. The input frame is not changed.
+    the file in messages. The input frame is not changed. ``separators`` maps wells to the
+    separators they flow into (configuration; the ``separator`` column does the same).
     """
     missing = [column for column in REQUIRED_COLUMNS if column not in frame.columns]
     if missing:
@@ -191,6 +218,7 @@ def validate_frame(
     out[SOURCE] = _parse_source(out[SOURCE], name)
 
     removed: dict[str, int] = {}
+    out, separator_data = split_separator_rows(out, name=name, mapping=separators, removed=removed)
     if filter_illogical:
         keep = _filter(out, rate_columns, name, removed)
         out = out.loc[keep]
@@ -200,7 +228,14 @@ def validate_frame(
     order = np.lexsort((well_codes, times))  # lexsort is stable: ties keep file order
     reordered = bool(np.any(order != np.arange(len(order))))
     out = out.iloc[order].reset_index(drop=True)
-    return LoadResult(frame=out, path=name, n_read=len(frame), removed=removed, reordered=reordered)
+    return LoadResult(
+        frame=out,
+        path=name,
+        n_read=len(frame),
+        removed=removed,
+        reordered=reordered,
+        separators=separator_data,
+    )
 
 
 def save_observations(frame: pd.DataFrame, path: str | os.PathLike[str]) -> Path:
@@ -215,7 +250,11 @@ def save_observations(frame: pd.DataFrame, path: str | os.PathLike[str]) -> Path
     """
     file = Path(path)
     kind = _format_of(file)
-    checked = validate_frame(frame, name=str(path), filter_illogical=False).frame
+    loaded = validate_frame(frame, name=str(path), filter_illogical=False)
+    checked = loaded.frame
+    if loaded.separators:  # the readings go back in, in (time, well) order
+        checked = pd.concat([checked, loaded.separators.rows()], ignore_index=True)
+        checked = checked.sort_values([TIME, WELL], kind="stable").reset_index(drop=True)
 
     def write(temp: Path) -> None:
         with temp.open("wb") as handle:
@@ -246,7 +285,7 @@ def _format_of(file: Path) -> Literal["csv", "parquet"]:
 def _read_csv(file: Path, name: str) -> pd.DataFrame:
     try:
         header = pd.read_csv(file, nrows=0).columns
-        known = set(REQUIRED_COLUMNS) | set(OPTIONAL_RATE_COLUMNS)
+        known = set(REQUIRED_COLUMNS) | set(OPTIONAL_RATE_COLUMNS) | {SEPARATOR_COLUMN}
         # Format columns are read as literal text and parsed in validate_frame, which can
         # then name the offending cell; extra columns get the usual pandas inference.
         return pd.read_csv(
@@ -337,12 +376,13 @@ def _parse_well(raw: pd.Series, name: str) -> pd.Series:
 
 def _parse_source(raw: pd.Series, name: str) -> pd.Series:
     sources = _as_text(raw)
-    invalid = (~sources.isin(("", *SOURCES))).to_numpy()
+    invalid = (~sources.isin(("", *SOURCES, SEPARATOR_SOURCE))).to_numpy()
     if invalid.any():
         position, others = _first_and_others(invalid)
         raise ObservationFormatError(
             f"'{sources.iloc[position]}' is not a valid source"
-            f"{_others(others, 'an invalid source')}. Use {_quoted(SOURCES, ' or ')}, "
+            f"{_others(others, 'an invalid source')}. Use "
+            f"{_quoted((*SOURCES, SEPARATOR_SOURCE), ' or ')}, "
             f"or leave the cell empty where there is no measured rate.",
             path=name,
             row=_row(position),

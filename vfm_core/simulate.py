@@ -687,9 +687,13 @@ class _Well:
         physics_name: str = sim_physics.DEFAULT_PHYSICS,
         valve_family: str | None = None,
         gas_lift: bool = False,
+        sample_every_days: float | None = None,
     ) -> None:
         self.name = name
         self._sampling_quantile = sampling_quantile
+        # synchronised sampling (vfm_core.separator_sim): rows at every multiple of this
+        # many days after the field's origin plus a quarter day (06:00), for all wells alike
+        self._sample_every_days = sample_every_days
         self.t0 = t_start
         self.t1 = t_end
         self.hidden = hidden
@@ -972,6 +976,11 @@ class _Well:
             more = rng.gamma(1.5, mean_h / 1.5, n)
             gaps_h = np.concatenate([gaps_h, np.maximum(more, _MIN_MPFM_GAP_HOURS)])
         t_mpfm = self.t0 + np.cumsum(gaps_h) / 24.0
+        if self._sample_every_days is not None:  # the draws above keep the streams aligned
+            every = self._sample_every_days
+            t_mpfm = np.arange(math.ceil((self.t0 - 0.25) / every), (self.t1 - 0.25) / every)
+            t_mpfm = t_mpfm * every + 0.25
+            t_mpfm = t_mpfm[t_mpfm >= self.t0]
         t_mpfm = t_mpfm[t_mpfm < self.t1]
         t_mpfm = t_mpfm[~_inside(t_mpfm, self.no_rows)[0]]
 
@@ -1246,6 +1255,16 @@ def _field_layout(
     return starts[rng.permutation(wells)], _stratified(rng, wells)
 
 
+def _check_size(seed: int, wells: int, years: float) -> None:
+    """Refuse a seed, well count or span outside what the simulator takes, with a sentence."""
+    if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+        raise ConfigError(f"seed must be a whole number of at least 0, not {seed!r}.")
+    if int(wells) != wells or wells < 1:
+        raise ConfigError(f"wells must be a whole number of at least 1, not {wells!r}.")
+    if not (math.isfinite(years) and 1.0 / 12.0 <= years <= 50.0):
+        raise ConfigError(f"years must lie between 1/12 and 50, not {years!r}.")
+
+
 def simulate_field(
     *,
     wells: int = 10,
@@ -1257,6 +1276,7 @@ def simulate_field(
     physics: str = sim_physics.DEFAULT_PHYSICS,
     valves: Sequence[str] | str = (),
     gas_lift: float = 0.0,
+    sample_every_days: float | None = None,
 ) -> SimulatedField:
     """Simulate ``wells`` wells from ``start`` for ``years`` years (see the module docstring).
 
@@ -1264,15 +1284,12 @@ def simulate_field(
     see :func:`parse_hidden`) or as ``{name: {parameter: value}}`` (missing parameters take
     their defaults). ``physics`` names the truth (:data:`sim_physics.TRUTH_PHYSICS`);
     ``valves`` gives the wells' valve characteristics in turn (see :func:`parse_valves`);
-    ``gas_lift`` is the share (0..1) of wells on gas lift. The same arguments give identical
-    frames; the defaults give the same frames as before these options existed.
+    ``gas_lift`` is the share (0..1) of wells on gas lift. ``sample_every_days`` puts every
+    well's sensor rows on one synchronised grid (that many days apart, at 06:00 UTC) instead
+    of the MPFM's own times (see :mod:`vfm_core.separator_sim`). The same arguments give
+    identical frames; the defaults give the same frames as before these options existed.
     """
-    if isinstance(seed, bool) or int(seed) != seed or seed < 0:
-        raise ConfigError(f"seed must be a whole number of at least 0, not {seed!r}.")
-    if int(wells) != wells or wells < 1:
-        raise ConfigError(f"wells must be a whole number of at least 1, not {wells!r}.")
-    if not (math.isfinite(years) and 1.0 / 12.0 <= years <= 50.0):
-        raise ConfigError(f"years must lie between 1/12 and 50, not {years!r}.")
+    _check_size(seed, wells, years)
     effects = _resolve_hidden(hidden)
     spec = sim_physics.physics_spec(physics)
     _check_physics_effects(spec.name, effects)
@@ -1315,6 +1332,7 @@ def simulate_field(
             physics_name=spec.name,
             valve_family=families[j % len(families)] if families else None,
             gas_lift=bool(lifted[j]),
+            sample_every_days=sample_every_days,
         )
         results.append(well.run())
         well_objects.append(well)

@@ -38,7 +38,7 @@ from dataclasses import replace
 
 import pandas as pd
 
-from service.config import Settings
+from service.config import ModelSettings, Settings
 from service.engine.checkpoints import Checkpoints, configured_spec, usable
 from service.engine.learning import Learning
 from service.engine.state import RECENT_SAMPLES, Pending, WellState
@@ -131,16 +131,7 @@ class Recovery:
         if field_wide and self._field_restored is not None and history is not None and fresh:
             self._remember_history(self._field_restored, fresh, history)
         elif history is not None and fresh:
-            started = time.perf_counter()
-            subset = {w: learners[w] for w in fresh}
-            fitted = fit_history(subset, history, cfg.model)
-            learners.update(subset)  # the well-by-well fallback replaces learners in it
-            if fitted:
-                logger.info(
-                    "Fitted %d well(s) on the history in %.1f s.",
-                    len(fitted),
-                    time.perf_counter() - started,
-                )
+            fitted = _fit_fresh(learners, fresh, history, cfg.model)
         ops: list[Op] = []
         now = time.time_ns()
         restored = relearned_total = 0
@@ -352,3 +343,21 @@ class Recovery:
         now = time.monotonic()
         for p in self.store.pending(st.well):
             st.pending.append(Pending(p.time_ns, p.source, p.q_total, p.via, now))
+
+
+def _fit_fresh(
+    learners: dict[str, Learner], fresh: list[str], history: pd.DataFrame, cfg: ModelSettings
+) -> list[str]:
+    """Fit the wells without a checkpoint on the history; returns the wells fitted. The
+    well-by-well fallback of :func:`fit_history` replaces learners: they are kept."""
+    started = time.perf_counter()
+    subset = {w: learners[w] for w in fresh}
+    fitted = fit_history(subset, history, cfg)
+    learners.update(subset)
+    if fitted:
+        logger.info(
+            "Fitted %d well(s) on the history in %.1f s.",
+            len(fitted),
+            time.perf_counter() - started,
+        )
+    return fitted

@@ -127,22 +127,28 @@ def hybrid_rates(
     y_scale: np.ndarray,
     area_model: bool,
     out: np.ndarray,
+    ze: np.ndarray,
+    fx: tuple,  # type: ignore[type-arg]
 ) -> None:
     """The rate [W, N] (Sm3/h) of a hybrid with one hidden ReLU layer, into ``out``: the
     network o = b2 + relu(b1 + x_norm W1) W2 of the normalised inputs; ``hem``: the
     Sachdeva rate plus y_scale o; ``ham`` (``area_model``): the Sachdeva rate with C_D
     replaced by C_D0 exp(o). ``theta[i]`` is mu[i] + sigma[i] z[w, pos[i]], or mu[i] where
-    pos[i] < 0 (a parameter the model does not learn: ``ham``'s C_D0)."""
+    pos[i] < 0 (a parameter the model does not learn: ``ham``'s C_D0). ``ze`` [W, P], ``fx``:
+    the compiled effects (:func:`_factor_at`), whose factor multiplies the Sachdeva rate."""
     n_wells, n_samples = out.shape
     hidden = w1.shape[2]
     theta = np.zeros(6)
     dq = np.zeros(6)
     xn = np.zeros(6)
+    pe, scratch = np.zeros(ze.shape[1]), _scratch(fx)
     for w in range(n_wells):
         for i in range(6):
             theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
         c_d = theta[5]
+        effect_values(w, ze, fx[1], fx[2], pe)
         for j in range(n_samples):
+            fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
             for i in range(6):
                 xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
             o = b2[w, 0]
@@ -154,9 +160,9 @@ def hybrid_rates(
                     o += a * w2[w, k, 0]
             if area_model:
                 theta[5] = c_d * math.exp(o)
-                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq)
+                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * fxj
             else:
-                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) + y_scale[w] * o
+                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * fxj + y_scale[w] * o
 
 
 @jit
@@ -245,6 +251,323 @@ def online(  # noqa: PLR0913 - the arrays of one update
                     z[w, i] = held[i]
 
 
+# -- effects that multiply the rate (vfm_core.effects, Effect.compiled_factor) -------------
+#: the codes of :class:`vfm_core.effects.CompiledFactor` (kept equal to its constants)
+FX_EROSION, FX_VALVE, FX_FAMILY, FX_BIAS = 1, 2, 3, 4
+
+
+@jit
+def valve_family(u: float, family: int) -> float:
+    """physics.AREA_FUNCTIONS in their order (linear, equal_percentage, quick_opening,
+    convex, sigmoid), with their default shapes."""
+    if family == 1:
+        r = 30.0
+        return (r ** (u - 1.0) - 1.0 / r) / (1.0 - 1.0 / r)
+    if family == 2:
+        return (u if not u < 0.0 else 0.0) ** 0.6
+    if family == 3:
+        return 0.25 * u + 0.75 * u**2
+    if family == 4:
+        uc = min(max(u, 0.0), 1.0)
+        return uc**1.5 / (uc**1.5 + (1.0 - uc) ** 1.5)
+    return u
+
+
+@jit
+def _erosion(
+    p: np.ndarray, p0: int, row: np.ndarray, basis: float, t_ns: int, d_f: np.ndarray
+) -> float:
+    """Erosion's area factor max(1 + rate x, 0.05), times max(1 + step [t >= t_step], 0.05)
+    with a step (``row`` of the terms: code, first parameter, count, column, has step,
+    step time); its derivatives into ``d_f``. torch's clamp passes no gradient below its
+    floor, and a NaN through."""
+    a = 1.0 + p[p0] * basis
+    ft = a if not a < 0.05 else 0.05
+    d_f[p0] = basis if a >= 0.05 else 0.0
+    if row[4]:
+        after = 1.0 if t_ns >= row[5] else 0.0
+        b = 1.0 + p[p0 + 1] * after
+        fb = b if not b < 0.05 else 0.05
+        d_f[p0] *= fb
+        d_f[p0 + 1] = ft * (after if b >= 0.05 else 0.0)
+        ft = ft * fb
+    return ft
+
+
+@jit
+def _valve(p: np.ndarray, p0: int, knots: int, u: float, u_ref: float, d_f: np.ndarray) -> float:
+    """Valve's area factor a(u) / max(a(u_ref), 1e-9) u_ref / u, a piecewise linear with
+    slopes exp(p), and its derivatives into ``d_f``."""
+    uc = min(max(u, 1e-3), 1.0)
+    rc = min(max(u_ref, 1e-3), 1.0)
+    a_u = 0.0
+    a_r = 0.0
+    width = 1.0 / knots
+    for k in range(knots):
+        s = math.exp(p[p0 + k])
+        a_u += min(max(uc - k / knots, 0.0), width) * s
+        a_r += min(max(rc - k / knots, 0.0), width) * s
+    arc = a_r if not a_r < 1e-9 else 1e-9
+    inside = 1.0 if a_r >= 1e-9 else 0.0
+    for k in range(knots):
+        s = math.exp(p[p0 + k])
+        ov_u = min(max(uc - k / knots, 0.0), width)
+        ov_r = min(max(rc - k / knots, 0.0), width)
+        d_f[p0 + k] = s * (ov_u / arc - a_u * ov_r * inside / (arc * arc)) * u_ref / uc
+    return a_u / arc * u_ref / uc
+
+
+@jit
+def _family(p: np.ndarray, p0: int, family: int, u: float, u_ref: float, d_f: np.ndarray) -> float:
+    """A valve family's area factor curve(u) / max(curve(ref), 1e-9) ref / u, the curve
+    (1 - w) u + w A(u), and its derivative into ``d_f``."""
+    w = p[p0]
+    uc = min(max(u, 1e-3), 1.0)
+    rc = min(max(u_ref, 1e-3), 1.0)
+    fam_u = valve_family(uc, family)
+    fam_r = valve_family(rc, family)
+    cu = (1.0 - w) * uc + w * fam_u
+    cr = (1.0 - w) * rc + w * fam_r
+    crc = cr if not cr < 1e-9 else 1e-9
+    inside = 1.0 if cr >= 1e-9 else 0.0
+    d_f[p0] = ((fam_u - uc) / crc - cu * (fam_r - rc) * inside / (crc * crc)) * rc / uc
+    return cu / crc * rc / uc
+
+
+@jit
+def _bias(p: np.ndarray, p0: int, years: float, well_test: bool, d_f: np.ndarray) -> float:
+    """The meter bias' output factor: 1 + bias + drift years on MPFM rows, 1 on well tests."""
+    if well_test:
+        return 1.0
+    d_f[p0] = 1.0
+    d_f[p0 + 1] = years
+    return 1.0 + p[p0] + p[p0 + 1] * years
+
+
+@jit
+def effect_factor(
+    terms: np.ndarray,
+    pe: np.ndarray,
+    u: float,
+    extra: np.ndarray,
+    well_test: bool,
+    t_ns: int,
+    u_ref: float,
+    f: np.ndarray,
+    d_f: np.ndarray,
+) -> float:
+    """The rate factor F of one sample: the product of every compiled effect's area and
+    output factors (the hooks of :mod:`vfm_core.effects`, the same arithmetic), and
+    dF / d(effect parameter) into ``d_f`` [P] (SI, in the order of ``pe``, the effects'
+    parameters [P] in SI units). ``terms`` [T, 6]: per effect its code, first parameter,
+    number of parameters, feature column and two integer settings; ``u`` the opening, -;
+    ``extra`` the sample's feature columns; ``u_ref`` the well's reference opening;
+    ``f`` [T] scratch (each effect's factor)."""
+    n_t = terms.shape[0]
+    for k in range(d_f.shape[0]):
+        d_f[k] = 0.0
+    for t in range(n_t):
+        code, p0, col = terms[t, 0], terms[t, 1], terms[t, 3]
+        if code == FX_EROSION:
+            f[t] = _erosion(pe, p0, terms[t], extra[col], t_ns, d_f)
+        elif code == FX_VALVE:
+            f[t] = _valve(pe, p0, terms[t, 4], u, u_ref, d_f)
+        elif code == FX_FAMILY:
+            f[t] = _family(pe, p0, terms[t, 4], u, u_ref, d_f)
+        elif code == FX_BIAS:
+            f[t] = _bias(pe, p0, extra[col], well_test, d_f)
+        else:
+            f[t] = math.nan  # (no other code: Effect.compiled_factor names these four)
+    total = 1.0
+    for t in range(n_t):
+        total *= f[t]
+    for t in range(n_t):  # each effect's derivatives times the other effects' factors
+        other = 1.0
+        for s in range(n_t):
+            if s != t:
+                other *= f[s]
+        for k in range(terms[t, 1], terms[t, 1] + terms[t, 2]):
+            d_f[k] *= other
+    return total
+
+
+@jit
+def _factor_at(fx: tuple, pe: np.ndarray, scratch: tuple, u: float, w: int, j: int) -> float:  # type: ignore[type-arg]
+    """:func:`effect_factor` of sample j (opening ``u``) of well w, 1 without effects:
+    ``fx`` the effects' (terms, mu_e, sigma_e, extra [W, N, E], well_test [W, N], time_ns
+    [W, N], u_ref [W]), ``scratch`` (dF, f) of :func:`_scratch`."""
+    terms, _, _, extra, well_test, time_ns, u_ref = fx
+    d_f, f = scratch
+    if terms.shape[0] == 0:
+        return 1.0
+    return effect_factor(
+        terms, pe, u, extra[w, j], well_test[w, j], time_ns[w, j], u_ref[w], f, d_f
+    )
+
+
+@jit
+def _scratch(fx: tuple) -> tuple:  # type: ignore[type-arg]
+    """The arrays :func:`_factor_at` writes: dF [P] and each effect's factor [T]."""
+    return np.zeros(fx[1].shape[0]), np.zeros(fx[0].shape[0])
+
+
+@jit
+def effect_values(
+    w: int, ze: np.ndarray, mu_e: np.ndarray, sigma_e: np.ndarray, pe: np.ndarray
+) -> None:
+    """The effects' parameters of well ``w`` in SI units into ``pe``: mu + sigma z."""
+    for k in range(pe.shape[0]):
+        pe[k] = mu_e[k] + sigma_e[k] * ze[w, k]
+
+
+@jit
+def _prior_(w: int, z: np.ndarray, g: np.ndarray, sigma: np.ndarray, weight: float) -> float:
+    """The gradient ``g`` of well w's parameters ``z`` to the standardised ones, plus the
+    prior's pull; returns its sum of squares (for the clip)."""
+    sq = 0.0
+    for k in range(g.shape[0]):
+        g[k] = g[k] * sigma[k] + 2.0 * weight * z[w, k]
+        sq += g[k] * g[k]
+    return sq
+
+
+@jit
+def _corrections_(
+    counts: np.ndarray, w: int, size: np.ndarray, root: np.ndarray, hyper: tuple
+) -> None:  # type: ignore[type-arg]
+    """Adam's step counts of well w advanced by one, and each row's bias corrections."""
+    lr, beta1, beta2, _ = hyper
+    for r in range(counts.shape[0]):
+        counts[r, w] += 1.0
+        size[r] = lr / (1.0 - beta1 ** counts[r, w])
+        root[r] = math.sqrt(1.0 - beta2 ** counts[r, w])
+
+
+@jit
+def _bounded_step_(  # noqa: PLR0913 - one well's parameters and their state
+    w: int,
+    z: np.ndarray,
+    m: np.ndarray,
+    v: np.ndarray,
+    g: np.ndarray,
+    rows: np.ndarray,
+    size: np.ndarray,
+    root: np.ndarray,
+    clip: float,
+    low: np.ndarray,
+    high: np.ndarray,
+    hyper: tuple,  # type: ignore[type-arg]
+    adam: bool,
+) -> None:
+    """One Adam (``rows`` each parameter's bias-correction row) or SGD step of well w's
+    parameters ``z`` with the gradient clip g, projected into [low, high] (torch's
+    single-tensor Adam, as :func:`online`)."""
+    lr, beta1, beta2, eps = hyper
+    for k in range(g.shape[0]):
+        gk = g[k] * clip
+        if adam:
+            r = rows[k]
+            m[w, k] = m[w, k] + (1.0 - beta1) * (gk - m[w, k])
+            v[w, k] = v[w, k] * beta2 + (1.0 - beta2) * gk * gk
+            zk = z[w, k] + (-size[r]) * m[w, k] / (math.sqrt(v[w, k]) / root[r] + eps)
+        else:
+            zk = z[w, k] + (-lr) * gk
+        z[w, k] = max(min(zk, high[k]), low[k])
+
+
+@jit
+def effect_rates(
+    z: np.ndarray,
+    x: np.ndarray,
+    a_max: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    ze: np.ndarray,
+    fx: tuple,  # type: ignore[type-arg]
+    out: np.ndarray,
+) -> None:
+    """The Sachdeva rate [W, N] (Sm3/h) of ``mm`` with compiled effects (``ze`` [W, P]
+    their standardised parameters, ``fx`` as :func:`_factor_at` has it), into ``out``."""
+    n_wells, n_samples = out.shape
+    theta = np.zeros(6)
+    dq = np.zeros(6)
+    pe = np.zeros(ze.shape[1])
+    scratch = _scratch(fx)
+    for w in range(n_wells):
+        for i in range(6):
+            theta[i] = mu[i] + sigma[i] * z[w, i]
+        effect_values(w, ze, fx[1], fx[2], pe)
+        for j in range(n_samples):
+            out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * _factor_at(
+                fx, pe, scratch, x[w, j, 0], w, j
+            )
+
+
+@jit
+def effect_online(  # noqa: PLR0913 - the arrays of one update
+    z: np.ndarray,
+    m: np.ndarray,
+    v: np.ndarray,
+    counts: np.ndarray,
+    hold: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    mask: np.ndarray,
+    a_max: np.ndarray,
+    scale: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    bounds: tuple,  # type: ignore[type-arg]
+    noise: float,
+    hyper: tuple,  # type: ignore[type-arg]
+    max_norm: float,
+    steps: int,
+    adam: bool,
+    eff: tuple,  # type: ignore[type-arg]
+    fx: tuple,  # type: ignore[type-arg]
+) -> None:
+    """``ol``'s E steps on ``mm`` with compiled effects, in place, as :func:`online` on the
+    plain ``mm``: the MAP gradient through the rate q_plain F (F of :func:`effect_factor`)
+    in ``z`` [W, 6] (``bounds`` its (low, high)) and the effects' parameters (``eff``: ze
+    [W, P], their moments me, ve, ``rows`` [P] each one's row of ``counts``, their bounds
+    low_e, high_e), the per-well clip over both, Adam (``counts`` [R, W] the step counts,
+    row 0 z's; ``hyper`` lr, beta1, beta2, eps) or SGD, the projection, wells in ``hold``
+    kept still. ``fx`` as :func:`_factor_at` has it."""
+    ze, me, ve, rows, low_e, high_e = eff
+    n_wells, n_samples = y.shape
+    grad, theta, dq, zero = np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(6, np.int64)
+    ge, pe, scratch = np.zeros(ze.shape[1]), np.zeros(ze.shape[1]), _scratch(fx)
+    size, root = np.zeros(counts.shape[0]), np.zeros(counts.shape[0])
+    for w in range(n_wells):
+        weight, d_factor = map_weights(mask, w, noise, scale[w])
+        held, held_e = z[w].copy(), ze[w].copy()
+        for _ in range(steps):
+            for i in range(6):
+                theta[i] = mu[i] + sigma[i] * z[w, i]
+            effect_values(w, ze, fx[1], fx[2], pe)
+            grad[:] = 0.0
+            ge[:] = 0.0
+            for j in range(n_samples):
+                if not mask[w, j]:
+                    continue  # torch: a zero gradient there
+                q = rate_grad(theta, x[w, j], a_max[w], dq)
+                fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
+                g = (q * fxj - y[w, j]) / scale[w] * d_factor
+                for i in range(6):
+                    grad[i] += g * (dq[i] * fxj)
+                for k in range(ge.shape[0]):
+                    ge[k] += g * (q * scratch[0][k])
+            sq = _prior_(w, z, grad, sigma, weight) + _prior_(w, ze, ge, fx[2], weight)
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                _corrections_(counts, w, size, root, hyper)
+            _bounded_step_(w, z, m, v, grad, zero, size, root, clip, *bounds, hyper, adam)  # type: ignore[call-arg]
+            _bounded_step_(w, ze, me, ve, ge, rows, size, root, clip, low_e, high_e, hyper, adam)
+            if hold[w]:
+                z[w] = held
+                ze[w] = held_e
+
+
 @jit
 def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     kind: int,
@@ -285,14 +608,20 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     max_norm: float,
     steps: int,
     adam: bool,
+    eff: tuple,  # type: ignore[type-arg]
+    fx: tuple,  # type: ignore[type-arg]
 ) -> None:
     """``ol``'s E steps on ``hem`` (``kind`` 1) or ``ham`` (2) with one hidden layer, in
     place, as :func:`online` on the plain ``mm``: the closed-form gradient of the MAP
     objective (the prior on the physical parameters only, as ``ol`` has it) through the
     Sachdeva rate and the network, the per-well clip over all of a well's parameters,
-    Adam (``counts`` [5, W]: each parameter's step count per well, in the order z, W1,
-    b1, W2, b2) or SGD, the projection of z into its bounds, and wells in ``hold`` kept
-    still."""
+    Adam (``counts`` [5 + E, W]: each parameter's step count per well, in the order z, W1,
+    b1, W2, b2, then the effects' tensors) or SGD, the projection of z into its bounds,
+    and wells in ``hold`` kept still. ``eff``, ``fx``: the compiled effects, whose factor
+    multiplies the Sachdeva rate, as :func:`effect_online` has them (none: P = 0)."""
+    ze, me, ve, rows, low_e, high_e = eff
+    ge, pe, scratch = np.zeros(ze.shape[1]), np.zeros(ze.shape[1]), _scratch(fx)
+    hyper, zero = (lr, beta1, beta2, eps), np.zeros(z.shape[1], np.int64)
     n_wells, n_samples = y.shape
     n_par = z.shape[1]
     hidden = w1.shape[2]
@@ -305,22 +634,10 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     gw1 = np.zeros((6, hidden))
     gb1 = np.zeros(hidden)
     gw2 = np.zeros(hidden)
-    hz = np.zeros(n_par)
-    hw1 = np.zeros((6, hidden))
-    hb1 = np.zeros(hidden)
-    hw2 = np.zeros(hidden)
-    size = np.zeros(5)
-    root = np.zeros(5)
+    size, root = np.zeros(counts.shape[0]), np.zeros(counts.shape[0])
     for w in range(n_wells):
         weight, d_factor = map_weights(mask, w, noise, scale[w])
-        for i in range(n_par):
-            hz[i] = z[w, i]
-        for k in range(hidden):
-            hb1[k] = b1[w, k]
-            hw2[k] = w2[w, k, 0]
-            for i in range(6):
-                hw1[i, k] = w1[w, i, k]
-        hb2 = b2[w, 0]
+        held = (z[w].copy(), w1[w].copy(), b1[w].copy(), w2[w].copy(), b2[w].copy(), ze[w].copy())
         for _ in range(steps):
             for i in range(6):
                 theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
@@ -332,9 +649,12 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
                 for i in range(6):
                     gw1[i, k] = 0.0
             gb2 = 0.0
+            effect_values(w, ze, fx[1], fx[2], pe)
+            ge[:] = 0.0
             for j in range(n_samples):
                 if not mask[w, j]:
                     continue
+                fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
                 for i in range(6):
                     xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
                 o = b2[w, 0]
@@ -347,14 +667,18 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
                     o += act[k] * w2[w, k, 0]
                 if kind == 2:
                     theta[5] = mu[5] * math.exp(o)
-                    rate = rate_grad(theta, x[w, j], a_max[w], dq)
-                    dq_do = dq[5] * theta[5]
+                    plain = rate_grad(theta, x[w, j], a_max[w], dq)
+                    rate = plain * fxj
+                    dq_do = dq[5] * theta[5] * fxj
                 else:
-                    rate = rate_grad(theta, x[w, j], a_max[w], dq) + scale[w] * o
+                    plain = rate_grad(theta, x[w, j], a_max[w], dq)
+                    rate = plain * fxj + scale[w] * o
                     dq_do = scale[w]
                 g = (rate - y[w, j]) / scale[w] * d_factor
                 for i in range(n_par):
-                    gz[i] += g * dq[i]
+                    gz[i] += g * (dq[i] * fxj)
+                for k in range(ge.shape[0]):
+                    ge[k] += g * (plain * scratch[0][k])
                 g_o = g * dq_do
                 gb2 += g_o
                 for k in range(hidden):
@@ -365,30 +689,17 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
                         for i in range(6):
                             gw1[i, k] += xn[i] * g_a
             # the physical parameters standardised, plus the prior's pull; then the clip
-            sq = 0.0
-            for i in range(n_par):
-                gz[i] = gz[i] * sigma[i] + 2.0 * weight * z[w, i]
-                sq += gz[i] * gz[i]
+            sq = _prior_(w, z, gz, sigma, weight)
             for k in range(hidden):
                 sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
                 for i in range(6):
                     sq += gw1[i, k] * gw1[i, k]
             sq += gb2 * gb2
+            sq += _prior_(w, ze, ge, fx[2], weight)
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
             if adam:
-                for t in range(5):
-                    counts[t, w] += 1.0
-                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
-                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
-            for i in range(n_par):
-                gi = gz[i] * clip
-                if adam:
-                    mz[w, i] = mz[w, i] + (1.0 - beta1) * (gi - mz[w, i])
-                    vz[w, i] = vz[w, i] * beta2 + (1.0 - beta2) * gi * gi
-                    zi = z[w, i] + (-size[0]) * mz[w, i] / (math.sqrt(vz[w, i]) / root[0] + eps)
-                else:
-                    zi = z[w, i] + (-lr) * gi
-                z[w, i] = max(min(zi, z_high[i]), z_low[i])
+                _corrections_(counts, w, size, root, hyper)
+            _bounded_step_(w, z, mz, vz, gz, zero, size, root, clip, z_low, z_high, hyper, adam)
             for k in range(hidden):
                 for i in range(6):
                     gi = gw1[i, k] * clip
@@ -423,15 +734,10 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
                 b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
             else:
                 b2[w, 0] = b2[w, 0] + (-lr) * gi
+            _bounded_step_(w, ze, me, ve, ge, rows, size, root, clip, low_e, high_e, hyper, adam)
             if hold[w]:
-                for i in range(n_par):
-                    z[w, i] = hz[i]
-                for k in range(hidden):
-                    b1[w, k] = hb1[k]
-                    w2[w, k, 0] = hw2[k]
-                    for i in range(6):
-                        w1[w, i, k] = hw1[i, k]
-                b2[w, 0] = hb2
+                z[w], w1[w], b1[w] = held[0], held[1], held[2]
+                w2[w], b2[w], ze[w] = held[3], held[4], held[5]
 
 
 @jit
@@ -1295,45 +1601,62 @@ def log_rate_grad(
     xn: np.ndarray,
     act: np.ndarray,
     H: np.ndarray,
+    fx: tuple,  # type: ignore[type-arg]
+    pe: np.ndarray,
+    scratch: tuple,  # type: ignore[type-arg]
+    j: int,
 ) -> float:
     """log h of one sample ``x`` of well ``w`` (log of the rate clamped at 1e-12) and its
     gradient H [D] with respect to the well's filter state ``state[w]``: the standardised
     physical parameters (``n_phys`` of them, theta[i] = mu[i] + sigma[i] state[w, pos[i]],
-    or mu[i] where pos[i] < 0), then for a hybrid the output layer of its network (the
-    hidden weights W2, then the bias b2; W1, b1 below it stay as fitted). ``kind``: 0 the
-    plain ``mm``, 1 ``hem`` (rate + y_scale o), 2 ``ham`` (C_D = C_D0 exp(o))."""
+    or mu[i] where pos[i] < 0), the compiled effects' parameters (P of them, after the
+    physical ones: the Sachdeva rate times their factor, :func:`effect_factor`), then for a
+    hybrid the output layer of its network (the hidden weights W2, then the bias b2; W1,
+    b1 below it stay as fitted). ``kind``: 0 ``mm``, 1 ``hem`` (rate + y_scale o), 2
+    ``ham`` (C_D = C_D0 exp(o)). ``fx``, ``pe``, ``scratch``: the effects of sample ``j``
+    (:func:`_factor_at`), P = 0 without effects."""
+    n_eff = pe.shape[0]
     for i in range(6):
         theta[i] = mu[i] + sigma[i] * state[w, pos[i]] if pos[i] >= 0 else mu[i]
+    for k in range(n_eff):
+        pe[k] = fx[1][k] + fx[2][k] * state[w, n_phys + k]
+    head = n_phys + n_eff  # where the network's output layer starts
     hidden = w1.shape[2]
     d_log_o = 0.0
+    fxj = _factor_at(fx, pe, scratch, x[0], w, j)
     if kind == 0:
-        rate = rate_grad(theta, x, a_max, dq)
+        plain = rate_grad(theta, x, a_max, dq)
+        rate = plain * fxj
     else:
         for i in range(6):
             xn[i] = (x[i] - x_mean[w, i]) / x_std[w, i]
-        o = state[w, n_phys + hidden]
+        o = state[w, head + hidden]
         for k in range(hidden):
             a = b1[w, k]
             for i in range(6):
                 a += xn[i] * w1[w, i, k]
             act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes, as torch's)
-            o += act[k] * state[w, n_phys + k]
+            o += act[k] * state[w, head + k]
         if kind == 2:
             theta[5] = mu[5] * math.exp(o)
-            rate = rate_grad(theta, x, a_max, dq)
-            d_log_o = dq[5] * theta[5]  # dq / do, divided by the rate below
+            plain = rate_grad(theta, x, a_max, dq)
+            rate = plain * fxj
+            d_log_o = dq[5] * theta[5] * fxj  # dq / do, divided by the rate below
         else:
-            rate = rate_grad(theta, x, a_max, dq) + y_scale[w] * o
+            plain = rate_grad(theta, x, a_max, dq)
+            rate = plain * fxj + y_scale[w] * o
             d_log_o = y_scale[w]
     clamped = max(rate, 1e-12)
     ok = rate >= 1e-12  # torch.clamp's gradient: none below the floor
     for i in range(n_phys):
-        H[i] = dq[i] * sigma[i] / clamped if ok else 0.0
+        H[i] = dq[i] * fxj * sigma[i] / clamped if ok else 0.0
+    for k in range(n_eff):
+        H[n_phys + k] = plain * scratch[0][k] * fx[2][k] / clamped if ok else 0.0
     if kind != 0:
         g = d_log_o / clamped if ok else 0.0
         for k in range(hidden):
-            H[n_phys + k] = g * act[k]
-        H[n_phys + hidden] = g
+            H[head + k] = g * act[k]
+        H[head + hidden] = g
     return math.log(clamped)
 
 
@@ -1384,9 +1707,11 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     noise_floor: float,
     z90: float,
     ns_per_year: float,
+    fx: tuple,  # type: ignore[type-arg]
 ) -> bool:
     n_wells, n_samples = y.shape
     d = state.shape[1]
+    pe, scratch = np.zeros(fx[1].shape[0]), _scratch(fx)  # the effects (_factor_at)
     theta = np.zeros(6)
     dq = np.zeros(6)
     xn = np.zeros(6)
@@ -1429,19 +1754,15 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
             else:
                 dt = 0.0
             for a in range(d):
-                for b in range(d):
-                    Pg[a, b] = P[w, a, b]
-                Pg[a, a] = P[w, a, a] + q[a] * dt
-            for a in range(d):
-                for b in range(d):
-                    P[w, a, b] = Pg[a, b]
+                P[w, a, a] = P[w, a, a] + q[a] * dt
+            Pg[:, :] = P[w]
             last[w] = t
             log_y = math.log(y[w, j])
             R = noise[w, s] ** 2
             # log h and its gradient H at the current parameters (_log_rate_and_gradient)
             log_h = log_rate_grad(
                 kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
-                w1, b1, y_scale, theta, dq, xn, act, H,
+                w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
             )  # fmt: skip
             for i in range(d):
                 H[i] = H[i] * keep[i]
@@ -1584,6 +1905,45 @@ def _made_up_mtl() -> tuple[np.ndarray, ...]:
     )  # fmt: skip
 
 
+def no_effects() -> tuple[np.ndarray, ...]:
+    """The effects (``fx`` of :func:`_factor_at`) of a model without compiled effects."""
+    return (
+        np.zeros((0, 6), dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((1, 1, 0)),
+        np.zeros((1, 1), dtype=bool), np.ones((1, 1), np.int64), np.ones(1),
+    )  # fmt: skip
+
+
+def no_effect_state() -> tuple[np.ndarray, ...]:
+    """The effects' parameters, moments, rows and bounds (``eff`` of :func:`effect_online`
+    and :func:`hybrid_online`) of a model without effects."""
+    none = np.zeros((1, 0))
+    return none, none.copy(), none.copy(), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+
+
+def warm_effects() -> None:
+    """Run the effect kernels once on a made-up sample, every effect code in one model."""
+    x, ones, yes = _made_up_sample()
+    mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
+    one = np.ones(6)
+    # erosion with a step, valve (2 knots), a valve family, a meter bias: 7 parameters
+    terms = np.array(
+        [[FX_EROSION, 0, 2, 0, 1, 0], [FX_VALVE, 2, 2, 0, 2, 0], [FX_FAMILY, 4, 1, 0, 1, 0],
+         [FX_BIAS, 5, 2, 0, 0, 0]], dtype=np.int64,
+    )  # fmt: skip
+    p = 7
+    fx = (terms, np.zeros(p), np.ones(p), np.ones((1, 1, 1)), np.zeros((1, 1), dtype=bool),
+          np.ones((1, 1), np.int64), np.ones(1) / 2)  # fmt: skip
+    ze = np.zeros((1, p))
+    effect_rates(np.zeros((1, 6)), x, np.ones(1), mu, one, ze, fx, np.zeros((1, 1)))
+    eff = (ze.copy(), np.zeros((1, p)), np.zeros((1, p)), np.array([1, 1, 2, 2, 3, 4, 4]),
+           -np.ones(p), np.ones(p))  # fmt: skip
+    effect_online(
+        np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((5, 1)),
+        np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), np.ones(1), mu, one, (-one, one),
+        0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, 1, True, eff, fx,
+    )  # fmt: skip
+
+
 def warm_up() -> None:
     """Run each kernel once on a made-up sample (compiles it, or loads it from the cache)."""
     one = np.ones((1, 6))
@@ -1600,7 +1960,7 @@ def warm_up() -> None:
         hybrid_rates(
             np.zeros((1, 6)), pos, mu, one[0], x, np.ones(1), np.zeros((1, 6)), one,
             np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1)), np.ones(1),
-            area_model, np.zeros((1, 1)),
+            area_model, np.zeros((1, 1)), np.zeros((1, 0)), no_effects(),
         )  # fmt: skip
     for kind in (1, 2):
         net = [np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)), np.ones((1, 1))]
@@ -1608,7 +1968,8 @@ def warm_up() -> None:
         hybrid_online(  # type: ignore[call-arg]
             kind, np.zeros((1, 6)), *net, *moments, np.zeros((5, 1)), np.zeros(1, dtype=bool),  # type: ignore[arg-type]
             x, ones, yes, np.ones(1), np.ones(1), pos, mu, one[0], np.zeros((1, 6)), one,
-            -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True,
+            -one[0], one[0], 0.05, 1e-3, 0.9, 0.999, 1e-8, 1.0, 1, True, no_effect_state(),
+            no_effects(),
         )  # fmt: skip
     count = np.zeros(1, dtype=np.int64)
     for kind, hidden in ((0, 0), (1, 4), (2, 4)):
@@ -1621,8 +1982,9 @@ def warm_up() -> None:
             kind, np.ones(1), pos, mu, one[0], 6, np.zeros((1, 6)), one,
             np.ones((1, 6, hidden)), np.ones((1, hidden)), np.ones(1),
             -np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.zeros(2, dtype=bool),
-            3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16,
+            3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16, no_effects(),
         )  # fmt: skip
+    warm_effects()
     out = [np.zeros((1, 1)) for _ in range(3)]
     bayes_spread(
         ones, np.zeros((1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),

@@ -63,6 +63,10 @@ from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
 from vfm_core.learning.kernels import (
     compiled,
+    compiled_effects,
+    effect_arguments,
+    effect_bounds,
+    effect_parameters,
     kernels_enabled,
     physics_layout,
     plain_hybrid,
@@ -487,17 +491,20 @@ class BayesianFilter(LearningMethod):
         if self.kalman_iterations != 1 or not blocks:
             return None
         params = [b.param for b in blocks]
-        if plain_mm(model):
-            if params != [model.phys.z]:
+        # with effects that multiply the rate (compiled): their parameters after the physics'
+        base = compiled_effects(model)
+        if plain_mm(model) or base == "mm":
+            mine = effect_parameters(model)  # z, then each effect's (none: the plain mm)
+            if [id(p) for p in params] != [id(q) for q in mine]:
                 return None
             kind, lower = 0, None
-        elif plain_hybrid(model):
+        elif plain_hybrid(model) or base in ("hem", "ham"):
             net = model.net
-            head = [model.phys.z, net.weights[-1], net.biases[-1]]
-            if len(params) != 3 or not all(p is q for p, q in zip(params, head, strict=True)):
+            head = [*effect_parameters(model), net.weights[-1], net.biases[-1]]
+            if [id(p) for p in params] != [id(q) for q in head]:
                 return None
             kind, lower = (
-                (2 if model.compiled_as() == "ham" else 1),
+                (2 if (base or model.compiled_as()) == "ham" else 1),
                 (net.weights[0], net.biases[0]),
             )
         else:
@@ -505,8 +512,10 @@ class BayesianFilter(LearningMethod):
         pos, mu, sigma = physics_layout(model)
         n_phys = len(model.phys.names)
         low, high = model.phys.z_low.numpy(), model.phys.z_high.numpy()
+        e_low, e_high = effect_bounds(model)
+        low, high = np.concatenate([low, e_low]), np.concatenate([high, e_high])
         if kind:
-            free = np.full(self._dim - n_phys, np.inf)  # the output layer: no bounds
+            free = np.full(self._dim - len(low), np.inf)  # the output layer: no bounds
             low, high = np.concatenate([low, -free]), np.concatenate([high, free])
         return {
             "kind": kind,
@@ -859,7 +868,9 @@ class BayesianFilter(LearningMethod):
         :func:`~vfm_core.learning.kernels.plain_mm`) with its parameters the one filter
         block, or on the plain ``hem`` or ``ham`` (see
         :func:`~vfm_core.learning.kernels.plain_hybrid`) with its parameters and its
-        network's output layer, and the kernels enabled. The same steps as :meth:`_update`,
+        network's output layer, or on either with effects that all have a compiled form
+        (:func:`~vfm_core.learning.kernels.compiled_effects`: their parameters after the
+        physical ones), and the kernels enabled. The same steps as :meth:`_update`,
         in the same order (``tests/test_kernels.py``)."""
         return self._layout is not None and kernels_enabled()
 
@@ -931,6 +942,7 @@ class BayesianFilter(LearningMethod):
                 _NOISE_FLOOR,
                 Z90,
                 _NS_PER_YEAR,
+                *effect_arguments(model, batch),
             )
             if taken:  # written back through torch, as the torch path's in-place update
                 values = torch.from_numpy(state)
@@ -986,6 +998,37 @@ class BayesianFilter(LearningMethod):
     def stats(self) -> dict[str, torch.Tensor]:
         """Per well: measurements taken, down-weighted and refused, and resets after a change."""
         return {k: v.clone() for k, v in self._counts.items()}
+
+    # -- a joint update's access (vfm_core.separator: one reading of many wells' sum) ------------
+    def filter_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Copies of the filtered parameters theta [W, D] (the filter's own scale), their
+        covariance P [W, D, D] at each well's last update, that time [W] (epoch ns) and each
+        meter's relative noise [W, 2] (sd; MPFM, well test)."""
+        theta = _flat(self._blocks, len(self.model.wells)) if self._blocks else torch.zeros(0)
+        return theta.clone(), self._P.clone(), self._last.clone(), self._noise.clone()
+
+    def grown_covariance(self, now_ns: torch.Tensor) -> torch.Tensor:
+        """P [W, D, D] after each well's drift from its last update to ``now_ns`` [W]."""
+        return self._grow(now_ns)
+
+    def log_rate_and_gradient(
+        self, one: Batch, live: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """log h [W] (h in Sm3/h) and its gradient over the filtered parameters [W, D] at
+        the current parameters, for one sample per well (``live`` [W]: the wells that count)."""
+        log_h, H = self._log_rate_and_gradient(one, live)
+        return log_h, H * self._keep.to(DTYPE)
+
+    def set_filter_state(
+        self, theta: torch.Tensor, P: torch.Tensor, now_ns: torch.Tensor, wells: torch.Tensor
+    ) -> None:
+        """Take a joint update's result for ``wells`` [W] (bool): parameters theta [W, D]
+        (then kept within their bounds), covariance P [W, D, D], last update ``now_ns`` [W]."""
+        _assign(self._blocks, theta, wells)
+        self.model.project_()
+        self._P[wells] = P[wells]  # in place: the compiled filter reads this same tensor
+        self._last[wells] = now_ns[wells]
+        self._started |= wells
 
     # -- state ----------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -25,10 +25,21 @@ arithmetic, in the same order, as one loop over wells and samples:
   convergence decision for the field). ``VFM_FIT_KERNEL=0`` turns these off alone (a
   comparison side by side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
 
+Effects that multiply the rate (their ``area_factor`` or ``output_factor``: erosion,
+erosion_time, valve, the valve families, mpfm_bias; :meth:`vfm_core.effects.Effect.compiled_factor`)
+run on the same kernels: a compiled per-effect function
+(:func:`vfm_core.learning._mm_numba.effect_factor`) gives each sample's rate factor F and
+dF / d(effect parameters), the rate is the plain one times F, and the effects' parameters
+step, filter and clip beside the mechanistic ones (:func:`effect_online_steps`,
+:func:`effect_rates` for ``mm``; :func:`hybrid_online_steps`, :func:`hybrid_rates` and
+the filter for ``hem`` and ``ham``). ``tests/test_effect_kernels.py`` compares them with
+the torch path.
+
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
 the torch path (parameters, optimiser and filter states to 1e-10 or better after many
-updates, predictions to 1e-13, the gradient against autograd). Anything else (effects,
-the hybrids, another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
+updates, predictions to 1e-13, the gradient against autograd). Anything else (effects
+that change the flux: real_gas, slip, critical_ratio; a user's effect without a compiled
+form; another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
 
 ``VFM_KERNELS=0`` in the environment turns the kernels off (the torch path then runs), for
 a comparison side by side or where numba cannot compile.
@@ -51,6 +62,13 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "kernels_enabled",
     "compiled",
+    "compiled_effects",
+    "effect_arguments",
+    "effect_bounds",
+    "effect_online_steps",
+    "effect_parameters",
+    "effect_rates",
+    "effects_applies",
     "FitSteps",
     "MtlFitSteps",
     "fit_parameters",
@@ -61,6 +79,7 @@ __all__ = [
     "plain_lr",
     "plain_nn",
     "hybrid_applies",
+    "hybrid_effects_applies",
     "hybrid_online_steps",
     "hybrid_parameters",
     "hybrid_rates",
@@ -154,7 +173,8 @@ def warm() -> bool:
 
 def mm_online_applies(model: Any) -> bool:
     """True when :func:`mm_online_steps` computes ``model``'s online steps: exactly the
-    plain ``mm`` (no effects, no subclass), in float64, and the kernel is enabled."""
+    plain ``mm`` (no effects, no subclass), in float64, and the kernel is enabled (``mm``
+    with compiled effects: :func:`effects_applies`)."""
     return plain_mm(model) and kernels_enabled()
 
 
@@ -226,8 +246,10 @@ def predict_rates(model: Any, batch: Any) -> torch.Tensor:
     own otherwise."""
     if mm_online_applies(model):
         q = mm_rates(model, batch)
-    elif hybrid_applies(model):
+    elif hybrid_applies(model) or hybrid_effects_applies(model):
         q = hybrid_rates(model, batch)
+    elif effects_applies(model):
+        q = effect_rates(model, batch)
     else:
         return model.predict_batch(batch)  # type: ignore[no-any-return]
     return torch.where(model.ready.unsqueeze(1), q, torch.full_like(q, float("nan")))
@@ -246,9 +268,17 @@ def plain_hybrid(model: Any) -> bool:
 
 
 def hybrid_parameters(model: Any) -> list[torch.nn.Parameter]:
-    """The parameters :func:`hybrid_online_steps` steps, in its order: z, W1, b1, W2, b2."""
+    """The parameters :func:`hybrid_online_steps` steps, in its order: z, W1, b1, W2, b2,
+    then each effect's z (a hybrid with compiled effects, :func:`hybrid_effects_applies`)."""
     net = model.net
-    return [model.phys.z, net.weights[0], net.biases[0], net.weights[1], net.biases[1]]
+    own = [model.phys.z, net.weights[0], net.biases[0], net.weights[1], net.biases[1]]
+    return own + effect_parameters(model)[1:]
+
+
+def hybrid_effects_applies(model: Any) -> bool:
+    """True when :func:`hybrid_online_steps` and :func:`hybrid_rates` compute ``hem`` or
+    ``ham`` with its effects (every one with a compiled form), the kernels enabled."""
+    return compiled_effects(model) in ("hem", "ham") and kernels_enabled()
 
 
 def hybrid_online_steps(
@@ -278,16 +308,20 @@ def hybrid_online_steps(
     params = hybrid_parameters(model) if params is None else params
     pos, mu, sigma = physics_layout(model)
     a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
+    kind = compiled_effects(model) or model.compiled_as()
     with torch.no_grad():
         values = [_in_place(p) for p in params]
         if moments is None:
             state = [np.zeros_like(v) for v in values for _ in range(2)]
         else:  # (optimiser state, in no graph: written in place)
             state = [_in_place(t) for pair in moments for t in pair]
+        eff = values[5:]
+        own = list(zip(state[10::2], state[11::2], strict=True)) if moments is not None else None
+        effects = _effect_state(model, eff, own, 5)
         kernel.hybrid_online(
-            2 if model.compiled_as() == "ham" else 1,
-            *values,
-            *state,
+            2 if kind == "ham" else 1,
+            *values[:5],
+            *state[:10],
             counts,
             hold,
             np.ascontiguousarray(batch.x.numpy()),
@@ -309,7 +343,10 @@ def hybrid_online_steps(
             float(max_norm),
             int(steps),
             moments is not None,
+            effects,
+            _fx(model, batch),
         )
+        _effect_state_back(eff, own, effects)
         _written_back(
             [*params, *(t for pair in moments or [] for t in pair)],
             values + (state if moments is not None else []),
@@ -832,7 +869,9 @@ def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
     phys, net = model.phys, model.net
     pos, mu, sigma = physics_layout(model)
     out = np.empty(tuple(batch.y.shape))
+    kind = compiled_effects(model) or model.compiled_as()
     with torch.no_grad():
+        eff = [p.detach().numpy() for p in effect_parameters(model)[1:]]
         kernel.hybrid_rates(
             phys.z.detach().numpy(),
             pos,
@@ -847,8 +886,10 @@ def hybrid_rates(model: Any, batch: Any) -> torch.Tensor:
             net.weights[1].detach().numpy(),
             net.biases[1].detach().numpy(),
             model.y_scale.numpy(),
-            model.compiled_as() == "ham",
+            kind == "ham",
             out,
+            _joined(eff) if eff else _no_effects("eff")[0],
+            _fx(model, batch),
         )
     return torch.from_numpy(out)
 
@@ -870,6 +911,250 @@ def mm_rates(model: Any, batch: Any) -> torch.Tensor:
             out,
         )
     return torch.from_numpy(out)
+
+
+# -- models with effects that multiply the rate (Effect.compiled_factor) -------------------
+def compiled_effects(model: Any) -> str | None:
+    """``mm``, ``hem`` or ``ham`` when the kernels compute ``model`` with its effects (the
+    model's ``compiled_with_effects``: every effect has a compiled form), else None."""
+    probe = getattr(model, "compiled_with_effects", None)
+    return None if probe is None else probe()  # type: ignore[no-any-return]
+
+
+def effects_applies(model: Any) -> bool:
+    """True when :func:`effect_online_steps` and :func:`effect_rates` compute ``model``:
+    ``mm`` with effects that all have a compiled form, the kernels enabled."""
+    return compiled_effects(model) == "mm" and kernels_enabled()
+
+
+def effect_parameters(model: Any) -> list[torch.nn.Parameter]:
+    """The parameters of :func:`effect_online_steps`, in its order: the mechanistic z,
+    then each effect's z (in the order of ``model.effects``)."""
+    return [model.phys.z, *(model.effect_block(e.name).z for e in model.effects)]
+
+
+def _effect_priors(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The effects' parameters' prior means and sds (SI) and bounds in z, concatenated in
+    the order of :func:`effect_parameters` (kept while the blocks hold the same tensors)."""
+    parts = [
+        buffer_views(model.effect_block(e.name), ("mu", "sigma", *_BOUNDS)) for e in model.effects
+    ]
+    if len(parts) == 1:
+        return parts[0]  # type: ignore[return-value]
+    return tuple(np.concatenate(col) for col in zip(*parts, strict=True))  # type: ignore[return-value]
+
+
+def _effect_terms(model: Any, names: tuple[str, ...]) -> np.ndarray:
+    """The kernels' table of the model's effects [T, 6] (code, first parameter, number of
+    parameters, feature column in ``names``, two settings), for batches whose feature
+    columns are ``names`` (kept per model and names)."""
+    cache: dict[tuple[str, ...], np.ndarray] = model.__dict__.setdefault("_vfm_terms", {})
+    terms = cache.get(names)
+    if terms is None:
+        rows, start = [], 0
+        for e in model.effects:
+            form = e.compiled_factor()
+            size = len(e.parameters)
+            column = names.index(form.column) if form.column is not None else 0
+            rows.append([form.code, start, size, column, *form.settings])
+            start += size
+        terms = np.array(rows, dtype=np.int64).reshape(len(rows), 6)
+        cache[names] = terms
+    return terms
+
+
+#: the kernels' arguments for a model without effects (never written), once built
+_EMPTY: dict[str, tuple[np.ndarray, ...]] = {}
+
+
+def _no_effects(what: str) -> tuple[np.ndarray, ...]:
+    """``fx`` (the effects, ``what`` = "fx") or ``eff`` (their state, "eff") of a model
+    without effects, as :mod:`vfm_core.learning._mm_numba` takes them."""
+    if what not in _EMPTY:
+        from vfm_core.learning import _mm_numba as k
+
+        _EMPTY["fx"], _EMPTY["eff"] = k.no_effects(), k.no_effect_state()
+    return _EMPTY[what]
+
+
+def _fx(model: Any, batch: Any) -> tuple[np.ndarray, ...]:
+    """The effects as the kernels read them (``fx`` of ``_mm_numba._factor_at``): terms,
+    the parameters' prior means and sds (SI), the batch's feature columns [W, N, E], well
+    tests [W, N], times [W, N] (ns), the wells' reference openings [W]."""
+    if not getattr(model, "effects", None):
+        return _no_effects("fx")
+    n_w, n = int(batch.y.shape[0]), int(batch.y.shape[1])
+    extra = (
+        np.zeros((n_w, n, 0)) if batch.extra is None else np.ascontiguousarray(batch.extra.numpy())
+    )
+    test = (
+        np.zeros((n_w, n), dtype=bool)
+        if batch.well_test is None
+        else np.ascontiguousarray(batch.well_test.numpy())
+    )
+    mu_e, sigma_e, _, _ = _effect_priors(model)
+    return (
+        _effect_terms(model, tuple(batch.extra_names)),
+        mu_e,
+        sigma_e,
+        extra,
+        test,
+        np.ascontiguousarray(batch.time_ns.numpy()),
+        model.u_ref.numpy(),
+    )
+
+
+def effect_arguments(model: Any, batch: Any) -> tuple[tuple[np.ndarray, ...]]:
+    """The effect argument of the compiled filter (``bayes`` of
+    :mod:`vfm_core.learning._mm_numba`), the empty one for a model without effects."""
+    return (_fx(model, batch),)
+
+
+def effect_bounds(model: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds in z of the effects' parameters, concatenated (empty without effects)."""
+    if not getattr(model, "effects", None):
+        return np.zeros(0), np.zeros(0)
+    _, _, low, high = _effect_priors(model)
+    return low, high
+
+
+def effect_rates(model: Any, batch: Any) -> torch.Tensor:
+    """The rate [W, N] (Sm3/h) of ``mm`` with compiled effects (see :func:`effects_applies`),
+    what ``model.forward_batch`` gives, without a graph."""
+    kernel = _kernel()
+    assert kernel is not None
+    phys = model.phys
+    out = np.empty(tuple(batch.y.shape))
+    with torch.no_grad():
+        kernel.effect_rates(
+            phys.z.detach().numpy(),
+            np.ascontiguousarray(batch.x.numpy()),
+            model.a_max.numpy(),
+            phys.mu.numpy(),
+            phys.sigma.numpy(),
+            _joined([p.detach().numpy() for p in effect_parameters(model)[1:]]),
+            _fx(model, batch),
+            out,
+        )
+    return torch.from_numpy(out)
+
+
+def _effect_state(
+    model: Any,
+    eff: list[np.ndarray],
+    moments: list[tuple[np.ndarray, np.ndarray]] | None,
+    first: int,
+) -> tuple[np.ndarray, ...]:
+    """``eff`` of the online kernels: the effects' parameters side by side (``eff`` their
+    arrays), their Adam moments (zeros for SGD), each parameter's row of the step counts
+    (the effects' tensors after the model's ``first`` ones), their bounds in z."""
+    if not eff:
+        return _no_effects("eff")
+    ze = _joined(eff)
+    if moments is None:
+        me, ve = np.zeros_like(ze), np.zeros_like(ze)
+    else:
+        me, ve = _joined([a for a, _ in moments]), _joined([b for _, b in moments])
+    sizes = [a.shape[1] for a in eff]
+    rows = np.repeat(np.arange(first, first + len(eff), dtype=np.int64), sizes)
+    _, _, low, high = _effect_priors(model)
+    return ze, me, ve, rows, low, high
+
+
+def _effect_state_back(
+    eff: list[np.ndarray],
+    moments: list[tuple[np.ndarray, np.ndarray]] | None,
+    state: tuple[np.ndarray, ...],
+) -> None:
+    """Write the kernels' ``eff`` (:func:`_effect_state`) back into the arrays it joined."""
+    if not eff:
+        return
+    _split_back(eff, state[0])
+    if moments is not None:
+        _split_back([a for a, _ in moments], state[1])
+        _split_back([b for _, b in moments], state[2])
+
+
+def _joined(arrays: list[np.ndarray]) -> np.ndarray:
+    """Arrays [W, k_i] side by side [W, sum k_i]: the one array itself (its memory, written
+    in place) when there is one."""
+    if len(arrays) == 1:
+        return _in_place(arrays[0])
+    return np.ascontiguousarray(np.concatenate(arrays, axis=1))
+
+
+def _split_back(arrays: list[np.ndarray], joined: np.ndarray) -> None:
+    """Write ``joined`` (from :func:`_joined`) back into ``arrays`` (unless it is the one)."""
+    if len(arrays) == 1 and joined is arrays[0]:
+        return
+    start = 0
+    for a in arrays:
+        k = a.shape[1]
+        np.copyto(a, joined[:, start : start + k])
+        start += k
+
+
+def effect_online_steps(
+    model: Any,
+    batch: Any,
+    moments: list[tuple[torch.Tensor, torch.Tensor]] | list[tuple[np.ndarray, np.ndarray]] | None,
+    counts: np.ndarray,
+    hold: np.ndarray,
+    *,
+    steps: int,
+    noise: float,
+    lr: float,
+    betas: tuple[float, float],
+    eps: float,
+    max_norm: float,
+) -> None:
+    """E steps of ``ol`` on ``mm`` with compiled effects (see :func:`effects_applies`) and
+    ``batch``, in place, as :func:`mm_online_steps`: the parameters of
+    :func:`effect_parameters`; with Adam their moments (``moments``, one (exp_avg,
+    exp_avg_sq) pair per parameter in that order) and ``counts`` [len(parameters), W]
+    (each parameter's step count per well, as floats), advanced by ``steps``; ``moments``
+    None is SGD. Wells in ``hold`` keep their parameters."""
+    kernel = _kernel()
+    assert kernel is not None
+    params = effect_parameters(model)
+    with torch.no_grad():
+        z = _in_place(params[0])
+        eff = [p.detach().numpy() for p in params[1:]]
+        if moments is None:
+            m, v = np.zeros_like(z), np.zeros_like(z)
+            own = None
+        else:
+            m, v = _in_place(moments[0][0]), _in_place(moments[0][1])
+            own = [(_in_place(a), _in_place(b)) for a, b in moments[1:]]
+        state = _effect_state(model, eff, own, 1)
+        kernel.effect_online(
+            z,
+            m,
+            v,
+            counts,
+            hold,
+            np.ascontiguousarray(batch.x.numpy()),
+            np.ascontiguousarray(batch.y.numpy()),
+            np.ascontiguousarray(batch.mask.numpy()),
+            *buffer_views(model, _SCALES[:2]),
+            *buffer_views(model.phys, ("mu", "sigma")),
+            buffer_views(model.phys, _BOUNDS),
+            float(noise),
+            (float(lr), float(betas[0]), float(betas[1]), float(eps)),
+            float(max_norm),
+            int(steps),
+            moments is not None,
+            state,
+            _fx(model, batch),
+        )
+        _effect_state_back(eff, own, state)
+        _written_back([params[0]], [z])
+        if moments is not None:
+            assert own is not None
+            _written_back(
+                [t for pair in moments for t in pair],
+                [m, v, *(a for pair in own for a in pair)],
+            )
 
 
 #: the buffers the kernels read: the model's scales, the physics' bounds
@@ -937,4 +1222,6 @@ def _build() -> SimpleNamespace:
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,
         bayes_spread=k.bayes_spread,
+        effect_rates=k.effect_rates,
+        effect_online=k.effect_online,
     )

@@ -8,6 +8,7 @@ from one measurement to the next and is part of the method's state.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -18,8 +19,13 @@ import torch.optim.optimizer as _torch_optimizer
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.learning.kernels import (
+    compiled_effects,
+    effect_online_steps,
+    effect_parameters,
+    effects_applies,
     fit_parameters,
     hybrid_applies,
+    hybrid_effects_applies,
     hybrid_online_steps,
     hybrid_parameters,
     kernels_enabled,
@@ -102,6 +108,8 @@ class OnlineLearning(LearningMethod):
         self._nn = False
         #: ... or the plain mtl's with Adam (kernels.mtl_online_steps)
         self._mtl = False
+        #: ... or mm's with effects that have a compiled form (kernels.effect_online_steps)
+        self._effects = False
         self.updates = 0
 
     def bind(  # type: ignore[override]
@@ -124,11 +132,16 @@ class OnlineLearning(LearningMethod):
             self._params = params
             self._groups = split_parameters(self.model)
             # the plain hem and ham, every parameter stepped: their compiled steps
-            hybrid = hybrid_parameters(self.model) if plain_hybrid(self.model) else None
+            shape = plain_hybrid(self.model) or compiled_effects(self.model) in ("hem", "ham")
+            hybrid = hybrid_parameters(self.model) if shape else None
             self._hybrid = hybrid if hybrid is not None and self._all_of(hybrid) else None
             # with torch's plain Adam or SGD: the plain mm (its one tensor, z) or the
             # plain hybrids (every parameter) step compiled
             mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr, list-item]
+            # mm with effects that multiply the rate, every parameter stepped
+            self._effects = compiled_effects(self.model) == "mm" and self._all_of(
+                effect_parameters(self.model)
+            )
             # the plain nn or lr with SGD (their default), every parameter stepped
             plain = plain_nn(self.model) or plain_lr(self.model)
             net = fit_parameters(self.model) if plain else None
@@ -144,7 +157,7 @@ class OnlineLearning(LearningMethod):
             self._compiled = (
                 plain_optimizer(self._opt)
                 and self._sched is None
-                and (mm or self._hybrid is not None or self._nn or self._mtl)
+                and (mm or self._hybrid is not None or self._nn or self._mtl or self._effects)
             )
         return self._opt
 
@@ -251,8 +264,9 @@ class OnlineLearning(LearningMethod):
         params: list[torch.nn.Parameter] | None = None,
     ) -> None:
         """The E steps of :meth:`_learn`, compiled, on the optimiser's own state: the plain
-        ``mm`` (``params`` None: :func:`vfm_core.learning.kernels.mm_online_steps`) or the
-        plain ``hem`` / ``ham`` (``params`` in the order of
+        ``mm`` (``params`` None: :func:`vfm_core.learning.kernels.mm_online_steps`), ``mm``
+        with compiled effects (:func:`~vfm_core.learning.kernels.effect_online_steps`) or
+        ``hem`` / ``ham``, plain or with compiled effects (``params`` in the order of
         :func:`~vfm_core.learning.kernels.hybrid_online_steps`)."""
         if self._mtl:
             step_counts, views = self._adam_views(opt, mtl_parameters(self.model))
@@ -277,6 +291,8 @@ class OnlineLearning(LearningMethod):
                 p.grad = None
             return
         z: torch.nn.Parameter = self.model.phys.z  # type: ignore[assignment, union-attr]
+        if self._effects:
+            params = effect_parameters(self.model)
         steps = [z] if params is None else params
         group = opt.param_groups[0]
         counts = np.zeros((len(steps), z.shape[0]))  # each parameter's step count per well
@@ -298,6 +314,8 @@ class OnlineLearning(LearningMethod):
         if params is None:
             first = None if moments is None else moments[0]
             mm_online_steps(self.model, batch, first, counts[0], idle, **kw)
+        elif self._effects:
+            effect_online_steps(self.model, batch, moments, counts, idle, **kw)
         else:
             hybrid_online_steps(self.model, batch, moments, counts, idle, params=params, **kw)
         if adam:
@@ -391,6 +409,39 @@ def _same_parameters(a: list[torch.nn.Parameter], b: list[torch.nn.Parameter]) -
     return len(a) == len(b) and {id(p) for p in a} == {id(p) for p in b}
 
 
+def _mm_steps(
+    model: ChokeModel,
+    batch: Batch,
+    moments: list[Any] | None,
+    counts: np.ndarray,
+    hold: np.ndarray,
+    **kw: Any,
+) -> None:
+    """:func:`~vfm_core.learning.kernels.mm_online_steps` with the moments and step counts
+    of its one parameter given as lists (of :func:`_compiled_order`'s functions)."""
+    mm_online_steps(model, batch, None if moments is None else moments[0], counts[0], hold, **kw)
+
+
+def _compiled_order(
+    model: ChokeModel, params: list[torch.nn.Parameter]
+) -> tuple[list[torch.nn.Parameter], Callable[..., None]] | None:
+    """The compiled ``ol`` steps of ``model`` (the plain ``mm``, ``mm`` with compiled
+    effects, or ``hem`` / ``ham`` plain or with compiled effects): the parameters in their
+    order and the function, when they step exactly ``params``; else None."""
+    order: list[torch.nn.Parameter]
+    run: Callable[..., None]
+    if mm_online_applies(model):
+        order, run = [model.phys.z], _mm_steps  # type: ignore[list-item,union-attr]
+    elif effects_applies(model):
+        order, run = effect_parameters(model), effect_online_steps
+    elif hybrid_applies(model) or hybrid_effects_applies(model):
+        order = hybrid_parameters(model)
+        run = functools.partial(hybrid_online_steps, params=order)
+    else:
+        return None
+    return (order, run) if _same_parameters(params, order) else None
+
+
 def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's Adam per well
     stacked: StackedModel, learners: list[OnlineLearning], batch: Batch
 ) -> Callable[[], None]:
@@ -435,22 +486,14 @@ def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's
     groups = split_parameters(model)
     objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
     factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
-    if len(params) == 1 and mm_online_applies(model):  # the same steps, compiled
-        before = np.array(steps[0] if adam else [0.0] * k, dtype=np.float64)
-        mm_online_steps(
-            model, batch, moments[0], before, np.zeros(k, dtype=bool), steps=s.steps,
-            noise=s.noise, lr=lr, betas=betas, eps=eps, max_norm=s.max_grad_norm,
-        )  # fmt: skip
-        if adam:
-            steps[0] = before.tolist()
-        stepped[0] = s.steps
-    elif hybrid_applies(model) and _same_parameters(params, order := hybrid_parameters(model)):
+    if (compiled := _compiled_order(model, params)) is not None:
+        order, run = compiled
         index = [[id(p) for p in params].index(id(q)) for q in order]
         before_all = np.array([steps[j] if adam else [0.0] * k for j in index], dtype=np.float64)
-        hybrid_online_steps(  # the same steps, compiled
-            model, batch, [moments[j] for j in index] if adam else None,  # type: ignore[misc, arg-type]
-            before_all, np.zeros(k, dtype=bool), steps=s.steps, noise=s.noise, lr=lr,
-            betas=betas, eps=eps, max_norm=s.max_grad_norm, params=order,
+        run(  # the same steps, compiled
+            model, batch, [moments[j] for j in index] if adam else None, before_all,
+            np.zeros(k, dtype=bool), steps=s.steps, noise=s.noise, lr=lr, betas=betas, eps=eps,
+            max_norm=s.max_grad_norm,
         )  # fmt: skip
         for j in index:
             stepped[j] = s.steps

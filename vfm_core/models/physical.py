@@ -395,15 +395,33 @@ class Mechanistic(ChokeModel):
     def compiled_as(self) -> str | None:
         """``mm`` for exactly this class without effects, its six parameters in the order
         of :data:`PHYSICAL_NAMES`, in float64 (see :meth:`ChokeModel.compiled_as`)."""
-        if type(self) is not Mechanistic or self.effects:
+        return None if self.effects else self._compiled_shape()
+
+    def compiled_with_effects(self) -> str | None:
+        """What :meth:`compiled_as` would say of this model without its effects, when it
+        has effects and every one of them has a compiled form
+        (:meth:`vfm_core.effects.Effect.compiled_factor`: the effects that multiply the
+        rate); else None. The kernels then compute the model with its effects."""
+        if not self.effects:
+            return None
+        compiled = self.__dict__.get("_vfm_compiled_effects")
+        if compiled is None:
+            compiled = all(e.compiled_factor() is not None for e in self.effects)
+            self.__dict__["_vfm_compiled_effects"] = compiled
+        return self._compiled_shape() if compiled else None
+
+    def _compiled_shape(self) -> str | None:
+        """The kernels' name of this model's shape, effects aside: ``mm`` for exactly this
+        class, its six parameters in the order of :data:`PHYSICAL_NAMES`, in float64."""
+        if type(self) is not Mechanistic:
             return None
         plain = tuple(self.phys.names) == PHYSICAL_NAMES and self.phys.z.dtype == torch.float64
         return "mm" if plain else None
 
     def _one_hidden_layer(self, n_phys: int) -> bool:
-        """A hybrid the kernels compute: no effects, a network of one hidden layer on the
+        """A hybrid the kernels compute (effects aside): a network of one hidden layer on the
         six inputs, the first ``n_phys`` physical parameters, all in float64."""
-        if self.effects or self.net is None:
+        if self.net is None:
             return False
         weights = self.net.weights
         names = tuple(self.phys.names)
@@ -476,9 +494,9 @@ class HybridError(Mechanistic):
             self.normalise(batch.x)
         )
 
-    def compiled_as(self) -> str | None:
+    def _compiled_shape(self) -> str | None:
         """``hem`` for exactly this class in the kernels' shape (one hidden layer on the six
-        inputs, no effects, float64; see :meth:`ChokeModel.compiled_as`)."""
+        inputs, float64; see :meth:`ChokeModel.compiled_as`)."""
         return "hem" if type(self) is HybridError and self._one_hidden_layer(6) else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:
@@ -532,9 +550,9 @@ class HybridArea(Mechanistic):
         factor = torch.exp(self.net(self.normalise(x)))
         return (ph.PRIORS["c_d"].mean * self.a_max).unsqueeze(1) * x[..., 0] * factor
 
-    def compiled_as(self) -> str | None:
+    def _compiled_shape(self) -> str | None:
         """``ham`` for exactly this class in the kernels' shape (one hidden layer on the six
-        inputs, no effects, float64; see :meth:`ChokeModel.compiled_as`)."""
+        inputs, float64; see :meth:`ChokeModel.compiled_as`)."""
         return "ham" if type(self) is HybridArea and self._one_hidden_layer(5) else None
 
     def rate_vjp(self, batch: Batch) -> tuple[torch.Tensor, Pullback] | None:

@@ -1,0 +1,386 @@
+"""Effects that multiply the rate run on the compiled path (issue 37, item 2) and compute
+what the torch path computes.
+
+- ``ol`` on ``mm`` with each compiled library effect (and three at once): after 60 updates
+  the parameters, Adam's moments and step counts and the predictions equal the torch
+  path's to 1e-10 relative; so do ``bayes``'s parameters, filter state and forecasts
+  (``mm`` and ``ham``);
+- the many-well path (``learn_many`` / ``predict_many``) likewise;
+- a derivative broken on purpose (dF/dp off by 0.1 %) fails the comparison: it can fail;
+- effects without a compiled form (real gas, slip, critical ratio, a user's subclass that
+  rewrites a hook) keep the torch path.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from vfm_core.data import Batch, make_batch, target_mask
+from vfm_core.effects import EffectInputs, Erosion, add_features
+from vfm_core.jobs.study import wells_of
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, kernels, parse_method
+from vfm_core.learning import _mm_numba as numba_kernels
+from vfm_core.learning.online import OnlineSettings
+from vfm_core.models import make_model
+from vfm_core.observations import validate_frame
+from vfm_core.schema import INPUT_COLUMNS, TARGET
+from vfm_core.simulate import simulate_field
+
+pytestmark = pytest.mark.skipif(not kernels.kernels_enabled(), reason="numba is not installed")
+
+#: a step inside the simulated year of the stream (erosion's optional C_D step)
+_STEP = "erosion:step_at=2016-09-01"
+
+
+@pytest.fixture(scope="module")
+def frame() -> pd.DataFrame:
+    """Three simulated wells over a year (MPFM rows and well tests), every feature column."""
+    frame = validate_frame(simulate_field(wells=3, years=1.0, seed=8).observations).frame
+    return add_features(frame, ["erosion", "erosion_time", "mpfm_bias"])
+
+
+def _stream(frame: pd.DataFrame, effects: list[str]) -> tuple[Batch, list[Batch]]:
+    """A history of 150 measurements per well, then 60 one-sample columns."""
+    probe = make_model("mm", ["w"], effects=effects)
+    rows = np.flatnonzero(target_mask(frame, "all"))
+    batch = make_batch(frame, wells_of(frame), rows, probe.extra_columns)
+    rank = torch.cumsum(batch.mask.long(), 1)
+    return batch.select(rank <= 150), [batch.select(rank == 151 + k) for k in range(60)]
+
+
+def _close(fast: torch.Tensor, slow: torch.Tensor, what: str, rtol: float = 1e-10) -> None:
+    """Equal to ``rtol`` relative to the tensor's own scale (NaN where the other has NaN)."""
+    assert fast.shape == slow.shape, what
+    nan = torch.isnan(slow)
+    assert torch.equal(nan, torch.isnan(fast)), what
+    fast, slow = fast.to(torch.float64), slow.to(torch.float64)
+    scale = float(slow[~nan].abs().max()) if bool((~nan).any()) else 0.0
+    err = float((fast[~nan] - slow[~nan]).abs().max()) if bool((~nan).any()) else 0.0
+    assert err <= rtol * max(scale, 1e-300), f"{what}: off by {err:.3g} of {scale:.3g}"
+
+
+def _online_run(
+    monkeypatch: pytest.MonkeyPatch,
+    flag: str,
+    stream: tuple[Batch, list[Batch]],
+    effects: list[str],
+    online: OnlineSettings,
+    name: str = "mm",
+) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    monkeypatch.setenv("VFM_KERNELS", flag)
+    monkeypatch.setenv("VFM_FIT_KERNEL", "0")  # the same initial fit for both
+    history, cols = stream
+    model = make_model(name, history.wells, effects=effects)
+    method = parse_method("ol")
+    method.bind(
+        model, train=replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False), online=online
+    )
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    applies = kernels.effects_applies if name == "mm" else kernels.hybrid_effects_applies
+    assert applies(model) is (flag == "1")
+    answers = []
+    for k, col in enumerate(cols):
+        if k % 3 == 1:  # the middle well has no measurement this time: it is held still
+            col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+        method.on_measurement(col)  # type: ignore[attr-defined]
+        answers.append(method.predict(col)[0].clone())
+    assert method._compiled is True  # type: ignore[attr-defined]
+    if name == "mm":
+        assert method._effects is True  # type: ignore[attr-defined]
+    else:
+        assert method._hybrid is not None  # type: ignore[attr-defined]
+    state: dict[str, torch.Tensor] = {}
+    for i, p in enumerate(model.parameters()):
+        state[f"param{i}"] = p.detach().clone()
+        for key, value in method._opt.state.get(p, {}).items():  # type: ignore[attr-defined]
+            state[f"param{i}.{key}"] = value.clone()
+    return state, answers
+
+
+def _compare(fast: tuple, slow: tuple) -> None:
+    (fast_state, fast_answers), (slow_state, slow_answers) = fast, slow
+    assert set(fast_state) == set(slow_state)
+    for key in slow_state:
+        _close(fast_state[key], slow_state[key], key)
+    for k, (a, b) in enumerate(zip(fast_answers, slow_answers, strict=True)):
+        _close(a, b, f"answer {k}")
+
+
+@pytest.mark.parametrize(
+    ("effects", "online"),
+    [
+        (["erosion"], DEFAULT_ONLINE["mm"]),
+        ([_STEP], DEFAULT_ONLINE["mm"]),
+        (["erosion_time"], OnlineSettings(optimizer="sgd", lr=1e-3, steps=10)),
+        (["valve"], DEFAULT_ONLINE["mm"]),
+        (["valve_equal_percentage"], DEFAULT_ONLINE["mm"]),
+        (["valve_sigmoid"], OnlineSettings(lr=1e-1, steps=3, max_grad_norm=0.05)),  # clipped
+        (["mpfm_bias"], DEFAULT_ONLINE["mm"]),
+        (["erosion", "valve_quick_opening", "mpfm_bias"], DEFAULT_ONLINE["mm"]),
+    ],
+)
+def test_ol_with_an_effect_compiled_matches_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, effects: list[str], online
+) -> None:
+    stream = _stream(frame, effects)
+    fast = _online_run(monkeypatch, "1", stream, effects, online)
+    slow = _online_run(monkeypatch, "0", stream, effects, online)
+    # the effect learned something (its parameters left the prior mean for some well)
+    n_phys = 1
+    moved = [v for k, v in slow[0].items() if k.startswith("param") and "." not in k][n_phys:]
+    assert any(float(v.abs().max()) > 1e-6 for v in moved)
+    _compare(fast, slow)
+
+
+@pytest.mark.parametrize(
+    ("name", "effects"),
+    [("ham", ["erosion"]), ("ham", ["valve", "mpfm_bias"]), ("hem", ["valve_convex"])],
+)
+def test_ol_on_a_hybrid_with_effects_compiled_matches_the_torch_steps(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, name: str, effects: list[str]
+) -> None:
+    stream = _stream(frame, effects)
+    online = replace(DEFAULT_ONLINE[name], steps=3)
+    fast = _online_run(monkeypatch, "1", stream, effects, online, name)
+    slow = _online_run(monkeypatch, "0", stream, effects, online, name)
+    _compare(fast, slow)
+
+
+#: the compiled factor, as it is (the tests below replace the module's name)
+_FACTOR = numba_kernels.effect_factor
+
+
+def _broken_factor(*args: object) -> float:
+    """:func:`_mm_numba.effect_factor` with every derivative 0.1 % too large."""
+    value = _FACTOR(*args)
+    d_f = args[-1]
+    assert isinstance(d_f, np.ndarray)
+    d_f *= 1.001
+    return value  # type: ignore[no-any-return]
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_a_broken_derivative_fails_the_comparison(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, broken: bool
+) -> None:
+    """The steps as Python (numba's ``py_func``) over the compiled factor: exact as they
+    are (the comparison passes), and off with the derivative broken (it fails)."""
+    effects = ["erosion", "mpfm_bias"]
+    stream = _stream(frame, effects)
+    stream = (stream[0], stream[1][:20])
+    slow = _online_run(monkeypatch, "0", stream, effects, DEFAULT_ONLINE["mm"])
+    kernel = kernels._kernel()
+    assert kernel is not None
+    monkeypatch.setattr(kernel, "effect_online", numba_kernels.effect_online.py_func)
+    monkeypatch.setattr(numba_kernels, "_factor_at", numba_kernels._factor_at.py_func)
+    if broken:
+        monkeypatch.setattr(numba_kernels, "effect_factor", _broken_factor)
+    fast = _online_run(monkeypatch, "1", stream, effects, DEFAULT_ONLINE["mm"])
+    if broken:
+        with pytest.raises(AssertionError, match="off by"):
+            _compare(fast, slow)
+    else:
+        _compare(fast, slow)
+
+
+def _bayes_run(
+    monkeypatch: pytest.MonkeyPatch,
+    flag: str,
+    stream: tuple[Batch, list[Batch]],
+    effects: list[str],
+    name: str,
+) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    monkeypatch.setenv("VFM_KERNELS", flag)
+    monkeypatch.setenv("VFM_FIT_KERNEL", "0")
+    history, cols = stream
+    model = make_model(name, history.wells, effects=effects)
+    method = parse_method("bayes")
+    method.bind(
+        model,
+        train=replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False),
+        online=DEFAULT_ONLINE[name],
+    )
+    method.fit(history)
+    method.start(int(history.time_ns[history.mask].max()))
+    assert method.compiled is (flag == "1")  # type: ignore[attr-defined]
+    answers = []
+    for k, col in enumerate(cols):
+        y = col.y.clone()
+        if k % 3 == 1:
+            col = col.select(col.mask & torch.tensor([True, False, True]).unsqueeze(1))
+        if k % 7 == 3:
+            y[0] *= 4.0  # an outlier on well 0: refused
+        answers.append(method.on_measurement(replace(col, y=y)).clone())  # type: ignore[attr-defined]
+        answers += [t.clone() for t in method.predict(col)]
+    state = {n: getattr(method, n).clone() for n in ("_P", "_h", "_noise", "_scale", "_last")}
+    state.update({f"count_{k}": v.clone() for k, v in method.stats().items()})  # type: ignore[attr-defined]
+    for i, p in enumerate(model.parameters()):
+        state[f"param{i}"] = p.detach().clone()
+    assert int(state["count_updates"].min()) >= len(cols) // 2  # the filter took most
+    return state, answers
+
+
+@pytest.mark.parametrize(
+    ("name", "effects"),
+    [
+        ("mm", ["erosion"]),
+        ("mm", [_STEP, "valve"]),
+        ("mm", ["valve_convex", "mpfm_bias"]),
+        ("ham", ["erosion_time"]),
+        ("hem", ["mpfm_bias"]),
+    ],
+)
+def test_bayes_with_an_effect_compiled_matches_the_torch_filter(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, name: str, effects: list[str]
+) -> None:
+    stream = _stream(frame, effects)
+    _compare(
+        _bayes_run(monkeypatch, "1", stream, effects, name),
+        _bayes_run(monkeypatch, "0", stream, effects, name),
+    )
+
+
+def test_a_broken_filter_derivative_fails_the_comparison(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame
+) -> None:
+    effects = ["mpfm_bias"]
+    stream = _stream(frame, effects)
+    stream = (stream[0], stream[1][:20])
+    slow = _bayes_run(monkeypatch, "0", stream, effects, "mm")
+    kernel = kernels._kernel()
+    assert kernel is not None
+    monkeypatch.setattr(kernel, "bayes", numba_kernels.bayes.py_func)
+    monkeypatch.setattr(numba_kernels, "log_rate_grad", numba_kernels.log_rate_grad.py_func)
+    monkeypatch.setattr(numba_kernels, "_factor_at", numba_kernels._factor_at.py_func)
+    monkeypatch.setattr(numba_kernels, "effect_factor", _broken_factor)
+    fast = _bayes_run(monkeypatch, "1", stream, effects, "mm")
+    with pytest.raises(AssertionError, match="off by"):
+        _compare(fast, slow)
+
+
+def _many_run(
+    monkeypatch: pytest.MonkeyPatch,
+    flag: str,
+    frame: pd.DataFrame,
+    method: str,
+    effect: str | None,
+    name: str,
+) -> list[list[float]]:
+    """Four learners of one well's history (one more so the group is stacked), 30 calls of
+    ``learn_many`` and ``predict_many``; every answer and the parameters at the end."""
+    import copy
+
+    from vfm_core.streaming import WellLearner, learn_many, predict_many
+
+    monkeypatch.setenv("VFM_KERNELS", flag)
+    monkeypatch.setenv("VFM_FIT_KERNEL", "0")
+    well = wells_of(frame)[0]
+    rows = frame[(frame["well"] == well) & frame[TARGET].notna()]
+    hist, live = rows.iloc[:150], rows.iloc[150:180]
+    learner = WellLearner(
+        "W",
+        name,
+        method,
+        train=replace(DEFAULT_TRAIN[name], max_iter=60, early_stopping=False),
+        effects=[effect] if effect else [],
+    )
+    learner.fit_history(
+        torch.tensor(hist[list(INPUT_COLUMNS)].to_numpy(dtype=float)),
+        torch.tensor(hist[TARGET].to_numpy(dtype=float)),
+        torch.tensor(pd.DatetimeIndex(hist["time"]).as_unit("ns").asi8),
+        well_test=torch.tensor(hist["source"].eq("well_test").to_numpy()),
+    )
+    many = [copy.deepcopy(learner) for _ in range(4)]
+    answers: list[list[float]] = []
+    for k in range(len(live)):
+        row = live.iloc[k]
+        x = [float(row[c]) for c in INPUT_COLUMNS]
+        xs = [[v * (1.0 + 0.01 * i) for v in x] for i in range(4)]  # each well its own
+        when = pd.Timestamp(row["time"])
+        learn_many(many, xs, [float(row[TARGET])] * 4, [when] * 4, [str(row["source"])] * 4)
+        for out in predict_many(many, xs, [when] * 4):
+            answers.append([float("nan") if v is None else float(v) for v in out.values()])
+    for m in many:
+        answers.append([float(v) for p in m.model.parameters() for v in p.detach().flatten()])
+    return answers
+
+
+@pytest.mark.parametrize(
+    ("name", "method", "effect"),
+    [
+        ("mm", "ol", "valve"),
+        ("mm", "bayes", "erosion"),
+        ("ham", "ol", "mpfm_bias"),
+        ("mm", "ol", None),  # the plain models' compiled steps, on the same route
+        ("ham", "ol", None),
+    ],
+)
+def test_the_many_well_path_with_an_effect_matches_the_torch_path(
+    monkeypatch: pytest.MonkeyPatch,
+    frame: pd.DataFrame,
+    name: str,
+    method: str,
+    effect: str | None,
+) -> None:
+    fast = _many_run(monkeypatch, "1", frame, method, effect, name)
+    slow = _many_run(monkeypatch, "0", frame, method, effect, name)
+    for k, (a, b) in enumerate(zip(fast, slow, strict=True)):
+        _close(torch.tensor(a), torch.tensor(b), f"row {k}")
+
+
+class _OwnErosion(Erosion):
+    """A user's variant that rewrites the hook: other arithmetic than the compiled form."""
+
+    name = "own_erosion"
+
+    def area_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
+        return 1.0 + p["rate"] * inputs.feature(self.basis) ** 2
+
+
+@pytest.mark.parametrize("effect", ["real_gas", "slip", "critical_ratio", _OwnErosion])
+def test_effects_without_a_compiled_form_keep_the_torch_path(effect: object) -> None:
+    model = make_model("mm", ["a", "b"], effects=[effect])
+    assert model.effects[0].compiled_factor() is None
+    assert kernels.compiled_effects(model) is None and not kernels.effects_applies(model)
+    method = parse_method("ol")
+    method.bind(model)
+    method._optimiser()  # type: ignore[attr-defined]
+    assert not method._compiled and not method._effects  # type: ignore[attr-defined]
+    filt = parse_method("bayes")
+    filt.bind(model)
+    assert not filt.compiled  # type: ignore[attr-defined]
+    # with one of them beside a compiled effect, the whole model stays on torch
+    mixed = make_model("mm", ["a"], effects=["erosion", effect])
+    assert kernels.compiled_effects(mixed) is None
+
+
+def test_the_kernels_switch_off_for_effects_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    model = make_model("mm", ["a"], effects=["erosion"])
+    assert kernels.compiled_effects(model) == "mm" and kernels.effects_applies(model)
+    monkeypatch.setenv("VFM_KERNELS", "0")
+    assert not kernels.effects_applies(model)
+    assert os.environ["VFM_KERNELS"] == "0"
+
+
+def test_the_compiled_codes_are_the_kernels() -> None:
+    """The codes an effect's compiled form names are the ones the kernels branch on."""
+    from vfm_core.effects import CompiledFactor
+
+    assert (
+        CompiledFactor.EROSION,
+        CompiledFactor.VALVE,
+        CompiledFactor.FAMILY,
+        CompiledFactor.BIAS,
+    ) == (
+        numba_kernels.FX_EROSION,
+        numba_kernels.FX_VALVE,
+        numba_kernels.FX_FAMILY,
+        numba_kernels.FX_BIAS,
+    )
