@@ -73,6 +73,8 @@ bench-docs: $(STAMP)
 		--markdown docs/benchmarks/generated/alarms_arl3000.md
 	$(PY) benchmarks/bench_study.py --markdown docs/benchmarks/generated/study.md
 	$(PY) benchmarks/bench_service.py --markdown docs/benchmarks/generated/service.md
+	$(PY) benchmarks/bench_effects.py --markdown docs/benchmarks/generated/effects.md
+	$(PY) benchmarks/bench_separator.py --markdown docs/benchmarks/generated/separator.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info site
