@@ -13,7 +13,17 @@ service's data) answers with one verdict, of four kinds:
 * ``carried``: the fit-once evidence names an effect, but adding it to the model the well
   runs lowers neither error beyond chance (the learner, or a hybrid's network, already
   carries it), or raises one: not offered;
-* ``noise``: none of these.
+* ``noise``: none of these;
+* ``instrument``: the evidence for a well's effect, driver or carried verdict coincides with
+  a fault :mod:`vfm_core.sensor_faults` detects in one of its inputs (its gain concentrated
+  in the fault's interval, or its driver the faulty input's variable): the sensor, the
+  fault's kind and interval instead of physics (:mod:`vfm_core.jobs.diagnose_instrument`);
+  the field's verdict too when most of its gain comes from such wells.
+
+An ``effect`` may also be named through a driver: when the correction fitted for a driver
+is not better, beyond the replay's noise, than a library effect that acts through that
+variable (a valve family through the choke opening), the effect is named with the driver
+as its evidence (``via_driver``; :func:`_physics_behind_driver`).
 
 **The verdict's protocols** (format ``vfm-diagnosis/3``): the well's own learning method
 (``method``) is replayed over the history (:func:`vfm_core.jobs.study.run_prequential`:
@@ -124,6 +134,7 @@ from vfm_core.effects import (
 )
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.features import STANDARD_FEATURES, standard_features
+from vfm_core.jobs import diagnose_instrument as inst
 from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES, rank_drivers
@@ -143,6 +154,8 @@ __all__ = [
     "OUTAGE",
     "HYBRIDS",
     "VARIANTS",
+    "PHYSICS_ALPHA",
+    "acts_through",
     "reference_bic",
     "CandidateResult",
     "Suggestion",
@@ -205,6 +218,13 @@ _EFFECT_DRIVER = {
 }
 #: Most drivers (those that beat chance, best first) a correction is fitted for.
 SUGGEST_TOP = 2
+#: The physics behind a driver (:func:`_physics_behind_driver`): a library effect that acts
+#: through the variable a correction was fitted in (:func:`acts_through`) is the verdict in
+#: place of the correction unless the correction's error is lower beyond the replay's noise:
+#: a one-sided paired block test at this level (not adjusted: adjusting would make "the
+#: correction is better" harder to find, and so favour the library effect) and the effect's
+#: gain outside the correction's own 95 % interval (:func:`_beats`).
+PHYSICS_ALPHA = 0.05
 #: Fewest measurements per source (before the split) for a meter-bias candidate.
 _MIN_PER_SOURCE = 5
 #: A valve curve is offered when some well's choke spans at least this (P5..P95) in training.
@@ -254,9 +274,19 @@ class CandidateResult:
     offer_note: str | None = None
     live_run: RunResult | None = field(default=None, repr=False)
     outage_run: RunResult | None = field(default=None, repr=False)
+    #: the driver evidence that names this candidate where the fit-once evidence alone does
+    #: not (:func:`_physics_behind_driver`): {"driver", "correction", "test", "rule"}; None
+    #: otherwise
+    via_driver: dict[str, Any] | None = None
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
+
+    @property
+    def named(self) -> bool:
+        """The evidence names this candidate: material by the fit-once evidence, or the
+        physics behind a driver the correction was fitted in (``via_driver``)."""
+        return self.material or self.via_driver is not None
 
     @property
     def material_rule(self) -> dict[str, float]:
@@ -299,6 +329,7 @@ class CandidateResult:
             "warnings": list(self.warnings),
             "variant_of": self.variant_of,
             "share_above_floor": self.share_above_floor,
+            "via_driver": self.via_driver,
         }
 
 
@@ -690,8 +721,12 @@ def _findings(
 
 
 # --- what the data can inform -----------------------------------------------------------------
-def _offer_reason(cls: type[Effect], train: pd.DataFrame) -> str | None:
-    """Why the training rows (measured, before the split) cannot inform ``cls``; None if they can."""
+def _offer_reason(
+    cls: type[Effect], train: pd.DataFrame, min_choke_span: float = _MIN_CHOKE_SPAN
+) -> str | None:
+    """Why the training rows (measured, before the split) cannot inform ``cls``; None if they
+    can. ``min_choke_span``: the span a valve curve needs (0 once a correction in the
+    choke opening fitted on the same rows showed that their span informs a curve in it)."""
     if train.empty:
         return "there are no measurements before the split"
     src = train[SOURCE].to_numpy()
@@ -706,7 +741,7 @@ def _offer_reason(cls: type[Effect], train: pd.DataFrame) -> str | None:
         span = train.groupby(WELL)["choke"].quantile(0.95) - train.groupby(WELL)["choke"].quantile(
             0.05
         )
-        if float(span.max()) < _MIN_CHOKE_SPAN:
+        if float(span.max()) < min_choke_span:
             return (
                 f"the choke hardly moves (largest P5-P95 span {float(span.max()):.3f} in one well), "
                 "so a valve curve cannot be told from C_D"
@@ -812,6 +847,12 @@ def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
 
 
 # --- candidates -----------------------------------------------------------------------------
+def acts_through(effect: str) -> str | None:
+    """The variable a library effect acts through (a valve family: the choke opening, its
+    area a function of it; real gas: p_up; ...), or None (a correction, a user's effect)."""
+    return _EFFECT_DRIVER.get(effect) or ("choke" if effect.startswith("valve") else None)
+
+
 def _parameter_summary(
     run: RunResult, effects: Sequence[type[Effect]], train_batch: Batch | None
 ) -> tuple[dict[str, Any], str, int, list[str]]:
@@ -890,7 +931,7 @@ def _score(
     delta_mape = m - base_mape
     delta_bic = b - b0 if on == on0 else delta_all
     material = _is_material(delta_mape, base_mape, delta_bic, delta_all, float("nan"))
-    driver = _EFFECT_DRIVER.get(name) or ("choke" if name.startswith("valve") else None)
+    driver = acts_through(name)
     return CandidateResult(
         name,
         m,
@@ -1159,6 +1200,7 @@ def run_diagnosis(
     well: str | None = None,
     screen_model: str | None = None,
     screen_split: str | pd.Timestamp | None = None,
+    instrument: bool = True,
 ) -> Diagnosis:
     """Diagnose ``model`` (mm, hem or ham) on an observation frame; see the module docstring.
 
@@ -1186,7 +1228,9 @@ def run_diagnosis(
     measurements lie before it). A service's store joined to its history is replayed from
     the service's start (``split``), but identified where both sides hold enough of the
     operating range: a valve curve cannot be told from C_D on a history whose choke hardly
-    moved.
+    moved. ``instrument``: a well whose verdict's evidence coincides with a fault that
+    :mod:`vfm_core.sensor_faults` detects in one of its inputs gets the verdict
+    ``instrument`` instead (:mod:`vfm_core.jobs.diagnose_instrument`).
     """
     started = time.perf_counter()
     cand_classes = [resolve_effect(c) for c in candidates]
@@ -1327,8 +1371,25 @@ def run_diagnosis(
     for c in results:
         _judge(c, comp_mape, floor.get("mape"))
     results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+
     # other forms of the same physics: the variants of the best material candidate, or of
     # a flexible candidate that shows the effect everywhere but on the reference's BIC
+    def fit_once_more(
+        more: Sequence[tuple[type[Effect], str | None]], frame: pd.DataFrame
+    ) -> pd.DataFrame:
+        """Fit more candidates once (``(class, variant_of)``), judged and ranked in."""
+        frame = _with_features(frame, [cls for cls, _ in more])
+        bar.add(len(more))
+        for cls, of in more:
+            classes_of[cls.name] = [cls]
+            r_ = run(cls.name, [cls], cand_method, cand_train)
+            results.append(_score(cls.name, r_, [cls], comp_mape, comp, train_batch(r_)))
+            results[-1].variant_of = of
+            _judge(results[-1], comp_mape, floor.get("mape"))
+        results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+        skipped[:] = [x for x in skipped if x["effect"] not in {c.name for c, _ in more}]
+        return frame
+
     best = _variant_source(results, comp_mape)
     if best is not None:
         tried = {c.effect for c in results} | {s["effect"] for s in skipped} | in_model
@@ -1339,16 +1400,7 @@ def run_diagnosis(
             cls = resolve_effect(name)
             if _offer_reason(cls, train_frame) is None:
                 extra.append(cls)
-        frame = _with_features(frame, extra)
-        bar.add(len(extra))
-        for cls in extra:
-            classes_of[cls.name] = [cls]
-            r_ = run(cls.name, [cls], cand_method, cand_train)
-            cand = _score(cls.name, r_, [cls], comp_mape, comp, train_batch(r_))
-            cand.variant_of = best.effect
-            _judge(cand, comp_mape, floor.get("mape"))
-            results.append(cand)
-        results.sort(key=lambda c: c.delta_bic if math.isfinite(c.delta_bic) else math.inf)
+        frame = fit_once_more([(cls, best.effect) for cls in extra], frame)
 
     bar.start("ranking drivers")
     drivers = rank_drivers(comp_res, shifts=shifts, seed=seed)
@@ -1368,6 +1420,9 @@ def run_diagnosis(
         "score": None if top is None else top["score"],
         "p_value": None if top is None else top["p_value"],
     }
+    if top is not None and (top["p_value"] or 1.0) < stats.ALPHA and top["score"] > 0:
+        more = _kin_classes(cand_classes, results, in_model, top["name"], train_frame)
+        frame = fit_once_more(more, frame)
     # --- the replay: the well's own method, live and in outages ----------------------------
     plan = None
     if replay_top > 0 and outage:
@@ -1455,6 +1510,17 @@ def run_diagnosis(
             replay(suggestion.result, s_cls)
             _test_candidate(suggestion.result, comp, base, base_out, pool_wells, seed)
             fdr = _fdr(results, suggestion.result, suggest_slots, len(pool_wells))
+    if suggestion is not None and replay_top > 0 and _driver_found(suggestion.result):
+        more = _kin_classes(cand_classes, results, in_model, suggestion.driver, train_frame)
+        frame = fit_once_more(more, frame)
+        kin = _kin_shortlist(results, suggestion.driver, replay_top)
+        bar.add(sum(not c.replayed for c in kin) * (2 if plan is not None else 1))
+        for c in [c for c in kin if not c.replayed]:
+            replay(c, classes_of[c.effect])
+        for c in results:  # the new ones, and the new replays' live and outage tests
+            _test_candidate(c, comp, base, base_out, pool_wells, seed)
+        _physics_behind_driver(kin, suggestion.result, suggestion.driver, suggestion.text, seed)
+        fdr = _fdr(results, suggestion.result, suggest_slots, len(pool_wells))
     noise_test["confirmed"] = None if suggestion is None else suggestion.result.material
 
     extended = None
@@ -1501,17 +1567,7 @@ def run_diagnosis(
         live_info["method"] = str(method)
         live_info.update(_service_error(frame, targets, split_ts, pool_wells, well))
         if base_out is not None and plan is not None:
-            outage_info = _baseline_info(base_out, pool_wells, well, in_outage=True)
-            outage_info.update(
-                {
-                    "label": plan.label,
-                    "length_days": plan.length / pd.Timedelta(days=1),
-                    "windows": int(len(plan.windows)),
-                    "protocol": f"windows of {plan.label} without a measurement (a failed "
-                    f"meter), {len(plan.windows)} over the wells after the split; scored inside "
-                    "them, the learner learning from the rest",
-                }
-            )
+            outage_info = _outage_info(base_out, plan, pool_wells, well)
         ctx = _VerdictContext(
             model_label(model, base_classes),
             str(method),
@@ -1531,12 +1587,12 @@ def run_diagnosis(
             )
         if len(pool_wells) == 1:
             well_verdicts[pool_wells[0]] = well_verdicts["field"]
+        if instrument:
+            bar.start("instrument faults")
+            _instrument_check(well_verdicts, frame, results, suggestion, base, split_ts, notes)
         picked = well_verdicts[well if well is not None else "field"]
         kind, effect_name, driver_name, text = (
-            picked["kind"],
-            picked["effect"],
-            picked["driver"],
-            picked["text"],
+            picked[k] for k in ("kind", "effect", "driver", "text")
         )
         detail = {k: v for k, v in picked.items() if k not in ("kind", "effect", "driver", "text")}
         # one change is offered: the verdict's (the fit-once evidence names the physics; a
@@ -1547,22 +1603,7 @@ def run_diagnosis(
             if kind == "effect"
             else (suggestion.result.effect if kind == "driver" and suggestion is not None else None)
         )
-        for c in [*results, *([suggestion.result] if suggestion is not None else [])]:
-            ok, reason = _offer(c, well)
-            c.offer = ok and c.effect == offered_effect
-            c.offer_note = (
-                None
-                if c.offer
-                else (
-                    f"also lowers the error, but the fit-once evidence names {offered_effect}"
-                    if ok and offered_effect is not None
-                    else reason
-                )
-            )
-            lt = c.test("live", well)
-            c.raises_error = (
-                None if not c.replayed or lt is None or lt["change"] is None else lt["change"] > 0
-            )
+        _set_offers([*results, *([suggestion.result] if suggestion else [])], well, offered_effect)
         if well is not None and len(pool_wells) > 1:
             field_v = well_verdicts["field"]
             if field_v["kind"] != kind or field_v["effect"] != effect_name:
@@ -1821,13 +1862,14 @@ def _offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     evidence counts for a well whose own live estimate agrees in sign: physical effects are
     field-wide, and one well's months are weak evidence alone. And only a candidate the
     fit-once evidence names (*material*: the BIC on the reference meter, which charges
-    every parameter, and a minimum size): a flexible candidate can lower a learner's error
+    every parameter, and a minimum size), or that is the physics behind a driver the
+    evidence found (``via_driver``, :func:`_physics_behind_driver`): a flexible candidate can lower a learner's error
     a little by absorbing misfit that is not its physics (on clean fields a tenth of a
     point, significant with years of data); the replay says what adding it does, the
     fit-once evidence what it is."""
     if not c.replayed:
         return False, "not replayed"
-    if not c.material:
+    if not c.named:
         return False, "not material by the fit-once evidence"
     lt, ot = c.test("live", well), c.test("outage", well)
     if lt is None or lt.get("change") is None:
@@ -1933,7 +1975,7 @@ def _live_verdict(
             )
         if best.warnings:
             text += " Check its parameters: " + best.warnings[0]
-        return {"kind": "effect", "effect": best.effect, "driver": None, "text": text, **num}
+        return _as_named("effect", best, text, num)
     if suggestion is not None and _offer(suggestion.result, well)[0]:
         s = suggestion.result
         num = numbers(s)
@@ -1947,11 +1989,7 @@ def _live_verdict(
             "own effect from the code in the report."
         )
         return {"kind": "driver", "effect": None, "driver": suggestion.driver, "text": text, **num}
-    named = [
-        c
-        for c in results
-        if c.material and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
-    ]
+    named = [c for c in results if c.via_driver is not None or _fit_once_names(c, well)]
     if named:
         c = next((x for x in named if x.effect == prefer), named[0])
         num = numbers(c)
@@ -1978,7 +2016,7 @@ def _live_verdict(
             f"The fit-once evidence names {c.effect} ({_change_text(fo, 'fit-once MAPE')}), but "
             + tail
         )
-        return {"kind": "carried", "effect": c.effect, "driver": None, "text": text, **num}
+        return _as_named("carried", c, text, num)
     carried = _carried_driver(suggestion, well, ctx, numbers)
     if carried is not None:
         return carried
@@ -2011,6 +2049,47 @@ def _live_verdict(
         "offer": False,
         "reason": None,
     }
+
+
+def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
+    """The fit-once evidence names ``c``: material, and lower beyond chance (the field's
+    test, or the well's)."""
+    return c.material and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+
+
+def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> dict[str, Any]:
+    """A verdict (``effect``, ``carried``) naming ``c``; with the driver evidence when the
+    physics behind a driver named it (``via_driver``: its variable in ``driver``)."""
+    v = c.via_driver
+    if v is not None and not c.material:
+        text += " " + _via_driver_text(c)
+    driver = None if v is None else v["driver"]
+    return {
+        "kind": kind,
+        "effect": c.effect,
+        "driver": driver,
+        "text": text,
+        **num,
+        "via_driver": v,
+    }
+
+
+def _via_driver_text(c: CandidateResult) -> str:
+    """The driver evidence of a candidate named through it, in words."""
+    v = c.via_driver or {}
+    vs = (v.get("versus_correction") or {}).get("live") or {}
+    diff = (
+        f" (the correction's live MAPE {vs['change']:+.2f} points against it, 95 % interval "
+        f"{vs['low']:+.2f} to {vs['high']:+.2f}, p = {vs['p_value']:.2g})"
+        if vs.get("change") is not None and vs.get("low") is not None
+        else ""
+    )
+    return (
+        f"The evidence is the driver: the residual depends on {v.get('driver')}, and a generic "
+        f"correction {v.get('correction_text', '')} explains it no better than {c.effect}, "
+        f"which acts through {v.get('driver')}{diff}: the library's physics is named, the "
+        "driver is its evidence."
+    )
 
 
 def _carried_driver(
@@ -2053,6 +2132,231 @@ def _carried_driver(
         )
     )
     return {"kind": "carried", "effect": None, "driver": suggestion.driver, "text": text, **num}
+
+
+def _kin_classes(
+    classes: Sequence[type[Effect]],
+    results: Sequence[CandidateResult],
+    in_model: set[str],
+    driver: str,
+    train: pd.DataFrame,
+) -> list[tuple[type[Effect], str | None]]:
+    """The library effects not yet fitted that act through ``driver``, with their other
+    forms (:data:`VARIANTS`), as ``(class, variant_of)``; a valve curve skipped because the
+    choke hardly moved is in (a material correction in the opening fitted on the same rows
+    shows that their span informs a curve in it); other reasons still skip."""
+    out: list[tuple[type[Effect], str | None]] = []
+    tried = {c.effect for c in results} | in_model
+    for cls in classes:
+        if cls.name in in_model or acts_through(cls.name) != driver:
+            continue
+        for name in [cls.name, *VARIANTS.get(cls.name, ())]:
+            if name in tried or name not in EFFECTS:
+                continue
+            k_cls = resolve_effect(name)
+            if _offer_reason(k_cls, train, min_choke_span=0.0) is None:
+                out.append((k_cls, None if name == cls.name else cls.name))
+                tried = tried | {name}
+    return out
+
+
+def _kin_shortlist(
+    results: Sequence[CandidateResult], driver: str, n: int
+) -> list[CandidateResult]:
+    """The best ``n`` candidates by the fit-once BIC (``results`` are in that order) that act
+    through ``driver`` and lowered the fit-once error: the ones replayed beside its
+    correction."""
+    kin = [c for c in results if acts_through(c.effect) == driver and c.run is not None]
+    return [c for c in kin if c.delta_mape < 0][: max(n, 0)]
+
+
+def _driver_found(correction: CandidateResult) -> bool:
+    """The fit-once evidence finds a driver: its correction is material and lowers the
+    fit-once error beyond chance (the field's test, BH-rejected), and it was replayed."""
+    return (
+        correction.replayed
+        and correction.live_run is not None
+        and correction.material
+        and _gain(correction.test("fit_once"))
+    )
+
+
+def _versus(
+    physics: RunResult, correction: RunResult, seed: int, in_outage: bool = False
+) -> dict[str, Any]:
+    """The paired block test of a correction against a library effect on the same rows
+    (live, or inside the outage windows): ``change`` is the correction's MAPE less the
+    effect's (points; below 0: the correction is better) and ``p_value`` the one-sided
+    p-value of "the correction is better"."""
+    a, b = physics.predictions, correction.predictions
+    if in_outage:
+        keep = a["in_outage"].to_numpy(dtype=bool)
+        a, b = a[keep], b[keep]
+    return live.paired_test(live.paired_differences(a, b), seed=seed)
+
+
+def _beats(
+    versus: dict[str, Any], correction: dict[str, Any] | None, physics: dict[str, Any] | None
+) -> bool:
+    """The correction beats the library effect beyond the noise of the replay under one
+    protocol: the paired test of the two finds the correction's error lower beyond chance
+    (one-sided, :data:`PHYSICS_ALPHA`), and the effect's own gain over the baseline lies
+    outside the correction's 95 % interval (above its upper end: a smaller gain than the
+    correction's gain can be, given its own uncertainty)."""
+    if versus.get("change") is None or versus["change"] >= 0:
+        return False
+    if versus["p_value"] >= PHYSICS_ALPHA:
+        return False
+    high = None if correction is None else correction.get("high")
+    gain = None if physics is None else physics.get("change")
+    if high is None or gain is None or not math.isfinite(high):
+        return True
+    return bool(gain > high)
+
+
+def _physics_behind_driver(
+    kin: Sequence[CandidateResult],
+    correction: CandidateResult,
+    driver: str,
+    correction_text: str,
+    seed: int,
+) -> list[CandidateResult]:
+    """Name the library's physics behind a driver: set ``via_driver`` on each candidate of
+    ``kin`` that acts through ``driver`` (:func:`acts_through`), was replayed, and whose
+    live error (and outage error, when both have one) the correction in that driver does
+    not beat beyond the noise of the replay (:func:`_beats`: lower beyond chance, and by
+    more than the correction's own gain is known to); returns those. Nothing when the
+    fit-once evidence does not find the driver (:func:`_driver_found`).
+
+    Why: a generic correction in a variable (a log-linear factor in the choke opening) fits
+    whatever depends on that variable; a library effect that acts through the same variable
+    (the valve's area as a function of the opening) is one physical explanation of it, with
+    parameters that mean something and that extrapolate as the physics does. When the data
+    cannot tell the two apart (the effect's gain lies within what the correction's gain is
+    known to, or the correction is not better beyond chance), the physics is named and the
+    driver is its evidence; when the correction is better beyond both, something outside
+    the library is at work and the driver stays the verdict. A bare significance test alone
+    would not do: with years of data a few hundredths of a point are significant, and a
+    flexible correction always fits a little of the noise too. Whether the effect is offered is then decided as for any candidate
+    (:func:`_offer`: a lower error beyond chance, neither error raised)."""
+    if not _driver_found(correction):
+        return []
+    assert correction.live_run is not None
+    out: list[CandidateResult] = []
+    for c in kin:
+        if acts_through(c.effect) != driver or not c.replayed or c.live_run is None:
+            continue
+        tests = {"live": _versus(c.live_run, correction.live_run, seed)}
+        if c.outage_run is not None and correction.outage_run is not None:
+            tests["outage"] = _versus(c.outage_run, correction.outage_run, seed, in_outage=True)
+        better = [p for p, t in tests.items() if _beats(t, correction.test(p), c.test(p))]
+        evidence = {
+            "driver": driver,
+            "correction": correction.spec or correction.effect,
+            "correction_text": correction_text,
+            "versus_correction": {p: _brief(t) for p, t in tests.items()},
+            "rule": (
+                f"{c.effect} acts through {driver}; the correction in {driver} does not lower "
+                "the live or outage error below it beyond the noise of the replay (a "
+                f"one-sided paired block test at {PHYSICS_ALPHA:g}, or its gain within the "
+                "correction's own 95 % interval)"
+            ),
+        }
+        c.via_driver = None if better else evidence
+        if better:
+            continue
+        out.append(c)
+    return out
+
+
+def _set_offers(
+    candidates: Sequence[CandidateResult], well: str | None, offered: str | None
+) -> None:
+    """One change offered, the verdict's (``offered``); every other candidate says why not,
+    and whether its replay raises the live error."""
+    for c in candidates:
+        ok, reason = _offer(c, well)
+        c.offer = ok and c.effect == offered
+        c.offer_note = (
+            None
+            if c.offer
+            else (
+                f"also lowers the error, but the evidence names {offered}"
+                if ok and offered is not None
+                # ok with nothing offered: the verdict is a faulty instrument
+                else (
+                    "lowers the error, but the evidence points to a faulty input" if ok else reason
+                )
+            )
+        )
+        lt = c.test("live", well)
+        c.raises_error = (
+            None if not c.replayed or lt is None or lt["change"] is None else lt["change"] > 0
+        )
+
+
+def _outage_info(
+    base_out: RunResult, plan: Any, wells: Sequence[str], well: str | None
+) -> dict[str, Any]:
+    """The outage protocol's baseline and its windows, in numbers and words."""
+    info = _baseline_info(base_out, wells, well, in_outage=True)
+    info.update(
+        {
+            "label": plan.label,
+            "length_days": plan.length / pd.Timedelta(days=1),
+            "windows": int(len(plan.windows)),
+            "protocol": f"windows of {plan.label} without a measurement (a failed "
+            f"meter), {len(plan.windows)} over the wells after the split; scored inside "
+            "them, the learner learning from the rest",
+        }
+    )
+    return info
+
+
+def _instrument_check(
+    verdicts: dict[str, dict[str, Any]],
+    frame: pd.DataFrame,
+    results: Sequence[CandidateResult],
+    suggestion: Suggestion | None,
+    base: RunResult,
+    split: pd.Timestamp,
+    notes: list[str],
+) -> None:
+    """Turn the verdicts whose evidence coincides with an input's detected fault into
+    ``instrument`` verdicts (:func:`vfm_core.jobs.diagnose_instrument.instrument_verdicts`)."""
+    by_name = {c.effect: c for c in results}
+    wells = [w for w in verdicts if w != "field"]
+
+    def candidate(v: dict[str, Any]) -> CandidateResult | None:
+        if v.get("effect"):
+            return by_name.get(v["effect"])
+        return suggestion.result if suggestion is not None else None
+
+    def pairs_of(v: dict[str, Any], w: str | None) -> pd.DataFrame | None:
+        c = candidate(v)
+        if c is None or c.live_run is None:
+            return None
+        pairs = live.paired_differences(base.predictions, c.live_run.predictions)
+        return pairs if w is None else pairs[pairs["well"] == w]
+
+    def gains_of(v: dict[str, Any]) -> dict[str, float]:
+        c = candidate(v)
+        tests = {w: None if c is None else c.test("live", w) for w in wells}
+        return {
+            w: float(t["change"]) * float(t.get("n", 0))
+            for w, t in tests.items()
+            if t is not None and t.get("change") is not None
+        }
+
+    faults = inst.input_faults(frame)
+    turned = inst.instrument_verdicts(
+        verdicts, faults, pairs_of, gains_of, split, frame[TIME].max()
+    )
+    if turned:
+        notes.append(
+            f"Instrument faults carry the evidence of {', '.join(turned)}: their verdict is "
+            "'instrument' (vfm_core.jobs.diagnose_instrument)."
+        )
 
 
 def _baseline_info(

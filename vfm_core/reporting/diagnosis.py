@@ -349,7 +349,14 @@ def _replay_context(diag: Diagnosis) -> dict[str, Any]:
                     "mape": diag.live.get("per_well", {}).get(w, {}).get("mape"),
                     "cells": cells,
                     "verdict": " ".join(
-                        x for x in (v.get("kind"), v.get("effect") or v.get("driver")) if x
+                        x
+                        for x in (
+                            v.get("kind"),
+                            v.get("effect")
+                            or v.get("driver")
+                            or (v.get("instrument") or {}).get("sensor"),
+                        )
+                        if x
                     ),
                 }
             )

@@ -1,0 +1,369 @@
+"""The verdict's rule for the physics behind a driver (:func:`_physics_behind_driver`), on
+constructed runs with a known answer (no fitting: fast).
+
+Four wells, two years of daily measurements. The baseline misses something that depends on
+the choke opening (5 % off); a generic correction in the choke removes most of it. A
+library effect that acts through the opening (a valve family) and does as well, within the
+replay's noise, is named with the driver as its evidence; one that does clearly worse is
+not (the driver stays the verdict); an effect that acts through another variable is never
+the physics of the choke driver, however well it does; without a driver found (a
+correction that is not material) nothing is named.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vfm_core.jobs import diagnose as dg
+from vfm_core.jobs import diagnose_instrument as inst
+from vfm_core.jobs.study import RunResult
+
+WELLS = ["W01", "W02", "W03", "W04"]
+DAYS = 730
+
+
+def _frame(rng: np.random.Generator) -> pd.DataFrame:
+    times = pd.date_range("2020-01-01", periods=DAYS, freq="D", tz="UTC")
+    parts = [
+        pd.DataFrame(
+            {
+                "time": times,
+                "well": w,
+                "source": "mpfm",
+                "measured": 100.0 * (1.0 + 0.01 * rng.normal(size=DAYS)),
+                "in_outage": np.zeros(DAYS, dtype=bool),
+            }
+        )
+        for w in WELLS
+    ]
+    return pd.concat(parts, ignore_index=True)
+
+
+def _run(frame: pd.DataFrame, rel_error: np.ndarray) -> RunResult:
+    p = frame.copy()
+    p["predicted"] = p["measured"] * (1.0 + rel_error)
+    return RunResult("mm", "ol", p)
+
+
+def _candidate(
+    name: str, base: RunResult, run: RunResult, *, material: bool = False
+) -> dg.CandidateResult:
+    m = dg.mape(run.predictions["predicted"], run.predictions["measured"])
+    b = dg.mape(base.predictions["predicted"], base.predictions["measured"])
+    c = dg.CandidateResult(
+        effect=name,
+        mape=m,
+        delta_mape=m - b,
+        bic=0.0,
+        delta_bic=-50.0 if material else 5.0,
+        n_parameters=4,
+        parameters={},
+        meaning=f"{name} fitted.",
+        material=material,
+        run=run,
+        delta_bic_all=-50.0 if material else 5.0,
+        spec=name,
+        driver=dg.acts_through(name),
+    )
+    c.live_run = run
+    c.replayed = True
+    c.tests["fit_once"] = dg._protocol_test(base.predictions, run.predictions, WELLS, 0)
+    c.tests["live"] = dg._protocol_test(base.predictions, run.predictions, WELLS, 0)
+    return c
+
+
+def _suggestion(c: dg.CandidateResult) -> dg.Suggestion:
+    return dg.Suggestion(
+        driver="choke",
+        form="log",
+        shared=True,
+        spec=c.spec,
+        text="C_D x exp(+0.25 per 0.1 of choke above 0.8)",
+        parameters={},
+        result=c,
+        variants=[],
+        per_well_spec=c.spec,
+        code="",
+    )
+
+
+@pytest.fixture(scope="module")
+def field() -> dict[str, object]:
+    """The baseline, the correction and three library candidates on the same rows."""
+    rng = np.random.default_rng(20261126)
+    frame = _frame(rng)
+    n = len(frame)
+    # what the correction leaves: slow (weekly) wobbles, as a learner's error has
+    left = np.repeat(rng.normal(0.0, 0.03, size=n // 7 + 1), 7)[:n]
+    base = _run(frame, left + 0.05 * np.sign(rng.normal(size=n)))
+    correction = _candidate("suggest:driver=choke:form=log", base, _run(frame, left), material=True)
+    # as good as the correction, within noise: its own small independent scatter
+    close = _run(frame, left + 0.004 * rng.normal(size=n))
+    # clearly worse than the correction (but still better than the baseline)
+    worse = _run(frame, 1.6 * left)
+    return {
+        "base": base,
+        "correction": correction,
+        "close": close,
+        "worse": worse,
+    }
+
+
+def _context() -> dg._VerdictContext:
+    return dg._VerdictContext(
+        "mm",
+        "ol",
+        {"mape": 5.6, "per_well": {w: {"mape": 5.6} for w in WELLS}},
+        {},
+        1.0,
+        len(WELLS),
+    )
+
+
+def test_effects_act_through_their_variable() -> None:
+    assert dg.acts_through("valve") == "choke"
+    assert dg.acts_through("valve_equal_percentage") == "choke"
+    assert dg.acts_through("erosion") == "throughput_years"
+    assert dg.acts_through("real_gas") == "p_up"
+    assert dg.acts_through("suggest:driver=choke") is None
+
+
+def test_the_valve_family_that_does_as_well_as_the_choke_correction_is_the_verdict(
+    field: dict[str, object],
+) -> None:
+    base, corr = field["base"], field["correction"]
+    assert isinstance(base, RunResult) and isinstance(corr, dg.CandidateResult)
+    valve = _candidate("valve_equal_percentage", base, field["close"])  # type: ignore[arg-type]
+    assert not valve.material  # the fit-once evidence alone does not name it
+    assert not dg._offer(valve, None)[0]
+    results = [valve]
+    dg._fdr(results, corr, 1, len(WELLS))
+    named = dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0)
+    assert named == [valve]
+    vs = valve.via_driver["versus_correction"]["live"]  # type: ignore[index]
+    # a few hundredths of a point apart: with 2,920 paired rows that may be "significant",
+    # but the valve's gain lies within what the correction's own gain is known to
+    assert abs(vs["change"]) < 0.1
+    assert valve.tests["live"]["change"] <= corr.tests["live"]["high"]
+    assert dg._offer(valve, None) == (True, "live")
+    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    assert verdict["kind"] == "effect"
+    assert verdict["effect"] == "valve_equal_percentage"
+    assert verdict["driver"] == "choke"
+    assert verdict["via_driver"]["correction"] == corr.spec
+    assert "The evidence is the driver" in verdict["text"]
+    # each well's verdict follows (the field's evidence counts where the well agrees)
+    for w in WELLS:
+        v = dg._live_verdict(results, _suggestion(corr), w, _context(), {}, verdict["effect"])
+        assert (v["kind"], v["effect"]) == ("effect", "valve_equal_percentage"), v["text"]
+
+
+def test_a_correction_better_beyond_chance_keeps_the_driver_verdict(
+    field: dict[str, object],
+) -> None:
+    base, corr = field["base"], field["correction"]
+    assert isinstance(base, RunResult) and isinstance(corr, dg.CandidateResult)
+    valve = _candidate("valve_equal_percentage", base, field["worse"])  # type: ignore[arg-type]
+    assert valve.tests["live"]["change"] < 0  # it helps, but less than the correction
+    results = [valve]
+    dg._fdr(results, corr, 1, len(WELLS))
+    assert dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
+    assert valve.via_driver is None
+    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    assert (verdict["kind"], verdict["driver"]) == ("driver", "choke"), verdict["text"]
+
+
+def test_an_effect_through_another_variable_is_not_the_physics_of_the_driver(
+    field: dict[str, object],
+) -> None:
+    base, corr = field["base"], field["correction"]
+    assert isinstance(base, RunResult) and isinstance(corr, dg.CandidateResult)
+    wear = _candidate("erosion", base, field["close"])  # type: ignore[arg-type]
+    results = [wear]
+    dg._fdr(results, corr, 1, len(WELLS))
+    assert dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
+    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    assert verdict["kind"] == "driver"
+
+
+def test_without_a_driver_found_nothing_is_named(field: dict[str, object]) -> None:
+    base = field["base"]
+    assert isinstance(base, RunResult)
+    weak = _candidate("suggest:driver=choke:form=log", base, field["close"], material=False)  # type: ignore[arg-type]
+    valve = _candidate("valve_equal_percentage", base, field["close"])  # type: ignore[arg-type]
+    dg._fdr([valve], weak, 1, len(WELLS))
+    assert not dg._driver_found(weak)
+    assert dg._physics_behind_driver([valve], weak, "choke", "a choke correction", 0) == []
+    assert valve.via_driver is None
+
+
+def test_a_narrow_choke_skips_the_valve_unless_a_choke_correction_showed_it_informs_one() -> None:
+    times = pd.date_range("2020-01-01", periods=200, freq="D", tz="UTC")
+    train = pd.DataFrame(
+        {
+            "time": times,
+            "well": "W01",
+            "source": "mpfm",
+            "choke": 0.80 + 0.01 * np.sin(np.arange(200) / 10.0),  # P5-P95 about 0.02
+            "eta_gas": 0.1,
+            "p_up": 100.0,
+            "p_down": 30.0,
+        }
+    )
+    cls = dg.resolve_effect("valve_equal_percentage")
+    assert "hardly moves" in (dg._offer_reason(cls, train) or "")
+    assert dg._offer_reason(cls, train, min_choke_span=0.0) is None
+
+
+# --- the instrument verdict --------------------------------------------------------------------
+def _pairs_with_fault(
+    rng: np.random.Generator, start: str, end: str, inside: float, outside: float
+) -> pd.DataFrame:
+    """Two years of daily paired differences of one well: mean ``inside`` points in the
+    fault's interval, ``outside`` elsewhere (noise 0.5 points)."""
+    t = pd.date_range("2020-01-01", periods=DAYS, freq="D", tz="UTC")
+    hit = (t >= pd.Timestamp(start, tz="UTC")) & (t <= pd.Timestamp(end, tz="UTC"))
+    d = np.where(hit, inside, outside) + 0.5 * rng.normal(size=DAYS)
+    return pd.DataFrame({"time": t, "well": "W01", "d": d, "base_ape": 3.0, "cand_ape": 3.0 + d})
+
+
+def test_a_gain_concentrated_in_a_fault_interval_coincides() -> None:
+    rng = np.random.default_rng(7)
+    pairs = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -2.0, 0.0)
+    start, end = pd.Timestamp("2021-03-01", tz="UTC"), pd.Timestamp("2021-05-01", tz="UTC")
+    hit = inst.fault_coincides(pairs, start, end)
+    assert hit["coincides"] and hit["p_value"] < 1e-3
+    # physics: the same gain everywhere, the interval no different
+    flat = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -1.0, -1.0)
+    assert not inst.fault_coincides(flat, start, end)["coincides"]
+
+
+def _verdicts(kind: str, effect: str | None, driver: str | None) -> dict[str, dict]:
+    one = {"kind": kind, "effect": effect, "driver": driver, "text": f"{kind} {effect}"}
+    return {"field": dict(one), "W01": dict(one), "W02": dict(one)}
+
+
+FAULT = {
+    "well": "W01",
+    "sensor": "p_down",
+    "kind": "drift",
+    "start": "2021-03-01T00:00:00Z",
+    "end": "2021-05-01T00:00:00Z",
+    "evidence": "p_down drifts.",
+}
+
+
+def test_a_drifting_p_down_carrying_the_evidence_is_an_instrument_verdict() -> None:
+    """W01's p_down drifts from March to May; the effect's gain for W01 is all in that
+    interval, W02 (no fault) has a small gain everywhere: W01 and the field (most of its
+    gain from W01) are 'instrument', W02 keeps its verdict."""
+    rng = np.random.default_rng(11)
+    w1 = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -3.0, 0.0)
+    w2 = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -0.05, -0.05).assign(well="W02")
+    verdicts = _verdicts("effect", "critical_ratio", None)
+
+    def pairs_of(v: dict, w: str | None) -> pd.DataFrame:
+        both = pd.concat([w1, w2], ignore_index=True)
+        return both if w is None else both[both["well"] == w]
+
+    def gains_of(v: dict) -> dict[str, float]:
+        return {"W01": float(w1["d"].sum()), "W02": float(w2["d"].sum())}
+
+    split = pd.Timestamp("2020-06-01", tz="UTC")
+    last = pd.Timestamp("2021-12-31", tz="UTC")
+    turned = inst.instrument_verdicts(verdicts, [FAULT], pairs_of, gains_of, split, last)
+    assert turned == ["W01"]
+    v = verdicts["W01"]
+    assert v["kind"] == "instrument"
+    assert v["instrument"]["sensor"] == "p_down" and v["instrument"]["kind"] == "drift"
+    assert v["instrument"]["start"] == FAULT["start"] and v["instrument"]["end"] == FAULT["end"]
+    assert v["instead_of"]["effect"] == "critical_ratio"
+    assert "p_down transmitter" in v["text"]
+    assert verdicts["W02"]["kind"] == "effect"
+    assert verdicts["field"]["kind"] == "instrument"
+    assert verdicts["field"]["instrument_wells"] == ["W01"]
+
+
+def test_a_fault_that_does_not_carry_the_evidence_changes_nothing() -> None:
+    """A detected offset (perhaps a false alarm) in a well whose effect's gain is spread
+    over the whole history: physics, not the transmitter."""
+    rng = np.random.default_rng(12)
+    w1 = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -1.0, -1.0)
+    verdicts = _verdicts("effect", "valve_equal_percentage", None)
+    verdicts.pop("W02")
+    turned = inst.instrument_verdicts(
+        verdicts,
+        [{**FAULT, "kind": "offset"}],
+        lambda v, w: w1,
+        lambda v: {"W01": float(w1["d"].sum())},
+        pd.Timestamp("2020-06-01", tz="UTC"),
+        pd.Timestamp("2021-12-31", tz="UTC"),
+    )
+    assert turned == []
+    assert verdicts["W01"]["kind"] == "effect" and verdicts["field"]["kind"] == "effect"
+
+
+def test_a_driver_in_the_faulty_input_needs_its_gain_in_the_interval_too() -> None:
+    rng = np.random.default_rng(13)
+    # a driver p_ratio (p_down enters it) whose gain is the same in and out of a (false)
+    # p_down offset: physics that depends on p_down, not the transmitter
+    flat = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -0.3, -0.3)
+    same = _verdicts("driver", None, "p_ratio")
+    same.pop("W02")
+    assert (
+        inst.instrument_verdicts(
+            same,
+            [{**FAULT, "kind": "offset"}],
+            lambda v, w: flat,
+            lambda v: {"W01": float(flat["d"].sum())},
+            pd.Timestamp("2020-06-01", tz="UTC"),
+            pd.Timestamp("2021-12-31", tz="UTC"),
+        )
+        == []
+    )
+    # the gain larger inside: the driver and the residual coincide
+    w1 = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -0.8, -0.2)
+    verdicts = _verdicts("driver", None, "p_ratio")
+    verdicts.pop("W02")
+    args = (
+        [FAULT],
+        lambda v, w: w1,
+        lambda v: {"W01": float(w1["d"].sum())},
+        pd.Timestamp("2020-06-01", tz="UTC"),
+        pd.Timestamp("2021-12-31", tz="UTC"),
+    )
+    assert inst.instrument_verdicts(verdicts, *args) == ["W01"]
+    assert verdicts["W01"]["instrument"]["coincides"] == "driver and residual"
+    assert verdicts["field"]["kind"] == "instrument"  # one well: the field is that well
+    quiet = _verdicts("noise", None, None)
+    quiet.pop("W02")
+    assert inst.instrument_verdicts(quiet, *args) == []
+    # a spike is one sample: never the verdict
+    spiky = _verdicts("driver", None, "p_ratio")
+    spiky.pop("W02")
+    assert inst.instrument_verdicts(spiky, [{**FAULT, "kind": "spike"}], *args[1:]) == []
+
+
+def test_the_effects_acting_through_a_driver_are_fitted_with_their_forms() -> None:
+    times = pd.date_range("2020-01-01", periods=200, freq="D", tz="UTC")
+    train = pd.DataFrame(
+        {
+            "time": times,
+            "well": "W01",
+            "source": "mpfm",
+            "choke": 0.80 + 0.01 * np.sin(np.arange(200) / 10.0),
+            "eta_gas": 0.1,
+            "p_up": 100.0,
+            "p_down": 30.0,
+        }
+    )
+    classes = [dg.resolve_effect(n) for n in ("erosion", "valve", "real_gas")]
+    more = dg._kin_classes(classes, [], set(), "choke", train)
+    names = [(c.name, of) for c, of in more]
+    assert names[0] == ("valve", None)
+    assert {n for n, _ in names[1:]} == set(dg.VARIANTS["valve"])
+    assert all(of == "valve" for _, of in names[1:])
+    assert dg._kin_classes(classes, [], {"valve"}, "choke", train) == []  # in the model
+    assert [c.name for c, _ in dg._kin_classes(classes, [], set(), "p_up", train)] == ["real_gas"]
