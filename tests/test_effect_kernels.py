@@ -1,14 +1,17 @@
-"""Effects that multiply the rate run on the compiled path (issue 37, item 2) and compute
-what the torch path computes.
+"""Effects that multiply the rate, and the two that change the flux (real gas, slip), run
+on the compiled path (issue 37, item 2) and compute what the torch path computes.
 
 - ``ol`` on ``mm`` with each compiled library effect (and three at once): after 60 updates
   the parameters, Adam's moments and step counts and the predictions equal the torch
   path's to 1e-10 relative; so do ``bayes``'s parameters, filter state and forecasts
   (``mm`` and ``ham``);
 - the many-well path (``learn_many`` / ``predict_many``) likewise;
-- a derivative broken on purpose (dF/dp off by 0.1 %) fails the comparison: it can fail;
-- effects without a compiled form (real gas, slip, critical ratio, a user's subclass that
-  rewrites a hook) keep the torch path.
+- a derivative broken on purpose (dF/dp, or the flux effects' dq/dp or dq/dtheta, off by
+  0.1 %) fails the comparison: it can fail;
+- the compiled rate with real gas and slip and its derivatives (through Z, through the
+  slip factor, and by the effects' parameters) equal autograd's through the torch model;
+- effects without a compiled form (critical ratio, a user's subclass that rewrites a hook,
+  two effects of one flux kind) keep the torch path.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import pytest
 import torch
 
 from vfm_core.data import Batch, make_batch, target_mask
-from vfm_core.effects import EffectInputs, Erosion, add_features
+from vfm_core.effects import EffectInputs, Erosion, RealGas, Slip, add_features
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, kernels, parse_method
 from vfm_core.learning import _mm_numba as numba_kernels
@@ -124,6 +127,11 @@ def _compare(fast: tuple, slow: tuple) -> None:
         (["valve_sigmoid"], OnlineSettings(lr=1e-1, steps=3, max_grad_norm=0.05)),  # clipped
         (["mpfm_bias"], DEFAULT_ONLINE["mm"]),
         (["erosion", "valve_quick_opening", "mpfm_bias"], DEFAULT_ONLINE["mm"]),
+        (["real_gas"], DEFAULT_ONLINE["mm"]),
+        (["slip"], DEFAULT_ONLINE["mm"]),
+        (["slip"], OnlineSettings(optimizer="sgd", lr=1e-3, steps=10)),
+        (["real_gas", "slip", "valve"], DEFAULT_ONLINE["mm"]),
+        (["mpfm_bias", "slip", "real_gas"], OnlineSettings(lr=1e-1, steps=3, max_grad_norm=0.05)),
     ],
 )
 def test_ol_with_an_effect_compiled_matches_the_torch_steps(
@@ -141,7 +149,14 @@ def test_ol_with_an_effect_compiled_matches_the_torch_steps(
 
 @pytest.mark.parametrize(
     ("name", "effects"),
-    [("ham", ["erosion"]), ("ham", ["valve", "mpfm_bias"]), ("hem", ["valve_convex"])],
+    [
+        ("ham", ["erosion"]),
+        ("ham", ["valve", "mpfm_bias"]),
+        ("hem", ["valve_convex"]),
+        ("ham", ["real_gas", "slip"]),
+        ("hem", ["slip", "erosion"]),
+        ("hem", ["real_gas"]),
+    ],
 )
 def test_ol_on_a_hybrid_with_effects_compiled_matches_the_torch_steps(
     monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, name: str, effects: list[str]
@@ -235,6 +250,10 @@ def _bayes_run(
         ("mm", ["valve_convex", "mpfm_bias"]),
         ("ham", ["erosion_time"]),
         ("hem", ["mpfm_bias"]),
+        ("mm", ["real_gas"]),
+        ("mm", ["slip", "erosion"]),
+        ("ham", ["real_gas", "slip"]),
+        ("hem", ["slip"]),
     ],
 )
 def test_bayes_with_an_effect_compiled_matches_the_torch_filter(
@@ -318,6 +337,9 @@ def _many_run(
         ("mm", "ol", "valve"),
         ("mm", "bayes", "erosion"),
         ("ham", "ol", "mpfm_bias"),
+        ("mm", "ol", "real_gas"),
+        ("mm", "bayes", "slip"),
+        ("ham", "ol", "slip"),
         ("mm", "ol", None),  # the plain models' compiled steps, on the same route
         ("ham", "ol", None),
     ],
@@ -344,7 +366,13 @@ class _OwnErosion(Erosion):
         return 1.0 + p["rate"] * inputs.feature(self.basis) ** 2
 
 
-@pytest.mark.parametrize("effect", ["real_gas", "slip", "critical_ratio", _OwnErosion])
+class _OwnSlip(Slip):
+    """A second slip effect under another name (its hooks Slip's): the kernels take one."""
+
+    name = "own_slip"
+
+
+@pytest.mark.parametrize("effect", ["critical_ratio", _OwnErosion])
 def test_effects_without_a_compiled_form_keep_the_torch_path(effect: object) -> None:
     model = make_model("mm", ["a", "b"], effects=[effect])
     assert model.effects[0].compiled_factor() is None
@@ -359,6 +387,15 @@ def test_effects_without_a_compiled_form_keep_the_torch_path(effect: object) -> 
     # with one of them beside a compiled effect, the whole model stays on torch
     mixed = make_model("mm", ["a"], effects=["erosion", effect])
     assert kernels.compiled_effects(mixed) is None
+
+
+def test_two_effects_of_one_flux_kind_keep_the_torch_path() -> None:
+    """Two slip exponents add in torch; the kernels take one per kind: torch it is."""
+    assert _OwnSlip().compiled_factor() is not None
+    assert kernels.compiled_effects(make_model("mm", ["a"], effects=["slip", _OwnSlip])) is None
+    assert kernels.compiled_effects(make_model("ham", ["a"], effects=["slip", "real_gas"])) == (
+        "ham"
+    )
 
 
 def test_the_kernels_switch_off_for_effects_too(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -378,9 +415,142 @@ def test_the_compiled_codes_are_the_kernels() -> None:
         CompiledFactor.VALVE,
         CompiledFactor.FAMILY,
         CompiledFactor.BIAS,
+        CompiledFactor.GAS,
+        CompiledFactor.SLIP,
     ) == (
         numba_kernels.FX_EROSION,
         numba_kernels.FX_VALVE,
         numba_kernels.FX_FAMILY,
         numba_kernels.FX_BIAS,
+        numba_kernels.FX_GAS,
+        numba_kernels.FX_SLIP,
     )
+
+
+# -- the effects that change the flux: real gas (Z) and slip -----------------------------------
+_FLUX = numba_kernels.flux_rate_grad
+
+
+def _broken_flux(part: str):  # type: ignore[no-untyped-def]
+    """:func:`_mm_numba.flux_rate_grad` with one derivative 0.1 % too large: ``effect`` the
+    effects' parameters' (strength, exponent), ``theta`` the mechanistic ones'."""
+
+    def broken(*args: object) -> float:
+        value = _FLUX(*args)
+        target = args[-1] if part == "effect" else args[3]
+        assert isinstance(target, np.ndarray)
+        target *= 1.001
+        return value  # type: ignore[no-any-return]
+
+    return broken
+
+
+@pytest.mark.parametrize("broken", [None, "effect", "theta"])
+def test_a_broken_flux_derivative_fails_the_comparison(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, broken: str | None
+) -> None:
+    """``ol`` with real gas and slip, the steps as Python over the compiled flux: exact as
+    it is, off with the effects' or the mechanistic parameters' derivative broken."""
+    effects = ["real_gas", "slip"]
+    stream = _stream(frame, effects)
+    stream = (stream[0], stream[1][:20])
+    slow = _online_run(monkeypatch, "0", stream, effects, DEFAULT_ONLINE["mm"])
+    kernel = kernels._kernel()
+    assert kernel is not None
+    monkeypatch.setattr(kernel, "effect_online", numba_kernels.effect_online.py_func)
+    monkeypatch.setattr(numba_kernels, "_rate_at", numba_kernels._rate_at.py_func)
+    if broken:
+        monkeypatch.setattr(numba_kernels, "flux_rate_grad", _broken_flux(broken))
+    fast = _online_run(monkeypatch, "1", stream, effects, DEFAULT_ONLINE["mm"])
+    if broken:
+        with pytest.raises(AssertionError, match="off by"):
+            _compare(fast, slow)
+    else:
+        _compare(fast, slow)
+
+
+def test_a_broken_flux_derivative_fails_the_filter_comparison(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame
+) -> None:
+    effects = ["real_gas"]
+    stream = _stream(frame, effects)
+    stream = (stream[0], stream[1][:20])
+    slow = _bayes_run(monkeypatch, "0", stream, effects, "mm")
+    kernel = kernels._kernel()
+    assert kernel is not None
+    monkeypatch.setattr(kernel, "bayes", numba_kernels.bayes.py_func)
+    monkeypatch.setattr(numba_kernels, "log_rate_grad", numba_kernels.log_rate_grad.py_func)
+    monkeypatch.setattr(numba_kernels, "_rate_at", numba_kernels._rate_at.py_func)
+    monkeypatch.setattr(numba_kernels, "flux_rate_grad", _broken_flux("effect"))
+    fast = _bayes_run(monkeypatch, "1", stream, effects, "mm")
+    with pytest.raises(AssertionError, match="off by"):
+        _compare(fast, slow)
+
+
+_THETA_NAMES = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
+
+
+@pytest.mark.parametrize(("gas", "slip"), [(True, False), (False, True), (True, True)])
+def test_the_flux_derivatives_equal_autograd(gas: bool, slip: bool) -> None:
+    """The compiled rate with real gas and/or slip and dq / d(theta, strength, exponent)
+    against autograd through the torch model's rate (models.physical._sachdeva_rate), on
+    random samples and parameters (p_cr below and above p_down/p_up, Z clamped too)."""
+    from vfm_core.models.physical import _plain_batch, _sachdeva_rate, _si_inputs
+    from vfm_core.physics import DTYPE
+
+    rng = np.random.default_rng(37)
+    for trial in range(40):
+        p_up = rng.uniform(30.0, 150.0)
+        eta_gas = rng.uniform(0.01, 0.6)
+        x = np.array(
+            [
+                rng.uniform(0.1, 1.0),
+                p_up,
+                rng.uniform(0.05, 0.95) * p_up,
+                rng.uniform(20.0, 90.0),
+                eta_gas,
+                rng.uniform(0.0, 1.0 - eta_gas),
+            ]
+        )
+        theta = np.array(
+            [
+                rng.normal(840.0, 20.0),
+                rng.normal(1017.5, 8.0),
+                rng.normal(1.28, 0.015),
+                rng.normal(0.0205, 0.0018),
+                rng.uniform(0.3, 0.8),
+                rng.normal(0.825, 0.04),
+            ]
+        )
+        # strength 8 at high pressure: Z's floor 0.2 (no derivative through it)
+        strength = 8.0 if trial == 0 else rng.uniform(-1.0, 3.0)
+        if trial == 0:
+            x[1], x[2], x[3] = 300.0, 100.0, 20.0
+        exponent = rng.uniform(-2.0, 4.0)
+        dq, d_e = np.zeros(6), np.zeros(2)
+        q = numba_kernels.flux_rate_grad(theta, x, 2e-3, dq, gas, strength, slip, exponent, d_e)
+        th = {
+            n: torch.tensor([v], dtype=DTYPE, requires_grad=True)
+            for n, v in zip(_THETA_NAMES, theta, strict=True)
+        }
+        s = torch.tensor([[strength]], dtype=DTYPE, requires_grad=True)
+        w = torch.tensor([[exponent]], dtype=DTYPE, requires_grad=True)
+        xt = torch.tensor(x, dtype=DTYPE).reshape(1, 1, 6)
+        effects, values = [], {}
+        if gas:
+            effects.append(RealGas())
+            values["real_gas"] = {"strength": s}
+        if slip:
+            effects.append(Slip())
+            values["slip"] = {"exponent": w}
+        area = (th["c_d"] * 2e-3).unsqueeze(1) * xt[..., 0]
+        rate = _sachdeva_rate(_si_inputs(_plain_batch(xt), th, None), area, effects, values)
+        grads = torch.autograd.grad(rate.sum(), [*th.values(), s, w], allow_unused=True)
+        want = np.array([0.0 if g is None else float(g.sum()) for g in grads])
+        got = np.array([*dq, d_e[0] if gas else 0.0, d_e[1] if slip else 0.0])
+        assert q == pytest.approx(float(rate.detach()), rel=1e-12), trial
+        np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-12 * np.abs(want).max())
+        if trial == 0 and gas:
+            assert float(want[6]) == 0.0  # Z at its floor: autograd's zero, ours too
+        if gas and trial > 0:
+            assert float(want[6]) != 0.0  # a derivative that is there, compared

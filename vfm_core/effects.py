@@ -140,8 +140,8 @@ class EffectInputs:
 @dataclass(frozen=True)
 class CompiledFactor:
     """How the compiled kernels (:mod:`vfm_core.learning.kernels`) compute an effect that
-    only multiplies the rate (its ``area_factor`` or ``output_factor``), with the same
-    arithmetic: ``code`` one of the constants below, ``column`` the feature column it
+    multiplies the rate (its ``area_factor`` or ``output_factor``) or one of the library's
+    two that change the flux (real gas, slip), with the same arithmetic: ``code`` one of the constants below, ``column`` the feature column it
     reads (or None), ``settings`` up to two integers (a knot count, a family's index, a
     step time in ns). An effect returns one from :meth:`Effect.compiled_factor`; any other
     effect runs the torch path (the same numbers, slower)."""
@@ -150,6 +150,10 @@ class CompiledFactor:
     VALVE: ClassVar[int] = 2  # Valve's piecewise-linear curve, settings[0] knots
     FAMILY: ClassVar[int] = 3  # ValveFamily, settings[0] the index in AREA_FUNCTIONS
     BIAS: ClassVar[int] = 4  # MeterBias: 1 + p0 + p1 x on MPFM rows, 1 on well tests
+    #: the two that change the flux itself (their factor is 1; the kernels compute the
+    #: flux with them, ``_mm_numba.flux_rate_grad``); at most one of each in a model
+    GAS: ClassVar[int] = 5  # RealGas: Z = max(1 + p0 (Z_Papay - 1), 0.2)
+    SLIP: ClassVar[int] = 6  # Slip: the flux times (G_Simpson / G)^p0
 
     code: int
     column: str | None = None
@@ -239,7 +243,8 @@ class Effect:
     def compiled_factor(self) -> CompiledFactor | None:
         """The compiled form of this effect (:class:`CompiledFactor`), or None (the default:
         a model with this effect learns and predicts through torch). Only for an effect
-        that multiplies the rate, with exactly the arithmetic of its hooks."""
+        that multiplies the rate, or the library's real gas and slip, with exactly the
+        arithmetic of its hooks."""
         return None
 
     def describe(self, values: Mapping[str, float]) -> str:
@@ -463,6 +468,11 @@ class RealGas(Effect):
         z = ph.z_factor_papay(inputs.p_up, inputs.t_up, inputs.theta["m_gas"])
         return torch.clamp(1.0 + p["strength"] * (z - 1.0), min=0.2)
 
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, RealGas) or list(self.parameters) != ["strength"]:
+            return None
+        return CompiledFactor(CompiledFactor.GAS)
+
     def describe(self, values: Mapping[str, float]) -> str:
         return f"Gas density follows {100 * values['strength']:.0f} % of Papay's real-gas Z - 1 (Z < 1 means denser gas)."
 
@@ -478,6 +488,11 @@ class Slip(Effect):
 
     def slip(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         return p["exponent"]
+
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, Slip) or list(self.parameters) != ["exponent"]:
+            return None
+        return CompiledFactor(CompiledFactor.SLIP)
 
     def describe(self, values: Mapping[str, float]) -> str:
         return f"Phase slip at {values['exponent']:.2g} x Simpson's multiplier (in the exponent; 1 = Simpson, 0 = homogeneous)."

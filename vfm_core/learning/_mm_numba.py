@@ -18,6 +18,7 @@ from vfm_core.units import KELVIN_OFFSET, PA_PER_BAR
 _R_GAS, _P_SC, _T_SC = ph.R_GAS, ph.P_SC, ph.T_SC
 _PA_PER_BAR, _KELVIN = PA_PER_BAR, KELVIN_OFFSET
 _PER_HOUR = 3600.0
+_M_AIR, _PA_PER_PSI = ph.M_AIR, 6894.757293168
 # error_model="numpy": a division by zero gives inf or NaN, as in torch, never raises
 jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
@@ -97,6 +98,155 @@ def rate_grad(theta: np.ndarray, x: np.ndarray, a_max: float, dq: np.ndarray) ->
 
 
 @jit
+def _real_gas_z(m_gas: float, p1: float, t1: float, strength: float) -> tuple:  # type: ignore[type-arg]
+    """effects.RealGas's Z = max(1 + strength (Z_Papay - 1), 0.2) at p1 (Pa), t1 (K)
+    (physics.z_factor_papay, Sutton's pseudo-critical properties), 1.0 where the floor
+    passes a gradient (torch.clamp's) else 0.0, Z_Papay and dZ_Papay / dM_gas."""
+    gamma = m_gas / _M_AIR
+    t_pc = (169.2 + 349.5 * gamma - 74.0 * gamma**2) * (5.0 / 9.0)
+    p_pc = (756.8 - 131.0 * gamma - 3.6 * gamma**2) * _PA_PER_PSI
+    t_pr = t1 / t_pc
+    p_pr = p1 / p_pc
+    e1 = 10.0 ** (0.9813 * t_pr)
+    e2 = 10.0 ** (0.8157 * t_pr)
+    zp = 1.0 - 3.52 * p_pr / e1 + 0.274 * p_pr**2 / e2
+    zr = 1.0 + strength * (zp - 1.0)
+    d_tpr = -t_pr / t_pc * ((349.5 - 148.0 * gamma) * (5.0 / 9.0) / _M_AIR)
+    d_ppr = -p_pr / p_pc * ((-131.0 - 7.2 * gamma) * _PA_PER_PSI / _M_AIR)
+    ln10 = math.log(10.0)
+    dzp_dm = (-3.52 / e1 + 0.548 * p_pr / e2) * d_ppr + (
+        3.52 * 0.9813 * ln10 * p_pr / e1 - 0.274 * 0.8157 * ln10 * p_pr**2 / e2
+    ) * d_tpr
+    return (zr if not zr < 0.2 else 0.2), (1.0 if zr >= 0.2 else 0.0), zp, dzp_dm
+
+
+@jit
+def _slip_flux(
+    root_head: float, flux: float, v_liq: float, xg: float, rho_g2: float, exponent: float
+) -> tuple:  # type: ignore[type-arg]
+    """effects.Slip's flux G (G_slip / G)^exponent, G_slip = sqrt(2 p1 E) / v_s the flux
+    with Simpson's slip (physics._flux with slip=True: v_s = A B, A = x / rho_g2 + s v,
+    B = x + l / s, s = (rho_l / rho_g2)^(1/6), rho_l = l / max(v, 1e-12), l = 1 - x),
+    both fluxes clamped at 1e-12 in the ratio; returns it, G_slip, v_s, s, A, B, its
+    derivatives by G and by G_slip, and log(G_slip / G)."""
+    lf = 1.0 - xg
+    rho_l = lf / (v_liq if not v_liq < 1e-12 else 1e-12)
+    s = (rho_l / rho_g2) ** (1.0 / 6.0) if lf > 1e-9 else 1.0
+    big_a = xg / rho_g2 + s * v_liq
+    big_b = xg + lf / s
+    v_s = big_a * big_b
+    flux_s = root_head / v_s
+    c = flux if not flux < 1e-12 else 1e-12
+    cs = flux_s if not flux_s < 1e-12 else 1e-12
+    log_ratio = math.log(cs / c)
+    r_w = math.exp(exponent * log_ratio)
+    fe = flux * r_w
+    by_flux = r_w - fe * exponent * (1.0 if flux >= 1e-12 else 0.0) / c
+    by_slip = fe * exponent * (1.0 if flux_s >= 1e-12 else 0.0) / cs
+    return fe, flux_s, v_s, s, big_a, big_b, by_flux, by_slip, log_ratio
+
+
+@jit
+def _slip_back(
+    g_ms: float, v_liq: float, xg: float, s: float, big_a: float, big_b: float, gas: float
+) -> tuple:  # type: ignore[type-arg]
+    """From d / d v_s (``g_ms``) of :func:`_slip_flux`'s v_s to d / dv (the liquid volume
+    per kg) and d / d log rho_g2 (``gas`` = x / rho_g2); s moves with log rho_l - log
+    rho_g2 (no gradient where it is 1 or v is at its floor, as torch's where and clamp)."""
+    lf = 1.0 - xg
+    d_v = g_ms * big_b * s
+    d_lg2 = -g_ms * big_b * gas
+    if lf > 1e-9:
+        d_ls = g_ms * (big_b * v_liq - big_a * lf / (s * s)) * s / 6.0  # per d log s
+        d_lg2 += -d_ls
+        if v_liq >= 1e-12:
+            d_v += -d_ls / v_liq
+    return d_v, d_lg2
+
+
+@jit
+def flux_rate_grad(  # noqa: PLR0913 - one sample and its flux effects
+    theta: np.ndarray,
+    x: np.ndarray,
+    a_max: float,
+    dq: np.ndarray,
+    has_gas: bool,
+    strength: float,
+    has_slip: bool,
+    exponent: float,
+    d_e: np.ndarray,
+) -> float:
+    """:func:`rate_grad` with the effects that change the flux itself, as
+    models.physical's ``_sachdeva_rate`` computes them: the upstream Z of effects.RealGas
+    with ``has_gas`` (:func:`_real_gas_z`), the flux of effects.Slip with ``has_slip``
+    (:func:`_slip_flux`). dq / dtheta into ``dq`` [6] (M_gas through Z too), dq /
+    d strength and dq / d exponent into ``d_e`` [2]: the cotangents a_f of G and a_s of
+    G_slip give dE (a_f G + a_s G_slip) / 2E, dv_mix -a_f G / v_mix, dv_s -a_s G_slip /
+    v_s (:func:`_slip_back`), then as physics.flux_vjp."""
+    rho_oil, rho_wat, k, m_gas, p_cr, c_d = theta[0], theta[1], theta[2], theta[3], theta[4], theta[5]  # fmt: skip
+    p_cr_used = min(max(p_cr, 0.05), 0.99)
+    u, p1, p2, t1, xg, eo = x[0], x[1] * _PA_PER_BAR, x[2] * _PA_PER_BAR, x[3] + _KELVIN, x[4], x[5]  # fmt: skip
+    zz, z_in, zp, dzp_dm = 1.0, 0.0, 1.0, 0.0
+    if has_gas:
+        zz, z_in, zp, dzp_dm = _real_gas_z(m_gas, p1, t1, strength)
+    ratio = p2 / p1  # physics._flux with z from here
+    pr = max(ratio, p_cr_used)
+    rho_g1 = p1 * m_gas / (zz * _R_GAS * t1)
+    eta_wat = 1.0 - xg - eo
+    v_liq = eo / rho_oil + eta_wat / rho_wat
+    expansion = 1.0 - pr ** ((k - 1.0) / k)
+    energy = v_liq * (1.0 - pr) + xg * k / (k - 1.0) * expansion / rho_g1
+    rho_g2 = rho_g1 * pr ** (1.0 / k)
+    v_mix = xg / rho_g2 + v_liq
+    head = 2.0 * p1 * energy
+    root_head = math.sqrt(max(head, 0.0))
+    flux = root_head / v_mix
+    gas_sc = xg / (_P_SC * m_gas / (_R_GAS * _T_SC))
+    per_kg = gas_sc + (eo / rho_oil + eta_wat / rho_wat)
+    unit_area = a_max * u
+    area = c_d * unit_area
+    g_flux = area * per_kg * _PER_HOUR
+    fe, flux_s, v_s, s, big_a, big_b, a_f, a_s = flux, 0.0, 1.0, 1.0, 0.0, 0.0, g_flux, 0.0
+    d_e[1] = 0.0
+    if has_slip:
+        fe, flux_s, v_s, s, big_a, big_b, by_flux, by_slip, log_ratio = _slip_flux(
+            root_head, flux, v_liq, xg, rho_g2, exponent
+        )
+        a_f, a_s = g_flux * by_flux, g_flux * by_slip
+        d_e[1] = g_flux * fe * log_ratio
+    q = area * fe * per_kg * _PER_HOUR
+    flowing = head > 0
+    g_e = (a_f * flux + a_s * flux_s) * 0.5 / energy if flowing else 0.0
+    g_m = -a_f * flux / v_mix if flowing else 0.0
+    pra, log_pr = 1.0 - expansion, math.log(pr)  # p_r^a, log p_r
+    gas = xg * pr ** (-1.0 / k) / rho_g1  # x / rho_g2
+    d_v = g_e * (1.0 - pr) + g_m  # the cotangents of v and of log rho_g2
+    d_lg2 = -g_m * gas
+    if has_slip and flowing:
+        d_vs, d_lg2s = _slip_back(-a_s * flux_s / v_s, v_liq, xg, s, big_a, big_b, gas)
+        d_v += d_vs
+        d_lg2 += d_lg2s
+    d_rho_g1 = g_e * (-xg * k / (k - 1.0) * expansion / rho_g1**2) + d_lg2 / rho_g1
+    d_pr = g_e * (-v_liq - xg * pra / pr / rho_g1) + d_lg2 / (k * pr)
+    d_k = (
+        g_e * (-xg * (expansion / (k - 1.0) ** 2 + pra * log_pr / (k * (k - 1.0))) / rho_g1)
+        - d_lg2 * log_pr / k**2
+    )
+    at_cr = 1.0 if p_cr_used > ratio else (0.5 if p_cr_used == ratio else 0.0)
+    inside = 1.0 if (p_cr >= 0.05 and p_cr <= 0.99) else 0.0
+    d_z = d_rho_g1 * (-rho_g1 / zz) * z_in
+    g_kg = area * fe * _PER_HOUR
+    dq[0] = d_v * (-eo / rho_oil**2) - g_kg * eo / rho_oil**2
+    dq[1] = d_v * (-eta_wat / rho_wat**2) - g_kg * eta_wat / rho_wat**2
+    dq[2] = d_k
+    dq[3] = d_rho_g1 * rho_g1 / m_gas - g_kg * gas_sc / m_gas + d_z * strength * dzp_dm
+    dq[4] = d_pr * at_cr * inside
+    dq[5] = (fe * per_kg * _PER_HOUR) * unit_area
+    d_e[0] = d_z * (zp - 1.0)
+    return q
+
+
+@jit
 def rates(z: np.ndarray, x: np.ndarray, a_max: np.ndarray, mu: np.ndarray,
           sigma: np.ndarray, out: np.ndarray) -> None:  # fmt: skip
     """The plain Sachdeva rate [W, N] (Sm3/h) of every sample, into ``out``."""
@@ -160,9 +310,10 @@ def hybrid_rates(
                     o += a * w2[w, k, 0]
             if area_model:
                 theta[5] = c_d * math.exp(o)
-                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * fxj
+                out[w, j] = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq) * fxj
             else:
-                out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * fxj + y_scale[w] * o
+                plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
+                out[w, j] = plain * fxj + y_scale[w] * o
 
 
 @jit
@@ -252,8 +403,9 @@ def online(  # noqa: PLR0913 - the arrays of one update
 
 
 # -- effects that multiply the rate (vfm_core.effects, Effect.compiled_factor) -------------
-#: the codes of :class:`vfm_core.effects.CompiledFactor` (kept equal to its constants)
-FX_EROSION, FX_VALVE, FX_FAMILY, FX_BIAS = 1, 2, 3, 4
+#: the codes of :class:`vfm_core.effects.CompiledFactor` (kept equal to its constants);
+#: FX_GAS and FX_SLIP change the flux itself (:func:`flux_rate_grad`), their factor is 1
+FX_EROSION, FX_VALVE, FX_FAMILY, FX_BIAS, FX_GAS, FX_SLIP = 1, 2, 3, 4, 5, 6
 
 
 @jit
@@ -376,8 +528,10 @@ def effect_factor(
             f[t] = _family(pe, p0, terms[t, 4], u, u_ref, d_f)
         elif code == FX_BIAS:
             f[t] = _bias(pe, p0, extra[col], well_test, d_f)
+        elif code == FX_GAS or code == FX_SLIP:
+            f[t] = 1.0  # in the flux (flux_rate_grad), not a factor
         else:
-            f[t] = math.nan  # (no other code: Effect.compiled_factor names these four)
+            f[t] = math.nan  # (no other code: Effect.compiled_factor names these six)
     total = 1.0
     for t in range(n_t):
         total *= f[t]
@@ -397,7 +551,7 @@ def _factor_at(fx: tuple, pe: np.ndarray, scratch: tuple, u: float, w: int, j: i
     ``fx`` the effects' (terms, mu_e, sigma_e, extra [W, N, E], well_test [W, N], time_ns
     [W, N], u_ref [W]), ``scratch`` (dF, f) of :func:`_scratch`."""
     terms, _, _, extra, well_test, time_ns, u_ref = fx
-    d_f, f = scratch
+    d_f, f = scratch[0], scratch[1]
     if terms.shape[0] == 0:
         return 1.0
     return effect_factor(
@@ -407,8 +561,53 @@ def _factor_at(fx: tuple, pe: np.ndarray, scratch: tuple, u: float, w: int, j: i
 
 @jit
 def _scratch(fx: tuple) -> tuple:  # type: ignore[type-arg]
-    """The arrays :func:`_factor_at` writes: dF [P] and each effect's factor [T]."""
-    return np.zeros(fx[1].shape[0]), np.zeros(fx[0].shape[0])
+    """The arrays :func:`_factor_at` and :func:`_rate_at` write: dF [P], each effect's
+    factor [T], dq / d(effect parameter) of the flux effects [P] (0 for the others) and
+    :func:`flux_rate_grad`'s two derivatives."""
+    p = fx[1].shape[0]
+    return np.zeros(p), np.zeros(fx[0].shape[0]), np.zeros(p), np.zeros(2)
+
+
+@jit
+def _rate_at(
+    fx: tuple,  # type: ignore[type-arg]
+    pe: np.ndarray,
+    scratch: tuple,  # type: ignore[type-arg]
+    theta: np.ndarray,
+    x: np.ndarray,
+    a_max: float,
+    dq: np.ndarray,
+) -> float:
+    """The Sachdeva rate of one sample ``x`` (Sm3/h) with the effects that change the flux
+    (real gas, slip: :func:`flux_rate_grad`), :func:`rate_grad` without them; dq / dtheta
+    into ``dq`` and dq / d(their parameters) into ``scratch[2]`` (0 for every other
+    effect's parameter, whose factor :func:`_factor_at` gives)."""
+    terms = fx[0]
+    i_gas, i_slip = -1, -1
+    for t in range(terms.shape[0]):
+        if terms[t, 0] == FX_GAS:
+            i_gas = terms[t, 1]
+        elif terms[t, 0] == FX_SLIP:
+            i_slip = terms[t, 1]
+    if i_gas < 0 and i_slip < 0:
+        return rate_grad(theta, x, a_max, dq)
+    d_q, d_e = scratch[2], scratch[3]
+    q = flux_rate_grad(
+        theta,
+        x,
+        a_max,
+        dq,
+        i_gas >= 0,
+        pe[i_gas] if i_gas >= 0 else 0.0,
+        i_slip >= 0,
+        pe[i_slip] if i_slip >= 0 else 0.0,
+        d_e,
+    )
+    if i_gas >= 0:
+        d_q[i_gas] = d_e[0]
+    if i_slip >= 0:
+        d_q[i_slip] = d_e[1]
+    return q
 
 
 @jit
@@ -498,7 +697,7 @@ def effect_rates(
             theta[i] = mu[i] + sigma[i] * z[w, i]
         effect_values(w, ze, fx[1], fx[2], pe)
         for j in range(n_samples):
-            out[w, j] = rate_grad(theta, x[w, j], a_max[w], dq) * _factor_at(
+            out[w, j] = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq) * _factor_at(
                 fx, pe, scratch, x[w, j, 0], w, j
             )
 
@@ -550,13 +749,13 @@ def effect_online(  # noqa: PLR0913 - the arrays of one update
             for j in range(n_samples):
                 if not mask[w, j]:
                     continue  # torch: a zero gradient there
-                q = rate_grad(theta, x[w, j], a_max[w], dq)
+                q = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
                 fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
                 g = (q * fxj - y[w, j]) / scale[w] * d_factor
                 for i in range(6):
                     grad[i] += g * (dq[i] * fxj)
                 for k in range(ge.shape[0]):
-                    ge[k] += g * (q * scratch[0][k])
+                    ge[k] += g * (q * scratch[0][k] + scratch[2][k] * fxj)
             sq = _prior_(w, z, grad, sigma, weight) + _prior_(w, ze, ge, fx[2], weight)
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
             if adam:
@@ -667,18 +866,18 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
                     o += act[k] * w2[w, k, 0]
                 if kind == 2:
                     theta[5] = mu[5] * math.exp(o)
-                    plain = rate_grad(theta, x[w, j], a_max[w], dq)
+                    plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
                     rate = plain * fxj
                     dq_do = dq[5] * theta[5] * fxj
                 else:
-                    plain = rate_grad(theta, x[w, j], a_max[w], dq)
+                    plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
                     rate = plain * fxj + scale[w] * o
                     dq_do = scale[w]
                 g = (rate - y[w, j]) / scale[w] * d_factor
                 for i in range(n_par):
                     gz[i] += g * (dq[i] * fxj)
                 for k in range(ge.shape[0]):
-                    ge[k] += g * (plain * scratch[0][k])
+                    ge[k] += g * (plain * scratch[0][k] + scratch[2][k] * fxj)
                 g_o = g * dq_do
                 gb2 += g_o
                 for k in range(hidden):
@@ -1625,7 +1824,7 @@ def log_rate_grad(
     d_log_o = 0.0
     fxj = _factor_at(fx, pe, scratch, x[0], w, j)
     if kind == 0:
-        plain = rate_grad(theta, x, a_max, dq)
+        plain = _rate_at(fx, pe, scratch, theta, x, a_max, dq)
         rate = plain * fxj
     else:
         for i in range(6):
@@ -1639,11 +1838,11 @@ def log_rate_grad(
             o += act[k] * state[w, head + k]
         if kind == 2:
             theta[5] = mu[5] * math.exp(o)
-            plain = rate_grad(theta, x, a_max, dq)
+            plain = _rate_at(fx, pe, scratch, theta, x, a_max, dq)
             rate = plain * fxj
             d_log_o = dq[5] * theta[5] * fxj  # dq / do, divided by the rate below
         else:
-            plain = rate_grad(theta, x, a_max, dq)
+            plain = _rate_at(fx, pe, scratch, theta, x, a_max, dq)
             rate = plain * fxj + y_scale[w] * o
             d_log_o = y_scale[w]
     clamped = max(rate, 1e-12)
@@ -1651,7 +1850,8 @@ def log_rate_grad(
     for i in range(n_phys):
         H[i] = dq[i] * fxj * sigma[i] / clamped if ok else 0.0
     for k in range(n_eff):
-        H[n_phys + k] = plain * scratch[0][k] * fx[2][k] / clamped if ok else 0.0
+        d_rate = plain * scratch[0][k] + scratch[2][k] * fxj
+        H[n_phys + k] = d_rate * fx[2][k] / clamped if ok else 0.0
     if kind != 0:
         g = d_log_o / clamped if ok else 0.0
         for k in range(hidden):
@@ -1925,17 +2125,19 @@ def warm_effects() -> None:
     x, ones, yes = _made_up_sample()
     mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
     one = np.ones(6)
-    # erosion with a step, valve (2 knots), a valve family, a meter bias: 7 parameters
+    # erosion with a step, valve (2 knots), a valve family, a meter bias, real gas, slip:
+    # 9 parameters
     terms = np.array(
         [[FX_EROSION, 0, 2, 0, 1, 0], [FX_VALVE, 2, 2, 0, 2, 0], [FX_FAMILY, 4, 1, 0, 1, 0],
-         [FX_BIAS, 5, 2, 0, 0, 0]], dtype=np.int64,
+         [FX_BIAS, 5, 2, 0, 0, 0], [FX_GAS, 7, 1, 0, 0, 0], [FX_SLIP, 8, 1, 0, 0, 0]],
+        dtype=np.int64,
     )  # fmt: skip
-    p = 7
+    p = 9
     fx = (terms, np.zeros(p), np.ones(p), np.ones((1, 1, 1)), np.zeros((1, 1), dtype=bool),
           np.ones((1, 1), np.int64), np.ones(1) / 2)  # fmt: skip
     ze = np.zeros((1, p))
     effect_rates(np.zeros((1, 6)), x, np.ones(1), mu, one, ze, fx, np.zeros((1, 1)))
-    eff = (ze.copy(), np.zeros((1, p)), np.zeros((1, p)), np.array([1, 1, 2, 2, 3, 4, 4]),
+    eff = (ze.copy(), np.zeros((1, p)), np.zeros((1, p)), np.array([1, 1, 2, 2, 3, 4, 4, 5, 6]),
            -np.ones(p), np.ones(p))  # fmt: skip
     effect_online(
         np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((5, 1)),

@@ -491,7 +491,7 @@ class BayesianFilter(LearningMethod):
         if self.kalman_iterations != 1 or not blocks:
             return None
         params = [b.param for b in blocks]
-        # with effects that multiply the rate (compiled): their parameters after the physics'
+        # with compiled effects (rate factors, real gas, slip): their parameters after the physics'
         base = compiled_effects(model)
         if plain_mm(model) or base == "mm":
             mine = effect_parameters(model)  # z, then each effect's (none: the plain mm)

@@ -32,14 +32,18 @@ run on the same kernels: a compiled per-effect function
 dF / d(effect parameters), the rate is the plain one times F, and the effects' parameters
 step, filter and clip beside the mechanistic ones (:func:`effect_online_steps`,
 :func:`effect_rates` for ``mm``; :func:`hybrid_online_steps`, :func:`hybrid_rates` and
-the filter for ``hem`` and ``ham``). ``tests/test_effect_kernels.py`` compares them with
-the torch path.
+the filter for ``hem`` and ``ham``). The library's two effects that change the flux
+itself (real_gas: Papay's Z in the gas density; slip: the flux times a power of Simpson's
+slip multiplier) run there too, one of each per model: the kernels compute that flux and
+its derivatives in closed form (:func:`vfm_core.learning._mm_numba.flux_rate_grad`,
+through Z to M_gas and through both fluxes of the slip factor), and their factor in F is 1.
+``tests/test_effect_kernels.py`` compares them with the torch path and with autograd.
 
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
 the torch path (parameters, optimiser and filter states to 1e-10 or better after many
-updates, predictions to 1e-13, the gradient against autograd). Anything else (effects
-that change the flux: real_gas, slip, critical_ratio; a user's effect without a compiled
-form; another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
+updates, predictions to 1e-13, the gradient against autograd). Anything else (the
+critical ratio, ``suggest``, a user's effect without a compiled form, two effects of one
+flux kind; another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
 
 ``VFM_KERNELS=0`` in the environment turns the kernels off (the torch path then runs), for
 a comparison side by side or where numba cannot compile.
@@ -913,7 +917,7 @@ def mm_rates(model: Any, batch: Any) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
-# -- models with effects that multiply the rate (Effect.compiled_factor) -------------------
+# -- models with compiled effects (Effect.compiled_factor: rate factors, real gas, slip) ----
 def compiled_effects(model: Any) -> str | None:
     """``mm``, ``hem`` or ``ham`` when the kernels compute ``model`` with its effects (the
     model's ``compiled_with_effects``: every effect has a compiled form), else None."""

@@ -138,7 +138,7 @@ class OnlineLearning(LearningMethod):
             # with torch's plain Adam or SGD: the plain mm (its one tensor, z) or the
             # plain hybrids (every parameter) step compiled
             mm = plain_mm(self.model) and self._all_of([self.model.phys.z])  # type: ignore[union-attr, list-item]
-            # mm with effects that multiply the rate, every parameter stepped
+            # mm with compiled effects (rate factors, real gas, slip), every parameter stepped
             self._effects = compiled_effects(self.model) == "mm" and self._all_of(
                 effect_parameters(self.model)
             )

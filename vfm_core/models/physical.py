@@ -22,7 +22,7 @@ from torch import nn
 
 from vfm_core import physics as ph
 from vfm_core.data import DTYPE, Batch
-from vfm_core.effects import Effect, EffectInputs, effect_spec, resolve_effects
+from vfm_core.effects import CompiledFactor, Effect, EffectInputs, effect_spec, resolve_effects
 from vfm_core.errors import ConfigError
 from vfm_core.models.base import (
     ChokeModel,
@@ -401,12 +401,16 @@ class Mechanistic(ChokeModel):
         """What :meth:`compiled_as` would say of this model without its effects, when it
         has effects and every one of them has a compiled form
         (:meth:`vfm_core.effects.Effect.compiled_factor`: the effects that multiply the
-        rate); else None. The kernels then compute the model with its effects."""
+        rate, real gas and slip), at most one of those that change the flux per kind;
+        else None. The kernels then compute the model with its effects."""
         if not self.effects:
             return None
         compiled = self.__dict__.get("_vfm_compiled_effects")
         if compiled is None:
-            compiled = all(e.compiled_factor() is not None for e in self.effects)
+            forms = [e.compiled_factor() for e in self.effects]
+            codes = [f.code for f in forms if f is not None]
+            flux = [c for c in codes if c in (CompiledFactor.GAS, CompiledFactor.SLIP)]
+            compiled = len(codes) == len(forms) and len(set(flux)) == len(flux)
             self.__dict__["_vfm_compiled_effects"] = compiled
         return self._compiled_shape() if compiled else None
 
