@@ -554,3 +554,33 @@ def test_the_flux_derivatives_equal_autograd(gas: bool, slip: bool) -> None:
             assert float(want[6]) == 0.0  # Z at its floor: autograd's zero, ours too
         if gas and trial > 0:
             assert float(want[6]) != 0.0  # a derivative that is there, compared
+
+
+def test_slip_on_a_dry_gas_has_a_finite_gradient_in_both_paths() -> None:
+    """A sample of gas only (eta_gas = 1) has no slip; torch's gradient there was NaN (the
+    unchosen branch's root at 0), which would have turned an ``ol`` model's parameters to
+    NaN. Both paths now give the same finite gradient."""
+    from vfm_core.models.physical import _plain_batch, _sachdeva_rate, _si_inputs
+    from vfm_core.physics import DTYPE
+
+    x = np.array([0.5, 80.0, 30.0, 60.0, 1.0, 0.0])
+    theta = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
+    dq, de = np.zeros(6), np.zeros(2)
+    q = numba_kernels.flux_rate_grad(theta, x, 2e-3, dq, False, 0.0, True, 1.0, de)
+    names = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
+    th = {
+        n: torch.tensor([v], dtype=DTYPE, requires_grad=True)
+        for n, v in zip(names, theta, strict=True)
+    }
+    w = torch.tensor([[1.0]], dtype=DTYPE, requires_grad=True)
+    xt = torch.tensor(x, dtype=DTYPE).reshape(1, 1, 6)
+    area = (th["c_d"] * 2e-3).unsqueeze(1) * xt[..., 0]
+    rate = _sachdeva_rate(
+        _si_inputs(_plain_batch(xt), th, None), area, [Slip()], {"slip": {"exponent": w}}
+    )
+    grads = torch.autograd.grad(rate.sum(), [*th.values(), w])
+    got = np.array([float(g.reshape(-1)[0]) for g in grads])
+    assert np.isfinite(got).all()
+    assert float(rate.detach().reshape(-1)[0]) == pytest.approx(q, rel=1e-12)
+    np.testing.assert_allclose(got[:6], dq, rtol=1e-9, atol=1e-9 * np.abs(dq).max())
+    assert got[6] == pytest.approx(de[1], abs=1e-9)

@@ -223,10 +223,11 @@ def _flux(
     v_mix = x / rho_g2 + v_liq
     if slip:
         liquid_fraction = 1.0 - x
-        rho_liquid = liquid_fraction / torch.clamp(v_liq, min=1e-12)
-        s = torch.where(
-            liquid_fraction > 1e-9, simpson_slip(rho_liquid, rho_g2), torch.ones_like(v_mix)
-        )
+        liquid = liquid_fraction > 1e-9
+        # a dry gas has no slip; its unchosen branch is kept finite (rho_L = rho_g), or
+        # torch.where's zero gradient times the root's infinite slope at 0 would be NaN
+        rho_liquid = torch.where(liquid, liquid_fraction / torch.clamp(v_liq, min=1e-12), rho_g2)
+        s = torch.where(liquid, simpson_slip(rho_liquid, rho_g2), torch.ones_like(v_mix))
         v_mix = (x / rho_g2 + s * v_liq) * (x + liquid_fraction / s)
     head = 2.0 * p1 * energy
     flux = torch.sqrt(torch.clamp(head, min=0.0)) / v_mix
