@@ -52,6 +52,7 @@ __all__ = [
     "AlarmSettings",
     "ResidualAlarmSettings",
     "SensorFaultSettings",
+    "WellTestReviewSettings",
     "load_settings",
     "is_loopback_host",
     "endpoint_host",
@@ -576,6 +577,40 @@ class AlarmSettings(_Section):
     )
 
 
+class WellTestReviewSettings(_Section):
+    """Well-test QC (:class:`service.engine.alarms.WellTestReview`; ``docs/guide/sensor-faults.md``):
+    a well test far outside the model's predictive distribution, and off the MPFM near it
+    too, is held for the operator's review instead of being learned."""
+
+    enabled: bool = Field(
+        default=True, description="hold such well tests for review (false: learn every one)"
+    )
+    k: float = Field(
+        default=3.29,
+        ge=2,
+        le=20,
+        description="hold when |log(well test / prediction)| exceeds k predictive sd: 3.29 holds "
+        "1 well test in 1,000 that the model's own (Gaussian) distribution would produce",
+    )
+    min_residuals: int = Field(
+        default=10,
+        ge=3,
+        le=1000,
+        description="a method without an interval: the spread is taken from the well's last "
+        "learned residuals, and no well test is held before it has this many",
+    )
+    residuals: int = Field(
+        default=50, ge=3, le=1000, description="recent learned residuals kept per well"
+    )
+    min_sd: float = Field(
+        default=0.01,
+        gt=0,
+        le=1,
+        description="floor of the predictive sd in log space (a well test is seldom better "
+        "than 1 %)",
+    )
+
+
 class TrialSettings(_Section):
     """The trial of a model change against the model it replaced, run as a shadow
     (``docs/guide/trials.md``; :mod:`service.engine.trial`)."""
@@ -721,6 +756,7 @@ class Settings(BaseSettings):
     queues: QueueSettings = Field(default_factory=QueueSettings)
     drift: DriftSettings = Field(default_factory=DriftSettings)
     alarms: AlarmSettings = Field(default_factory=AlarmSettings)
+    well_test_review: WellTestReviewSettings = Field(default_factory=WellTestReviewSettings)
     trial: TrialSettings = Field(default_factory=TrialSettings)
     residual_alarm: ResidualAlarmSettings = Field(default_factory=ResidualAlarmSettings)
     sensor_faults: SensorFaultSettings = Field(default_factory=SensorFaultSettings)

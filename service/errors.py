@@ -86,6 +86,11 @@ REASONS: dict[str, str] = {
     "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
     "sensor fault at the sample": "an input of the paired sample has an instrument fault "
     "(vfm_core.sensor_faults): the measurement is stored (status held), not learned from",
+    "held for review": "a well test lies outside the model's predictive distribution "
+    "(well_test_review.k sd) and off the MPFM near it: stored (status review), not learned "
+    "until the operator accepts it (POST /wells/{well}/measurements/review)",
+    "no such review": "a review decision names no measurement of the well held for review, "
+    "or one decided before",
     "queue overflow": "the worker queue stayed full for queues.block_s; the message was dropped",
     "well flooding": "the well sends faster than its share: its own queue (queues.well_capacity) "
     "stayed full for queues.block_s, or it exceeded inputs.well_rate_hz",

@@ -11,14 +11,18 @@ What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures ba
 - ``measurements``: every accepted measurement (MPFM reading or well test) with its
   status: ``pending`` (waiting for its sensor sample), ``learned`` (with the order it was
   learned in, ``learn_seq``, the paired inputs and the prediction at that sample, so
-  that a restart can re-learn it without the samples), or ``unpaired`` (no sample within
-  the tolerance).
+  that a restart can re-learn it without the samples), ``unpaired`` (no sample within
+  the tolerance), ``held`` (an instrument fault at its sample), ``review`` (held for the
+  operator's review) or ``rejected`` (rejected on review); the last three never learned.
 - ``checkpoints``: :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors
   and plain values, read back with ``weights_only``; never pickle), with the
   ``learn_seq`` they include and a JSON side-car (drift detector state).
 - ``drift_events``: confirmed input drifts per well (the T^2 "operating point" notice).
 - ``residual_alarms``: the start and end of each residual alarm per well and meter
   (created on opening any store, like the tables below; an older service ignores it).
+- ``reviews``: the measurements held for review (a well test inconsistent with the model
+  and with the MPFM near it, :class:`service.engine.alarms.WellTestReview`), with the
+  evidence, the paired sample and the operator's decision (created on opening any store).
 - ``parameter_history``: a well's physical parameters over time (``parameters``: JSON
   ``{name: {value, std, unit, low, high, at_bound}}``, SI units), with the data time of the
   measurement they follow (``time_ns``), the model version and name; written in the same
@@ -92,6 +96,11 @@ __all__ = [
     "MarkLearned",
     "MarkUnpaired",
     "MarkHeld",
+    "InsertReview",
+    "MarkReview",
+    "DecideReview",
+    "MarkRejected",
+    "ReviewRow",
     "InsertCheckpoint",
     "PruneCheckpoints",
     "InsertDriftEvent",
@@ -175,6 +184,15 @@ CREATE TABLE IF NOT EXISTS trials (
     outcome TEXT NOT NULL, summary TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS trials_well ON trials (well, id);
+CREATE TABLE IF NOT EXISTS reviews (
+    id INTEGER PRIMARY KEY,
+    well TEXT NOT NULL, time_ns INTEGER NOT NULL, source TEXT NOT NULL, q_total REAL NOT NULL,
+    predicted REAL NOT NULL, sd_log REAL NOT NULL, z REAL NOT NULL, mpfm REAL,
+    reason TEXT NOT NULL, sample_time_ns INTEGER NOT NULL,
+    choke REAL, p_up REAL, p_down REAL, t_up REAL, eta_gas REAL, eta_oil REAL,
+    sample_predicted REAL, held_ns INTEGER NOT NULL, decision TEXT, decided_ns INTEGER
+);
+CREATE UNIQUE INDEX IF NOT EXISTS reviews_key ON reviews (well, source, time_ns);
 """
 
 SCHEMA_VERSION = "3"
@@ -280,6 +298,7 @@ class HistoryMeasurement(NamedTuple):
     received_ns: int
     via: str
     status: str  # pending | learned | unpaired | held (an instrument fault at its sample)
+    # | review (held for review: service.engine.alarms.WellTestReview) | rejected (on review)
     sample_time_ns: int | None
     predicted: float | None
     version_after: int | None
@@ -478,6 +497,108 @@ class MarkHeld(Op):
     )
 
 
+class ReviewRow(NamedTuple):
+    """A measurement held for review (``reviews``; :class:`service.engine.alarms.WellTestReview`):
+    its rate and the model's prediction (Sm3/h), the predictive sd in log space, z, the
+    median of the MPFM readings near it (Sm3/h; None: none), the reason (a sentence), the
+    paired sample, when it was held (wall time, ns) and the operator's decision (None while
+    open; accept | reject) with its wall time (ns)."""
+
+    well: str
+    time_ns: int
+    source: str
+    q_total: float
+    predicted: float
+    sd_log: float
+    z: float
+    mpfm: float | None
+    reason: str
+    sample: SampleRow
+    held_ns: int
+    decision: str | None = None
+    decided_ns: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class InsertReview(Op):
+    """Hold a measurement for review: its ``reviews`` row (the measurement's status is set
+    to ``review`` by the same op list, :class:`MarkReview`)."""
+
+    row: ReviewRow
+
+    SQL: ClassVar[str] = (
+        "INSERT OR REPLACE INTO reviews (well, time_ns, source, q_total, predicted, sd_log, z,"
+        " mpfm, reason, sample_time_ns, choke, p_up, p_down, t_up, eta_gas, eta_oil,"
+        " sample_predicted, held_ns) VALUES (:well, :time_ns, :source, :q_total, :predicted,"
+        " :sd_log, :z, :mpfm, :reason, :sample_time_ns, :choke, :p_up, :p_down, :t_up,"
+        " :eta_gas, :eta_oil, :sample_predicted, :held_ns)"
+    )
+
+    def params(self) -> Mapping[str, Any]:
+        r = self.row
+        return {
+            "well": r.well,
+            "time_ns": r.time_ns,
+            "source": r.source,
+            "q_total": r.q_total,
+            "predicted": r.predicted,
+            "sd_log": r.sd_log,
+            "z": r.z,
+            "mpfm": r.mpfm,
+            "reason": r.reason,
+            "sample_time_ns": r.sample.time_ns,
+            **dict(zip(INPUT_FIELDS, r.sample.inputs, strict=True)),
+            "sample_predicted": r.sample.predicted,
+            "held_ns": r.held_ns,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class MarkReview(Op):
+    """A measurement held for review, not learned from (status ``review``)."""
+
+    well: str
+    source: str
+    time_ns: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE measurements SET status = 'review'"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class DecideReview(Op):
+    """The operator's decision on a held measurement (``accept``: it is learned, its
+    status set by :class:`MarkLearned`; ``reject``: status ``rejected``) at ``decided_ns``
+    (wall time)."""
+
+    well: str
+    source: str
+    time_ns: int
+    decision: str  # accept | reject
+    decided_ns: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE reviews SET decision = :decision, decided_ns = :decided_ns"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class MarkRejected(Op):
+    """A held measurement the operator rejected: stored, never learned (status ``rejected``)."""
+
+    well: str
+    source: str
+    time_ns: int
+
+    SQL: ClassVar[str] = (
+        "UPDATE measurements SET status = 'rejected'"
+        " WHERE well = :well AND source = :source AND time_ns = :time_ns"
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class InsertCheckpoint(Op):
     well: str
@@ -592,6 +713,7 @@ _WELL_TABLES = (
     "parameter_history",
     "model_versions",
     "trials",
+    "reviews",
     "wells",
 )
 
@@ -1089,6 +1211,52 @@ class Store:
                 (well, time_ns - window_ns, time_ns + window_ns),
             ).fetchall()
         return [float(r[0]) for r in rows]
+
+    def reviews(
+        self, well: str, source: str | None = None, time_ns: int | None = None, limit: int = 100
+    ) -> list[ReviewRow]:
+        """The well's measurements held for review and not decided yet, oldest first (the
+        latest ``limit``); with ``source`` and ``time_ns``, that one measurement's row
+        whether decided or not (none: an empty list)."""
+        one = source is not None and time_ns is not None
+        where = "source = ? AND time_ns = ?" if one else "decision IS NULL"
+        args: tuple[Any, ...] = (well, source, time_ns, 1) if one else (well, limit)
+        with self.reader() as con:
+            cursor = con.execute(
+                "SELECT * FROM reviews WHERE well = ? AND "  # noqa: S608 - constant clauses
+                + where
+                + " ORDER BY time_ns DESC LIMIT ?",
+                args,
+            )
+            rows = [
+                ReviewRow(
+                    r["well"],
+                    r["time_ns"],
+                    r["source"],
+                    r["q_total"],
+                    r["predicted"],
+                    r["sd_log"],
+                    r["z"],
+                    r["mpfm"],
+                    r["reason"],
+                    _sample_row(r, time="sample_time_ns", predicted="sample_predicted"),
+                    r["held_ns"],
+                    r["decision"],
+                    r["decided_ns"],
+                )
+                for r in _named(cursor)
+            ]
+        return rows[::-1]
+
+    def latest_learned(self, well: str, source: str) -> int | None:
+        """The time (epoch ns) of the well's latest learned measurement of ``source``."""
+        with self.reader() as con:
+            row = con.execute(
+                "SELECT MAX(time_ns) FROM measurements WHERE well = ? AND source = ?"
+                " AND status = 'learned'",
+                (well, source),
+            ).fetchone()
+        return int(row[0]) if row is not None and row[0] is not None else None
 
     def latest_well_test(self, well: str) -> tuple[int, float] | None:
         """The time (epoch ns) and q_total (Sm3/h) of the well's latest stored well test."""

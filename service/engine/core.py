@@ -28,10 +28,11 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
+from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from service.config import Settings
-from service.engine.alarms import MpfmCheck
+from service.engine.alarms import MpfmCheck, WellTestReview
 from service.engine.checkpoints import Checkpoints
 from service.engine.fairqueue import FairQueue
 from service.engine.intake import Intake, worker_of
@@ -39,12 +40,12 @@ from service.engine.items import RetireStep
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.observe import Observer
-from service.engine.pairing import Pairing
+from service.engine.pairing import Pairing, ReviewItem
 from service.engine.recovery import Recovery
 from service.engine.registry import Registry
 from service.engine.state import WellState, WellTestResult
 from service.engine.worker import Workers
-from service.errors import Busy, Stopping, unknown_well
+from service.errors import Busy, InvalidRequest, Stopping, unknown_well
 from service.inputs import Counters
 from service.store import Store
 from vfm_core.messages import Measurement
@@ -89,7 +90,11 @@ class Engine:
         self._learning = Learning(settings, counters, self._checkpoints)
         #: the MPFM against well tests alarm (service.engine.alarms)
         self.mpfm_check = MpfmCheck(settings, store)
-        self._pairing = Pairing(settings, store, counters, self._learning, self.mpfm_check)
+        #: the well-test QC: a well test off the model and the MPFM is held for review
+        self.review = WellTestReview(settings, self.mpfm_check)
+        self._pairing = Pairing(
+            settings, store, counters, self._learning, self.mpfm_check, self.review
+        )
         self._intake = Intake(settings, counters, self._registry, self._queues)
         self._model_changes = ModelChanges(
             settings,
@@ -128,6 +133,8 @@ class Engine:
         self._wells.update(self._recovery.load(set(self._registry.retired)))
         for st in self._wells.values():
             self.mpfm_check.load(st)
+            for row in self.store.reviews(st.well):  # the reviews still open
+                st.hold_for_review(row)
 
     def start(self, source: Source | None = None) -> None:
         """Start the worker threads; with ``source`` (one worker) the worker takes the
@@ -159,6 +166,41 @@ class Engine:
     def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:
         """Queue a well test; the future answers once it is stored (and learned, or pending)."""
         return self._intake.submit_well_test(well, measurement)
+
+    def submit_review(
+        self, well: str, when: datetime, source: str, decision: str
+    ) -> Future[WellTestResult]:
+        """Queue the operator's decision (accept | reject) on the ``source`` measurement of
+        ``well`` at ``when`` held for review; the future answers once it is stored (accept:
+        learned, as a well test is). Raises :class:`UnknownWell` or :class:`Busy` before
+        queueing, :class:`InvalidRequest` for a bad time, source or decision."""
+        if well not in self._wells:
+            raise unknown_well(well)
+        if source not in ("well_test", "mpfm") or decision not in ("accept", "reject"):
+            raise InvalidRequest(
+                "A review decision names source 'well_test' or 'mpfm' and decision 'accept' "
+                "or 'reject'.",
+                "wrong type",
+            )
+        self._intake.check_time(when, "review")
+        fut: Future[WellTestResult] = Future()
+        item = ReviewItem(
+            well,
+            Measurement(time=when, q_total=0.0),
+            source,
+            time.time_ns(),
+            via="http",
+            future=fut,
+            decision=decision,
+            decided_ns=time.time_ns(),
+        )
+        full = self._queues[worker_of(well, len(self._queues))].put(well, item, timeout=2.0)
+        if full != "ok":
+            raise Busy(
+                "The service is busy (its queue is full); retry in a few seconds.",
+                "well flooding" if full == "well" else "queue overflow",
+            )
+        return fut
 
     def change_model(
         self,
@@ -250,6 +292,7 @@ class Engine:
             model_changes=list(st.model_changes),
             mpfm_check=st.mpfm_check,
             rejected=self.counters.rejected_of(well),
+            held_for_review=st.held_for_review_view(),
         )
         return out
 

@@ -11,24 +11,54 @@ ones (:meth:`~service.engine.state.WellState.rate_problem`) is refused before an
 is stored (``implausible rate``). A stored well test is compared with the MPFM readings
 near it (:mod:`service.engine.alarms`). A sample is always predicted before
 the measurement at its time is learned from (prequential order, as in ``vfm evaluate``).
+
+Well-test QC: a paired well test far outside the model's predictive distribution and off
+the MPFM near it (:class:`service.engine.alarms.WellTestReview`) is stored with status
+``review``, counted (``held for review``) and not learned from; the operator's decision
+(:class:`ReviewItem`, ``POST /wells/{well}/measurements/review``) learns it now, paired
+with its stored sample (``accept``), or marks it ``rejected`` (``reject``), recorded in
+the store's ``reviews`` table with the time of the decision and counted (events
+``reviews accepted``, ``reviews rejected``).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
+from dataclasses import dataclass
 
 from service.config import Settings
-from service.engine.alarms import MpfmCheck
+from service.engine.alarms import MpfmCheck, WellTestReview
 from service.engine.items import Batch, MeasurementItem, refuse
 from service.engine.learning import Learning
 from service.engine.state import Pending, Sample, WellState, WellTestResult
-from service.errors import Duplicate, InvalidRequest
+from service.errors import Conflict, Duplicate, InvalidRequest
 from service.inputs import Counters
-from service.store import InsertMeasurement, MarkHeld, MarkUnpaired, Store
+from service.store import (
+    DecideReview,
+    InsertMeasurement,
+    InsertReview,
+    MarkHeld,
+    MarkRejected,
+    MarkReview,
+    MarkUnpaired,
+    ReviewRow,
+    Store,
+)
 from vfm_core.timeutil import iso, to_ns
 
-__all__ = ["Pairing", "nearest_in"]
+__all__ = ["Pairing", "ReviewItem", "nearest_in"]
+
+
+@dataclass(slots=True)
+class ReviewItem(MeasurementItem):
+    """The operator's decision on a measurement held for review, run by the well's worker:
+    the measurement is named by ``source`` and ``measurement.time`` (its ``q_total`` is not
+    used); ``decision``: accept | reject; ``decided_ns``: when (wall time, epoch ns)."""
+
+    decision: str = "accept"
+    decided_ns: int = 0
 
 
 def nearest_in(recent: deque[Sample], time_ns: int) -> Sample:
@@ -56,9 +86,12 @@ class Pairing:
         counters: Counters,
         learning: Learning,
         alarms: MpfmCheck | None = None,
+        review: WellTestReview | None = None,
     ) -> None:
         self.store = store
         self.alarms = alarms
+        self.review = review
+        self.residuals_kept = settings.well_test_review.residuals
         self.counters = counters
         self.learning = learning
         self.tolerance_s = settings.inputs.pair_tolerance_s
@@ -82,6 +115,9 @@ class Pairing:
 
     def on_measurement(self, st: WellState, item: MeasurementItem, b: Batch) -> None:
         """A measurement: refuse a duplicate, store it, then learn from it or let it wait."""
+        if isinstance(item, ReviewItem):
+            self.decide(st, item, b)
+            return
         m = item.measurement
         t = to_ns(m.time)
         if (item.source, t) in st.seen or self.store.measurement_exists(item.well, item.source, t):
@@ -140,6 +176,11 @@ class Pairing:
         if sample is not None:
             self._learn_unless_held(st, p, sample, b)
             return
+        self._wait(st, p, b)
+
+    def _wait(self, st: WellState, p: Pending, b: Batch) -> None:
+        """A stored measurement waits for its sample (the oldest waiting one settled when
+        ``inputs.pending_max`` are waiting); a caller is answered ``pending`` now."""
         if len(st.pending) >= self.pending_max:
             oldest = st.pending.pop(0)
             self.counters.event("pending forced")
@@ -150,11 +191,11 @@ class Pairing:
                 p.future,
                 WellTestResult(
                     st.well,
-                    iso(t) or "",
-                    m.q_total,
+                    iso(p.time_ns) or "",
+                    p.q_total,
                     "pending",
-                    f"Stored. No sensor sample of {st.well} at or after {iso(t)} has arrived yet; the well test "
-                    "is learned from when it does.",
+                    f"Stored. No sensor sample of {st.well} at or after {iso(p.time_ns)} has "
+                    "arrived yet; the well test is learned from when it does.",
                     version_before=st.learner.version,
                     version_after=st.learner.version,
                 ),
@@ -200,6 +241,15 @@ class Pairing:
         learned from (learn nothing wrong)."""
         fault = st.sensor_faults.suspect(sample.time_ns)
         if fault is None:
+            if self.review is not None and self.review.enabled and p.source == "well_test":
+                if st.well in b.learn_wells:  # judged by the model after what came before
+                    self.learning.run_deferred(b)
+                self._seed_residuals(st)
+                row = self.review.judge(st, p.source, p.time_ns, p.q_total, sample, b.ops)
+                if row is not None:
+                    self._hold(st, p, row, b)
+                    return
+            self._note_residual(st, p.source, p.time_ns, p.q_total, sample)
             self.learning.learn_paired(st, p, sample, b)
             return
         b.ops.append(MarkHeld(well=st.well, source=p.source, time_ns=p.time_ns))
@@ -210,3 +260,114 @@ class Pairing:
             "sensor fault at the sample",
         )
         refuse(self.counters, error, st.well, b, p.future)
+
+    # -- well-test QC ---------------------------------------------------------------------
+    def _seed_residuals(self, st: WellState) -> None:
+        """Once per well: its latest learned residuals and well test from the store (after
+        a restart)."""
+        if st.residuals_seeded:
+            return
+        st.residuals_seeded = True
+        earlier = [
+            math.log(e.measured / e.predicted)
+            for e in self.store.recent_errors(st.well, self.residuals_kept)
+            if e.predicted is not None and e.predicted > 0 and e.measured > 0
+        ]
+        st.log_residuals.extendleft(reversed(earlier[-(st.log_residuals.maxlen or 1) :]))
+        latest = self.store.latest_learned(st.well, "well_test")
+        if latest is not None and latest > st.last_learned_ns.get("well_test", -1):
+            st.last_learned_ns["well_test"] = latest
+
+    def _note_residual(
+        self, st: WellState, source: str, time_ns: int, q_total: float, sample: Sample
+    ) -> None:
+        """A measurement about to be learned: its residual against the prediction made at
+        its sample (the spread of :class:`~service.engine.alarms.WellTestReview`)."""
+        if self.review is None or not self.review.enabled:
+            return
+        self._seed_residuals(st)
+        if time_ns > st.last_learned_ns.get(source, -1):
+            st.last_learned_ns[source] = time_ns
+        if sample.predicted is not None and sample.predicted > 0 and q_total > 0:
+            st.log_residuals.append(math.log(q_total / sample.predicted))
+
+    def _hold(self, st: WellState, p: Pending, row: ReviewRow, b: Batch) -> None:
+        """Hold a measurement for review: stored with its evidence, counted, not learned."""
+        b.ops.append(InsertReview(row))
+        b.ops.append(MarkReview(well=st.well, source=p.source, time_ns=p.time_ns))
+        st.hold_for_review(row)
+        self.counters.reject("held for review", row.reason, where=st.well, well=st.well)
+        version = st.learner.version
+        b.answer(
+            p.future,
+            WellTestResult(
+                st.well,
+                iso(p.time_ns) or "",
+                p.q_total,
+                "review",
+                row.reason,
+                paired_sample_time=iso(row.sample.time_ns),
+                before={"q_total": row.predicted},
+                version_before=version,
+                version_after=version,
+            ),
+        )
+
+    def decide(self, st: WellState, item: ReviewItem, b: Batch) -> None:
+        """The operator's decision on a held measurement: accept (learned now, paired with
+        its stored sample) or reject (status ``rejected``); recorded and counted."""
+        t = to_ns(item.measurement.time)
+        row = st.reviews.get((item.source, t))
+        if row is None:
+            stored = self.store.reviews(st.well, item.source, t)
+            if stored and stored[0].decision is not None:
+                error: InvalidRequest | Conflict = Conflict(
+                    f"The {item.source} measurement of {st.well} at {iso(t)} was decided before "
+                    f"({stored[0].decision} at {iso(stored[0].decided_ns)}); a decision is final.",
+                    "no such review",
+                )
+                refuse(self.counters, error, st.well, b, item.future)
+                return
+            if not stored:
+                error = InvalidRequest(
+                    f"No {item.source} measurement of {st.well} at {iso(t)} is held for review; "
+                    f"GET /wells/{st.well} lists them under held_for_review.",
+                    "no such review",
+                )
+                refuse(self.counters, error, st.well, b, item.future)
+                return
+            row = stored[0]
+        b.ops.append(
+            DecideReview(
+                well=st.well,
+                source=item.source,
+                time_ns=t,
+                decision=item.decision,
+                decided_ns=item.decided_ns,
+            )
+        )
+        st.decided(item.source, t)
+        version = st.learner.version
+        if item.decision == "accept":
+            self.counters.event("reviews accepted")
+            self._note_residual(st, item.source, t, row.q_total, row.sample)
+            p = Pending(t, item.source, row.q_total, "http", time.monotonic(), item.future)
+            self.learning.learn_paired(st, p, row.sample, b)
+            return
+        self.counters.event("reviews rejected")
+        b.ops.append(MarkRejected(well=st.well, source=item.source, time_ns=t))
+        b.answer(
+            item.future,
+            WellTestResult(
+                st.well,
+                iso(t) or "",
+                row.q_total,
+                "rejected",
+                f"Rejected on review: the {item.source} measurement of {st.well} at {iso(t)} "
+                "stays stored (status rejected) and is never learned from.",
+                paired_sample_time=iso(row.sample.time_ns),
+                before={"q_total": row.predicted},
+                version_before=version,
+                version_after=version,
+            ),
+        )

@@ -24,9 +24,10 @@ import numpy as np
 from service.config import Settings
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.learning import Learner, describe
-from service.store import SampleRow
+from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.sensor_faults import SensorFault, WellSensorFaults
+from vfm_core.timeutil import iso
 
 __all__ = [
     "RECENT_SAMPLES",
@@ -42,6 +43,7 @@ logger = logging.getLogger("vfm.service.engine")
 
 RECENT_SAMPLES = 512  # per well, in memory, for pairing; older ones are looked up in the store
 SEEN_MEASUREMENTS = 1024  # per well, recent measurement keys for the duplicate check
+REVIEWS_KEPT = 100  # per well, open reviews in memory (GET /wells/{well}); the store has all
 
 #: a sensor sample as pairing and learning use it: time (epoch ns), six inputs, prediction made
 Sample = SampleRow
@@ -57,7 +59,7 @@ class WellTestResult:
     well: str
     time: str
     q_total: float
-    status: str  # learned | pending
+    status: str  # learned | pending | review (held for review, not learned) | rejected
     message: str
     paired_sample_time: str | None = None
     before: dict[str, float | None] = field(default_factory=dict)
@@ -128,6 +130,14 @@ class WellState:
         # replaced whole; and a well test to compare again once its window has passed
         self.mpfm_check: dict[str, Any] | None = None
         self.mpfm_recheck: tuple[int, float] | None = None
+        # well-test QC (service.engine.alarms.WellTestReview): log(measured / predicted) of
+        # the latest learned measurements (seeded from the store on first use), and the
+        # measurements held for review, not decided yet, by (source, time ns), oldest first
+        self.log_residuals: deque[float] = deque(maxlen=settings.well_test_review.residuals)
+        self.residuals_seeded = False
+        self.last_learned_ns: dict[str, int] = {}  # source -> time of the latest learned (ns)
+        self.reviews: OrderedDict[tuple[str, int], ReviewRow] = OrderedDict()
+        self._reviews_view: tuple[ReviewRow, ...] = ()  # what the API reads, replaced whole
         inputs = settings.inputs
         self._rate_factor = inputs.rate_factor
         self._rate_min = inputs.rate_min_history
@@ -219,6 +229,35 @@ class WellState:
     def sensor_faults_view(self) -> list[dict[str, Any]]:
         """GET /wells/{well} ``sensor_faults``: the recent faults, ``end`` null while active."""
         return self.sensor_faults.view()
+
+    def hold_for_review(self, row: ReviewRow) -> None:
+        """Keep an open review in memory (the oldest beyond :data:`REVIEWS_KEPT` only in the store)."""
+        self.reviews[(row.source, row.time_ns)] = row
+        while len(self.reviews) > REVIEWS_KEPT:
+            self.reviews.popitem(last=False)
+        self._reviews_view = tuple(self.reviews.values())
+
+    def decided(self, source: str, time_ns: int) -> None:
+        """An open review was decided: no longer shown."""
+        self.reviews.pop((source, time_ns), None)
+        self._reviews_view = tuple(self.reviews.values())
+
+    def held_for_review_view(self) -> list[dict[str, Any]]:
+        """GET /wells/{well} ``held_for_review``: the measurements held for review and not
+        decided yet, oldest first (rates Sm3/h; ``z`` in predictive sd; ``mpfm``: the median
+        of the MPFM readings near it, null when none)."""
+        return [
+            {
+                "time": iso(r.time_ns),
+                "source": r.source,
+                "q_total": r.q_total,
+                "predicted": r.predicted,
+                "z": r.z,
+                "mpfm": r.mpfm,
+                "reason": r.reason,
+            }
+            for r in self._reviews_view
+        ]
 
     def rolling_mape(self) -> dict[str, Any]:
         """MAPE (%) of the predictions made at the last paired measurements' samples."""

@@ -11,6 +11,8 @@
 ``POST /wells/{well}/well-tests``        a well-test result {time, q_total}: stored, then
                                          learned from; answers with the prediction before and
                                          after (bearer token; :mod:`.well_tests`)
+``POST /wells/{well}/measurements/review``  accept or reject a well test held for review
+                                         (bearer token; :mod:`.reviews`)
 ``PUT /wells/{well}/model``              replace the well's model (bearer token;
                                          :mod:`.model_changes`)
 ``DELETE /wells/{well}``                 retire a well, keeping or purging its data (bearer
@@ -43,6 +45,7 @@ from service.http import (
     health,
     metrics,
     model_changes,
+    reviews,
     well_tests,
     wells,
     workbench,
@@ -81,6 +84,7 @@ def create_app(service: ServiceView) -> FastAPI:
     app.include_router(wells.router)
     app.include_router(model_changes.router)
     app.include_router(well_tests.router)
+    app.include_router(reviews.router)
     app.include_router(diagnosis.router)
     app.include_router(events.router)
     app.include_router(metrics.router)

@@ -26,6 +26,7 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
 ``vfm_well_mpfm_alarm_active{well}``         1 while the well's MPFM disagrees with its
                                              latest well test (wells with a comparison)
 ``vfm_well_mpfm_difference_ratio{well}``     (MPFM median - well test) / well test of it
+``vfm_well_held_for_review{well}``           well tests held for review, not decided yet
 ``vfm_well_trial_mape_percent{well,role,outcome}``  the running (or latest) trial's MAPE, %:
                                              role ``model`` (new) and ``shadow`` (replaced)
 ``vfm_well_trial_pairs{well,outcome}``       that trial's paired measurements
@@ -166,7 +167,14 @@ class ServiceCollector(Collector):
             "well test (wells with a comparison only).",
             labels=["well"],
         )
+        held = GaugeMetricFamily(
+            "vfm_well_held_for_review",
+            "Well tests of the well held for review, not decided yet (GET /wells/{well}: "
+            "held_for_review; the latest 100).",
+            labels=["well"],
+        )
         for well, st in sorted(wells.items()):
+            held.add_metric([well], len(st.held_for_review_view()))
             rolling = st.rolling_mape()
             if rolling["value"] is not None:
                 mape.add_metric([well], rolling["value"])
@@ -188,7 +196,7 @@ class ServiceCollector(Collector):
                 mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
                 mpfm_diff.add_metric([well], check["relative_difference"])
         yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
-        yield from (predictions, mpfm_alarm, mpfm_diff, *_sensor_fault_metrics(wells))
+        yield from (predictions, mpfm_alarm, mpfm_diff, held, *_sensor_fault_metrics(wells))
         # the trials of model changes against their shadows (service.engine.trial)
         trial_mape = GaugeMetricFamily(
             "vfm_well_trial_mape_percent",

@@ -6,12 +6,15 @@ fractions 0..1, MAPE in percent; times ISO 8601 UTC.
 
 from __future__ import annotations
 
-from typing import Any
+from datetime import datetime
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = [
     "ErrorOut",
+    "ReviewIn",
+    "HeldForReview",
     "HealthOut",
     "Parameter",
     "RollingMape",
@@ -176,6 +179,35 @@ class RollbackIn(BaseModel):
     )
 
 
+class ReviewIn(BaseModel):
+    """The operator's decision on a measurement held for review (GET /wells/{well}:
+    held_for_review)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    time: datetime = Field(description="the measurement's time, ISO 8601 (as held_for_review)")
+    source: Literal["well_test", "mpfm"] = Field(
+        default="well_test", description="the measurement's meter"
+    )
+    decision: Literal["accept", "reject"] = Field(
+        description="accept: learn it now; reject: keep it stored, never learned"
+    )
+
+
+class HeldForReview(BaseModel):
+    """A measurement held for review: off the model's predictive distribution and the MPFM."""
+
+    time: str | None
+    source: str
+    q_total: float = Field(description="the measured rate, Sm3/h")
+    predicted: float = Field(description="the model's prediction at its sample, Sm3/h")
+    z: float = Field(description="log(q_total / predicted) in predictive sd")
+    mpfm: float | None = Field(
+        description="median of the MPFM readings near it, Sm3/h (null: none within the window)"
+    )
+    reason: str
+
+
 class TrialOut(BaseModel):
     """A model change on trial against the model it replaced, run as a shadow."""
 
@@ -286,6 +318,11 @@ class WellOut(WellSummary):
         default=None,
         description="the alarm on the model's standardised residuals: enabled, active, "
         "statistic, threshold, since, direction, source, streams (per meter), events",
+    )
+    held_for_review: list[HeldForReview] = Field(
+        default_factory=list,
+        description="well tests held for review, not learned until accepted, oldest first "
+        "(POST /wells/{well}/measurements/review decides)",
     )
     sensor_faults: list[dict[str, Any]] = Field(
         default_factory=list,
@@ -399,7 +436,8 @@ class WellTestOut(BaseModel):
     q_total: float
     stored: bool = True
     status: str = Field(
-        description="learned, or pending (waiting for the sensor sample at its time)"
+        description="learned, pending (waiting for the sensor sample at its time), review "
+        "(held for review, not learned) or rejected (on review)"
     )
     message: str
     paired_sample_time: str | None

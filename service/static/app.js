@@ -65,6 +65,8 @@ function alarmsOf(v) {
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
   if (!v.ready) out.push("no model yet");
   if (v.mpfm_check && v.mpfm_check.alarm) out.push(v.mpfm_check.alarm);
+  const held = (v.held_for_review || []).length;
+  if (held) out.push(`${held} well test(s) held for review`);
   for (const f of activeFaults(v).filter((x) => ALARM_FAULTS.includes(x.kind)))
     out.push(`instrument fault: ${f.sensor} ${f.kind} since ${day(f.start)}`);
   const bad = Object.entries(v.rejected || {});
@@ -496,7 +498,39 @@ function renderWellHeader() {
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
   $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
-  renderTrial(v); renderVersions(v); renderFaults(v);
+  renderTrial(v); renderVersions(v); renderFaults(v); renderReview(v);
+}
+
+/* Well tests held for review (GET /wells/{well} held_for_review): far off the model and the
+   MPFM, not learned until accepted; accept or reject each (POST .../measurements/review). */
+function renderReview(v) {
+  const list = (v && v.held_for_review) || [];
+  const el = $("#well-review");
+  const key = JSON.stringify([state.well, list]);
+  if (state.reviewKey === key) return;  // unchanged: no redraw
+  state.reviewKey = key;
+  el.hidden = !list.length;
+  el.innerHTML = !list.length ? "" : `<b>Held for review</b> <span class="hint">(not learned until accepted; GET /wells/${esc(state.well)}: held_for_review)</span>` +
+    `<ul>${list.map((h) => `<li class="active" data-time="${esc(h.time)}" title="${esc(h.reason)}">${esc(minute(h.time))} ${esc(h.source)}: ` +
+      `${fmt(h.q_total, 0)} Sm3/h, model ${fmt(h.predicted, 0)} Sm3/h (z ${fmt(h.z, 1)}), MPFM ${h.mpfm == null ? "none near" : fmt(h.mpfm, 0) + " Sm3/h"} ` +
+      `<button class="review" data-time="${esc(h.time)}" data-source="${esc(h.source)}" data-decision="accept">accept</button> ` +
+      `<button class="review" data-time="${esc(h.time)}" data-source="${esc(h.source)}" data-decision="reject">reject</button></li>`).join("")}</ul>`;
+  el.querySelectorAll("button.review").forEach((b) => b.addEventListener("click", () => decideReview(b)));
+}
+
+async function decideReview(button) {
+  const out = $("#review-result");
+  if (needToken(out)) return;
+  const { time, source, decision } = button.dataset;
+  out.className = "result"; out.textContent = `${decision === "accept" ? "accepting" : "rejecting"} the ${source} of ${minute(time)}...`;
+  try {
+    const r = await api("POST", `/wells/${encodeURIComponent(state.well)}/measurements/review`, { time, source, decision });
+    out.textContent = r.status === "learned"
+      ? `Accepted and learned: version ${r.version_before} \u2192 ${r.version_after}.` : r.message;
+    const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
+    state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams();
+    state.dirty = true;
+  } catch (err) { out.className = "result error"; out.textContent = err.message; }
 }
 
 /* The well's instrument faults as lines under the rate chart, newest first (the latest 8;
