@@ -167,14 +167,7 @@ class ServiceCollector(Collector):
             "well test (wells with a comparison only).",
             labels=["well"],
         )
-        held = GaugeMetricFamily(
-            "vfm_well_held_for_review",
-            "Well tests of the well held for review, not decided yet (GET /wells/{well}: "
-            "held_for_review; the latest 100).",
-            labels=["well"],
-        )
         for well, st in sorted(wells.items()):
-            held.add_metric([well], len(st.held_for_review_view()))
             rolling = st.rolling_mape()
             if rolling["value"] is not None:
                 mape.add_metric([well], rolling["value"])
@@ -196,7 +189,7 @@ class ServiceCollector(Collector):
                 mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
                 mpfm_diff.add_metric([well], check["relative_difference"])
         yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
-        yield from (predictions, mpfm_alarm, mpfm_diff, held, *_sensor_fault_metrics(wells))
+        yield from (predictions, mpfm_alarm, mpfm_diff, _held_for_review(wells), *_faults(wells))
         # the trials of model changes against their shadows (service.engine.trial)
         trial_mape = GaugeMetricFamily(
             "vfm_well_trial_mape_percent",
@@ -264,7 +257,20 @@ def metrics(request: Request) -> Response:
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
 
 
-def _sensor_fault_metrics(wells: dict[str, Any]) -> Iterator[Any]:
+def _held_for_review(wells: dict[str, Any]) -> GaugeMetricFamily:
+    """``vfm_well_held_for_review{well}``: the well tests held for review, not decided yet."""
+    held = GaugeMetricFamily(
+        "vfm_well_held_for_review",
+        "Well tests of the well held for review, not decided yet (GET /wells/{well}: "
+        "held_for_review; the latest 100).",
+        labels=["well"],
+    )
+    for well, st in sorted(wells.items()):
+        held.add_metric([well], len(st.held_for_review_view()))
+    return held
+
+
+def _faults(wells: dict[str, Any]) -> Iterator[Any]:
     """The instrument faults (vfm_core.sensor_faults): active per well, sensor and kind
     (every sensor and kind of a served well, 0 when clear) and raised per sensor and kind."""
     from vfm_core.sensor_faults import KINDS, SENSORS
