@@ -5,7 +5,7 @@ one run:
 
 - one well: ``WellLearner.learn`` (one measured rate) and ``WellLearner.predict`` (one
   sample), median microseconds per call;
-- many wells: ``learn_many`` and ``predict_many`` (vfm_core.streaming) over ``--wells``
+- many wells: ``learn_many`` and ``predict_many`` (vfm_core.learning.streaming) over ``--wells``
   learners in one call, median microseconds per well;
 
 for the plain model and for the model with each library effect (``--effects``), with the
@@ -45,14 +45,18 @@ from vfm_core.simulate import simulate_field
 
 #: measured rows a learner is fitted on before the timed calls
 HISTORY = 200
-#: the library effects compared by default (those that multiply the rate first)
-EFFECTS = "erosion,erosion_time,valve_equal_percentage,valve,mpfm_bias,real_gas,slip"
+#: the library effects compared by default (those that multiply the rate first), then a
+#: suggested correction (linear in t_up; the seasonal form) and the critical ratio
+EFFECTS = (
+    "erosion,erosion_time,valve_equal_percentage,valve,mpfm_bias,real_gas,slip,"
+    "suggest:driver=t_up,suggest:driver=day_of_year,critical_ratio"
+)
 
 
 def _learner(frame: pd.DataFrame, model: str, method: str, effect: str | None) -> tuple[Any, ...]:
     """A fitted ``WellLearner`` of the frame's first well (with ``effect``, if any), the
     later rows' inputs, rates and sources, and ``when(k)``: k + 1 seconds after the history."""
-    from vfm_core.streaming import WellLearner
+    from vfm_core.learning.streaming import WellLearner
 
     well = wells_of(frame)[0]
     rows = frame[(frame["well"] == well) & frame[TARGET].notna()]
@@ -103,7 +107,7 @@ def group_costs(
     of one well, and per well of ``learn_many`` and ``predict_many`` over ``n_wells``
     learners. The effects' calls take turns (one call of each, then the next round, in a
     new random order each round), so the shared machine's load falls on all alike."""
-    from vfm_core.streaming import learn_many, predict_many
+    from vfm_core.learning.streaming import learn_many, predict_many
 
     made = [_learner(frame, model, method, e) for e in effects]
     many = [[copy.deepcopy(m[0]) for _ in range(n_wells)] for m in made]

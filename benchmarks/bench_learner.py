@@ -18,8 +18,8 @@ import pandas as pd
 import torch
 
 from vfm_core.learning import TrainSettings
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.runtime import configure
-from vfm_core.streaming import WellLearner
 
 SAMPLE = [
     0.5,

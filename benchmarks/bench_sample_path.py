@@ -41,10 +41,10 @@ from service.engine.registry import Registry
 from service.inputs import Counters
 from service.testing import loopback_settings
 from vfm_core.learning import DEFAULT_TRAIN
+from vfm_core.learning.streaming import WellLearner, predict_many
 from vfm_core.runtime import configure
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner, predict_many
 
 
 def receiving(wells: int, messages: int) -> float:

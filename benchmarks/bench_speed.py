@@ -183,7 +183,7 @@ def _fitted_learner(frame, model_name: str, method_text: str) -> tuple[Any, list
     rows; the later rows' inputs and rates; and ``when(k)``: k + 1 seconds after the history."""
     import pandas as pd
 
-    from vfm_core.streaming import WellLearner
+    from vfm_core.learning.streaming import WellLearner
 
     wells = wells_of(frame)
     rows = frame[(frame["well"] == wells[0]) & frame[TARGET].notna()]
@@ -217,7 +217,7 @@ def streaming_cost(
     ``n_wells`` learners, per well, us (every call one sample later)."""
     import copy
 
-    from vfm_core.streaming import predict_many
+    from vfm_core.learning.streaming import predict_many
 
     learner, xs, _, when = _fitted_learner(frame, model_name, method_text)
     one = _median_us(
@@ -243,7 +243,7 @@ def learning_cost(
     learners, per well, us (every call learns the next measurement, one second later)."""
     import copy
 
-    from vfm_core.streaming import learn_many
+    from vfm_core.learning.streaming import learn_many
 
     learner, xs, ys, when = _fitted_learner(frame, model_name, method_text)
     many = [copy.deepcopy(learner) for _ in range(n_wells)]  # before the one-well calls

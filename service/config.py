@@ -167,7 +167,7 @@ class ModelSettings(_Section):
     @property
     def field_wide(self) -> bool:
         """True for a model whose parameters are shared by the wells (``mtl``): the service
-        runs one :class:`vfm_core.field_learner.FieldLearner` for all the wells it serves."""
+        runs one :class:`vfm_core.learning.field.FieldLearner` for all the wells it serves."""
         from vfm_core.models import MODELS
 
         return bool(MODELS[self.name].shared)
@@ -214,7 +214,7 @@ class ModelSettings(_Section):
                 f"field-wide '{self.name}'; remove model.effects or choose one of those models"
             )
         if self.effects:
-            from vfm_core.streaming import WellLearner
+            from vfm_core.learning.streaming import WellLearner
 
             try:
                 WellLearner("check", self.name, "ol", effects=self.effects)

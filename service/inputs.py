@@ -354,6 +354,25 @@ def parse_sensor_block(
     length, or holds more than ``max_samples`` rows, is refused whole
     (:class:`InvalidRequest`). ``earliest_ns`` and ``latest_ns`` bound the times (epoch
     ns), as ``check_time`` does."""
+    n = _block_length(data, max_samples)
+    x, bad = _block_columns(data, n)
+    ns, unread = _block_times(data["time"], earliest_ns, latest_ns)
+    bad |= unread
+    choke, p_up, p_down, t_up, gas, oil = x.T
+    with np.errstate(invalid="ignore"):
+        bad |= ~np.isfinite(x).all(axis=1)
+        bad |= (choke < 0) | (choke > 1) | (p_up <= 0) | (p_down <= 0) | (p_down >= p_up)
+        bad |= (gas < 0) | (gas > 1) | (oil < 0) | (oil > 1) | (gas + oil > 1.0 + 1e-9)
+        bad |= t_up <= -273.15
+    keep = ~bad
+    refused = _rows_alone(data, bad, x, ns, keep, check_time)
+    rows = np.flatnonzero(keep)
+    return SensorBlock(ns[rows], x[rows], refused)
+
+
+def _block_length(data: dict[str, Any], max_samples: int) -> int:
+    """The rows of a sensor block whose fields are all arrays of one length, 1 to
+    ``max_samples``; else the block is refused whole (:class:`InvalidRequest`)."""
     missing = [name for name in _BLOCK_FIELDS if name not in data]
     if missing:
         raise InvalidRequest(f"Required field(s) missing: {', '.join(missing)}.", "missing field")
@@ -378,6 +397,12 @@ def parse_sensor_block(
             "(inputs.max_block_samples). Send it in smaller blocks.",
             "block too large",
         )
+    return n
+
+
+def _block_columns(data: dict[str, Any], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The six inputs of a block as an (n, 6) array, NaN where a value is not a number,
+    and a mask of the rows that need a look alone (all False here)."""
     x = np.empty((n, 6))
     bad = np.zeros(n, dtype=bool)
     for j, name in enumerate(_NUMERIC_SENSOR):
@@ -392,14 +417,20 @@ def parse_sensor_block(
                     x[i, j] = v if type(v) is float or type(v) is int else np.nan
                 except OverflowError:
                     x[i, j] = np.nan
-    ns, unread = _block_times(data["time"], earliest_ns, latest_ns)
-    bad |= unread
-    choke, p_up, p_down, t_up, gas, oil = x.T
-    with np.errstate(invalid="ignore"):
-        bad |= ~np.isfinite(x).all(axis=1)
-        bad |= (choke < 0) | (choke > 1) | (p_up <= 0) | (p_down <= 0) | (p_down >= p_up)
-        bad |= (gas < 0) | (gas > 1) | (oil < 0) | (oil > 1) | (gas + oil > 1.0 + 1e-9)
-        bad |= t_up <= -273.15
+    return x, bad
+
+
+def _rows_alone(
+    data: dict[str, Any],
+    bad: np.ndarray,
+    x: np.ndarray,
+    ns: np.ndarray,
+    keep: np.ndarray,
+    check_time: Callable[[datetime, str], None],
+) -> list[tuple[int, InvalidRequest]]:
+    """Each row the column checks flagged, read as one sample: refused with that sample's
+    reason and sentence, or (if it passes after all) written back into ``x``, ``ns`` and
+    ``keep``. Returns the refused rows with their errors."""
     refused: list[tuple[int, InvalidRequest]] = []
     keep = ~bad
     for i in np.flatnonzero(bad).tolist():  # the row alone decides, with one sample's words
@@ -422,8 +453,7 @@ def parse_sensor_block(
             continue
         x[i] = sample.inputs()
         keep[i] = True
-    rows = np.flatnonzero(keep)
-    return SensorBlock(ns[rows], x[rows], refused)
+    return refused
 
 
 #: how one sample's time is read (pydantic, as :class:`SensorSample` reads it)

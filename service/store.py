@@ -14,7 +14,7 @@ What it holds (times are int64 epoch nanoseconds, UTC; rates Sm3/h; pressures ba
   that a restart can re-learn it without the samples), ``unpaired`` (no sample within
   the tolerance), ``held`` (an instrument fault at its sample), ``review`` (held for the
   operator's review) or ``rejected`` (rejected on review); the last three never learned.
-- ``checkpoints``: :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors
+- ``checkpoints``: :meth:`vfm_core.learning.streaming.WellLearner.checkpoint` bytes (tensors
   and plain values, read back with ``weights_only``; never pickle), with the
   ``learn_seq`` they include and a JSON side-car (drift detector state).
 - ``drift_events``: confirmed input drifts per well (the T^2 "operating point" notice).

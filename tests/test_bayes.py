@@ -25,9 +25,9 @@ from vfm_core.effects import add_features
 from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import mape, run_prequential
 from vfm_core.learning import parse_method
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.physics import PRIORS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SAMPLE = [0.5, 60.0, 20.0, 70.0, 0.1, 0.6]  # -, bar, bar, degC, -, -

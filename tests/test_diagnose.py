@@ -331,7 +331,7 @@ def test_suggest_effect_errors_say_what_to_write() -> None:
 def test_suggest_effect_runs_in_the_streaming_learner() -> None:
     """The service's learner takes the suggestion as it is (six inputs, standard features)."""
     from vfm_core.effects import effect_spec
-    from vfm_core.streaming import WellLearner
+    from vfm_core.learning.streaming import WellLearner
 
     for spec in (
         "suggest:driver=t_up:x0=60:scale=10:k=0.068",
@@ -603,7 +603,7 @@ def test_effect_outside_the_library_gets_a_driver_verdict_and_a_correction(name:
     assert fitted_change == pytest.approx(true_change, rel=0.3), (fitted_change, true_change)
     assert k["sd"] is not None and 0 < k["sd"] < abs(k["value"])
     # the JSON contract of the suggestion and its code as a starting point
-    data = json.loads(json.dumps(diagnose_mod._json_safe(diag.to_json())))
+    data = json.loads(json.dumps(diagnose_mod.json_safe(diag.to_json())))
     assert {"driver", "form", "parameters", "mape"} <= set(data["suggestion"])
     assert data["suggestion"]["driver"] == driver and data["verdict"]["kind"] == "driver"
     namespace: dict[str, Any] = {}
@@ -814,7 +814,7 @@ def _fake_sources(
         assert group == "vfm.sources"
         return eps
 
-    monkeypatch.setattr(diagnose_mod.importlib.metadata, "entry_points", entry_points)
+    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
 
 
 def test_store_source_through_the_entry_point(
@@ -978,6 +978,17 @@ def test_store_end_to_end(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
 
 
 def test_json_is_plain_and_finite() -> None:
-    data = diagnose_mod._json_safe(_diagnose("none").to_json())
+    data = diagnose_mod.json_safe(_diagnose("none").to_json())
     text = json.dumps(data, allow_nan=False)
     assert json.loads(text)["verdict"]["kind"] == "noise"
+
+
+def test_the_settings_hold_every_keyword_of_run_diagnosis() -> None:
+    """run_diagnosis hands its keywords to DiagnosisSettings: one field each, in order, none
+    left out (a keyword added to one and not the other fails here)."""
+    import dataclasses
+    import inspect
+
+    keywords = [p for p in inspect.signature(run_diagnosis).parameters if p != "frame"]
+    fields = [f.name for f in dataclasses.fields(diagnose_mod.DiagnosisSettings)]
+    assert fields == keywords

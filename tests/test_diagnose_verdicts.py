@@ -18,6 +18,7 @@ import pytest
 
 from vfm_core.jobs import diagnose as dg
 from vfm_core.jobs import diagnose_instrument as inst
+from vfm_core.jobs import diagnose_verdicts as dv
 from vfm_core.jobs.study import RunResult
 
 WELLS = ["W01", "W02", "W03", "W04"]
@@ -69,8 +70,8 @@ def _candidate(
     )
     c.live_run = run
     c.replayed = True
-    c.tests["fit_once"] = dg._protocol_test(base.predictions, run.predictions, WELLS, 0)
-    c.tests["live"] = dg._protocol_test(base.predictions, run.predictions, WELLS, 0)
+    c.tests["fit_once"] = dv.protocol_test(base.predictions, run.predictions, WELLS, 0)
+    c.tests["live"] = dv.protocol_test(base.predictions, run.predictions, WELLS, 0)
     return c
 
 
@@ -111,8 +112,8 @@ def field() -> dict[str, object]:
     }
 
 
-def _context() -> dg._VerdictContext:
-    return dg._VerdictContext(
+def _context() -> dv.VerdictContext:
+    return dv.VerdictContext(
         "mm",
         "ol",
         {"mape": 5.6, "per_well": {w: {"mape": 5.6} for w in WELLS}},
@@ -137,18 +138,18 @@ def test_the_valve_family_that_does_as_well_as_the_choke_correction_is_the_verdi
     assert isinstance(base, RunResult) and isinstance(corr, dg.CandidateResult)
     valve = _candidate("valve_equal_percentage", base, field["close"])  # type: ignore[arg-type]
     assert not valve.material  # the fit-once evidence alone does not name it
-    assert not dg._offer(valve, None)[0]
+    assert not dv.offer(valve, None)[0]
     results = [valve]
-    dg._fdr(results, corr, 1, len(WELLS))
-    named = dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0)
+    dv.fdr(results, corr, 1, len(WELLS))
+    named = dv.physics_behind_driver(results, corr, "choke", "a choke correction", 0)
     assert named == [valve]
     vs = valve.via_driver["versus_correction"]["live"]  # type: ignore[index]
     # a few hundredths of a point apart: with 2,920 paired rows that may be "significant",
     # but the valve's gain lies within what the correction's own gain is known to
     assert abs(vs["change"]) < 0.1
     assert valve.tests["live"]["change"] <= corr.tests["live"]["high"]
-    assert dg._offer(valve, None) == (True, "live")
-    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    assert dv.offer(valve, None) == (True, "live")
+    verdict = dv.live_verdict(results, _suggestion(corr), None, _context(), {}, None)
     assert verdict["kind"] == "effect"
     assert verdict["effect"] == "valve_equal_percentage"
     assert verdict["driver"] == "choke"
@@ -156,7 +157,7 @@ def test_the_valve_family_that_does_as_well_as_the_choke_correction_is_the_verdi
     assert "The evidence is the driver" in verdict["text"]
     # each well's verdict follows (the field's evidence counts where the well agrees)
     for w in WELLS:
-        v = dg._live_verdict(results, _suggestion(corr), w, _context(), {}, verdict["effect"])
+        v = dv.live_verdict(results, _suggestion(corr), w, _context(), {}, verdict["effect"])
         assert (v["kind"], v["effect"]) == ("effect", "valve_equal_percentage"), v["text"]
 
 
@@ -168,10 +169,10 @@ def test_a_correction_better_beyond_chance_keeps_the_driver_verdict(
     valve = _candidate("valve_equal_percentage", base, field["worse"])  # type: ignore[arg-type]
     assert valve.tests["live"]["change"] < 0  # it helps, but less than the correction
     results = [valve]
-    dg._fdr(results, corr, 1, len(WELLS))
-    assert dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
+    dv.fdr(results, corr, 1, len(WELLS))
+    assert dv.physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
     assert valve.via_driver is None
-    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    verdict = dv.live_verdict(results, _suggestion(corr), None, _context(), {}, None)
     assert (verdict["kind"], verdict["driver"]) == ("driver", "choke"), verdict["text"]
 
 
@@ -182,9 +183,9 @@ def test_an_effect_through_another_variable_is_not_the_physics_of_the_driver(
     assert isinstance(base, RunResult) and isinstance(corr, dg.CandidateResult)
     wear = _candidate("erosion", base, field["close"])  # type: ignore[arg-type]
     results = [wear]
-    dg._fdr(results, corr, 1, len(WELLS))
-    assert dg._physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
-    verdict = dg._live_verdict(results, _suggestion(corr), None, _context(), {}, None)
+    dv.fdr(results, corr, 1, len(WELLS))
+    assert dv.physics_behind_driver(results, corr, "choke", "a choke correction", 0) == []
+    verdict = dv.live_verdict(results, _suggestion(corr), None, _context(), {}, None)
     assert verdict["kind"] == "driver"
 
 
@@ -193,9 +194,9 @@ def test_without_a_driver_found_nothing_is_named(field: dict[str, object]) -> No
     assert isinstance(base, RunResult)
     weak = _candidate("suggest:driver=choke:form=log", base, field["close"], material=False)  # type: ignore[arg-type]
     valve = _candidate("valve_equal_percentage", base, field["close"])  # type: ignore[arg-type]
-    dg._fdr([valve], weak, 1, len(WELLS))
-    assert not dg._driver_found(weak)
-    assert dg._physics_behind_driver([valve], weak, "choke", "a choke correction", 0) == []
+    dv.fdr([valve], weak, 1, len(WELLS))
+    assert not dv.driver_found(weak)
+    assert dv.physics_behind_driver([valve], weak, "choke", "a choke correction", 0) == []
     assert valve.via_driver is None
 
 

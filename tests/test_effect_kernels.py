@@ -10,8 +10,16 @@ on the compiled path (issue 37, item 2) and compute what the torch path computes
   0.1 %) fails the comparison: it can fail;
 - the compiled rate with real gas and slip and its derivatives (through Z, through the
   slip factor, and by the effects' parameters) equal autograd's through the torch model;
-- effects without a compiled form (critical ratio, a user's subclass that rewrites a hook,
-  two effects of one flux kind) keep the torch path.
+- ``suggest`` (a generic correction in one driver: linear, log, season, or fixed) runs
+  there too, as a rate factor of per-sample columns the effect computes; its compiled
+  factor and derivatives equal autograd's through ``Suggest.output_factor``, in and out of
+  the clamps;
+- ``critical_ratio`` runs there too: the kernels solve Sachdeva's ratio by the same
+  bisection (equal to ``physics.sachdeva_critical_ratio``) and, like the torch hook, pass no
+  gradient through it (dq/dp_cr times 1 - weight, dq/dweight through y_c - p_cr); a broken
+  weight derivative fails the comparison;
+- effects without a compiled form (a user's subclass that rewrites a hook, two effects of
+  one flux kind, the critical ratio beside real gas) keep the torch path.
 """
 
 from __future__ import annotations
@@ -34,11 +42,20 @@ from vfm_core.models import make_model
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS, TARGET
 from vfm_core.simulate import simulate_field
+from vfm_core.units import bar_to_pa, degc_to_k
 
 pytestmark = pytest.mark.skipif(not kernels.kernels_enabled(), reason="numba is not installed")
 
 #: a step inside the simulated year of the stream (erosion's optional C_D step)
 _STEP = "erosion:step_at=2016-09-01"
+#: suggested corrections, one of each form (linear, log, season) and one fixed
+_T_UP = "suggest:driver=t_up:x0=60:scale=10"
+_LOG = "suggest:driver=p_ratio:form=log"
+_SEASON = "suggest:driver=day_of_year"
+_FIXED = "suggest:driver=water_cut:k=0.2"
+#: a large step, so that the critical ratio's weight (whose gradient is small on these
+#: wells) moves well clear of the comparison's rounding
+_FAST = OnlineSettings(lr=1e-1, steps=3)
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +149,13 @@ def _compare(fast: tuple, slow: tuple) -> None:
         (["slip"], OnlineSettings(optimizer="sgd", lr=1e-3, steps=10)),
         (["real_gas", "slip", "valve"], DEFAULT_ONLINE["mm"]),
         (["mpfm_bias", "slip", "real_gas"], OnlineSettings(lr=1e-1, steps=3, max_grad_norm=0.05)),
+        ([_T_UP], DEFAULT_ONLINE["mm"]),
+        ([_LOG], OnlineSettings(optimizer="sgd", lr=1e-3, steps=10)),
+        ([_SEASON], DEFAULT_ONLINE["mm"]),
+        (["suggest:driver=years_on", "slip"], OnlineSettings(lr=1e-1, steps=3, max_grad_norm=0.05)),
+        (["erosion", _FIXED], DEFAULT_ONLINE["mm"]),
+        (["critical_ratio"], _FAST),
+        (["critical_ratio", "slip", "mpfm_bias"], OnlineSettings(lr=1e-1, steps=3)),
     ],
 )
 def test_ol_with_an_effect_compiled_matches_the_torch_steps(
@@ -156,6 +180,10 @@ def test_ol_with_an_effect_compiled_matches_the_torch_steps(
         ("ham", ["real_gas", "slip"]),
         ("hem", ["slip", "erosion"]),
         ("hem", ["real_gas"]),
+        ("ham", [_T_UP]),
+        ("hem", [_SEASON, "valve"]),
+        ("ham", ["critical_ratio"]),
+        ("hem", ["critical_ratio", "erosion"]),
     ],
 )
 def test_ol_on_a_hybrid_with_effects_compiled_matches_the_torch_steps(
@@ -182,12 +210,12 @@ def _broken_factor(*args: object) -> float:
 
 
 @pytest.mark.parametrize("broken", [False, True])
+@pytest.mark.parametrize("effects", [["erosion", "mpfm_bias"], [_T_UP]])
 def test_a_broken_derivative_fails_the_comparison(
-    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, broken: bool
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, broken: bool, effects: list[str]
 ) -> None:
     """The steps as Python (numba's ``py_func``) over the compiled factor: exact as they
     are (the comparison passes), and off with the derivative broken (it fails)."""
-    effects = ["erosion", "mpfm_bias"]
     stream = _stream(frame, effects)
     stream = (stream[0], stream[1][:20])
     slow = _online_run(monkeypatch, "0", stream, effects, DEFAULT_ONLINE["mm"])
@@ -254,6 +282,12 @@ def _bayes_run(
         ("mm", ["slip", "erosion"]),
         ("ham", ["real_gas", "slip"]),
         ("hem", ["slip"]),
+        ("mm", ["suggest:driver=p_up"]),
+        ("mm", [_LOG, "mpfm_bias"]),
+        ("ham", [_SEASON]),
+        ("hem", [_FIXED]),
+        ("mm", ["critical_ratio"]),
+        ("ham", ["critical_ratio", "slip"]),
     ],
 )
 def test_bayes_with_an_effect_compiled_matches_the_torch_filter(
@@ -296,7 +330,7 @@ def _many_run(
     ``learn_many`` and ``predict_many``; every answer and the parameters at the end."""
     import copy
 
-    from vfm_core.streaming import WellLearner, learn_many, predict_many
+    from vfm_core.learning.streaming import WellLearner, learn_many, predict_many
 
     monkeypatch.setenv("VFM_KERNELS", flag)
     monkeypatch.setenv("VFM_FIT_KERNEL", "0")
@@ -340,6 +374,9 @@ def _many_run(
         ("mm", "ol", "real_gas"),
         ("mm", "bayes", "slip"),
         ("ham", "ol", "slip"),
+        ("mm", "ol", _T_UP),
+        ("ham", "bayes", _SEASON),
+        ("mm", "bayes", "critical_ratio"),
         ("mm", "ol", None),  # the plain models' compiled steps, on the same route
         ("ham", "ol", None),
     ],
@@ -372,7 +409,7 @@ class _OwnSlip(Slip):
     name = "own_slip"
 
 
-@pytest.mark.parametrize("effect", ["critical_ratio", _OwnErosion])
+@pytest.mark.parametrize("effect", [_OwnErosion])
 def test_effects_without_a_compiled_form_keep_the_torch_path(effect: object) -> None:
     model = make_model("mm", ["a", "b"], effects=[effect])
     assert model.effects[0].compiled_factor() is None
@@ -387,6 +424,69 @@ def test_effects_without_a_compiled_form_keep_the_torch_path(effect: object) -> 
     # with one of them beside a compiled effect, the whole model stays on torch
     mixed = make_model("mm", ["a"], effects=["erosion", effect])
     assert kernels.compiled_effects(mixed) is None
+
+
+def test_the_critical_ratio_beside_real_gas_keeps_the_torch_path() -> None:
+    """The kernels solve the critical ratio with the ideal gas: beside real gas, torch."""
+    assert kernels.compiled_effects(make_model("mm", ["a"], effects=["critical_ratio"])) == "mm"
+    both = make_model("mm", ["a"], effects=["critical_ratio", "real_gas"])
+    assert kernels.compiled_effects(both) is None
+
+
+def test_the_compiled_critical_ratio_equals_the_torch_bisection() -> None:
+    """Sachdeva's ratio by the kernels' bisection equals physics.sachdeva_critical_ratio
+    over random samples (dry gas to wet, light to heavy gas)."""
+    from vfm_core import physics as ph
+
+    gen = np.random.default_rng(4)
+    n = 200
+    eta_gas = np.concatenate([[0.0, 1e-12, 1.0], gen.uniform(0, 1, n - 3)])
+    rho_g1 = gen.uniform(5, 150, n)
+    v_liq = gen.uniform(0, 1.2e-3, n)
+    kappa = gen.uniform(1.1, 1.4, n)
+    want = ph.sachdeva_critical_ratio(
+        torch.tensor(eta_gas), torch.tensor(rho_g1), torch.tensor(v_liq), torch.tensor(kappa),
+        iterations=30,
+    ).numpy()  # fmt: skip
+    got = np.array([
+        numba_kernels.sachdeva_critical_ratio(eta_gas[i], rho_g1[i], v_liq[i], kappa[i], 30)
+        for i in range(n)
+    ])  # fmt: skip
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert float(want.min()) < 0.3 and float(want.max()) > 0.5  # a spread of ratios
+
+
+_RATE_AT = numba_kernels._rate_at
+
+
+def _broken_weight(*args: object) -> float:
+    """:func:`_mm_numba._rate_at` with the critical ratio's dq/dweight 0.1 % too large."""
+    value = _RATE_AT(*args)
+    fx, scratch = args[0], args[2]
+    for t in range(fx[0].shape[0]):  # type: ignore[index]
+        if fx[0][t, 0] == numba_kernels.FX_CRITICAL:  # type: ignore[index]
+            scratch[2][fx[0][t, 1]] *= 1.001  # type: ignore[index]
+    return value  # type: ignore[no-any-return]
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_a_broken_critical_ratio_derivative_fails_the_comparison(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, broken: bool
+) -> None:
+    effects = ["critical_ratio"]
+    stream = _stream(frame, effects)
+    stream = (stream[0], stream[1][:20])
+    slow = _online_run(monkeypatch, "0", stream, effects, _FAST)
+    kernel = kernels._kernel()
+    assert kernel is not None
+    monkeypatch.setattr(kernel, "effect_online", numba_kernels.effect_online.py_func)
+    monkeypatch.setattr(numba_kernels, "_rate_at", _broken_weight if broken else _RATE_AT)
+    fast = _online_run(monkeypatch, "1", stream, effects, _FAST)
+    if broken:
+        with pytest.raises(AssertionError, match="off by"):
+            _compare(fast, slow)
+    else:
+        _compare(fast, slow)
 
 
 def test_two_effects_of_one_flux_kind_keep_the_torch_path() -> None:
@@ -417,6 +517,8 @@ def test_the_compiled_codes_are_the_kernels() -> None:
         CompiledFactor.BIAS,
         CompiledFactor.GAS,
         CompiledFactor.SLIP,
+        CompiledFactor.SUGGEST,
+        CompiledFactor.CRITICAL,
     ) == (
         numba_kernels.FX_EROSION,
         numba_kernels.FX_VALVE,
@@ -424,7 +526,75 @@ def test_the_compiled_codes_are_the_kernels() -> None:
         numba_kernels.FX_BIAS,
         numba_kernels.FX_GAS,
         numba_kernels.FX_SLIP,
+        numba_kernels.FX_SUGGEST,
+        numba_kernels.FX_CRITICAL,
     )
+    assert kernels._SUGGEST == CompiledFactor.SUGGEST
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "suggest:driver=t_up:x0=60:scale=10",
+        "suggest:driver=p_up",
+        "suggest:driver=water_cut:form=log",
+        "suggest:driver=years_on:k=-0.04",
+        "suggest:driver=p_ratio:form=log:scale=0.01",  # large steps: the clamp at +-5
+        "suggest:driver=choke:x0=0.9:scale=0.05",  # 1 + k x below 0.05: the floor
+        "suggest:driver=day_of_year",
+        "suggest:driver=t_up:k=0.3",
+        "suggest:driver=day_of_year:k_sin=0.1:k_cos=-0.2",
+    ],
+)
+def test_the_compiled_suggest_factor_and_its_derivatives_equal_autograd(spec: str) -> None:
+    """Each sample's compiled factor (from the effect's own columns) and dF / dk equal
+    ``Suggest.output_factor`` and autograd's through it, for k on both sides of the clamps."""
+    from vfm_core.effects import CompiledFactor, resolve_effect
+
+    effect = resolve_effect(spec)()
+    form = effect.compiled_factor()
+    assert form is not None and form.code == CompiledFactor.SUGGEST
+    gen = torch.Generator().manual_seed(5)
+    n = 40
+    # the six inputs in file units (fraction, bar, bar, degC, -, -), as a batch has them
+    low = torch.tensor([0.0, 60.0, 10.0, 30.0, 0.0, 0.0], dtype=torch.float64)
+    span = torch.tensor([1.0, 80.0, 40.0, 60.0, 0.3, 0.5], dtype=torch.float64)
+    x = low + span * torch.rand(1, n, 6, generator=gen, dtype=torch.float64)
+    time_ns = torch.randint(0, 2**62, (1, n), generator=gen)
+    years = torch.rand(1, n, generator=gen, dtype=torch.float64) * 5
+    inputs = EffectInputs(
+        u=x[..., 0],
+        p_up=bar_to_pa(x[..., 1]),
+        p_down=bar_to_pa(x[..., 2]),
+        t_up=degc_to_k(x[..., 3]),
+        eta_gas=x[..., 4],
+        eta_oil=x[..., 5],
+        theta={},
+        well_test=torch.zeros(1, n, dtype=torch.bool),
+        u_ref=torch.full((1, 1), 0.5, dtype=torch.float64),
+        extra={"years_on": years},
+        time_ns=time_ns,
+    )
+    cols = effect.compiled_columns(x.numpy(), {"years_on": years.numpy()}, time_ns.numpy())
+    names = list(effect.parameters)
+    terms = np.array([[CompiledFactor.SUGGEST, 0, len(names), 0, *form.settings]], np.int64)
+    clamped = 0
+    for k_value in (-0.9, -0.3, 0.05, 0.4, 0.95):
+        p = {k: torch.full((1, 1), k_value * (1 - 0.5 * i), requires_grad=True,
+                           dtype=torch.float64) for i, k in enumerate(names)}  # fmt: skip
+        pe = np.array([float(v.detach()) for v in p.values()])
+        want = effect.output_factor(inputs, p)
+        for j in range(n):
+            d_f, f = np.zeros(len(names)), np.zeros(1)
+            got = numba_kernels.effect_factor(terms, pe, 0.5, cols[0, j], False, 0, 0.5, f, d_f)
+            assert got == pytest.approx(float(want[0, j].detach()), rel=1e-11, abs=1e-300)
+            if not names:
+                continue
+            grads = torch.autograd.grad(want[0, j], list(p.values()), retain_graph=True)
+            np.testing.assert_allclose(d_f, [float(g) for g in grads], rtol=1e-11, atol=1e-300)
+            clamped += all(float(g) == 0.0 for g in grads)
+    if "scale=0.01" in spec or "x0=0.9" in spec:
+        assert clamped > 0  # the clamp's side was reached (no gradient there)
 
 
 # -- the effects that change the flux: real gas (Z) and slip -----------------------------------

@@ -372,7 +372,7 @@ def test_feature_tracker_advances_a_block_as_row_by_row() -> None:
 
 
 def test_streaming_learner_with_an_effect_learns_the_wear() -> None:
-    from vfm_core.streaming import WellLearner
+    from vfm_core.learning.streaming import WellLearner
 
     frame = simulate_field(
         wells=1, years=1.5, seed=2, start="2017-01-01", hidden=["erosion:rate=0.3"]

@@ -20,9 +20,9 @@ import torch
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
-from vfm_core.field_learner import FieldLearner
 from vfm_core.jobs.study import mape, run_prequential
 from vfm_core.learning import DEFAULT_TRAIN, OnlineSettings
+from vfm_core.learning.field import FieldLearner
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field

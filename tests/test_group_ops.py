@@ -33,10 +33,10 @@ from vfm_core.learning import (
     register,
 )
 from vfm_core.learning.stacking import stacked_rates
+from vfm_core.learning.streaming import WellLearner, learn_many, predict_many
 from vfm_core.models import MODELS, Mechanistic, make_model
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner, learn_many, predict_many
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -275,8 +275,8 @@ def test_stack_key_ignores_the_seed_only() -> None:
 def test_the_one_well_and_the_field_wide_learner_keep_one_protocol(field: pd.DataFrame) -> None:
     """``WellLearner`` and ``FieldWell`` both keep ``Learner`` (mypy checks the signatures;
     here the members), and a field-wide well answers through it as a well of its own."""
-    from vfm_core.field_learner import FieldLearner
-    from vfm_core.streaming import Learner
+    from vfm_core.learning.field import FieldLearner
+    from vfm_core.learning.streaming import Learner
 
     (well,) = _fitted(field, "ol")[:1]
     shared = FieldLearner("mtl", "ol", train=replace(DEFAULT_TRAIN["mtl"], max_iter=20))

@@ -313,11 +313,11 @@ def test_bayes_kernel_matches_the_torch_filter(
 
 def test_bayes_kernel_only_where_it_applies(field: Batch) -> None:
     for text, model in [
-        # (effects that multiply the rate, real gas and slip are compiled:
-        # tests/test_effect_kernels.py; the critical ratio is not)
-        ("bayes", make_model("mm", field.wells, effects=["critical_ratio"])),
+        # (effects that multiply the rate, real gas, slip and the critical ratio are
+        # compiled: tests/test_effect_kernels.py; the critical ratio beside real gas is not)
+        ("bayes", make_model("mm", field.wells, effects=["critical_ratio", "real_gas"])),
         ("bayes:iterations=2", make_model("mm", field.wells)),
-        ("bayes", make_model("hem", field.wells, effects=["slip", "critical_ratio"])),
+        ("bayes", make_model("hem", field.wells, effects=["real_gas", "critical_ratio"])),
         ("bayes", make_model("nn", field.wells)),
         ("bayes", make_model("ham", field.wells, hidden=(8, 8))),
     ]:

@@ -27,10 +27,7 @@ PACKAGES = ("vfm_core", "service", "replay")
 #: A new cycle fails; one of these disappearing does not.
 KNOWN_VFM_CORE_CYCLES: set[frozenset[str]] = set()
 #: cycles closed only by a type-only import (``if TYPE_CHECKING:``), each to be removed
-KNOWN_TYPE_ONLY_CYCLES: set[frozenset[str]] = {
-    # issue 37: removed with the diagnosis rework
-    frozenset({"vfm_core.jobs.diagnose", "vfm_core.reporting.diagnosis"}),
-}
+KNOWN_TYPE_ONLY_CYCLES: set[frozenset[str]] = set()
 
 
 def _modules() -> dict[str, Path]:
@@ -231,35 +228,7 @@ MAX_FUNCTION_LINES = 80
 #: functions over that limit when the check began (``path::qualified name``: lines), to be
 #: split where a name explains the part. A new one fails, a listed one may not grow, and
 #: one split or cut to the limit must leave the list: the list only shrinks.
-LONG_FUNCTIONS: dict[str, int] = {
-    "service/engine/model_change.py::ModelChanges._swap": 84,
-    "service/engine/recovery.py::Recovery.load": 100,
-    "service/http/metrics.py::ServiceCollector.collect": 160,
-    "service/inputs.py::parse_sensor_block": 89,
-    "vfm_core/effects.py::Suggest.configure": 81,
-    "vfm_core/jobs/diagnose.py::_cmd_diagnose": 86,
-    "vfm_core/jobs/diagnose.py::_fit_suggestion": 85,
-    "vfm_core/jobs/diagnose.py::_live_verdict": 122,
-    "vfm_core/jobs/diagnose.py::_verdict": 85,
-    "vfm_core/jobs/diagnose.py::format_summary": 88,
-    "vfm_core/jobs/diagnose.py::register": 111,
-    "vfm_core/jobs/diagnose.py::run_diagnosis": 481,
-    "vfm_core/jobs/study.py::run_prequential": 237,
-    "vfm_core/jobs/tune.py::run_tuning": 87,
-    "vfm_core/learning/_mm_numba.py::bayes": 181,
-    "vfm_core/learning/_mm_numba.py::fit_steps": 207,
-    "vfm_core/learning/_mm_numba.py::hybrid_online": 186,
-    "vfm_core/learning/_mm_numba.py::lr_fit_steps": 97,
-    "vfm_core/learning/_mm_numba.py::mtl_fit_steps": 103,
-    "vfm_core/learning/_mm_numba.py::nn_fit_steps": 118,
-    "vfm_core/learning/bayes.py::BayesianFilter._update": 86,
-    "vfm_core/learning/online.py::_stacked_steps": 130,
-    "vfm_core/learning/training.py::fit_batch": 190,
-    "vfm_core/simulate.py::_Well._observe": 117,
-    "vfm_core/simulate.py::_Well._truth": 83,
-    "vfm_core/simulate.py::simulate_field": 128,
-    "vfm_core/streaming/learner.py::WellLearner.refit_as": 90,
-}
+LONG_FUNCTIONS: dict[str, int] = {}
 
 
 def _function_lengths(tree: ast.AST) -> dict[str, int]:
@@ -411,7 +380,7 @@ def test_the_private_read_check_finds_a_read() -> None:
     assert _private_reads(ast.parse(source)) == [(8, "method._q")]
 
 
-#: the concrete learner classes the service holds through ``vfm_core.streaming.Learner``
+#: the concrete learner classes the service holds through ``vfm_core.learning.streaming.Learner``
 CONCRETE_LEARNERS = {"WellLearner", "FieldWell"}
 
 
@@ -440,8 +409,8 @@ def test_the_service_asks_the_learner_protocol_not_its_class() -> None:
     checkpoint group, steps in groups, ...) is asked of the ``Learner`` protocol, so a third
     kind of learner needs no service edit. The check finds such calls in an example."""
     example = (
-        "from vfm_core.streaming import WellLearner\n"
-        "import vfm_core.field_learner as fl\n"
+        "from vfm_core.learning.streaming import WellLearner\n"
+        "import vfm_core.learning.field as fl\n"
         "def f(st, learner):\n"
         "    if isinstance(st.learner, WellLearner):\n"
         "        return 1\n"

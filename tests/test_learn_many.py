@@ -22,13 +22,12 @@ import pandas as pd
 import pytest
 import torch
 
-from vfm_core import streaming
 from vfm_core.data import target_mask
-from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, OnlineSettings
+from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, OnlineSettings, streaming
+from vfm_core.learning.streaming import WellLearner, learn_many, predict_many
 from vfm_core.models import MODELS
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner, learn_many, predict_many
 
 WELLS = 3
 HISTORY = 60

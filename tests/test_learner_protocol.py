@@ -2,8 +2,8 @@
 
 The service asks these capabilities instead of branching on the class (issue 37; the
 layout suite checks that no module under ``service/`` calls ``isinstance`` with a concrete
-learner class): a well's own :class:`~vfm_core.streaming.WellLearner` and a well of the
-field-wide model (:class:`~vfm_core.field_learner.FieldWell`) must answer them as the
+learner class): a well's own :class:`~vfm_core.learning.streaming.WellLearner` and a well of the
+field-wide model (:class:`~vfm_core.learning.field.FieldWell`) must answer them as the
 branches they replaced decided.
 """
 
@@ -16,9 +16,9 @@ import torch
 
 from vfm_core.errors import ConfigError
 from vfm_core.features import FeatureTracker
-from vfm_core.field_learner import FieldLearner
-from vfm_core.streaming import Learner, WellLearner, learn_many, predict_many
-from vfm_core.streaming.learner import model_fixed_when_predicting, predicts_in_groups
+from vfm_core.learning.field import FieldLearner
+from vfm_core.learning.streaming import Learner, WellLearner, learn_many, predict_many
+from vfm_core.learning.streaming.learner import model_fixed_when_predicting, predicts_in_groups
 
 pytestmark = pytest.mark.timeout(120)
 

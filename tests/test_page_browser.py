@@ -20,42 +20,22 @@ extra). Never run ``playwright install``: it downloads a browser build of its ow
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import httpx
 import pandas as pd
 import pytest
+from browser_support import SHOTS, Page, browser_marks, open_page
 
 from replay.replayer import ReplayResult, replay_frame
 from service.testing import ServeProcess
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
-CHROMIUM = Path("/usr/bin/chromium")
-try:
-    from playwright.sync_api import Page, sync_playwright
-except ImportError:  # pragma: no cover - depends on the machine
-    sync_playwright = None  # type: ignore[assignment]
-
-#: CI sets this: there, a missing browser is a failure, not a skip
-REQUIRED = os.environ.get("VFM_REQUIRE_BROWSER") == "1"
-
-pytestmark = [
-    pytest.mark.timeout(300),
-    pytest.mark.skipif(
-        not REQUIRED and not CHROMIUM.exists(),
-        reason="the browser tests need /usr/bin/chromium (apt-get install -y chromium)",
-    ),
-    pytest.mark.skipif(
-        not REQUIRED and sync_playwright is None,
-        reason="the browser tests need Playwright for Python (pip install -e '.[dev]')",
-    ),
-]
+pytestmark = browser_marks(300)
 
 SPLIT = "2016-02-01"
 MID = "2016-09-01"
@@ -63,7 +43,6 @@ END = "2016-12-01"
 TOKEN = "browser-test-token-0123456789"
 #: wall time the replay of SPLIT..MID takes, s (the page is watched meanwhile)
 REPLAY_S = 25.0
-SHOTS = Path(os.environ.get("VFM_SCREENSHOTS", Path(__file__).parent / "artifacts"))
 
 
 @dataclass
@@ -139,17 +118,8 @@ def _start_replay(served: Served) -> None:
 
 @pytest.fixture(scope="module")
 def browser_page(served: Served) -> Iterator[tuple[Page, list[str]]]:
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    assert sync_playwright is not None
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        errors: list[str] = []
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.set_default_timeout(30_000)
-        yield page, errors
-        browser.close()
+    with open_page() as opened:
+        yield opened
 
 
 def _points(page: Page) -> int:

@@ -18,15 +18,14 @@ missing (CI sets ``VFM_REQUIRE_BROWSER=1``: there a missing browser fails). Neve
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import httpx
 import pandas as pd
 import pytest
+from browser_support import SHOTS, Page, browser_marks, open_page
 
 from replay.replayer import replay_frame
 from service.app import running
@@ -36,31 +35,11 @@ from vfm_core.faults_sim import inject_fault
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
-CHROMIUM = Path("/usr/bin/chromium")
-try:
-    from playwright.sync_api import Page, sync_playwright
-except ImportError:  # pragma: no cover - depends on the machine
-    sync_playwright = None  # type: ignore[assignment]
-
-#: CI sets this: there, a missing browser is a failure, not a skip
-REQUIRED = os.environ.get("VFM_REQUIRE_BROWSER") == "1"
-
-pytestmark = [
-    pytest.mark.timeout(240),
-    pytest.mark.skipif(
-        not REQUIRED and not CHROMIUM.exists(),
-        reason="the browser tests need /usr/bin/chromium (apt-get install -y chromium)",
-    ),
-    pytest.mark.skipif(
-        not REQUIRED and sync_playwright is None,
-        reason="the browser tests need Playwright for Python (pip install -e '.[dev]')",
-    ),
-]
+pytestmark = browser_marks(240)
 
 SPLIT = "2016-02-15"  # the model is fitted on the history before it; the rest is replayed
 BEFORE = "2016-04-25"  # the first replay stops here, before any injected fault
 TOKEN = "faults-browser-token-0123456789"
-SHOTS = Path(os.environ.get("VFM_SCREENSHOTS", Path(__file__).parent / "artifacts"))
 #: the band's colour (rgba(106,27,154,0.8), app.js MARK_COLORS.fault) over the white chart
 PURPLE = (106 * 0.8 + 255 * 0.2, 27 * 0.8 + 255 * 0.2, 154 * 0.8 + 255 * 0.2)
 
@@ -96,17 +75,8 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 @pytest.fixture(scope="module")
 def browser_page() -> Iterator[tuple[Page, list[str]]]:
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    assert sync_playwright is not None
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        errors: list[str] = []
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.set_default_timeout(30_000)
-        yield page, errors
-        browser.close()
+    with open_page() as opened:
+        yield opened
 
 
 def _replay(served: Served, start: str, end: str | None = None) -> None:

@@ -20,13 +20,12 @@ import pandas as pd
 import pytest
 import torch
 
-from vfm_core import streaming
 from vfm_core.data import target_mask
-from vfm_core.learning import DEFAULT_TRAIN, parse_method
+from vfm_core.learning import DEFAULT_TRAIN, parse_method, streaming
+from vfm_core.learning.streaming import WellLearner, predict_many
 from vfm_core.models import MODELS
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner, predict_many
 
 WELLS = 3
 HISTORY = 80

@@ -25,8 +25,8 @@ from prometheus_client import CollectorRegistry, Histogram
 from service.engine.observe import LATENCY_BUCKETS_S, LatencyHistogram
 from service.errors import InvalidRequest
 from service.inputs import DEFAULT_LIMITS, Limits, parse_sensor, quick_sensor
+from vfm_core.learning.streaming import phase_split, phase_split_numpy
 from vfm_core.messages import Prediction, prediction_json
-from vfm_core.streaming import phase_split, phase_split_numpy
 from vfm_core.timeutil import from_ns, time_problem, to_ns
 
 EARLIEST = datetime(1970, 1, 1, tzinfo=UTC)

@@ -393,7 +393,7 @@ def test_a_failed_block_call_leaves_the_features_as_they_were(
     import torch
 
     from vfm_core.learning import DEFAULT_TRAIN
-    from vfm_core.streaming import WellLearner
+    from vfm_core.learning.streaming import WellLearner
 
     history, later = field
     rows = pd.read_parquet(history)

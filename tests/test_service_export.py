@@ -32,9 +32,9 @@ from service.http.schemas import WellOut
 from service.testing import loopback_settings
 from service.transport import MemoryTransport
 from vfm_core.learning import METHODS
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.observations import load_observations, validate_frame
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -5,7 +5,7 @@ Several wells with a history are replayed through the engine (in-memory transpor
 fast as the receive queue takes them, a measurement with every sample (like a replay of
 daily MPFM data): the worker's batches then hold several wells' measurements. The same
 replay runs twice, with the learning steps deferred and batched
-(:func:`vfm_core.streaming.learn_many`) and with each learned at once
+(:func:`vfm_core.learning.streaming.learn_many`) and with each learned at once
 (``Learning.batch_learns = False``, the one-by-one path), with ``mm`` and ``ham`` learning
 online (``ol``) and ``mm`` with ``bayes`` (its intervals too): every stored prediction, every
 learned measurement's version and the prediction at its sample must be the same (to
@@ -31,8 +31,8 @@ from service.engine.learning import Learning
 from service.store import HistorySample
 from service.testing import loopback_settings, wait_until
 from service.transport import MemoryTransport
-from vfm_core import streaming
 from vfm_core.data import target_mask
+from vfm_core.learning import streaming
 from vfm_core.messages import Measurement
 from vfm_core.observations import validate_frame
 from vfm_core.schema import INPUT_COLUMNS

@@ -24,12 +24,12 @@ from replay.client import FieldClient, sample_of
 from service.app import Service
 from service.config import load_settings, method_problem
 from service.engine.fairqueue import CLOSED, FairQueue
+from service.engine.learners import new_learner
 from service.engine.learning import Learning
 from service.engine.registry import Registry, TokenBucket
 from service.engine.state import WellState
 from service.errors import REASONS, InvalidRequest, UnknownWell
 from service.inputs import Counters, Limits, parse_measurement, parse_sensor, printable
-from service.learning import new_learner
 from service.store import SCHEMA_VERSION, AddWell, InsertParameters, Store
 from service.testing import loopback_settings, wait_until
 from service.transport import MemoryTransport

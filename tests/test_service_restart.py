@@ -23,7 +23,7 @@ import pytest
 
 from replay.client import FieldClient, ZenohBus
 from service.config import ModelSettings
-from service.learning import fit_history, load_history, new_learner
+from service.engine.learners import fit_history, load_history, new_learner
 from service.testing import ServeProcess, wait_until
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field

@@ -30,9 +30,9 @@ from service.config import TrialSettings
 from service.engine.trial import Trial, block_test, decide
 from service.testing import loopback_settings
 from service.transport import MemoryTransport
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner
 
 pytestmark = pytest.mark.timeout(400)
 

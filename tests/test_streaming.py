@@ -10,9 +10,9 @@ import torch
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import run_prequential
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.simulate import simulate_field
-from vfm_core.streaming import WellLearner
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +140,7 @@ def test_memory_keeps_the_latest_rows_within_its_bound(one_well: pd.DataFrame) -
     """remember_max: appending overshoots by a tenth at most, then keeps the latest rows;
     a checkpoint stores only those, and a restored learner is cut back when it is set."""
     from service.config import ModelSettings
-    from service.learning import apply_budget
+    from service.engine.learners import apply_budget
     from vfm_core.features import FeatureTracker
     from vfm_core.learning.memory import WellMemory
 

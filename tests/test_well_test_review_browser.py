@@ -12,13 +12,12 @@ Skipped, with the reason, when ``/usr/bin/chromium`` or ``playwright`` is missin
 from __future__ import annotations
 
 import math
-import os
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import httpx
 import numpy as np
-import pytest
+from browser_support import SHOTS, browser_marks, open_page
 
 from replay.client import FieldClient, sample_of
 from service.app import running
@@ -27,30 +26,11 @@ from service.transport import MemoryTransport
 from vfm_core.messages import Measurement
 from vfm_core.timeutil import iso, to_ns
 
-CHROMIUM = Path("/usr/bin/chromium")
-try:
-    from playwright.sync_api import sync_playwright
-except ImportError:  # pragma: no cover - depends on the machine
-    sync_playwright = None  # type: ignore[assignment]
-
-REQUIRED = os.environ.get("VFM_REQUIRE_BROWSER") == "1"
-
-pytestmark = [
-    pytest.mark.timeout(180),
-    pytest.mark.skipif(
-        not REQUIRED and not CHROMIUM.exists(),
-        reason="the browser tests need /usr/bin/chromium (apt-get install -y chromium)",
-    ),
-    pytest.mark.skipif(
-        not REQUIRED and sync_playwright is None,
-        reason="the browser tests need Playwright for Python (pip install -e '.[dev]')",
-    ),
-]
+pytestmark = browser_marks(180)
 
 T0 = datetime(2022, 2, 1, 6, 0, tzinfo=UTC)
 INPUTS = (0.4, 120.0, 30.0, 60.0, 0.1, 0.6)  # fraction, bar a, bar a, degC, -, -
 TOKEN = "review-browser-token-0123456789"
-SHOTS = Path(os.environ.get("VFM_SCREENSHOTS", Path(__file__).parent / "artifacts"))
 
 
 def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> None:
@@ -81,14 +61,7 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
         )
         assert posted.status_code == 202 and posted.json()["status"] == "review", posted.text
 
-        SHOTS.mkdir(parents=True, exist_ok=True)
-        assert sync_playwright is not None
-        with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1400, "height": 1000})
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.set_default_timeout(30_000)
+        with open_page(console=False) as (page, errors):
             page.goto(svc.http_url + "/#well=W01")
             item = page.locator(f'#well-review li[data-time="{iso(to_ns(when))}"]')
             item.wait_for()
@@ -108,7 +81,6 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
             )
             assert "version 20 \u2192 21" in page.locator("#review-result").inner_text()
             page.wait_for_selector("#well-review", state="hidden")
-            browser.close()
         view = http.get("/wells/W01").json()
         assert view["held_for_review"] == [] and view["version"] == 21
         assert not errors, errors

@@ -15,7 +15,7 @@ what failed; it returns the names of the checks that ran::
   inputs are never changed; a model file gives the same predictions; the same seed gives
   the same fit; one online step lowers the error on the measurement it learned from; a
   batch fit follows targets shifted by 15 %; and where the fast paths apply: many wells
-  learning in one call (:func:`vfm_core.streaming.learn_many`) equals each well learning
+  learning in one call (:func:`vfm_core.learning.streaming.learn_many`) equals each well learning
   on its own, and the compiled kernels (:mod:`vfm_core.learning.kernels`) equal torch.
 - :func:`check_method`: its text parses back; NaN before its fit; it runs with every
   registered model; inputs unchanged; a state round trip continues identically; the same
@@ -295,10 +295,10 @@ def _well_learners(m: _Model, frame: pd.DataFrame, spec: ModelSpec) -> list[Any]
     None where the streaming learner cannot take the model (a factory, a field-wide one)."""
     from vfm_core.data import target_mask
     from vfm_core.learning import DEFAULT_TRAIN
+    from vfm_core.learning.streaming import WellLearner
     from vfm_core.learning.training import TrainSettings
     from vfm_core.models import MODELS
     from vfm_core.schema import INPUT_COLUMNS
-    from vfm_core.streaming import WellLearner
 
     if not isinstance(spec, str) or MODELS[spec].shared or m.gradient_free:
         return None
@@ -367,11 +367,11 @@ def _close_states(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], what: 
 
 def check_model_fast_paths(m: _Model, frame: pd.DataFrame, spec: ModelSpec = "") -> None:
     """Where the fast paths apply: the wells' ``ol`` updates in one stacked call
-    (:func:`~vfm_core.streaming.learn_many`) leave each well's parameters and Adam state as
+    (:func:`~vfm_core.learning.streaming.learn_many`) leave each well's parameters and Adam state as
     learning one by one does, and with the compiled kernels as without them (1e-12
     relative). Runs for registered per-well gradient models (the service's learners)."""
     from vfm_core.learning.kernels import hybrid_applies, kernels_enabled, mm_online_applies
-    from vfm_core.streaming import learn_many
+    from vfm_core.learning.streaming import learn_many
 
     learners = _well_learners(m, frame, spec or m.label)
     if learners is None:
@@ -662,9 +662,9 @@ def check_method_in_the_streaming_learner(text: str, field: pd.DataFrame) -> Non
     from vfm_core.errors import ConfigError
     from vfm_core.jobs.study import run_prequential
     from vfm_core.learning import parse_method
+    from vfm_core.learning.streaming import WellLearner
     from vfm_core.schema import INPUT_COLUMNS
     from vfm_core.simulate import simulate_field
-    from vfm_core.streaming import WellLearner
 
     if not type(parse_method(text)).streaming:
         try:

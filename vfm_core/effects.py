@@ -47,6 +47,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -55,6 +56,7 @@ from vfm_core.errors import ConfigError
 from vfm_core.features import standard_features
 from vfm_core.physics import DTYPE, Prior
 from vfm_core.timeutil import utc_timestamp
+from vfm_core.units import bar_to_pa, degc_to_k
 
 __all__ = [
     "Prior",
@@ -140,10 +142,11 @@ class EffectInputs:
 @dataclass(frozen=True)
 class CompiledFactor:
     """How the compiled kernels (:mod:`vfm_core.learning.kernels`) compute an effect that
-    multiplies the rate (its ``area_factor`` or ``output_factor``) or one of the library's
-    two that change the flux (real gas, slip), with the same arithmetic: ``code`` one of the constants below, ``column`` the feature column it
-    reads (or None), ``settings`` up to two integers (a knot count, a family's index, a
-    step time in ns). An effect returns one from :meth:`Effect.compiled_factor`; any other
+    multiplies the rate (its ``area_factor`` or ``output_factor``; ``suggest`` through
+    columns it computes itself) or one of the library's three that change the flux (real
+    gas, slip, the critical ratio), with the same arithmetic: ``code`` one of the constants
+    below, ``column`` the feature column it reads (or None), ``settings`` up to two integers
+    (a knot count, a family's index, a step time in ns, a form). An effect returns one from :meth:`Effect.compiled_factor`; any other
     effect runs the torch path (the same numbers, slower)."""
 
     EROSION: ClassVar[int] = 1  # max(1 + p0 x, 0.05) [* max(1 + p1 [t >= settings[1]], 0.05)]
@@ -154,6 +157,13 @@ class CompiledFactor:
     #: flux with them, ``_mm_numba.flux_rate_grad``); at most one of each in a model
     GAS: ClassVar[int] = 5  # RealGas: Z = max(1 + p0 (Z_Papay - 1), 0.2)
     SLIP: ClassVar[int] = 6  # Slip: the flux times (G_Simpson / G)^p0
+    #: Suggest: a factor of per-sample columns the effect computes (its
+    #: ``compiled_columns``, two per effect, after the batch's features): settings[0] the form,
+    #: 0 max(1 + p0 c0, 0.05), 1 exp(clamp(p0 c0, -5, 5)), 2 1 + p0 c0 + p1 c1, 3 c0 (fixed)
+    SUGGEST: ClassVar[int] = 7
+    #: CriticalRatio: p_cr + p0 (y_c - p_cr) in the flux, y_c Sachdeva's solved ratio (no
+    #: gradient through it, as the torch hook); not beside RealGas (y_c would need its Z)
+    CRITICAL: ClassVar[int] = 8
 
     code: int
     column: str | None = None
@@ -518,6 +528,11 @@ class CriticalRatio(Effect):
         y_c = ph.sachdeva_critical_ratio(inputs.eta_gas, rho_g1, v_liq, th["kappa"], iterations=30)
         return th["p_cr"] + p["weight"] * (y_c - th["p_cr"])
 
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, CriticalRatio) or list(self.parameters) != ["weight"]:
+            return None
+        return CompiledFactor(CompiledFactor.CRITICAL)
+
     def describe(self, values: Mapping[str, float]) -> str:
         return f"p_cr is {100 * values['weight']:.0f} % Sachdeva's solved critical ratio."
 
@@ -693,6 +708,67 @@ _SUGGEST_FORMS = ("linear", "log", "season")
 _NS_PER_DAY = 86_400e9
 
 
+def _suggest_driver_and_form(values: Mapping[str, str], default: str) -> tuple[str, str]:
+    """The driver and form of a ``suggest`` setting (``values``, text), checked: a known
+    driver, and the season form exactly for ``day_of_year``."""
+    driver = values.get("driver", default)
+    if driver not in SUGGEST_DRIVERS:
+        raise ConfigError(
+            f"Effect 'suggest': driver='{driver}' is not one of {', '.join(SUGGEST_DRIVERS)}; "
+            "write e.g. suggest:driver=t_up."
+        )
+    form = values.get("form", "season" if driver == "day_of_year" else "linear")
+    if form not in _SUGGEST_FORMS or (form == "season") != (driver == "day_of_year"):
+        raise ConfigError(
+            f"Effect 'suggest': form='{form}' does not suit driver '{driver}'; use "
+            + ("form=season." if driver == "day_of_year" else "form=linear or form=log.")
+        )
+    return driver, form
+
+
+def _suggest_number(values: Mapping[str, str], key: str, default: float) -> float:
+    """The finite number of setting ``key`` (text in ``values``), ``default`` without it."""
+    text = values.get(key)
+    if text is None:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise ConfigError(f"Effect 'suggest': {key}='{text}' is not a number.")
+    return value
+
+
+def _suggest_fixed(values: Mapping[str, str], form: str) -> dict[str, float]:
+    """The fixed shared coefficients a ``suggest`` setting gives (k, or k_sin and k_cos for
+    the season: all of them or none), empty when they are learned."""
+    keys = ("k_sin", "k_cos") if form == "season" else ("k",)
+    given = [k for k in ("k", "k_sin", "k_cos") if k in values]
+    if given and sorted(given) != sorted(keys):
+        raise ConfigError(
+            f"Effect 'suggest' with form={form} fixes its coefficients with "
+            f"{' and '.join(keys)} (all of them), not {', '.join(given)}."
+        )
+    return {k: _suggest_number(values, k, 0.0) for k in keys} if given else {}
+
+
+def _suggest_priors(driver: str, form: str, step: str) -> dict[str, Prior]:
+    """The learned coefficients of a ``suggest`` correction and their priors: k per
+    ``step`` of the driver (linear, log), or the season's two amplitudes."""
+    if form == "season":
+        return {
+            "k_sin": Prior(
+                0.0, 0.05, -0.5, 0.5, "-", "amplitude of sin(2 pi d), d = year fraction"
+            ),
+            "k_cos": Prior(
+                0.0, 0.05, -0.5, 0.5, "-", "amplitude of cos(2 pi d), d = year fraction"
+            ),
+        }
+    word = "relative rate change" if form == "linear" else "log rate change"
+    return {"k": Prior(0.0, 0.1, -1.0, 1.0, f"1/({step})", f"{word} per {step} of {driver}")}
+
+
 class Suggest(Effect):
     """A generic multiplicative correction of the rate in one driver x (what ``vfm diagnose``
     suggests when no library effect explains the residual):
@@ -735,62 +811,14 @@ class Suggest(Effect):
         unknown = sorted(set(values) - set(cls.settings))
         if unknown:
             return super().configure(**values)  # says which settings exist
-        driver = values.get("driver", cls.driver)
-        if driver not in SUGGEST_DRIVERS:
-            raise ConfigError(
-                f"Effect 'suggest': driver='{driver}' is not one of {', '.join(SUGGEST_DRIVERS)}; "
-                "write e.g. suggest:driver=t_up."
-            )
+        driver, form = _suggest_driver_and_form(values, cls.driver)
         spec = SUGGEST_DRIVERS[driver]
-        form = values.get("form", "season" if driver == "day_of_year" else "linear")
-        if form not in _SUGGEST_FORMS or (form == "season") != (driver == "day_of_year"):
-            raise ConfigError(
-                f"Effect 'suggest': form='{form}' does not suit driver '{driver}'; use "
-                + ("form=season." if driver == "day_of_year" else "form=linear or form=log.")
-            )
-
-        def number(key: str, default: float) -> float:
-            text = values.get(key)
-            if text is None:
-                return default
-            try:
-                value = float(text)
-            except ValueError:
-                value = math.nan
-            if not math.isfinite(value):
-                raise ConfigError(f"Effect 'suggest': {key}='{text}' is not a number.")
-            return value
-
-        x0 = number("x0", spec.x0)
-        scale = number("scale", spec.scale)
+        x0 = _suggest_number(values, "x0", spec.x0)
+        scale = _suggest_number(values, "scale", spec.scale)
         if scale <= 0:
             raise ConfigError(f"Effect 'suggest': scale must be positive, not {scale:g}.")
-        keys = ("k_sin", "k_cos") if form == "season" else ("k",)
-        given = [k for k in ("k", "k_sin", "k_cos") if k in values]
-        if given and sorted(given) != sorted(keys):
-            raise ConfigError(
-                f"Effect 'suggest' with form={form} fixes its coefficients with "
-                f"{' and '.join(keys)} (all of them), not {', '.join(given)}."
-            )
-        fixed = {k: number(k, 0.0) for k in keys} if given else {}
+        fixed = _suggest_fixed(values, form)
         step = spec.step if scale == spec.scale else f"{scale:g} {spec.unit}"
-        unit = f"1/({step})" if form != "season" else "-"
-        meaning = (
-            f"relative rate change per {step} of {driver}"
-            if form == "linear"
-            else f"log rate change per {step} of {driver}"
-        )
-        if form == "season":
-            params = {
-                "k_sin": Prior(
-                    0.0, 0.05, -0.5, 0.5, "-", "amplitude of sin(2 pi d), d = year fraction"
-                ),
-                "k_cos": Prior(
-                    0.0, 0.05, -0.5, 0.5, "-", "amplitude of cos(2 pi d), d = year fraction"
-                ),
-            }
-        else:
-            params = {"k": Prior(0.0, 0.1, -1.0, 1.0, unit, meaning)}
         text = f"suggest:driver={driver}:form={form}"
         if form != "season":
             text += f":x0={x0:g}:scale={scale:g}"
@@ -806,7 +834,7 @@ class Suggest(Effect):
                 "scale": scale,
                 "step": step,
                 "fixed": fixed,
-                "parameters": {} if fixed else params,
+                "parameters": {} if fixed else _suggest_priors(driver, form, step),
                 "extra_columns": extra,
                 "spec": text,
                 "__module__": cls.__module__,
@@ -843,6 +871,69 @@ class Suggest(Effect):
             days = inputs.time_ns.to(DTYPE) / _NS_PER_DAY
             return torch.remainder(days, 365.2425)  # 0 on 1 January (within a day)
         return inputs.feature(name)
+
+    #: the form's code in the compiled factor (:attr:`CompiledFactor.SUGGEST`)
+    _FORM_CODES: ClassVar[Mapping[str, int]] = {"linear": 0, "log": 1, "season": 2}
+
+    def compiled_factor(self) -> CompiledFactor | None:
+        if not _hooks_of(self, Suggest) or type(self).driver_value is not Suggest.driver_value:
+            return None
+        expected = [] if self.fixed else (["k_sin", "k_cos"] if self.form == "season" else ["k"])
+        if list(self.parameters) != expected:
+            return None
+        form = 3 if self.fixed else self._FORM_CODES[self.form]
+        return CompiledFactor(CompiledFactor.SUGGEST, None, (form, 0))
+
+    def compiled_columns(
+        self, x: np.ndarray, extra: Mapping[str, np.ndarray], time_ns: np.ndarray
+    ) -> np.ndarray:
+        """The two per-sample columns [W, N, 2] the compiled factor reads (see
+        :attr:`CompiledFactor.SUGGEST`): the step (x - x0) / scale (linear, log), sin and cos
+        of the phase (season), or the whole factor with fixed coefficients (the second
+        column 0); from the six inputs ``x`` [W, N, 6] in file units (fraction, bar, bar,
+        degC, -, -), the feature columns ``extra`` by name and the times ``time_ns`` [W, N].
+        numpy with the arithmetic of :meth:`driver_value` and :meth:`output_factor` (a
+        model computes them at every call; torch's dispatch would cost more than the
+        kernel), compared with them in ``tests/test_effect_kernels.py``."""
+        d = self._driver_array(x, extra, time_ns)
+        out = np.zeros((*d.shape, 2))
+        k = self.fixed
+        if self.form == "season":
+            phase = 2.0 * math.pi * d / 365.2425
+            out[..., 0], out[..., 1] = np.sin(phase), np.cos(phase)
+            if k:
+                out[..., 0] = 1.0 + k["k_sin"] * out[..., 0] + k["k_cos"] * out[..., 1]
+                out[..., 1] = 0.0
+            return out
+        out[..., 0] = (d - self.x0) / self.scale
+        if k and self.form == "log":
+            out[..., 0] = np.exp(np.clip(k["k"] * out[..., 0], -5.0, 5.0))
+        elif k:
+            out[..., 0] = np.maximum(1.0 + k["k"] * out[..., 0], 0.05)
+        return out
+
+    def _driver_array(
+        self, x: np.ndarray, extra: Mapping[str, np.ndarray], time_ns: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`driver_value` in numpy, from the inputs in file units (see
+        :meth:`compiled_columns`)."""
+        name = self.driver
+        column = {"choke": 0, "eta_gas": 4, "eta_oil": 5}
+        if name in column:
+            return x[..., column[name]]
+        if name in ("p_up", "p_down"):
+            return bar_to_pa(x[..., 1 if name == "p_up" else 2]) / 1e5
+        if name == "t_up":
+            return degc_to_k(x[..., 3]) - 273.15
+        with np.errstate(all="ignore"):  # padded samples give NaN, as in torch
+            if name == "p_ratio":
+                return bar_to_pa(x[..., 2]) / bar_to_pa(x[..., 1])
+            if name == "water_cut":
+                wat = 1.0 - x[..., 4] - x[..., 5]
+                return np.clip(wat / np.maximum(x[..., 5] + wat, 1e-9), 0.0, 1.0)
+        if name == "day_of_year":
+            return np.remainder(time_ns.astype(np.float64) / _NS_PER_DAY, 365.2425)
+        return extra[name]
 
     def output_factor(self, inputs: EffectInputs, p: dict[str, torch.Tensor]) -> torch.Tensor:
         values = {**{k: torch.tensor(v, dtype=DTYPE) for k, v in self.fixed.items()}, **p}

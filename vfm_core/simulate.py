@@ -81,7 +81,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -671,6 +671,21 @@ class _WellResult:
     is_mpfm: np.ndarray
 
 
+@dataclass
+class _Meters:
+    """What one well's meters recorded: ``q_meas`` (Sm3/h; NaN on rows without a rate),
+    ``source`` per row, ``is_mpfm`` (rows with an MPFM rate), the MPFM's drift factor
+    ``base_factor`` and its full factor ``mpfm_factor`` (1 off its rows), ``years`` since
+    the well's start."""
+
+    q_meas: np.ndarray
+    source: np.ndarray
+    is_mpfm: np.ndarray
+    base_factor: np.ndarray
+    mpfm_factor: np.ndarray
+    years: np.ndarray
+
+
 class _Well:
     """Simulates one well; every random draw comes from a named per-well stream."""
 
@@ -1002,19 +1017,22 @@ class _Well:
             t_test = t_test[np.concatenate([[True], np.diff(t_test) >= 0.25])]
         return t_mpfm, t_test
 
-    def _observe(self) -> _WellResult:
-        d = self.draw
+    def _observation_times(self) -> tuple[np.ndarray, np.ndarray]:
+        """Times (days, whole seconds) of the well's rows in order, and which are well tests."""
         t_mpfm, t_test = self._row_times()
         t = np.concatenate([t_mpfm, t_test])
         is_test = np.concatenate([np.zeros(len(t_mpfm), bool), np.ones(len(t_test), bool)])
         # Whole seconds, as a historian stores them.
         t = np.round(t * 86400.0) / 86400.0
         order = np.lexsort((is_test, t))
-        t, is_test = t[order], is_test[order]
-        n = len(t)
+        return t[order], is_test[order]
 
+    def _sensor_readings(self, t: np.ndarray) -> dict[str, np.ndarray]:
+        """The recorded inputs at times ``t`` (days): the operated state with sensor noise,
+        rounded as a historian stores them (bar, degC; the inputs of :func:`_choke_truth`)."""
+        d = self.draw
         rng = self.rng("row_noise")
-        noise = rng.standard_normal((5, n))
+        noise = rng.standard_normal((5, len(t)))
         u = self._schedule(t)
         p_static = np.interp(t, self.grid, self.p_static)
         p_up = p_static * (1.0 - d["drawdown_full_open"] * u)
@@ -1027,7 +1045,7 @@ class _Well:
         eta_gas, eta_oil = self._fractions(gor, water_cut)
         eta_gas, eta_oil = np.round(eta_gas, 7), np.round(eta_oil, 7)
         eta_oil = np.minimum(eta_oil, 1.0 - eta_gas)
-        inputs = {
+        return {
             "u": u,
             "p_up_bar": p_up,
             "p_down_bar": p_down,
@@ -1035,10 +1053,12 @@ class _Well:
             "eta_gas": eta_gas,
             "eta_oil": eta_oil,
         }
-        c_d = self._c_d_at(t)
-        truth = _choke_truth(self.fluid, self.active, inputs, c_d, phases=True)
 
-        # Meters.
+    def _meter_readings(self, t: np.ndarray, is_test: np.ndarray, q_true: np.ndarray) -> _Meters:
+        """What the MPFM (drifting, with its noise and any hidden bias; none in an outage)
+        and the well tests measure of the true rates ``q_true`` (Sm3/h) at times ``t``."""
+        d = self.draw
+        n = len(t)
         rng = self.rng("meter")
         drift_steps = rng.standard_normal(len(self.grid)) * d["mpfm_drift_per_sqrt_year"]
         drift_walk = np.cumsum(drift_steps * math.sqrt(_GRID_DAYS / DAYS_PER_YEAR))
@@ -1052,25 +1072,65 @@ class _Well:
             factor = factor * (1.0 + float(spec["bias"]) + float(spec["drift"]) * years)
         in_outage = _inside(t, self.outages)[0]
         is_mpfm = ~is_test & ~in_outage
-        q_true = truth["q"]
         q_meas = np.full(n, np.nan)
         q_meas[is_mpfm] = (q_true * factor * (1.0 + d["mpfm_noise_rel"] * meter_noise))[is_mpfm]
         q_meas[is_test] = (q_true * (1.0 + d["well_test_noise_rel"] * meter_noise))[is_test]
-        source = np.where(is_mpfm, schema.MPFM, np.where(is_test, schema.WELL_TEST, ""))
-        mpfm_factor = np.where(is_mpfm, factor, 1.0)
+        return _Meters(
+            q_meas=q_meas,
+            source=np.where(is_mpfm, schema.MPFM, np.where(is_test, schema.WELL_TEST, "")),
+            is_mpfm=is_mpfm,
+            base_factor=base_factor,
+            mpfm_factor=np.where(is_mpfm, factor, 1.0),
+            years=years,
+        )
 
+    def _rates_without_each_effect(
+        self, inputs: dict[str, np.ndarray], c_d: np.ndarray, meters: _Meters
+    ) -> dict[str, np.ndarray]:
+        """Per hidden effect, the true rates (Sm3/h) of the same rows without it (for
+        ``mpfm_bias`` the MPFM's factor without the bias), for the effects' measured sizes."""
+        q_without: dict[str, np.ndarray] = {}
+        for effect in self.hidden:
+            if effect == "mpfm_bias":
+                q_without[effect] = np.where(meters.is_mpfm, meters.base_factor, 1.0)
+                continue
+            active = self.active
+            c_d_eff = c_d
+            if effect == "erosion":
+                c_d_eff = np.full(len(c_d), self.fluid.c_d)
+            elif effect == "valve":
+                active = replace(active, family="linear")
+            else:
+                active = replace(
+                    active,
+                    real_gas=active.real_gas and effect != "real_gas",
+                    slip=active.slip and effect != "slip",
+                    critical_ratio=active.critical_ratio and effect != "critical_ratio",
+                )
+            q_without[effect] = _choke_truth(self.fluid, active, inputs, c_d_eff)["q"]
+        return q_without
+
+    def _observe(self) -> _WellResult:
+        """The well's observation rows, their noise-free truth, and the truth JSON part."""
+        t, is_test = self._observation_times()
+        inputs = self._sensor_readings(t)
+        c_d = self._c_d_at(t)
+        truth = _choke_truth(self.fluid, self.active, inputs, c_d, phases=True)
+        q_true = truth["q"]
+        meters = self._meter_readings(t, is_test, q_true)
+        q_meas = meters.q_meas
         rows = pd.DataFrame(
             {
                 "t_days": t,
                 schema.WELL: self.name,
-                "choke": u,
-                "p_up": p_up,
-                "p_down": p_down,
-                "t_up": t_up,
-                "eta_gas": eta_gas,
-                "eta_oil": eta_oil,
+                "choke": inputs["u"],
+                "p_up": inputs["p_up_bar"],
+                "p_down": inputs["p_down_bar"],
+                "t_up": inputs["t_up_degc"],
+                "eta_gas": inputs["eta_gas"],
+                "eta_oil": inputs["eta_oil"],
                 schema.TARGET: q_meas,
-                schema.SOURCE: source,
+                schema.SOURCE: meters.source,
                 "q_gas": q_meas * truth["q_gas"] / q_true,
                 "q_oil": q_meas * truth["q_oil"] / q_true,
                 "q_water": q_meas * truth["q_water"] / q_true,
@@ -1085,40 +1145,45 @@ class _Well:
             "area_m2": truth["area"],
             "z_true": truth["z"],
             "p_cr_true": truth["p_cr"],
-            "mpfm_factor": mpfm_factor,
+            "mpfm_factor": meters.mpfm_factor,
         }
-
-        # The same rows without each effect, for the measured sizes.
-        q_without: dict[str, np.ndarray] = {}
-        for effect in self.hidden:
-            if effect == "mpfm_bias":
-                q_without[effect] = np.where(is_mpfm, base_factor, 1.0)
-                continue
-            active = self.active
-            c_d_eff = c_d
-            if effect == "erosion":
-                c_d_eff = np.full(n, self.fluid.c_d)
-            elif effect == "valve":
-                active = replace(active, family="linear")
-            else:
-                active = replace(
-                    active,
-                    real_gas=active.real_gas and effect != "real_gas",
-                    slip=active.slip and effect != "slip",
-                    critical_ratio=active.critical_ratio and effect != "critical_ratio",
-                )
-            q_without[effect] = _choke_truth(self.fluid, active, inputs, c_d_eff)["q"]
-        q_plain = _choke_truth(self.fluid, _Active(), inputs, self.fluid.c_d)["q"]
-
         return _WellResult(
             rows=rows,
             samples=samples,
-            truth=self._truth(is_mpfm, is_test),
-            q_without=q_without,
-            q_plain=q_plain,
-            years_since_start=years,
-            is_mpfm=is_mpfm,
+            truth=self._truth(meters.is_mpfm, is_test),
+            q_without=self._rates_without_each_effect(inputs, c_d, meters),
+            q_plain=_choke_truth(self.fluid, _Active(), inputs, self.fluid.c_d)["q"],
+            years_since_start=meters.years,
+            is_mpfm=meters.is_mpfm,
         )
+
+    def _fluid_truth(self) -> dict[str, float]:
+        """The well's true fluid and choke constants (densities kg/m3, m_gas kg/mol, kappa,
+        p_cr and c_d dimensionless, a_max_m2 m2)."""
+        f = self.fluid
+        return {
+            "rho_oil": f.rho_oil,
+            "rho_wat": f.rho_wat,
+            "kappa": f.kappa,
+            "m_gas": f.m_gas,
+            "p_cr": f.p_cr,
+            "c_d": f.c_d,
+            "a_max_m2": f.a_max_m2,
+        }
+
+    def _noise_truth(self) -> dict[str, float]:
+        """The sizes of the meters' and sensors' noise (relative, bar, degC, absolute)."""
+        d = self.draw
+        return {
+            "mpfm_rel": d["mpfm_noise_rel"],
+            "mpfm_drift_per_sqrt_year": d["mpfm_drift_per_sqrt_year"],
+            "well_test_rel": d["well_test_noise_rel"],
+            "p_up_rel": d["p_up_noise_rel"],
+            "p_down_bar": 0.15,
+            "t_up_degc": 0.2,
+            "gor_rel": 0.015,
+            "water_cut_abs": 0.005,
+        }
 
     def _truth(
         self,
@@ -1127,19 +1192,12 @@ class _Well:
     ) -> dict[str, Any]:
         """The well's true parameters and history for the truth JSON (times in days)."""
         d = self.draw
-        f = self.fluid
         # The plateau ends where the operators' own setting (not a manual change) is fully open.
         full_open = self.t_decide[self.u_decide >= 1.0]
         out: dict[str, Any] = {
             "start_day": self.t0,
             "end_day": self.t1,
-            "rho_oil": f.rho_oil,
-            "rho_wat": f.rho_wat,
-            "kappa": f.kappa,
-            "m_gas": f.m_gas,
-            "p_cr": f.p_cr,
-            "c_d": f.c_d,
-            "a_max_m2": f.a_max_m2,
+            **self._fluid_truth(),
             "bore_diameter_mm": d["bore_diameter_mm"],
             "valve_family": self.active.family,
             "z": "papay" if self.active.real_gas else 1.0,
@@ -1180,16 +1238,7 @@ class _Well:
                 "choke_adjustments": len(self.t_decide),
                 "manual_changes": len(self.deviations),
             },
-            "noise": {
-                "mpfm_rel": d["mpfm_noise_rel"],
-                "mpfm_drift_per_sqrt_year": d["mpfm_drift_per_sqrt_year"],
-                "well_test_rel": d["well_test_noise_rel"],
-                "p_up_rel": d["p_up_noise_rel"],
-                "p_down_bar": 0.15,
-                "t_up_degc": 0.2,
-                "gor_rel": 0.015,
-                "water_cut_abs": 0.005,
-            },
+            "noise": self._noise_truth(),
             "sampling": {
                 "mpfm_interval_hours": d["mpfm_interval_hours"],
                 "rows_mpfm": int(is_mpfm.sum()),
@@ -1265,6 +1314,87 @@ def _check_size(seed: int, wells: int, years: float) -> None:
         raise ConfigError(f"years must lie between 1/12 and 50, not {years!r}.")
 
 
+def _check_options(
+    effects: Mapping[str, Any], families: Sequence[str], gas_lift: float | Any
+) -> None:
+    """Refuse valve families beside the hidden ``valve`` effect, and a gas-lift share
+    outside 0..1, with a sentence."""
+    if families and "valve" in effects:
+        raise ConfigError(
+            "Give the valve characteristic either per well (valves) or as the hidden effect "
+            "'valve' for every well, not both."
+        )
+    if not (isinstance(gas_lift, int | float) and math.isfinite(gas_lift) and 0 <= gas_lift <= 1):
+        raise ConfigError(
+            f"gas_lift is the share of wells on gas lift; give a number in 0..1, not {gas_lift!r}."
+        )
+
+
+def _field_span(start: str, years: float) -> tuple[pd.Timestamp, pd.Timestamp, float]:
+    """``(t_origin, t_end, horizon_days)`` of a field that starts on ``start`` and runs for
+    ``years`` years (whole years end on the same calendar day)."""
+    try:
+        t_origin = utc_timestamp(start)
+    except ValueError:
+        raise ConfigError(f"start '{start}' is not a date; give e.g. 2016-01-01.") from None
+    # Whole years end on the same calendar day (2016-01-01 + 5 years = 2021-01-01).
+    whole = int(years)
+    t_end = t_origin + pd.DateOffset(years=whole)
+    t_end += pd.Timedelta(days=(years - whole) * DAYS_PER_YEAR)
+    return t_origin, t_end, (t_end - t_origin) / pd.Timedelta(days=1)
+
+
+def _day_to_iso(t_origin: pd.Timestamp) -> Callable[[float], str]:
+    """What turns days since ``t_origin`` into an ISO 8601 time (UTC, whole seconds)."""
+
+    def iso(day: float) -> str:
+        return (t_origin + pd.Timedelta(seconds=round(day * 86400.0))).isoformat()
+
+    return iso
+
+
+def _field_frames(
+    results: Sequence[_WellResult], t_origin: pd.Timestamp
+) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray]:
+    """``(observations, truth_samples, order)``: the wells' rows sorted by (time, well),
+    keeping each well's own order on ties (MPFM before well test); ``order`` the rows'
+    places in the wells' rows one after the other."""
+    rows = pd.concat([r.rows for r in results], ignore_index=True)
+    samples = pd.DataFrame(
+        {k: np.concatenate([r.samples[k] for r in results]) for k in TRUTH_SAMPLE_COLUMNS[2:]}
+    )
+    well_codes = np.concatenate([np.full(len(r.rows), j) for j, r in enumerate(results)])
+    # Sort by (time, well), keeping the per-well order (MPFM before well test) on ties.
+    order = np.lexsort((np.arange(len(rows)), well_codes, rows["t_days"].to_numpy()))
+    rows = rows.iloc[order].reset_index(drop=True)
+    samples = samples.iloc[order].reset_index(drop=True)
+    seconds = np.round(rows.pop("t_days").to_numpy() * 86400.0).astype(np.int64)
+    time = pd.Series(t_origin + pd.to_timedelta(seconds, unit="s")).dt.as_unit("ns")
+    observations = pd.concat([time.rename(schema.TIME), rows], axis=1)
+    samples.insert(0, schema.WELL, observations[schema.WELL].to_numpy())
+    samples.insert(0, schema.TIME, time)
+    return observations, samples, order
+
+
+def _wells_truth(
+    names: Sequence[str], results: Sequence[_WellResult], iso: Callable[[float], str]
+) -> dict[str, Any]:
+    """Every well's truth JSON with its days turned into times by ``iso``."""
+    per_well: dict[str, Any] = {}
+    for name, r in zip(names, results, strict=True):
+        info = dict(r.truth)
+        info["start"] = iso(info.pop("start_day"))
+        info["end"] = iso(info.pop("end_day"))
+        for key in ("shut_ins_days", "data_gaps_days", "mpfm_outages_days"):
+            info[key.removesuffix("_days")] = [[iso(a), iso(b)] for a, b in info.pop(key)]
+        if "sand_event_day" in info:
+            info["sand_event"] = iso(info.pop("sand_event_day"))
+        end_day = info.pop("plateau_end_day")
+        info["plateau_end"] = iso(end_day) if end_day is not None else None
+        per_well[name] = info
+    return per_well
+
+
 def simulate_field(
     *,
     wells: int = 10,
@@ -1294,24 +1424,8 @@ def simulate_field(
     spec = sim_physics.physics_spec(physics)
     _check_physics_effects(spec.name, effects)
     families = parse_valves(valves)
-    if families and "valve" in effects:
-        raise ConfigError(
-            "Give the valve characteristic either per well (valves) or as the hidden effect "
-            "'valve' for every well, not both."
-        )
-    if not (isinstance(gas_lift, int | float) and math.isfinite(gas_lift) and 0 <= gas_lift <= 1):
-        raise ConfigError(
-            f"gas_lift is the share of wells on gas lift; give a number in 0..1, not {gas_lift!r}."
-        )
-    try:
-        t_origin = utc_timestamp(start)
-    except ValueError:
-        raise ConfigError(f"start '{start}' is not a date; give e.g. 2016-01-01.") from None
-    # Whole years end on the same calendar day (2016-01-01 + 5 years = 2021-01-01).
-    whole = int(years)
-    t_end = t_origin + pd.DateOffset(years=whole)
-    t_end += pd.Timedelta(days=(years - whole) * DAYS_PER_YEAR)
-    horizon = (t_end - t_origin) / pd.Timedelta(days=1)
+    _check_options(effects, families, gas_lift)
+    t_origin, t_end, horizon = _field_span(start, years)
     field_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
     starts, sampling = _field_layout(field_rng, int(wells), horizon)
     width = max(2, len(str(int(wells))))
@@ -1337,42 +1451,9 @@ def simulate_field(
         results.append(well.run())
         well_objects.append(well)
 
-    def to_time(days: np.ndarray) -> pd.Series:
-        seconds = np.round(np.asarray(days) * 86400.0).astype(np.int64)
-        return pd.Series(t_origin + pd.to_timedelta(seconds, unit="s")).dt.as_unit("ns")
-
-    rows = pd.concat([r.rows for r in results], ignore_index=True)
-    samples = pd.DataFrame(
-        {k: np.concatenate([r.samples[k] for r in results]) for k in TRUTH_SAMPLE_COLUMNS[2:]}
-    )
-    well_codes = np.concatenate([np.full(len(r.rows), j) for j, r in enumerate(results)])
-    # Sort by (time, well), keeping the per-well order (MPFM before well test) on ties.
-    order = np.lexsort((np.arange(len(rows)), well_codes, rows["t_days"].to_numpy()))
-    rows = rows.iloc[order].reset_index(drop=True)
-    samples = samples.iloc[order].reset_index(drop=True)
-    time = to_time(rows.pop("t_days").to_numpy())
-    observations = pd.concat([time.rename(schema.TIME), rows], axis=1)
-    samples.insert(0, schema.WELL, observations[schema.WELL].to_numpy())
-    samples.insert(0, schema.TIME, time)
-
-    def iso(day: float) -> str:
-        return (t_origin + pd.Timedelta(seconds=round(day * 86400.0))).isoformat()
-
-    per_well: dict[str, Any] = {}
-    for name, r in zip(names, results, strict=True):
-        info = dict(r.truth)
-        info["start"] = iso(info.pop("start_day"))
-        info["end"] = iso(info.pop("end_day"))
-        for key in ("shut_ins_days", "data_gaps_days", "mpfm_outages_days"):
-            info[key.removesuffix("_days")] = [[iso(a), iso(b)] for a, b in info.pop(key)]
-        if "sand_event_day" in info:
-            info["sand_event"] = iso(info.pop("sand_event_day"))
-        end_day = info.pop("plateau_end_day")
-        info["plateau_end"] = iso(end_day) if end_day is not None else None
-        per_well[name] = info
-
+    observations, samples, order = _field_frames(results, t_origin)
+    iso = _day_to_iso(t_origin)
     hidden_truth, combined = _measured_sizes(effects, results, order, samples)
-
     truth: dict[str, Any] = {
         "format": "vfm-simulated-field/1",
         "seed": int(seed),
@@ -1387,7 +1468,7 @@ def simulate_field(
         },
         "hidden": hidden_truth,
         "truth_versus_plain_model": combined,
-        "wells": per_well,
+        "wells": _wells_truth(names, results, iso),
         "ranges": {key: list(value) for key, value in _RANGES.items()},
         "physics": _physics_truth(spec, families, float(gas_lift), names, well_objects, iso),
     }

@@ -51,7 +51,7 @@ What the data are, seen by an engineer (:func:`field_notes` prints it at import)
   plus the water; no well-level input explains the field GOR's day-to-day moves.
 - **Densities.** The file has volumes only; the mass fractions need densities, which are
   assumptions. They are the project's prior means (:data:`vfm_core.physics.PRIORS`), so
-  that the phase split of :func:`vfm_core.streaming.phase_split` at those densities (what
+  that the phase split of :func:`vfm_core.learning.streaming.phase_split` at those densities (what
   every model without learned densities uses) gives back exactly the day's phase shares:
   with other densities the split would carry a bias of their ratio into the phases.
 - **The choke wide open.** Some wells spend most of their late life with the choke fully

@@ -1,7 +1,7 @@
 """Checkpoints of each well's model (and its parameter history), written in the same
 transactions as the data.
 
-A checkpoint is :meth:`vfm_core.streaming.WellLearner.checkpoint` bytes (tensors and
+A checkpoint is :meth:`vfm_core.learning.streaming.WellLearner.checkpoint` bytes (tensors and
 plain values, never pickle) with a JSON side-car: the drift detector's state and
 reference inputs, the drift events, the model changes made over HTTP, the model's
 specification ``[model, effects, method]``, and the trial of the last change with its
@@ -16,10 +16,10 @@ On start, :func:`usable` says whether a well's latest checkpoint may be restored
 the configured model (see :mod:`service.engine.recovery`).
 
 A well of a field-wide model (``mtl``) checkpoints the whole field: its blob is the
-:meth:`vfm_core.field_learner.FieldLearner.checkpoint` snapshot (every well's part, the
+:meth:`vfm_core.learning.field.FieldLearner.checkpoint` snapshot (every well's part, the
 shared network, the method, the round still open and how many measurements of each well
 it holds). Such a learner names the field as its checkpoint group
-(:attr:`vfm_core.streaming.Learner.checkpoint_group`). Since every step of the shared
+(:attr:`vfm_core.learning.streaming.Learner.checkpoint_group`). Since every step of the shared
 model moves every well's version, a snapshot is due when the *group* has moved
 ``store.checkpoint_every`` versions since its last one, and it is written once, in the
 row of the well whose message made it due (at a clean stop, once for the group); recovery
@@ -36,9 +36,9 @@ from collections.abc import Iterable
 from typing import Any
 
 from service.config import ModelSettings, Settings
+from service.engine.learners import apply_budget
 from service.engine.parameters import ParameterHistory
 from service.engine.state import WellState
-from service.learning import apply_budget
 from service.store import CheckpointRow, InsertCheckpoint, Op, PruneCheckpoints
 from vfm_core.effects import effect_spec, resolve_effects
 from vfm_core.errors import VFMError

@@ -17,8 +17,8 @@ from service.engine.state import Pending, Sample, WellTestResult
 from service.errors import ServiceError
 from service.inputs import Counters
 from service.store import Op
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.messages import Measurement
-from vfm_core.streaming import WellLearner
 
 __all__ = [
     "SensorItem",
@@ -92,7 +92,7 @@ Item = SensorItem | SensorBlockItem | MeasurementItem | ModelStep | RetireStep
 @dataclass(slots=True)
 class DeferredLearn:
     """A paired measurement whose learning step waits for the batch's one
-    :func:`~vfm_core.streaming.learn_many` call (see :meth:`Learning.learn_paired
+    :func:`~vfm_core.learning.streaming.learn_many` call (see :meth:`Learning.learn_paired
     <service.engine.learning.Learning.learn_paired>`): the well, the measurement, its sample,
     and what a well-test caller is answered with (the version and prediction before)."""
 

@@ -7,9 +7,9 @@
   it as learned (its place in the learning order, the sample, the prediction made there)
   and answer a waiting well-test caller with the prediction before and after. The
   learning step of a learner whose model is its own (not
-  :attr:`~vfm_core.streaming.Learner.shares_model`) is deferred to the end of
+  :attr:`~vfm_core.learning.streaming.Learner.shares_model`) is deferred to the end of
   the worker's batch (:meth:`Learning.run_deferred`), where the batch's learns of all
-  wells run in one :func:`vfm_core.streaming.learn_many` call (the wells' ``ol`` or
+  wells run in one :func:`vfm_core.learning.streaming.learn_many` call (the wells' ``ol`` or
   ``bayes`` updates stacked into one multi-well update, each well's result what its own
   ``learn`` gives); the worker runs them earlier whenever anything else of such a well
   comes (its next sample, another measurement, a model change), so each well sees the
@@ -22,7 +22,7 @@
   as a drift event; with ``drift.on_drift = "retrain"`` it retrains the well).
 
 A worker must never hang on one well. Each fit of a live well has a wall-clock budget
-(``model.retrain_budget_s``, see :func:`service.learning.train_settings`) on top of its
+(``model.retrain_budget_s``, see :func:`service.engine.learners.train_settings`) on top of its
 iteration caps; a method's retrain period is at least ``model.min_retrain_period_s``; and
 when a sample or measurement comes more than ``model.max_catch_up_retrains`` periods
 after the next scheduled retrain (a well back from a long gap), one retrain on everything
@@ -30,8 +30,8 @@ so far replaces the missed ones, keeping the calendar's phase (the missed ones w
 train on the same data). Steps slower than a second are counted (``slow learning steps``)
 and logged.
 
-This module uses only the :class:`vfm_core.streaming.Learner` protocol, which
-:class:`vfm_core.streaming.WellLearner` and :class:`vfm_core.field_learner.FieldWell` (a
+This module uses only the :class:`vfm_core.learning.streaming.Learner` protocol, which
+:class:`vfm_core.learning.streaming.WellLearner` and :class:`vfm_core.learning.field.FieldWell` (a
 well of the field-wide ``mtl``) both keep (a block of samples in one call is asked
 only of a learner whose model predicting cannot change; another refuses it).
 """
@@ -48,11 +48,11 @@ import numpy as np
 from service.config import Settings
 from service.engine.checkpoints import Checkpoints
 from service.engine.items import Batch, DeferredLearn
+from service.engine.learners import Learner
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
-from service.learning import Learner
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
-from vfm_core.streaming import learn_many, predict_many
+from vfm_core.learning.streaming import learn_many, predict_many
 from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
@@ -127,7 +127,7 @@ class Learning:
         self, states: list[WellState], inputs: list[tuple[float, ...]], times_ns: list[int]
     ) -> list[Rates | None | BaseException]:
         """Rates (Sm3/h) for samples of different wells in one model call (see
-        :func:`vfm_core.streaming.predict_many`), or None while a well's model has no
+        :func:`vfm_core.learning.streaming.predict_many`), or None while a well's model has no
         (finite) answer; a well whose step failed gets its exception in its place.
         ``times_ns``: each sample's time, epoch ns."""
         started = time.monotonic()
@@ -163,7 +163,7 @@ class Learning:
         self, st: WellState, inputs: np.ndarray, times_ns: np.ndarray
     ) -> dict[str, np.ndarray]:
         """Rates (Sm3/h) for a block of one well's samples in one model call (see
-        :meth:`vfm_core.streaming.WellLearner.predict_block`), timed as a learning step."""
+        :meth:`vfm_core.learning.streaming.WellLearner.predict_block`), timed as a learning step."""
         started = time.monotonic()
         out: dict[str, np.ndarray] = st.learner.predict_block(inputs, times_ns)
         self._timed(st, started, f"A block of {len(times_ns)} prediction(s)")
@@ -173,7 +173,7 @@ class Learning:
         """Learn from a measurement paired with ``sample``; record it; answer its caller.
 
         The learning step of a learner whose model is its own (not
-        :attr:`~vfm_core.streaming.Learner.shares_model`: nothing else reads it meanwhile)
+        :attr:`~vfm_core.learning.streaming.Learner.shares_model`: nothing else reads it meanwhile)
         waits in ``b`` for the batch's one learning call (:meth:`run_deferred`); everything
         around it runs in the order of learning at once. A field-wide well learns at once:
         its step moves the other wells' model, in arrival order."""
@@ -194,7 +194,7 @@ class Learning:
 
     def run_deferred(self, b: Batch) -> None:
         """Run the learning steps waiting in ``b``, all wells in one
-        :func:`~vfm_core.streaming.learn_many` call, then record each (as
+        :func:`~vfm_core.learning.streaming.learn_many` call, then record each (as
         :meth:`learn_paired` would have right away). A well whose step fails is counted
         as an internal error and its caller answered with the error; the others go on."""
         learns = b.learns

@@ -7,7 +7,7 @@ goes unanswered and no measurement is skipped:
    the current model learns from now on (``WellState.catch_up``);
 2. *refit* (on a thread of its own, off the worker): the copy fits the new model on
    everything the well remembers and compares it with the current one on the latest
-   fifth (:meth:`vfm_core.streaming.WellLearner.refit_as`); the caller waits at most
+   fifth (:meth:`vfm_core.learning.streaming.WellLearner.refit_as`); the caller waits at most
    ``model.change_budget_s``, after which the change is abandoned (503) and the current
    model kept; at most ``http.max_model_changes`` fits run at once (503 beyond);
 3. *catch-up*: the worker teaches the new model what arrived during the fit;
@@ -52,14 +52,14 @@ from service.config import Settings, method_problem
 from service.engine.checkpoints import Checkpoints, configured_spec
 from service.engine.fairqueue import FairQueue
 from service.engine.items import Batch, ModelStep
+from service.engine.learners import Learner, apply_budget, fit_budget
 from service.engine.state import WellState
 from service.engine.trial import Trial, install
 from service.errors import Busy, Conflict, InvalidRequest, NotAllowed, Stopping, unknown_well
-from service.learning import Learner, apply_budget, fit_budget
 from service.store import Op, Store
 from vfm_core.errors import VFMError
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.models import MODELS
-from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import from_ns
 
 __all__ = ["ModelChanges", "check_effect_modules", "effect_module"]
@@ -273,14 +273,7 @@ class ModelChanges:
         kind = str(scores.pop("_kind", "change"))
         note = str(scores.pop("_note", "") or f"replaced by {new.name} over HTTP")
         extra = scores.pop("_extra", None)
-        try:
-            caught_up = list(st.catch_up or [])
-            for inputs, q_total, time_ns, source in caught_up:
-                if self.catch_up is not None:
-                    self.catch_up(new, time_ns)
-                new.learn(list(inputs), q_total, from_ns(time_ns), source)
-        finally:
-            st.catch_up = None
+        caught_up = self._catch_up(st, new)
         # commit what the batch holds so far, then the new model's checkpoint on its own:
         # the swap happens only once that checkpoint is in the store
         flush(b)
@@ -300,20 +293,7 @@ class ModelChanges:
                 st, ops, when, f"The model was replaced ({kind}) by {new.name} while it ran."
             )
         new.renumber(old.version + 1)
-        trial: Trial | None = None
-        if kind == "change" and self.settings.trial.enabled and not old.shares_model:
-            # the replaced model (its own, not shared) runs on as the trial's shadow
-            trial = Trial(
-                well=st.well,
-                since_ns=when if when is not None else 0,
-                model=new.name,
-                shadow_model=old.name,
-                version=new.version,
-                shadow_version=old.version,
-                shadow=old,
-                settings=self.settings.trial,
-            )
-            st.trial = trial
+        trial = self._start_trial(st, new, old, when) if kind == "change" else None
         try:
             change = install(
                 st,
@@ -348,6 +328,39 @@ class ModelChanges:
         out = dict(change)
         out["trial"] = trial.view() if trial is not None else None
         b.answer(item.future, out)
+
+    def _catch_up(self, st: WellState, new: WellLearner) -> list[Any]:
+        """The new learner learns the measurements that came while it was built (the
+        well's ``catch_up``, then cleared); returns them."""
+        try:
+            caught_up = list(st.catch_up or [])
+            for inputs, q_total, time_ns, source in caught_up:
+                if self.catch_up is not None:
+                    self.catch_up(new, time_ns)
+                new.learn(list(inputs), q_total, from_ns(time_ns), source)
+        finally:
+            st.catch_up = None
+        return caught_up
+
+    def _start_trial(
+        self, st: WellState, new: Learner, old: Learner, when: int | None
+    ) -> Trial | None:
+        """A trial of a change, with the replaced model (its own, not shared) running on as
+        its shadow; None when trials are off or the old model is shared."""
+        if not self.settings.trial.enabled or old.shares_model:
+            return None
+        trial = Trial(
+            well=st.well,
+            since_ns=when if when is not None else 0,
+            model=new.name,
+            shadow_model=old.name,
+            version=new.version,
+            shadow_version=old.version,
+            shadow=old,
+            settings=self.settings.trial,
+        )
+        st.trial = trial
+        return trial
 
     def rollback(self, well: str, version: int) -> dict[str, Any]:
         """Bring back an earlier model version of a well (``POST /wells/{well}/model/rollback``).

@@ -8,13 +8,13 @@ id). For each well:
    HTTP since the config last changed; :func:`service.engine.checkpoints.usable`);
 2. otherwise a new learner is built, and all such wells with rows in the history file
    (before ``model.history_until``) are fitted in one batched fit
-   (:func:`service.learning.fit_history`), whose latest inputs become the drift reference;
+   (:func:`service.engine.learners.fit_history`), whose latest inputs become the drift reference;
 3. the measurements learned after the checkpoint (all of them for a new learner) are
    re-learned from the store, in the same order, which gives back the same model bit for
    bit; the rolling error is refilled from the store;
 4. the recent samples (for pairing) and the measurements still pending are loaded.
 
-A field-wide model (``mtl``) is one :class:`vfm_core.field_learner.FieldLearner` for all
+A field-wide model (``mtl``) is one :class:`vfm_core.learning.field.FieldLearner` for all
 the wells: its latest snapshot (the newest usable checkpoint row of any of its wells: each
 holds the whole field) is restored, and each well then re-learns what it learned after
 that snapshot (the snapshot says how many of each well's measurements it holds), all
@@ -40,9 +40,7 @@ import pandas as pd
 
 from service.config import ModelSettings, Settings
 from service.engine.checkpoints import Checkpoints, configured_spec, usable
-from service.engine.learning import Learning
-from service.engine.state import RECENT_SAMPLES, Pending, WellState
-from service.learning import (
+from service.engine.learners import (
     Learner,
     apply_budget,
     fit_history,
@@ -51,13 +49,15 @@ from service.learning import (
     new_learner,
     train_settings,
 )
+from service.engine.learning import Learning
+from service.engine.state import RECENT_SAMPLES, Pending, WellState
 from service.scaleout import WellSet
 from service.store import AddWell, CheckpointRow, LearnedRow, Op, Store
 from vfm_core.data import target_mask
 from vfm_core.errors import VFMError
-from vfm_core.field_learner import FieldLearner
+from vfm_core.learning.field import FieldLearner
+from vfm_core.learning.streaming import WellLearner
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
-from vfm_core.streaming import WellLearner
 from vfm_core.timeutil import to_ns
 
 __all__ = ["Recovery"]
@@ -89,38 +89,7 @@ class Recovery:
         stable order."""
         cfg = self.settings
         history = load_history(cfg.model) if cfg.model.history is not None else None
-        names = list(
-            dict.fromkeys(
-                [
-                    *cfg.inputs.wells,
-                    *self.store.wells(),
-                    *(
-                        []
-                        if history is None or history.empty
-                        else history["well"].astype(str).tolist()
-                    ),
-                ]
-            )
-        )
-        own = WellSet(cfg.zenoh.wells)
-        foreign = [w for w in names if w not in own]
-        if foreign:
-            logger.info(
-                "%d well(s) of the store or the history are outside this instance's wells (%s) "
-                "and not loaded: %s.",
-                len(foreign),
-                own.describe(),
-                ", ".join(foreign[:10]) + (" ..." if len(foreign) > 10 else ""),
-            )
-            names = [w for w in names if w in own]
-        skipped = [w for w in names if w in (retired or set())]
-        if skipped:
-            logger.info(
-                "%d retired well(s) not loaded (%s); DELETE /wells/{well}?purge=true frees an id.",
-                len(skipped),
-                ", ".join(skipped[:10]) + (" ..." if len(skipped) > 10 else ""),
-            )
-            names = [w for w in names if w not in (retired or set())]
+        names = self._wells_to_load(history, retired or set())
         field_wide = cfg.model.field_wide
         if field_wide:
             learners, checkpoints = self._restore_field(names)
@@ -133,27 +102,10 @@ class Recovery:
         elif history is not None and fresh:
             fitted = _fit_fresh(learners, fresh, history, cfg.model)
         ops: list[Op] = []
-        now = time.time_ns()
-        restored = relearned_total = 0
-        by_well = (
-            {str(w): g for w, g in history.groupby("well", sort=False)}
-            if history is not None and not history.empty
-            else {}
-        )
-        wells: dict[str, WellState] = {}
-        for well in names:
-            origin = "history" if well in fitted else "config/store"
-            ops.append(AddWell(well=well, created_ns=now, origin=origin))
-            st = WellState(well, learners[well], cfg, self.worker_of(well))
-            row = checkpoints.get(well)
-            if row is not None:
-                st.learn_seq = row.learn_seq
-                self.checkpoints.restore_side_car(st, row.extra)
-            elif well in fitted and by_well:
-                self._seed_drift_reference(st, by_well[well])
-            wells[well] = st
+        wells = self._well_states(names, learners, checkpoints, fitted, history, ops)
         # a field-wide model re-learns its wells' measurements merged in time order
         counts = self._relearn_all(list(wells.values()), ops, merged=field_wide)
+        restored = relearned_total = 0
         for well, st in wells.items():
             row = checkpoints.get(well)
             relearned = counts[well]
@@ -176,6 +128,65 @@ class Recovery:
             len(fitted),
             relearned_total,
         )
+        return wells
+
+    def _wells_to_load(self, history: pd.DataFrame | None, retired: set[str]) -> list[str]:
+        """The wells of the configuration, the store and the history, in that order, less
+        those outside this instance's wells and the retired ones (each group logged)."""
+        cfg = self.settings
+        in_history = [] if history is None or history.empty else history["well"].astype(str)
+        names = list(dict.fromkeys([*cfg.inputs.wells, *self.store.wells(), *in_history]))
+        own = WellSet(cfg.zenoh.wells)
+        foreign = [w for w in names if w not in own]
+        if foreign:
+            logger.info(
+                "%d well(s) of the store or the history are outside this instance's wells (%s) "
+                "and not loaded: %s.",
+                len(foreign),
+                own.describe(),
+                ", ".join(foreign[:10]) + (" ..." if len(foreign) > 10 else ""),
+            )
+            names = [w for w in names if w in own]
+        skipped = [w for w in names if w in retired]
+        if skipped:
+            logger.info(
+                "%d retired well(s) not loaded (%s); DELETE /wells/{well}?purge=true frees an id.",
+                len(skipped),
+                ", ".join(skipped[:10]) + (" ..." if len(skipped) > 10 else ""),
+            )
+            names = [w for w in names if w not in retired]
+        return names
+
+    def _well_states(
+        self,
+        names: list[str],
+        learners: dict[str, Learner],
+        checkpoints: dict[str, CheckpointRow],
+        fitted: list[str],
+        history: pd.DataFrame | None,
+        ops: list[Op],
+    ) -> dict[str, WellState]:
+        """A state per well around its learner, its ``AddWell`` op appended to ``ops``: a
+        restored well takes its checkpoint's place in the learning order and side-car, a well
+        fitted on the history seeds its drift reference from it."""
+        now = time.time_ns()
+        by_well = (
+            {str(w): g for w, g in history.groupby("well", sort=False)}
+            if history is not None and not history.empty
+            else {}
+        )
+        wells: dict[str, WellState] = {}
+        for well in names:
+            origin = "history" if well in fitted else "config/store"
+            ops.append(AddWell(well=well, created_ns=now, origin=origin))
+            st = WellState(well, learners[well], self.settings, self.worker_of(well))
+            row = checkpoints.get(well)
+            if row is not None:
+                st.learn_seq = row.learn_seq
+                self.checkpoints.restore_side_car(st, row.extra)
+            elif well in fitted and by_well:
+                self._seed_drift_reference(st, by_well[well])
+            wells[well] = st
         return wells
 
     def _restore_field(

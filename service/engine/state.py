@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from service.config import Settings
+from service.engine.learners import Learner, describe
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
-from service.learning import Learner, describe
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.sensor_faults import SensorFault, WellSensorFaults

@@ -53,7 +53,7 @@ from scipy import stats
 from service.config import Settings, TrialSettings
 from service.store import InsertModelVersion, InsertTrial, Op, PruneModelVersions
 from vfm_core.errors import VFMError
-from vfm_core.streaming import Learner, WellLearner
+from vfm_core.learning.streaming import Learner, WellLearner
 from vfm_core.timeutil import from_ns, iso
 
 if TYPE_CHECKING:

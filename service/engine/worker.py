@@ -18,7 +18,7 @@ A sensor sample is handled here: refused if it is not after the well's previous 
 (and its interval, with a method that gives one), published, and the measurements waiting
 for it are settled. The samples of a batch are predicted together: each is checked as it
 is taken, then all those taken are predicted in one call
-(:func:`vfm_core.streaming.predict_many`: the wells' models stacked into one model call),
+(:func:`vfm_core.learning.streaming.predict_many`: the wells' models stacked into one model call),
 then each is stored and published in arrival order. Anything else (a measurement, a model
 change, a retirement) first has the samples before it predicted, and so does a well's next
 sample when its model may change at that sample (a scheduled retrain, or a measurement
@@ -28,7 +28,7 @@ exception: it changes no other well's model, so the other wells' samples keep wa
 the batch's one call (a field-wide ``mtl`` model still has them predicted first).
 Learning is batched the same way: a paired measurement's learning step waits, and the
 batch's waiting steps of all wells run in one call
-(:func:`vfm_core.streaming.learn_many`, via :meth:`Learning.run_deferred
+(:func:`vfm_core.learning.streaming.learn_many`, via :meth:`Learning.run_deferred
 <service.engine.learning.Learning.run_deferred>`) before the commit, or earlier when
 anything else of such a well comes (its next sample, another of its measurements) and
 before a model change or a retirement. The first message of a new well builds the well
@@ -38,7 +38,7 @@ well after everything queued for it before (``DELETE /wells/{well}``).
 A sensor block (:class:`~service.engine.items.SensorBlockItem`, many samples of one well in
 one message, checked at intake) is answered at once: its rows not after the well's previous
 sample are refused, the others go through the well's model in one call
-(:meth:`~vfm_core.streaming.WellLearner.predict_block`), are stored row by row and answered
+(:meth:`~vfm_core.learning.streaming.WellLearner.predict_block`), are stored row by row and answered
 with one prediction block. A well whose model may change within the block (a measurement
 waits for one of its samples, a scheduled retrain), or that is not ready, takes the rows
 one by one as single samples, so a block is always answered as its rows sent one by one.
@@ -71,6 +71,7 @@ from service.engine.items import (
     SensorItem,
     refuse,
 )
+from service.engine.learners import new_learner
 from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
@@ -78,10 +79,9 @@ from service.engine.registry import Registry
 from service.engine.state import Sample, WellState
 from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping, UnknownWell
 from service.inputs import Counters
-from service.learning import new_learner
 from service.store import AddWell, InsertSample, RetireWell, Store, purge_ops
+from vfm_core.learning.streaming import model_fixed_when_predicting
 from vfm_core.messages import prediction_json
-from vfm_core.streaming import model_fixed_when_predicting
 from vfm_core.timeutil import iso, iso_many
 
 if TYPE_CHECKING:  # the engine knows no transport; a Source is what it is handed
@@ -409,7 +409,7 @@ class Workers:
         """A well's sensor block (rows checked at intake): a row not after the well's
         previous sample (or the block's row before it that was taken) is refused, as one
         by one; the others are predicted in one model call
-        (:meth:`WellLearner.predict_block <vfm_core.streaming.WellLearner.predict_block>`),
+        (:meth:`WellLearner.predict_block <vfm_core.learning.streaming.WellLearner.predict_block>`),
         stored row by row, and answered with one prediction block. A well whose model may
         change within the block (a measurement waits for one of its samples, a scheduled
         retrain), that is not ready, or that is not a per-well learner takes the rows one

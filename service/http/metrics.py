@@ -77,154 +77,17 @@ class ServiceCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         service = self.service
         snap = service.counters.snapshot()
-        accepted = CounterMetricFamily(
-            "vfm_inputs_accepted", "Inputs accepted, by kind.", labels=["kind"]
-        )
-        for kind, n in sorted(snap["accepted"].items()):
-            accepted.add_metric([kind], n)
-        yield accepted
-        rejected = CounterMetricFamily(
-            "vfm_inputs_rejected", "Inputs refused, by reason (see GET /health).", labels=["reason"]
-        )
-        for reason in sorted(REASONS.keys() | snap["rejected"].keys()):
-            rejected.add_metric([reason], snap["rejected"].get(reason, 0))
-        yield rejected
-        events = CounterMetricFamily(
-            "vfm_events", "Other events of the engine, by name.", labels=["event"]
-        )
-        for name, n in sorted(snap["events"].items()):
-            events.add_metric([name], n)
-        yield events
-
+        yield from _input_and_event_counts(snap)
         engine = service.engine
         if engine is None:
             return
-        depth = GaugeMetricFamily(
-            "vfm_queue_depth", "Items waiting in each worker's queue.", labels=["worker"]
-        )
-        for i, n in enumerate(engine.queue_depths()):
-            depth.add_metric([str(i)], n)
-        yield depth
-        yield GaugeMetricFamily(
-            "vfm_queue_capacity",
-            "Capacity of each worker queue (queues.worker_capacity).",
-            value=service.settings.queues.worker_capacity,
-        )
+        yield from _queue_gauges(service, engine)
         wells = dict(engine.wells)
         yield GaugeMetricFamily("vfm_wells", "Wells served.", value=len(wells))
-
         obs = engine.observer
-        coverage = obs.coverage()
-        mape = GaugeMetricFamily(
-            "vfm_well_rolling_mape_percent",
-            "MAPE of the predictions at the well's last paired measurements, %.",
-            labels=["well"],
-        )
-        cover = GaugeMetricFamily(
-            "vfm_well_interval_coverage_ratio",
-            "Share of the well's recent learned measurements inside the predicted p05..p95 "
-            "(only for methods that give intervals).",
-            labels=["well"],
-        )
-        version = GaugeMetricFamily(
-            "vfm_well_model_version",
-            "The well's model version (the series' labels name its model and method).",
-            labels=["well", "model", "method"],
-        )
-        drifts = CounterMetricFamily(
-            "vfm_well_drift_events", "Confirmed drifts since the start.", labels=["well"]
-        )
-        alarm_active = GaugeMetricFamily(
-            "vfm_well_residual_alarm_active",
-            "1 while the well's residual alarm is active (any meter), else 0.",
-            labels=["well"],
-        )
-        alarms = CounterMetricFamily(
-            "vfm_well_residual_alarms",
-            "Residual alarms raised since the start.",
-            labels=["well"],
-        )
-        changes = CounterMetricFamily(
-            "vfm_well_model_changes", "Model changes over HTTP since the start.", labels=["well"]
-        )
-        samples = CounterMetricFamily(
-            "vfm_well_samples", "Sensor samples handled since the start.", labels=["well"]
-        )
-        predictions = CounterMetricFamily(
-            "vfm_well_predictions",
-            "Predictions stored since the start (a sample answered by the well's model).",
-            labels=["well"],
-        )
-        mpfm_alarm = GaugeMetricFamily(
-            "vfm_well_mpfm_alarm_active",
-            "1 while the well's MPFM disagrees with its latest well test by more than "
-            "alarms.mpfm_well_test_rel, else 0 (wells with a comparison only).",
-            labels=["well"],
-        )
-        mpfm_diff = GaugeMetricFamily(
-            "vfm_well_mpfm_difference_ratio",
-            "(median of the MPFM readings near the latest well test - the well test) / the "
-            "well test (wells with a comparison only).",
-            labels=["well"],
-        )
-        for well, st in sorted(wells.items()):
-            rolling = st.rolling_mape()
-            if rolling["value"] is not None:
-                mape.add_metric([well], rolling["value"])
-            if well in coverage:
-                cover.add_metric([well], coverage[well][0])
-            s = st.snapshot
-            version.add_metric(
-                [well, str(s.get("model")), str(s.get("method"))], s.get("version", 0)
-            )
-            drifts.add_metric([well], obs.drift_events.get(well, 0))
-            if st.residual_alarm is not None:
-                alarm_active.add_metric([well], 1.0 if st.residual_alarm.active else 0.0)
-                alarms.add_metric([well], obs.residual_alarms.get(well, 0))
-            changes.add_metric([well], obs.model_changes.get(well, 0))
-            samples.add_metric([well], st.samples)
-            predictions.add_metric([well], obs.predictions.get(well, 0))
-            check = st.mpfm_check
-            if check is not None:
-                mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
-                mpfm_diff.add_metric([well], check["relative_difference"])
-        yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
-        yield from (predictions, mpfm_alarm, mpfm_diff, _held_for_review(wells), *_faults(wells))
-        # the trials of model changes against their shadows (service.engine.trial)
-        trial_mape = GaugeMetricFamily(
-            "vfm_well_trial_mape_percent",
-            "MAPE over the paired measurements of the well's running (or latest) trial, %: "
-            "role=model the new model, role=shadow the model it replaced.",
-            labels=["well", "role", "outcome"],
-        )
-        trial_n = GaugeMetricFamily(
-            "vfm_well_trial_pairs",
-            "Measurements paired with both models' predictions in the well's trial.",
-            labels=["well", "outcome"],
-        )
-        for well, st in sorted(wells.items()):
-            running, ended = st.trial, list(st.trials)
-            view = running.view() if running is not None else (ended[-1] if ended else None)
-            if view is None:
-                continue
-            outcome = str(view.get("outcome"))
-            for role, key in (("model", "mape"), ("shadow", "shadow_mape")):
-                if view.get(key) is not None:
-                    trial_mape.add_metric([well, role, outcome], view[key])
-            trial_n.add_metric([well, outcome], view.get("n") or 0)
-        trials = CounterMetricFamily(
-            "vfm_trials",
-            "Trials ended since the start, by outcome (kept, rolled_back, superseded, "
-            "interrupted).",
-            labels=["outcome"],
-        )
-        by_outcome = {o: 0 for o in OUTCOMES if o != "running"}
-        for name, n in snap["events"].items():
-            if name.startswith("trials "):
-                by_outcome[name.removeprefix("trials ")] = n
-        for outcome, n in sorted(by_outcome.items()):
-            trials.add_metric([outcome], n)
-        yield from (trial_mape, trial_n, trials)
+        yield from _well_metrics(wells, obs)
+        yield from (_held_for_review(wells), *_faults(wells))
+        yield from _trial_metrics(wells, snap)
         yield GaugeMetricFamily(
             "vfm_live_clients", "Clients of GET /events.", value=obs.subscribers
         )
@@ -234,6 +97,166 @@ class ServiceCollector(Collector):
             value=obs.dropped,
         )
         yield from obs.latency.collect()
+
+
+def _input_and_event_counts(snap: dict[str, Any]) -> Iterator[Metric]:
+    """Inputs accepted by kind, refused by reason (every reason, 0 included), other events."""
+    accepted = CounterMetricFamily(
+        "vfm_inputs_accepted", "Inputs accepted, by kind.", labels=["kind"]
+    )
+    for kind, n in sorted(snap["accepted"].items()):
+        accepted.add_metric([kind], n)
+    yield accepted
+    rejected = CounterMetricFamily(
+        "vfm_inputs_rejected", "Inputs refused, by reason (see GET /health).", labels=["reason"]
+    )
+    for reason in sorted(REASONS.keys() | snap["rejected"].keys()):
+        rejected.add_metric([reason], snap["rejected"].get(reason, 0))
+    yield rejected
+    events = CounterMetricFamily(
+        "vfm_events", "Other events of the engine, by name.", labels=["event"]
+    )
+    for name, n in sorted(snap["events"].items()):
+        events.add_metric([name], n)
+    yield events
+
+
+def _queue_gauges(service: Any, engine: Any) -> Iterator[Metric]:
+    """Each worker queue's depth, and their capacity."""
+    depth = GaugeMetricFamily(
+        "vfm_queue_depth", "Items waiting in each worker's queue.", labels=["worker"]
+    )
+    for i, n in enumerate(engine.queue_depths()):
+        depth.add_metric([str(i)], n)
+    yield depth
+    yield GaugeMetricFamily(
+        "vfm_queue_capacity",
+        "Capacity of each worker queue (queues.worker_capacity).",
+        value=service.settings.queues.worker_capacity,
+    )
+
+
+def _well_metrics(wells: dict[str, Any], obs: Any) -> Iterator[Metric]:
+    """Per well: rolling error, interval coverage, model version, drifts, residual alarms,
+    model changes, samples, predictions and the MPFM's agreement with the latest well test."""
+    coverage = obs.coverage()
+    mape = GaugeMetricFamily(
+        "vfm_well_rolling_mape_percent",
+        "MAPE of the predictions at the well's last paired measurements, %.",
+        labels=["well"],
+    )
+    cover = GaugeMetricFamily(
+        "vfm_well_interval_coverage_ratio",
+        "Share of the well's recent learned measurements inside the predicted p05..p95 "
+        "(only for methods that give intervals).",
+        labels=["well"],
+    )
+    version = GaugeMetricFamily(
+        "vfm_well_model_version",
+        "The well's model version (the series' labels name its model and method).",
+        labels=["well", "model", "method"],
+    )
+    drifts = CounterMetricFamily(
+        "vfm_well_drift_events", "Confirmed drifts since the start.", labels=["well"]
+    )
+    alarm_active = GaugeMetricFamily(
+        "vfm_well_residual_alarm_active",
+        "1 while the well's residual alarm is active (any meter), else 0.",
+        labels=["well"],
+    )
+    alarms = CounterMetricFamily(
+        "vfm_well_residual_alarms",
+        "Residual alarms raised since the start.",
+        labels=["well"],
+    )
+    changes = CounterMetricFamily(
+        "vfm_well_model_changes", "Model changes over HTTP since the start.", labels=["well"]
+    )
+    samples = CounterMetricFamily(
+        "vfm_well_samples", "Sensor samples handled since the start.", labels=["well"]
+    )
+    predictions = CounterMetricFamily(
+        "vfm_well_predictions",
+        "Predictions stored since the start (a sample answered by the well's model).",
+        labels=["well"],
+    )
+    mpfm_alarm, mpfm_diff = _mpfm_families()
+    for well, st in sorted(wells.items()):
+        rolling = st.rolling_mape()
+        if rolling["value"] is not None:
+            mape.add_metric([well], rolling["value"])
+        if well in coverage:
+            cover.add_metric([well], coverage[well][0])
+        s = st.snapshot
+        version.add_metric([well, str(s.get("model")), str(s.get("method"))], s.get("version", 0))
+        drifts.add_metric([well], obs.drift_events.get(well, 0))
+        if st.residual_alarm is not None:
+            alarm_active.add_metric([well], 1.0 if st.residual_alarm.active else 0.0)
+            alarms.add_metric([well], obs.residual_alarms.get(well, 0))
+        changes.add_metric([well], obs.model_changes.get(well, 0))
+        samples.add_metric([well], st.samples)
+        predictions.add_metric([well], obs.predictions.get(well, 0))
+        check = st.mpfm_check
+        if check is not None:
+            mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
+            mpfm_diff.add_metric([well], check["relative_difference"])
+    yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
+    yield from (predictions, mpfm_alarm, mpfm_diff)
+
+
+def _mpfm_families() -> tuple[GaugeMetricFamily, GaugeMetricFamily]:
+    """The MPFM-against-well-test alarm and relative difference (empty families)."""
+    mpfm_alarm = GaugeMetricFamily(
+        "vfm_well_mpfm_alarm_active",
+        "1 while the well's MPFM disagrees with its latest well test by more than "
+        "alarms.mpfm_well_test_rel, else 0 (wells with a comparison only).",
+        labels=["well"],
+    )
+    mpfm_diff = GaugeMetricFamily(
+        "vfm_well_mpfm_difference_ratio",
+        "(median of the MPFM readings near the latest well test - the well test) / the "
+        "well test (wells with a comparison only).",
+        labels=["well"],
+    )
+    return mpfm_alarm, mpfm_diff
+
+
+def _trial_metrics(wells: dict[str, Any], snap: dict[str, Any]) -> Iterator[Metric]:
+    """The trials of model changes against their shadows (service.engine.trial): each
+    well's running (or latest) trial, and the trials ended by outcome."""
+    trial_mape = GaugeMetricFamily(
+        "vfm_well_trial_mape_percent",
+        "MAPE over the paired measurements of the well's running (or latest) trial, %: "
+        "role=model the new model, role=shadow the model it replaced.",
+        labels=["well", "role", "outcome"],
+    )
+    trial_n = GaugeMetricFamily(
+        "vfm_well_trial_pairs",
+        "Measurements paired with both models' predictions in the well's trial.",
+        labels=["well", "outcome"],
+    )
+    for well, st in sorted(wells.items()):
+        running, ended = st.trial, list(st.trials)
+        view = running.view() if running is not None else (ended[-1] if ended else None)
+        if view is None:
+            continue
+        outcome = str(view.get("outcome"))
+        for role, key in (("model", "mape"), ("shadow", "shadow_mape")):
+            if view.get(key) is not None:
+                trial_mape.add_metric([well, role, outcome], view[key])
+        trial_n.add_metric([well, outcome], view.get("n") or 0)
+    trials = CounterMetricFamily(
+        "vfm_trials",
+        "Trials ended since the start, by outcome (kept, rolled_back, superseded, interrupted).",
+        labels=["outcome"],
+    )
+    by_outcome = {o: 0 for o in OUTCOMES if o != "running"}
+    for name, n in snap["events"].items():
+        if name.startswith("trials "):
+            by_outcome[name.removeprefix("trials ")] = n
+    for outcome, n in sorted(by_outcome.items()):
+        trials.add_metric([outcome], n)
+    yield from (trial_mape, trial_n, trials)
 
 
 def registry_for(service: Any) -> CollectorRegistry:

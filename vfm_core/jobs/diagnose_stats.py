@@ -56,6 +56,7 @@ __all__ = [
     "detrend",
     "rank_drivers",
     "noise_floor",
+    "acts_through",
 ]
 
 #: Variables the residual is examined against (numeric, then categorical).
@@ -364,3 +365,22 @@ def noise_floor(residuals: pd.DataFrame) -> dict[str, Any]:
         "meter on one well (MPFM at most 48 h apart, well tests 14 days), as the mean absolute "
         "error of Gaussian noise of that scale; a slow meter drift is not included",
     }
+
+
+#: The variable a candidate's effect acts through (for its before/after panel, and the
+#: physics behind a driver).
+_EFFECT_DRIVER = {
+    "erosion": "throughput_years",
+    "erosion_time": "time",
+    "valve": "choke",
+    "real_gas": "p_up",
+    "slip": "eta_gas",
+    "critical_ratio": "p_ratio",
+    "mpfm_bias": "time",
+}
+
+
+def acts_through(effect: str) -> str | None:
+    """The variable a library effect acts through (a valve family: the choke opening, its
+    area a function of it; real gas: p_up; ...), or None (a correction, a user's effect)."""
+    return _EFFECT_DRIVER.get(effect) or ("choke" if effect.startswith("valve") else None)

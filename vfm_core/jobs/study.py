@@ -15,7 +15,7 @@ Two extensions of the ordinary protocol:
   before the window (``fractions="held"``); ``"measured"`` keeps the file's values.
 - **Phases** (``run_prequential(..., phases=True)``): the predicted total at standard
   conditions split into gas, oil and water by the sample's mass fractions and the model's
-  densities (:func:`vfm_core.streaming.phase_split`: learned ``rho_oil``, ``rho_wat``,
+  densities (:func:`vfm_core.learning.streaming.phase_split`: learned ``rho_oil``, ``rho_wat``,
   ``m_gas`` of a physics model at the time of the prediction, else the prior means),
   scored against the file's ``q_gas``, ``q_oil``, ``q_water``.
 """
@@ -46,9 +46,9 @@ from vfm_core.learning import (
     TrainSettings,
     parse_method,
 )
+from vfm_core.learning.streaming import phase_split
 from vfm_core.models import ChokeModel, make_model
 from vfm_core.schema import INPUT_COLUMNS, OPTIONAL_RATE_COLUMNS, SOURCE, TARGET, TIME, WELL
-from vfm_core.streaming import phase_split
 
 __all__ = [
     "PHASES",
@@ -414,6 +414,284 @@ def _param_rows(
     return rows
 
 
+@dataclass
+class _Case:
+    """The rows of one prequential run: the frame, its target rows, the split, the test rows
+    (targets on or after the split: predicted and scored), the wells and the rows an outage
+    hides from learning (``learned``: the target rows that are not hidden)."""
+
+    frame: pd.DataFrame
+    targets: str
+    split_ts: pd.Timestamp
+    is_target: np.ndarray
+    before: np.ndarray
+    test_rows: np.ndarray
+    wells: list[str]
+    hidden: np.ndarray
+
+    @property
+    def learned(self) -> np.ndarray:
+        """[len(frame)] True on the target rows that may be learned from."""
+        return self.is_target & ~self.hidden
+
+
+@dataclass(frozen=True)
+class _ModelSpec:
+    """How the run makes its model (for the field, or for one well starting fresh)."""
+
+    name: str
+    seed: int
+    effects: Sequence[Any]
+    kwargs: dict[str, Any]
+
+    def make(self, wells: list[str]) -> ChokeModel:
+        """The model for ``wells`` at its prior."""
+        return make_model(self.name, wells, seed=self.seed, effects=self.effects, **self.kwargs)
+
+
+@dataclass
+class _Replay:
+    """What the parts of one prequential run share once the model is fitted: the method, the
+    test observations (``test``), the parameter rows kept so far, and the arrays the
+    predictions are written into (one entry per frame row; Sm3/h; ``phases`` those split)."""
+
+    case: _Case
+    meth: LearningMethod
+    model: ChokeModel
+    memory: _StudyMemory
+    test: Batch
+    progress: Progress | None
+    track_parameters: bool
+    param_rows: list[dict[str, Any]]
+    phases: tuple[str, ...]
+    done: int = 0
+
+    def __post_init__(self) -> None:
+        n = len(self.case.frame)
+        self.total = len(self.case.test_rows)
+        self.hidden_t = torch.from_numpy(self.case.hidden)
+        self.predicted = np.full(n, np.nan)
+        self.spread = np.full(n, np.nan)
+        self.low = np.full(n, np.nan)
+        self.high = np.full(n, np.nan)
+        self.split_rates = {p: np.full(n, np.nan) for p in self.phases}
+
+    def record(self, batch: Batch, where: torch.Tensor) -> None:
+        """Predict ``batch`` and keep the forecasts of its ``where`` samples."""
+        forecast = self.meth.predict(batch)
+        rows = batch.row[where].numpy()
+        self.predicted[rows] = forecast.mean[where].numpy()
+        if forecast.std is not None:
+            self.spread[rows] = forecast.std[where].numpy()
+        if forecast.p05 is not None and forecast.p95 is not None:
+            self.low[rows] = forecast.p05[where].numpy()
+            self.high[rows] = forecast.p95[where].numpy()
+        if self.split_rates:
+            # at the fluid densities the mass fractions are given in (the priors' means), not
+            # a physics model's learned ones: those trade off against C_D and, measured, add
+            # error (Volve: oil 13.9 -> 19.1 % for mm bayes; see streaming.phase_split)
+            for name, q in phase_split(forecast.mean, batch.x).items():
+                self.split_rates[name][rows] = q[where].numpy()
+
+    def learn(self, batch: Batch) -> None:
+        """Let the method learn from ``batch``'s measurements that are not hidden."""
+        if self.case.hidden.any():
+            keep = batch.mask & ~self.hidden_t[batch.row.clamp(min=0)]
+            if not bool(keep.any()):
+                return  # every measurement of this round is hidden: nothing arrives
+            if not bool(keep.eq(batch.mask).all()):
+                batch = batch.select(keep)
+        self.meth.on_measurement(batch, self.memory)
+
+    def advance(self, processed: int) -> None:
+        """Count ``processed`` more observations done and tell ``progress``."""
+        self.done += processed
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def _case(
+    frame: pd.DataFrame, targets: str, split: str | pd.Timestamp | None, outage: Outage | None
+) -> _Case:
+    """The rows of a run on ``frame``: its ``targets`` after ``split``, ``outage``'s hidden."""
+    split_ts = resolve_split(targets, split, frame)
+    is_target = target_mask(frame, targets)
+    before = (frame[TIME] < split_ts).to_numpy()
+    test_rows = np.flatnonzero(is_target & ~before)
+    if len(test_rows) == 0:
+        raise DataError(
+            f"No '{targets}' measurements on or after the split {split_ts.date()}; "
+            "choose an earlier --split."
+        )
+    wells = wells_of(frame.iloc[np.flatnonzero(is_target)])
+    hidden = np.zeros(len(frame), dtype=bool)
+    if outage is not None:
+        if len(outage.hidden) != len(frame):
+            raise ValueError("The outage plan belongs to another frame; plan it on this one.")
+        hidden = np.asarray(outage.hidden, dtype=bool) & is_target & ~before
+    return _Case(frame, targets, split_ts, is_target, before, test_rows, wells, hidden)
+
+
+def _fit_before_split(
+    case: _Case,
+    meth: LearningMethod,
+    spec: _ModelSpec,
+    train: TrainSettings | None,
+    online: OnlineSettings | None,
+    initial_fits: dict[Any, Any] | None,
+) -> tuple[ChokeModel, _StudyMemory]:
+    """The model fitted through ``meth`` on what was measured before the split (or the
+    cached fit from ``initial_fits``), wells unseen before it at their own prior, and the
+    memory retrains read; ``meth`` started at the split."""
+    model = spec.make(case.wells)
+    train_settings = train or DEFAULT_TRAIN.get(spec.name, TrainSettings())
+    meth.bind(model, train=train_settings, online=online)
+    # retrains read only what was learned from: hidden measurements never enter the memory
+    memory = _StudyMemory(case.frame, case.learned, case.wells, model.extra_columns)
+    window = None if meth.window is None else int(meth.window.value)
+    initial = memory.batch(case.split_ts.value, window)
+    cache_key = (
+        model.name,
+        repr(model.hyper),
+        case.targets,
+        case.split_ts,
+        meth.window,
+        spec.seed,
+        repr(train_settings),
+    )
+    _initial_fit(meth, model, initial, cache_key, initial_fits)
+    if not model.shared:
+        # a well with no measurement before the split starts as the service starts a new
+        # well: its own one-well model at its prior, not the field fit's slice of it
+        frame = case.frame
+        had = set(frame.loc[case.is_target & case.before, WELL].astype(str))
+        _start_fresh(model, [w for w in case.wells if w not in had], lambda w: spec.make([w]))
+    meth.start(case.split_ts.value)
+    return model, memory
+
+
+def _initial_fit(
+    meth: LearningMethod,
+    model: ChokeModel,
+    initial: Batch,
+    cache_key: tuple[Any, ...],
+    initial_fits: dict[Any, Any] | None,
+) -> None:
+    """Fit ``model`` on ``initial`` through ``meth``, or adopt the fit ``initial_fits`` holds
+    for ``cache_key`` (the initial fit is the same for every method with the same window)."""
+    if initial_fits is not None and cache_key in initial_fits:
+        fitted, iterations = initial_fits[cache_key]
+        model.load_state_dict(fitted)
+        meth.adopt(initial, iterations)
+    else:
+        meth.fit(initial)
+        if initial_fits is not None:
+            initial_fits[cache_key] = (copy.deepcopy(model.state_dict()), meth.iterations.clone())
+
+
+def _replay_in_rounds(run: _Replay) -> None:
+    """The test observations one round at a time, each predicted, then learned from: one
+    round per well's sample (per day of the field for a shared model)."""
+    model, test = run.model, run.test
+    rounds: list[Batch]
+    if model.shared:
+        # Shared parameters must see the field in time order: one round per day,
+        # holding every well's measurements of that day.
+        rounds = _day_rounds(test)
+    else:
+        rounds = [test.column(k) for k in range(test.x.shape[1])]
+    for rb in rounds:
+        has = rb.mask.any(1)
+        now = torch.where(rb.mask, rb.time_ns, torch.full_like(rb.time_ns, NEVER))
+        now = now.min(dim=1).values
+        if model.shared:  # the field moves together: every well is at the round's start
+            now = torch.full_like(now, int(now.min()))
+        run.meth.retrain_due(run.memory, now)
+        run.record(rb, rb.mask)
+        run.learn(rb)
+        if run.track_parameters:
+            run.param_rows += _param_rows(
+                model,
+                [
+                    pd.Timestamp(int(t), tz="UTC") if bool(has[j]) else run.case.split_ts
+                    for j, t in enumerate(now.tolist())
+                ],
+                has,
+            )
+        run.advance(int(rb.mask.sum()))
+
+
+def _replay_between_retrains(run: _Replay) -> None:
+    """The test observations between two scheduled retrains predicted in one call; a well
+    without a model yet learns from its first measurement when it arrives."""
+    meth, model, test = run.meth, run.model, run.test
+    t_last = int(test.time_ns[test.mask].max())
+    start = int(run.case.split_ts.value)
+    # a well with no model yet starts at its first measurement learned from, as the
+    # method starts it when measurements come one by one (the service): fitted on what
+    # it has, its retrains counted from then (PeriodicBatch._learn)
+    arrives = test.mask & ~run.hidden_t[test.row.clamp(min=0)]
+    first = torch.where(arrives, test.time_ns, torch.full_like(test.time_ns, NEVER))
+    starts = torch.where(model.ready, NEVER, first.min(dim=1).values)
+    while start <= t_last:
+        due = meth.next_due()
+        end = NEVER if due is None else max(int(due), start + 1)
+        waiting = (starts >= start) & (starts < end) & (starts != NEVER)
+        new_at = int(starts[waiting].min()) if bool(waiting.any()) else None
+        if new_at is not None:  # up to that measurement, predicted before it is learned
+            end = new_at + 1
+        in_period = (test.time_ns >= start) & (test.time_ns < end) & test.mask
+        if bool(in_period.any()):
+            # only the period's samples: predicting the whole test span at every
+            # retrain made a run's predictions cost (retrains x test samples)
+            period = test.select(in_period)
+            run.record(period, period.mask)
+            run.advance(int(in_period.sum()))
+        if new_at is not None:
+            wells_now = starts == new_at
+            run.learn(test.select(arrives & (test.time_ns == new_at) & wells_now.unsqueeze(1)))
+            starts[wells_now] = NEVER
+            start = end
+            continue
+        if end > t_last:
+            break
+        meth.retrain_due(run.memory, torch.full((len(model.wells),), end, dtype=torch.int64))
+        if run.track_parameters:
+            run.param_rows += _param_rows(model, pd.Timestamp(end, tz="UTC"), model.ready)
+        start = end
+
+
+def _predictions_frame(run: _Replay, outage: Outage | None) -> pd.DataFrame:
+    """One row per scored observation (see :class:`RunResult`), with the interval, phase
+    and outage columns where the run has them."""
+    frame, test_rows = run.case.frame, run.case.test_rows
+    scored = frame.iloc[test_rows]
+    predictions = pd.DataFrame(
+        {
+            "time": scored[TIME].to_numpy(),
+            "well": scored[WELL].astype(str).to_numpy(),
+            "model": run.model.name,
+            "method": run.meth.text,
+            "source": scored[SOURCE].to_numpy(),
+            "predicted": run.predicted[test_rows],
+            "measured": scored[TARGET].to_numpy(),
+        }
+    )
+    if run.meth.intervals:
+        predictions["predicted_std"] = run.spread[test_rows]
+        predictions["predicted_p05"] = run.low[test_rows]
+        predictions["predicted_p95"] = run.high[test_rows]
+    for name, values in run.split_rates.items():
+        predictions[f"predicted_{name}"] = values[test_rows]
+        predictions[f"measured_{name}"] = scored[name].to_numpy(dtype=float)
+    if outage is not None:
+        predictions["outage"] = outage.label
+        predictions["in_outage"] = run.case.hidden[test_rows]
+        predictions["days_since"] = _days_since(frame, run.case.learned, test_rows)
+    predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
+    return predictions
+
+
 def run_prequential(
     frame: pd.DataFrame,
     model_name: str,
@@ -455,199 +733,34 @@ def run_prequential(
     """
     started = time.perf_counter()
     meth = parse_method(method)
-    split_ts = resolve_split(targets, split, frame)
+    case = _case(frame, targets, split, outage)
     torch.manual_seed(seed)
-    is_target = target_mask(frame, targets)
-    times = frame[TIME]
-    before = (times < split_ts).to_numpy()
-    test_rows = np.flatnonzero(is_target & ~before)
-    if len(test_rows) == 0:
-        raise DataError(
-            f"No '{targets}' measurements on or after the split {split_ts.date()}; "
-            "choose an earlier --split."
-        )
-    wells = wells_of(frame.iloc[np.flatnonzero(is_target)])
-    hidden = np.zeros(len(frame), dtype=bool)
-    if outage is not None:
-        if len(outage.hidden) != len(frame):
-            raise ValueError("The outage plan belongs to another frame; plan it on this one.")
-        hidden = np.asarray(outage.hidden, dtype=bool) & is_target & ~before
-    learned = is_target & ~hidden
-    model = make_model(model_name, wells, seed=seed, effects=effects, **(model_kwargs or {}))
-    train_settings = train or DEFAULT_TRAIN.get(model_name, TrainSettings())
-    meth.bind(model, train=train_settings, online=online)
-    # retrains read only what was learned from: hidden measurements never enter the memory
-    memory = _StudyMemory(frame, learned, wells, model.extra_columns)
-    with_phases = phases and has_phases(frame, test_rows)
-    window = None if meth.window is None else int(meth.window.value)
-    initial = memory.batch(split_ts.value, window)
-
-    cache_key = (
-        model.name,
-        repr(model.hyper),
-        targets,
-        split_ts,
-        meth.window,
-        seed,
-        repr(train_settings),
-    )
-    if initial_fits is not None and cache_key in initial_fits:
-        # the initial fit is the same for every method with the same window: reuse it
-        fitted, iterations = initial_fits[cache_key]
-        model.load_state_dict(fitted)
-        meth.adopt(initial, iterations)
-    else:
-        meth.fit(initial)
-        if initial_fits is not None:
-            initial_fits[cache_key] = (copy.deepcopy(model.state_dict()), meth.iterations.clone())
-    if not model.shared:
-        # a well with no measurement before the split starts as the service starts a new
-        # well: its own one-well model at its prior, not the field fit's slice of it
-        had = set(frame.loc[is_target & before, WELL].astype(str))
-        _start_fresh(
-            model,
-            [w for w in wells if w not in had],
-            lambda w: make_model(
-                model_name, [w], seed=seed, effects=effects, **(model_kwargs or {})
-            ),
-        )
-    meth.start(split_ts.value)
-    param_rows = _param_rows(model, split_ts, model.ready) if track_parameters else []
-    predicted = np.full(len(frame), np.nan)
-    spread = np.full(len(frame), np.nan)
-    low = np.full(len(frame), np.nan)
-    high = np.full(len(frame), np.nan)
-    split_rates = {p: np.full(len(frame), np.nan) for p in PHASES} if with_phases else {}
+    spec = _ModelSpec(model_name, seed, effects, model_kwargs or {})
+    model, memory = _fit_before_split(case, meth, spec, train, online, initial_fits)
     seen = frame
-    if outage is not None and outage.fractions == "held" and hidden.any():
-        seen = _held_fractions(frame, learned, hidden)
-    test = make_batch(seen, wells, extra_columns=model.extra_columns, rows=test_rows)
-    hidden_t = torch.from_numpy(hidden)
-    total = len(test_rows)
-    done = 0
-
-    def record(batch: Batch, where: torch.Tensor) -> None:
-        forecast = meth.predict(batch)
-        rows = batch.row[where].numpy()
-        predicted[rows] = forecast.mean[where].numpy()
-        if forecast.std is not None:
-            spread[rows] = forecast.std[where].numpy()
-        if forecast.p05 is not None and forecast.p95 is not None:
-            low[rows] = forecast.p05[where].numpy()
-            high[rows] = forecast.p95[where].numpy()
-        if split_rates:
-            # at the fluid densities the mass fractions are given in (the priors' means), not
-            # a physics model's learned ones: those trade off against C_D and, measured, add
-            # error (Volve: oil 13.9 -> 19.1 % for mm bayes; see streaming.phase_split)
-            for name, q in phase_split(forecast.mean, batch.x).items():
-                split_rates[name][rows] = q[where].numpy()
-
-    def learn(batch: Batch) -> None:
-        if hidden.any():
-            keep = batch.mask & ~hidden_t[batch.row.clamp(min=0)]
-            if not bool(keep.any()):
-                return  # every measurement of this round is hidden: nothing arrives
-            if not bool(keep.eq(batch.mask).all()):
-                batch = batch.select(keep)
-        meth.on_measurement(batch, memory)
-
-    if meth.per_measurement or model.gradient_free:
-        rounds: list[Batch]
-        if model.shared:
-            # Shared parameters must see the field in time order: one round per day,
-            # holding every well's measurements of that day.
-            rounds = _day_rounds(test)
-        else:
-            rounds = [test.column(k) for k in range(test.x.shape[1])]
-        for rb in rounds:
-            has = rb.mask.any(1)
-            now = torch.where(rb.mask, rb.time_ns, torch.full_like(rb.time_ns, NEVER))
-            now = now.min(dim=1).values
-            if model.shared:  # the field moves together: every well is at the round's start
-                now = torch.full_like(now, int(now.min()))
-            meth.retrain_due(memory, now)
-            record(rb, rb.mask)
-            learn(rb)
-            if track_parameters:
-                param_rows += _param_rows(
-                    model,
-                    [
-                        pd.Timestamp(int(t), tz="UTC") if bool(has[j]) else split_ts
-                        for j, t in enumerate(now.tolist())
-                    ],
-                    has,
-                )
-            done += int(rb.mask.sum())
-            if progress is not None:
-                progress(done, total)
-    else:
-        t_last = int(test.time_ns[test.mask].max())
-        start = int(split_ts.value)
-        # a well with no model yet starts at its first measurement learned from, as the
-        # method starts it when measurements come one by one (the service): fitted on what
-        # it has, its retrains counted from then (PeriodicBatch._learn)
-        arrives = test.mask & ~hidden_t[test.row.clamp(min=0)]
-        first = torch.where(arrives, test.time_ns, torch.full_like(test.time_ns, NEVER))
-        starts = torch.where(model.ready, NEVER, first.min(dim=1).values)
-        while start <= t_last:
-            due = meth.next_due()
-            end = NEVER if due is None else max(int(due), start + 1)
-            waiting = (starts >= start) & (starts < end) & (starts != NEVER)
-            new_at = int(starts[waiting].min()) if bool(waiting.any()) else None
-            if new_at is not None:  # up to that measurement, predicted before it is learned
-                end = new_at + 1
-            in_period = (test.time_ns >= start) & (test.time_ns < end) & test.mask
-            if bool(in_period.any()):
-                # only the period's samples: predicting the whole test span at every
-                # retrain made a run's predictions cost (retrains x test samples)
-                period = test.select(in_period)
-                record(period, period.mask)
-                done += int(in_period.sum())
-                if progress is not None:
-                    progress(done, total)
-            if new_at is not None:
-                wells_now = starts == new_at
-                learn(test.select(arrives & (test.time_ns == new_at) & wells_now.unsqueeze(1)))
-                starts[wells_now] = NEVER
-                start = end
-                continue
-            if end > t_last:
-                break
-            meth.retrain_due(memory, torch.full((len(wells),), end, dtype=torch.int64))
-            if track_parameters:
-                param_rows += _param_rows(model, pd.Timestamp(end, tz="UTC"), model.ready)
-            start = end
-
-    scored = frame.iloc[test_rows]
-    predictions = pd.DataFrame(
-        {
-            "time": scored[TIME].to_numpy(),
-            "well": scored[WELL].astype(str).to_numpy(),
-            "model": model.name,
-            "method": meth.text,
-            "source": scored[SOURCE].to_numpy(),
-            "predicted": predicted[test_rows],
-            "measured": scored[TARGET].to_numpy(),
-        }
+    if outage is not None and outage.fractions == "held" and case.hidden.any():
+        seen = _held_fractions(frame, case.learned, case.hidden)
+    run = _Replay(
+        case,
+        meth,
+        model,
+        memory,
+        test=make_batch(seen, case.wells, extra_columns=model.extra_columns, rows=case.test_rows),
+        progress=progress,
+        track_parameters=track_parameters,
+        param_rows=_param_rows(model, case.split_ts, model.ready) if track_parameters else [],
+        phases=PHASES if phases and has_phases(frame, case.test_rows) else (),
     )
-    if meth.intervals:
-        predictions["predicted_std"] = spread[test_rows]
-        predictions["predicted_p05"] = low[test_rows]
-        predictions["predicted_p95"] = high[test_rows]
-    for name, values in split_rates.items():
-        predictions[f"predicted_{name}"] = values[test_rows]
-        predictions[f"measured_{name}"] = scored[name].to_numpy(dtype=float)
-    if outage is not None:
-        predictions["outage"] = outage.label
-        predictions["in_outage"] = hidden[test_rows]
-        predictions["days_since"] = _days_since(frame, learned, test_rows)
-    predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
+    if meth.per_measurement or model.gradient_free:
+        _replay_in_rounds(run)
+    else:
+        _replay_between_retrains(run)
     return RunResult(
         model=model.name,
         method=meth.text,
-        predictions=predictions,
+        predictions=_predictions_frame(run, outage),
         updates=[pd.Timestamp(t, tz="UTC") for t in sorted(meth.retrains)],
-        parameters=pd.DataFrame(param_rows, columns=["time", "well", "name", "value"]),
+        parameters=pd.DataFrame(run.param_rows, columns=["time", "well", "name", "value"]),
         final_model=model,
         runtime_s=time.perf_counter() - started,
     )

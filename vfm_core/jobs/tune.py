@@ -110,44 +110,38 @@ def _run_trial(args: tuple[str, dict[str, Any], str, str, str]) -> dict[str, Any
     return {**trial, "mean_mape": score}
 
 
-def run_tuning(
-    data: str | os.PathLike[str],
-    out: str | os.PathLike[str],
-    *,
-    models: Sequence[str],
-    methods: Sequence[str],
-    targets: str = "all",
-    split: str | None = None,
-    inner_split: str | None = None,
-    grid: str = "small",
-    workers: int = 2,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Run (or resume) the search and write ``params.json``; returns its content."""
-    split_ts = resolve_split(targets, split)
-    from vfm_core.observations import load_observations
-
-    frame = load_observations(data).frame
-    before = frame[frame["time"] < split_ts]
-    if before.empty:
-        raise ConfigError(f"No data before the split {split_ts.date()}: nothing to tune on.")
+def _inner_split(
+    before: pd.DataFrame, targets: str, split_ts: pd.Timestamp, inner_split: str | None
+) -> pd.Timestamp:
+    """Start of the inner validation period: ``inner_split``, or two thirds of the way from
+    the first pre-split row (``before``) to the split."""
     if inner_split is None:
         # the last third of the pre-split period is the inner validation period
         t0, t1 = before["time"].min(), split_ts
-        inner_ts = t0 + (t1 - t0) * (2 / 3)
-    else:
-        inner_ts = resolve_split(targets, inner_split)
-    out_dir = Path(out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    log = out_dir / "trials.jsonl"
+        return t0 + (t1 - t0) * (2 / 3)
+    return resolve_split(targets, inner_split)
+
+
+def _finished_trials(log: Path) -> dict[str, dict[str, Any]]:
+    """The trials ``trials.jsonl`` already holds, by key (an interrupted search resumes)."""
     done: dict[str, dict[str, Any]] = {}
     if log.exists():
         for line in log.read_text().splitlines():
             if line.strip():
                 rec = json.loads(line)
                 done[rec["key"]] = rec
-    trials = [t for t in trial_grid(models, methods, grid) if t["key"] not in done]
-    jobs = [(str(data), t, targets, inner_ts.isoformat(), split_ts.isoformat()) for t in trials]
+    return done
+
+
+def _run_trials(
+    jobs: list[tuple[str, dict[str, Any], str, str, str]],
+    log: Path,
+    done: dict[str, dict[str, Any]],
+    workers: int,
+    progress: bool,
+) -> None:
+    """Run ``jobs`` in spawned worker processes, each finished trial appended to ``log``
+    and put in ``done``."""
     bar = tqdm(
         total=len(jobs) + len(done),
         initial=len(done),
@@ -169,6 +163,12 @@ def run_tuning(
                     bar.update(1)
     finally:
         bar.close()
+
+
+def _best_settings(
+    done: dict[str, dict[str, Any]], models: Sequence[str], methods: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """Per model and method, the finished trial's settings with the lowest inner mean MAPE."""
     chosen: dict[str, dict[str, Any]] = {}
     for rec in done.values():
         if (
@@ -187,13 +187,45 @@ def run_tuning(
             if "text" in rec:
                 entry["text"] = rec["text"]
             chosen[rec["model"]][rec["method"]] = entry
+    return chosen
+
+
+def run_tuning(
+    data: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    models: Sequence[str],
+    methods: Sequence[str],
+    targets: str = "all",
+    split: str | None = None,
+    inner_split: str | None = None,
+    grid: str = "small",
+    workers: int = 2,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run (or resume) the search and write ``params.json``; returns its content."""
+    split_ts = resolve_split(targets, split)
+    from vfm_core.observations import load_observations
+
+    frame = load_observations(data).frame
+    before = frame[frame["time"] < split_ts]
+    if before.empty:
+        raise ConfigError(f"No data before the split {split_ts.date()}: nothing to tune on.")
+    inner_ts = _inner_split(before, targets, split_ts, inner_split)
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    log = out_dir / "trials.jsonl"
+    done = _finished_trials(log)
+    trials = [t for t in trial_grid(models, methods, grid) if t["key"] not in done]
+    jobs = [(str(data), t, targets, inner_ts.isoformat(), split_ts.isoformat()) for t in trials]
+    _run_trials(jobs, log, done, workers, progress)
     params = {
         "format": "vfm-params/1",
         "targets": targets,
         "split": split_ts.isoformat(),
         "inner_split": inner_ts.isoformat(),
         "grid": grid,
-        "models": chosen,
+        "models": _best_settings(done, models, methods),
     }
     write_text_atomic(out_dir / "params.json", json.dumps(params, indent=2))
     return params

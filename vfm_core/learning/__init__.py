@@ -11,6 +11,12 @@
 - :mod:`vfm_core.learning.memory`: the measurements a retrain reads.
 - :mod:`vfm_core.learning.stacking`: many one-well models run as one multi-well model
   (what the methods' group operations use).
+- The learners that run a model and a method over time, sample by sample:
+  :mod:`vfm_core.learning.streaming` (``WellLearner``, one well: the service's learner;
+  ``predict_many``/``learn_many`` over many wells; the ``Learner`` protocol) and
+  :mod:`vfm_core.learning.field` (``FieldLearner``: the field-wide ``mtl``, a ``FieldWell``
+  facade per well). They import this package, never the reverse: importing
+  ``vfm_core.learning`` does not load them.
 """
 
 from vfm_core.learning.bayes import BayesianFilter

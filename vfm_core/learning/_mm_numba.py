@@ -21,6 +21,9 @@ _PER_HOUR = 3600.0
 _M_AIR, _PA_PER_PSI = ph.M_AIR, 6894.757293168
 # error_model="numpy": a division by zero gives inf or NaN, as in torch, never raises
 jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+#: a part of a longer kernel, named for what it does: numba inlines it into its caller (in
+#: numba's IR, so the caller compiles to what it was before the part had a name)
+part = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 
 
 @jit
@@ -405,7 +408,9 @@ def online(  # noqa: PLR0913 - the arrays of one update
 # -- effects that multiply the rate (vfm_core.effects, Effect.compiled_factor) -------------
 #: the codes of :class:`vfm_core.effects.CompiledFactor` (kept equal to its constants);
 #: FX_GAS and FX_SLIP change the flux itself (:func:`flux_rate_grad`), their factor is 1
-FX_EROSION, FX_VALVE, FX_FAMILY, FX_BIAS, FX_GAS, FX_SLIP = 1, 2, 3, 4, 5, 6
+FX_EROSION, FX_VALVE, FX_FAMILY, FX_BIAS, FX_GAS, FX_SLIP, FX_SUGGEST = 1, 2, 3, 4, 5, 6, 7
+#: the critical ratio: p_cr moves towards Sachdeva's solved ratio (:func:`_rate_at`), factor 1
+FX_CRITICAL = 8
 
 
 @jit
@@ -497,6 +502,30 @@ def _bias(p: np.ndarray, p0: int, years: float, well_test: bool, d_f: np.ndarray
 
 
 @jit
+def _suggest(p: np.ndarray, p0: int, form: int, c0: float, c1: float, d_f: np.ndarray) -> float:
+    """Suggest's output factor from its two columns (``c0``, ``c1``: the step, or sin and
+    cos of the season's phase, or the fixed factor; ``Suggest.compiled_columns``) by
+    ``form``: 0 max(1 + k c0, 0.05), 1 exp(clamp(k c0, -5, 5)), 2 1 + k_sin c0 + k_cos c1,
+    3 c0; its derivatives into ``d_f``. torch's clamp passes no gradient outside its
+    range, and a NaN through."""
+    if form == 3:
+        return c0
+    if form == 2:
+        d_f[p0] = c0
+        d_f[p0 + 1] = c1
+        return 1.0 + p[p0] * c0 + p[p0 + 1] * c1
+    a = p[p0] * c0
+    if form == 1:
+        inside = a >= -5.0 and a <= 5.0
+        f = math.exp(a if inside or a != a else (5.0 if a > 5.0 else -5.0))
+        d_f[p0] = f * c0 if inside else 0.0
+        return f
+    b = 1.0 + a
+    d_f[p0] = c0 if b >= 0.05 else 0.0
+    return b if not b < 0.05 else 0.05
+
+
+@jit
 def effect_factor(
     terms: np.ndarray,
     pe: np.ndarray,
@@ -528,10 +557,12 @@ def effect_factor(
             f[t] = _family(pe, p0, terms[t, 4], u, u_ref, d_f)
         elif code == FX_BIAS:
             f[t] = _bias(pe, p0, extra[col], well_test, d_f)
-        elif code == FX_GAS or code == FX_SLIP:
-            f[t] = 1.0  # in the flux (flux_rate_grad), not a factor
+        elif code == FX_SUGGEST:
+            f[t] = _suggest(pe, p0, terms[t, 4], extra[col], extra[col + 1], d_f)
+        elif code == FX_GAS or code == FX_SLIP or code == FX_CRITICAL:
+            f[t] = 1.0  # in the flux (_rate_at), not a factor
         else:
-            f[t] = math.nan  # (no other code: Effect.compiled_factor names these six)
+            f[t] = math.nan  # (no other code: Effect.compiled_factor names these eight)
     total = 1.0
     for t in range(n_t):
         total *= f[t]
@@ -562,10 +593,11 @@ def _factor_at(fx: tuple, pe: np.ndarray, scratch: tuple, u: float, w: int, j: i
 @jit
 def _scratch(fx: tuple) -> tuple:  # type: ignore[type-arg]
     """The arrays :func:`_factor_at` and :func:`_rate_at` write: dF [P], each effect's
-    factor [T], dq / d(effect parameter) of the flux effects [P] (0 for the others) and
-    :func:`flux_rate_grad`'s two derivatives."""
+    factor [T], dq / d(effect parameter) of the flux effects [P] (0 for the others),
+    :func:`flux_rate_grad`'s two derivatives, and the critical ratio's theta [6], solved
+    ratio and p_cr (:func:`_critical_theta`)."""
     p = fx[1].shape[0]
-    return np.zeros(p), np.zeros(fx[0].shape[0]), np.zeros(p), np.zeros(2)
+    return np.zeros(p), np.zeros(fx[0].shape[0]), np.zeros(p), np.zeros(2), np.zeros(8)
 
 
 @jit
@@ -583,31 +615,81 @@ def _rate_at(
     into ``dq`` and dq / d(their parameters) into ``scratch[2]`` (0 for every other
     effect's parameter, whose factor :func:`_factor_at` gives)."""
     terms = fx[0]
-    i_gas, i_slip = -1, -1
+    i_gas, i_slip, i_crit = -1, -1, -1
     for t in range(terms.shape[0]):
         if terms[t, 0] == FX_GAS:
             i_gas = terms[t, 1]
         elif terms[t, 0] == FX_SLIP:
             i_slip = terms[t, 1]
-    if i_gas < 0 and i_slip < 0:
-        return rate_grad(theta, x, a_max, dq)
+        elif terms[t, 0] == FX_CRITICAL:
+            i_crit = terms[t, 1]
+    if i_crit >= 0:
+        theta = _critical_theta(theta, x, pe[i_crit], scratch[4])
     d_q, d_e = scratch[2], scratch[3]
-    q = flux_rate_grad(
-        theta,
-        x,
-        a_max,
-        dq,
-        i_gas >= 0,
-        pe[i_gas] if i_gas >= 0 else 0.0,
-        i_slip >= 0,
-        pe[i_slip] if i_slip >= 0 else 0.0,
-        d_e,
-    )
+    if i_gas < 0 and i_slip < 0:
+        q = rate_grad(theta, x, a_max, dq)
+    else:
+        q = flux_rate_grad(
+            theta,
+            x,
+            a_max,
+            dq,
+            i_gas >= 0,
+            pe[i_gas] if i_gas >= 0 else 0.0,
+            i_slip >= 0,
+            pe[i_slip] if i_slip >= 0 else 0.0,
+            d_e,
+        )
     if i_gas >= 0:
         d_q[i_gas] = d_e[0]
     if i_slip >= 0:
         d_q[i_slip] = d_e[1]
+    if i_crit >= 0:  # p_cr' = p_cr + weight (y_c - p_cr), no gradient through y_c (torch's)
+        g = dq[4]
+        dq[4] = g - g * pe[i_crit]
+        d_q[i_crit] = g * (scratch[4][6] - scratch[4][7])
     return q
+
+
+@jit
+def sachdeva_critical_ratio(
+    eta_gas: float, rho_g1: float, v_liq: float, kappa: float, iterations: int
+) -> float:
+    """Sachdeva's critical ratio y_c of one sample by bisection on (1e-4, 0.9999), the
+    arithmetic of :func:`vfm_core.physics.sachdeva_critical_ratio` (n = kappa); like it,
+    no derivative (the torch path passes no gradient through the solved ratio)."""
+    x = max(eta_gas, 1e-9) if not eta_gas != eta_gas else eta_gas
+    k = kappa
+    kk = k / (k - 1.0)
+    a = v_liq * rho_g1 / x
+    lo, hi = 1e-4, 0.9999
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        b = a * mid ** (1.0 / k)
+        rhs = ((kk + a * (1.0 - mid)) / (kk + k / 2.0 + k * b + k / 2.0 * b**2)) ** kk
+        if rhs - mid > 0:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@jit
+def _critical_theta(theta: np.ndarray, x: np.ndarray, weight: float, out: np.ndarray) -> np.ndarray:
+    """``theta`` with p_cr moved towards Sachdeva's solved ratio (CriticalRatio's hook:
+    p_cr + weight (y_c - p_cr), y_c from 30 bisection steps, the ideal gas), in out[:6];
+    y_c and the mechanistic p_cr in out[6], out[7]."""
+    p1 = x[1] * _PA_PER_BAR
+    t1 = x[3] + _KELVIN
+    rho_g1 = p1 * theta[3] / (1.0 * _R_GAS * t1)
+    v_liq = x[5] / theta[0] + (1.0 - x[4] - x[5]) / theta[1]
+    y_c = sachdeva_critical_ratio(x[4], rho_g1, v_liq, theta[2], 30)
+    for i in range(6):
+        out[i] = theta[i]
+    out[4] = theta[4] + weight * (y_c - theta[4])
+    out[6] = y_c
+    out[7] = theta[4]
+    return out[:6]
 
 
 @jit
@@ -821,122 +903,199 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     ze, me, ve, rows, low_e, high_e = eff
     ge, pe, scratch = np.zeros(ze.shape[1]), np.zeros(ze.shape[1]), _scratch(fx)
     hyper, zero = (lr, beta1, beta2, eps), np.zeros(z.shape[1], np.int64)
-    n_wells, n_samples = y.shape
-    n_par = z.shape[1]
-    hidden = w1.shape[2]
-    theta = np.zeros(6)
-    dq = np.zeros(6)
-    xn = np.zeros(6)
-    pre = np.zeros(hidden)
-    act = np.zeros(hidden)
-    gz = np.zeros(n_par)
-    gw1 = np.zeros((6, hidden))
-    gb1 = np.zeros(hidden)
-    gw2 = np.zeros(hidden)
+    net, moments = (w1, b1, w2, b2), (mw1, vw1, mb1, vb1, mw2, vw2, mb2, vb2)
+    work, grads = _hybrid_scratch(z.shape[1], w1.shape[2])
+    data = (x, y, mask, a_max, scale, x_mean, x_std, mu)
     size, root = np.zeros(counts.shape[0]), np.zeros(counts.shape[0])
-    for w in range(n_wells):
+    for w in range(y.shape[0]):
         weight, d_factor = map_weights(mask, w, noise, scale[w])
         held = (z[w].copy(), w1[w].copy(), b1[w].copy(), w2[w].copy(), b2[w].copy(), ze[w].copy())
         for _ in range(steps):
-            for i in range(6):
-                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
-            for i in range(n_par):
-                gz[i] = 0.0
-            for k in range(hidden):
-                gb1[k] = 0.0
-                gw2[k] = 0.0
-                for i in range(6):
-                    gw1[i, k] = 0.0
-            gb2 = 0.0
+            _hybrid_theta_(work[0], mu, sigma, z, pos, w)
             effect_values(w, ze, fx[1], fx[2], pe)
+            _zero_(grads)
             ge[:] = 0.0
-            for j in range(n_samples):
-                if not mask[w, j]:
-                    continue
-                fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
-                for i in range(6):
-                    xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
-                o = b2[w, 0]
-                for k in range(hidden):
-                    a = b1[w, k]
-                    for i in range(6):
-                        a += xn[i] * w1[w, i, k]
-                    pre[k] = a
-                    act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes)
-                    o += act[k] * w2[w, k, 0]
-                if kind == 2:
-                    theta[5] = mu[5] * math.exp(o)
-                    plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
-                    rate = plain * fxj
-                    dq_do = dq[5] * theta[5] * fxj
-                else:
-                    plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
-                    rate = plain * fxj + scale[w] * o
-                    dq_do = scale[w]
-                g = (rate - y[w, j]) / scale[w] * d_factor
-                for i in range(n_par):
-                    gz[i] += g * (dq[i] * fxj)
-                for k in range(ge.shape[0]):
-                    ge[k] += g * (plain * scratch[0][k] + scratch[2][k] * fxj)
-                g_o = g * dq_do
-                gb2 += g_o
-                for k in range(hidden):
-                    gw2[k] += g_o * act[k]
-                    if pre[k] > 0:  # ReLU's gradient (threshold_backward)
-                        g_a = g_o * w2[w, k, 0]
-                        gb1[k] += g_a
-                        for i in range(6):
-                            gw1[i, k] += xn[i] * g_a
+            gb2 = _hybrid_gradients_(kind, w, net, grads, ge, work, data, fx, pe, scratch, d_factor)
             # the physical parameters standardised, plus the prior's pull; then the clip
-            sq = _prior_(w, z, gz, sigma, weight)
-            for k in range(hidden):
-                sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
-                for i in range(6):
-                    sq += gw1[i, k] * gw1[i, k]
-            sq += gb2 * gb2
+            sq = _net_squares(_prior_(w, z, grads[0], sigma, weight), grads, gb2)
             sq += _prior_(w, ze, ge, fx[2], weight)
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
             if adam:
                 _corrections_(counts, w, size, root, hyper)
-            _bounded_step_(w, z, mz, vz, gz, zero, size, root, clip, z_low, z_high, hyper, adam)
-            for k in range(hidden):
-                for i in range(6):
-                    gi = gw1[i, k] * clip
-                    if adam:
-                        mw1[w, i, k] = mw1[w, i, k] + (1.0 - beta1) * (gi - mw1[w, i, k])
-                        vw1[w, i, k] = vw1[w, i, k] * beta2 + (1.0 - beta2) * gi * gi
-                        denom = math.sqrt(vw1[w, i, k]) / root[1] + eps
-                        w1[w, i, k] = w1[w, i, k] + (-size[1]) * mw1[w, i, k] / denom
-                    else:
-                        w1[w, i, k] = w1[w, i, k] + (-lr) * gi
-                gi = gb1[k] * clip
-                if adam:
-                    mb1[w, k] = mb1[w, k] + (1.0 - beta1) * (gi - mb1[w, k])
-                    vb1[w, k] = vb1[w, k] * beta2 + (1.0 - beta2) * gi * gi
-                    denom = math.sqrt(vb1[w, k]) / root[2] + eps
-                    b1[w, k] = b1[w, k] + (-size[2]) * mb1[w, k] / denom
-                else:
-                    b1[w, k] = b1[w, k] + (-lr) * gi
-                gi = gw2[k] * clip
-                if adam:
-                    mw2[w, k, 0] = mw2[w, k, 0] + (1.0 - beta1) * (gi - mw2[w, k, 0])
-                    vw2[w, k, 0] = vw2[w, k, 0] * beta2 + (1.0 - beta2) * gi * gi
-                    denom = math.sqrt(vw2[w, k, 0]) / root[3] + eps
-                    w2[w, k, 0] = w2[w, k, 0] + (-size[3]) * mw2[w, k, 0] / denom
-                else:
-                    w2[w, k, 0] = w2[w, k, 0] + (-lr) * gi
-            gi = gb2 * clip
-            if adam:
-                mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
-                vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
-                denom = math.sqrt(vb2[w, 0]) / root[4] + eps
-                b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
-            else:
-                b2[w, 0] = b2[w, 0] + (-lr) * gi
+            _bounded_step_(
+                w, z, mz, vz, grads[0], zero, size, root, clip, z_low, z_high, hyper, adam
+            )
+            _net_step_(w, net, moments, grads, gb2, clip, size, root, hyper, adam)
             _bounded_step_(w, ze, me, ve, ge, rows, size, root, clip, low_e, high_e, hyper, adam)
             if hold[w]:
                 z[w], w1[w], b1[w] = held[0], held[1], held[2]
                 w2[w], b2[w], ze[w] = held[3], held[4], held[5]
+
+
+@part
+def _hybrid_scratch(n_par: int, hidden: int) -> tuple:  # type: ignore[type-arg]
+    """The arrays :func:`hybrid_online` works in: (theta, dq/dtheta, the normalised sample,
+    the pre-activations, the activations) and the gradients (z [n_par], W1 [6, hidden], b1,
+    W2 [hidden])."""
+    work = (np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(hidden), np.zeros(hidden))
+    grads = (np.zeros(n_par), np.zeros((6, hidden)), np.zeros(hidden), np.zeros(hidden))
+    return work, grads
+
+
+@part
+def _hybrid_theta_(
+    theta: np.ndarray, mu: np.ndarray, sigma: np.ndarray, z: np.ndarray, pos: np.ndarray, w: int
+) -> None:
+    """Well w's six mechanistic parameters (SI) into ``theta``: mu + sigma z for the learned
+    ones (``pos`` their column in z), the prior mean for the others."""
+    for i in range(6):
+        theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
+
+
+@part
+def _zero_(grads: tuple) -> None:  # type: ignore[type-arg]
+    """The hybrid's gradients (z, W1, b1, W2) set to 0."""
+    gz, gw1, gb1, gw2 = grads
+    for i in range(gz.shape[0]):
+        gz[i] = 0.0
+    for k in range(gb1.shape[0]):
+        gb1[k] = 0.0
+        gw2[k] = 0.0
+        for i in range(6):
+            gw1[i, k] = 0.0
+
+
+@part
+def _net_forward_(
+    net: tuple,  # type: ignore[type-arg]
+    w: int,
+    x: np.ndarray,
+    j: int,
+    mean: np.ndarray,
+    std: np.ndarray,
+    work: tuple,  # type: ignore[type-arg]
+) -> float:
+    """Well w's one-hidden-layer network on its sample j of ``x`` (normalised by ``mean``,
+    ``std`` into ``work``'s xn, the pre-activations and ReLU activations kept there for
+    the backward pass): its output."""
+    w1, b1, w2, b2 = net
+    xn, pre, act = work[2], work[3], work[4]
+    for i in range(6):
+        xn[i] = (x[w, j, i] - mean[w, i]) / std[w, i]
+    o = b2[w, 0]
+    for k in range(pre.shape[0]):
+        a = b1[w, k]
+        for i in range(6):
+            a += xn[i] * w1[w, i, k]
+        pre[k] = a
+        act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes)
+        o += act[k] * w2[w, k, 0]
+    return o
+
+
+@part
+def _net_backward_(net: tuple, w: int, g_o: float, grads: tuple, work: tuple) -> None:  # type: ignore[type-arg]
+    """The gradient ``g_o`` of the network's output back into W2, b1 and W1 (``grads``),
+    through the ReLU (threshold_backward: none where the pre-activation is not positive)."""
+    w2 = net[2]
+    gw1, gb1, gw2 = grads[1], grads[2], grads[3]
+    xn, pre, act = work[2], work[3], work[4]
+    for k in range(pre.shape[0]):
+        gw2[k] += g_o * act[k]
+        if pre[k] > 0:
+            g_a = g_o * w2[w, k, 0]
+            gb1[k] += g_a
+            for i in range(6):
+                gw1[i, k] += xn[i] * g_a
+
+
+@part
+def _hybrid_gradients_(  # noqa: PLR0913 - one well's samples and its gradients
+    kind: int,
+    w: int,
+    net: tuple,  # type: ignore[type-arg]
+    grads: tuple,  # type: ignore[type-arg]
+    ge: np.ndarray,
+    work: tuple,  # type: ignore[type-arg]
+    data: tuple,  # type: ignore[type-arg]
+    fx: tuple,  # type: ignore[type-arg]
+    pe: np.ndarray,
+    scratch: tuple,  # type: ignore[type-arg]
+    d_factor: float,
+) -> float:
+    """The MAP data term's gradient of well w's hybrid (``kind`` 1 hem, 2 ham) summed over
+    its samples into ``grads`` (z, W1, b1, W2) and the effects' ``ge``; returns b2's.
+    ``data``: x, y, mask, a_max, y_scale, x_mean, x_std, mu."""
+    x, y, mask, a_max, scale, x_mean, x_std, mu = data
+    theta, dq, gz = work[0], work[1], grads[0]
+    gb2 = 0.0
+    for j in range(y.shape[1]):
+        if not mask[w, j]:
+            continue
+        fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
+        o = _net_forward_(net, w, x, j, x_mean, x_std, work)
+        if kind == 2:
+            theta[5] = mu[5] * math.exp(o)
+            plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
+            rate = plain * fxj
+            dq_do = dq[5] * theta[5] * fxj
+        else:
+            plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
+            rate = plain * fxj + scale[w] * o
+            dq_do = scale[w]
+        g = (rate - y[w, j]) / scale[w] * d_factor
+        for i in range(gz.shape[0]):
+            gz[i] += g * (dq[i] * fxj)
+        for k in range(ge.shape[0]):
+            ge[k] += g * (plain * scratch[0][k] + scratch[2][k] * fxj)
+        g_o = g * dq_do
+        gb2 += g_o
+        _net_backward_(net, w, g_o, grads, work)
+    return gb2
+
+
+@part
+def _net_squares(sq: float, grads: tuple, gb2: float) -> float:  # type: ignore[type-arg]
+    """``sq`` plus the squares of the network's gradients (b1, W2, W1, then b2), for the clip."""
+    gw1, gb1, gw2 = grads[1], grads[2], grads[3]
+    for k in range(gb1.shape[0]):
+        sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
+        for i in range(6):
+            sq += gw1[i, k] * gw1[i, k]
+    sq += gb2 * gb2
+    return sq
+
+
+@part
+def _net_step_(  # noqa: PLR0913 - one well's network and its state
+    w: int,
+    net: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    grads: tuple,  # type: ignore[type-arg]
+    gb2: float,
+    clip: float,
+    size: np.ndarray,
+    root: np.ndarray,
+    hyper: tuple,  # type: ignore[type-arg]
+    adam: bool,
+) -> None:
+    """One Adam (rows 1-4 of the bias corrections ``size``, ``root``: W1, b1, W2, b2) or
+    SGD step of well w's network with the clipped gradients, as torch's single-tensor Adam."""
+    w1, b1, w2, b2 = net
+    mw1, vw1, mb1, vb1, mw2, vw2, mb2, vb2 = moments
+    _adam_(w1[w].reshape(-1), grads[1].reshape(-1), mw1[w].reshape(-1), vw1[w].reshape(-1),
+           clip, size[1], root[1], hyper, adam)  # fmt: skip
+    _adam_(b1[w], grads[2], mb1[w], vb1[w], clip, size[2], root[2], hyper, adam)
+    _adam_(w2[w, :, 0], grads[3], mw2[w, :, 0], vw2[w, :, 0], clip, size[3], root[3], hyper, adam)
+    lr, beta1, beta2, eps = hyper
+    gi = gb2 * clip
+    if adam:
+        mb2[w, 0] = mb2[w, 0] + (1.0 - beta1) * (gi - mb2[w, 0])
+        vb2[w, 0] = vb2[w, 0] * beta2 + (1.0 - beta2) * gi * gi
+        denom = math.sqrt(vb2[w, 0]) / root[4] + eps
+        b2[w, 0] = b2[w, 0] + (-size[4]) * mb2[w, 0] / denom
+    else:
+        b2[w, 0] = b2[w, 0] + (-lr) * gi
 
 
 @jit
@@ -991,162 +1150,192 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
     it) is added to ``losses`` [W]. With ``validate``, the mean squared scaled error on the
     held-out rows ``xv``, ``yv``, ``hv`` after step s goes to ``val_out[w, s]`` (early
     stopping's measure)."""
-    n_wells = z.shape[0]
-    n_par = z.shape[1]
-    hidden = w1.shape[2]
-    mz, vz, mw1, vw1, mb1, vb1, mw2, vw2, mb2, vb2 = moments
-    theta = np.zeros(6)
-    dq = np.zeros(6)
-    xn = np.zeros(6)
-    pre = np.zeros(hidden)
-    act = np.zeros(hidden)
-    gz = np.zeros(n_par)
-    gw1 = np.zeros((6, hidden))
-    gb1 = np.zeros(hidden)
-    gw2 = np.zeros(hidden)
-    size = np.ones(5)
-    root = np.ones(5)
-    gb2s = np.zeros(1)
-    he1 = 2.0 / (2.0 / 6.0)  # WellMLP.prior_gradients: 2 / he_var, he_var = 2 / fan_in
-    he2 = 2.0 / (2.0 / hidden) if hidden > 0 else 0.0
-    for w in range(n_wells):
+    mz, vz = moments[0], moments[1]
+    net, hyper = (w1, b1, w2, b2), (lr, beta1, beta2, eps)
+    work, grads = _hybrid_scratch(z.shape[1], w1.shape[2])
+    data = (x, y, has, a_max, scale, x_mean, x_std, mu)
+    size, root = np.ones(5), np.ones(5)
+    for w in range(z.shape[0]):
         n = n_full[w]
         weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
         for s in range(todo[w]):
-            c0 = 0 if same else s * width
-            n_data = 0
-            for j in range(c0, c0 + width):
-                if has[w, j]:
-                    n_data += 1
-            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
-            for i in range(6):
-                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
-            for i in range(n_par):
-                gz[i] = 0.0
-            for k in range(hidden):
-                gb1[k] = 0.0
-                gw2[k] = 0.0
-                for i in range(6):
-                    gw1[i, k] = 0.0
-            gb2 = 0.0
-            sse = 0.0
-            for j in range(c0, c0 + width):
-                if not has[w, j]:
-                    continue
-                if kind == 0:
-                    rate = rate_grad(theta, x[w, j], a_max[w], dq)
-                    dq_do = 0.0
-                else:
-                    for i in range(6):
-                        xn[i] = (x[w, j, i] - x_mean[w, i]) / x_std[w, i]
-                    o = b2[w, 0]
-                    for k in range(hidden):
-                        a = b1[w, k]
-                        for i in range(6):
-                            a += xn[i] * w1[w, i, k]
-                        pre[k] = a
-                        act[k] = a if not a <= 0.0 else 0.0  # ReLU (a NaN passes)
-                        o += act[k] * w2[w, k, 0]
-                    if kind == 2:
-                        theta[5] = mu[5] * math.exp(o)
-                        rate = rate_grad(theta, x[w, j], a_max[w], dq)
-                        dq_do = dq[5] * theta[5]
-                    else:
-                        rate = rate_grad(theta, x[w, j], a_max[w], dq) + scale[w] * o
-                        dq_do = scale[w]
-                e = (rate - y[w, j]) / scale[w]
-                sse += e * e
-                g = e * d_factor
-                for i in range(n_par):
-                    gz[i] += g * dq[i]
-                if kind != 0:
-                    g_o = g * dq_do
-                    gb2 += g_o
-                    for k in range(hidden):
-                        gw2[k] += g_o * act[k]
-                        if pre[k] > 0:  # ReLU's gradient (threshold_backward)
-                            g_a = g_o * w2[w, k, 0]
-                            gb1[k] += g_a
-                            for i in range(6):
-                                gw1[i, k] += xn[i] * g_a
+            c0, n_data, d_factor = _mini_batch(has, w, s, width, same, n, scale[w])
+            _hybrid_theta_(work[0], mu, sigma, z, pos, w)
+            _zero_(grads)
+            sse, gb2 = _fit_gradients_(kind, w, c0, width, net, grads, work, data, d_factor)
             if n > 0:  # the objective: mean squared scaled error plus the weighted prior
-                penalty = 0.0
-                for i in range(n_par):
-                    penalty += z[w, i] * z[w, i]
-                if kind != 0:
-                    net1 = 0.0
-                    net2 = 0.0
-                    nb = 0.0
-                    for k in range(hidden):
-                        net2 += w2[w, k, 0] * w2[w, k, 0]
-                        nb += b1[w, k] * b1[w, k]
-                        for i in range(6):
-                            net1 += w1[w, i, k] * w1[w, i, k]
-                    penalty += net1 / (2.0 / 6.0) + nb + net2 / (2.0 / hidden) + b2[w, 0] ** 2
+                penalty = _fit_penalty(kind, w, z, net)
                 losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
-            # the prior's pull on every parameter, then the per-well clip
-            sq = 0.0
-            for i in range(n_par):
-                gz[i] = gz[i] * sigma[i] + 2.0 * weight * z[w, i]
-                sq += gz[i] * gz[i]
-            if kind != 0:
-                for k in range(hidden):
-                    gb1[k] += 2.0 * weight * b1[w, k]
-                    gw2[k] += he2 * weight * w2[w, k, 0]
-                    sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
-                    for i in range(6):
-                        gw1[i, k] += he1 * weight * w1[w, i, k]
-                        sq += gw1[i, k] * gw1[i, k]
-                gb2 += 2.0 * weight * b2[w, 0]
-                sq += gb2 * gb2
+            sq, gb2 = _fit_prior_pull_(kind, w, z, net, grads, gb2, sigma, weight)
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
             if adam:
-                for t in range(5):
-                    counts[t, w] += 1.0
-                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
-                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
-            hyper = (lr, beta1, beta2, eps)
-            _adam_(z[w], gz, mz[w], vz[w], clip, size[0], root[0], hyper, adam)
-            for i in range(n_par):
+                _corrections_(counts, w, size, root, hyper)
+            _adam_(z[w], grads[0], mz[w], vz[w], clip, size[0], root[0], hyper, adam)
+            for i in range(z.shape[1]):
                 z[w, i] = max(min(z[w, i], z_high[i]), z_low[i])
             if kind != 0:
-                gb2s[0] = gb2
-                _adam_(w1[w].reshape(-1), gw1.reshape(-1), mw1[w].reshape(-1),
-                       vw1[w].reshape(-1), clip, size[1], root[1], hyper, adam)  # fmt: skip
-                _adam_(b1[w], gb1, mb1[w], vb1[w], clip, size[2], root[2], hyper, adam)
-                _adam_(w2[w].reshape(-1), gw2, mw2[w].reshape(-1), vw2[w].reshape(-1),
-                       clip, size[3], root[3], hyper, adam)  # fmt: skip
-                _adam_(b2[w], gb2s, mb2[w], vb2[w], clip, size[4], root[4], hyper, adam)
-            if not validate:
-                continue
+                _net_step_(w, net, moments[2:], grads, gb2, clip, size, root, hyper, adam)
+            if validate:
+                _hybrid_theta_(work[0], mu, sigma, z, pos, w)
+                valid = (xv, yv, hv, a_max, scale, x_mean, x_std, mu)
+                val_out[w, s] = _fit_validation(kind, w, net, work, valid)
+
+
+@part
+def _mini_batch(
+    has: np.ndarray, w: int, s: int, width: int, same: bool, n: float, scale: float
+) -> tuple[int, int, float]:
+    """Step s's mini-batch of well w: its first column (0 at every step when ``same``),
+    its count of rows, and the data term's factor 2 / (count y_scale) (0 for a well
+    without data, ``n`` its full count)."""
+    c0 = 0 if same else s * width
+    n_data = 0
+    for j in range(c0, c0 + width):
+        if has[w, j]:
+            n_data += 1
+    d_factor = 2.0 / max(float(n_data), 1.0) / scale if n > 0 else 0.0
+    return c0, n_data, d_factor
+
+
+@part
+def _fit_gradients_(  # noqa: PLR0913 - one step's mini-batch and its gradients
+    kind: int,
+    w: int,
+    c0: int,
+    width: int,
+    net: tuple,  # type: ignore[type-arg]
+    grads: tuple,  # type: ignore[type-arg]
+    work: tuple,  # type: ignore[type-arg]
+    data: tuple,  # type: ignore[type-arg]
+    d_factor: float,
+) -> tuple[float, float]:
+    """The data term's gradient of well w's ``mm`` (``kind`` 0) or hybrid (1 hem, 2 ham)
+    over the mini-batch's columns [c0, c0 + width) into ``grads`` (z, W1, b1, W2); returns
+    the sum of squared scaled errors and b2's gradient. ``data``: x, y, has, a_max,
+    y_scale, x_mean, x_std, mu."""
+    x, y, has, a_max, scale, x_mean, x_std, mu = data
+    theta, dq, gz = work[0], work[1], grads[0]
+    gb2 = 0.0
+    sse = 0.0
+    for j in range(c0, c0 + width):
+        if not has[w, j]:
+            continue
+        if kind == 0:
+            rate = rate_grad(theta, x[w, j], a_max[w], dq)
+            dq_do = 0.0
+        else:
+            o = _net_forward_(net, w, x, j, x_mean, x_std, work)
+            if kind == 2:
+                theta[5] = mu[5] * math.exp(o)
+                rate = rate_grad(theta, x[w, j], a_max[w], dq)
+                dq_do = dq[5] * theta[5]
+            else:
+                rate = rate_grad(theta, x[w, j], a_max[w], dq) + scale[w] * o
+                dq_do = scale[w]
+        e = (rate - y[w, j]) / scale[w]
+        sse += e * e
+        g = e * d_factor
+        for i in range(gz.shape[0]):
+            gz[i] += g * dq[i]
+        if kind != 0:
+            g_o = g * dq_do
+            gb2 += g_o
+            _net_backward_(net, w, g_o, grads, work)
+    return sse, gb2
+
+
+@part
+def _fit_penalty(kind: int, w: int, z: np.ndarray, net: tuple) -> float:  # type: ignore[type-arg]
+    """Well w's prior penalty before its weight: sum z^2, and for a hybrid the network's
+    He-scaled squares (WellMLP.prior_penalty)."""
+    w1, b1, w2, b2 = net
+    penalty = 0.0
+    for i in range(z.shape[1]):
+        penalty += z[w, i] * z[w, i]
+    if kind != 0:
+        hidden = b1.shape[1]
+        net1 = 0.0
+        net2 = 0.0
+        nb = 0.0
+        for k in range(hidden):
+            net2 += w2[w, k, 0] * w2[w, k, 0]
+            nb += b1[w, k] * b1[w, k]
             for i in range(6):
-                theta[i] = mu[i] + sigma[i] * z[w, pos[i]] if pos[i] >= 0 else mu[i]
-            sse = 0.0
-            n_val = 0
-            for j in range(hv.shape[1]):
-                if not hv[w, j]:
-                    continue
-                n_val += 1
-                o = b2[w, 0]
-                if kind != 0:
-                    for i in range(6):
-                        xn[i] = (xv[w, j, i] - x_mean[w, i]) / x_std[w, i]
-                    for k in range(hidden):
-                        a = b1[w, k]
-                        for i in range(6):
-                            a += xn[i] * w1[w, i, k]
-                        if not a <= 0.0:
-                            o += a * w2[w, k, 0]
-                if kind == 2:
-                    theta[5] = mu[5] * math.exp(o)
-                    rate = rate_grad(theta, xv[w, j], a_max[w], dq)
-                elif kind == 1:
-                    rate = rate_grad(theta, xv[w, j], a_max[w], dq) + scale[w] * o
-                else:
-                    rate = rate_grad(theta, xv[w, j], a_max[w], dq)
-                e = (rate - yv[w, j]) / scale[w]
-                sse += e * e
-            val_out[w, s] = sse / max(float(n_val), 1.0)
+                net1 += w1[w, i, k] * w1[w, i, k]
+        penalty += net1 / (2.0 / 6.0) + nb + net2 / (2.0 / hidden) + b2[w, 0] ** 2
+    return penalty
+
+
+@part
+def _fit_prior_pull_(  # noqa: PLR0913 - one well's parameters and gradients
+    kind: int,
+    w: int,
+    z: np.ndarray,
+    net: tuple,  # type: ignore[type-arg]
+    grads: tuple,  # type: ignore[type-arg]
+    gb2: float,
+    sigma: np.ndarray,
+    weight: float,
+) -> tuple[float, float]:
+    """The gradients to the standardised z plus every parameter's prior pull (the
+    network's He-scaled, WellMLP.prior_gradients), in place; returns their sum of squares
+    (for the clip) and b2's gradient."""
+    w1, b1, w2, b2 = net
+    gz, gw1, gb1, gw2 = grads
+    hidden = gb1.shape[0]
+    he1 = 2.0 / (2.0 / 6.0)  # WellMLP.prior_gradients: 2 / he_var, he_var = 2 / fan_in
+    he2 = 2.0 / (2.0 / hidden) if hidden > 0 else 0.0
+    sq = 0.0
+    for i in range(gz.shape[0]):
+        gz[i] = gz[i] * sigma[i] + 2.0 * weight * z[w, i]
+        sq += gz[i] * gz[i]
+    if kind != 0:
+        for k in range(hidden):
+            gb1[k] += 2.0 * weight * b1[w, k]
+            gw2[k] += he2 * weight * w2[w, k, 0]
+            sq += gb1[k] * gb1[k] + gw2[k] * gw2[k]
+            for i in range(6):
+                gw1[i, k] += he1 * weight * w1[w, i, k]
+                sq += gw1[i, k] * gw1[i, k]
+        gb2 += 2.0 * weight * b2[w, 0]
+        sq += gb2 * gb2
+    return sq, gb2
+
+
+@part
+def _fit_validation(kind: int, w: int, net: tuple, work: tuple, valid: tuple) -> float:  # type: ignore[type-arg]
+    """The mean squared scaled error of well w on its held-out rows (``valid``: xv, yv,
+    hv, a_max, y_scale, x_mean, x_std, mu; theta in ``work`` already), early stopping's
+    measure."""
+    xv, yv, hv, a_max, scale, x_mean, x_std, mu = valid
+    w1, b1, w2, b2 = net
+    theta, dq, xn = work[0], work[1], work[2]
+    sse = 0.0
+    n_val = 0
+    for j in range(hv.shape[1]):
+        if not hv[w, j]:
+            continue
+        n_val += 1
+        o = b2[w, 0]
+        if kind != 0:
+            for i in range(6):
+                xn[i] = (xv[w, j, i] - x_mean[w, i]) / x_std[w, i]
+            for k in range(b1.shape[1]):
+                a = b1[w, k]
+                for i in range(6):
+                    a += xn[i] * w1[w, i, k]
+                if not a <= 0.0:
+                    o += a * w2[w, k, 0]
+        if kind == 2:
+            theta[5] = mu[5] * math.exp(o)
+            rate = rate_grad(theta, xv[w, j], a_max[w], dq)
+        elif kind == 1:
+            rate = rate_grad(theta, xv[w, j], a_max[w], dq) + scale[w] * o
+        else:
+            rate = rate_grad(theta, xv[w, j], a_max[w], dq)
+        e = (rate - yv[w, j]) / scale[w]
+        sse += e * e
+    return sse / max(float(n_val), 1.0)
 
 
 @jit
@@ -1219,32 +1408,14 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
     mw, vw, mb, vb = moments
     n_wells, n_in = wt.shape
     g = np.zeros(n_in)
+    size, root = np.ones(2), np.ones(2)
+    hyper = (lr, beta1, beta2, eps)
     for w in range(n_wells):
         n = n_full[w]
         weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
         for s in range(todo[w]):
-            c0 = 0 if same else s * width
-            n_data = 0
-            for j in range(c0, c0 + width):
-                if has[w, j]:
-                    n_data += 1
-            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
-            for i in range(n_in):
-                g[i] = 0.0
-            gb = 0.0
-            sse = 0.0
-            for j in range(c0, c0 + width):
-                if not has[w, j]:
-                    continue
-                dot = 0.0
-                for i in range(n_in):
-                    dot += xn[w, j, i] * wt[w, i]
-                e = (scale[w] * (dot + bt[w]) - y[w, j]) / scale[w]
-                sse += e * e
-                d = e * d_factor * scale[w]
-                for i in range(n_in):
-                    g[i] += d * xn[w, j, i]
-                gb += d
+            c0, n_data, d_factor = _mini_batch(has, w, s, width, same, n, scale[w])
+            sse, gb = _lr_gradients_(params, (xn, y, has, scale), w, c0, width, d_factor, g)
             if n > 0:
                 penalty = (bt[w] - 1.0) ** 2
                 for i in range(n_in):
@@ -1257,32 +1428,75 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
             gb += 2.0 * weight * (bt[w] - 1.0)
             sq += gb * gb
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
-            size_w = size_b = root_w = root_b = 1.0
             if adam:
-                counts[0, w] += 1.0
-                counts[1, w] += 1.0
-                size_w = lr / (1.0 - beta1 ** counts[0, w])
-                root_w = math.sqrt(1.0 - beta2 ** counts[0, w])
-                size_b = lr / (1.0 - beta1 ** counts[1, w])
-                root_b = math.sqrt(1.0 - beta2 ** counts[1, w])
-            hyper = (lr, beta1, beta2, eps)
-            _adam_(wt[w], g, mw[w], vw[w], clip, size_w, root_w, hyper, adam)
+                _corrections_(counts, w, size, root, hyper)
+            _adam_(wt[w], g, mw[w], vw[w], clip, size[0], root[0], hyper, adam)
             gbs = np.array([gb])
             _adam_(
-                bt[w : w + 1], gbs, mb[w : w + 1], vb[w : w + 1], clip, size_b, root_b, hyper, adam
+                bt[w : w + 1],
+                gbs,
+                mb[w : w + 1],
+                vb[w : w + 1],
+                clip,
+                size[1],
+                root[1],
+                hyper,
+                adam,
             )
             if validate:
-                sse = 0.0
-                n_val = 0
-                for j in range(hv.shape[1]):
-                    if hv[w, j]:
-                        dot = 0.0
-                        for i in range(n_in):
-                            dot += xv[w, j, i] * wt[w, i]
-                        e = (scale[w] * (dot + bt[w]) - yv[w, j]) / scale[w]
-                        sse += e * e
-                        n_val += 1
-                val_out[w, s] = sse / max(float(n_val), 1.0)
+                val_out[w, s] = _lr_val(wt[w], bt[w], xv[w], yv[w], hv[w], scale[w])
+
+
+@part
+def _lr_gradients_(  # noqa: PLR0913 - one step's mini-batch
+    params: tuple,  # type: ignore[type-arg]
+    data: tuple,  # type: ignore[type-arg]
+    w: int,
+    c0: int,
+    width: int,
+    d_factor: float,
+    g: np.ndarray,
+) -> tuple[float, float]:
+    """The data term's gradient of well w's ``lr`` over the mini-batch's columns [c0,
+    c0 + width) (``data``: xn, y, has, y_scale): w's into ``g``; returns the sum of squared
+    scaled errors and b's gradient."""
+    wt, bt = params
+    xn, y, has, scale = data
+    for i in range(g.shape[0]):
+        g[i] = 0.0
+    gb = 0.0
+    sse = 0.0
+    for j in range(c0, c0 + width):
+        if not has[w, j]:
+            continue
+        dot = 0.0
+        for i in range(g.shape[0]):
+            dot += xn[w, j, i] * wt[w, i]
+        e = (scale[w] * (dot + bt[w]) - y[w, j]) / scale[w]
+        sse += e * e
+        d = e * d_factor * scale[w]
+        for i in range(g.shape[0]):
+            g[i] += d * xn[w, j, i]
+        gb += d
+    return sse, gb
+
+
+@part
+def _lr_val(
+    wt: np.ndarray, bt: float, xv: np.ndarray, yv: np.ndarray, hv: np.ndarray, scale: float
+) -> float:
+    """The mean squared scaled error of one well's ``lr`` on its held-out rows."""
+    sse = 0.0
+    n_val = 0
+    for j in range(hv.shape[0]):
+        if hv[j]:
+            dot = 0.0
+            for i in range(wt.shape[0]):
+                dot += xv[j, i] * wt[i]
+            e = (scale * (dot + bt) - yv[j]) / scale
+            sse += e * e
+            n_val += 1
+    return sse / max(float(n_val), 1.0)
 
 
 @jit
@@ -1562,73 +1776,116 @@ def mtl_fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training
     well's objective before the step; with ``validate``, ``val_out[s]`` is the held-out
     error after step s summed over the wells of ``has_val`` (one early-stopping decision
     for the shared network)."""
-    beta, b_out = params[0], params[12]
-    n_wells, task = has.shape[0], beta.shape[1]
-    weight = np.zeros(n_wells)
-    total_weight = 0.0
-    for w in range(n_wells):
-        if n_full[w] > 0:
-            weight[w] = noise**2 / max(n_full[w], 1.0)
-        total_weight += weight[w]
-    pull = total_weight / n_model  # each well carries 1/W of the shared prior
+    beta = params[0]
+    weight, pull = _mtl_weights(n_full, noise, n_model)
     grads_beta = np.zeros_like(beta)
     for s in range(steps):
         c0 = 0 if same else s * width
         inp, target, well, n_data = _mtl_rows(params, zn, y, has, c0, width)
-        rows = target.shape[0]
-        sse = np.zeros(n_wells)
+        sse = np.zeros(has.shape[0])
         grads_beta[:] = 0.0
-        if rows > 0:
-            h0, u_a, h1, u_b, h2, out = _mtl_forward(params, inp)
-            g = np.zeros((rows, 1))
-            for r in range(rows):
-                w = well[r]
-                if n_full[w] > 0:
-                    e = (scale[w] * ((1.0 + out[r, 0]) + b_out[0]) - target[r]) / scale[w]
-                    sse[w] += e * e
-                    g[r, 0] = e * (2.0 / max(n_data[w], 1.0) / scale[w]) * scale[w]
-            shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)
-            for r in range(rows):
-                for i in range(task):
-                    grads_beta[well[r], i] += d_beta[r, i]
-        else:
-            shared = (
-                np.zeros(params[1].size), np.zeros(params[2].size), np.zeros(params[3].size),
-                np.zeros(params[4].size), np.zeros(params[5].size), np.zeros(params[6].size),
-                np.zeros(params[7].size), np.zeros(params[8].size), np.zeros(params[9].size),
-                np.zeros(params[10].size), np.zeros(params[11].size), np.zeros(params[12].size),
-            )  # fmt: skip
+        data = (inp, target, well, n_data, n_full, scale)
+        shared = _mtl_data_gradients_(params, data, sse, grads_beta)
         penalty = _mtl_penalty(params) / n_model
-        for w in range(n_wells):
+        for w in range(has.shape[0]):
             if n_full[w] > 0:
                 sq = 0.0
-                for i in range(task):
+                for i in range(beta.shape[1]):
                     sq += beta[w, i] * beta[w, i]
                 losses[s, w] = sse[w] / max(n_data[w], 1.0) + (sq + penalty) * weight[w]
-            for i in range(task):
+            for i in range(beta.shape[1]):
                 grads_beta[w, i] += 2.0 * weight[w] * beta[w, i]
-        # the He prior's pull on the shared tensors (weights: 1 / fan-in; biases: 1)
-        _, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, _ = params
-        for t, wt in ((0, w_in), (2, w1a), (3, w1b), (6, w2a), (7, w2b), (10, w_out)):
-            _pull_(shared[t], wt.reshape(-1), 2.0 * pull / (2.0 / wt.shape[0]))
-        for t, bt in ((1, b_in), (4, b1a), (5, b1b), (8, b2a), (9, b2b), (11, b_out)):
-            _pull_(shared[t], bt, 2.0 * pull)
+        _mtl_shared_pull_(params, shared, pull)
         coef = _mtl_clip_(grads_beta, shared, max_norm)
         _mtl_adam_(params, moments, grads_beta, shared, coef, count, hyper, adam)
         if validate:
-            inp, target, well, n_val = _mtl_rows(params, zv, yv, hv, 0, hv.shape[1])
-            if target.shape[0] > 0:
-                out = _mtl_forward(params, inp)[5]
-                sse[:] = 0.0
-                for r in range(target.shape[0]):
-                    w = well[r]
-                    e = (scale[w] * (1.0 + (out[r, 0] + b_out[0])) - target[r]) / scale[w]
-                    sse[w] += e * e
-                v = 0.0
-                for w in range(n_wells):
-                    if has_val[w]:
-                        v += sse[w] / max(n_val[w], 1.0)
-                val_out[s] = v
+            _mtl_validation_(params, (zv, yv, hv, has_val, scale), sse, val_out, s)
+
+
+@part
+def _mtl_weights(n_full: np.ndarray, noise: float, n_model: int) -> tuple:  # type: ignore[type-arg]
+    """Each well's prior weight noise^2 / n (0 without data) and the shared prior's pull,
+    their sum over the ``n_model`` wells (each well carries 1/W of the shared prior)."""
+    weight = np.zeros(n_full.shape[0])
+    total_weight = 0.0
+    for w in range(n_full.shape[0]):
+        if n_full[w] > 0:
+            weight[w] = noise**2 / max(n_full[w], 1.0)
+        total_weight += weight[w]
+    return weight, total_weight / n_model
+
+
+@part
+def _mtl_data_gradients_(
+    params: tuple,  # type: ignore[type-arg]
+    data: tuple,  # type: ignore[type-arg]
+    sse: np.ndarray,
+    grads_beta: np.ndarray,
+) -> tuple:  # type: ignore[type-arg]
+    """The data term of one step's rows (``data``: the network's inputs, targets, wells,
+    rows per well, each well's full count, y_scale): each well's squared scaled errors
+    into ``sse``, the task vectors' gradients into ``grads_beta``; returns the shared
+    tensors' gradients (zeros without rows)."""
+    inp, target, well, n_data, n_full, scale = data
+    b_out = params[12]
+    rows = target.shape[0]
+    if rows == 0:
+        return (
+            np.zeros(params[1].size), np.zeros(params[2].size), np.zeros(params[3].size),
+            np.zeros(params[4].size), np.zeros(params[5].size), np.zeros(params[6].size),
+            np.zeros(params[7].size), np.zeros(params[8].size), np.zeros(params[9].size),
+            np.zeros(params[10].size), np.zeros(params[11].size), np.zeros(params[12].size),
+        )  # fmt: skip
+    h0, u_a, h1, u_b, h2, out = _mtl_forward(params, inp)
+    g = np.zeros((rows, 1))
+    for r in range(rows):
+        w = well[r]
+        if n_full[w] > 0:
+            e = (scale[w] * ((1.0 + out[r, 0]) + b_out[0]) - target[r]) / scale[w]
+            sse[w] += e * e
+            g[r, 0] = e * (2.0 / max(n_data[w], 1.0) / scale[w]) * scale[w]
+    shared, d_beta = _mtl_backward(params, inp, h0, u_a, h1, u_b, h2, g)
+    for r in range(rows):
+        for i in range(grads_beta.shape[1]):
+            grads_beta[well[r], i] += d_beta[r, i]
+    return shared
+
+
+@part
+def _mtl_shared_pull_(params: tuple, shared: tuple, pull: float) -> None:  # type: ignore[type-arg]
+    """The He prior's pull on the shared tensors' gradients (weights: 1 / fan-in; biases: 1)."""
+    _, w_in, b_in, w1a, w1b, b1a, b1b, w2a, w2b, b2a, b2b, w_out, b_out = params
+    for t, wt in ((0, w_in), (2, w1a), (3, w1b), (6, w2a), (7, w2b), (10, w_out)):
+        _pull_(shared[t], wt.reshape(-1), 2.0 * pull / (2.0 / wt.shape[0]))
+    for t, bt in ((1, b_in), (4, b1a), (5, b1b), (8, b2a), (9, b2b), (11, b_out)):
+        _pull_(shared[t], bt, 2.0 * pull)
+
+
+@part
+def _mtl_validation_(
+    params: tuple,  # type: ignore[type-arg]
+    valid: tuple,  # type: ignore[type-arg]
+    sse: np.ndarray,
+    val_out: np.ndarray,
+    s: int,
+) -> None:
+    """The held-out error after step s (``valid``: zv, yv, hv, has_val, y_scale), summed
+    over the wells of has_val, into ``val_out[s]`` (left as it is without held-out rows)."""
+    zv, yv, hv, has_val, scale = valid
+    b_out = params[12]
+    inp, target, well, n_val = _mtl_rows(params, zv, yv, hv, 0, hv.shape[1])
+    if target.shape[0] > 0:
+        out = _mtl_forward(params, inp)[5]
+        sse[:] = 0.0
+        for r in range(target.shape[0]):
+            w = well[r]
+            e = (scale[w] * (1.0 + (out[r, 0] + b_out[0])) - target[r]) / scale[w]
+            sse[w] += e * e
+        v = 0.0
+        for w in range(sse.shape[0]):
+            if has_val[w]:
+                v += sse[w] / max(n_val[w], 1.0)
+        val_out[s] = v
 
 
 @jit
@@ -1693,32 +1950,17 @@ def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
     ``validate``, the held-out error after each step, as :func:`fit_steps` (``xv``
     normalised)."""
     w1, b1, w2, b2, w3, b3 = params
-    n_wells = w1.shape[0]
     fan = (w1.shape[1], w2.shape[1], w3.shape[1])
     size = np.zeros(6)
     root = np.zeros(6)
-    for w in range(n_wells):
+    hyper = (lr, beta1, beta2, eps)
+    for w in range(w1.shape[0]):
         n = n_full[w]
         weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
         for s in range(todo[w]):
-            c0 = 0 if same else s * width
+            c0, n_data, d_factor = _mini_batch(has, w, s, width, same, n, scale[w])
             x0 = np.ascontiguousarray(xn[w, c0 : c0 + width])
-            a1 = np.dot(x0, w1[w])
-            for j in range(width):
-                for k in range(a1.shape[1]):
-                    a1[j, k] += b1[w, k]
-            h1 = np.maximum(a1, 0.0)
-            a2 = np.dot(h1, w2[w])
-            for j in range(width):
-                for k in range(a2.shape[1]):
-                    a2[j, k] += b2[w, k]
-            h2 = np.maximum(a2, 0.0)
-            o = np.dot(h2, w3[w])
-            n_data = 0
-            for j in range(width):
-                if has[w, c0 + j]:
-                    n_data += 1
-            d_factor = 2.0 / max(float(n_data), 1.0) / scale[w] if n > 0 else 0.0
+            a1, h1, a2, h2, o = _nn_forward(params, w, x0)
             delta = np.zeros((width, 1))
             sse = 0.0
             for j in range(width):
@@ -1728,55 +1970,113 @@ def nn_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
                     sse += e * e
                     delta[j, 0] = e * d_factor * scale[w]
             if n > 0:
-                penalty = 0.0
-                for t in range(3):
-                    wt = (w1, w2, w3)[t][w]
-                    bt = (b1, b2, b3)[t][w]
-                    penalty += np.sum(wt * wt) / (2.0 / fan[t]) + np.sum(bt * bt)
+                penalty = _nn_penalty(params, w, fan)
                 losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
-            # backpropagation, as WellMLP.pullback
-            g3 = np.dot(h2.T, delta)
-            gb3 = delta.sum(0)
-            d2 = np.dot(delta, w3[w].T)
-            d2 = np.where(a2 > 0.0, d2, 0.0)
-            g2 = np.dot(h1.T, d2)
-            gb2 = d2.sum(0)
-            d1 = np.dot(d2, w2[w].T)
-            d1 = np.where(a1 > 0.0, d1, 0.0)
-            g1 = np.dot(x0.T, d1)
-            gb1 = d1.sum(0)
-            # the He prior's pull, then the per-well clip over every parameter
-            k1 = 2.0 / (2.0 / fan[0]) * weight
-            k2 = 2.0 / (2.0 / fan[1]) * weight
-            k3 = 2.0 / (2.0 / fan[2]) * weight
-            kb = 2.0 * weight
-            sq = _pull_(g1.reshape(-1), w1[w].reshape(-1), k1)
-            sq += _pull_(gb1, b1[w], kb)
-            sq += _pull_(g2.reshape(-1), w2[w].reshape(-1), k2)
-            sq += _pull_(gb2, b2[w], kb)
-            sq += _pull_(g3.reshape(-1), w3[w].reshape(-1), k3)
-            sq += _pull_(gb3, b3[w], kb)
+            grads = _nn_backward(params, w, x0, (a1, h1, a2, h2), delta)
+            sq = _nn_prior_pull_(params, w, grads, fan, weight)
             clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
             if adam:
-                for t in range(6):
-                    counts[t, w] += 1.0
-                    size[t] = lr / (1.0 - beta1 ** counts[t, w])
-                    root[t] = math.sqrt(1.0 - beta2 ** counts[t, w])
-            m1, v1, mb1, vb1, m2, v2, mb2, vb2, m3, v3, mb3, vb3 = moments
-            hyper = (lr, beta1, beta2, eps)
-            _adam_(w1[w].reshape(-1), g1.reshape(-1), m1[w].reshape(-1), v1[w].reshape(-1),
-                   clip, size[0], root[0], hyper, adam)  # fmt: skip
-            _adam_(b1[w], gb1, mb1[w], vb1[w], clip, size[1], root[1], hyper, adam)
-            _adam_(w2[w].reshape(-1), g2.reshape(-1), m2[w].reshape(-1), v2[w].reshape(-1),
-                   clip, size[2], root[2], hyper, adam)  # fmt: skip
-            _adam_(b2[w], gb2, mb2[w], vb2[w], clip, size[3], root[3], hyper, adam)
-            _adam_(w3[w].reshape(-1), g3.reshape(-1), m3[w].reshape(-1), v3[w].reshape(-1),
-                   clip, size[4], root[4], hyper, adam)  # fmt: skip
-            _adam_(b3[w], gb3, mb3[w], vb3[w], clip, size[5], root[5], hyper, adam)
+                _corrections_(counts, w, size, root, hyper)
+            _nn_step_(params, moments, grads, w, clip, size, root, hyper, adam)
             if validate:
                 val_out[w, s] = _nn_val(
                     w1[w], b1[w], w2[w], b2[w], w3[w], b3[w], xv[w], yv[w], hv[w], scale[w]
                 )
+
+
+@part
+def _nn_forward(params: tuple, w: int, x0: np.ndarray) -> tuple:  # type: ignore[type-arg]
+    """Well w's two-hidden-layer ``nn`` on the mini-batch ``x0`` (products in BLAS): the
+    pre-activations and ReLU activations of both layers and the output before b3."""
+    w1, b1, w2, b2, w3, _ = params
+    a1 = np.dot(x0, w1[w])
+    for j in range(a1.shape[0]):
+        for k in range(a1.shape[1]):
+            a1[j, k] += b1[w, k]
+    h1 = np.maximum(a1, 0.0)
+    a2 = np.dot(h1, w2[w])
+    for j in range(a2.shape[0]):
+        for k in range(a2.shape[1]):
+            a2[j, k] += b2[w, k]
+    h2 = np.maximum(a2, 0.0)
+    return a1, h1, a2, h2, np.dot(h2, w3[w])
+
+
+@part
+def _nn_penalty(params: tuple, w: int, fan: tuple) -> float:  # type: ignore[type-arg]
+    """Well w's He prior penalty before its weight (WellMLP.prior_penalty)."""
+    w1, b1, w2, b2, w3, b3 = params
+    penalty = 0.0
+    for t in range(3):
+        wt = (w1, w2, w3)[t][w]
+        bt = (b1, b2, b3)[t][w]
+        penalty += np.sum(wt * wt) / (2.0 / fan[t]) + np.sum(bt * bt)
+    return penalty
+
+
+@part
+def _nn_backward(params: tuple, w: int, x0: np.ndarray, acts: tuple, delta: np.ndarray) -> tuple:  # type: ignore[type-arg]
+    """Backpropagation of the output's gradient ``delta`` (as WellMLP.pullback): the
+    gradients of W1, b1, W2, b2, W3, b3."""
+    _, _, w2, _, w3, _ = params
+    a1, h1, a2, h2 = acts
+    g3 = np.dot(h2.T, delta)
+    gb3 = delta.sum(0)
+    d2 = np.dot(delta, w3[w].T)
+    d2 = np.where(a2 > 0.0, d2, 0.0)
+    g2 = np.dot(h1.T, d2)
+    gb2 = d2.sum(0)
+    d1 = np.dot(d2, w2[w].T)
+    d1 = np.where(a1 > 0.0, d1, 0.0)
+    g1 = np.dot(x0.T, d1)
+    gb1 = d1.sum(0)
+    return g1, gb1, g2, gb2, g3, gb3
+
+
+@part
+def _nn_prior_pull_(params: tuple, w: int, grads: tuple, fan: tuple, weight: float) -> float:  # type: ignore[type-arg]
+    """The He prior's pull added to the gradients in place; their sum of squares (the clip)."""
+    w1, b1, w2, b2, w3, b3 = params
+    g1, gb1, g2, gb2, g3, gb3 = grads
+    k1 = 2.0 / (2.0 / fan[0]) * weight
+    k2 = 2.0 / (2.0 / fan[1]) * weight
+    k3 = 2.0 / (2.0 / fan[2]) * weight
+    kb = 2.0 * weight
+    sq = _pull_(g1.reshape(-1), w1[w].reshape(-1), k1)
+    sq += _pull_(gb1, b1[w], kb)
+    sq += _pull_(g2.reshape(-1), w2[w].reshape(-1), k2)
+    sq += _pull_(gb2, b2[w], kb)
+    sq += _pull_(g3.reshape(-1), w3[w].reshape(-1), k3)
+    sq += _pull_(gb3, b3[w], kb)
+    return sq
+
+
+@part
+def _nn_step_(  # noqa: PLR0913 - one well's network and its state
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    grads: tuple,  # type: ignore[type-arg]
+    w: int,
+    clip: float,
+    size: np.ndarray,
+    root: np.ndarray,
+    hyper: tuple,  # type: ignore[type-arg]
+    adam: bool,
+) -> None:
+    """One Adam (row t of ``size``, ``root`` for the t-th tensor) or SGD step of well w's
+    six tensors with the clipped gradients."""
+    w1, b1, w2, b2, w3, b3 = params
+    g1, gb1, g2, gb2, g3, gb3 = grads
+    m1, v1, mb1, vb1, m2, v2, mb2, vb2, m3, v3, mb3, vb3 = moments
+    _adam_(w1[w].reshape(-1), g1.reshape(-1), m1[w].reshape(-1), v1[w].reshape(-1),
+           clip, size[0], root[0], hyper, adam)  # fmt: skip
+    _adam_(b1[w], gb1, mb1[w], vb1[w], clip, size[1], root[1], hyper, adam)
+    _adam_(w2[w].reshape(-1), g2.reshape(-1), m2[w].reshape(-1), v2[w].reshape(-1),
+           clip, size[2], root[2], hyper, adam)  # fmt: skip
+    _adam_(b2[w], gb2, mb2[w], vb2[w], clip, size[3], root[3], hyper, adam)
+    _adam_(w3[w].reshape(-1), g3.reshape(-1), m3[w].reshape(-1), v3[w].reshape(-1),
+           clip, size[4], root[4], hyper, adam)  # fmt: skip
+    _adam_(b3[w], gb3, mb3[w], vb3[w], clip, size[5], root[5], hyper, adam)
 
 
 @jit
@@ -1909,137 +2209,196 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     ns_per_year: float,
     fx: tuple,  # type: ignore[type-arg]
 ) -> bool:
-    n_wells, n_samples = y.shape
+    """One step of ``BayesianFilter._update`` over every well's measurements, in place;
+    True when the filter took one."""
     d = state.shape[1]
     pe, scratch = np.zeros(fx[1].shape[0]), _scratch(fx)  # the effects (_factor_at)
-    theta = np.zeros(6)
-    dq = np.zeros(6)
-    xn = np.zeros(6)
-    act = np.zeros(w1.shape[2])
-    H = np.zeros(d)
-    K = np.zeros(d)
-    u = np.zeros(d)
-    v = np.zeros(d)
-    Pg = np.zeros((d, d))
-    AP = np.zeros((d, d))
+    theta, dq, xn, act, H, gain = _bayes_scratch(d, w1.shape[2])
+    filt = (state, P, last, noise, h, scale, started)
+    tally = (run, updates, downweighted, refused_count, resets, changed)
+    rules = (low, high, prior_var, q, keep, fixed, huber, gate, adapt, calibrate, never,
+             reset_after, noise_floor, z90, ns_per_year)  # fmt: skip
     taken = False
-    for w in range(n_wells):
+    for w in range(y.shape[0]):
         # a well's measurements one after another, in column order (the torch path
         # takes every well's k-th measurement together: the wells do not interact)
-        for j in range(n_samples):
+        for j in range(y.shape[1]):
             if not (mask[w, j] and ready[w] and y[w, j] > 0):
                 continue
-            t = time_ns[w, j]
             s = 1 if well_test[w, j] else 0
-            if not started[w]:  # a model but no filter state yet: the prior
-                for a in range(d):
-                    for b in range(d):
-                        P[w, a, b] = 0.0
-                    P[w, a, a] = prior_var[a]
-                last[w] = t
-                started[w] = True
-            # the spread the filter gave this measurement before it arrived (_spread)
-            hph = 0.0
-            hqh = 0.0
-            for a in range(d):
-                hqh += h[w, a] ** 2 * q[a]
-                for b in range(d):
-                    hph += h[w, a] * P[w, a, b] * h[w, b]
-            dt = float(max(t - last[w], 0)) / ns_per_year if last[w] != never else 0.0
-            var = hph + hqh * dt + noise[w, s] ** 2
-            sd_given = math.sqrt(max(var, 0.0)) * math.exp(scale[w, s])
-            # P after the drift since the last update (_grow); kept if refused
-            if last[w] != never and t != never:
-                dt = float(max(t - last[w], 0)) / ns_per_year
-            else:
-                dt = 0.0
-            for a in range(d):
-                P[w, a, a] = P[w, a, a] + q[a] * dt
-            Pg[:, :] = P[w]
-            last[w] = t
-            log_y = math.log(y[w, j])
-            R = noise[w, s] ** 2
+            sd_given = _bayes_arrival_(filt, rules, gain[3], w, s, time_ns[w, j])
             # log h and its gradient H at the current parameters (_log_rate_and_gradient)
             log_h = log_rate_grad(
                 kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
                 w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
             )  # fmt: skip
-            for i in range(d):
-                H[i] = H[i] * keep[i]
-            if calibrate > 0:  # adaptive conformal calibration of this meter's intervals
-                miss = 1.0 if abs(log_y - log_h) > z90 * sd_given else 0.0
-                scale[w, s] += calibrate * (miss - 0.1)
-            hph = 0.0
-            for a in range(d):
-                for b in range(d):
-                    hph += H[a] * Pg[a, b] * H[b]
-            zz = abs(log_y - log_h) / math.sqrt(hph + R)
-            weight = huber / zz if (huber != 0 and zz > huber) else 1.0
-            refused = gate != 0 and zz > gate
-            run[w] = run[w] + 1 if refused else 0
-            if refused and run[w] >= reset_after:  # the well changed: a year's drift
-                for a in range(d):
-                    Pg[a, a] += q[a]
-                resets[w] += 1
-                run[w] = 0
-                refused = False
-                weight = 1.0
-            if refused:
-                refused_count[w] += 1
-                continue
-            if weight < 1:
-                downweighted[w] += 1
-            Rk = R / weight
-            hph = 0.0
-            for a in range(d):
-                for b in range(d):
-                    hph += H[a] * Pg[a, b] * H[b]
-            S = hph + Rk
-            for a in range(d):
-                ph_a = 0.0
-                for b in range(d):
-                    ph_a += Pg[a, b] * H[b]
-                K[a] = ph_a / S
-            innov = log_y - log_h
-            # Joseph form: (I - K H) P (I - K H)^T + K K^T Rk, symmetrised; I - K H is
-            # the identity less a rank one, so each product is O(D^2): A P = P - K (H P),
-            # (A P) A^T = A P - (A P H) K^T
-            for b in range(d):
-                acc = 0.0
-                for c in range(d):
-                    acc += H[c] * Pg[c, b]
-                v[b] = acc
-            for a in range(d):
-                acc = 0.0
-                for b in range(d):
-                    AP[a, b] = Pg[a, b] - K[a] * v[b]
-                    acc += AP[a, b] * H[b]
-                u[a] = acc
-            for a in range(d):
-                for b in range(d):
-                    P[w, a, b] = AP[a, b] - u[a] * K[b] + K[a] * K[b] * Rk
-            for a in range(d):
-                for b in range(a + 1, d):
-                    mean = 0.5 * (P[w, a, b] + P[w, b, a])
-                    P[w, a, b] = mean
-                    P[w, b, a] = mean
-            for i in range(d):
-                state[w, i] = max(min(state[w, i] + K[i] * innov, high[i]), low[i])
-                h[w, i] = H[i]
-            if adapt > 0 and not fixed[s]:
-                # the meter's noise follows the innovations (beyond the parameters')
-                cap = (huber if huber != 0 else 3.0) ** 2 * (hph + R)
-                sample = min(innov**2, cap) - hph
-                new = (1.0 - adapt) * R + adapt * max(sample, noise_floor**2)
-                noise[w, s] = max(math.sqrt(new), noise_floor)
-            updates[w] += 1
-            changed[w] = True
-            taken = True
+            log_y = math.log(y[w, j])
+            if _bayes_update_(filt, tally, rules, gain, H, w, s, log_y, log_h, sd_given):
+                taken = True
     if taken:  # model.project_() after an update: every well within its bounds
-        for w in range(n_wells):
+        for w in range(y.shape[0]):
             for i in range(d):
                 state[w, i] = max(min(state[w, i], high[i]), low[i])
     return taken
+
+
+@part
+def _bayes_scratch(d: int, hidden: int) -> tuple:  # type: ignore[type-arg]
+    """The arrays :func:`bayes` works in: theta, dq, the normalised sample, the hidden
+    activations, H [d]; and the gain's (K, u, v [d], P before the update, A P [d, d])."""
+    gain = (np.zeros(d), np.zeros(d), np.zeros(d), np.zeros((d, d)), np.zeros((d, d)))
+    return np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(hidden), np.zeros(d), gain
+
+
+@part
+def _bayes_arrival_(
+    filt: tuple,  # type: ignore[type-arg]
+    rules: tuple,  # type: ignore[type-arg]
+    Pg: np.ndarray,
+    w: int,
+    s: int,
+    t: int,
+) -> float:
+    """A measurement of well w from meter s arrives at ``t``: the prior if the well has no
+    filter state yet, the spread the filter gave it before it arrived (``_spread``, the
+    return value), then P after the drift since the last update (``_grow``, kept in
+    ``Pg`` too, in case the measurement is refused)."""
+    _, P, last, noise, h, scale, started = filt
+    prior_var, q, never, ns_per_year = rules[2], rules[3], rules[10], rules[14]
+    d = Pg.shape[0]
+    if not started[w]:  # a model but no filter state yet: the prior
+        for a in range(d):
+            for b in range(d):
+                P[w, a, b] = 0.0
+            P[w, a, a] = prior_var[a]
+        last[w] = t
+        started[w] = True
+    hph = 0.0
+    hqh = 0.0
+    for a in range(d):
+        hqh += h[w, a] ** 2 * q[a]
+        for b in range(d):
+            hph += h[w, a] * P[w, a, b] * h[w, b]
+    dt = float(max(t - last[w], 0)) / ns_per_year if last[w] != never else 0.0
+    var = hph + hqh * dt + noise[w, s] ** 2
+    sd_given = math.sqrt(max(var, 0.0)) * math.exp(scale[w, s])
+    if last[w] != never and t != never:
+        dt = float(max(t - last[w], 0)) / ns_per_year
+    else:
+        dt = 0.0
+    for a in range(d):
+        P[w, a, a] = P[w, a, a] + q[a] * dt
+    Pg[:, :] = P[w]
+    last[w] = t
+    return sd_given
+
+
+@part
+def _quadratic(H: np.ndarray, Pg: np.ndarray) -> float:
+    """H P H^T, summed row by row."""
+    hph = 0.0
+    for a in range(H.shape[0]):
+        for b in range(H.shape[0]):
+            hph += H[a] * Pg[a, b] * H[b]
+    return hph
+
+
+@part
+def _bayes_update_(  # noqa: PLR0913 - one measurement and the filter
+    filt: tuple,  # type: ignore[type-arg]
+    tally: tuple,  # type: ignore[type-arg]
+    rules: tuple,  # type: ignore[type-arg]
+    gain: tuple,  # type: ignore[type-arg]
+    H: np.ndarray,
+    w: int,
+    s: int,
+    log_y: float,
+    log_h: float,
+    sd_given: float,
+) -> bool:
+    """One measurement (log y) against the filter's log h and its gradient H (masked by
+    ``keep`` here): the conformal calibration, the robust gate (Huber weight, refusal, a
+    reset after a run of refusals), the Kalman gain and Joseph update, the bounded state,
+    the adapted meter noise and the counts. False when the measurement is refused."""
+    state, P, _, noise, h, scale, _ = filt
+    run, updates, downweighted, refused_count, resets, changed = tally
+    low, high, _, q, keep, fixed, huber, gate, adapt, calibrate = rules[:10]
+    reset_after, noise_floor, z90 = rules[11], rules[12], rules[13]
+    d, K, Pg = H.shape[0], gain[0], gain[3]
+    R = noise[w, s] ** 2
+    for i in range(d):
+        H[i] = H[i] * keep[i]
+    if calibrate > 0:  # adaptive conformal calibration of this meter's intervals
+        miss = 1.0 if abs(log_y - log_h) > z90 * sd_given else 0.0
+        scale[w, s] += calibrate * (miss - 0.1)
+    zz = abs(log_y - log_h) / math.sqrt(_quadratic(H, Pg) + R)
+    weight = huber / zz if (huber != 0 and zz > huber) else 1.0
+    refused = gate != 0 and zz > gate
+    run[w] = run[w] + 1 if refused else 0
+    if refused and run[w] >= reset_after:  # the well changed: a year's drift
+        for a in range(d):
+            Pg[a, a] += q[a]
+        resets[w] += 1
+        run[w] = 0
+        refused = False
+        weight = 1.0
+    if refused:
+        refused_count[w] += 1
+        return False
+    if weight < 1:
+        downweighted[w] += 1
+    Rk = R / weight
+    hph = _joseph_(P, w, H, gain, Rk)
+    innov = log_y - log_h
+    for i in range(d):
+        state[w, i] = max(min(state[w, i] + K[i] * innov, high[i]), low[i])
+        h[w, i] = H[i]
+    if adapt > 0 and not fixed[s]:
+        # the meter's noise follows the innovations (beyond the parameters')
+        cap = (huber if huber != 0 else 3.0) ** 2 * (hph + R)
+        sample = min(innov**2, cap) - hph
+        new = (1.0 - adapt) * R + adapt * max(sample, noise_floor**2)
+        noise[w, s] = max(math.sqrt(new), noise_floor)
+    updates[w] += 1
+    changed[w] = True
+    return True
+
+
+@part
+def _joseph_(P: np.ndarray, w: int, H: np.ndarray, gain: tuple, Rk: float) -> float:  # type: ignore[type-arg]
+    """The Kalman gain K (into ``gain``) and well w's P after the update in Joseph form:
+    (I - K H) P (I - K H)^T + K K^T Rk, symmetrised. I - K H is the identity less a rank
+    one, so each product is O(D^2): A P = P - K (H P), (A P) A^T = A P - (A P H) K^T.
+    Returns H P H^T (P before the update)."""
+    K, u, v, Pg, AP = gain
+    d = H.shape[0]
+    hph = _quadratic(H, Pg)
+    S = hph + Rk
+    for a in range(d):
+        ph_a = 0.0
+        for b in range(d):
+            ph_a += Pg[a, b] * H[b]
+        K[a] = ph_a / S
+    for b in range(d):
+        acc = 0.0
+        for c in range(d):
+            acc += H[c] * Pg[c, b]
+        v[b] = acc
+    for a in range(d):
+        acc = 0.0
+        for b in range(d):
+            AP[a, b] = Pg[a, b] - K[a] * v[b]
+            acc += AP[a, b] * H[b]
+        u[a] = acc
+    for a in range(d):
+        for b in range(d):
+            P[w, a, b] = AP[a, b] - u[a] * K[b] + K[a] * K[b] * Rk
+    for a in range(d):
+        for b in range(a + 1, d):
+            mean = 0.5 * (P[w, a, b] + P[w, b, a])
+            P[w, a, b] = mean
+            P[w, b, a] = mean
+    return hph
 
 
 @jit
@@ -2125,22 +2484,23 @@ def warm_effects() -> None:
     x, ones, yes = _made_up_sample()
     mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
     one = np.ones(6)
-    # erosion with a step, valve (2 knots), a valve family, a meter bias, real gas, slip:
-    # 9 parameters
+    # erosion with a step, valve (2 knots), a valve family, a meter bias, real gas, slip,
+    # a suggested correction, the critical ratio: 11 parameters
     terms = np.array(
         [[FX_EROSION, 0, 2, 0, 1, 0], [FX_VALVE, 2, 2, 0, 2, 0], [FX_FAMILY, 4, 1, 0, 1, 0],
-         [FX_BIAS, 5, 2, 0, 0, 0], [FX_GAS, 7, 1, 0, 0, 0], [FX_SLIP, 8, 1, 0, 0, 0]],
+         [FX_BIAS, 5, 2, 0, 0, 0], [FX_GAS, 7, 1, 0, 0, 0], [FX_SLIP, 8, 1, 0, 0, 0],
+         [FX_SUGGEST, 9, 1, 0, 0, 0], [FX_CRITICAL, 10, 1, 0, 0, 0]],
         dtype=np.int64,
     )  # fmt: skip
-    p = 9
-    fx = (terms, np.zeros(p), np.ones(p), np.ones((1, 1, 1)), np.zeros((1, 1), dtype=bool),
+    p = 11
+    fx = (terms, np.zeros(p), np.ones(p), np.ones((1, 1, 2)), np.zeros((1, 1), dtype=bool),
           np.ones((1, 1), np.int64), np.ones(1) / 2)  # fmt: skip
     ze = np.zeros((1, p))
     effect_rates(np.zeros((1, 6)), x, np.ones(1), mu, one, ze, fx, np.zeros((1, 1)))
-    eff = (ze.copy(), np.zeros((1, p)), np.zeros((1, p)), np.array([1, 1, 2, 2, 3, 4, 4, 5, 6]),
-           -np.ones(p), np.ones(p))  # fmt: skip
+    eff = (ze.copy(), np.zeros((1, p)), np.zeros((1, p)),
+           np.array([1, 1, 2, 2, 3, 4, 4, 5, 6, 7, 8]), -np.ones(p), np.ones(p))  # fmt: skip
     effect_online(
-        np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((5, 1)),
+        np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((9, 1)),
         np.zeros(1, dtype=bool), x, ones, yes, np.ones(1), np.ones(1), mu, one, (-one, one),
         0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, 1, True, eff, fx,
     )  # fmt: skip

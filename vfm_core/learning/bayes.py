@@ -736,16 +736,99 @@ class BayesianFilter(LearningMethod):
             changed |= self._update(one)
         return changed
 
-    def _update(self, one: Batch) -> torch.Tensor:
-        """One measurement per well (masked where none): an iterated EKF step in log space."""
-        model, blocks, n = self.model, self._blocks, one.n_wells
-        live = one.mask[:, 0] & model.ready & (one.y[:, 0] > 0)
-        # a well with a model but no filter state yet (e.g. fitted on its first measurement)
+    def _start_filters(self, one: Batch, live: torch.Tensor) -> None:
+        """Start the filter of each ``live`` well that has a model but no filter state yet
+        (e.g. fitted on its first measurement): its prior covariance, its clock at ``one``."""
         fresh = live & ~self._started
         if bool(fresh.any()):
             self._P[fresh] = torch.diag_embed(self._prior_var).expand(int(fresh.sum()), -1, -1)
             self._last[fresh] = one.time_ns[fresh, 0]
             self._started |= fresh
+
+    def _calibrate_intervals(
+        self,
+        y: torch.Tensor,
+        log_h: torch.Tensor,
+        sd_given: torch.Tensor,
+        live: torch.Tensor,
+        src: torch.Tensor,
+    ) -> None:
+        """Adaptive conformal calibration: was the measurement ``y`` (log) inside the 90 %
+        interval given for it (``sd_given``)? A miss widens that meter's intervals, a hit
+        narrows them a little: in the long run 90 % fall inside, whatever the model lacks."""
+        miss = (y - log_h).abs() > Z90 * sd_given
+        step = self.calibrate * (miss.to(DTYPE) - 0.1)
+        rows = torch.arange(len(y))[live]
+        self._scale[rows, src[live]] += step[live]
+
+    def _screen(
+        self,
+        y: torch.Tensor,
+        log_h: torch.Tensor,
+        H: torch.Tensor,
+        P: torch.Tensor,
+        R: torch.Tensor,
+        live: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The outlier screen on the standardised innovation: ``(live, weight, P)``. A
+        measurement beyond ``gate`` is refused (after :data:`_RESET_AFTER` refusals in a row
+        the well has changed: a year's drift is added to ``P`` and it is taken), one beyond
+        ``huber`` down-weighted (``weight`` < 1 divides its noise variance)."""
+        S0 = torch.einsum("wd,wde,we->w", H, P, H) + R
+        z = (y - log_h) / S0.sqrt()
+        weight = torch.ones(len(y), dtype=DTYPE)
+        if self.huber:
+            weight = torch.where(z.abs() > self.huber, self.huber / z.abs(), weight)
+        refused = live & (z.abs() > self.gate) if self.gate else torch.zeros_like(live)
+        self._run = torch.where(refused, self._run + 1, torch.where(live, 0, self._run))
+        reset = refused & (self._run >= _RESET_AFTER)
+        if bool(reset.any()):  # the well changed: a year's drift, then take it
+            P = P + torch.diag_embed(self._q).unsqueeze(0) * reset.view(-1, 1, 1)
+            self._counts["resets"] += reset.long()
+            self._run = torch.where(reset, 0, self._run)
+            refused = refused & ~reset
+            weight = torch.where(reset, torch.ones_like(weight), weight)
+        self._counts["refused"] += refused.long()
+        self._counts["downweighted"] += (live & ~refused & (weight < 1)).long()
+        return live & ~refused, weight, P
+
+    def _joseph_covariance(
+        self, K: torch.Tensor, H: torch.Tensor, P: torch.Tensor, Rk: torch.Tensor
+    ) -> torch.Tensor:
+        """The parameters' covariance after the update [W, D, D], in Joseph form
+        (A P A' + K Rk K', A = I - K H), made exactly symmetric."""
+        eye = torch.eye(self._dim, dtype=DTYPE)
+        A = eye - torch.einsum("wd,we->wde", K, H)
+        P_new = A @ P @ A.transpose(-1, -2) + torch.einsum("wd,we->wde", K, K) * Rk.view(-1, 1, 1)
+        return 0.5 * (P_new + P_new.transpose(-1, -2))
+
+    def _adapt_noise(
+        self,
+        y: torch.Tensor,
+        h0: torch.Tensor,
+        H0: torch.Tensor,
+        P: torch.Tensor,
+        R: torch.Tensor,
+        live: torch.Tensor,
+        src: torch.Tensor,
+    ) -> None:
+        """The meter's noise follows the innovations (their variance beyond the parameters',
+        capped as the Huber weight caps them), at rate ``adapt``; a noise given fixed stays."""
+        r0 = y - h0
+        hph = torch.einsum("wd,wde,we->w", H0, P, H0)
+        cap = (self.huber or 3.0) ** 2 * (hph + R)
+        sample = torch.clamp(r0**2, max=cap) - hph
+        new = (1 - self.adapt) * R + self.adapt * sample.clamp(min=_NOISE_FLOOR**2)
+        fixed = torch.tensor([self.noise[0] is not None, self.noise[1] is not None])
+        upd = live & ~fixed[src]
+        idx = torch.arange(len(y))[upd]
+        self._noise[idx, src[upd]] = new[upd].sqrt().clamp(min=_NOISE_FLOOR)
+
+    def _update(self, one: Batch) -> torch.Tensor:
+        """One measurement per well (masked where none): an iterated EKF step in log space."""
+        model, blocks, n = self.model, self._blocks, one.n_wells
+        live = one.mask[:, 0] & model.ready & (one.y[:, 0] > 0)
+        self._start_filters(one, live)
         if not bool(live.any()):
             return live
         t = torch.where(live, one.time_ns[:, 0], self._last)
@@ -768,31 +851,8 @@ class BayesianFilter(LearningMethod):
             if i == 0:
                 h0, H0 = log_h, H
                 if self.calibrate > 0:
-                    # adaptive conformal calibration: was the measurement inside the 90 %
-                    # interval given for it? A miss widens that meter's intervals, a hit
-                    # narrows them a little: in the long run 90 % fall inside, whatever the
-                    # model lacks
-                    miss = (y - log_h).abs() > Z90 * sd_given
-                    step = self.calibrate * (miss.to(DTYPE) - 0.1)
-                    rows = torch.arange(n)[live]
-                    self._scale[rows, src[live]] += step[live]
-                S0 = torch.einsum("wd,wde,we->w", H, P, H) + R
-                z = (y - log_h) / S0.sqrt()
-                weight = torch.ones(n, dtype=DTYPE)
-                if self.huber:
-                    weight = torch.where(z.abs() > self.huber, self.huber / z.abs(), weight)
-                refused = live & (z.abs() > self.gate) if self.gate else torch.zeros_like(live)
-                self._run = torch.where(refused, self._run + 1, torch.where(live, 0, self._run))
-                reset = refused & (self._run >= _RESET_AFTER)
-                if bool(reset.any()):  # the well changed: a year's drift, then take it
-                    P = P + torch.diag_embed(self._q).unsqueeze(0) * reset.view(-1, 1, 1)
-                    self._counts["resets"] += reset.long()
-                    self._run = torch.where(reset, 0, self._run)
-                    refused = refused & ~reset
-                    weight = torch.where(reset, torch.ones_like(weight), weight)
-                self._counts["refused"] += refused.long()
-                self._counts["downweighted"] += (live & ~refused & (weight < 1)).long()
-                live = live & ~refused
+                    self._calibrate_intervals(y, log_h, sd_given, live, src)
+                live, weight, P = self._screen(y, log_h, H, P, R, live)
                 if not bool(live.any()):
                     return live
                 Rk = R / weight
@@ -801,25 +861,12 @@ class BayesianFilter(LearningMethod):
             innov = y - log_h - torch.einsum("wd,wd->w", H, m - theta)
             theta = torch.where(live.unsqueeze(1), m + K * innov.unsqueeze(1), m)
         assert H is not None and h0 is not None
-        eye = torch.eye(self._dim, dtype=DTYPE)
-        A = eye - torch.einsum("wd,we->wde", K, H)
-        P_new = A @ P @ A.transpose(-1, -2) + torch.einsum("wd,we->wde", K, K) * Rk.view(-1, 1, 1)
-        P_new = 0.5 * (P_new + P_new.transpose(-1, -2))
-        self._P = torch.where(live.view(-1, 1, 1), P_new, self._P)
+        self._P = torch.where(live.view(-1, 1, 1), self._joseph_covariance(K, H, P, Rk), self._P)
         _assign(blocks, theta, live)
         model.project_()
         self._h = torch.where(live.unsqueeze(1), H0, self._h)
         if self.adapt > 0:
-            # the meter's noise follows the innovations (their variance beyond the parameters')
-            r0 = y - h0
-            hph = torch.einsum("wd,wde,we->w", H0, P, H0)
-            cap = (self.huber or 3.0) ** 2 * (hph + R)
-            sample = torch.clamp(r0**2, max=cap) - hph
-            new = (1 - self.adapt) * R + self.adapt * sample.clamp(min=_NOISE_FLOOR**2)
-            fixed = torch.tensor([self.noise[0] is not None, self.noise[1] is not None])
-            upd = live & ~fixed[src]
-            idx = torch.arange(n)[upd]
-            self._noise[idx, src[upd]] = new[upd].sqrt().clamp(min=_NOISE_FLOOR)
+            self._adapt_noise(y, h0, H0, P, R, live, src)
         self._counts["updates"] += live.long()
         return live
 

@@ -37,13 +37,22 @@ itself (real_gas: Papay's Z in the gas density; slip: the flux times a power of 
 slip multiplier) run there too, one of each per model: the kernels compute that flux and
 its derivatives in closed form (:func:`vfm_core.learning._mm_numba.flux_rate_grad`,
 through Z to M_gas and through both fluxes of the slip factor), and their factor in F is 1.
+``suggest`` (the generic correction ``vfm diagnose`` proposes: linear, log-linear or
+seasonal in one driver, learned or fixed) runs there as a rate factor too: the effect
+computes its per-sample columns with its hook's arithmetic in numpy (the step
+(x - x0) / scale, or the season's sin and cos, or the whole fixed factor:
+``Suggest.compiled_columns``, appended to the batch's features by :func:`_fx`) and the
+kernel's factor and dF / dk follow the form. ``critical_ratio`` runs there as well: the
+kernels solve Sachdeva's ratio y_c per sample by the torch hook's bisection and compute the
+flux at p_cr + weight (y_c - p_cr); like the hook, no gradient flows through y_c
+(:func:`vfm_core.learning._mm_numba._rate_at`). Not beside real gas (torch then).
 ``tests/test_effect_kernels.py`` compares them with the torch path and with autograd.
 
 It is the same algorithm, not a new one: ``tests/test_kernels.py`` checks each against
 the torch path (parameters, optimiser and filter states to 1e-10 or better after many
-updates, predictions to 1e-13, the gradient against autograd). Anything else (the
-critical ratio, ``suggest``, a user's effect without a compiled form, two effects of one
-flux kind; another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
+updates, predictions to 1e-13, the gradient against autograd). Anything else (a user's
+effect without a compiled form, two effects of one flux kind, the critical ratio beside
+real gas; another optimiser or a schedule, ``bayes:iterations=2``) runs the torch path.
 
 ``VFM_KERNELS=0`` in the environment turns the kernels off (the torch path then runs), for
 a comparison side by side or where numba cannot compile.
@@ -102,6 +111,8 @@ __all__ = [
 _NAMES = ("rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d")
 _SIX = np.arange(6)
 _FIVE = np.array([0, 1, 2, 3, 4, -1])
+#: CompiledFactor.SUGGEST: an effect whose columns the model computes (``compiled_columns``)
+_SUGGEST = 7
 
 #: the compiled functions (``online``, ``rates``, ``bayes``, ``bayes_spread``), once built
 _KERNEL: SimpleNamespace | None = None
@@ -955,11 +966,13 @@ def _effect_terms(model: Any, names: tuple[str, ...]) -> np.ndarray:
     cache: dict[tuple[str, ...], np.ndarray] = model.__dict__.setdefault("_vfm_terms", {})
     terms = cache.get(names)
     if terms is None:
-        rows, start = [], 0
+        rows, start, made = [], 0, len(names)
         for e in model.effects:
             form = e.compiled_factor()
             size = len(e.parameters)
             column = names.index(form.column) if form.column is not None else 0
+            if form.code == _SUGGEST:  # its two columns after the batch's features
+                column, made = made, made + 2
             rows.append([form.code, start, size, column, *form.settings])
             start += size
         terms = np.array(rows, dtype=np.int64).reshape(len(rows), 6)
@@ -991,6 +1004,9 @@ def _fx(model: Any, batch: Any) -> tuple[np.ndarray, ...]:
     extra = (
         np.zeros((n_w, n, 0)) if batch.extra is None else np.ascontiguousarray(batch.extra.numpy())
     )
+    made = model.compiled_columns(batch)  # the effects' own columns (suggest's driver)
+    if made is not None:
+        extra = np.ascontiguousarray(np.concatenate([extra, made], -1))
     test = (
         np.zeros((n_w, n), dtype=bool)
         if batch.well_test is None

@@ -2,7 +2,7 @@
 
 One protocol, implemented once per method, used alike by the prequential study
 (:func:`vfm_core.jobs.study.run_prequential`, all wells at once), the streaming learner
-(:class:`vfm_core.streaming.WellLearner`, one well) and therefore the service. A method
+(:class:`vfm_core.learning.streaming.WellLearner`, one well) and therefore the service. A method
 object holds the method's hyperparameters (parsed from its text, ``pbl:14d``) and, once
 bound to a model, its learned state; the model's parameters stay in the model.
 
@@ -32,8 +32,8 @@ Life of a method, for a model of W wells::
   ``predict_many`` / ``learn_many``. Each method stacks its own calls (``ol`` and
   ``bayes`` in their modules, the models through :mod:`vfm_core.learning.stacking`); the
   defaults predict with the stacked models and learn one well at a time, so a new method
-  is correct without them (:func:`vfm_core.streaming.predict_many`,
-  :func:`vfm_core.streaming.learn_many`).
+  is correct without them (:func:`vfm_core.learning.streaming.predict_many`,
+  :func:`vfm_core.learning.streaming.learn_many`).
 
 Methods register with :func:`register`; :func:`parse_method` finds a method by the start
 of its text and lists the valid ones for an unknown text. A new method is a subclass in

@@ -442,12 +442,77 @@ def _compiled_order(
     return (order, run) if _same_parameters(params, order) else None
 
 
-def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's Adam per well
-    stacked: StackedModel, learners: list[OnlineLearning], batch: Batch
-) -> Callable[[], None]:
-    """``ol``'s E optimiser steps (:meth:`OnlineLearning._learn`) on the stacked model, each
-    well with its own Adam moments and step count (its own bias correction), its own
-    gradient clipping and projection. Returns what writes the optimiser states back."""
+@dataclass
+class _StackedOptimiser:
+    """The learners' optimiser states over the stacked model's parameters: per stacked
+    parameter (``params``), each learner's own tensor (``own``), the wells' Adam moments
+    stacked along the well dimension (None with SGD) and their step counts; ``stepped``
+    counts the steps each stacked parameter took here (torch's Adam skips one without a
+    gradient), ``factors`` caches the wells' bias corrections by step counts."""
+
+    opts: list[torch.optim.Optimizer]
+    adam: bool
+    lr: float
+    betas: tuple[float, float]
+    eps: float
+    params: list[torch.nn.Parameter]
+    own: list[list[torch.nn.Parameter]]
+    moments: list[tuple[torch.Tensor, torch.Tensor] | None]
+    steps: list[list[float]]
+
+    def __post_init__(self) -> None:
+        self.stepped = [0] * len(self.params)
+        self.factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def adam_step_(self, j: int, p: torch.nn.Parameter, g: torch.Tensor) -> None:
+        """torch's Adam step on stacked parameter ``j`` (``p``, gradient ``g``), each well
+        with its own step count and so its own bias correction."""
+        beta1, beta2 = self.betas
+        lr, k = self.lr, len(self.opts)
+        exp_avg, exp_avg_sq = self.moments[j]  # type: ignore[misc]
+        counts = self.steps[j] = [c + 1.0 for c in self.steps[j]]
+        exp_avg.lerp_(g, 1 - beta1)
+        exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+        fk = (p.dim(), *counts)
+        if fk not in self.factors:  # each well's bias correction, as torch's Adam's
+            shape = (k, *([1] * (p.dim() - 1)))
+            size = [-(lr / (1 - beta1**c)) for c in counts]
+            root = [(1 - beta2**c) ** 0.5 for c in counts]
+            self.factors[fk] = (
+                torch.tensor(size, dtype=p.dtype).reshape(shape),
+                torch.tensor(root, dtype=p.dtype).reshape(shape),
+            )
+        neg_step_size, bias_correction2_sqrt = self.factors[fk]
+        # torch: param.addcdiv_(exp_avg, denom, value=-step_size), per well here
+        denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(self.eps)
+        p.addcdiv_(exp_avg * neg_step_size, denom)
+
+    def write_back(self) -> None:
+        """Each well's optimiser state, in place (the learners' tensors stay their own)."""
+        if not self.adam:
+            return
+        scalar = _torch_optimizer._get_scalar_dtype()
+        with torch.no_grad():
+            for j in range(len(self.params)):
+                if not self.stepped[j]:
+                    continue
+                exp_avg, exp_avg_sq = self.moments[j]  # type: ignore[misc]
+                states = [opt.state[q] for opt, q in zip(self.opts, self.own[j], strict=True)]
+                for st, q in zip(states, self.own[j], strict=True):
+                    if not st:  # its first step: the state torch's Adam would create
+                        st["step"] = torch.tensor(0.0, dtype=scalar)
+                        st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                        st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
+                # (integer step counts: adding them at once is adding one per step)
+                torch._foreach_add_([st["step"] for st in states], float(self.stepped[j]))
+                torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
+                torch._foreach_copy_(
+                    [st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0))
+                )
+
+
+def _stacked_optimiser(stacked: StackedModel, learners: list[OnlineLearning]) -> _StackedOptimiser:
+    """The learners' optimisers gathered over the stacked model's trainable parameters."""
     model = stacked.model
     trainable = [w for w in stacked.parameters() if stacked.tensor(model, w).requires_grad]
     if not trainable:
@@ -455,10 +520,8 @@ def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's
     opts = [lrn._optimiser() for lrn in learners]
     group = opts[0].param_groups[0]
     adam = isinstance(opts[0], torch.optim.Adam)
-    lr = group["lr"]
     betas = tuple(group["betas"]) if adam else (0.9, 0.999)
     eps = group["eps"] if adam else 1e-8
-    k = len(learners)
     # the stacked parameters and, per parameter, the wells' Adam states and step counts
     params: list[torch.nn.Parameter] = []
     own: list[list[torch.nn.Parameter]] = []  # per stacked parameter: each learner's own
@@ -481,11 +544,27 @@ def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's
             )
         )
         steps.append([float(st["step"]) if st else 0.0 for st in states])
-    stepped = [0] * len(params)  # steps each parameter took (torch's Adam skips no-gradient ones)
+    return _StackedOptimiser(
+        opts=opts,
+        adam=adam,
+        lr=group["lr"],
+        betas=betas,  # type: ignore[arg-type]
+        eps=eps,
+        params=params,
+        own=own,
+        moments=moments,
+        steps=steps,
+    )
+
+
+def _compiled_stacked_steps(
+    opt: _StackedOptimiser, model: ChokeModel, learners: list[OnlineLearning], batch: Batch
+) -> None:
+    """The E steps compiled, where the kernels take them for this model and optimiser
+    (``opt.stepped`` set then; left at 0 otherwise)."""
     s = learners[0].online
-    groups = split_parameters(model)
-    objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
-    factors: dict[tuple[float, ...], tuple[torch.Tensor, torch.Tensor]] = {}
+    params, adam, k = opt.params, opt.adam, len(learners)
+    lr, betas, eps, steps, moments = opt.lr, opt.betas, opt.eps, opt.steps, opt.moments
     if (compiled := _compiled_order(model, params)) is not None:
         order, run = compiled
         index = [[id(p) for p in params].index(id(q)) for q in order]
@@ -496,7 +575,7 @@ def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's
             max_norm=s.max_grad_norm,
         )  # fmt: skip
         for j in index:
-            stepped[j] = s.steps
+            opt.stepped[j] = s.steps
     elif (
         not adam
         and all(lrn._nn and lrn._compiled for lrn in learners)
@@ -507,60 +586,40 @@ def _stacked_steps(  # noqa: PLR0912, PLR0915 - the compiled paths, then torch's
         sgd_online_steps(
             model, batch, np.zeros(k, dtype=bool), steps=s.steps, lr=lr, max_norm=s.max_grad_norm
         )
-        stepped = [s.steps] * len(params)
-    for _ in range(0 if stepped[0] else s.steps):
-        objective.gradients_(params)
+        opt.stepped = [s.steps] * len(params)
+
+
+def _torch_stacked_steps(
+    opt: _StackedOptimiser, model: ChokeModel, s: OnlineSettings, batch: Batch
+) -> None:
+    """The E steps in torch: the MAP objective's gradients, each well's clipping, the
+    optimiser's step per well (SGD, or :meth:`_StackedOptimiser.adam_step_`), projection."""
+    groups = split_parameters(model)
+    objective = MapObjective(model, batch, s.noise, True, batch.count().to(DTYPE))
+    for _ in range(s.steps):
+        objective.gradients_(opt.params)
         clip_per_well_(model, s.max_grad_norm, groups)
         with torch.no_grad():
-            for j, p in enumerate(params):
+            for j, p in enumerate(opt.params):
                 g = p.grad
                 if g is None:  # no gradient this step: torch's Adam skips the parameter
                     continue
-                stepped[j] += 1
-                if not adam:
-                    p.add_(g, alpha=-lr)
+                opt.stepped[j] += 1
+                if not opt.adam:
+                    p.add_(g, alpha=-opt.lr)
                     continue
-                beta1, beta2 = betas
-                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
-                counts = steps[j] = [c + 1.0 for c in steps[j]]
-                exp_avg.lerp_(g, 1 - beta1)
-                exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
-                fk = (p.dim(), *counts)
-                if fk not in factors:  # each well's bias correction, as torch's Adam's
-                    shape = (k, *([1] * (p.dim() - 1)))
-                    size = [-(lr / (1 - beta1**c)) for c in counts]
-                    root = [(1 - beta2**c) ** 0.5 for c in counts]
-                    factors[fk] = (
-                        torch.tensor(size, dtype=p.dtype).reshape(shape),
-                        torch.tensor(root, dtype=p.dtype).reshape(shape),
-                    )
-                neg_step_size, bias_correction2_sqrt = factors[fk]
-                # torch: param.addcdiv_(exp_avg, denom, value=-step_size), per well here
-                denom = exp_avg_sq.sqrt().div_(bias_correction2_sqrt).add_(eps)
-                p.addcdiv_(exp_avg * neg_step_size, denom)
+                opt.adam_step_(j, p, g)
         model.project_()
 
-    def finish() -> None:
-        """Each well's optimiser state, in place (the learners' tensors stay their own)."""
-        if not adam:
-            return
-        scalar = _torch_optimizer._get_scalar_dtype()
-        with torch.no_grad():
-            for j in range(len(params)):
-                if not stepped[j]:
-                    continue
-                exp_avg, exp_avg_sq = moments[j]  # type: ignore[misc]
-                states = [opt.state[q] for opt, q in zip(opts, own[j], strict=True)]
-                for st, q in zip(states, own[j], strict=True):
-                    if not st:  # its first step: the state torch's Adam would create
-                        st["step"] = torch.tensor(0.0, dtype=scalar)
-                        st["exp_avg"] = torch.zeros_like(q, memory_format=torch.preserve_format)
-                        st["exp_avg_sq"] = torch.zeros_like(q, memory_format=torch.preserve_format)
-                # (integer step counts: adding them at once is adding one per step)
-                torch._foreach_add_([st["step"] for st in states], float(stepped[j]))
-                torch._foreach_copy_([st["exp_avg"] for st in states], list(exp_avg.split(1, 0)))
-                torch._foreach_copy_(
-                    [st["exp_avg_sq"] for st in states], list(exp_avg_sq.split(1, 0))
-                )
 
-    return finish
+def _stacked_steps(
+    stacked: StackedModel, learners: list[OnlineLearning], batch: Batch
+) -> Callable[[], None]:
+    """``ol``'s E optimiser steps (:meth:`OnlineLearning._learn`) on the stacked model, each
+    well with its own Adam moments and step count (its own bias correction), its own
+    gradient clipping and projection. Returns what writes the optimiser states back."""
+    opt = _stacked_optimiser(stacked, learners)
+    _compiled_stacked_steps(opt, stacked.model, learners, batch)
+    if not opt.stepped[0]:
+        _torch_stacked_steps(opt, stacked.model, learners[0].online, batch)
+    return opt.write_back

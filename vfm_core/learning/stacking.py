@@ -1,6 +1,6 @@
 """Many one-well models run as one multi-well model: what the methods' group operations use.
 
-A service holds one :class:`~vfm_core.streaming.WellLearner` per well, each with its own
+A service holds one :class:`~vfm_core.learning.streaming.WellLearner` per well, each with its own
 one-well model. Models of the same class and hyperparameters (the same
 :meth:`~vfm_core.models.base.ChokeModel.stack_key`) keep their per-well tensors with a
 leading well dimension of one, so K of them concatenated along that dimension are the

@@ -549,6 +549,231 @@ def clip_per_well_(
 _RETRAIN_PATIENCE = 2
 
 
+@dataclass
+class _Fit:
+    """What the two passes of :func:`fit_batch` share: the model, its trainable parameters
+    (``groups``: :func:`split_parameters`), the settings, each well's random stream, the
+    time limit (``time.monotonic()``; None: none) and whether it was reached."""
+
+    model: ChokeModel
+    params: list[torch.nn.Parameter]
+    groups: tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]]
+    settings: TrainSettings
+    gens: list[torch.Generator]
+    deadline: float | None
+    timed_out: bool = False
+
+    def optimiser(self) -> tuple[torch.optim.Optimizer, Any]:
+        """A fresh optimiser over the parameters and its learning-rate schedule (or None)."""
+        s = self.settings
+        return make_optimizer(self.params, s.optimizer, s.lr, s.schedule_power)
+
+    def compiled(self, opt: torch.optim.Optimizer, sched: Any) -> Any:
+        """The kernels' compiled steps for ``opt`` (:func:`_compiled_fit`), or None where
+        they do not take them (a time limit, a schedule, an optimiser with hooks)."""
+        if self.deadline is not None or sched is not None or not plain_optimizer(opt):
+            return None
+        return _compiled_fit(self.model, self.params, opt)
+
+    def step(self, sampler: _Sampler, opt: torch.optim.Optimizer, sched: Any) -> torch.Tensor:
+        """One MAP step on the next mini-batch (gradients, each well's clipping, the
+        optimiser's step, the schedule, projection); returns the per-well objective [W]."""
+        loss = _map_step_gradients(self.model, self.params, sampler, self.settings)
+        clip_per_well_(self.model, self.settings.max_grad_norm, self.groups)
+        optimizer_step_(opt)
+        if sched is not None:
+            sched.step()
+        self.model.project_()
+        return loss
+
+    def out_of_time(self) -> bool:
+        """Whether the time limit has passed."""
+        return self.deadline is not None and time.monotonic() > self.deadline
+
+
+def _iteration_plan(
+    model: ChokeModel,
+    batch: Batch,
+    settings: TrainSettings,
+    iterations: torch.Tensor | None,
+    rechoose: torch.Tensor | None,
+    has_val: torch.Tensor,
+) -> tuple[TrainSettings, torch.Tensor | None, torch.Tensor, torch.Tensor]:
+    """``(settings, iterations, best_iter, has_val)`` before the passes: the iteration
+    counts given (an initial fit without early stopping runs ``max_iter`` in full), each
+    well's count to start from, and which wells early stopping searches a count for."""
+    n_w = batch.n_wells
+    best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
+    # a periodic retrain (warm start, the iteration counts given) may stop on convergence;
+    # an initial fit without early stopping runs its max_iter in full ("to convergence")
+    if iterations is None and not settings.early_stopping:
+        iterations = torch.full((n_w,), settings.max_iter, dtype=torch.int64)
+        settings = replace(
+            settings, retrain_max_iter=max(settings.retrain_max_iter, settings.max_iter)
+        )
+    if iterations is not None:
+        fallback = torch.full_like(iterations, settings.default_iter)
+        best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
+            max=settings.retrain_max_iter
+        )
+        if rechoose is None or not settings.early_stopping:
+            has_val = torch.zeros_like(has_val)
+        else:
+            again = rechoose & (batch.count() > 0)
+            has_val = has_val & (again.any() if model.shared else again)
+    return settings, iterations, best_iter, has_val
+
+
+def _validation_loss(model: ChokeModel, val: Batch, has_val: torch.Tensor) -> torch.Tensor:
+    """Mean squared scaled error on ``val`` per well [W] (for shared parameters the sum over
+    the wells with a held-out slice, for every well: one early-stopping decision)."""
+    with torch.no_grad():
+        v = (scaled_errors(model, val) ** 2).sum(1) / val.count().clamp(min=1)
+        if model.shared:  # one early-stopping decision for shared parameters
+            total = torch.where(has_val, v, torch.zeros_like(v)).sum()
+            v = torch.full_like(v, float(total))
+    return v
+
+
+def _choose_iterations(
+    fit: _Fit,
+    train: Batch,
+    val: Batch,
+    has_val: torch.Tensor,
+    best_iter: torch.Tensor,
+    retrain: bool,
+) -> torch.Tensor:
+    """Pass 1: each ``has_val`` well's iteration count chosen by early stopping on its
+    held-out latest slice ``val`` (training on ``train``); the other wells keep
+    ``best_iter``. The parameters are put back where they started."""
+    s = fit.settings
+    start = _snapshot(fit.params)
+    given = best_iter.clone()
+    opt, sched = fit.optimiser()
+    n_w = len(best_iter)
+    best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
+    since = torch.zeros(n_w, dtype=torch.int64)
+    # a retrain that chooses some wells' counts again leaves the others' random streams
+    # where they were: their pass 2 is the one they would have had without the search
+    kept = (
+        [(g, g.get_state()) for g, v in zip(fit.gens, has_val.tolist(), strict=True) if not v]
+        if retrain
+        else []
+    )
+    sampler = _Sampler(train, s.batch_size, fit.gens)
+    # a retrain runs at most retrain_max_iter: looking further for its count is waste
+    search = min(s.max_iter, s.retrain_max_iter) if retrain else s.max_iter
+    compiled = fit.compiled(opt, sched)
+    if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
+        best_iter = compiled.search(
+            sampler, val, has_val, best_iter, search, s.patience, s.noise, s.max_grad_norm
+        )
+        search = 0  # done: the loop below has nothing left to run
+    for k in range(1, search + 1):
+        fit.step(sampler, opt, sched)
+        v = _validation_loss(fit.model, val, has_val)
+        improved = has_val & (v < best_loss - 1e-12)
+        best_loss = torch.where(improved, v, best_loss)
+        best_iter = torch.where(improved, torch.full_like(best_iter, k), best_iter)
+        since = torch.where(improved, torch.zeros_like(since), since + 1)
+        if bool((since[has_val] >= s.patience).all()):
+            break
+        if fit.out_of_time():
+            fit.timed_out = True
+            break
+    sampler.finish()  # pass 2 continues each well's random stream
+    for gen, state in kept:
+        gen.set_state(state)
+    for p, s0 in zip(fit.params, start, strict=True):
+        p.data.copy_(s0)
+    return torch.where(has_val, best_iter, given)
+
+
+@dataclass
+class _Convergence:
+    """A retrain's stop on convergence: the per-well objective summed over blocks of
+    ``check`` steps; a well stops once :data:`_RETRAIN_PATIENCE` blocks in a row improved
+    its best block mean by less than ``tol`` (relative; one decision for shared parameters)."""
+
+    n_wells: int
+    check: int
+    tol: float
+    shared: bool
+
+    def __post_init__(self) -> None:
+        self.block = torch.zeros(self.n_wells, dtype=DTYPE)
+        self.best_block = torch.full((self.n_wells,), float("inf"), dtype=DTYPE)
+        self.stale = torch.zeros(self.n_wells, dtype=torch.int64)
+
+    def after_step(
+        self, k: int, loss: torch.Tensor, best_iter: torch.Tensor, total_iter: int
+    ) -> tuple[torch.Tensor, int]:
+        """After step ``k`` with per-well objective ``loss``: ``(best_iter, total_iter)``,
+        the wells that converged stopping at ``k``."""
+        self.block += loss.detach()
+        if k % self.check == 0 and k < total_iter:
+            mean = self.block / self.check
+            if self.shared:  # one decision for shared parameters, as in early stopping
+                mean = torch.full_like(mean, float(mean.sum()))
+            improved = mean < self.best_block * (1.0 - self.tol)
+            self.best_block = torch.minimum(self.best_block, mean)
+            self.stale = torch.where(improved, torch.zeros_like(self.stale), self.stale + 1)
+            stop = (self.stale >= _RETRAIN_PATIENCE) & (best_iter > k)
+            if bool(stop.any()):
+                best_iter = torch.where(stop, torch.full_like(best_iter, k), best_iter)
+                total_iter = int(best_iter.max())
+            self.block.zero_()
+        return best_iter, total_iter
+
+
+def _train_to_counts(
+    fit: _Fit, batch: Batch, best_iter: torch.Tensor, retrain: bool
+) -> torch.Tensor:
+    """Pass 2: from the start, on all of ``batch``, each well for its count ``best_iter``
+    (a retrain also stops a well once it has converged; the time limit stops every well
+    still running); each well ends at its own count. Returns the counts run."""
+    model, s, params = fit.model, fit.settings, fit.params
+    if model.shared:
+        best_iter = torch.full_like(best_iter, int(best_iter.max()))
+    per_well = set(map(id, model.per_well_parameters()))
+    opt, sched = fit.optimiser()
+    final = _snapshot(params)
+    total_iter = int(best_iter.max())
+    # a retrain (warm start) also stops each well once its objective has converged
+    check = max(int(s.retrain_check), 1)
+    sampler = _Sampler(batch, s.batch_size, fit.gens)
+    # on mini-batches the blocks' means are noisy: only an exact objective stops a retrain
+    converge = retrain and s.retrain_tol > 0 and total_iter > 2 * check and sampler.full
+    watch = _Convergence(len(best_iter), check, s.retrain_tol, model.shared)
+    compiled = fit.compiled(opt, sched)
+    if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
+        stops = (check, s.retrain_tol, _RETRAIN_PATIENCE) if converge else None
+        best_iter = compiled.run(sampler, best_iter, s.noise, s.max_grad_norm, stops)
+        total_iter = 0  # each well stopped at its own count: nothing to restore below
+    for k in range(1, total_iter + 1):
+        loss = fit.step(sampler, opt, sched)
+        if converge:
+            best_iter, total_iter = watch.after_step(k, loss, best_iter, total_iter)
+        if k < total_iter and fit.out_of_time():
+            # out of time: every well still running stops here, where it is
+            fit.timed_out = True
+            best_iter = best_iter.clamp(max=k)
+            total_iter = k
+        done = best_iter == k
+        if bool(done.any()):
+            for p, f in zip(params, final, strict=True):
+                if id(p) in per_well:
+                    f[done] = p.detach()[done]
+        if k >= total_iter:
+            break
+    for p, f in zip(params, final, strict=True):
+        if id(p) in per_well and compiled is None:
+            # wells that stopped early keep their snapshot; the rest end at total_iter
+            keep = best_iter < total_iter
+            p.data[keep] = f[keep]
+    return best_iter
+
+
 def fit_batch(
     model: ChokeModel,
     batch: Batch,
@@ -579,96 +804,18 @@ def fit_batch(
         return {"iterations": torch.zeros(batch.n_wells, dtype=torch.int64)}
     params = [p for p in model.parameters() if p.requires_grad]
     groups = split_parameters(model)
-    start = _snapshot(params)
     gens = well_generators(batch.wells, settings.seed)
     if wells is not None and not model.shared:
         batch = batch.select(batch.mask & wells.unsqueeze(1))
     train, val, has_val = _split_latest(batch, settings.val_fraction)
-    timed_out = False
-    n_w = batch.n_wells
-    best_iter = torch.full((n_w,), settings.default_iter, dtype=torch.int64)
-
-    # a periodic retrain (warm start, the iteration counts given) may stop on convergence;
-    # an initial fit without early stopping runs its max_iter in full ("to convergence")
     retrain = iterations is not None
-    if iterations is None and not settings.early_stopping:
-        iterations = torch.full((n_w,), settings.max_iter, dtype=torch.int64)
-        settings = replace(
-            settings, retrain_max_iter=max(settings.retrain_max_iter, settings.max_iter)
-        )
-    if iterations is not None:
-        fallback = torch.full_like(iterations, settings.default_iter)
-        best_iter = torch.where(iterations > 0, iterations, fallback).clamp(
-            max=settings.retrain_max_iter
-        )
-        if rechoose is None or not settings.early_stopping:
-            has_val = torch.zeros_like(has_val)
-        else:
-            again = rechoose & (batch.count() > 0)
-            has_val = has_val & (again.any() if model.shared else again)
-    given = best_iter.clone()
+    settings, iterations, best_iter, has_val = _iteration_plan(
+        model, batch, settings, iterations, rechoose, has_val
+    )
+    fit = _Fit(model, params, groups, settings, gens, deadline)
     # pass 1: find the best iteration count on the held-out latest slice
     if bool(has_val.any()):
-        opt, sched = make_optimizer(
-            params, settings.optimizer, settings.lr, settings.schedule_power
-        )
-        best_loss = torch.full((n_w,), float("inf"), dtype=DTYPE)
-        since = torch.zeros(n_w, dtype=torch.int64)
-        # a retrain that chooses some wells' counts again leaves the others' random streams
-        # where they were: their pass 2 is the one they would have had without the search
-        kept = (
-            [(g, g.get_state()) for g, v in zip(gens, has_val.tolist(), strict=True) if not v]
-            if retrain
-            else []
-        )
-        sampler = _Sampler(train, settings.batch_size, gens)
-        # a retrain runs at most retrain_max_iter: looking further for its count is waste
-        search = min(settings.max_iter, settings.retrain_max_iter) if retrain else settings.max_iter
-        compiled = (
-            None
-            if deadline is not None or sched is not None or not plain_optimizer(opt)
-            else _compiled_fit(model, params, opt)
-        )
-        if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
-            best_iter = compiled.search(
-                sampler,
-                val,
-                has_val,
-                best_iter,
-                search,
-                settings.patience,
-                settings.noise,
-                settings.max_grad_norm,
-            )
-            search = 0  # done: the loop below has nothing left to run
-        for k in range(1, search + 1):
-            _map_step_gradients(model, params, sampler, settings)
-            clip_per_well_(model, settings.max_grad_norm, groups)
-            optimizer_step_(opt)
-            if sched is not None:
-                sched.step()
-            model.project_()
-            with torch.no_grad():
-                v = (scaled_errors(model, val) ** 2).sum(1) / val.count().clamp(min=1)
-                if model.shared:  # one early-stopping decision for shared parameters
-                    total = torch.where(has_val, v, torch.zeros_like(v)).sum()
-                    v = torch.full_like(v, float(total))
-            improved = has_val & (v < best_loss - 1e-12)
-            best_loss = torch.where(improved, v, best_loss)
-            best_iter = torch.where(improved, torch.full_like(best_iter, k), best_iter)
-            since = torch.where(improved, torch.zeros_like(since), since + 1)
-            if bool((since[has_val] >= settings.patience).all()):
-                break
-            if deadline is not None and time.monotonic() > deadline:
-                timed_out = True
-                break
-        sampler.finish()  # pass 2 continues each well's random stream
-        for gen, state in kept:
-            gen.set_state(state)
-        best_iter = torch.where(has_val, best_iter, given)
-        for p, s in zip(params, start, strict=True):
-            p.data.copy_(s)
-
+        best_iter = _choose_iterations(fit, train, val, has_val, best_iter, retrain)
     chosen = (
         torch.where(has_val, best_iter, iterations)
         if retrain and iterations is not None
@@ -677,68 +824,13 @@ def fit_batch(
     if retrain:
         best_iter = best_iter.clamp(max=settings.retrain_max_iter)
     # pass 2: from the same start, on all data, each well for its chosen iteration count
-    if model.shared:
-        best_iter = torch.full_like(best_iter, int(best_iter.max()))
-    per_well = set(map(id, model.per_well_parameters()))
-    opt, sched = make_optimizer(params, settings.optimizer, settings.lr, settings.schedule_power)
-    final = _snapshot(params)
-    total_iter = int(best_iter.max())
-    # a retrain (warm start) also stops each well once its objective has converged
-    check = max(int(settings.retrain_check), 1)
-    sampler = _Sampler(batch, settings.batch_size, gens)
-    # on mini-batches the blocks' means are noisy: only an exact objective stops a retrain
-    converge = retrain and settings.retrain_tol > 0 and total_iter > 2 * check and sampler.full
-    block = torch.zeros(n_w, dtype=DTYPE)
-    best_block = torch.full((n_w,), float("inf"), dtype=DTYPE)
-    stale = torch.zeros(n_w, dtype=torch.int64)
-    compiled = (
-        None
-        if deadline is not None or sched is not None or not plain_optimizer(opt)
-        else _compiled_fit(model, params, opt)
-    )
-    if compiled is not None:  # the same steps without a torch call each (kernels.FitSteps)
-        stops = (check, settings.retrain_tol, _RETRAIN_PATIENCE) if converge else None
-        best_iter = compiled.run(sampler, best_iter, settings.noise, settings.max_grad_norm, stops)
-        total_iter = 0  # each well stopped at its own count: nothing to restore below
-    for k in range(1, total_iter + 1):
-        per_well_loss_k = _map_step_gradients(model, params, sampler, settings)
-        clip_per_well_(model, settings.max_grad_norm, groups)
-        optimizer_step_(opt)
-        if sched is not None:
-            sched.step()
-        model.project_()
-        if converge:
-            block += per_well_loss_k.detach()
-            if k % check == 0 and k < total_iter:
-                mean = block / check
-                if model.shared:  # one decision for shared parameters, as in early stopping
-                    mean = torch.full_like(mean, float(mean.sum()))
-                improved = mean < best_block * (1.0 - settings.retrain_tol)
-                best_block = torch.minimum(best_block, mean)
-                stale = torch.where(improved, torch.zeros_like(stale), stale + 1)
-                stop = (stale >= _RETRAIN_PATIENCE) & (best_iter > k)
-                if bool(stop.any()):
-                    best_iter = torch.where(stop, torch.full_like(best_iter, k), best_iter)
-                    total_iter = int(best_iter.max())
-                block.zero_()
-        if deadline is not None and time.monotonic() > deadline and k < total_iter:
-            # out of time: every well still running stops here, where it is
-            timed_out = True
-            best_iter = best_iter.clamp(max=k)
-            total_iter = k
-        done = best_iter == k
-        if bool(done.any()):
-            for p, f in zip(params, final, strict=True):
-                if id(p) in per_well:
-                    f[done] = p.detach()[done]
-        if k >= total_iter:
-            break
-    for p, f in zip(params, final, strict=True):
-        if id(p) in per_well and compiled is None:
-            # wells that stopped early keep their snapshot; the rest end at total_iter
-            keep = best_iter < total_iter
-            p.data[keep] = f[keep]
-    return {"iterations": best_iter, "chosen": chosen, "searched": has_val, "timed_out": timed_out}
+    best_iter = _train_to_counts(fit, batch, best_iter, retrain)
+    return {
+        "iterations": best_iter,
+        "chosen": chosen,
+        "searched": has_val,
+        "timed_out": fit.timed_out,
+    }
 
 
 def settings_from_dict(base: Any, overrides: dict[str, Any]) -> Any:

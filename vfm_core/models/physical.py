@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, cast
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -316,6 +317,25 @@ class Mechanistic(ChokeModel):
     def forward_batch(self, batch: Batch) -> torch.Tensor:
         return self.mechanistic(batch)
 
+    def compiled_columns(self, batch: Batch) -> np.ndarray | None:
+        """The per-sample columns [W, N, 2 S] the compiled forms of this model's ``suggest``
+        effects read (:attr:`vfm_core.effects.CompiledFactor.SUGGEST`: each one's two, in the
+        order of :attr:`effects`), computed by the effects themselves; None without one."""
+        makers = self.__dict__.get("_vfm_column_makers")
+        if makers is None:
+            forms = [(e, e.compiled_factor()) for e in self.effects]
+            makers = [e for e, f in forms if f is not None and f.code == CompiledFactor.SUGGEST]
+            self.__dict__["_vfm_column_makers"] = makers
+        if not makers:
+            return None
+        x, time_ns = batch.x.numpy(), batch.time_ns.numpy()
+        ex = np.zeros((*x.shape[:2], 0)) if batch.extra is None else batch.extra.numpy()
+        extra = {n: ex[..., i] for i, n in enumerate(batch.extra_names)}
+        return np.concatenate(
+            [e.compiled_columns(x, extra, time_ns) for e in makers],  # type: ignore[attr-defined]
+            -1,
+        )
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.extra_columns or self.needs_source:
             raise ConfigError(
@@ -401,16 +421,20 @@ class Mechanistic(ChokeModel):
         """What :meth:`compiled_as` would say of this model without its effects, when it
         has effects and every one of them has a compiled form
         (:meth:`vfm_core.effects.Effect.compiled_factor`: the effects that multiply the
-        rate, real gas and slip), at most one of those that change the flux per kind;
-        else None. The kernels then compute the model with its effects."""
+        rate, real gas, slip, the critical ratio), at most one of those that change the flux
+        per kind and not the critical ratio beside real gas; else None. The kernels then
+        compute the model with its effects."""
         if not self.effects:
             return None
         compiled = self.__dict__.get("_vfm_compiled_effects")
         if compiled is None:
             forms = [e.compiled_factor() for e in self.effects]
             codes = [f.code for f in forms if f is not None]
-            flux = [c for c in codes if c in (CompiledFactor.GAS, CompiledFactor.SLIP)]
+            kinds = (CompiledFactor.GAS, CompiledFactor.SLIP, CompiledFactor.CRITICAL)
+            flux = [c for c in codes if c in kinds]
             compiled = len(codes) == len(forms) and len(set(flux)) == len(flux)
+            # the kernels solve the critical ratio with the ideal gas's density
+            compiled &= not {CompiledFactor.GAS, CompiledFactor.CRITICAL} <= set(flux)
             self.__dict__["_vfm_compiled_effects"] = compiled
         return self._compiled_shape() if compiled else None
 

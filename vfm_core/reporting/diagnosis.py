@@ -1,6 +1,6 @@
 """The diagnosis report: one self-contained HTML page of what ``vfm diagnose`` found.
 
-Owns how a :class:`vfm_core.jobs.diagnose.Diagnosis` is shown: the verdict with one
+Owns how a :class:`vfm_core.jobs.diagnose_results.Diagnosis` is shown: the verdict with one
 baseline and one "with" figure under one protocol, the before/after panel of the top
 candidate (its residual against the variable it acts through, without and with it), the
 suggested correction with its code, the candidates and their fitted parameters (with
@@ -30,7 +30,7 @@ from vfm_core.reporting import page
 from vfm_core.reporting.page import Png
 
 if TYPE_CHECKING:
-    from vfm_core.jobs.diagnose import CandidateResult, Diagnosis
+    from vfm_core.jobs.diagnose_results import CandidateResult, Diagnosis
 
 __all__ = ["build_report"]
 

@@ -1,6 +1,6 @@
 """One well's model and learning method, fed one sample at a time: the core of the service.
 
-See :class:`WellLearner`; :mod:`vfm_core.streaming` describes the package.
+See :class:`WellLearner`; :mod:`vfm_core.learning.streaming` describes the package.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from vfm_core.learning import (
     WellMemory,
     parse_method,
 )
+from vfm_core.learning.streaming.phases import phase_split
+from vfm_core.learning.streaming.samples import Row, epoch_ns, history_rows, one_sample, six_inputs
 from vfm_core.models import MODELS, ChokeModel, make_model
-from vfm_core.streaming.phases import phase_split
-from vfm_core.streaming.samples import Row, epoch_ns, history_rows, one_sample, six_inputs
 from vfm_core.timeutil import utc_timestamp
 
 __all__ = [
@@ -71,7 +71,7 @@ class WellLearner:
         if MODELS[model].shared:
             raise ConfigError(
                 f"Model '{model}' shares parameters across the whole field, so a one-well learner "
-                "cannot hold it; use vfm_core.field_learner.FieldLearner (the service does so when "
+                "cannot hold it; use vfm_core.learning.field.FieldLearner (the service does so when "
                 "model.name is mtl), or choose a per-well model."
             )
         self.well = well
@@ -135,7 +135,7 @@ class WellLearner:
         self.__dict__["_ready"] = (flag, flag._version, value)
         return value
 
-    # -- what it can do (see vfm_core.streaming.protocol.Learner) ---------------------------
+    # -- what it can do (see vfm_core.learning.streaming.protocol.Learner) ---------------------------
     #: its model is its own: a step for this well changes no other well's predictions
     shares_model = False
     #: its checkpoint holds this well alone and restores it alone (:meth:`restore`)
@@ -555,23 +555,9 @@ class WellLearner:
                 ("before", self.model_name, self.effects, self),
                 ("after", model, effects, new),
             ):
-                trial = WellLearner(
-                    self.well,
-                    spec_model,
-                    "ol",
-                    train=budgeted(like.train),
-                    online=like.online,
-                    model_kwargs=like.model_kwargs,
-                    seed=self.seed,
-                    effects=spec_effects,
+                scores[key] = self._holdout_mape(
+                    spec_model, spec_effects, like, cut, test, budgeted(like.train)
                 )
-                trial._fit_rows(self, cut, converge=spec_model == "mm")
-                held = WellMemory(self.well, FeatureTracker.names, trial.model.extra_columns)
-                held.copy_from(self.memory, test)
-                q = trial.model.predict_batch(held.rows())[0]
-                y = held.y
-                ok = torch.abs(y) > 1e-9  # a zero rate has no relative error
-                scores[key] = float((torch.abs(q - y)[ok] / torch.abs(y[ok])).mean() * 100.0)
         new._fit_rows(self, order, converge=model == "mm")
         new.features = FeatureTracker.from_state(self.features.state())
         new.version = self.version + 1
@@ -580,6 +566,36 @@ class WellLearner:
         if self.last_update is not None:
             new.method.start(int(utc_timestamp(self.last_update).value))
         return new, scores
+
+    def _holdout_mape(
+        self,
+        model: str,
+        effects: Sequence[str],
+        like: WellLearner,
+        cut: torch.Tensor,
+        test: torch.Tensor,
+        train: TrainSettings,
+    ) -> float:
+        """MAPE (%) on the ``test`` rows of this learner's memory of ``model`` with
+        ``effects`` fitted on the ``cut`` rows (with ``like``'s settings; ``mm`` to
+        convergence, as :meth:`refit_as` fits it)."""
+        trial = WellLearner(
+            self.well,
+            model,
+            "ol",
+            train=train,
+            online=like.online,
+            model_kwargs=like.model_kwargs,
+            seed=self.seed,
+            effects=effects,
+        )
+        trial._fit_rows(self, cut, converge=model == "mm")
+        held = WellMemory(self.well, FeatureTracker.names, trial.model.extra_columns)
+        held.copy_from(self.memory, test)
+        q = trial.model.predict_batch(held.rows())[0]
+        y = held.y
+        ok = torch.abs(y) > 1e-9  # a zero rate has no relative error
+        return float((torch.abs(q - y)[ok] / torch.abs(y[ok])).mean() * 100.0)
 
     def _fit_rows(self, source: WellLearner, rows: torch.Tensor, converge: bool = False) -> None:
         """Fit this (fresh) learner on rows of another learner's memory and remember them
@@ -684,7 +700,7 @@ def model_fixed_when_predicting(learner: Any) -> bool:
 
 def predicts_in_groups(learner: Any) -> bool:
     """True when ``learner`` says its predict can be split around one model call
-    (:attr:`vfm_core.streaming.Learner.predicts_in_groups`: a :class:`WellLearner` that
+    (:attr:`vfm_core.learning.streaming.Learner.predicts_in_groups`: a :class:`WellLearner` that
     predicts with :meth:`WellLearner.predict` itself); anything without the capability
     answers through its own ``predict``."""
     return bool(getattr(learner, "predicts_in_groups", False))

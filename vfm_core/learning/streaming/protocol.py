@@ -1,7 +1,7 @@
 """What serves one well, whatever model it runs: the :class:`Learner` protocol.
 
-Two classes serve a well: :class:`vfm_core.streaming.WellLearner` (a per-well model and
-its method) and :class:`vfm_core.field_learner.FieldWell` (the well's facade on a
+Two classes serve a well: :class:`vfm_core.learning.streaming.WellLearner` (a per-well model and
+its method) and :class:`vfm_core.learning.field.FieldWell` (the well's facade on a
 field-wide model such as ``mtl``, whose network all wells share). Both keep this
 protocol, and the service may hold either through it: predict a sample, learn from a
 measurement, retrain, report the physical parameters, checkpoint, and say what it is and
@@ -22,7 +22,7 @@ history, :meth:`Learner.fit_history`, :meth:`Learner.adopt_fit`, since the field
 fitted as a whole). So the service holds, checkpoints and serves a third kind of learner
 that keeps this protocol without an edit; only what reads a per-well checkpoint back (a
 restart, a model change's copy, a trial's shadow, a rollback) uses
-:meth:`vfm_core.streaming.WellLearner.restore` by name.
+:meth:`vfm_core.learning.streaming.WellLearner.restore` by name.
 """
 
 from __future__ import annotations
@@ -154,14 +154,14 @@ class Learner(Protocol):
 
     @property
     def predicts_in_groups(self) -> bool:
-        """True when :func:`vfm_core.streaming.predict_many` may split :meth:`predict` around
+        """True when :func:`vfm_core.learning.streaming.predict_many` may split :meth:`predict` around
         one model call shared with other learners (``prepare_sample``, ``sample_batch``,
         ``answer``); False: it answers through its own :meth:`predict`."""
         ...
 
     @property
     def learns_in_groups(self) -> bool:
-        """True when :func:`vfm_core.streaming.learn_many` may split :meth:`learn` around one
+        """True when :func:`vfm_core.learning.streaming.learn_many` may split :meth:`learn` around one
         update shared with other learners (``take_measurement``, ``learn_taken``); False:
         it learns through its own :meth:`learn`."""
         ...

@@ -4,7 +4,7 @@
 :func:`vfm_core.jobs.study.run_prequential` does with a shared model: one multi-well model
 (its shared network plus a task vector per well) over the wells it serves, and its bound
 learning method. Each well is answered through a :class:`FieldWell`, a facade with the
-public surface of :class:`vfm_core.streaming.WellLearner` that the service uses
+public surface of :class:`vfm_core.learning.streaming.WellLearner` that the service uses
 (``predict``, ``learn``, ``retrain``, ``version``, ``ready``, ``memory``, ``checkpoint``,
 ...), so the service treats a well of the field like any other well.
 
@@ -64,8 +64,8 @@ from vfm_core.learning import (
     fit_batch,
     parse_method,
 )
+from vfm_core.learning.streaming import Learner, phase_split
 from vfm_core.models import MODELS, ChokeModel, make_model
-from vfm_core.streaming import Learner, phase_split
 from vfm_core.timeutil import utc_timestamp
 
 __all__ = ["FieldLearner", "FieldWell", "FIELD_CHECKPOINT_FORMAT", "DAY_NS"]
@@ -105,7 +105,7 @@ class FieldLearner:
         if not MODELS[model].shared:
             raise ConfigError(
                 f"Model '{model}' keeps its parameters per well; run it with "
-                "vfm_core.streaming.WellLearner, one learner per well."
+                "vfm_core.learning.streaming.WellLearner, one learner per well."
             )
         meth = parse_method(method)
         if not meth.streaming:
@@ -681,7 +681,7 @@ class FieldWell:
     def ready(self) -> bool:
         return self.field.is_ready(self.well)
 
-    # -- what it can do (see vfm_core.streaming.protocol.Learner) ----------------------------------
+    # -- what it can do (see vfm_core.learning.streaming.protocol.Learner) ----------------------------------
     #: the field's network is shared: a step for this well changes every well's predictions
     shares_model = True
     #: its predictions and updates go through the field, never through a shared model call

@@ -1,7 +1,7 @@
 """One sample or measurement of one well as the learner holds it: plain numbers and batches.
 
-Helpers of :class:`vfm_core.streaming.WellLearner` and of the many-wells calls
-(:func:`vfm_core.streaming.predict_many`, :func:`vfm_core.streaming.learn_many`): a
+Helpers of :class:`vfm_core.learning.streaming.WellLearner` and of the many-wells calls
+(:func:`vfm_core.learning.streaming.predict_many`, :func:`vfm_core.learning.streaming.learn_many`): a
 sample's time in epoch ns, its six inputs as floats, a one-sample batch, and a well's
 history as the tensors its memory stores.
 """

@@ -7,8 +7,8 @@ split; that is what lets a replay through the service reproduce ``vfm evaluate``
 well's slice of the fitted model is then loaded into its :class:`WellLearner`.
 
 A field-wide model (``mtl``, ``model.field_wide``) runs as one
-:class:`vfm_core.field_learner.FieldLearner` per engine for all the wells it serves; each
-well's learner is that field's :class:`~vfm_core.field_learner.FieldWell` facade.
+:class:`vfm_core.learning.field.FieldLearner` per engine for all the wells it serves; each
+well's learner is that field's :class:`~vfm_core.learning.field.FieldWell` facade.
 :func:`new_field` starts the engine's field (at start-up), :func:`new_learner` adds a well
 to it (a well first seen live grows the model by a task vector at its prior), and
 :func:`fit_history` fits the whole field at once, exactly as the study does before its
@@ -30,13 +30,13 @@ import torch
 from service.config import ModelSettings
 from vfm_core.data import make_batch, target_mask
 from vfm_core.features import FeatureTracker, standard_features
-from vfm_core.field_learner import FieldLearner
 from vfm_core.jobs.study import wells_of
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, fit_batch, settings_from_dict
+from vfm_core.learning.field import FieldLearner
+from vfm_core.learning.streaming import Learner, WellLearner
 from vfm_core.models import make_model
 from vfm_core.observations import load_observations
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL, WELL_TEST
-from vfm_core.streaming import Learner, WellLearner
 
 __all__ = [
     "Learner",
@@ -50,7 +50,7 @@ __all__ = [
     "fit_budget",
 ]
 
-logger = logging.getLogger("vfm.service.learning")
+logger = logging.getLogger("vfm.service.engine.learners")
 
 #: the field-wide learner of each live ModelSettings object (one engine each), by id; an
 #: entry goes when its settings do

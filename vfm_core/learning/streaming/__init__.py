@@ -20,10 +20,10 @@ one multi-well model call; each well's results equal its own ``predict`` and ``l
 State is tensors and plain values only: :meth:`WellLearner.checkpoint` returns bytes
 that :meth:`WellLearner.restore` reads back with ``torch.load(weights_only=True)``.
 
-Modules: :mod:`~vfm_core.streaming.learner` (:class:`WellLearner`, one well's
+Modules: :mod:`~vfm_core.learning.streaming.learner` (:class:`WellLearner`, one well's
 bookkeeping: features, memory, versions, retrains due, checkpoints),
-:mod:`~vfm_core.streaming.samples` (a sample as plain numbers and as a batch),
-:mod:`~vfm_core.streaming.phases` (the phase split); this module holds the many-wells
+:mod:`~vfm_core.learning.streaming.samples` (a sample as plain numbers and as a batch),
+:mod:`~vfm_core.learning.streaming.phases` (the phase split); this module holds the many-wells
 calls, which group the learners by their methods' group keys and leave the stacking to
 the methods (:meth:`vfm_core.learning.LearningMethod.predict_group`,
 :meth:`~vfm_core.learning.LearningMethod.learn_group`).
@@ -40,16 +40,16 @@ import pandas as pd
 import torch
 
 from vfm_core.data import DTYPE, Batch
-from vfm_core.streaming.learner import (
+from vfm_core.learning.streaming.learner import (
     CHECKPOINT_FORMATS,
     PARAMETER_UNITS,
     WellLearner,
     model_fixed_when_predicting,
     predicts_in_groups,
 )
-from vfm_core.streaming.phases import phase_split, phase_split_numpy
-from vfm_core.streaming.protocol import Learner
-from vfm_core.streaming.samples import Row
+from vfm_core.learning.streaming.phases import phase_split, phase_split_numpy
+from vfm_core.learning.streaming.protocol import Learner
+from vfm_core.learning.streaming.samples import Row
 from vfm_core.timeutil import from_ns
 
 __all__ = [

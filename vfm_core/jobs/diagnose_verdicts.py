@@ -1,0 +1,857 @@
+"""The verdicts of ``vfm diagnose`` under the live and outage protocols, and the fit-once one.
+
+Each candidate replayed under the well's own learning method is compared with the replayed
+baseline by paired block tests (:func:`protocol_test`, :func:`test_candidate`; the tests
+themselves in :mod:`vfm_core.jobs.diagnose_live`), all tests of a diagnosis in one
+Benjamini-Hochberg family (:func:`fdr`). A candidate is offered when it raises neither
+error and a test finds a lower one beyond chance (:func:`offer`). :func:`live_verdict`
+gives one verdict, the field's or a well's: ``effect``, ``driver``, ``carried`` or
+``noise``; :func:`physics_behind_driver` names a library effect through the driver a
+correction was fitted in; :func:`instrument_check` turns a verdict whose evidence
+coincides with a sensor fault into ``instrument``; :func:`fit_once_verdict` is the verdict
+the fit-once evidence alone gives (format 2's rule). The protocol that calls them is
+:func:`vfm_core.jobs.diagnose.run_diagnosis`; everything here reads the result types of
+:mod:`vfm_core.jobs.diagnose_results` and writes into them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+from vfm_core.data import target_mask
+from vfm_core.effects import Effect, effect_spec
+from vfm_core.jobs import diagnose_instrument as inst
+from vfm_core.jobs import diagnose_live as live
+from vfm_core.jobs import diagnose_stats as stats
+from vfm_core.jobs.diagnose_results import CandidateResult, Suggestion, brief
+from vfm_core.jobs.diagnose_stats import acts_through
+from vfm_core.jobs.study import mape
+from vfm_core.schema import TIME, WELL
+
+if TYPE_CHECKING:
+    from vfm_core.jobs.study import RunResult
+
+__all__ = [
+    "REPLAY_TOP",
+    "PHYSICS_ALPHA",
+    "VerdictContext",
+    "model_label",
+    "protocol_test",
+    "test_candidate",
+    "fdr",
+    "offer",
+    "live_verdict",
+    "driver_found",
+    "physics_behind_driver",
+    "set_offers",
+    "baseline_info",
+    "outage_info",
+    "service_error",
+    "instrument_check",
+    "fit_once_verdict",
+]
+
+#: Candidates replayed under the well's own learning method (live and outage), best first by
+#: the fit-once BIC among those that lowered the fit-once error: a compute budget, not a test
+#: (the others count in the false-discovery family with p = 1).
+REPLAY_TOP = 3
+#: The physics behind a driver (:func:`physics_behind_driver`): a library effect that acts
+#: through the variable a correction was fitted in
+#: (:func:`vfm_core.jobs.diagnose_stats.acts_through`) is the verdict in place of the
+#: correction unless the correction's error is lower beyond the replay's noise: a
+#: one-sided paired block test at this level (not adjusted: adjusting would make "the
+#: correction is better" harder to find, and so favour the library effect) and the effect's
+#: gain outside the correction's own 95 % interval (:func:`_beats`).
+PHYSICS_ALPHA = 0.05
+
+
+def model_label(model: str, classes: Sequence[type[Effect]]) -> str:
+    """``mm``, or ``mm+erosion`` with effects."""
+    return "+".join([model, *(effect_spec(c) for c in classes)])
+
+
+def _untested(wells: Sequence[str], reason: str) -> dict[str, Any]:
+    one: dict[str, Any] = {
+        "change": None,
+        "low": None,
+        "high": None,
+        "p_value": 1.0,
+        "n": 0,
+        "n_blocks": 0,
+        "replayed": False,
+        "reason": reason,
+    }
+    return {**one, "per_well": {w: dict(one) for w in wells} if len(wells) > 1 else {}}
+
+
+def protocol_test(
+    base: pd.DataFrame,
+    cand: pd.DataFrame,
+    wells: Sequence[str],
+    seed: int,
+    in_outage: bool = False,
+) -> dict[str, Any]:
+    """The paired block test of one candidate under one protocol: the field's (pooled over
+    the wells) with each well's own beside it (same block length)."""
+    if in_outage:
+        keep = base["in_outage"].to_numpy(dtype=bool)
+        base, cand = base[keep], cand[keep]
+    pairs = live.paired_differences(base, cand)
+    pooled = live.paired_test(pairs, seed=seed)
+    per_well: dict[str, Any] = {}
+    if len(wells) > 1:
+        days = pooled["block_days"]
+        for w in wells:
+            per_well[w] = live.paired_test(pairs[pairs["well"] == w], days, seed=seed)
+            per_well[w]["replayed"] = True
+    return {**pooled, "replayed": True, "per_well": per_well}
+
+
+def test_candidate(
+    c: CandidateResult,
+    comp: RunResult,
+    base: RunResult,
+    base_out: RunResult | None,
+    wells: Sequence[str],
+    seed: int,
+) -> None:
+    """Fill ``c.tests``: fit-once against the comparison baseline; live and outage against
+    the replayed baseline (untested, p = 1, when the candidate was not replayed)."""
+    if c.run is not None:
+        c.tests["fit_once"] = protocol_test(comp.predictions, c.run.predictions, wells, seed)
+    why = (
+        f"not replayed: only the best {REPLAY_TOP} candidates by the fit-once evidence that "
+        "lowered the fit-once error are"
+    )
+    if c.replayed and c.live_run is not None:
+        c.tests["live"] = protocol_test(base.predictions, c.live_run.predictions, wells, seed)
+    else:
+        c.tests["live"] = _untested(wells, why)
+    if base_out is not None:
+        if c.replayed and c.outage_run is not None:
+            c.tests["outage"] = protocol_test(
+                base_out.predictions, c.outage_run.predictions, wells, seed, in_outage=True
+            )
+        else:
+            c.tests["outage"] = _untested(wells, why)
+
+
+def fdr(
+    results: Sequence[CandidateResult],
+    suggestion: CandidateResult | None,
+    slots: int,
+    n_wells: int,
+) -> dict[str, Any]:
+    """Benjamini-Hochberg over every test of the diagnosis; writes ``q_value`` and
+    ``rejected`` into each. A correction not fitted (``slots``) still counts, with p = 1:
+    the family is fixed before the data decide what is fitted."""
+    tests: list[dict[str, Any]] = []
+    protocols: set[str] = set()
+    for c in [*results, *([suggestion] if suggestion is not None else [])]:
+        for proto, t in c.tests.items():
+            protocols.add(proto)
+            tests.append(t)
+            tests += list(t.get("per_well", {}).values())
+    extra = 0
+    if slots and suggestion is None:
+        extra = slots * len(protocols) * (1 + (n_wells if n_wells > 1 else 0))
+    p = [float(t.get("p_value", 1.0)) for t in tests] + [1.0] * extra
+    rejected, q = live.benjamini_hochberg(p, live.FDR_Q)
+    for i, t in enumerate(tests):
+        t["q_value"] = float(q[i])
+        t["rejected"] = bool(rejected[i])
+    return {
+        "procedure": live.PROCEDURE,
+        "q": live.FDR_Q,
+        "tests": len(p),
+        "rejected": int(rejected.sum()),
+    }
+
+
+def _gain(*tests: dict[str, Any] | None) -> bool:
+    """Some test (the field's, a well's) finds a lower error beyond chance (BH-rejected)."""
+    return any(
+        t is not None and t.get("rejected") and t.get("change") is not None and t["change"] < 0
+        for t in tests
+    )
+
+
+def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
+    """Whether adding ``c`` is offered for ``well`` (None: the field), and why (not).
+
+    Offered when the replay raises neither error (the live change of that well, or of the
+    field, and the field's outage change at most 0: never a change that raises the error
+    under a reported protocol; a single well's few outage windows are too few to sign its
+    own outage change, so the field's is used) and the field's or the well's own test finds
+    a lower live or outage error beyond chance (BH over the diagnosis's family). Field-wide
+    evidence counts for a well whose own live estimate agrees in sign: physical effects are
+    field-wide, and one well's months are weak evidence alone. And only a candidate the
+    fit-once evidence names (*material*: the BIC on the reference meter, which charges
+    every parameter, and a minimum size), or that is the physics behind a driver the
+    evidence found (``via_driver``, :func:`physics_behind_driver`): a flexible candidate can lower a learner's error
+    a little by absorbing misfit that is not its physics (on clean fields a tenth of a
+    point, significant with years of data); the replay says what adding it does, the
+    fit-once evidence what it is."""
+    if not c.replayed:
+        return False, "not replayed"
+    if not c.named:
+        return False, "not material by the fit-once evidence"
+    lt, ot = c.test("live", well), c.test("outage", well)
+    if lt is None or lt.get("change") is None:
+        return False, "no replayed measurement"
+    if lt["change"] > 0:
+        return False, "raises the live error"
+    of = c.test("outage")
+    if of is not None and of.get("change") is not None and of["change"] > 0:
+        return False, "raises the outage error"
+    if _gain(c.test("live"), lt if well is not None else None):
+        return True, "live"
+    if _gain(c.test("outage"), ot if well is not None else None):
+        return True, "outage"
+    return False, "within noise"
+
+
+@dataclass
+class VerdictContext:
+    """What every verdict of one diagnosis shares: the model as diagnosed (``mm+erosion``),
+    the method replayed, the live and outage baselines, the noise floor (MAPE, %) and the
+    number of wells diagnosed together."""
+
+    label: str
+    method: str
+    live: dict[str, Any]
+    outage: dict[str, Any]
+    floor: float | None
+    n_wells: int
+
+
+def _change_text(t: dict[str, Any] | None, what: str) -> str:
+    if t is None or t.get("change") is None:
+        return f"{what}: not measured"
+    interval = (
+        f", 95 % interval {t['low']:+.2f} to {t['high']:+.2f}"
+        if t.get("low") is not None and math.isfinite(t["low"])
+        else ""
+    )
+    return f"{what} {t['base_mape']:.2f} -> {t['mape']:.2f} % ({t['change']:+.2f} points{interval})"
+
+
+def _evidence(c: CandidateResult, protocol: str, well: str | None, n_wells: int) -> dict[str, Any]:
+    """The field's and the well's test of one protocol, side by side."""
+    f, w = c.test(protocol), c.test(protocol, well) if well is not None else None
+    out: dict[str, Any] = {"protocol": protocol, "field": brief(f), "wells": n_wells}
+    if well is not None and n_wells > 1:
+        out["well"] = brief(w)
+    return out
+
+
+def _evidence_text(ev: dict[str, Any]) -> str:
+    def one(t: dict[str, Any] | None, who: str) -> str:
+        if t is None or not t.get("n_blocks"):
+            return f"{who}: no blocks"
+        return (
+            f"{who} p = {t['p_value']:.2g} (q = {t.get('q_value', float('nan')):.2g}) over "
+            f"{t['n_blocks']} blocks of {t['block_days']:g} days"
+        )
+
+    text = one(ev["field"], f"the field's {ev['wells']} well(s)" if ev["wells"] > 1 else "the well")
+    if "well" in ev:
+        text += "; " + one(ev["well"], "this well alone")
+    return text
+
+
+def _verdict_numbers(c: CandidateResult, well: str | None, ctx: VerdictContext) -> dict[str, Any]:
+    """A candidate's numbers in a verdict: its live and outage tests (``well``'s, or the
+    field's), the evidence of each protocol, and whether it is offered and why (not)."""
+    return {
+        "live": brief(c.test("live", well)),
+        "outage": brief(c.test("outage", well)),
+        "evidence": [_evidence(c, p, well, ctx.n_wells) for p in ("live", "outage")],
+        "offer": offer(c, well)[0],
+        "reason": offer(c, well)[1],
+    }
+
+
+def live_verdict(
+    results: Sequence[CandidateResult],
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: VerdictContext,
+    fit_once: dict[str, Any],
+    prefer: str | None = None,
+) -> dict[str, Any]:
+    """One verdict (the field's, or ``well``'s) under the live and outage protocols:
+    ``effect`` (an offered candidate: ``prefer``, the field's, when offered for the well, else
+    the first in BIC order, which names the form; the replay confirms it helps), ``driver``
+    (an offered correction), ``carried`` (the fit-once evidence names an effect or a driver,
+    but adding it lowers neither error beyond chance, or raises one), or ``noise``."""
+    offered = [c for c in results if offer(c, well)[0]]
+    if offered:
+        best = next((c for c in offered if c.effect == prefer), offered[0])
+        return _effect_verdict(best, well, ctx)
+    if suggestion is not None and offer(suggestion.result, well)[0]:
+        return _driver_verdict(suggestion, well, ctx)
+    named = [c for c in results if c.via_driver is not None or _fit_once_names(c, well)]
+    if named:
+        c = next((x for x in named if x.effect == prefer), named[0])
+        return _carried_verdict(c, well, ctx)
+    carried = _carried_driver(suggestion, well, ctx)
+    if carried is not None:
+        return carried
+    return _noise_verdict(suggestion, well, ctx, fit_once)
+
+
+def _who(well: str | None) -> str:
+    """`` for W01`` in a verdict about one well, empty for the field's."""
+    return "" if well is None else f" for {well}"
+
+
+def _effect_verdict(best: CandidateResult, well: str | None, ctx: VerdictContext) -> dict[str, Any]:
+    """The verdict ``effect``: add ``best`` (offered), with its live and outage changes and
+    the evidence of the protocol that offers it."""
+    out_label = ctx.outage.get("label", "outage")
+    num = _verdict_numbers(best, well, ctx)
+    why = num["reason"]
+    ev = next(e for e in num["evidence"] if e["protocol"] == why)
+    text = (
+        f"Add {best.spec or best.effect} to {ctx.label}{_who(well)}. Replayed with {ctx.method}, "
+        f"{_change_text(num['live'], 'the live MAPE goes')}; "
+        f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence ({why}): "
+        f"{_evidence_text(ev)}. {best.meaning}"
+    )
+    if why == "outage":
+        text += (
+            f" Online, {ctx.method} already follows what it explains (no live gain beyond "
+            "noise); it pays off when the meter fails."
+        )
+    if best.warnings:
+        text += " Check its parameters: " + best.warnings[0]
+    return _as_named("effect", best, text, num)
+
+
+def _driver_verdict(
+    suggestion: Suggestion, well: str | None, ctx: VerdictContext
+) -> dict[str, Any]:
+    """The verdict ``driver``: apply the offered correction, with its changes and evidence."""
+    out_label = ctx.outage.get("label", "outage")
+    num = _verdict_numbers(suggestion.result, well, ctx)
+    ev = next(e for e in num["evidence"] if e["protocol"] == num["reason"])
+    text = (
+        f"No library effect lowers the error{_who(well)}; the residual depends mostly on "
+        f"{suggestion.driver}. A correction {suggestion.text}, replayed with {ctx.method}: "
+        f"{_change_text(num['live'], 'the live MAPE goes')}; "
+        f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence: "
+        f"{_evidence_text(ev)}. Apply it with --effects {suggestion.spec}, or start your "
+        "own effect from the code in the report."
+    )
+    return {"kind": "driver", "effect": None, "driver": suggestion.driver, "text": text, **num}
+
+
+def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) -> dict[str, Any]:
+    """The verdict ``carried``: the evidence names ``c``, but the replay with the well's
+    method lowers neither error beyond chance (or raises the live one): not offered."""
+    out_label = ctx.outage.get("label", "outage")
+    num = _verdict_numbers(c, well, ctx)
+    fo = c.test("fit_once", well) or c.test("fit_once")
+    if c.replayed:
+        lt = num["live"]
+        worse = lt is not None and lt.get("change") is not None and lt["change"] > 0
+        tail = (
+            f"adding it to {ctx.label}{_who(well)} with {ctx.method}: "
+            f"{_change_text(lt, 'live MAPE')}; "
+            f"{_change_text(num['outage'], f'in {out_label} outages')}. "
+            + (
+                "Its live change is above zero (it does not lower the error the operator "
+                "sees): not offered."
+                if worse
+                else f"{ctx.method} (and any network) already carries what it explains: "
+                "neither error falls beyond chance; adding it would add a physical "
+                "parameter to read (interpretability), not accuracy."
+            )
+        )
+    else:
+        tail = "it was not replayed under the live protocol."
+    text = (
+        f"The fit-once evidence names {c.effect} ({_change_text(fo, 'fit-once MAPE')}), but " + tail
+    )
+    return _as_named("carried", c, text, num)
+
+
+def _noise_verdict(
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: VerdictContext,
+    fit_once: dict[str, Any],
+) -> dict[str, Any]:
+    """The verdict ``noise``: no candidate and no correction lowers an error beyond chance."""
+    base = (
+        ctx.live.get("per_well", {}).get(well, {}).get("mape", float("nan"))
+        if well is not None
+        else ctx.live.get("mape", float("nan"))
+    )
+    floor = f"; noise floor about {ctx.floor:.2f} %" if ctx.floor is not None else ""
+    text = (
+        f"No candidate explains the residual{_who(well)}: none lowers the live or the outage error "
+        f"beyond chance (Benjamini-Hochberg at q = {live.FDR_Q:g} over the diagnosis's tests): what is left "
+        f"(live MAPE {base:.2f} %{floor}) is measurement noise, meter drift and what "
+        f"{ctx.method} follows."
+    )
+    if fit_once.get("kind") == "driver" or (suggestion is not None and not suggestion.result.offer):
+        if suggestion is not None:
+            text += (
+                f" A correction in {suggestion.driver} was fitted but does not lower the error "
+                f"the operator sees beyond chance ({_change_text(suggestion.result.test('live', well), 'live MAPE')})."
+            )
+    return {
+        "kind": "noise",
+        "effect": None,
+        "driver": None,
+        "text": text,
+        "live": None,
+        "outage": None,
+        "evidence": [],
+        "offer": False,
+        "reason": None,
+    }
+
+
+def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
+    """The fit-once evidence names ``c``: material, and lower beyond chance (the field's
+    test, or the well's)."""
+    return c.material and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+
+
+def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> dict[str, Any]:
+    """A verdict (``effect``, ``carried``) naming ``c``; with the driver evidence when the
+    physics behind a driver named it (``via_driver``: its variable in ``driver``)."""
+    v = c.via_driver
+    if v is not None and not c.material:
+        text += " " + _via_driver_text(c)
+    driver = None if v is None else v["driver"]
+    return {
+        "kind": kind,
+        "effect": c.effect,
+        "driver": driver,
+        "text": text,
+        **num,
+        "via_driver": v,
+    }
+
+
+def _via_driver_text(c: CandidateResult) -> str:
+    """The driver evidence of a candidate named through it, in words."""
+    v = c.via_driver or {}
+    vs = (v.get("versus_correction") or {}).get("live") or {}
+    diff = (
+        f" (the correction's live MAPE {vs['change']:+.2f} points against it, 95 % interval "
+        f"{vs['low']:+.2f} to {vs['high']:+.2f}, p = {vs['p_value']:.2g})"
+        if vs.get("change") is not None and vs.get("low") is not None
+        else ""
+    )
+    return (
+        f"The evidence is the driver: the residual depends on {v.get('driver')}, and a generic "
+        f"correction {v.get('correction_text', '')} explains it no better than {c.effect}, "
+        f"which acts through {v.get('driver')}{diff}: the library's physics is named, the "
+        "driver is its evidence."
+    )
+
+
+def _carried_driver(
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: VerdictContext,
+) -> dict[str, Any] | None:
+    """The ``carried`` verdict of a driver outside the library: the fit-once evidence finds
+    the correction (material, lower beyond chance), but the model the well runs (a network,
+    a filter) already follows it, so the replay shows no gain beyond chance; None otherwise."""
+    if not (
+        suggestion is not None
+        and suggestion.result.replayed
+        and suggestion.result.material
+        and _gain(
+            suggestion.result.test("fit_once"),
+            suggestion.result.test("fit_once", well) if well else None,
+        )
+    ):
+        return None
+    who = "" if well is None else f" for {well}"
+    out_label = ctx.outage.get("label", "outage")
+    s = suggestion.result
+    num = _verdict_numbers(s, well, ctx)
+    lt = num["live"]
+    worse = lt is not None and lt.get("change") is not None and lt["change"] > 0
+    fo = s.test("fit_once", well) or s.test("fit_once")
+    text = (
+        f"The fit-once evidence finds the residual depending on {suggestion.driver} (a "
+        f"correction {suggestion.text}: {_change_text(fo, 'fit-once MAPE')}), but adding "
+        f"it to {ctx.label}{who} with {ctx.method}: {_change_text(lt, 'live MAPE')}; "
+        f"{_change_text(num['outage'], f'in {out_label} outages')}. "
+        + (
+            "Its live change is above zero: not offered."
+            if worse
+            else f"{ctx.method} (and any network) already carries what it explains: "
+            "neither error falls beyond chance; the correction would add a parameter to "
+            "read, not accuracy."
+        )
+    )
+    return {"kind": "carried", "effect": None, "driver": suggestion.driver, "text": text, **num}
+
+
+def driver_found(correction: CandidateResult) -> bool:
+    """The fit-once evidence finds a driver: its correction is material and lowers the
+    fit-once error beyond chance (the field's test, BH-rejected), and it was replayed."""
+    return (
+        correction.replayed
+        and correction.live_run is not None
+        and correction.material
+        and _gain(correction.test("fit_once"))
+    )
+
+
+def _versus(
+    physics: RunResult, correction: RunResult, seed: int, in_outage: bool = False
+) -> dict[str, Any]:
+    """The paired block test of a correction against a library effect on the same rows
+    (live, or inside the outage windows): ``change`` is the correction's MAPE less the
+    effect's (points; below 0: the correction is better) and ``p_value`` the one-sided
+    p-value of "the correction is better"."""
+    a, b = physics.predictions, correction.predictions
+    if in_outage:
+        keep = a["in_outage"].to_numpy(dtype=bool)
+        a, b = a[keep], b[keep]
+    return live.paired_test(live.paired_differences(a, b), seed=seed)
+
+
+def _beats(
+    versus: dict[str, Any], correction: dict[str, Any] | None, physics: dict[str, Any] | None
+) -> bool:
+    """The correction beats the library effect beyond the noise of the replay under one
+    protocol: the paired test of the two finds the correction's error lower beyond chance
+    (one-sided, :data:`PHYSICS_ALPHA`), and the effect's own gain over the baseline lies
+    outside the correction's 95 % interval (above its upper end: a smaller gain than the
+    correction's gain can be, given its own uncertainty)."""
+    if versus.get("change") is None or versus["change"] >= 0:
+        return False
+    if versus["p_value"] >= PHYSICS_ALPHA:
+        return False
+    high = None if correction is None else correction.get("high")
+    gain = None if physics is None else physics.get("change")
+    if high is None or gain is None or not math.isfinite(high):
+        return True
+    return bool(gain > high)
+
+
+def physics_behind_driver(
+    kin: Sequence[CandidateResult],
+    correction: CandidateResult,
+    driver: str,
+    correction_text: str,
+    seed: int,
+) -> list[CandidateResult]:
+    """Name the library's physics behind a driver: set ``via_driver`` on each candidate of
+    ``kin`` that acts through ``driver`` (:func:`acts_through`), was replayed, and whose
+    live error (and outage error, when both have one) the correction in that driver does
+    not beat beyond the noise of the replay (:func:`_beats`: lower beyond chance, and by
+    more than the correction's own gain is known to); returns those. Nothing when the
+    fit-once evidence does not find the driver (:func:`driver_found`).
+
+    Why: a generic correction in a variable (a log-linear factor in the choke opening) fits
+    whatever depends on that variable; a library effect that acts through the same variable
+    (the valve's area as a function of the opening) is one physical explanation of it, with
+    parameters that mean something and that extrapolate as the physics does. When the data
+    cannot tell the two apart (the effect's gain lies within what the correction's gain is
+    known to, or the correction is not better beyond chance), the physics is named and the
+    driver is its evidence; when the correction is better beyond both, something outside
+    the library is at work and the driver stays the verdict. A bare significance test alone
+    would not do: with years of data a few hundredths of a point are significant, and a
+    flexible correction always fits a little of the noise too. Whether the effect is offered is then decided as for any candidate
+    (:func:`offer`: a lower error beyond chance, neither error raised)."""
+    if not driver_found(correction):
+        return []
+    assert correction.live_run is not None
+    out: list[CandidateResult] = []
+    for c in kin:
+        if acts_through(c.effect) != driver or not c.replayed or c.live_run is None:
+            continue
+        tests = {"live": _versus(c.live_run, correction.live_run, seed)}
+        if c.outage_run is not None and correction.outage_run is not None:
+            tests["outage"] = _versus(c.outage_run, correction.outage_run, seed, in_outage=True)
+        better = [p for p, t in tests.items() if _beats(t, correction.test(p), c.test(p))]
+        evidence = {
+            "driver": driver,
+            "correction": correction.spec or correction.effect,
+            "correction_text": correction_text,
+            "versus_correction": {p: brief(t) for p, t in tests.items()},
+            "rule": (
+                f"{c.effect} acts through {driver}; the correction in {driver} does not lower "
+                "the live or outage error below it beyond the noise of the replay (a "
+                f"one-sided paired block test at {PHYSICS_ALPHA:g}, or its gain within the "
+                "correction's own 95 % interval)"
+            ),
+        }
+        c.via_driver = None if better else evidence
+        if better:
+            continue
+        out.append(c)
+    return out
+
+
+def set_offers(
+    candidates: Sequence[CandidateResult], well: str | None, offered: str | None
+) -> None:
+    """One change offered, the verdict's (``offered``); every other candidate says why not,
+    and whether its replay raises the live error."""
+    for c in candidates:
+        ok, reason = offer(c, well)
+        c.offer = ok and c.effect == offered
+        c.offer_note = (
+            None
+            if c.offer
+            else (
+                f"also lowers the error, but the evidence names {offered}"
+                if ok and offered is not None
+                # ok with nothing offered: the verdict is a faulty instrument
+                else (
+                    "lowers the error, but the evidence points to a faulty input" if ok else reason
+                )
+            )
+        )
+        lt = c.test("live", well)
+        c.raises_error = (
+            None if not c.replayed or lt is None or lt["change"] is None else lt["change"] > 0
+        )
+
+
+def outage_info(
+    base_out: RunResult, plan: Any, wells: Sequence[str], well: str | None
+) -> dict[str, Any]:
+    """The outage protocol's baseline and its windows, in numbers and words."""
+    info = baseline_info(base_out, wells, well, in_outage=True)
+    info.update(
+        {
+            "label": plan.label,
+            "length_days": plan.length / pd.Timedelta(days=1),
+            "windows": int(len(plan.windows)),
+            "protocol": f"windows of {plan.label} without a measurement (a failed "
+            f"meter), {len(plan.windows)} over the wells after the split; scored inside "
+            "them, the learner learning from the rest",
+        }
+    )
+    return info
+
+
+def instrument_check(
+    verdicts: dict[str, dict[str, Any]],
+    frame: pd.DataFrame,
+    results: Sequence[CandidateResult],
+    suggestion: Suggestion | None,
+    base: RunResult,
+    split: pd.Timestamp,
+    notes: list[str],
+) -> None:
+    """Turn the verdicts whose evidence coincides with an input's detected fault into
+    ``instrument`` verdicts (:func:`vfm_core.jobs.diagnose_instrument.instrument_verdicts`)."""
+    by_name = {c.effect: c for c in results}
+    wells = [w for w in verdicts if w != "field"]
+
+    def candidate(v: dict[str, Any]) -> CandidateResult | None:
+        if v.get("effect"):
+            return by_name.get(v["effect"])
+        return suggestion.result if suggestion is not None else None
+
+    def pairs_of(v: dict[str, Any], w: str | None) -> pd.DataFrame | None:
+        c = candidate(v)
+        if c is None or c.live_run is None:
+            return None
+        pairs = live.paired_differences(base.predictions, c.live_run.predictions)
+        return pairs if w is None else pairs[pairs["well"] == w]
+
+    def gains_of(v: dict[str, Any]) -> dict[str, float]:
+        c = candidate(v)
+        tests = {w: None if c is None else c.test("live", w) for w in wells}
+        return {
+            w: float(t["change"]) * float(t.get("n", 0))
+            for w, t in tests.items()
+            if t is not None and t.get("change") is not None
+        }
+
+    faults = inst.input_faults(frame)
+    turned = inst.instrument_verdicts(
+        verdicts, faults, pairs_of, gains_of, split, frame[TIME].max()
+    )
+    if turned:
+        notes.append(
+            f"Instrument faults carry the evidence of {', '.join(turned)}: their verdict is "
+            "'instrument' (vfm_core.jobs.diagnose_instrument)."
+        )
+
+
+def baseline_info(
+    run: RunResult, wells: Sequence[str], well: str | None, in_outage: bool = False
+) -> dict[str, Any]:
+    p = run.predictions
+    if in_outage:
+        p = p[p["in_outage"].to_numpy(dtype=bool)]
+    out: dict[str, Any] = {
+        "mape": mape(p["predicted"], p["measured"]),
+        "n": int(len(p)),
+        "per_well": {
+            w: {"mape": mape(g["predicted"], g["measured"]), "n": int(len(g))}
+            for w, g in p.groupby("well", sort=True)
+        },
+    }
+    if well is not None:
+        mine = out["per_well"].get(well, {"mape": float("nan"), "n": 0})
+        out["well_mape"], out["well_n"] = mine["mape"], mine["n"]
+    return out
+
+
+def service_error(
+    frame: pd.DataFrame,
+    targets: str,
+    split: pd.Timestamp,
+    wells: Sequence[str],
+    well: str | None,
+) -> dict[str, Any]:
+    """The error the service recorded on the same measurements (a store's ``predicted``
+    column: the prediction it made before learning each one), beside the replay's."""
+    if "predicted" not in frame.columns:
+        return {}
+    rows = np.flatnonzero(target_mask(frame, targets) & (frame[TIME] >= split).to_numpy())
+    scored = frame.iloc[rows]
+    pred = pd.to_numeric(scored["predicted"], errors="coerce").to_numpy(dtype=float)
+    meas = scored["q_total"].to_numpy(dtype=float)
+    w = scored[WELL].astype(str).to_numpy()
+    ok = np.isfinite(pred)
+    if not ok.any():
+        return {}
+    out: dict[str, Any] = {"service_mape": mape(pred[ok], meas[ok]), "service_n": int(ok.sum())}
+    if well is not None:
+        mine = ok & (w == well)
+        out["service_well_mape"] = mape(pred[mine], meas[mine]) if mine.any() else None
+    return out
+
+
+def fit_once_verdict(
+    base_mape: float,
+    candidates: list[CandidateResult],
+    top: dict[str, Any] | None,
+    drivers: list[dict[str, Any]],
+    suggestion: Suggestion | None,
+    floor: float | None,
+    protocol: str,
+    bic_on: str,
+    trend_share: float = float("nan"),
+) -> tuple[str, str | None, str | None, str]:
+    """(kind, effect, driver, sentence): see the module docstring for the rule."""
+    material = [c for c in candidates if c.material]
+    if material:
+        return _material_verdict(material, base_mape, floor, protocol, bic_on)
+    if top is not None and suggestion is not None and suggestion.result.material:
+        d = next((x for x in drivers if x["name"] == suggestion.driver), top)
+        return _correction_verdict(d, suggestion, base_mape, floor, protocol)
+    what = _what_is_left(base_mape, floor, trend_share)
+    if top is not None and top["p_value"] is not None and top["p_value"] < stats.ALPHA:
+        tail = (
+            f"a correction in {suggestion.driver} does not lower the held-out error materially "
+            f"({base_mape:.2f} % -> {suggestion.mape:.2f} %, BIC {suggestion.result.delta_bic:+.0f})"
+            if suggestion is not None
+            else "it is not a variable a correction can use"
+        )
+        return (
+            "noise",
+            None,
+            None,
+            f"No candidate explains the residual. {top['name']} correlates with it beyond chance "
+            f"(p = {top['p_value']:.3f}), but {tail}: what is left (MAPE {base_mape:.2f} %) {what}.",
+        )
+    best_p = (
+        ""
+        if top is None or top["p_value"] is None
+        else f" (best: {top['name']}, p = {top['p_value']:.2f} by circular shifts)"
+    )
+    return (
+        "noise",
+        None,
+        None,
+        "No candidate explains the residual, and no variable explains more of it than chance "
+        f"would{best_p}: what is left (MAPE {base_mape:.2f} %"
+        + (
+            f"{_floor_text(floor)}) looks like measurement noise and meter drift."
+            if what.startswith("is treated")
+            else f") {what}."
+        ),
+    )
+
+
+def _floor_text(floor: float | None) -> str:
+    """``; noise floor about 1.23 %``, or nothing without a floor."""
+    return f"; noise floor about {floor:.2f} %" if floor is not None else ""
+
+
+def _what_is_left(base_mape: float, floor: float | None, trend_share: float) -> str:
+    """What the error left without an explanation is, in words: a slow drift that follows
+    time in each well when it is well above the noise floor, else noise and meter drift."""
+    if floor is not None and base_mape > 1.5 * floor:
+        return (
+            f"is well above the noise floor ({floor:.2f} %) but follows time in each well, not any "
+            f"variable (per-well straight lines in time hold {100 * trend_share:.0f} % of its "
+            "variance): a slow drift of the wells or meters, which online learning follows"
+        )
+    return "is treated as measurement noise and meter drift"
+
+
+def _material_verdict(
+    material: list[CandidateResult],
+    base_mape: float,
+    floor: float | None,
+    protocol: str,
+    bic_on: str,
+) -> tuple[str, str | None, str | None, str]:
+    """The fit-once verdict ``effect``: the best material candidate, the others beside it."""
+    best = material[0]
+    share = (
+        f", {100 * best.share_above_floor:.0f} % of the error above the noise floor ({floor:.2f} %)"
+        if floor is not None and math.isfinite(best.share_above_floor)
+        else ""
+    )
+    text = (
+        f"The missing effect is most likely {best.effect}: {protocol}, the MAPE falls from "
+        f"{base_mape:.2f} % to {best.mape:.2f} % with it{share} (BIC {best.delta_bic:+.0f} on the "
+        f"{bic_on}). {best.meaning}"
+    )
+    if len(material) > 1:
+        others = ", ".join(f"{c.effect} ({c.mape:.2f} %)" for c in material[1:4])
+        text += f" Also material, but weaker: {others}."
+    if best.warnings:
+        text += " Check its parameters: " + best.warnings[0]
+    return "effect", best.effect, None, text
+
+
+def _correction_verdict(
+    d: dict[str, Any],
+    suggestion: Suggestion,
+    base_mape: float,
+    floor: float | None,
+    protocol: str,
+) -> tuple[str, str | None, str | None, str]:
+    """The fit-once verdict ``driver``: the residual depends on driver ``d``, and the
+    correction fitted in it is material."""
+    s = suggestion.result
+    return (
+        "driver",
+        None,
+        d["name"],
+        f"No candidate explains the residual; it depends mostly on {d['name']} (it explains "
+        f"{100 * d['score']:.0f} % of the residual beyond per-well trends, out of sample; "
+        f"p = {d['p_value']:.3f} by circular shifts). A correction {suggestion.text} lowers "
+        f"the MAPE from {base_mape:.2f} % to {s.mape:.2f} % ({protocol}{_floor_text(floor)}). "
+        f"Apply it with --effects {suggestion.spec}, or start your own effect from the code "
+        "in the report.",
+    )
