@@ -91,6 +91,7 @@ class Service:
                 self.counters,
                 self.transport.publish,
                 self.transport.forget,
+                self.transport.publish_key,
             )
             self.engine.load()
             if s.model.name in ("mm", "hem", "ham") and not s.model.effects:

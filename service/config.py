@@ -53,6 +53,7 @@ __all__ = [
     "ResidualAlarmSettings",
     "SensorFaultSettings",
     "WellTestReviewSettings",
+    "SeparatorSettings",
     "load_settings",
     "is_loopback_host",
     "endpoint_host",
@@ -611,6 +612,77 @@ class WellTestReviewSettings(_Section):
     )
 
 
+class SeparatorSettings(_Section):
+    """Which wells flow into which separator (``docs/guide/separator.md``): a reading of a
+    separator's total (``<prefix>/<separator>/measurements/separator`` or
+    ``POST /separators/{name}/measurements``) measures the sum of its wells' rates; wells
+    with ``bayes`` learn from it jointly and it is allocated back to them."""
+
+    members: dict[str, list[str]] = Field(
+        default_factory=dict,
+        description="separator -> the wells that flow into it (a well flows into one "
+        "separator; a separator's name is not a well's)",
+    )
+    noise: float = Field(
+        default=0.015,
+        gt=0,
+        le=0.5,
+        description="relative noise (sd) of a separator's total: a separator meter's 1-2 %",
+    )
+    sample_window_s: float = Field(
+        default=21_600.0,
+        gt=0,
+        description="a member well counts at a reading with its latest sample at or before "
+        "it, if at most this old, s; older (or none): shut in, it contributes 0",
+    )
+    learn: bool = Field(
+        default=True,
+        description="the wells (bayes) learn from each reading; false: readings are "
+        "allocated (and their residuals kept) without moving the wells' models",
+    )
+
+    @field_validator("members")
+    @classmethod
+    def _one_separator_per_well(cls, v: dict[str, list[str]]) -> dict[str, list[str]]:
+        seen: dict[str, str] = {}
+        for sep, wells in v.items():
+            for name in (sep, *wells):
+                problem = well_id_problem(name)
+                if problem is not None:
+                    raise ValueError(problem[0].lower() + problem[1:].rstrip("."))
+            if not wells:
+                raise ValueError(
+                    f"the separator '{sep}' has no wells; list the wells that flow into it"
+                )
+            for well in wells:
+                if well in seen:
+                    where = "twice" if seen[well] == sep else f"on '{seen[well]}' and on '{sep}'"
+                    raise ValueError(
+                        f"the well '{well}' is listed {where}; a well flows into one separator"
+                    )
+                seen[well] = sep
+        clash = sorted(set(v) & set(seen))
+        if clash:
+            raise ValueError(
+                f"'{clash[0]}' names a separator and a well; give the separator a name of its own"
+            )
+        return v
+
+    def separator_of(self, well: str) -> str | None:
+        """The separator ``well`` flows into (None: none)."""
+        for sep, wells in self.members.items():
+            if well in wells:
+                return sep
+        return None
+
+    def route(self, well: str) -> str:
+        """The name that places ``well`` on its worker: its separator's (a separator's
+        wells all learn on one worker, where a reading updates them together), else its own."""
+        if not self.members:
+            return well
+        return self.separator_of(well) or well
+
+
 class TrialSettings(_Section):
     """The trial of a model change against the model it replaced, run as a shadow
     (``docs/guide/trials.md``; :mod:`service.engine.trial`)."""
@@ -760,6 +832,7 @@ class Settings(BaseSettings):
     trial: TrialSettings = Field(default_factory=TrialSettings)
     residual_alarm: ResidualAlarmSettings = Field(default_factory=ResidualAlarmSettings)
     sensor_faults: SensorFaultSettings = Field(default_factory=SensorFaultSettings)
+    separators: SeparatorSettings = Field(default_factory=SeparatorSettings)
     rolling_window: int = Field(
         default=50, ge=1, description="paired measurements in the rolling MAPE"
     )
@@ -796,6 +869,27 @@ class Settings(BaseSettings):
             raise ValueError(
                 f"inputs.wells names {', '.join(outside[:5])}, outside this instance's wells "
                 f"(zenoh.wells = {self.zenoh.wells}); list only the wells it owns"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _separators_apart_from_wells(self) -> Settings:
+        from service.scaleout import WellSet
+
+        members = self.separators.members
+        named = sorted(set(members) & set(self.inputs.wells))
+        if named:
+            raise ValueError(
+                f"separators.members names '{named[0]}' a separator, but inputs.wells lists it "
+                "as a well; give the separator a name of its own"
+            )
+        own = WellSet(self.zenoh.wells)
+        outside = [n for sep, ws in members.items() for n in (sep, *ws) if n not in own]
+        if outside:
+            raise ValueError(
+                f"separators.members names {', '.join(outside[:5])}, outside this instance's "
+                f"wells (zenoh.wells = {self.zenoh.wells}); a separator and its wells are "
+                "served by one instance"
             )
         return self
 

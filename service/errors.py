@@ -83,6 +83,8 @@ REASONS: dict[str, str] = {
     "unparseable key": "the key expression is not <prefix>/<well>/sensors or .../measurements/<source>, "
     "or its well id is not valid",
     "unknown source": "the measurement source is not mpfm or well_test",
+    "unknown separator": "a separator reading names a separator that separators.members does not "
+    "list (or a well: a well's total goes under mpfm or well_test)",
     "no sensor sample within tolerance": "no sample of the well lies within inputs.pair_tolerance_s",
     "sensor fault at the sample": "an input of the paired sample has an instrument fault "
     "(vfm_core.sensor_faults): the measurement is stored (status held), not learned from",

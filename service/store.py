@@ -55,6 +55,14 @@ any store and change nothing that exists (an older service ignores them):
 - ``trials``: each ended trial of a model change against its shadow (see
   :mod:`service.engine.trial`): its start and end (data time), both models, the outcome
   and the summary GET /wells/{well} shows (JSON).
+- ``separator_readings``: every accepted reading of a separator's total (``q_total``,
+  Sm3/h) with its status (``pending``: waiting for its wells' samples; ``learned``,
+  ``allocated``: allocated, not learned from; ``unused``: not allocated, ``note`` says
+  why), the sum of its wells' predictions (``predicted``) and the reconciliation residual
+  (``residual`` = ``q_total`` - ``predicted``, Sm3/h); ``allocations``: per reading and
+  member well its prediction ``q_pred``, allocated rate ``q_alloc`` and 90 % interval
+  ``lo90``/``hi90`` (Sm3/h) and the sample it was made at. Written and read by
+  :mod:`service.engine.separators`.
 """
 
 from __future__ import annotations
@@ -193,6 +201,19 @@ CREATE TABLE IF NOT EXISTS reviews (
     sample_predicted REAL, held_ns INTEGER NOT NULL, decision TEXT, decided_ns INTEGER
 );
 CREATE UNIQUE INDEX IF NOT EXISTS reviews_key ON reviews (well, source, time_ns);
+CREATE TABLE IF NOT EXISTS separator_readings (
+    id INTEGER PRIMARY KEY,
+    separator TEXT NOT NULL, time_ns INTEGER NOT NULL, q_total REAL NOT NULL,
+    received_ns INTEGER NOT NULL, via TEXT NOT NULL, status TEXT NOT NULL,
+    predicted REAL, residual REAL, note TEXT
+);
+CREATE UNIQUE INDEX IF NOT EXISTS separator_readings_key ON separator_readings (separator, time_ns);
+CREATE TABLE IF NOT EXISTS allocations (
+    id INTEGER PRIMARY KEY,
+    separator TEXT NOT NULL, time_ns INTEGER NOT NULL, well TEXT NOT NULL,
+    sample_time_ns INTEGER, q_pred REAL NOT NULL, q_alloc REAL, lo90 REAL, hi90 REAL
+);
+CREATE UNIQUE INDEX IF NOT EXISTS allocations_key ON allocations (separator, time_ns, well);
 """
 
 SCHEMA_VERSION = "3"

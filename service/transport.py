@@ -108,6 +108,10 @@ class Transport(Protocol):
 
     def publish(self, well: str, payload: bytes) -> None: ...
 
+    def publish_key(self, key: str, payload: bytes) -> None:
+        """Put an output on ``key`` (a separator's allocation), as predictions are put."""
+        ...
+
     def forget(self, well: str) -> None:
         """Let go of what is held for a retired well (e.g. its prediction key)."""
         ...
@@ -261,6 +265,15 @@ class ZenohTransport:
         key = self._keys.get(well)
         if key is None:
             key = self._keys[well] = zenoh.KeyExpr(prediction_key(self.prefix, well))
+        self.session.put(
+            key,
+            payload,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            allowed_destination=zenoh.Locality.REMOTE,
+        )
+
+    def publish_key(self, key: str, payload: bytes) -> None:
         self.session.put(
             key,
             payload,
@@ -542,6 +555,9 @@ class MemoryTransport:
             key = prediction_key(self.prefix, well)
             if len(self._keys) < 65_536:
                 self._keys[well] = key
+        self.publish_key(key, payload)
+
+    def publish_key(self, key: str, payload: bytes) -> None:
         self.published.append((key, payload))
         with self._sub_lock:
             subscribers = list(self._subscribers.values())

@@ -10,6 +10,10 @@ key                                    dir   payload
 ``<prefix>/<well>/prediction``         out   :class:`Prediction` {time, q_total, q_gas, q_oil, q_water, model, version}
 =====================================  ====  =======================================================
 
+A separator's total (the sum of its wells' rates, Sm3/h) comes in as a :class:`Measurement`
+on ``<prefix>/<separator>/measurements/separator``; the service publishes its allocation to
+the wells on ``<prefix>/<separator>/allocation`` (``service.engine.separators``).
+
 A **sensor block** carries many samples of one well in one message on the same
 ``sensors`` key: the same fields, each an array of one length (rows in rising time order;
 :func:`sensor_block` builds one). Its answer is one :class:`PredictionBlock` on the

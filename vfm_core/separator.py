@@ -78,6 +78,7 @@ __all__ = [
     "sum_update",
     "Allocation",
     "SeparatorLearner",
+    "WellFilters",
     "SeparatorRun",
     "check_method",
     "run_separator",
@@ -147,6 +148,103 @@ class Allocation:
         ]
 
 
+class _Wells:
+    """What :class:`SeparatorLearner` reads of a filter's model: the wells' names and
+    whether each is ready (has a model)."""
+
+    def __init__(self, wells: list[str], ready: torch.Tensor) -> None:
+        self.wells = wells
+        self.ready = ready
+
+
+class WellFilters:
+    """One-well ``bayes`` filters (each well its own model, as the service holds them) seen
+    as the one filter over their wells that :class:`SeparatorLearner` reads and writes:
+    each call goes to every well's filter with its row of the arguments, and the answers are
+    stacked by well. A well's model and filter state do not depend on the other wells', so
+    the numbers are those of one filter over all of them. All filters must filter as many
+    parameters (models of one specification)."""
+
+    def __init__(self, wells: Sequence[str], filters: Sequence[Any]) -> None:
+        plain = [f for f in filters if isinstance(f, BayesianFilter)]
+        if len(plain) != len(filters) or not filters:
+            raise ConfigError(
+                "A separator's wells learn from its total together only when every one of "
+                "them learns with bayes."
+            )
+        if len({int(f.filter_state()[1].shape[-1]) for f in plain}) > 1:
+            raise ConfigError(
+                "A separator's wells learn from its total together only with models of one "
+                "specification (as many filtered parameters each)."
+            )
+        self.filters = plain
+        self.model = _Wells(list(wells), torch.cat([f.model.ready.reshape(1) for f in plain]))
+
+    def filter_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`BayesianFilter.filter_state` of every well, stacked by well."""
+        parts = [f.filter_state() for f in self.filters]
+        return tuple(torch.cat([p[k] for p in parts]) for k in range(4))  # type: ignore[return-value]
+
+    def grown_covariance(self, now_ns: torch.Tensor) -> torch.Tensor:
+        """:meth:`BayesianFilter.grown_covariance`, well by well."""
+        return torch.cat(
+            [f.grown_covariance(now_ns[i : i + 1]) for i, f in enumerate(self.filters)]
+        )
+
+    def log_rate_and_gradient(
+        self, one: Batch, live: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`BayesianFilter.log_rate_and_gradient`, each well on its row of ``one``."""
+        parts = [
+            f.log_rate_and_gradient(_well_row(one, i), live[i : i + 1])
+            for i, f in enumerate(self.filters)
+        ]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+    def stats(self) -> dict[str, torch.Tensor]:
+        """:meth:`BayesianFilter.stats` of every well, stacked by well."""
+        parts = [f.stats() for f in self.filters]
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def on_measurement(self, batch: Batch) -> torch.Tensor:
+        """Each well's filter learns from its row of ``batch`` (one measurement per well,
+        masked where none); the wells whose model changed."""
+        return torch.cat(
+            [
+                f.on_measurement(_well_row(batch, i))
+                if bool(batch.mask[i].any())
+                else torch.zeros(1, dtype=torch.bool)
+                for i, f in enumerate(self.filters)
+            ]
+        )
+
+    def set_filter_state(
+        self, theta: torch.Tensor, P: torch.Tensor, now_ns: torch.Tensor, wells: torch.Tensor
+    ) -> None:
+        """:meth:`BayesianFilter.set_filter_state` of the wells marked in ``wells``."""
+        for i, f in enumerate(self.filters):
+            if bool(wells[i]):
+                sl = slice(i, i + 1)
+                f.set_filter_state(theta[sl], P[sl], now_ns[sl], wells[sl])
+
+
+def _well_row(batch: Batch, i: int) -> Batch:
+    """Well ``i`` of ``batch`` as a one-well batch."""
+    sl = slice(i, i + 1)
+    assert batch.well_test is not None and batch.extra is not None
+    return Batch(
+        batch.wells[sl],
+        batch.x[sl],
+        batch.y[sl],
+        batch.mask[sl],
+        batch.time_ns[sl],
+        batch.row[sl],
+        batch.well_test[sl],
+        batch.extra[sl],
+        batch.extra_names,
+    )
+
+
 class SeparatorLearner:
     """Separator readings for a :class:`BayesianFilter` bound to a field's model: joint
     updates over each separator's wells, well tests through the single-well filter with
@@ -158,7 +256,7 @@ class SeparatorLearner:
 
     def __init__(
         self,
-        filt: BayesianFilter,
+        filt: BayesianFilter | WellFilters,
         members: Mapping[str, Sequence[str]],
         *,
         noise: float | Mapping[str, float] = SEPARATOR_NOISE,
@@ -166,7 +264,7 @@ class SeparatorLearner:
         huber: float = 3.0,
         gate: float = 6.0,
     ) -> None:
-        if not isinstance(filt, BayesianFilter):
+        if not isinstance(filt, BayesianFilter | WellFilters):
             raise ConfigError(check_method(str(filt)) or "Separator learning needs bayes.")
         self.filt = filt
         wells = list(filt.model.wells)
@@ -357,7 +455,9 @@ class SeparatorLearner:
         P = grown.clone()
         P[ix] = p_new
         wells = torch.zeros(n, dtype=torch.bool)
-        wells[ix] = True
+        # a member without a model yet has no filter state: left unstarted, so that its
+        # first measurement starts it at the prior (as without separator readings)
+        wells[ix] = self.filt.model.ready[ix]
         self.filt.set_filter_state(theta, P, now, wells)
         self.counts["taken"] += 1
         return True

@@ -43,9 +43,10 @@ from service.engine.observe import Observer
 from service.engine.pairing import Pairing, ReviewItem
 from service.engine.recovery import Recovery
 from service.engine.registry import Registry
+from service.engine.separators import Separators, submit_item
 from service.engine.state import WellState, WellTestResult
 from service.engine.worker import Workers
-from service.errors import Busy, InvalidRequest, Stopping, unknown_well
+from service.errors import Busy, InvalidRequest, Stopping, UnknownWell, unknown_well
 from service.inputs import Counters
 from service.store import Store
 from vfm_core.messages import Measurement
@@ -69,9 +70,11 @@ class Engine:
         counters: Counters,
         publish: Callable[[str, bytes], None],
         forget: Callable[[str], None] | None = None,
+        publish_key: Callable[[str, bytes], None] | None = None,
     ) -> None:
         """``forget(well)``: the transport lets go of what it holds for a retired well (e.g.
-        its prediction key)."""
+        its prediction key); ``publish_key(key, payload)`` puts a message on any key (the
+        separators' allocations)."""
         self.settings = settings
         self.store = store
         self.counters = counters
@@ -123,8 +126,26 @@ class Engine:
             store,
             self._learning,
             self._checkpoints,
-            lambda well: worker_of(well, len(self._queues)),
+            self._worker_of,
         )
+        #: the separators' readings (service.engine.separators); None without separators
+        self.separators: Separators | None = None
+        if settings.separators.members:
+            self.separators = Separators(
+                settings,
+                store,
+                counters,
+                self._learning,
+                self._checkpoints,
+                self._wells,
+                publish_key,
+                self._worker_of,
+            )
+            self._workers.separators = self.separators
+
+    def _worker_of(self, well: str) -> int:
+        """The worker that owns ``well`` (a separator's wells: the separator's worker)."""
+        return worker_of(self.settings.separators.route(well), len(self._queues))
 
     # -- life cycle -----------------------------------------------------------------------
     def load(self) -> None:
@@ -135,6 +156,8 @@ class Engine:
             self.mpfm_check.load(st)
             for row in self.store.reviews(st.well):  # the reviews still open
                 st.hold_for_review(row)
+        if self.separators is not None:  # the readings still waiting for their samples
+            self.separators.load()
 
     def start(self, source: Source | None = None) -> None:
         """Start the worker threads; with ``source`` (one worker) the worker takes the
@@ -194,7 +217,7 @@ class Engine:
             decision=decision,
             decided_ns=time.time_ns(),
         )
-        full = self._queues[worker_of(well, len(self._queues))].put(well, item, timeout=2.0)
+        full = self._queues[self._worker_of(well)].put(well, item, timeout=2.0)
         if full != "ok":
             raise Busy(
                 "The service is busy (its queue is full); retry in a few seconds.",
@@ -242,7 +265,7 @@ class Engine:
         when = time.time_ns()
         self._registry.retiring(well, when)
         fut: Future[dict[str, Any]] = Future()
-        q = self._queues[worker_of(well, len(self._queues))]
+        q = self._queues[self._worker_of(well)]
         q.put(well, RetireStep(well, purge, when, fut), force=True)
         try:
             result = fut.result(timeout)
@@ -255,6 +278,27 @@ class Engine:
                 f"The retirement of {well} is queued but did not run within {timeout:g} s; "
                 "it runs once the well's queue is through. Check GET /wells."
             ) from None
+
+    def submit_reading(self, separator: str, measurement: Measurement) -> Future[Any]:
+        """Queue a separator's reading posted over HTTP; the future answers once it is
+        stored (with its allocation, or ``pending`` while it waits for its wells' samples).
+        Raises :class:`UnknownWell` for a separator not configured, :class:`InvalidRequest`
+        for a bad time or rate, :class:`Busy` when the queue stays full."""
+        if self.separators is None or separator not in self.separators.members:
+            raise unknown_separator(separator)
+        item, fut = submit_item(separator, measurement)
+        self._intake.submit_reading(item)
+        return fut
+
+    def separator_view(self, separator: str) -> dict[str, Any]:
+        """``GET /separators/{name}`` (see :meth:`Separators.view`)."""
+        if self.separators is None or separator not in self.separators.members:
+            raise unknown_separator(separator)
+        return self.separators.view(separator)
+
+    def separator_overview(self) -> list[dict[str, Any]]:
+        """``GET /separators``: every separator with its latest reading."""
+        return [] if self.separators is None else self.separators.overview()
 
     # -- what the API reads -----------------------------------------------------------------
     @property
@@ -311,3 +355,11 @@ class Engine:
     def pending_measurements(self) -> int:
         """Measurements of all wells still waiting for their sensor sample."""
         return sum(len(st.pending) for st in list(self._wells.values()))
+
+
+def unknown_separator(name: str) -> UnknownWell:
+    """The refusal of a request about a separator that ``separators.members`` does not list."""
+    return UnknownWell(
+        f"The separator '{name}' is not known to this service; GET /separators lists them "
+        "(separators.members in the configuration)."
+    )

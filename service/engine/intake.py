@@ -50,6 +50,7 @@ from service.config import Settings
 from service.engine.fairqueue import FairQueue
 from service.engine.items import MeasurementItem, SensorBlockItem, SensorItem
 from service.engine.registry import Registry
+from service.engine.separators import SeparatorItem, is_separator_key, parse_reading
 from service.engine.state import WellTestResult
 from service.errors import Busy, InvalidRequest, ServiceError, UnknownWell
 from service.inputs import (
@@ -91,7 +92,8 @@ def block_weight(rows: int) -> int:
 
 
 def worker_of(well: str, workers: int) -> int:
-    """The worker that owns ``well`` (stable across restarts)."""
+    """The worker that owns ``well`` (stable across restarts); a separator's wells are
+    routed by the separator's name (:meth:`service.config.SeparatorSettings.route`)."""
     return zlib.crc32(well.encode()) % workers
 
 
@@ -122,6 +124,9 @@ class Intake:
 
     def deliver(self, key: str, payload: bytes, received_ns: int) -> None:
         """One inbound message: check, then queue for the well's worker (never learns)."""
+        if is_separator_key(key):
+            self._deliver_reading(key, payload, received_ns)
+            return
         well: str | None = None
         try:
             well, kind, source = _route(self.settings.prefix, key)
@@ -183,6 +188,40 @@ class Intake:
             return
         self._enqueue(item, key)
 
+    def _deliver_reading(self, key: str, payload: bytes, received_ns: int) -> None:
+        """A separator's reading (:mod:`service.engine.separators`), checked as a
+        measurement is and queued at its separator's worker; an allocation (another
+        instance's output) is ignored."""
+        try:
+            item = parse_reading(self.settings, key, payload, self.limits, received_ns)
+            if item is None:
+                self.counters.event("outputs ignored")
+                return
+            self.check_time(item.measurement.time, "separator reading")
+            self.check_rate(item.measurement.q_total, item.well)
+        except ServiceError as error:
+            if error.reason is not None:
+                self.counters.reject(error.reason, error.message, where=key)
+            return
+        except Exception as exc:  # a bug must not end reception, and must be counted
+            self.counters.event("internal errors")
+            logger.exception("Checking a message on %s failed: %s", printable(key), exc)
+            return
+        self._enqueue(item, key)
+
+    def submit_reading(self, item: SeparatorItem) -> None:
+        """Queue a separator's reading posted over HTTP (its future answers once it is
+        stored). Raises :class:`InvalidRequest` for a bad time or rate, :class:`Busy` when
+        the queue stays full."""
+        self.check_time(item.measurement.time, "separator reading")
+        self.check_rate(item.measurement.q_total, item.well)
+        full = self._put(item, timeout=2.0)
+        if full != "ok":
+            raise Busy(
+                "The service is busy (its queue is full); retry in a few seconds.",
+                "well flooding" if full == "well" else "queue overflow",
+            )
+
     def parse_block(self, data: dict[str, Any]) -> SensorBlock:
         """The rows of a sensor block that pass the checks of one sample (see
         :func:`service.inputs.parse_sensor_block`), with the time bounds of :meth:`check_time`."""
@@ -218,7 +257,8 @@ class Intake:
         item = MeasurementItem(
             well, measurement, "well_test", time.time_ns(), via="http", future=fut
         )
-        full = self.queues[worker_of(well, len(self.queues))].put(well, item, timeout=2.0)
+        route = self.settings.separators.route(well)
+        full = self.queues[worker_of(route, len(self.queues))].put(well, item, timeout=2.0)
         if full != "ok":
             raise Busy(
                 "The service is busy (its queue is full); retry in a few seconds.",
@@ -263,7 +303,7 @@ class Intake:
     ) -> Literal["ok", "well", "total"]:
         """Queue ``item`` at its well's worker (a block weighs its memory), waiting up to
         ``timeout`` s for room."""
-        q = self.queues[worker_of(item.well, len(self.queues))]
+        q = self.queues[worker_of(self.settings.separators.route(item.well), len(self.queues))]
         weight = block_weight(len(item.times_ns)) if isinstance(item, SensorBlockItem) else 1
         return q.put(item.well, item, timeout=timeout, weight=weight)
 
@@ -299,7 +339,7 @@ class Intake:
         full: Literal["well", "total"],
     ) -> None:
         """Count a message dropped because its queue stayed full for ``queues.block_s``."""
-        q = self.queues[worker_of(item.well, len(self.queues))]
+        q = self.queues[worker_of(self.settings.separators.route(item.well), len(self.queues))]
         if q.depth(item.well) == 0:
             self.registry.abandon(item.well)  # a new well whose first message was dropped
         block = self.settings.queues.block_s

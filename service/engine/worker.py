@@ -76,6 +76,7 @@ from service.engine.learning import Learning
 from service.engine.model_change import ModelChanges
 from service.engine.pairing import Pairing
 from service.engine.registry import Registry
+from service.engine.separators import SeparatorItem, Separators
 from service.engine.state import Sample, WellState
 from service.errors import Duplicate, InvalidRequest, ServiceError, Stopping, UnknownWell
 from service.inputs import Counters
@@ -131,6 +132,8 @@ class Workers:
         #: they pass through (:meth:`start`)
         self._source: Source | None = None
         self._intake: Intake | None = None
+        #: the separators' readings (service.engine.separators; None: none configured)
+        self.separators: Separators | None = None
 
     def start(self, source: Source | None = None, intake: Intake | None = None) -> None:
         """Start the worker threads; with ``source`` (one worker only) the worker takes the
@@ -214,6 +217,8 @@ class Workers:
                 for st in list(self.wells.values()):
                     if st.worker == index and st.pending:
                         self.pairing.expire(st, b, now)
+                if self.separators is not None:
+                    self.separators.expire(index, b, now)
             self.flush(b)
 
     def _take_in(self, q: FairQueue, source: Source, wait: bool) -> Item | None:
@@ -246,6 +251,8 @@ class Workers:
     def _handle(self, item: Item, b: Batch) -> None:
         if isinstance(item, SensorItem):
             first = item.well in b.sample_wells and not b.sample_wells[item.well]
+            # a separator's reading waits for this well: its later samples come after it
+            first |= self.separators is not None and self.separators.waits_on(item.well)
         elif isinstance(item, SensorBlockItem):
             first = item.well in b.sample_wells  # a block is answered at once, in order
         elif isinstance(item, MeasurementItem) and item.well not in b.sample_wells:
@@ -272,10 +279,16 @@ class Workers:
             if isinstance(item, RetireStep):
                 self._retire(item, b)
                 return
+            if isinstance(item, SeparatorItem):
+                assert self.separators is not None  # queued only when configured
+                self.separators.on_item(item, b)
+                return
             st = self._state(item, b)
             if st is None:
                 return
             if isinstance(item, SensorItem):
+                if self.separators is not None:  # a reading before it is settled first
+                    self.separators.before_sample(item.well, item.time_ns, b)
                 self._admit_sample(st, item, b)
             elif isinstance(item, SensorBlockItem):
                 self._on_block(st, item, b)
@@ -342,7 +355,7 @@ class Workers:
             item.well,
             new_learner(item.well, self.settings.model),
             self.settings,
-            worker_of(item.well, len(self.queues)),
+            worker_of(self.settings.separators.route(item.well), len(self.queues)),
         )
         b.ops.append(AddWell(well=item.well, created_ns=time.time_ns(), origin="first sight"))
         self.registry.created(item.well, st)
@@ -436,6 +449,7 @@ class Workers:
         if (
             st.trial is None  # on trial: one by one, so that the shadow sees every row
             and not st.pending
+            and not (self.separators is not None and self.separators.waits_on(st.well))
             and model_fixed_when_predicting(learner)
             and learner.ready
         ):
@@ -514,6 +528,8 @@ class Workers:
             self.counters.event("model not ready", len(times) - answered)
         if payload is not None:
             b.outbox.append((well, payload))
+        if self.separators is not None:  # a separator's reading may now be complete
+            self.separators.on_sample(well, b)
 
     def _predict_samples(self, b: Batch) -> None:
         """Second pass: predict every admitted sample of the batch in one call, then store
@@ -596,6 +612,8 @@ class Workers:
             st.trial.on_sample(self.learning, t, inputs)
         if st.pending:
             self.pairing.resolve(st, b, upto=t)
+        if self.separators is not None:  # a separator's reading may now be complete
+            self.separators.on_sample(item.well, b)
 
 
 #: items a worker takes from its queue at once (:meth:`FairQueue.get_many`: one lock for

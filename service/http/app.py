@@ -46,6 +46,7 @@ from service.http import (
     metrics,
     model_changes,
     reviews,
+    separators,
     well_tests,
     wells,
     workbench,
@@ -85,6 +86,7 @@ def create_app(service: ServiceView) -> FastAPI:
     app.include_router(model_changes.router)
     app.include_router(well_tests.router)
     app.include_router(reviews.router)
+    app.include_router(separators.router)
     app.include_router(diagnosis.router)
     app.include_router(events.router)
     app.include_router(metrics.router)

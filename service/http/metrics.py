@@ -32,6 +32,8 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
 ``vfm_well_trial_pairs{well,outcome}``       that trial's paired measurements
 ``vfm_trials_total{outcome}``                trials ended since the start, by outcome
                                              (every outcome, 0 until it happens)
+``vfm_separator_residual_sm3_per_h{separator}``  the latest allocation's reconciliation
+                                             residual (total - sum of predictions), Sm3/h
 ``vfm_inputs_accepted_total{kind}``          accepted sensors / measurements / well_tests
 ``vfm_inputs_rejected_total{reason}``        refused inputs by reason (``GET /health``;
                                              every reason of ``REASONS``, 0 until it happens)
@@ -88,6 +90,7 @@ class ServiceCollector(Collector):
         yield from _well_metrics(wells, obs)
         yield from (_held_for_review(wells), *_faults(wells))
         yield from _trial_metrics(wells, snap)
+        yield _separator_residuals(engine)
         yield GaugeMetricFamily(
             "vfm_live_clients", "Clients of GET /events.", value=obs.subscribers
         )
@@ -257,6 +260,21 @@ def _trial_metrics(wells: dict[str, Any], snap: dict[str, Any]) -> Iterator[Metr
     for outcome, n in sorted(by_outcome.items()):
         trials.add_metric([outcome], n)
     yield from (trial_mape, trial_n, trials)
+
+
+def _separator_residuals(engine: Any) -> GaugeMetricFamily:
+    """The reconciliation residual of each separator's latest allocation (Sm3/h)."""
+    gauge = GaugeMetricFamily(
+        "vfm_separator_residual_sm3_per_h",
+        "Latest reconciliation residual of a separator: measured total minus the sum of its "
+        "wells' predictions, Sm3/h (allocations published since the start).",
+        labels=["separator"],
+    )
+    separators = getattr(engine, "separators", None)
+    if separators is not None:
+        for sep, residual in sorted(separators.latest_residuals().items()):
+            gauge.add_metric([sep], residual)
+    return gauge
 
 
 def registry_for(service: Any) -> CollectorRegistry:

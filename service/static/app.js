@@ -915,3 +915,49 @@ function init() {
 }
 
 init();
+
+/* ---------------------------------------------------------------- separators (docs/guide/separator.md) */
+const sepCharts = {};
+
+function separatorChart(name, recent) {
+  const id = "sep-chart-" + name.replace(/[^A-Za-z0-9_-]/g, "_");
+  let el = document.getElementById(id);
+  if (!el) {
+    el = document.createElement("div");
+    el.id = id; el.className = "chart small"; el.dataset.separator = name;
+    $("#separator-charts").appendChild(el);
+  }
+  const data = [recent.map((r) => secs(r.time)), recent.map((r) => r.q_total), recent.map((r) => r.predicted)];
+  if (sepCharts[name]) { sepCharts[name].setData(data); return; }
+  sepCharts[name] = new uPlot({
+    title: name, width: chartWidth(el), height: 200,
+    scales: { x: { time: true } },
+    series: [
+      { label: "time (UTC)", value: "{YYYY}-{MM}-{DD} {HH}:{mm}" },
+      { label: "measured total", stroke: "#d1495b", width: 1.5, value: (u, v) => fmt(v, 0) },
+      { label: "sum of predictions", stroke: "#1f4e79", width: 1.5, spanGaps: true, value: (u, v) => fmt(v, 0) },
+    ],
+    axes: [{}, { label: "Sm3/h", size: 70 }],
+  }, data, el);
+}
+
+async function refreshSeparators() {
+  let list;
+  try { list = await api("GET", "/separators"); } catch (e) { return; }
+  $("#separators").hidden = !list.length;
+  $("#separators-table tbody").innerHTML = list.map((s) => `<tr data-separator="${esc(s.separator)}">
+    <td>${esc(s.separator)}</td><td>${esc(s.wells.join(", "))}</td><td>${esc(minute(s.time))}</td>
+    <td class="num">${fmt(s.q_total, 0)}</td><td class="num">${fmt(s.predicted, 0)}</td>
+    <td class="num">${fmt(s.residual, 0)}</td>
+    <td class="num">${s.q_total ? fmt(100 * s.residual / s.q_total, 2) : "\u2013"}</td>
+    <td>${esc(s.status || "no reading yet")}</td></tr>`).join("");
+  for (const s of list) {
+    try {
+      const v = await api("GET", "/separators/" + encodeURIComponent(s.separator));
+      separatorChart(s.separator, v.recent);
+    } catch (e) { /* the table says what is known */ }
+  }
+}
+
+refreshSeparators();
+setInterval(refreshSeparators, 5000);

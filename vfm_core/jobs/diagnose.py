@@ -1264,7 +1264,13 @@ class _DiagnosisRun:
     def test(self, c: CandidateResult) -> None:
         """One candidate's paired tests against the baselines (``verdicts.test_candidate``)."""
         verdicts.test_candidate(
-            c, self.comp, self.base, self.base_out, self.pool_wells, self.s.seed
+            c,
+            self.comp,
+            self.base,
+            self.base_out,
+            self.pool_wells,
+            self.s.seed,
+            replay_top=self.s.replay_top,
         )
 
     def _plan_outages(self) -> None:

@@ -120,13 +120,15 @@ def test_candidate(
     base_out: RunResult | None,
     wells: Sequence[str],
     seed: int,
+    replay_top: int = REPLAY_TOP,
 ) -> None:
     """Fill ``c.tests``: fit-once against the comparison baseline; live and outage against
-    the replayed baseline (untested, p = 1, when the candidate was not replayed)."""
+    the replayed baseline (untested, p = 1, when the candidate was not replayed: only the
+    best ``replay_top`` are)."""
     if c.run is not None:
         c.tests["fit_once"] = protocol_test(comp.predictions, c.run.predictions, wells, seed)
     why = (
-        f"not replayed: only the best {REPLAY_TOP} candidates by the fit-once evidence that "
+        f"not replayed: only the best {replay_top} candidates by the fit-once evidence that "
         "lowered the fit-once error are"
     )
     if c.replayed and c.live_run is not None:
