@@ -68,7 +68,13 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
             text = item.inner_text()
             assert f"{0.7 * level:.0f} Sm3/h" in text and f"model {level:.0f} Sm3/h" in text, text
             assert "MPFM none near" in text
-            assert "1 well test(s) held for review" in page.locator("#well-alarms").inner_text()
+            alarms = page.locator("#well-alarms").inner_text()
+            assert "1 well test(s) held for review" in alarms
+            # held is stored, not refused: counted apart from the refused inputs
+            assert "held since the service started (stored, not learned): held for review 1" in (
+                alarms
+            )
+            assert "refused" not in alarms, alarms
             page.screenshot(path=str(SHOTS / "well-test-review.png"), full_page=True)
             # without the token the page says so and sends nothing
             item.locator('button[data-decision="accept"]').click()

@@ -69,13 +69,21 @@ function alarmsOf(v) {
   if (held) out.push(`${held} well test(s) held for review`);
   for (const f of activeFaults(v).filter((x) => ALARM_FAULTS.includes(x.kind)))
     out.push(`instrument fault: ${f.sensor} ${f.kind} since ${day(f.start)}`);
-  const bad = Object.entries(v.rejected || {});
-  if (bad.length) {
-    const n = bad.reduce((a, [, k]) => a + k, 0);
-    out.push(n + " input(s) refused since the service started: " + bad.map(([r, k]) => r + " " + k).join(", "));
-  }
+  // a measurement held (for review, or at an instrument fault) is stored, not refused
+  const counts = Object.entries(v.rejected || {});
+  const listed = (rows) => rows.map(([r, k]) => r + " " + k).join(", ");
+  const total = (rows) => rows.reduce((a, [, k]) => a + k, 0);
+  const heldRows = counts.filter(([r]) => HELD_REASONS.includes(r));
+  const bad = counts.filter(([r]) => !HELD_REASONS.includes(r));
+  if (heldRows.length)
+    out.push(total(heldRows) + " measurement(s) held since the service started (stored, not learned): " + listed(heldRows));
+  if (bad.length) out.push(total(bad) + " input(s) refused since the service started: " + listed(bad));
   return out;
 }
+
+/* The reasons under which a measurement is stored but not learned (service/errors.py): the
+   page lists them apart from the inputs that were refused. */
+const HELD_REASONS = ["held for review", "sensor fault at the sample"];
 
 /* Instrument faults (GET /wells/{well} sensor_faults, vfm_core/sensor_faults.py): the
    active ones have no end. A spike begins and ends at its sample. */
