@@ -640,6 +640,12 @@ class SeparatorSettings(_Section):
         description="the wells (bayes) learn from each reading; false: readings are "
         "allocated (and their residuals kept) without moving the wells' models",
     )
+    cross: bool = Field(
+        default=True,
+        description="keep the cross-covariances between a separator's wells, so that a "
+        "well test of one moves the others (as vfm evaluate); false: block-diagonal, each "
+        "well's own filter state only",
+    )
 
     @field_validator("members")
     @classmethod

@@ -61,8 +61,11 @@ any store and change nothing that exists (an older service ignores them):
   why), the sum of its wells' predictions (``predicted``) and the reconciliation residual
   (``residual`` = ``q_total`` - ``predicted``, Sm3/h); ``allocations``: per reading and
   member well its prediction ``q_pred``, allocated rate ``q_alloc`` and 90 % interval
-  ``lo90``/``hi90`` (Sm3/h) and the sample it was made at. Written and read by
-  :mod:`service.engine.separators`.
+  ``lo90``/``hi90`` (Sm3/h) and the sample it was made at. ``separator_states``: each
+  separator's kept cross-covariances between its wells' parameters (``separators.cross``;
+  ``joint``: float64 bytes of the [M D, M D] matrix, ``wells`` and the wells' model
+  ``versions`` as JSON), replaced in the transaction that moves them, with the members'
+  checkpoints. Written and read by :mod:`service.engine.separators`.
 """
 
 from __future__ import annotations
@@ -214,6 +217,10 @@ CREATE TABLE IF NOT EXISTS allocations (
     sample_time_ns INTEGER, q_pred REAL NOT NULL, q_alloc REAL, lo90 REAL, hi90 REAL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS allocations_key ON allocations (separator, time_ns, well);
+CREATE TABLE IF NOT EXISTS separator_states (
+    separator TEXT PRIMARY KEY, time_ns INTEGER NOT NULL, wells TEXT NOT NULL,
+    versions TEXT NOT NULL, dim INTEGER NOT NULL, joint BLOB NOT NULL
+);
 """
 
 SCHEMA_VERSION = "3"

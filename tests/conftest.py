@@ -35,6 +35,11 @@ SLOW_FILES: frozenset[str] = frozenset(
         # in the fast tier's run of 2026-11-26 at load 9); the input rules stay fast in
         # test_service_bad_inputs.py, test_service_inputs.py and test_service_http_rules.py
         "test_service_adversarial.py",
+        # separator readings through the service against the study: a study and a fitted
+        # service behind each test (19 s of set-up each; the fast tier's run of 2026-11-26
+        # 09:00 UTC, 3:15 for 1,026 tests with them); the offline rules stay fast in
+        # test_separator.py
+        "test_service_separator.py",
     }
 )
 

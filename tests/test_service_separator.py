@@ -4,11 +4,12 @@ A simulated separator field (4 wells on one separator, daily synchronised sample
 tests weeks apart, the per-well rates hidden) is fitted on its history before the split,
 then replayed after it: every sample, every well test, every separator reading (and, for
 the baseline, the same without the readings). The service must give ``vfm evaluate``'s
-numbers for the same field (:func:`vfm_core.separator.run_separator` without
-cross-covariances, as the service runs), learn from the readings (the wells' error on their
-well tests falls against the run without them), allocate each reading to the wells, and
-keep what it learned across a crash. The refusals and the HTTP side run on a small field
-with the ``last`` model, whose numbers are known by hand.
+numbers for the same field (:func:`vfm_core.separator.run_separator`, with the
+cross-covariances kept by default and without them under ``separators.cross = false``),
+learn from the readings (the wells' error on their well tests falls against the run
+without them), allocate each reading to the wells, and keep what it learned (the wells'
+filters and the separator's cross-covariances) across a crash. The refusals and the HTTP
+side run on a small field with the ``last`` model, whose numbers are known by hand.
 """
 
 from __future__ import annotations
@@ -33,14 +34,16 @@ import torch
 from replay.client import FieldClient, sample_of
 from service.app import Service
 from service.config import load_settings
+from service.engine.learners import new_learner
 from service.engine.separators import reading_key
 from service.http import create_app
 from service.testing import loopback_settings, wait_until
 from service.transport import MemoryTransport
+from vfm_core.data import Batch as DataBatch
 from vfm_core.errors import ConfigError
 from vfm_core.messages import Measurement
 from vfm_core.observations import validate_frame
-from vfm_core.separator import SeparatorRun, run_separator
+from vfm_core.separator import SeparatorLearner, SeparatorRun, WellFilters, run_separator
 from vfm_core.separator_sim import simulate_separator_field
 from vfm_core.timeutil import iso
 
@@ -49,6 +52,9 @@ pytestmark = pytest.mark.timeout(300)
 SPLIT = pd.Timestamp("2016-07-01", tz="UTC")
 TOKEN = "separator-test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+DAY = pd.Timedelta(days=1)
+#: where the replay is cut by a crash and a restart
+MIDWAY = pd.Timestamp("2016-10-01", tz="UTC")
 INPUTS = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil")
 
 
@@ -64,10 +70,15 @@ class Replayed:
     rejected: dict[str, int]
     states: dict[str, tuple[torch.Tensor, torch.Tensor]]
     crash_copy: Path
+    joint: dict[str, tuple[list[str], torch.Tensor] | None]
 
 
 def _settings(
-    folder: Path, history: Path, members: dict[str, list[str]], learn: bool = True
+    folder: Path,
+    history: Path,
+    members: dict[str, list[str]],
+    learn: bool = True,
+    cross: bool = True,
 ) -> Any:
     return loopback_settings(
         folder,
@@ -77,18 +88,26 @@ def _settings(
             "history": str(history),
             "history_until": SPLIT.isoformat(),
         },
-        separators={"members": members, "learn": learn},
+        separators={"members": members, "learn": learn, "cross": cross},
         # as the study: no well-test QC hold and no instrument-fault hold
         well_test_review={"enabled": False},
         sensor_faults={"enabled": False},
     )
 
 
-def _events(frame: pd.DataFrame, readings: pd.DataFrame) -> list[tuple[Any, int, Any]]:
-    """Rows after the split in time order; at one instant the wells' rows come before the
-    readings (as ``run_separator`` takes well tests before readings)."""
-    rows = [(r.time, 0, r) for r in frame[frame["time"] >= SPLIT].itertuples()]
-    rows += [(r.time, 1, r) for r in readings[readings["time"] >= SPLIT].itertuples()]
+def _events(
+    frame: pd.DataFrame,
+    readings: pd.DataFrame,
+    since: pd.Timestamp = SPLIT,
+    until: pd.Timestamp | None = None,
+) -> list[tuple[Any, int, Any]]:
+    """Rows from ``since`` (the split) to before ``until`` in time order; at one instant
+    the wells' rows come before the readings (as ``run_separator`` takes well tests before
+    readings)."""
+    rows = [(r.time, 0, r) for r in frame[frame["time"] >= since].itertuples()]
+    rows += [(r.time, 1, r) for r in readings[readings["time"] >= since].itertuples()]
+    if until is not None:
+        rows = [e for e in rows if e[0] < until]
     return sorted(rows, key=lambda e: (e[0], e[1]))
 
 
@@ -100,14 +119,32 @@ def _filter_states(svc: Service, wells: list[str]) -> dict[str, tuple[torch.Tens
     }
 
 
-def replay(folder: Path, field: Any, *, readings: bool, learn: bool = True) -> Replayed:
-    """Fit on the history, replay the field after the split through the service
-    (``learn``: ``separators.learn``)."""
+def _joint_states(svc: Service, seps: list[str]) -> dict[str, Any]:
+    assert svc.engine is not None and svc.engine.separators is not None
+    return {sep: svc.engine.separators.joint_state(sep) for sep in seps}
+
+
+def replay(
+    folder: Path,
+    field: Any,
+    *,
+    readings: bool,
+    learn: bool = True,
+    cross: bool = True,
+    since: pd.Timestamp = SPLIT,
+    until: pd.Timestamp | None = None,
+    restart_from: Path | None = None,
+) -> Replayed:
+    """Fit on the history, replay the field from ``since`` (the split) to before ``until``
+    through the service (``learn``: ``separators.learn``; ``cross``: ``separators.cross``;
+    ``restart_from``: start on a copy of this store, as a restart after a crash)."""
     loaded = validate_frame(field.observations)
     frame, seps = loaded.frame, loaded.separators
     history = folder / "history.parquet"
     frame.to_parquet(history)
-    settings = _settings(folder, history, seps.members, learn)
+    if restart_from is not None:
+        shutil.copy(restart_from, folder / "store.sqlite")
+    settings = _settings(folder, history, seps.members, learn, cross)
     bus = MemoryTransport(settings.prefix)
     svc = Service(settings, bus)
     svc.start()
@@ -120,11 +157,12 @@ def replay(folder: Path, field: Any, *, readings: bool, learn: bool = True) -> R
             got[(message["separator"], message["time"])] = message
 
     bus.subscribe(f"{settings.prefix}/*/allocation", on_allocation)
-    sent = samples = 0
+    sent = samples = tested = 0
     taken = svc.counters.snapshot
     try:
         with FieldClient(bus, settings.prefix) as client:
-            for _, kind, r in _events(frame, seps.readings if readings else seps.readings[:0]):
+            chosen = seps.readings if readings else seps.readings[:0]
+            for _, kind, r in _events(frame, chosen, since, until):
                 if kind == 1:
                     # the samples sent so far are taken before the reading, and the reading
                     # before anything later (time order across the wells' queues)
@@ -149,7 +187,16 @@ def replay(folder: Path, field: Any, *, readings: bool, learn: bool = True) -> R
                     client.send_measurement(
                         r.well, "well_test", Measurement(time=when, q_total=r.q_total)
                     )
-            n_tests = int(((frame["time"] >= SPLIT) & (frame["source"] == "well_test")).sum())
+                    tested += 1
+                    # learned before anything later: with the cross-covariances a well
+                    # test moves its partners (time order across the wells' queues)
+                    wait_until(
+                        lambda n=tested: taken()["events"].get("learned", 0) >= n,
+                        30,
+                        "the well test learned",
+                    )
+            end = frame["time"] < (until if until is not None else frame["time"].max() + DAY)
+            n_tests = int(((frame["time"] >= SPLIT) & end & (frame["source"] == "well_test")).sum())
             assert svc.store is not None
             store = svc.store
 
@@ -184,6 +231,7 @@ def replay(folder: Path, field: Any, *, readings: bool, learn: bool = True) -> R
             dict(snap["rejected"]),
             _filter_states(svc, wells),
             crash,
+            _joint_states(svc, list(seps.members)),
         )
     finally:
         svc.stop()
@@ -198,12 +246,24 @@ def field() -> Any:
 def reference(field: Any) -> SeparatorRun:
     torch.set_num_threads(1)
     loaded = validate_frame(field.observations)
+    return run_separator(loaded.frame, loaded.separators, "mm", split=SPLIT, cross=True)
+
+
+@pytest.fixture(scope="module")
+def block_reference(field: Any) -> SeparatorRun:
+    torch.set_num_threads(1)
+    loaded = validate_frame(field.observations)
     return run_separator(loaded.frame, loaded.separators, "mm", split=SPLIT, cross=False)
 
 
 @pytest.fixture(scope="module")
 def served(field: Any, tmp_path_factory: pytest.TempPathFactory) -> Replayed:
     return replay(tmp_path_factory.mktemp("with"), field, readings=True)
+
+
+@pytest.fixture(scope="module")
+def served_block(field: Any, tmp_path_factory: pytest.TempPathFactory) -> Replayed:
+    return replay(tmp_path_factory.mktemp("block"), field, readings=True, cross=False)
 
 
 @pytest.fixture(scope="module")
@@ -223,9 +283,9 @@ def _error_vs_truth(tests: pd.DataFrame, field: Any) -> pd.Series:
     return ((p["predicted"] - p["q_true"]).abs() / p["q_true"]).groupby(p["well"]).mean()
 
 
-def test_the_service_gives_the_studys_numbers(served: Replayed, reference: SeparatorRun) -> None:
-    """Same field, model, method, split: the well tests' predictions and every reading's
-    allocation through the service equal ``run_separator``'s (without cross-covariances)."""
+def _same_numbers(served: Replayed, reference: SeparatorRun, counted: bool = True) -> None:
+    """The well tests' predictions, every reading's allocation and (``counted``) the
+    counts of ``served`` equal ``reference``'s."""
     ref = reference.predictions.dropna(subset=["predicted"])
     both = ref.merge(served.tests, on=["time", "well"], suffixes=("_ref", "_svc"))
     assert len(both) == len(ref) > 10
@@ -245,9 +305,36 @@ def test_the_service_gives_the_studys_numbers(served: Replayed, reference: Separ
     np.testing.assert_allclose(joined["lo_svc"], joined["lo90"], rtol=1e-9)
     np.testing.assert_allclose(joined["hi_svc"], joined["hi90"], rtol=1e-9)
     np.testing.assert_allclose(joined["res_svc"], joined["residual"], rtol=1e-9, atol=1e-6)
-    assert served.events.get("separator readings learned") == reference.counts["taken"]
-    assert served.events.get("separator readings unused") == reference.counts["incomplete"]
     assert served.rejected == {}
+    if counted:
+        assert served.events.get("separator readings learned") == reference.counts["taken"]
+        assert served.events.get("separator readings unused") == reference.counts["incomplete"]
+
+
+def test_the_service_gives_the_studys_numbers(
+    served: Replayed, reference: SeparatorRun, block_reference: SeparatorRun
+) -> None:
+    """Same field, model, method, split: the well tests' predictions (those after readings
+    carried to their partners over the kept cross-covariances) and every reading's
+    allocation through the service equal ``run_separator(cross=True)``'s, which differ
+    from the block-diagonal run's (the carry matters on this field)."""
+    _same_numbers(served, reference)
+    both = reference.predictions.merge(block_reference.predictions, on=["time", "well"])
+    moved = (both["predicted_x"] - both["predicted_y"]).abs() / both["predicted_y"]
+    assert float(moved.max()) > 1e-4
+    assert served.joint["SEP"] is not None
+    wells, cov = served.joint["SEP"]
+    d = cov.shape[0] // len(wells)
+    assert float(cov[:d, d:].abs().max()) > 0  # the wells' errors are correlated
+
+
+def test_block_diagonal_gives_the_studys_block_numbers(
+    served_block: Replayed, block_reference: SeparatorRun
+) -> None:
+    """``separators.cross = false``: the numbers of ``run_separator(cross=False)``, and no
+    cross-covariances kept."""
+    _same_numbers(served_block, block_reference)
+    assert served_block.joint == {"SEP": None}
 
 
 def test_the_wells_learn_from_the_separator(
@@ -277,7 +364,8 @@ def test_each_allocation_sums_to_its_reading(served: Replayed) -> None:
 def test_what_was_learned_survives_a_crash(served: Replayed, field: Any, tmp_path: Path) -> None:
     """The store as a crash would leave it (copied while the service ran): a new service
     on it restores every member's filter state as it was, readings included (each learned
-    reading checkpoints its wells in its own transaction)."""
+    reading checkpoints its wells in its own transaction), and the separator's
+    cross-covariances (written with them, and at each well test carried to the partners)."""
     folder = tmp_path / "restart"
     folder.mkdir()
     shutil.copy(served.crash_copy, folder / "store.sqlite")
@@ -289,11 +377,87 @@ def test_what_was_learned_survives_a_crash(served: Replayed, field: Any, tmp_pat
     svc.start()
     try:
         restored = _filter_states(svc, list(served.states))
+        assert svc.engine is not None and svc.engine.separators is not None
+        separators = svc.engine.separators
+        # checked against the wells' restored models (their versions): all kept
+        joint = separators.joint_state("SEP")
     finally:
         svc.stop()
     for well, (theta, cov) in served.states.items():
         torch.testing.assert_close(restored[well][0], theta, rtol=1e-12, atol=0)
         torch.testing.assert_close(restored[well][1], cov, rtol=1e-12, atol=1e-300)
+    assert joint is not None and served.joint["SEP"] is not None
+    wells, cov = served.joint["SEP"]
+    assert joint[0] == wells
+    torch.testing.assert_close(joint[1], cov, rtol=0, atol=0)
+
+
+def test_a_restart_midway_carries_on_as_without_it(
+    field: Any, reference: SeparatorRun, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """The replay cut midway by a crash (the store copied while the service ran), a new
+    service started on that store and the rest replayed: every well test and allocation
+    still equals ``run_separator(cross=True)``'s, those after the restart included (the
+    joint state and the members' checkpoints came back together)."""
+    first = replay(tmp_path_factory.mktemp("first"), field, readings=True, until=MIDWAY)
+    assert first.joint["SEP"] is not None
+    rest = replay(
+        tmp_path_factory.mktemp("rest"),
+        field,
+        readings=True,
+        since=MIDWAY,
+        restart_from=first.crash_copy,
+    )
+    after = rest.tests[rest.tests["time"] >= MIDWAY].dropna(subset=["predicted"])
+    assert len(after) > 5
+    rest.allocations.update(
+        {k: v for k, v in first.allocations.items() if pd.Timestamp(k[1]) < MIDWAY}
+    )
+    _same_numbers(rest, reference, counted=False)
+
+
+def test_a_carried_well_test_leaves_a_member_without_a_model_unstarted() -> None:
+    """A, B (with models) learn a reading together (correlated), C has no model yet. A's
+    next well test is carried to B, not to C: C's first measurement then starts it at the
+    prior, exactly as a lone well's (a late well of a field; a started empty filter would
+    take its first tests with a zero covariance)."""
+    cfg = load_settings(None, model={"name": "mm", "method": "bayes"}).model
+    a, b, c, lone = (new_learner(w, cfg) for w in ("A", "B", "C", "D"))
+    t0 = datetime(2020, 3, 1, tzinfo=UTC)
+    for well, rate in ((a, 20_000.0), (b, 30_000.0)):
+        well.learn(list(SAMPLE), rate, t0, "well_test")
+    joint = SeparatorLearner(WellFilters("ABC", [a.method, b.method, c.method]), {"S": "ABC"})
+    at = t0 + timedelta(days=1)
+    ns = int(pd.Timestamp(at).value)
+    x = torch.tensor([SAMPLE] * 3, dtype=torch.float64).reshape(3, 1, 6)
+    flowing = torch.tensor([True, True, False])
+    one = DataBatch(
+        list("ABC"),
+        x,
+        torch.zeros(3, 1, dtype=torch.float64),
+        flowing.reshape(3, 1),
+        torch.full((3, 1), ns, dtype=torch.int64),
+        torch.zeros(3, 1, dtype=torch.int64),
+        torch.zeros(3, 1, dtype=torch.bool),
+    )
+    alloc = joint.allocate_and_learn("S", one, flowing, 53_000.0, pd.Timestamp(at))
+    assert alloc is not None and alloc.learned
+    later = at + timedelta(days=2)
+    times = torch.full((3,), int(pd.Timestamp(later).value), dtype=torch.int64)
+    b_before = b.method.filter_state()[0].clone()  # type: ignore[attr-defined]
+    mark = joint.before_well_tests(torch.tensor([True, False, False]), times)
+    a.learn(list(SAMPLE), 21_000.0, later, "well_test")
+    assert joint.carry_well_tests(mark) == ["S"]
+    assert not torch.equal(b.method.filter_state()[0], b_before)  # type: ignore[attr-defined]
+    first = at + timedelta(days=3)
+    for well in (c, lone):
+        well.learn(list(SAMPLE), 10_000.0, first, "well_test")
+    for got, want in zip(
+        c.method.filter_state(),  # type: ignore[attr-defined]
+        lone.method.filter_state(),  # type: ignore[attr-defined]
+        strict=True,
+    ):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
 # -- configuration, refusals and HTTP on a small field (model `last`) -------------------------

@@ -79,6 +79,7 @@ __all__ = [
     "Allocation",
     "SeparatorLearner",
     "WellFilters",
+    "WellTestMark",
     "SeparatorRun",
     "check_method",
     "run_separator",
@@ -146,6 +147,18 @@ class Allocation:
             }
             for k, w in enumerate(self.wells)
         ]
+
+
+@dataclass
+class WellTestMark:
+    """The wells about to learn a measurement (``live`` [W]) with their parameters
+    ``theta`` [W, D], covariance grown to the measurement ``before`` [W, D, D] and reset
+    counts ``resets`` [W], taken by :meth:`SeparatorLearner.before_well_tests`."""
+
+    live: torch.Tensor
+    theta: torch.Tensor
+    before: torch.Tensor
+    resets: torch.Tensor
 
 
 class _Wells:
@@ -290,32 +303,67 @@ class SeparatorLearner:
     def learn_well_tests(self, batch: Batch) -> torch.Tensor:
         """Learn from one measurement per well (others masked) through the single-well
         filter, then carry each update to the well's separator partners (``cross``)."""
-        filt = self.filt
-        live = batch.mask[:, 0] & filt.model.ready
-        now = torch.where(live, batch.time_ns[:, 0], torch.full_like(batch.time_ns[:, 0], NEVER))
-        theta0, _, _, _ = filt.filter_state()
-        before = filt.grown_covariance(now)
-        resets0 = filt.stats()["resets"]
-        changed = filt.on_measurement(batch)
+        live = batch.mask[:, 0] & self.filt.model.ready
+        mark = self.before_well_tests(live, batch.time_ns[:, 0])
+        changed = self.filt.on_measurement(batch)
+        self.carry_well_tests(mark)
+        return changed
+
+    def before_well_tests(self, live: torch.Tensor, time_ns: torch.Tensor) -> WellTestMark | None:
+        """What :meth:`carry_well_tests` needs of the wells ``live`` [W] (ready, measured at
+        ``time_ns`` [W], epoch ns) before the single-well filter learns their measurements:
+        their parameters, covariance grown to the measurement and reset counts. None
+        without ``cross`` (nothing is carried)."""
         if not self.cross:
-            return changed
+            return None
+        filt = self.filt
+        now = torch.where(live, time_ns, torch.full_like(time_ns, NEVER))
+        theta0 = filt.filter_state()[0]
+        return WellTestMark(live, theta0, filt.grown_covariance(now), filt.stats()["resets"])
+
+    def carry_well_tests(self, mark: WellTestMark | None) -> list[str]:
+        """After the single-well filter learned the measurements of ``mark``'s wells: carry
+        each well's update to its separator partners over the kept cross-covariances (a
+        well the filter reset forgets them). The separators whose joint state changed."""
+        if mark is None:
+            return []
+        filt = self.filt
         theta1, after, _, _ = filt.filter_state()
-        resets = filt.stats()["resets"] - resets0
-        for i in torch.nonzero(live).flatten().tolist():
+        resets = filt.stats()["resets"] - mark.resets
+        touched: list[str] = []
+        for i in torch.nonzero(mark.live).flatten().tolist():
             sep = self._separator_of.get(i)
             if sep is None or len(self.index[sep]) < 2:
                 continue
             if int(resets[i]):  # the well changed: what it shared with the others is gone
                 self._forget(sep, i)
+                touched.append(sep)
                 continue
-            self._carry(sep, i, before[i], after[i], theta1[i] - theta0[i])
-        return changed
+            if self._carry(sep, i, mark.before[i], after[i], theta1[i] - mark.theta[i]):
+                touched.append(sep)
+        return touched
+
+    def joint(self, sep: str) -> torch.Tensor:
+        """A copy of ``sep``'s joint covariance [M D, M D] (its diagonal blocks as of the
+        last joint step; the filter's P holds the current ones)."""
+        return self._joint[sep].clone()
+
+    def set_joint(self, sep: str, cov: torch.Tensor) -> None:
+        """Put back ``sep``'s joint covariance (as :meth:`joint` gave it, e.g. after a
+        restart, or kept between readings by a caller that builds a learner per reading)."""
+        if cov.shape != self._joint[sep].shape:
+            raise ConfigError(
+                f"The joint covariance of {sep} has the shape {tuple(cov.shape)}; its "
+                f"{len(self.index[sep])} wells need {tuple(self._joint[sep].shape)}."
+            )
+        self._joint[sep] = cov.to(DTYPE).clone()
 
     def _carry(
         self, sep: str, well: int, p0: torch.Tensor, p1: torch.Tensor, step: torch.Tensor
-    ) -> None:
+    ) -> bool:
         """Condition the separator's other wells on well ``well``'s update (see the module
-        docstring): its covariance went from p0 to p1 and its parameters moved by ``step``."""
+        docstring): its covariance went from p0 to p1 and its parameters moved by ``step``.
+        False when there was nothing to carry (no correlation yet)."""
         ix, d = self.index[sep], self._d
         k = int((ix == well).nonzero()[0, 0])
         joint = self._joint[sep]
@@ -323,7 +371,7 @@ class SeparatorLearner:
         others = torch.nonzero(torch.arange(len(ix) * d) // d != k).flatten()
         c_oi = joint[others][:, own]  # [(M-1) D, D]
         if not bool(c_oi.abs().gt(0).any()):
-            return  # no correlation yet: nothing to carry
+            return False  # no correlation yet: nothing to carry
         p0_inv = torch.linalg.pinv(p0, hermitian=True)
         gain = c_oi @ p0_inv
         shrink = gain @ (p0 - p1) @ gain.T
@@ -341,8 +389,11 @@ class SeparatorLearner:
         for j, w in enumerate(partners.tolist()):
             P[w] = P[w] - shrink[j * d : (j + 1) * d, j * d : (j + 1) * d]
         mask = torch.zeros(len(self.filt.model.wells), dtype=torch.bool)
-        mask[partners] = True
+        # a partner without a model yet is left unstarted (it shares nothing yet): its
+        # first measurement starts it at the prior, as in a joint update
+        mask[partners] = self.filt.model.ready[partners]
         self.filt.set_filter_state(theta, P, last, mask)
+        return True
 
     def _forget(self, sep: str, well: int) -> None:
         """Drop well ``well``'s cross-covariances (after the filter reset it: it changed)."""

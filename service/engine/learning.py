@@ -13,7 +13,8 @@
   ``bayes`` updates stacked into one multi-well update, each well's result what its own
   ``learn`` gives); the worker runs them earlier whenever anything else of such a well
   comes (its next sample, another measurement, a model change), so each well sees the
-  order of one-by-one handling.
+  order of one-by-one handling. A step that moves other wells' models too (a separator's
+  member with kept cross-covariances, :class:`JointLearning`) is taken at once.
 * :meth:`Learning.apply`: the learning step itself, also used to re-learn after a
   checkpoint on start: learn, score the prediction made at the sample (the rolling
   error), feed the well's residual alarm (:mod:`service.engine.residual_alarms`: an
@@ -41,7 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -60,6 +61,26 @@ __all__ = ["Learning"]
 logger = logging.getLogger("vfm.service.engine")
 
 Rates = dict[str, float | None]
+
+
+class JointLearning(Protocol):
+    """Wells whose learning step moves other wells' models: a separator's wells with kept
+    cross-covariances (:class:`service.engine.separators.Separators`). Such a well learns
+    at once, never deferred, and the samples taken before its measurement are predicted
+    first (as a field-wide well's)."""
+
+    def moves_others(self, well: str) -> bool:
+        """Whether ``well``'s learning step may move other wells' models."""
+
+    def before_learn(self, st: WellState, time_ns: int) -> object | None:
+        """What the carry needs of the wells before ``st`` learns a measurement at
+        ``time_ns`` (None: nothing to carry)."""
+
+    def carry(self, mark: object) -> bool:
+        """After the learning step: carry it to the other wells; whether any moved."""
+
+    def carried(self, st: WellState, ops: list[Op], time_ns: int) -> None:
+        """After the step is recorded: the writes that keep the moved wells' state."""
 
 
 def _wants_sd(st: WellState) -> bool:
@@ -82,6 +103,13 @@ class Learning:
         self.checkpoints = checkpoints
         self.max_catch_up = settings.model.max_catch_up_retrains
         self._last_slow_log = 0.0
+        #: wells whose learning moves others' models (set by the separators; None: none)
+        self.joint: JointLearning | None = None
+
+    def moves_others(self, well: str) -> bool:
+        """Whether ``well``'s learning step moves other wells' models (see
+        :class:`JointLearning`); the worker then predicts the samples before it first."""
+        return self.joint is not None and self.joint.moves_others(well)
 
     def catch_up(self, learner: Learner, time_ns: int) -> bool:
         """Before a step at ``time_ns``: one retrain instead of more than
@@ -184,13 +212,15 @@ class Learning:
         # the prediction before learning: for the caller, and its sd for the residual alarm
         wants = p.future is not None or _wants_sd(st)
         before = learner.predict(list(sample.inputs)) if wants else {}
-        if self.batch_learns and not learner.shares_model:
+        if self.batch_learns and not learner.shares_model and not self.moves_others(st.well):
             self.catch_up(learner, p.time_ns)
             b.learns.append(DeferredLearn(st, p, sample, version_before, before))
             b.learn_wells.add(st.well)
             return
-        self.apply(st, sample, p.q_total, p.time_ns, b.ops, p.source)
+        moved = self.apply(st, sample, p.q_total, p.time_ns, b.ops, p.source)
         self._record(st, p, sample, b, version_before, before)
+        if moved and self.joint is not None:  # the other wells' state, kept with this one's
+            self.joint.carried(st, b.ops, p.time_ns)
 
     def run_deferred(self, b: Batch) -> None:
         """Run the learning steps waiting in ``b``, all wells in one
@@ -287,15 +317,19 @@ class Learning:
         time_ns: int,
         ops: list[Op],
         source: str = "mpfm",
-    ) -> None:
-        """Learn, score the earlier prediction, run the drift test (also used when re-learning)."""
+    ) -> bool:
+        """Learn, score the earlier prediction, run the drift test (also used when
+        re-learning). True when the step was carried to other wells (:class:`JointLearning`)."""
         learner = st.learner
         started = time.monotonic()
         self.catch_up(learner, time_ns)
         sd = learner.predict(list(sample.inputs)).get("q_total_std") if _wants_sd(st) else None
+        mark = self.joint.before_learn(st, time_ns) if self.joint is not None else None
         learner.learn(list(sample.inputs), q_total, from_ns(time_ns), source)
+        moved = mark is not None and self.joint is not None and self.joint.carry(mark)
         self._timed(st, started, "Learning a measurement")
         self._after_step(st, sample, q_total, time_ns, ops, source, sd)
+        return moved
 
     def _after_step(
         self,

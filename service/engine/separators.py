@@ -23,12 +23,31 @@ readings wait per separator (the oldest is then settled with the samples there a
 (a well test before the reading is learned before it), then the members' one-well ``bayes``
 filters are seen as one filter (:class:`vfm_core.separator.WellFilters`) and
 :class:`vfm_core.separator.SeparatorLearner` allocates the reading and makes the joint
-update, exactly as ``vfm evaluate`` does. The service keeps no cross-covariances between
-wells (``cross=False``: block-diagonal; each well's marginal covariance is right after the
-update, what the correlation would carry to later well tests is dropped; the offline
-benchmark measured it as good as or better than keeping them), so each member's own filter
-state holds all there is, and a checkpoint of every member is written in the reading's
-transaction: a restart restores the state after the reading and re-learns what came after.
+update, exactly as ``vfm evaluate`` does.
+
+**Cross-covariances** (``separators.cross``, default true, as ``run_separator``): each
+separator's joint covariance between its wells' parameters is kept here, on its worker
+(:class:`_Cross`), updated at every joint update and carried at every measurement a
+member learns through its one-well filter (:class:`service.engine.learning.JointLearning`:
+:meth:`Separators.before_learn` takes the well's covariance grown to the measurement,
+:meth:`Separators.carry` hands the step to
+:meth:`vfm_core.separator.SeparatorLearner.carry_well_tests`, which moves the partners).
+Such a member's step is therefore never deferred to the end of the worker batch, and the
+samples taken before it are predicted first. A member whose model was replaced, retired,
+reset by its filter or moved otherwise (a retrain on a drift: its version is not the one
+last seen here) shares nothing any more: its rows start at zero. A member without a model
+yet is not touched by a carry (its first measurement starts it at the prior).
+``cross = false`` keeps none (block-diagonal: each member's own filter state holds all
+there is).
+
+**Restart.** Every step that moves the joint state (a reading learned, a carried step)
+writes, in its own transaction, a checkpoint of every member whose model moved and the
+separator's joint state (``separator_states``, :class:`SaveJoint`, with the members'
+model versions). So the store always holds them together: a restart restores the members
+and the joint state as they were after the last such step; what a member learned after
+it without a carry (nothing to carry: it shares nothing yet) is re-learned from the store
+as usual, and a member whose restored version is not the one the joint state was kept
+with (a model rebuilt) has its rows dropped.
 Wells with another method (``ol``, ``pbl``) do not learn from the total (their fit is a
 per-well objective; see :func:`vfm_core.separator.check_method`): a reading with such a
 well flowing is stored with the sum of the wells' predictions and the residual, not
@@ -55,6 +74,7 @@ from dataclasses import dataclass
 from datetime import UTC
 from typing import Any, ClassVar
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -72,7 +92,13 @@ from vfm_core.errors import ConfigError
 from vfm_core.learning.method import NEVER
 from vfm_core.learning.streaming.samples import one_sample
 from vfm_core.messages import Measurement
-from vfm_core.separator import Allocation, SeparatorLearner, WellFilters, check_method
+from vfm_core.separator import (
+    Allocation,
+    SeparatorLearner,
+    WellFilters,
+    WellTestMark,
+    check_method,
+)
 from vfm_core.separator_format import SEPARATOR_SOURCE
 from vfm_core.timeutil import iso, to_ns
 
@@ -88,6 +114,7 @@ __all__ = [
     "InsertReading",
     "SettleReading",
     "InsertAllocation",
+    "SaveJoint",
 ]
 
 logger = logging.getLogger("vfm.service.engine")
@@ -203,6 +230,73 @@ class InsertAllocation(Op):
     )
 
 
+@dataclass(frozen=True, slots=True)
+class SaveJoint(Op):
+    """A separator's kept cross-covariances (``joint``: float64 bytes of the [M D, M D]
+    matrix), its wells and their models' versions (JSON), as of ``time_ns`` (data time)."""
+
+    separator: str
+    time_ns: int
+    wells: str
+    versions: str
+    dim: int
+    joint: bytes
+
+    SQL: ClassVar[str] = (
+        "INSERT OR REPLACE INTO separator_states (separator, time_ns, wells, versions, dim,"
+        " joint) VALUES (:separator, :time_ns, :wells, :versions, :dim, :joint)"
+    )
+
+
+@dataclass
+class _Cross:
+    """A separator's kept cross-covariances: its joint wells in order, each one's filter
+    (the learner's method object: a replaced model is noticed; None when restored from
+    the store) and its model's version when last seen here (a model moved otherwise, e.g.
+    retrained on a drift or rebuilt at a restart, is noticed), the joint covariance
+    [M D, M D] and D."""
+
+    wells: list[str]
+    filters: list[object | None]
+    versions: list[int]
+    joint: torch.Tensor
+    dim: int
+
+    def keeps(self, well: str, st: WellState) -> bool:
+        """Whether ``well``'s rows still hold for its model now (the same model)."""
+        if well not in self.wells:
+            return False
+        k = self.wells.index(well)
+        f = self.filters[k]
+        same = f is None or f is st.learner.method
+        return same and self.versions[k] == st.learner.version
+
+    def carried_over(self, wells: list[str], keep: list[bool], dim: int) -> torch.Tensor:
+        """The joint covariance for ``wells`` (D = ``dim``): the blocks between wells it
+        keeps (``keep``), zero elsewhere (a new or replaced well shares nothing yet)."""
+        if wells == self.wells and all(keep) and dim == self.dim:
+            return self.joint
+        new = torch.zeros(len(wells) * dim, len(wells) * dim, dtype=DTYPE)
+        if dim != self.dim:
+            return new
+        pos = [(k, self.wells.index(w)) for k, w in enumerate(wells) if keep[k]]
+        for a, oa in pos:
+            for c, oc in pos:
+                new[a * dim : (a + 1) * dim, c * dim : (c + 1) * dim] = self.joint[
+                    oa * dim : (oa + 1) * dim, oc * dim : (oc + 1) * dim
+                ]
+        return new
+
+
+@dataclass
+class _CarryMark:
+    """A member's learning step about to be carried to its partners (``cross``)."""
+
+    sep: str
+    learner: SeparatorLearner
+    mark: WellTestMark
+
+
 @dataclass
 class _Waiting:
     """A stored reading waiting for its wells' samples."""
@@ -297,6 +391,7 @@ class Separators:
         self.separator_of = {w: sep for sep, ws in self.members.items() for w in ws}
         self.noise = cfg.noise
         self.learn = cfg.learn
+        self.cross = cfg.cross
         self.window_ns = int(cfg.sample_window_s * 1e9)
         self.timeout_s = settings.inputs.pending_timeout_s
         self.pending_max = settings.inputs.pending_max
@@ -315,9 +410,19 @@ class Separators:
         #: the latest allocation published per separator (read by HTTP threads)
         self._latest: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
+        #: each separator's kept cross-covariances (``cross``; the worker's own)
+        self._cross: dict[str, _Cross] = {}
+        #: the carry starts once the wells are loaded (re-learning at start carries nothing)
+        self._loaded = False
+        if self.cross:
+            learning.joint = self
 
     def load(self) -> None:
-        """After a restart: the readings still pending wait again."""
+        """After a restart: the readings still pending wait again, and the kept
+        cross-covariances come back (each checked against its wells' model versions when
+        first used)."""
+        self._load_joint()
+        self._loaded = True
         now = time.monotonic()
         with self.store.reader() as con:
             rows = con.execute(
@@ -327,6 +432,155 @@ class Separators:
         for sep, t, q in rows:
             if sep in self.waiting:
                 self.waiting[sep].append(_Waiting(int(t), float(q), now))
+
+    def _load_joint(self) -> None:
+        """The kept cross-covariances of the store (``separator_states``)."""
+        if not self.cross:
+            return
+        with self.store.reader() as con:
+            rows = con.execute(
+                "SELECT separator, wells, versions, dim, joint FROM separator_states"
+            ).fetchall()
+        for sep, wells, versions, dim, blob in rows:
+            if sep not in self.members:
+                continue
+            names, n = json.loads(wells), len(json.loads(wells)) * int(dim)
+            values = np.frombuffer(blob, dtype="<f8")
+            if values.size != n * n:
+                logger.warning(
+                    "The kept cross-covariances of %s are unusable; they start over.", sep
+                )
+                continue
+            joint = torch.from_numpy(values.reshape(n, n).copy())
+            self._cross[sep] = _Cross(names, [None] * len(names), json.loads(versions), joint, dim)
+
+    def joint_state(self, sep: str) -> tuple[list[str], torch.Tensor] | None:
+        """The wells and the kept joint covariance [M D, M D] of ``sep`` as the next joint
+        step would use it (the rows of a well whose model is not the one they were kept
+        with are dropped); None: none kept. For a caller on the separator's worker or
+        while the service is idle (tests, tools)."""
+        if sep not in self._cross:
+            return None
+        try:
+            self._cross_learner(sep, self._joint_states(sep))
+        except ConfigError:
+            pass
+        cross = self._cross[sep]
+        return list(cross.wells), cross.joint.clone()
+
+    # -- the carry of a member's learning step (service.engine.learning.JointLearning) --------
+    def moves_others(self, well: str) -> bool:
+        """Whether ``well``'s learning step may move its partners (``cross``)."""
+        sep = self.separator_of.get(well)
+        return self.cross and sep is not None and len(self.members[sep]) > 1
+
+    def partner_may_learn(self, well: str, sample_wells: Mapping[str, bool]) -> bool:
+        """Whether a partner of ``well`` has a sample in the batch at which it may learn
+        (``sample_wells`` False: a measurement waits for it), which would move ``well``."""
+        sep = self.separator_of.get(well)
+        if not self.cross or sep is None:
+            return False
+        return any(sample_wells.get(p) is False for p in self.members[sep] if p != well)
+
+    def before_learn(self, st: WellState, time_ns: int) -> _CarryMark | None:
+        """Before ``st`` learns a measurement at ``time_ns``: what the carry needs (see
+        :meth:`vfm_core.separator.SeparatorLearner.before_well_tests`)."""
+        sep = self.separator_of.get(st.well)
+        if not self._loaded or sep is None or not self.cross:
+            return None
+        joint = self._joint_states(sep)
+        wells = [w for w, _ in joint]
+        if st.well not in wells or len(wells) < 2:
+            return None
+        try:
+            learner = self._cross_learner(sep, joint)
+        except ConfigError:
+            return None
+        live = torch.zeros(len(wells), dtype=torch.bool)
+        live[wells.index(st.well)] = True
+        t = torch.full((len(wells),), NEVER, dtype=torch.int64)
+        t[live] = time_ns
+        mark = learner.before_well_tests(live & learner.filt.model.ready, t)
+        return None if mark is None else _CarryMark(sep, learner, mark)
+
+    def carry(self, mark: object) -> bool:
+        """After the step: carry it to the partners; whether the joint state changed."""
+        assert isinstance(mark, _CarryMark)
+        touched = bool(mark.learner.carry_well_tests(mark.mark))
+        if touched:
+            self._cross[mark.sep].joint = mark.learner.joint(mark.sep)
+        self._note_versions(mark.sep)
+        return touched
+
+    def carried(self, st: WellState, ops: list[Op], time_ns: int) -> None:
+        """The partners moved: a new version each, a checkpoint of every joint member and
+        the joint state, in the step's transaction (a restart finds them together)."""
+        sep = self.separator_of[st.well]
+        joint = self._joint_states(sep)
+        for _, other in joint:
+            if other is not st and other.learner.ready:
+                other.learner.renumber(other.learner.version + 1)
+        self._note_versions(sep)
+        self._keep(sep, joint, ops, time_ns)
+
+    def _note_versions(self, sep: str) -> None:
+        """The joint wells' model versions now (moved here, by a step or a carry)."""
+        cross = self._cross.get(sep)
+        if cross is not None:
+            cross.versions = [
+                member.learner.version if (member := self.wells.get(w)) else -1 for w in cross.wells
+            ]
+
+    def _joint_states(self, sep: str) -> list[tuple[str, WellState]]:
+        """The members that learn from the total together (bayes), in order."""
+        out = []
+        for well in self.members[sep]:
+            st = self.wells.get(well)
+            if st is not None and check_method(st.learner.method.text) is None:
+                out.append((well, st))
+        return out
+
+    def _cross_learner(self, sep: str, joint: list[tuple[str, WellState]]) -> SeparatorLearner:
+        """A :class:`SeparatorLearner` over the joint wells' filters holding the kept
+        cross-covariances (those of a replaced or new well start at zero)."""
+        wells = [w for w, _ in joint]
+        filters = [st.learner.method for _, st in joint]
+        learner = SeparatorLearner(
+            WellFilters(wells, filters), {sep: wells}, noise=self.noise, cross=True
+        )
+        fresh = learner.joint(sep)
+        dim = fresh.shape[0] // len(wells)
+        old = self._cross.get(sep)
+        if old is not None:
+            learner.set_joint(
+                sep, old.carried_over(wells, [old.keeps(w, s) for w, s in joint], dim)
+            )
+        versions = [st.learner.version for _, st in joint]
+        self._cross[sep] = _Cross(wells, list(filters), versions, learner.joint(sep), dim)
+        return learner
+
+    def _keep(
+        self, sep: str, joint: list[tuple[str, WellState]], ops: list[Op], time_ns: int
+    ) -> None:
+        """Checkpoints of the joint members whose model moved since their last one, and
+        the separator's joint state (:class:`SaveJoint`)."""
+        for _, st in joint:
+            if st.learner.ready and st.checkpoint_version != st.learner.version:
+                ops.extend(self.checkpoints.ops(st))
+                self.checkpoints.changed(st, ops, time_ns)
+        cross = self._cross.get(sep)
+        if cross is None:
+            return
+        ops.append(
+            SaveJoint(
+                sep,
+                time_ns,
+                json.dumps(cross.wells),
+                json.dumps(cross.versions),
+                cross.dim,
+                cross.joint.numpy().astype("<f8").tobytes(),
+            )
+        )
 
     def waits_on(self, well: str) -> bool:
         """Whether a reading of ``well``'s separator waits (the worker then predicts the
@@ -551,17 +805,16 @@ class Separators:
         ]
         others = [m for m in members if m not in joint]
         try:
-            filters = WellFilters([m.well for m in joint], [m.state.learner.method for m in joint])
+            learner = self._reading_learner(sep, joint)
         except ConfigError as exc:
             return "unused", str(exc), [self._row(m, m.predicted) for m in members]
-        learner = SeparatorLearner(
-            filters, {sep: [m.well for m in joint]}, noise=self.noise, cross=False
-        )
         one, live = _one_sample_each(joint)
         versions = [m.state.learner.version for m in joint]
         alloc = learner.allocate_and_learn(
             sep, one, live, w.q_total, pd.Timestamp(w.time_ns, tz=UTC), learn=self.learn
         )
+        if self.cross and alloc is not None and alloc.learned:
+            self._cross[sep].joint = learner.joint(sep)
         if alloc is None:
             rows = [self._row(m, 0.0) for m in members]
             return "unused", "A flowing well has no model yet; the reading is not allocated.", rows
@@ -575,20 +828,37 @@ class Separators:
                 else "separators.learn is false"
             )
             return "allocated", f"Allocated, not learned from: {why}.", rows
-        self._updated(joint, versions, w.time_ns, b)
+        self._updated(sep, joint, versions, w.time_ns, b)
         return "learned", "Allocated and learned from (joint update of the wells).", rows
 
-    def _updated(self, joint: list[_Member], versions: list[int], time_ns: int, b: Batch) -> None:
-        """The flowing wells' models moved: a new version each, and a checkpoint of every
-        member in the reading's transaction (the state after the reading survives a
-        restart; what comes after is re-learned from the store)."""
+    def _reading_learner(self, sep: str, joint: list[_Member]) -> SeparatorLearner:
+        """The joint update's learner over the joint wells' filters: with the kept
+        cross-covariances (``cross``), or block-diagonal."""
+        if self.cross:
+            return self._cross_learner(sep, [(m.well, m.state) for m in joint])
+        filters = WellFilters([m.well for m in joint], [m.state.learner.method for m in joint])
+        return SeparatorLearner(
+            filters, {sep: [m.well for m in joint]}, noise=self.noise, cross=False
+        )
+
+    def _updated(
+        self, sep: str, joint: list[_Member], versions: list[int], time_ns: int, b: Batch
+    ) -> None:
+        """The wells' models moved (the flowing ones; with ``cross`` every member with a
+        model, through the cross-covariances): a new version each, and a checkpoint of
+        each (and the joint state) in the reading's transaction (the state after the
+        reading survives a restart; what comes after is re-learned from the store)."""
         for m, before in zip(joint, versions, strict=True):
-            if not m.flowing:
-                continue
-            st = m.state
-            st.learner.renumber(before + 1)
-            b.ops.extend(self.checkpoints.ops(st))
-            self.checkpoints.changed(st, b.ops, time_ns)
+            if m.flowing or (self.cross and m.state.learner.ready):
+                m.state.learner.renumber(before + 1)
+        if self.cross:
+            self._note_versions(sep)
+            self._keep(sep, [(m.well, m.state) for m in joint], b.ops, time_ns)
+            return
+        for m in joint:
+            if m.flowing:
+                b.ops.extend(self.checkpoints.ops(m.state))
+                self.checkpoints.changed(m.state, b.ops, time_ns)
 
     @staticmethod
     def _row(m: _Member, q_pred: float | None, shut: bool = False) -> dict[str, Any]:

@@ -25,7 +25,9 @@ sample when its model may change at that sample (a scheduled retrain, or a measu
 waiting for the sample before); so each well sees exactly the order of one-by-one handling.
 A measurement of a well with its own model and no sample taken in the batch is the one
 exception: it changes no other well's model, so the other wells' samples keep waiting for
-the batch's one call (a field-wide ``mtl`` model still has them predicted first).
+the batch's one call (a field-wide ``mtl`` model, or a separator's member whose step is
+carried to its partners over kept cross-covariances, still has them predicted first; and a
+member's sample is predicted after a partner's sample at which that partner may learn).
 Learning is batched the same way: a paired measurement's learning step waits, and the
 batch's waiting steps of all wells run in one call
 (:func:`vfm_core.learning.streaming.learn_many`, via :meth:`Learning.run_deferred
@@ -251,15 +253,23 @@ class Workers:
     def _handle(self, item: Item, b: Batch) -> None:
         if isinstance(item, SensorItem):
             first = item.well in b.sample_wells and not b.sample_wells[item.well]
-            # a separator's reading waits for this well: its later samples come after it
-            first |= self.separators is not None and self.separators.waits_on(item.well)
+            # a separator's reading waits for this well: its later samples come after it;
+            # or a partner's learning step at its sample may move this well (cross)
+            first |= self.separators is not None and (
+                self.separators.waits_on(item.well)
+                or self.separators.partner_may_learn(item.well, b.sample_wells)
+            )
         elif isinstance(item, SensorBlockItem):
             first = item.well in b.sample_wells  # a block is answered at once, in order
+            first |= self.separators is not None and self.separators.partner_may_learn(
+                item.well, b.sample_wells
+            )
         elif isinstance(item, MeasurementItem) and item.well not in b.sample_wells:
             # a measurement changes its own well's model only, unless the model is shared
             # (field-wide, mtl): the other wells' samples taken so far need not wait
+            # (or a separator's kept cross-covariances carry the step to its partners)
             st = self.wells.get(item.well)
-            first = st is None or st.learner.shares_model
+            first = st is None or st.learner.shares_model or self.learning.moves_others(st.well)
         else:
             first = True
         if first:
