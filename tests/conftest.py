@@ -26,6 +26,11 @@ SLOW_FILES: frozenset[str] = frozenset(
     {
         "test_workers.py",  # spawned study workers: 120-130 s a test under load
         "test_page_browser.py",  # the workbench in chromium: 150 s
+        # the other pages in chromium (a served field each; 3:06 for the fast tier's 1,009
+        # tests with them on 2026-11-26 09:46 UTC, a quiet machine)
+        "test_page_faults_browser.py",
+        "test_well_test_review_browser.py",
+        "test_service_separator_browser.py",
         "test_demo_effects.py",  # vfm demo end to end: 107 s
         "test_service_demo_signals.py",  # the demo stopped by signals: 57 s each
         "test_report.py",  # a study per report test: 15-28 s of set-up each
