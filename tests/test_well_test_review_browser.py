@@ -75,6 +75,8 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
                 alarms
             )
             assert "refused" not in alarms, alarms
+            # nor the page's banner of refused inputs (the service refused nothing here)
+            assert page.locator("#banner").is_hidden()
             page.screenshot(path=str(SHOTS / "well-test-review.png"), full_page=True)
             # without the token the page says so and sends nothing
             item.locator('button[data-decision="accept"]').click()

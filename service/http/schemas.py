@@ -36,12 +36,39 @@ __all__ = [
     "HistoryOut",
     "WellTestOut",
     "RetiredOut",
+    "POSTED_MEASUREMENT_ERRORS",
+    "measurement_body",
 ]
 
 
 class ErrorOut(BaseModel):
     detail: str = Field(description="what was wrong, as a sentence")
     reason: str | None = Field(None, description="the rejection counter this was counted under")
+
+
+#: the error answers of an endpoint that takes a measurement's JSON body (a well test, a
+#: separator's reading), for its OpenAPI ``responses``
+POSTED_MEASUREMENT_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorOut},
+    403: {"model": ErrorOut},
+    404: {"model": ErrorOut},
+    409: {"model": ErrorOut},
+    413: {"model": ErrorOut, "description": "the body is larger than http.max_body_bytes"},
+    415: {"model": ErrorOut, "description": "the body is declared as something else than JSON"},
+    422: {"model": ErrorOut},
+    503: {"model": ErrorOut},
+}
+
+
+def measurement_body(schema: dict[str, Any]) -> dict[str, Any]:
+    """``openapi_extra`` for an endpoint that reads its JSON body itself (bounded, checked
+    as a Zenoh message is), with ``schema`` the body's JSON schema."""
+    return {
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": schema}},
+        }
+    }
 
 
 class HealthOut(BaseModel):

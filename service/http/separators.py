@@ -23,7 +23,7 @@ from fastapi.responses import JSONResponse
 
 from service.errors import Busy, InvalidRequest, ServiceError
 from service.http.deps import CountersDep, EngineDep, ServiceDep, TokenDep
-from service.http.schemas import ErrorOut
+from service.http.schemas import POSTED_MEASUREMENT_ERRORS, ErrorOut, measurement_body
 from service.inputs import Limits, parse_measurement
 from vfm_core.messages import WELL_ID_MAX, Measurement, well_id_problem
 
@@ -70,21 +70,9 @@ def get_separator(name: NamePath, engine: EngineDep) -> dict[str, Any]:
     summary="Post a reading of the separator's total (Sm3/h): stored, allocated, learned from",
     responses={
         202: {"description": "stored; waiting for its wells' samples at its time"},
-        401: {"model": ErrorOut},
-        403: {"model": ErrorOut},
-        404: {"model": ErrorOut},
-        409: {"model": ErrorOut},
-        413: {"model": ErrorOut, "description": "the body is larger than http.max_body_bytes"},
-        415: {"model": ErrorOut, "description": "the body is declared as something else than JSON"},
-        422: {"model": ErrorOut},
-        503: {"model": ErrorOut},
+        **POSTED_MEASUREMENT_ERRORS,
     },
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {"application/json": {"schema": Measurement.model_json_schema()}},
-        }
-    },
+    openapi_extra=measurement_body(Measurement.model_json_schema()),
 )
 async def post_reading(
     name: NamePath,

@@ -20,7 +20,11 @@ from fastapi.responses import Response
 
 from service.errors import Busy, ServiceError
 from service.http.deps import CountersDep, EngineDep, ServiceDep, TokenDep, WellPath
-from service.http.schemas import ErrorOut, WellTestOut
+from service.http.schemas import (
+    POSTED_MEASUREMENT_ERRORS,
+    WellTestOut,
+    measurement_body,
+)
 from service.inputs import Limits, parse_measurement
 from vfm_core.messages import Measurement
 
@@ -41,21 +45,9 @@ router = APIRouter(prefix="/wells", tags=["wells"])
             "model": WellTestOut,
             "description": "stored; waiting for the sensor sample at its time",
         },
-        401: {"model": ErrorOut},
-        403: {"model": ErrorOut},
-        404: {"model": ErrorOut},
-        409: {"model": ErrorOut},
-        413: {"model": ErrorOut, "description": "the body is larger than http.max_body_bytes"},
-        415: {"model": ErrorOut, "description": "the body is declared as something else than JSON"},
-        422: {"model": ErrorOut},
-        503: {"model": ErrorOut},
+        **POSTED_MEASUREMENT_ERRORS,
     },
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {"application/json": {"schema": Measurement.model_json_schema()}},
-        }
-    },
+    openapi_extra=measurement_body(Measurement.model_json_schema()),
 )
 async def post_well_test(
     well: WellPath,

@@ -146,9 +146,13 @@ async function refreshField() {
     for (const v of views) next[v.well] = v;
     state.wells = next;
     const health = await api("GET", "/health");
-    const rej = Object.entries(health.rejected || {}).filter(([, n]) => n > 0);
+    // held measurements (HELD_REASONS) are stored, not refused: listed apart
+    const counted = Object.entries(health.rejected || {}).filter(([, n]) => n > 0);
+    const rej = counted.filter(([k]) => !HELD_REASONS.includes(k));
+    const held = counted.filter(([k]) => HELD_REASONS.includes(k));
+    const heldText = held.length ? ` Held (stored, not learned): ${held.map(([k, n]) => k + " " + n).join(", ")}.` : "";
     $("#inputs-summary").textContent = `Inputs accepted: ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}. ` +
-      `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.`;
+      `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.` + heldText;
     const banner = $("#banner");
     if (rej.length) {
       banner.hidden = false;
