@@ -103,8 +103,23 @@ def right(case: str, verdict: dict[str, Any], physics: str = "sachdeva") -> bool
     return effect == case
 
 
+def right_among(case: str, verdict: dict[str, Any], physics: str = "sachdeva") -> bool:
+    """Whether the cause put in is among what the verdict names: its effect, or a rival the
+    diagnosis says it cannot tell apart from it (``alternatives``) or finds at work beside it
+    (``then``, the next step); a weaker score than :func:`right`, reported beside it."""
+    others = [*(verdict.get("alternatives") or []), *(verdict.get("then") or [])]
+    return right(case, verdict, physics) or any(
+        right(case, {**verdict, "effect": o}, physics) for o in others
+    )
+
+
 def _label(v: dict[str, Any]) -> str:
-    return f"{v.get('kind')} {v.get('effect') or v.get('driver') or ''}".strip()
+    label = f"{v.get('kind')} {v.get('effect') or v.get('driver') or ''}".strip()
+    if v.get("then"):
+        label += " then " + ", ".join(v["then"])
+    if v.get("alternatives"):
+        label += " (or " + ", ".join(v["alternatives"]) + ")"
+    return label
 
 
 def main() -> None:
@@ -157,6 +172,10 @@ def main() -> None:
                         "method": method,
                         "verdict": _label(field_v),
                         "right": right(case, field_v, physics),
+                        "right_among": right_among(case, field_v, physics),
+                        "wells_right_among": sum(
+                            right_among(case, v, physics) for v in wells.values()
+                        ),
                         "wells_right": n_right,
                         "wells": len(wells),
                         "wells_noise": sum(v.get("kind") == "noise" for v in wells.values()),
@@ -190,6 +209,14 @@ def _summary(rows: list[dict[str, Any]]) -> str:
         f"{fields_right} of {len(rows)} field verdicts right; {wells_right} of {wells_all} "
         f"single-well verdicts right"
     )
+    among = sum(r.get("right_among", r["right"]) for r in rows)
+    if among != fields_right:
+        summary += (
+            f"; counting what a verdict cannot tell apart from its effect or names as the "
+            f"next step: {among} of {len(rows)} fields, "
+            f"{sum(r.get('wells_right_among', r['wells_right']) for r in rows)} of {wells_all} "
+            "wells"
+        )
     clean = [r for r in rows if r["case"] == "none"]
     if clean:
         summary += (
@@ -221,15 +248,16 @@ def _write_markdown(
         )
         + " (`effect` or `carried` naming it).",
         "",
-        "| physics | case | seed | model | method | field verdict | right | wells right "
-        "| live MAPE % | change of live MAPE (points) | time s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| physics | case | seed | model | method | field verdict | right | among the named "
+        "| wells right | live MAPE % | change of live MAPE (points) | time s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         change = "" if not np.isfinite(r["change"]) else f"{r['change']:+.2f}"
         lines.append(
             f"| {r['physics']} | {r['case']} | {r['seed']} | {r['model']} | {r['method']} "
             f"| {r['verdict']} | {'yes' if r['right'] else 'no'} "
+            f"| {'yes' if r.get('right_among', r['right']) else 'no'} "
             f"| {r['wells_right']}/{r['wells']} | {r['live']:.2f} | {change} "
             f"| {r['time_s']:.0f} |"
         )

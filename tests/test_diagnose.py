@@ -703,11 +703,16 @@ def test_outputs_follow_the_contract(tmp_path: Path) -> None:
     assert bics == sorted(bics)
     for c in data["candidates"]:
         assert {"effect", "mape", "delta_mape", "delta_bic", "parameters", "warnings"} <= set(c)
+        assert {"explained_by", "rivals"} <= set(c)
     rate = data["candidates"][0]["parameters"]["erosion.rate"]
     assert rate["sd"] > 0 and set(rate["per_well_sd"]) == set(rate["per_well"])
     v = data["verdict"]
     assert v["kind"] == "effect" and v["effect"] == "erosion" and v["driver"] is None
     assert v["text"] == diag.verdict
+    # the rivals of other physics: erosion is the only thing missing, so none is at work
+    # beside it (``then``) and none is explained by anything
+    assert {"explains", "then", "alternatives"} <= set(v) and v["then"] == []
+    assert all(c["explained_by"] in (None, "erosion") for c in data["candidates"])
     h = data["headline"]  # under the live protocol (the method replayed); fit-once beside it
     assert h["baseline_mape"] == pytest.approx(diag.live["mape"])
     assert h["fit_once_baseline_mape"] == pytest.approx(diag.candidate_baseline_mape)

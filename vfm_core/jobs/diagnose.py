@@ -83,7 +83,13 @@ How the fit-once evidence is taken:
    by all wells or per well; chosen by BIC) is fitted under the same protocol. It makes the
    verdict ``driver`` only if it also lowers the held-out error and BIC materially (a second,
    held-out test); else the verdict is ``noise``.
-6. **The noise floor**: the meters' white noise, estimated from consecutive readings
+6. **Rivals** (:mod:`vfm_core.jobs.diagnose_rivals`): when the evidence names more than one
+   physics, the best candidate is fitted together with the next two of other physics, and
+   each is asked whether it adds beyond the other, then (when neither does) whether its
+   shape beyond the trend fits the residual; one explained by another is neither named nor
+   offered, one at work beside the verdict's is its next step (``then``), one the data
+   cannot tell from it is listed (``alternatives``).
+7. **The noise floor**: the meters' white noise, estimated from consecutive readings
    (:func:`vfm_core.jobs.diagnose_stats.noise_floor`), so that "how much of the error above
    the floor the effect removes" can be read.
 
@@ -143,18 +149,18 @@ from vfm_core.effects import (
 )
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.features import STANDARD_FEATURES, standard_features
+from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs import diagnose_verdicts as verdicts
 from vfm_core.jobs.diagnose_output import format_summary, json_safe, write_diagnosis
 from vfm_core.jobs.diagnose_results import (
     MATERIAL_BIC,
     MATERIAL_MAPE_ABS,
-    MATERIAL_MAPE_NEAR_FLOOR,
     MATERIAL_MAPE_REL,
-    MATERIAL_SHARE,
     CandidateResult,
     Diagnosis,
     Suggestion,
+    is_material,
 )
 from vfm_core.jobs.diagnose_sources import (
     load_source,
@@ -537,21 +543,6 @@ def _parameter_summary(
     return out, meaning, k, _bound_warnings(model, ready)
 
 
-def _is_material(
-    delta_mape: float, base_mape: float, delta_bic: float, delta_all: float, share: float
-) -> bool:
-    """The BIC falls by more than :data:`MATERIAL_BIC` on the reference and over every
-    measurement, and the MAPE by at least max(:data:`MATERIAL_MAPE_ABS` points,
-    :data:`MATERIAL_MAPE_REL` of the baseline), or, near the noise floor, by at least
-    :data:`MATERIAL_MAPE_NEAR_FLOOR` points that are :data:`MATERIAL_SHARE` of the error above
-    the floor (``share``; nan without a floor)."""
-    if not (delta_bic < -MATERIAL_BIC and delta_all < -MATERIAL_BIC):
-        return False
-    if delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape):
-        return True
-    return bool(delta_mape <= -MATERIAL_MAPE_NEAR_FLOOR and share >= MATERIAL_SHARE)
-
-
 def _score(
     name: str,
     run: RunResult,
@@ -575,7 +566,7 @@ def _score(
     delta_all = bic(r, k, p["source"].to_numpy()) - bic(r0, 0, bp["source"].to_numpy())
     delta_mape = m - base_mape
     delta_bic = b - b0 if on == on0 else delta_all
-    material = _is_material(delta_mape, base_mape, delta_bic, delta_all, float("nan"))
+    material = is_material(delta_mape, base_mape, delta_bic, delta_all, float("nan"))
     driver = acts_through(name)
     return CandidateResult(
         name,
@@ -940,6 +931,7 @@ def run_diagnosis(
     job.score_candidates()
     job.try_variants()
     job.rank_drivers()
+    job.weigh_rivals()
     job.replay_shortlist()
     job.suggest_correction()
     job.fit_once_verdict()
@@ -1228,6 +1220,25 @@ class _DiagnosisRun:
         if top is not None and (top["p_value"] or 1.0) < stats.ALPHA and top["score"] > 0:
             self.fit_once_more(self._kin(top["name"]))
 
+    def weigh_rivals(self) -> None:
+        """When the fit-once evidence names more than one physics, fit the lead together with
+        each rival (:func:`vfm_core.jobs.diagnose_rivals.rivals`) and record which explains
+        which; a rival that explains the lead becomes the lead (and a physics explained
+        in its best form is explained in every form)."""
+        lead, others = rivals.rivals(self.results)
+        if lead is None or not others:
+            return
+        self.bar.add(len(others))
+        for r in others:
+            classes = [*self.classes_of[lead.effect], *self.classes_of[r.effect]]
+            key = f"{lead.effect}+{r.effect}"
+            run_ = self.run(key, classes, self.cand_method, self.cand_train)
+            pair = _score(key, run_, classes, self.comp_mape, self.comp, self.train_batch(run_))
+            rivals.relate(lead, r, pair, self.pool_wells, self.s.seed, self.comp.predictions)
+            if lead.explained_by is not None:  # explained_by, shape_rejected
+                lead = r
+        rivals.explain_families(self.results)
+
     def _kin(self, driver: str) -> list[tuple[type[Effect], str | None]]:
         """The library effects acting through ``driver`` not tried yet (:func:`_kin_classes`)."""
         return _kin_classes(
@@ -1309,7 +1320,9 @@ class _DiagnosisRun:
         s = self.s
         self._plan_outages()
         top_n = max(s.replay_top, 0)
-        shortlist = [c for c in self.results if c.run is not None and c.delta_mape < 0][:top_n]
+        # in BIC order, but a candidate a rival of other physics explains after the rest
+        fitted = [c for c in self.results if c.run is not None and c.delta_mape < 0]
+        shortlist = sorted(fitted, key=lambda c: c.explained_by is not None)[:top_n]
         if self.n_replays:  # the runs counted at the start, made exact now
             self.bar.add(len(shortlist) * self._replay_runs() - 2 * top_n)
         if s.replay_top > 0:
@@ -1609,7 +1622,7 @@ def _residuals_like(res: pd.DataFrame, run: RunResult) -> pd.DataFrame:
 def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
     """Set a candidate's share of the error above the floor, and whether it is material."""
     c.share_above_floor = _share(base_mape, c.mape, floor)
-    c.material = _is_material(
+    c.material = is_material(
         c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, c.share_above_floor
     )
 

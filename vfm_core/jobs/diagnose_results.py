@@ -25,6 +25,7 @@ __all__ = [
     "MATERIAL_BIC",
     "MATERIAL_SHARE",
     "MATERIAL_MAPE_NEAR_FLOOR",
+    "is_material",
     "BRIEF_KEYS",
     "brief",
     "CandidateResult",
@@ -45,6 +46,22 @@ MATERIAL_BIC = 10.0
 #: MATERIAL_SHARE of the error above the floor, and at least MATERIAL_MAPE_NEAR_FLOOR points.
 MATERIAL_SHARE = 1.0 / 3.0
 MATERIAL_MAPE_NEAR_FLOOR = 0.1
+
+
+def is_material(
+    delta_mape: float, base_mape: float, delta_bic: float, delta_all: float, share: float
+) -> bool:
+    """The BIC falls by more than :data:`MATERIAL_BIC` on the reference and over every
+    measurement, and the MAPE by at least max(:data:`MATERIAL_MAPE_ABS` points,
+    :data:`MATERIAL_MAPE_REL` of the baseline), or, near the noise floor, by at least
+    :data:`MATERIAL_MAPE_NEAR_FLOOR` points that are :data:`MATERIAL_SHARE` of the error above
+    the floor (``share``; nan without a floor)."""
+    if not (delta_bic < -MATERIAL_BIC and delta_all < -MATERIAL_BIC):
+        return False
+    if delta_mape <= -max(MATERIAL_MAPE_ABS, MATERIAL_MAPE_REL * base_mape):
+        return True
+    return bool(delta_mape <= -MATERIAL_MAPE_NEAR_FLOOR and share >= MATERIAL_SHARE)
+
 
 #: the fields of a paired test kept in a brief (:func:`brief`): the change of the MAPE
 #: (points), its 95 % interval, p and q, the counts and the two MAPEs (%)
@@ -114,6 +131,12 @@ class CandidateResult:
     #: not (:func:`vfm_core.jobs.diagnose_verdicts.physics_behind_driver`): {"driver",
     #: "correction", "test", "rule"}; None otherwise
     via_driver: dict[str, Any] | None = None
+    #: the candidate of other physics that explains this one: fitted together, this one
+    #: adds nothing beyond it (:mod:`vfm_core.jobs.diagnose_rivals`); None otherwise
+    explained_by: str | None = None
+    #: each rival fitted together with this one: {other: {"relation", "pair", "it_adds",
+    #: "adds_beyond_it"}} (:func:`vfm_core.jobs.diagnose_rivals.relate`)
+    rivals: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -121,8 +144,9 @@ class CandidateResult:
     @property
     def named(self) -> bool:
         """The evidence names this candidate: material by the fit-once evidence, or the
-        physics behind a driver the correction was fitted in (``via_driver``)."""
-        return self.material or self.via_driver is not None
+        physics behind a driver the correction was fitted in (``via_driver``), and no rival
+        of other physics explains it (``explained_by``)."""
+        return (self.material or self.via_driver is not None) and self.explained_by is None
 
     @property
     def material_rule(self) -> dict[str, float]:
@@ -166,6 +190,8 @@ class CandidateResult:
             "variant_of": self.variant_of,
             "share_above_floor": self.share_above_floor,
             "via_driver": self.via_driver,
+            "explained_by": self.explained_by,
+            "rivals": self.rivals,
         }
 
 

@@ -28,6 +28,7 @@ from vfm_core.data import target_mask
 from vfm_core.effects import Effect, effect_spec
 from vfm_core.jobs import diagnose_instrument as inst
 from vfm_core.jobs import diagnose_live as live
+from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_results import CandidateResult, Suggestion, brief
 from vfm_core.jobs.diagnose_stats import acts_through
@@ -202,6 +203,14 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     fit-once evidence what it is."""
     if not c.replayed:
         return False, "not replayed"
+    if c.explained_by is not None:
+        return False, rivals.why_explained(c)
+    first = rivals.second_to(c)
+    if first is not None:
+        return False, (
+            f"the data cannot tell it from {first}, which the evidence ranks first (fitted "
+            "together, neither adds beyond the other)"
+        )
     if not c.named:
         return False, "not material by the fit-once evidence"
     lt, ot = c.test("live", well), c.test("outage", well)
@@ -426,7 +435,11 @@ def _noise_verdict(
 def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
     """The fit-once evidence names ``c``: material, and lower beyond chance (the field's
     test, or the well's)."""
-    return c.material and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+    return (
+        c.material
+        and c.explained_by is None
+        and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+    )
 
 
 def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> dict[str, Any]:
@@ -435,6 +448,9 @@ def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> 
     v = c.via_driver
     if v is not None and not c.material:
         text += " " + _via_driver_text(c)
+    rival_text = rivals.rivals_text(c)
+    if rival_text:
+        text += " " + rival_text
     driver = None if v is None else v["driver"]
     return {
         "kind": kind,
@@ -443,7 +459,15 @@ def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> 
         "text": text,
         **num,
         "via_driver": v,
+        "explains": _related(c, "explains"),
+        "then": _related(c, "both"),
+        "alternatives": _related(c, "indistinguishable"),
     }
+
+
+def _related(c: CandidateResult, relation: str) -> list[str]:
+    """The rivals of ``c`` in ``relation`` to it (:mod:`vfm_core.jobs.diagnose_rivals`)."""
+    return [other for other, r in c.rivals.items() if r["relation"] == relation]
 
 
 def _via_driver_text(c: CandidateResult) -> str:
@@ -752,7 +776,7 @@ def fit_once_verdict(
     trend_share: float = float("nan"),
 ) -> tuple[str, str | None, str | None, str]:
     """(kind, effect, driver, sentence): see the module docstring for the rule."""
-    material = [c for c in candidates if c.material]
+    material = [c for c in candidates if c.material and c.explained_by is None]
     if material:
         return _material_verdict(material, base_mape, floor, protocol, bic_on)
     if top is not None and suggestion is not None and suggestion.result.material:

@@ -1,0 +1,218 @@
+"""Rival explanations (:mod:`vfm_core.jobs.diagnose_rivals`), on constructed runs with a known
+answer (no fitting: fast).
+
+Four wells, two years of daily measurements. The baseline misses two things: ``a`` (up to 8 %,
+following one variable) and ``b`` (up to 3 %, following another). A candidate that removes ``a``
+and one that removes ``b`` are both at work; one that removes ``a`` only partly is
+explained by the one that removes all of it; two that remove the same ``a`` cannot be told
+apart. The pair's run is what fitting both together would give. Two that neither adds beyond
+are told apart by their shape beyond the trend: the residual follows the physics' ups and
+downs, not a trend proxy's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vfm_core.jobs import diagnose as dg
+from vfm_core.jobs import diagnose_rivals as rv
+from vfm_core.jobs import diagnose_verdicts as dv
+from vfm_core.jobs.study import RunResult
+
+WELLS = ["W01", "W02", "W03", "W04"]
+DAYS = 730
+
+
+@pytest.fixture(scope="module")
+def parts() -> dict[str, np.ndarray]:
+    """The two misfits, the noise, and the frame they are added to."""
+    rng = np.random.default_rng(7)
+    n = DAYS * len(WELLS)
+    x1 = rng.uniform(-1, 1, n)  # what ``a`` follows (the choke, say)
+    x2 = np.sin(np.linspace(0, 6 * np.pi, n))  # what ``b`` follows (the gas fraction)
+    return {"a": 0.08 * x1, "b": 0.03 * x2, "noise": 0.01 * rng.normal(size=n)}
+
+
+def _frame() -> pd.DataFrame:
+    times = pd.date_range("2020-01-01", periods=DAYS, freq="D", tz="UTC")
+    return pd.concat(
+        [
+            pd.DataFrame(
+                {
+                    "time": times,
+                    "well": w,
+                    "source": "mpfm",
+                    "measured": 100.0,
+                    "in_outage": np.zeros(DAYS, dtype=bool),
+                }
+            )
+            for w in WELLS
+        ],
+        ignore_index=True,
+    )
+
+
+def _cand(
+    name: str, rel_error: np.ndarray, delta_bic: float, base_mape: float
+) -> dg.CandidateResult:
+    p = _frame()
+    p["predicted"] = p["measured"] * (1.0 + rel_error)
+    m = dg.mape(p["predicted"], p["measured"])
+    return dg.CandidateResult(
+        effect=name,
+        mape=m,
+        delta_mape=m - base_mape,
+        bic=0.0,
+        delta_bic=delta_bic,
+        n_parameters=4,
+        parameters={},
+        meaning=f"{name} fitted.",
+        material=True,
+        run=RunResult("mm", "pbl:36500d", p),
+        delta_bic_all=delta_bic,
+        spec=name,
+    )
+
+
+def _base_mape(parts: dict[str, np.ndarray]) -> float:
+    return float(100.0 * np.mean(np.abs(parts["a"] + parts["b"] + parts["noise"])))
+
+
+def test_two_effects_at_work_are_both_kept(parts: dict[str, np.ndarray]) -> None:
+    base = _base_mape(parts)
+    lead = _cand("valve_sigmoid", parts["b"] + parts["noise"], -300.0, base)
+    rival = _cand("slip", parts["a"] + parts["noise"], -200.0, base)
+    pair = _cand("valve_sigmoid+slip", parts["noise"], -600.0, base)
+    assert rv.relate(lead, rival, pair, WELLS, 0) == "both"
+    assert lead.explained_by is None and rival.explained_by is None
+    assert lead.rivals["slip"]["relation"] == "both"
+    assert rival.rivals["valve_sigmoid"]["relation"] == "both"
+    assert lead.rivals["slip"]["it_adds"]["adds"] and lead.rivals["slip"]["adds_beyond_it"]["adds"]
+    assert "diagnose again" in rv.rivals_text(lead)
+
+
+def test_a_partial_explanation_is_explained_by_the_whole_one(parts: dict[str, np.ndarray]) -> None:
+    base = _base_mape(parts)
+    whole = parts["b"] + parts["noise"]  # removes all of a
+    lead = _cand("slip", whole, -300.0, base)
+    rival = _cand("valve_sigmoid", 0.5 * parts["a"] + parts["b"] + parts["noise"], -150.0, base)
+    pair = _cand("slip+valve_sigmoid", whole, -290.0, base)  # nothing more: 4 more parameters
+    assert rv.relate(lead, rival, pair, WELLS, 0) == "explains"
+    assert rival.explained_by == "slip" and lead.explained_by is None
+    assert not rival.named and lead.named
+    # the other way round: the lead is the partial one, and the rival takes over
+    lead2 = _cand("valve_sigmoid", 0.5 * parts["a"] + parts["b"] + parts["noise"], -310.0, base)
+    rival2 = _cand("slip", whole, -300.0, base)
+    pair2 = _cand("valve_sigmoid+slip", whole, -330.0, base)
+    assert rv.relate(lead2, rival2, pair2, WELLS, 0) == "explained_by"
+    assert lead2.explained_by == "slip" and rival2.explained_by is None
+
+
+def test_two_forms_of_the_same_misfit_cannot_be_told_apart(parts: dict[str, np.ndarray]) -> None:
+    base = _base_mape(parts)
+    same = parts["b"] + parts["noise"]
+    lead = _cand("valve_sigmoid", same, -300.0, base)
+    rival = _cand("erosion", same + 0.001 * parts["a"], -290.0, base)
+    pair = _cand("valve_sigmoid+erosion", same, -295.0, base)
+    assert rv.relate(lead, rival, pair, WELLS, 0) == "indistinguishable"
+    assert lead.explained_by is None and rival.explained_by is None
+    assert "cannot tell them apart" in rv.rivals_text(lead)
+    # the one ranked second is not offered on its own: its evidence is the lead's
+    assert rv.second_to(rival) == "valve_sigmoid" and rv.second_to(lead) is None
+    rival.replayed = True
+    ok, reason = dv.offer(rival, None)
+    assert not ok and reason.startswith("the data cannot tell it from valve_sigmoid")
+
+
+def test_rivals_are_other_physics_and_explained_physics_is_explained_in_every_form(
+    parts: dict[str, np.ndarray],
+) -> None:
+    base = _base_mape(parts)
+    e = parts["noise"]
+    results = [
+        _cand("valve_sigmoid", e, -300.0, base),
+        _cand("valve_convex", e, -290.0, base),  # same physics: not a rival
+        _cand("slip", e, -250.0, base),
+        _cand("erosion_time", e, -240.0, base),
+        _cand("real_gas", e, -230.0, base),  # past RIVALS
+    ]
+    results[-1].material = True
+    lead, others = rv.rivals(results)
+    assert lead is results[0] and [c.effect for c in others] == ["slip", "erosion_time"]
+    assert rv.RIVALS == 2
+    results[0].explained_by = "slip"
+    rv.explain_families(results)
+    assert results[1].explained_by == "slip"  # the weaker valve form too
+    assert results[2].explained_by is None and results[3].explained_by is None
+
+
+def test_an_explained_candidate_is_neither_offered_nor_named(parts: dict[str, np.ndarray]) -> None:
+    base = _base_mape(parts)
+    c = _cand("valve_sigmoid", parts["noise"], -300.0, base)
+    c.replayed = True
+    c.explained_by = "slip"
+    ok, reason = dv.offer(c, None)
+    assert not ok and reason.startswith("explained by slip")
+
+
+def _log_run(log_pred_shift: np.ndarray) -> pd.DataFrame:
+    """A prediction frame whose log prediction is 100 shifted by ``log_pred_shift``."""
+    p = _frame()
+    p["predicted"] = p["measured"] * np.exp(log_pred_shift)
+    return p
+
+
+def test_the_shape_beyond_the_trend_tells_the_physics_from_a_trend_proxy() -> None:
+    """The misfit is a trend (5 % over the years) plus a small wiggle in one variable (0.3 %):
+    the physics removes both, a trend proxy the trend and a wiggle in another variable. Their
+    errors differ too little to be material, so the encompassing test cannot tell them apart;
+    the shape beyond the trend can."""
+    rng = np.random.default_rng(3)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    trend, wiggle = 0.025 * years, 0.003 * rng.normal(size=n)
+    other = 0.003 * rng.normal(size=n)
+    noise = 0.002 * rng.normal(size=n)
+    base = _log_run(-(trend + wiggle) + noise)  # r = trend + wiggle - noise
+    physics = _log_run(noise)  # its correction: trend + wiggle
+    proxy = _log_run(-(trend + wiggle) + noise + trend + other)
+    (holds,) = rv.shape_beyond_trend(base, physics)
+    (rejected,) = rv.shape_beyond_trend(base, proxy)
+    assert holds["beta"] == pytest.approx(1.0, abs=3 * holds["se"]) and not holds["rejected"]
+    assert rejected["beta"] < 0.5 and rejected["rejected"]
+    # judged side by side, the same answer
+    holds2, rejected2 = rv.shape_beyond_trend(base, physics, proxy)
+    assert not holds2["rejected"] and rejected2["rejected"]
+    # a correction that is only a trend predicts nothing beyond it: nothing to reject, and
+    # the other is still judged
+    flat, beside = rv.shape_beyond_trend(base, _log_run(-(trend + wiggle) + noise + trend), proxy)
+    assert flat["spread"] < 1e-6 and not flat["rejected"] and flat["beta"] is None
+    assert beside["rejected"]
+
+    def cand(name: str, p: pd.DataFrame, delta_bic: float) -> dg.CandidateResult:
+        m = dg.mape(p["predicted"], p["measured"])
+        return dg.CandidateResult(
+            effect=name,
+            mape=m,
+            delta_mape=m - 3.0,
+            bic=0.0,
+            delta_bic=delta_bic,
+            n_parameters=4,
+            parameters={},
+            meaning="",
+            material=True,
+            run=RunResult("mm", "pbl:36500d", p),
+            delta_bic_all=delta_bic,
+        )
+
+    lead, rival = cand("slip", proxy, -300.0), cand("erosion", physics, -280.0)
+    pair = cand("slip+erosion", physics, -275.0)
+    assert rv.relate(lead, rival, pair, WELLS, 0, base) == "shape_rejected"
+    assert lead.explained_by == "erosion" and rival.explained_by is None
+    assert "does not fit the residual" in rv.why_explained(lead)
+    assert "only as a trend" in rv.rivals_text(rival)
+    # without the comparison's predictions the two stay indistinguishable
+    lead2, rival2 = cand("slip", proxy, -300.0), cand("erosion", physics, -280.0)
+    assert rv.relate(lead2, rival2, pair, WELLS, 0) == "indistinguishable"

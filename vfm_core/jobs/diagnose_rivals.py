@@ -1,0 +1,357 @@
+"""Rival explanations in the fit-once evidence: when it names effects of more than one physics,
+does one explain the others, are both at work, or can the data not tell them apart?
+
+Each candidate is scored alone against the baseline (:func:`vfm_core.jobs.diagnose._score`),
+and the BIC ranks them. When the truth differs from the model in more than one way (a real
+field, or a truth from another simulator: a Bernoulli choke with Simpson's slip under a
+Sachdeva model), several candidates of *different physics* lower the error, because each
+absorbs part of the same misfit: a valve curve takes up an error that grows with the opening,
+slip one that grows with the gas fraction, wear one that grows with time, and on a field
+whose gas fraction rises as the reservoir depletes all three can look alike. The one-at-a-time
+ranking then names whichever absorbs most, with a confidence the BIC overstates (its
+residuals are autocorrelated).
+
+The rule here is an *encompassing* test, as for non-nested models (Mizon and Richard 1986):
+the best-ranked material candidate (the *lead*) is fitted together with each of the next
+:data:`RIVALS` material candidates of other physics (a *rival*; variants of one physics, the
+valve families, are one physics), under the same fit-once protocol. Each is asked whether it
+adds beyond the other: the pair against the one alone must be material by the rule every
+candidate meets against the baseline (:func:`vfm_core.jobs.diagnose_results.is_material`) and
+lower the held-out error beyond chance in the paired block test
+(:func:`vfm_core.jobs.diagnose_live.paired_test`, one-sided, :data:`ALPHA`). Then:
+
+* ``explains``: the lead adds beyond the rival, the rival nothing beyond the lead: the rival
+  is *explained by* the lead, is not named, and says so;
+* ``explained_by``: the other way round: the rival becomes the lead (and is asked about the
+  next rival in turn);
+* ``both``: each adds beyond the other: both are at work; the lead is named first and the
+  rival is the next step (after adding the lead, a second diagnosis names it);
+* ``indistinguishable``: neither adds beyond the other: they explain the same misfit. Then
+  each one's *shape beyond the trend* is tested (:func:`shape_beyond_trend`): the part of its
+  correction that a straight line in time per well and meter does not carry (slip follows the
+  gas fraction's ups and downs, a valve curve the choke's moves, wear hardly anything but the
+  trend) should be in the residual too, if it is the physics. When one's shape is rejected
+  by the residual and the other's is not, the rejected one is explained by the other (a
+  trend proxy: ``shape_rejected``); otherwise the data cannot tell them apart, the lead is
+  named by its BIC and the rival listed beside it, not offered on its own
+  (:func:`second_to`: its evidence is the lead's).
+
+The pair is fitted once per rival; a diagnosis makes at most :data:`RIVALS` more fit-once
+runs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy import stats as sps
+
+from vfm_core.jobs import diagnose_live as live
+from vfm_core.jobs import diagnose_stats as dstats
+from vfm_core.jobs.diagnose_results import CandidateResult, is_material
+
+__all__ = [
+    "RIVALS",
+    "ALPHA",
+    "family",
+    "rivals",
+    "adds_beyond",
+    "shape_beyond_trend",
+    "relate",
+    "explain_families",
+    "why_explained",
+    "second_to",
+    "rivals_text",
+]
+
+#: most rival physics fitted together with the lead
+RIVALS = 2
+#: one-sided level of the paired block test "the pair lowers the error below the one alone"
+ALPHA = 0.05
+
+
+def family(effect: str) -> str:
+    """The physics an effect belongs to: its variants are one (every valve family is
+    ``valve``, wear with time or throughput is ``erosion``)."""
+    for name in ("valve", "erosion"):
+        if effect.startswith(name):
+            return name
+    return effect
+
+
+def rivals(
+    results: Sequence[CandidateResult],
+) -> tuple[CandidateResult | None, list[CandidateResult]]:
+    """The lead (the best material candidate fitted, ``results`` best first) and its rivals:
+    the best material candidate of each other physics, at most :data:`RIVALS`."""
+    named = [c for c in results if c.material and c.run is not None]
+    if not named:
+        return None, []
+    lead, seen, out = named[0], {family(named[0].effect)}, []
+    for c in named[1:]:
+        if family(c.effect) in seen:
+            continue
+        seen.add(family(c.effect))
+        out.append(c)
+        if len(out) == RIVALS:
+            break
+    return lead, out
+
+
+def adds_beyond(
+    pair: CandidateResult, one: CandidateResult, wells: Sequence[str], seed: int
+) -> dict[str, Any]:
+    """Whether the pair adds beyond ``one`` alone (both scored against the same baseline):
+    the change of MAPE (points) and BIC, the paired block test's p-value, and ``adds``
+    (material by :func:`is_material` and p below :data:`ALPHA`)."""
+    assert pair.run is not None and one.run is not None
+    delta_mape = pair.mape - one.mape
+    delta_bic = pair.delta_bic - one.delta_bic
+    delta_all = pair.delta_bic_all - one.delta_bic_all
+    test = live.paired_test(
+        live.paired_differences(one.run.predictions, pair.run.predictions), seed=seed
+    )
+    p = float(test.get("p_value", 1.0))
+    material = is_material(delta_mape, one.mape, delta_bic, delta_all, float("nan"))
+    return {
+        "delta_mape": delta_mape,
+        "delta_bic": delta_bic,
+        "low": test.get("low"),
+        "high": test.get("high"),
+        "p_value": p,
+        "material": material,
+        "adds": bool(material and p < ALPHA),
+    }
+
+
+#: block length (days) of the shape test's cluster-robust standard error
+SHAPE_BLOCK_DAYS = 30.0
+#: a detrended correction with a smaller sd (%) predicts nothing beyond the trend
+_MIN_SPREAD_PCT = 1e-6
+
+
+def shape_beyond_trend(
+    base: pd.DataFrame, *cands: pd.DataFrame, block_days: float = SHAPE_BLOCK_DAYS
+) -> list[dict[str, Any]]:
+    """Does the residual follow each candidate's correction beyond the trend?
+
+    ``base`` and ``cands``: prediction frames of the comparison baseline and of one or more
+    candidates (fit once, same rows). With r = log(measured / base) the baseline's residual
+    and c_i = log(cand_i / base) each candidate's correction, all minus a straight line in
+    time per well and meter (:func:`vfm_core.jobs.diagnose_stats.detrend`), r is regressed
+    on the c_i together (least squares: two rivals' corrections are judged side by side, so
+    that the part of the residual one explains does not count for or against the other).
+    Each slope ``beta`` is 1 when its candidate is the physics (the residual's ups and downs
+    beyond the trend are its correction's) and 0 when it only stands in for the trend. The
+    standard errors are cluster-robust over blocks of ``block_days`` per well (the residual
+    is autocorrelated). Per candidate: ``beta``, ``se``, ``z`` = (beta - 1) / se,
+    ``rejected`` (beta below 1 beyond chance: one-sided, :data:`ALPHA`) and ``spread`` (the
+    sd of its detrended correction, %: near 0 it predicts nothing beyond the trend, and
+    nothing can be rejected)."""
+    empty = {"beta": None, "se": None, "z": None, "spread": 0.0, "rejected": False}
+    m = base["measured"].to_numpy(dtype=float)
+    pb = base["predicted"].to_numpy(dtype=float)
+    pcs = np.column_stack([c["predicted"].to_numpy(dtype=float) for c in cands])
+    ok = np.isfinite(m) & np.isfinite(pb) & (m > 0) & (pb > 0)
+    ok &= np.all(np.isfinite(pcs) & (pcs > 0), axis=1)
+    if ok.sum() < 10:
+        return [dict(empty) for _ in cands]
+    rows = pd.DataFrame(
+        {
+            "time": pd.to_datetime(base["time"], utc=True).to_numpy()[ok],
+            "well": base["well"].astype(str).to_numpy()[ok],
+            "source": base["source"].astype(str).to_numpy()[ok],
+        }
+    )
+    r = dstats.detrend(rows, np.clip(np.log(m[ok] / pb[ok]), -dstats.CLIP, dstats.CLIP))
+    x = np.column_stack(
+        [dstats.detrend(rows, np.log(pcs[ok, i] / pb[ok])) for i in range(len(cands))]
+    )
+    spread = 100.0 * x.std(axis=0)
+    out = [{**empty, "spread": float(s_)} for s_ in spread]
+    # a correction with nothing beyond the trend (wear with time) predicts nothing to test
+    active = np.flatnonzero(spread > _MIN_SPREAD_PCT)
+    _, block = np.unique(live.block_ids(rows, block_days), return_inverse=True)
+    xa = x[:, active]
+    xtx = xa.T @ xa
+    if not len(active) or block.max() < 3 or np.linalg.cond(xtx) > 1e12:
+        return out
+    beta = np.linalg.solve(xtx, xa.T @ r)
+    scores = np.zeros((block.max() + 1, len(active)))
+    np.add.at(scores, block, xa * (r - xa @ beta)[:, None])
+    bread = np.linalg.inv(xtx)
+    se = np.sqrt(np.clip(np.diag(bread @ (scores.T @ scores) @ bread), 0.0, None))
+    for k, i in enumerate(active):
+        z = float((beta[k] - 1.0) / se[k]) if se[k] > 0 else 0.0
+        out[i].update(
+            beta=float(beta[k]),
+            se=float(se[k]),
+            z=z,
+            rejected=bool(se[k] > 0 and sps.norm.cdf(z) < ALPHA),
+        )
+    return out
+
+
+_MIRROR = {
+    "explains": "explained_by",
+    "explained_by": "explains",
+    "both": "both",
+    "indistinguishable": "indistinguishable",
+    "shape_rejected": "shape_holds",
+    "shape_holds": "shape_rejected",
+}
+
+
+def relate(
+    lead: CandidateResult,
+    rival: CandidateResult,
+    pair: CandidateResult,
+    wells: Sequence[str],
+    seed: int,
+    comparison: pd.DataFrame | None = None,
+) -> str:
+    """The relation of ``lead`` to ``rival`` given their ``pair`` fitted together (one of
+    ``explains``, ``explained_by``, ``both``, ``indistinguishable``, and for two that
+    neither adds beyond, told apart by their shapes beyond the trend against the
+    ``comparison`` baseline's predictions, ``shape_rejected`` (the lead's shape) or
+    ``shape_holds`` (the rival's rejected)), recorded on both (``rivals``) and as
+    ``explained_by`` on the one explained; returns it."""
+    rival_beyond = adds_beyond(pair, lead, wells, seed)
+    lead_beyond = adds_beyond(pair, rival, wells, seed)
+    shapes: dict[str, Any] = {}
+    if lead_beyond["adds"] and rival_beyond["adds"]:
+        relation = "both"
+    elif lead_beyond["adds"]:
+        relation = "explains"
+        rival.explained_by = lead.effect
+    elif rival_beyond["adds"]:
+        relation = "explained_by"
+        lead.explained_by = rival.effect
+    else:
+        relation, shapes = _tell_apart(lead, rival, comparison)
+    pair_spec = pair.spec or pair.effect
+    lead.rivals[rival.effect] = {
+        "relation": relation,
+        "ranked_first": True,
+        "pair": pair_spec,
+        "it_adds": rival_beyond,
+        "adds_beyond_it": lead_beyond,
+        "shape": shapes.get("lead"),
+        "its_shape": shapes.get("rival"),
+    }
+    rival.rivals[lead.effect] = {
+        "relation": _MIRROR[relation],
+        "ranked_first": False,
+        "pair": pair_spec,
+        "it_adds": lead_beyond,
+        "adds_beyond_it": rival_beyond,
+        "shape": shapes.get("rival"),
+        "its_shape": shapes.get("lead"),
+    }
+    return relation
+
+
+def _tell_apart(
+    lead: CandidateResult, rival: CandidateResult, comparison: pd.DataFrame | None
+) -> tuple[str, dict[str, Any]]:
+    """Two rivals neither of which adds beyond the other: by their shapes beyond the trend
+    (:func:`shape_beyond_trend`) the one whose shape the residual rejects is explained by
+    the other (``shape_rejected``: the lead's; ``shape_holds``: the rival's), else
+    ``indistinguishable``."""
+    if comparison is None or lead.run is None or rival.run is None:
+        return "indistinguishable", {}
+    both = shape_beyond_trend(comparison, lead.run.predictions, rival.run.predictions)
+    shapes = {"lead": both[0], "rival": both[1]}
+    if shapes["lead"]["rejected"] and not shapes["rival"]["rejected"]:
+        lead.explained_by = rival.effect
+        return "shape_rejected", shapes
+    if shapes["rival"]["rejected"] and not shapes["lead"]["rejected"]:
+        rival.explained_by = lead.effect
+        return "shape_holds", shapes
+    return "indistinguishable", shapes
+
+
+def explain_families(results: Sequence[CandidateResult]) -> None:
+    """A physics explained in its best form is explained in every form: the other
+    candidates of an explained candidate's family (its weaker variants) get the same
+    ``explained_by``."""
+    by_family = {family(c.effect): c.explained_by for c in results if c.explained_by}
+    for c in results:
+        if c.explained_by is None and family(c.effect) in by_family:
+            c.explained_by = by_family[family(c.effect)]
+
+
+def second_to(c: CandidateResult) -> str | None:
+    """The rival ranked before ``c`` that the data cannot tell it from (``indistinguishable``,
+    ``c`` not ranked first), or None. Such a candidate is not offered on its own: its
+    evidence is the other's, and naming it where the other is not offered would pick one of
+    two equal explanations by the replay's noise."""
+    return next(
+        (
+            other
+            for other, r in c.rivals.items()
+            if r["relation"] == "indistinguishable" and not r.get("ranked_first", True)
+        ),
+        None,
+    )
+
+
+def why_explained(c: CandidateResult) -> str:
+    """Why an explained candidate is neither named nor offered, in one clause."""
+    other = c.explained_by
+    r = c.rivals.get(other or "", {})
+    if r.get("relation") == "shape_rejected":
+        return (
+            f"explained by {other}: the two explain the same misfit, and beyond the trend "
+            f"this one's shape does not fit the residual ({_shape_text(r.get('shape'))})"
+        )
+    return f"explained by {other}: fitted together, it adds nothing beyond it"
+
+
+def _shape_text(t: dict[str, Any] | None) -> str:
+    if not t or t.get("beta") is None:
+        return "no shape beyond the trend to test"
+    return f"slope {t['beta']:.2f} +/- {t['se']:.2f} on its correction, 1 if it were the physics"
+
+
+def _beyond_text(t: dict[str, Any]) -> str:
+    return f"fit-once MAPE {t['delta_mape']:+.2f} points, BIC {t['delta_bic']:+.0f}, p = {t['p_value']:.2g}"
+
+
+def rivals_text(c: CandidateResult) -> str:
+    """What the rivalry says of a named candidate, in words (empty without rivals)."""
+    parts = []
+    for other, r in c.rivals.items():
+        rel, it = r["relation"], r["it_adds"]
+        if rel == "explains":
+            parts.append(
+                f"It explains {other} too: fitted together, {other} adds nothing beyond it "
+                f"({_beyond_text(it)})."
+            )
+        elif rel == "both":
+            parts.append(
+                f"{other} is likely at work too: fitted together, it still lowers the error "
+                f"beyond {c.effect} ({_beyond_text(it)}); once {c.effect} is in the model, "
+                f"diagnose again."
+            )
+        elif rel == "indistinguishable":
+            parts.append(
+                f"{other} explains the same misfit about as well: neither adds beyond the other "
+                f"({other} beyond it: {_beyond_text(it)}), nor do their shapes beyond the trend "
+                f"tell them apart ({c.effect}: {_shape_text(r.get('shape'))}; {other}: "
+                f"{_shape_text(r.get('its_shape'))}): the data cannot tell them apart, "
+                f"{c.effect} is named by its BIC."
+            )
+        elif rel == "shape_holds":
+            parts.append(
+                f"{other} explains the same misfit about as well (neither adds beyond the other), "
+                f"but only as a trend: beyond a straight line in time per well its shape does "
+                f"not fit the residual ({_shape_text(r.get('its_shape'))}), {c.effect}'s does "
+                f"({_shape_text(r.get('shape'))})."
+            )
+        elif rel in ("explained_by", "shape_rejected"):
+            parts.append(why_explained(c).replace("explained by", "It is explained by", 1) + ".")
+    return " ".join(parts)
