@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import math
 import unicodedata
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -140,6 +140,23 @@ class Measurement(BaseModel):
         return v
 
 
+class FallbackInput(BaseModel):
+    """An input replaced in a prediction while it is flagged (units of the observation
+    format: fraction, bar a, degC): ``value`` stood in for the reading ``measured``;
+    ``spread`` is the standard deviation of how far the true value may have moved since its
+    last trusted level, ``low`` / ``high`` its central 90 % span within the physical range;
+    ``since``: when the fault began (ISO 8601 UTC)."""
+
+    sensor: str
+    kind: str
+    value: float
+    measured: float | None = None
+    spread: float
+    low: float
+    high: float
+    since: str | None = None
+
+
 class Prediction(BaseModel):
     """The service's answer to a sensor sample: predicted rates in Sm3/h.
 
@@ -147,6 +164,11 @@ class Prediction(BaseModel):
     predictive standard deviation of the total rate a well test would measure, and
     ``q_total_p05`` / ``q_total_p95`` bound its central 90 % interval; otherwise they are
     null.
+
+    ``fallback`` is null unless an input of the sample is flagged (a frozen or impossible
+    reading, :mod:`vfm_core.sensor_faults`): then the rates were predicted with a stand-in
+    for it, one :class:`FallbackInput` per replaced input, and the interval was widened to
+    cover the stand-in's span (given even by a method without intervals).
     """
 
     time: datetime
@@ -159,6 +181,7 @@ class Prediction(BaseModel):
     q_total_std: float | None = None
     q_total_p05: float | None = None
     q_total_p95: float | None = None
+    fallback: list[FallbackInput] | None = None
 
 
 def prediction_json(
@@ -172,6 +195,7 @@ def prediction_json(
     q_total_std: float | None = None,
     q_total_p05: float | None = None,
     q_total_p95: float | None = None,
+    fallback: Sequence[Mapping[str, Any]] | None = None,
 ) -> bytes:
     """The JSON of a :class:`Prediction` at ``time_ns`` (epoch ns), as
     ``Prediction(...).model_dump_json()`` writes it (the fields in order, the time in UTC
@@ -189,6 +213,7 @@ def prediction_json(
             "q_total_std": None if q_total_std is None else float(q_total_std),
             "q_total_p05": None if q_total_p05 is None else float(q_total_p05),
             "q_total_p95": None if q_total_p95 is None else float(q_total_p95),
+            "fallback": None if fallback is None else [dict(f) for f in fallback],
         }
     )
 
@@ -230,7 +255,9 @@ class PredictionBlock(BaseModel):
                     q_water=self.q_water[i],
                     model=self.model,
                     version=self.version,
-                    **interval,
+                    q_total_std=interval["q_total_std"],
+                    q_total_p05=interval["q_total_p05"],
+                    q_total_p95=interval["q_total_p95"],
                 )
             )
         return rows

@@ -71,6 +71,19 @@ input to locate a fault that only the measured rate reveals (a choke offset, a s
 wells on one manifold (a separator set-point change moves every well's ``p_down``; a
 transmitter offset moves one).
 
+The fallback (keep predicting while an input is flagged)
+--------------------------------------------------------
+
+:meth:`WellSensorFaults.fallbacks` gives, for a sample, a :class:`Fallback` per input with
+an open fault of :data:`FALLBACK_KINDS` (frozen, out of range): a value to use in its place
+(its last live reading moved by the input's own trend, shrunk towards none when the trend
+is lost in its noise) and a spread (the sd of the input's day-to-day changes times the
+square root of the days since, a random walk's growth, bounded by the physical range).
+:func:`fallback_points` and :func:`widened_rates` turn a model's answers at the value and
+at the ends of its 90 % span into the rates and a widened interval; the service uses them
+(``service/engine/learning.py``, ``Learning.fallback``). The rules and their reasons are in
+:meth:`WellSensorFaults._anchor` and :meth:`WellSensorFaults.fallbacks`.
+
 The object follows the project's small protocol: ``update(time_ns, values)`` returns the
 events that began or ended at that sample; ``active`` lists the open ones; ``state()`` /
 ``restore()`` give and take plain JSON values for a checkpoint.
@@ -112,8 +125,12 @@ __all__ = [
     "SENSORS",
     "KINDS",
     "HOLD_KINDS",
+    "FALLBACK_KINDS",
     "DEFAULT_RANGES",
     "SensorFault",
+    "Fallback",
+    "fallback_points",
+    "widened_rates",
     "WellSensorFaults",
     "faults_of_frame",
     "write_sensor_faults",
@@ -125,6 +142,13 @@ KINDS: tuple[str, ...] = ("frozen", "spike", "drift", "offset", "out_of_range")
 #: the kinds whose samples are not learned from (their false-alarm rate was measured within
 #: the budget, see docs/guide/sensor-faults.md); drift and offset are shown, not acted on
 HOLD_KINDS: tuple[str, ...] = ("frozen", "spike")
+#: the kinds whose input is replaced by its fallback in predictions while the fault is open:
+#: the lasting kind of :data:`HOLD_KINDS` (a spike is one sample, decided only when the next
+#: one arrives) and an impossible value
+FALLBACK_KINDS: tuple[str, ...] = ("frozen", "out_of_range")
+#: the kinds whose last trusted level is kept when they are raised (:meth:`fallbacks` can
+#: stand in for any of them; the service uses :data:`FALLBACK_KINDS`)
+_ANCHOR_KINDS: tuple[str, ...] = ("frozen", "drift", "offset", "out_of_range")
 
 #: physical span of each input (units of the observation format)
 DEFAULT_RANGES: dict[str, tuple[float, float]] = {
@@ -156,6 +180,9 @@ _GAP_NS = 2 * 86_400 * 10**9  # an interval above this and 3 median intervals is
 _MAX_DAY_GAP = 3  # days; a longer gap starts the day-to-day changes afresh
 _CONFIRM_DAYS = 2  # days a step must hold after its day before it is an offset
 _CO_MOVE = 3.0  # robust sd of a raw daily change: another input moving with a step excuses it
+_LEVEL_DAYS = 64  # closed daily means kept per input: the last trusted level before a fault
+_Z90 = NormalDist().inv_cdf(0.95)  # the half-width of a central 90 % interval, in sd
+_MEDIAN_SE = 1.2533  # the standard error of a median of n normal values, in sd / sqrt(n)
 
 
 @lru_cache(maxsize=256)
@@ -210,6 +237,104 @@ class SensorFault:
             str(d["evidence"]),
             None if end is None else int(end),
         )
+
+
+def _median_mad(values: deque[float]) -> tuple[float, float]:
+    """The median and 1.4826 MAD (a robust sd) of ``values``."""
+    r = np.fromiter(values, dtype=float)
+    centre = float(np.median(r))
+    return centre, _MAD_TO_SD * float(np.median(np.abs(r - centre)))
+
+
+def _num(v: Any) -> float:
+    """A saved number (null for NaN)."""
+    return math.nan if v is None else float(v)
+
+
+@dataclass(frozen=True)
+class Fallback:
+    """The stand-in for one flagged input at one sample (see :meth:`WellSensorFaults.fallbacks`).
+
+    ``value``: the value to use in place of the input (units of the observation format:
+    fraction, bar a, degC); ``spread``: the standard deviation of how far the true value
+    may have moved since the last trusted level; ``low`` / ``high``: ``value -/+ 1.645
+    spread`` (a central 90 % span) clipped to the input's physical range; ``measured``:
+    what the transmitter reads; ``start_ns``: when the fault began (epoch ns)."""
+
+    sensor: str
+    kind: str
+    index: int
+    value: float
+    spread: float
+    low: float
+    high: float
+    measured: float
+    start_ns: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """As the prediction message and ``GET /wells/{well}`` show it (``since``: ISO 8601
+        UTC; ``measured`` null when not a finite number)."""
+        return {
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "value": float(self.value),
+            "measured": float(self.measured) if math.isfinite(self.measured) else None,
+            "spread": float(self.spread),
+            "low": float(self.low),
+            "high": float(self.high),
+            "since": iso(self.start_ns),
+        }
+
+
+def fallback_points(inputs: Sequence[float], used: Sequence[Fallback]) -> list[list[float]]:
+    """The inputs a model is asked at while inputs are flagged: first every flagged input at
+    its fallback value, then, per flagged input, at the low and at the high end of its span
+    (the other flagged inputs at their fallback values)."""
+    centre = [float(v) for v in inputs]
+    for f in used:
+        centre[f.index] = f.value
+    points = [centre]
+    for f in used:
+        for end in (f.low, f.high):
+            p = list(centre)
+            p[f.index] = end
+            points.append(p)
+    return points
+
+
+def widened_rates(answers: Sequence[Mapping[str, float | None]]) -> dict[str, float | None]:
+    """The rates of :func:`fallback_points`' first point with their interval widened to the
+    union of every point's (Sm3/h): ``q_total_p05`` the lowest of their 5 % quantiles (their
+    ``q_total`` for a method without intervals), ``q_total_p95`` the highest 95 % quantile.
+    ``q_total_std`` (only when the method gives one) adds the input's share in quadrature:
+    per flagged input, the difference of the rates at its span's ends over 2 x 1.645.
+    Points whose model answer is not finite (an input pair the model refuses) are left out.
+    """
+    centre = dict(answers[0])
+    q = centre.get("q_total")
+    if q is None or not math.isfinite(q):
+        return centre
+
+    def finite(v: float | None) -> float | None:
+        return v if v is not None and math.isfinite(v) else None
+
+    lows, highs = [], []
+    for a in answers:
+        qa = finite(a.get("q_total"))
+        if qa is None:
+            continue
+        lows.append(finite(a.get("q_total_p05")) or qa)
+        highs.append(finite(a.get("q_total_p95")) or qa)
+    centre["q_total_p05"], centre["q_total_p95"] = min(lows), max(highs)
+    std = finite(centre.get("q_total_std"))
+    if std is not None:
+        var = std * std
+        for k in range(1, len(answers) - 1, 2):
+            lo, hi = finite(answers[k].get("q_total")), finite(answers[k + 1].get("q_total"))
+            if lo is not None and hi is not None:
+                var += ((hi - lo) / (2.0 * _Z90)) ** 2
+        centre["q_total_std"] = math.sqrt(var)
+    return centre
 
 
 @dataclass
@@ -329,6 +454,11 @@ class WellSensorFaults:
         self.events: deque[SensorFault] = deque(maxlen=50)
         #: faults raised per "sensor/kind" (kept across restarts through the state)
         self.raised: dict[str, int] = {}
+        #: closed daily means per input, (day index, mean), the latest _LEVEL_DAYS days
+        self.levels: list[deque[tuple[int, float]]] = [deque(maxlen=_LEVEL_DAYS) for _ in SENSORS]
+        #: per open fault "sensor/kind": the last trusted level, its trend per day, the
+        #: robust sd of the day-to-day changes per square-root day, and the level's time (ns)
+        self.anchors: dict[str, tuple[float, float, float, int]] = {}
 
     def _new_cusum(self) -> ResidualCusum:
         # each day's change is its own period (period_s 0): the daily means are made here
@@ -368,6 +498,98 @@ class WellSensorFaults:
     def flagged(self) -> set[str]:
         """The sensors with an open fault."""
         return {sensor for sensor, _ in self.open}
+
+    # -- the fallback ---------------------------------------------------------------------------
+    def _anchor(self, i: int, kind: str, start_ns: int) -> tuple[float, float, float, int]:
+        """What input ``i`` was before a fault of ``kind`` that began at ``start_ns``:
+        (level, trend per day, sd of its day-to-day changes per square-root day, the
+        level's time ns).
+
+        The level: for a frozen or out-of-range input, its last live reading (the value it
+        froze at, or the last one within its range): an input wanders, so the latest reading
+        is a better guess of where it is than an older average. For a drift or offset, whose
+        onset is an estimate, the mean of the last closed day before the fault's day (else
+        the last reading). The trend is the robust centre ``c`` of the input's day-to-day
+        changes (the well's own decline), shrunk by ``max(0, 1 - (se / c)^2)`` with ``se =
+        1.2533 sd / sqrt(n)`` the standard error of a median: the factor that minimises the
+        squared error of extrapolating a noisy trend (a trend lost in its noise counts for
+        nothing). The sd is the changes' 1.4826 MAD; without 30 days of them, the sd of
+        one-step changes times sqrt(samples a day) (a random walk at the sample scale:
+        wider, not narrower); without those either, NaN (see :meth:`fallbacks`).
+        """
+        last = self.last_values
+        level = float(last[i]) if last is not None else math.nan
+        at_ns = start_ns if kind == "frozen" else (self.last_ns or start_ns)
+        if kind not in ("frozen", "out_of_range"):
+            start_day = start_ns // _NS_PER_DAY
+            for day, mean in reversed(self.levels[i]):
+                if day < start_day:
+                    level, at_ns = mean, day * _NS_PER_DAY + _NS_PER_DAY // 2
+                    break
+        trend, scale = 0.0, math.nan
+        ref = self.diffs[i]
+        if len(ref) >= _MIN_DAYS:  # computed afresh: the tests' cached scales stay theirs
+            centre, scale = _median_mad(ref)
+            se = _MEDIAN_SE * scale / math.sqrt(len(ref))
+            if abs(centre) > se:
+                trend = centre * (1.0 - (se / centre) ** 2)
+        if not scale > 0 and len(self.changes[i]) >= 2:
+            scale = _median_mad(self.changes[i])[1] * math.sqrt(self._samples_per_day())
+        return float(level), float(trend), float(scale), int(at_ns)
+
+    def stands_in(self, kinds: Sequence[str] = FALLBACK_KINDS) -> bool:
+        """True while an input has an open fault of one of ``kinds`` (its samples are then
+        predicted with its fallback, one by one)."""
+        return any(k in kinds for _, k in self.open)
+
+    def fallbacks(
+        self, time_ns: int, values: Sequence[float], kinds: Sequence[str] = FALLBACK_KINDS
+    ) -> list[Fallback]:
+        """The stand-ins for the inputs of a sample (epoch ns, the six values) that have an
+        open fault of one of ``kinds``; empty when none (the usual case: one dict test).
+
+        Asked before or after :meth:`update` of the sample, the answer is the same: a frozen
+        input that reads another value now, or an out-of-range one back in its range, is no
+        longer replaced (the fault ends at this sample).
+
+        The value is the last trusted level (:meth:`_anchor`) moved by its trend over the
+        days since, clipped to the physical range; the spread is the sd of the day-to-day
+        changes times sqrt(days since the level, at least one: a daily mean is known to a
+        day), a random walk's growth, capped so that its 90 % span is at most the range.
+        With no history to scale it (NaN), the span is the whole range: nothing is known
+        of where the input went. The choke (set by the operator in steps, no daily test)
+        falls in that case.
+        """
+        if not self.open:
+            return []
+        out: list[Fallback] = []
+        done: set[str] = set()
+        for (sensor, kind), fault in list(self.open.items()):
+            if kind not in kinds or sensor in done:
+                continue
+            i = SENSORS.index(sensor)
+            v = float(values[i])
+            low, high = self.ranges[sensor]
+            last = self.last_values
+            if kind == "frozen" and last is not None:
+                if abs(v - last[i]) > _SAME * max(1.0, abs(last[i])):
+                    continue  # it reads again
+            if kind == "out_of_range" and math.isfinite(v) and low <= v <= high:
+                continue
+            key = f"{sensor}/{kind}"
+            if key not in self.anchors:  # a checkpoint of before the fallback existed
+                self.anchors[key] = self._anchor(i, kind, fault.start_ns)
+            level, trend, scale, at_ns = self.anchors[key]
+            days = max((int(time_ns) - at_ns) / _NS_PER_DAY, 0.0)
+            value = level + trend * days if math.isfinite(level) else (low + high) / 2.0
+            value = min(max(value, low), high)
+            widest = (high - low) / (2.0 * _Z90)
+            spread = scale * math.sqrt(max(days, 1.0)) if scale > 0 else widest
+            spread = min(spread, widest)
+            lo, hi = max(value - _Z90 * spread, low), min(value + _Z90 * spread, high)
+            out.append(Fallback(sensor, kind, i, value, spread, lo, hi, v, fault.start_ns))
+            done.add(sensor)
+        return out
 
     def update(self, time_ns: int, values: Sequence[float]) -> list[SensorFault]:
         """Feed one sample (epoch ns, data time, in time order; ``values`` in the order of
@@ -424,6 +646,11 @@ class WellSensorFaults:
         return self.budget / self.samples_per_year()
 
     def _raise(self, fault: SensorFault, out: list[SensorFault]) -> None:
+        if fault.kind in _ANCHOR_KINDS:  # the level to stand in for it, before it changes
+            i = SENSORS.index(fault.sensor)
+            self.anchors[f"{fault.sensor}/{fault.kind}"] = self._anchor(
+                i, fault.kind, fault.start_ns
+            )
         self.open[(fault.sensor, fault.kind)] = fault
         self.events.append(fault)
         key = f"{fault.sensor}/{fault.kind}"
@@ -432,6 +659,7 @@ class WellSensorFaults:
 
     def _close(self, sensor: str, kind: str, t: int, out: list[SensorFault]) -> None:
         fault = self.open.pop((sensor, kind), None)
+        self.anchors.pop(f"{sensor}/{kind}", None)
         if fault is not None:
             fault.end_ns = t
             out.append(fault)
@@ -695,6 +923,7 @@ class WellSensorFaults:
     def _close_day(self, i: int, name: str, t: int, out: list[SensorFault]) -> None:
         """A day of input ``i`` is complete: test its mean against the day before."""
         mean = self.day_sum[i] / self.day_n[i]
+        self.levels[i].append((self.day_index[i], mean))
         day, start = self.day_index[i], self.day_start_ns[i]
         self.day_sum[i], self.day_n[i] = 0.0, 0
         prev = self.day_prev[i]
@@ -808,6 +1037,10 @@ class WellSensorFaults:
             "events": [e.state() for e in self.events],
             "open": [[s, k] for (s, k) in self.open],
             "raised": dict(self.raised),
+            "levels": [[list(d) for d in q] for q in self.levels],
+            "anchors": {  # NaN (no level or scale yet) as null: plain JSON
+                k: [x if math.isfinite(x) else None for x in v] for k, v in self.anchors.items()
+            },
         }
 
     def restore(self, data: Mapping[str, Any]) -> bool:
@@ -862,6 +1095,15 @@ class WellSensorFaults:
         for dq, saved in zip(self.raw_diffs, data["raw_diffs"], strict=True):
             dq.extend(float(v) for v in saved)
         self.day_moved = ({int(j) for j in data["day_moved"][0]}, bool(data["day_moved"][1]))
+        # the fallback's levels and anchors (absent from older checkpoints: an anchor is then
+        # made when first asked for, from what the detectors hold)
+        for q, saved in zip(self.levels, data.get("levels") or [[]] * len(SENSORS), strict=True):
+            q.extend((int(d), float(m)) for d, m in saved)
+        self.anchors = {
+            str(k): (_num(v[0]), _num(v[1]), _num(v[2]), int(v[3]))
+            for k, v in (data.get("anchors") or {}).items()
+            if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
+        }
         for i in range(len(SENSORS)):
             self.scale_at[i] = -1
         return True

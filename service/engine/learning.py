@@ -54,6 +54,7 @@ from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
 from vfm_core.learning.streaming import learn_many, predict_many
+from vfm_core.sensor_faults import fallback_points, widened_rates
 from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
@@ -186,6 +187,33 @@ class Learning:
             q_total = rates.get("q_total")
             out[i] = None if q_total is None or not math.isfinite(q_total) else rates
         return out
+
+    def fallback(
+        self, st: WellState, time_ns: int, inputs: tuple[float, ...], rates: Rates | None
+    ) -> tuple[Rates | None, list[dict[str, Any]] | None]:
+        """Keep predicting while an input is flagged: when an input of the sample at
+        ``time_ns`` (epoch ns) has an open fault of a kind that stands in
+        (:data:`vfm_core.sensor_faults.FALLBACK_KINDS`), the rates (Sm3/h) predicted with its
+        fallback value in place of its reading, the interval widened to cover the rates at
+        the ends of the fallback's span (:func:`vfm_core.sensor_faults.widened_rates`), and
+        what stood in (the message's and ``GET /wells/{well}``'s ``fallback``). Otherwise
+        ``rates`` as they are and None. The raw inputs are stored unchanged either way."""
+        st.fallback = None
+        faults = st.sensor_faults
+        used = faults.fallbacks(time_ns, inputs) if st.watch_faults and rates else []
+        if not used:
+            return rates, None
+        try:
+            answers = [st.learner.predict(p) for p in fallback_points(inputs, used)]
+        except Exception as exc:  # the measured input's prediction is still an answer
+            logger.warning("The fallback prediction of %s failed: %s", st.well, exc)
+            return rates, None
+        out = widened_rates(answers)
+        q_total = out.get("q_total")
+        if q_total is None or not math.isfinite(q_total):
+            return rates, None
+        st.fallback = [f.as_dict() for f in used]
+        return out, st.fallback
 
     def predict_block(
         self, st: WellState, inputs: np.ndarray, times_ns: np.ndarray

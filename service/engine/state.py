@@ -113,6 +113,8 @@ class WellState:
             false_per_well_year=settings.sensor_faults.false_per_well_year
         )
         self.watch_faults = settings.sensor_faults.enabled
+        #: the inputs replaced at the latest sample (Learning.fallback), None when none
+        self.fallback: list[dict[str, Any]] | None = None
         # model changes over HTTP: what was swapped in, when, and its held-out scores
         self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
         # while a new model is fitted off the worker: what the old one learned meanwhile

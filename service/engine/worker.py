@@ -462,6 +462,7 @@ class Workers:
             and not (self.separators is not None and self.separators.waits_on(st.well))
             and model_fixed_when_predicting(learner)
             and learner.ready
+            and not st.sensor_faults.stands_in()  # a flagged input: its fallback, row by row
         ):
             try:
                 rates = self.learning.predict_block(st, x, t)
@@ -585,11 +586,13 @@ class Workers:
         learner = st.learner
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
+        st.watch_sensors(t, inputs)  # instrument faults (vfm_core.sensor_faults)
+        # a flagged input: its fallback stands in, the interval widened (raw inputs stored)
+        rates, fallback = self.learning.fallback(st, t, inputs, rates)
         q_total = rates.get("q_total") if rates else None
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs
         st.samples += 1
-        st.watch_sensors(t, inputs)  # instrument faults (vfm_core.sensor_faults)
         if not rates or q_total is None:
             b.ops.append(InsertSample(item.well, t, inputs, item.received_ns, *_NOT_READY))
             self.counters.event("model not ready")
@@ -615,7 +618,7 @@ class Workers:
                 )
             )
             message = prediction_json(
-                t, q_total, q_gas, q_oil, q_water, learner.name, version, std, p05, p95
+                t, q_total, q_gas, q_oil, q_water, learner.name, version, std, p05, p95, fallback
             )
             b.outbox.append((item.well, message))
         if st.trial is not None:  # a model change on trial: its shadow predicts the sample too

@@ -357,6 +357,12 @@ class WellOut(WellSummary):
         "sensor, kind (frozen, spike, drift, offset, out_of_range), start, end (null while "
         "active), evidence, detected",
     )
+    fallback: list[dict[str, Any]] | None = Field(
+        default=None,
+        description="the inputs replaced by a stand-in at the latest sample while flagged "
+        "(frozen or out of range): sensor, kind, value, measured, spread, low, high (units of "
+        "the input: fraction, bar a, degC), since; null when every input was used as read",
+    )
     samples: int = Field(description="samples accepted since start")
     measurements: int = Field(description="measurements accepted since start")
     last_sample_time: str | None

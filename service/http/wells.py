@@ -70,6 +70,7 @@ def well_state(well: WellPath, engine: MaybeEngineDep, service: ServiceDep) -> d
     if st is not None:  # the alarm on the residuals (service.engine.residual_alarms)
         out["residual_alarm"] = st.residual_alarm_state()
         out["sensor_faults"] = st.sensor_faults_view()  # vfm_core.sensor_faults
+        out["fallback"] = st.fallback  # the inputs replaced at the latest sample, or None
     return out
 
 

@@ -69,6 +69,10 @@ function alarmsOf(v) {
   if (held) out.push(`${held} well test(s) held for review`);
   for (const f of activeFaults(v).filter((x) => ALARM_FAULTS.includes(x.kind)))
     out.push(`instrument fault: ${f.sensor} ${f.kind} since ${day(f.start)}`);
+  // a flagged input replaced by its stand-in at the latest sample (GET /wells/{well} fallback)
+  const num = (x) => (x == null ? "\u2013" : Number(x).toPrecision(4));
+  for (const f of v.fallback || [])
+    out.push(`rate predicted with a stand-in for ${f.sensor}: ${num(f.value)} instead of the reading ${num(f.measured)}, interval widened`);
   // a measurement held (for review, or at an instrument fault) is stored, not refused
   const counts = Object.entries(v.rejected || {});
   const listed = (rows) => rows.map(([r, k]) => r + " " + k).join(", ");
