@@ -157,6 +157,7 @@ from vfm_core.jobs.diagnose_results import (
     MATERIAL_BIC,
     MATERIAL_MAPE_ABS,
     MATERIAL_MAPE_REL,
+    RIVAL_KEYS,
     CandidateResult,
     Diagnosis,
     Suggestion,
@@ -1175,6 +1176,7 @@ class _DiagnosisRun:
         names = {c.name for c, _ in more}
         self.skipped[:] = [x for x in self.skipped if x["effect"] not in names]
         self.frame = frame
+        rivals.explain_families(self.results)  # a new form of a physics already explained
 
     def try_variants(self) -> None:
         """Other forms of the same physics: the variants of the best material candidate, or
@@ -1223,21 +1225,40 @@ class _DiagnosisRun:
     def weigh_rivals(self) -> None:
         """When the fit-once evidence names more than one physics, fit the lead together with
         each rival (:func:`vfm_core.jobs.diagnose_rivals.rivals`) and record which explains
-        which; a rival that explains the lead becomes the lead (and a physics explained
-        in its best form is explained in every form)."""
+        which; a rival that explains the lead becomes the lead, and is then weighed against
+        the earlier rivals it has not met. A physics explained in its best form is explained
+        in every form; relations with an explained candidate go stale."""
         lead, others = rivals.rivals(self.results)
+        self.lead = lead
         if lead is None or not others:
             return
+        first = lead
         self.bar.add(len(others))
         for r in others:
-            classes = [*self.classes_of[lead.effect], *self.classes_of[r.effect]]
-            key = f"{lead.effect}+{r.effect}"
-            run_ = self.run(key, classes, self.cand_method, self.cand_train)
-            pair = _score(key, run_, classes, self.comp_mape, self.comp, self.train_batch(run_))
-            rivals.relate(lead, r, pair, self.pool_wells, self.s.seed, self.comp.predictions)
-            if lead.explained_by is not None:  # explained_by, shape_rejected
+            self._weigh(lead, r)
+            if lead.explained_by is not None:
                 lead = r
+        if lead is not first:
+            late = [
+                r
+                for r in others
+                if r is not lead and r.explained_by is None and lead.effect not in r.rivals
+            ]
+            self.bar.add(len(late))
+            for r in late:
+                self._weigh(lead, r)
         rivals.explain_families(self.results)
+        rivals.prune_stale(self.results)
+        self.lead = next((c for c in (lead, *others) if c.explained_by is None), None)
+
+    def _weigh(self, lead: CandidateResult, rival: CandidateResult) -> None:
+        """Fit ``lead`` and ``rival`` together once and relate them
+        (:func:`vfm_core.jobs.diagnose_rivals.relate`)."""
+        classes = [*self.classes_of[lead.effect], *self.classes_of[rival.effect]]
+        key = f"{lead.effect}+{rival.effect}"
+        run_ = self.run(key, classes, self.cand_method, self.cand_train)
+        pair = _score(key, run_, classes, self.comp_mape, self.comp, self.train_batch(run_))
+        rivals.relate(lead, rival, pair, self.s.seed, self.comp.predictions)
 
     def _kin(self, driver: str) -> list[tuple[type[Effect], str | None]]:
         """The library effects acting through ``driver`` not tried yet (:func:`_kin_classes`)."""
@@ -1320,9 +1341,16 @@ class _DiagnosisRun:
         s = self.s
         self._plan_outages()
         top_n = max(s.replay_top, 0)
-        # in BIC order, but a candidate a rival of other physics explains after the rest
+        # in BIC order, but the lead of the rivals first, and a candidate a rival of other
+        # physics explains, or that the data cannot tell from a better one, after the rest
         fitted = [c for c in self.results if c.run is not None and c.delta_mape < 0]
-        shortlist = sorted(fitted, key=lambda c: c.explained_by is not None)[:top_n]
+        shortlist = sorted(
+            fitted,
+            key=lambda c: (
+                c is not self.lead,
+                c.explained_by is not None or rivals.second_to(c) is not None,
+            ),
+        )[:top_n]
         if self.n_replays:  # the runs counted at the start, made exact now
             self.bar.add(len(shortlist) * self._replay_runs() - 2 * top_n)
         if s.replay_top > 0:
@@ -1500,6 +1528,9 @@ class _DiagnosisRun:
                 self.split_ts,
                 self.notes,
             )
+        for v in by_well.values():  # present on every verdict, empty when nothing is related
+            for key in RIVAL_KEYS:
+                v.setdefault(key, [])
 
     def live_verdicts(self) -> None:
         """With a replay: the verdict under the live and outage protocols (the focus well's,

@@ -26,6 +26,7 @@ __all__ = [
     "MATERIAL_SHARE",
     "MATERIAL_MAPE_NEAR_FLOOR",
     "is_material",
+    "RIVAL_KEYS",
     "BRIEF_KEYS",
     "brief",
     "CandidateResult",
@@ -62,6 +63,11 @@ def is_material(
         return True
     return bool(delta_mape <= -MATERIAL_MAPE_NEAR_FLOOR and share >= MATERIAL_SHARE)
 
+
+#: the verdict's lists of rivals (:mod:`vfm_core.jobs.diagnose_rivals`): those the named
+#: candidate explains, those at work beside it (the next step), those the data cannot tell
+#: from it
+RIVAL_KEYS = ("explains", "then", "alternatives")
 
 #: the fields of a paired test kept in a brief (:func:`brief`): the change of the MAPE
 #: (points), its 95 % interval, p and q, the counts and the two MAPEs (%)
@@ -134,8 +140,10 @@ class CandidateResult:
     #: the candidate of other physics that explains this one: fitted together, this one
     #: adds nothing beyond it (:mod:`vfm_core.jobs.diagnose_rivals`); None otherwise
     explained_by: str | None = None
-    #: each rival fitted together with this one: {other: {"relation", "pair", "it_adds",
-    #: "adds_beyond_it"}} (:func:`vfm_core.jobs.diagnose_rivals.relate`)
+    #: each rival fitted together with this one: {other: {"relation", "ranked_first", "pair",
+    #: "stale", "it_adds", "adds_beyond_it", "shape", "its_shape"}}, or {"relation":
+    #: "explained_by", "via_family"} for a weaker form of a physics explained in its best
+    #: form (:func:`vfm_core.jobs.diagnose_rivals.relate`)
     rivals: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     #: the variables the residual is examined against, in report order
@@ -440,6 +448,8 @@ class Diagnosis:
             },
         }
         out["verdict"].update(self.verdict_detail or {})
+        for key in RIVAL_KEYS:  # present on every verdict, empty when nothing is related
+            out["verdict"].setdefault(key, [])
         if self.extended is not None:
             out["extended"] = self.extended.to_json()
         return out

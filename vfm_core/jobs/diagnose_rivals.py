@@ -34,7 +34,7 @@ lower the held-out error beyond chance in the paired block test
   by the residual and the other's is not, the rejected one is explained by the other (a
   trend proxy: ``shape_rejected``); otherwise the data cannot tell them apart, the lead is
   named by its BIC and the rival listed beside it, not offered on its own
-  (:func:`second_to`: its evidence is the lead's).
+  (:func:`second_to`: its evidence is the lead's), nor named alone.
 
 The pair is fitted once per rival; a diagnosis makes at most :data:`RIVALS` more fit-once
 runs.
@@ -63,6 +63,8 @@ __all__ = [
     "relate",
     "explain_families",
     "why_explained",
+    "prune_stale",
+    "current",
     "second_to",
     "rivals_text",
 ]
@@ -101,12 +103,14 @@ def rivals(
     return lead, out
 
 
-def adds_beyond(
-    pair: CandidateResult, one: CandidateResult, wells: Sequence[str], seed: int
-) -> dict[str, Any]:
+def adds_beyond(pair: CandidateResult, one: CandidateResult, seed: int) -> dict[str, Any]:
     """Whether the pair adds beyond ``one`` alone (both scored against the same baseline):
     the change of MAPE (points) and BIC, the paired block test's p-value, and ``adds``
-    (material by :func:`is_material` and p below :data:`ALPHA`)."""
+    (material by :func:`is_material` and p below :data:`ALPHA`). The rule near the noise
+    floor (a small gain that is a large share of the error above it) is left out here: a
+    flexible candidate added to a right one picks up a tenth of a point of noise and meter
+    drift near the floor (slip beside wear on a Sachdeva field, seed 64), and two rivals
+    that neither adds materially beyond are told apart by their shapes instead."""
     assert pair.run is not None and one.run is not None
     delta_mape = pair.mape - one.mape
     delta_bic = pair.delta_bic - one.delta_bic
@@ -129,6 +133,11 @@ def adds_beyond(
 
 #: block length (days) of the shape test's cluster-robust standard error
 SHAPE_BLOCK_DAYS = 30.0
+#: fewest blocks for the shape test (a cluster-robust error needs many clusters)
+MIN_BLOCKS = 10
+#: the slope halfway between a trend proxy (0) and the physics (1): a shape is rejected when
+#: its slope lies below it beyond chance
+SHAPE_MIDPOINT = 0.5
 #: a detrended correction with a smaller sd (%) predicts nothing beyond the trend
 _MIN_SPREAD_PCT = 1e-6
 
@@ -144,14 +153,19 @@ def shape_beyond_trend(
     time per well and meter (:func:`vfm_core.jobs.diagnose_stats.detrend`), r is regressed
     on the c_i together (least squares: two rivals' corrections are judged side by side, so
     that the part of the residual one explains does not count for or against the other).
-    Each slope ``beta`` is 1 when its candidate is the physics (the residual's ups and downs
-    beyond the trend are its correction's) and 0 when it only stands in for the trend. The
-    standard errors are cluster-robust over blocks of ``block_days`` per well (the residual
-    is autocorrelated). Per candidate: ``beta``, ``se``, ``z`` = (beta - 1) / se,
-    ``rejected`` (beta below 1 beyond chance: one-sided, :data:`ALPHA`) and ``spread`` (the
-    sd of its detrended correction, %: near 0 it predicts nothing beyond the trend, and
-    nothing can be rejected)."""
-    empty = {"beta": None, "se": None, "z": None, "spread": 0.0, "rejected": False}
+    Each slope ``beta`` is near 1 when its candidate is the physics (the residual's ups and
+    downs beyond the trend are its correction's; a little below, as a fitted correction's
+    errors shrink it) and near 0 when it only stands in for the trend. The standard errors
+    are cluster-robust over blocks of ``block_days`` per well (the residual is
+    autocorrelated), with the small-sample factor G/(G-1) (N-1)/(N-K) and Student's t on
+    G - 1 degrees of freedom (G blocks; at least :data:`MIN_BLOCKS`, else nothing is
+    decided). Per candidate: ``beta``, ``se``, ``blocks``, ``spread`` (the sd of its
+    detrended correction, %: near 0 it predicts nothing beyond the trend, and nothing can be
+    rejected or confirmed), ``rejected`` (beta below :data:`SHAPE_MIDPOINT` beyond chance,
+    one-sided at :data:`ALPHA`: closer to a trend proxy than to the physics) and
+    ``confirmed`` (beta above 0 beyond chance: the residual follows its shape)."""
+    empty = {"beta": None, "se": None, "blocks": 0, "spread": 0.0}
+    empty |= {"rejected": False, "confirmed": False}
     m = base["measured"].to_numpy(dtype=float)
     pb = base["predicted"].to_numpy(dtype=float)
     pcs = np.column_stack([c["predicted"].to_numpy(dtype=float) for c in cands])
@@ -171,26 +185,31 @@ def shape_beyond_trend(
         [dstats.detrend(rows, np.log(pcs[ok, i] / pb[ok])) for i in range(len(cands))]
     )
     spread = 100.0 * x.std(axis=0)
-    out = [{**empty, "spread": float(s_)} for s_ in spread]
+    _, block = np.unique(live.block_ids(rows, block_days), return_inverse=True)
+    groups = int(block.max()) + 1
+    out = [{**empty, "spread": float(s_), "blocks": groups} for s_ in spread]
     # a correction with nothing beyond the trend (wear with time) predicts nothing to test
     active = np.flatnonzero(spread > _MIN_SPREAD_PCT)
-    _, block = np.unique(live.block_ids(rows, block_days), return_inverse=True)
     xa = x[:, active]
     xtx = xa.T @ xa
-    if not len(active) or block.max() < 3 or np.linalg.cond(xtx) > 1e12:
+    if not len(active) or groups < MIN_BLOCKS or np.linalg.cond(xtx) > 1e12:
         return out
     beta = np.linalg.solve(xtx, xa.T @ r)
-    scores = np.zeros((block.max() + 1, len(active)))
+    scores = np.zeros((groups, len(active)))
     np.add.at(scores, block, xa * (r - xa @ beta)[:, None])
     bread = np.linalg.inv(xtx)
-    se = np.sqrt(np.clip(np.diag(bread @ (scores.T @ scores) @ bread), 0.0, None))
-    for k, i in enumerate(active):
-        z = float((beta[k] - 1.0) / se[k]) if se[k] > 0 else 0.0
+    n, k = len(r), len(active)
+    factor = groups / (groups - 1) * (n - 1) / max(n - k, 1)
+    se = np.sqrt(np.clip(factor * np.diag(bread @ (scores.T @ scores) @ bread), 0.0, None))
+    t = sps.t(df=groups - 1)
+    for j, i in enumerate(active):
+        if not se[j] > 0:
+            continue
         out[i].update(
-            beta=float(beta[k]),
-            se=float(se[k]),
-            z=z,
-            rejected=bool(se[k] > 0 and sps.norm.cdf(z) < ALPHA),
+            beta=float(beta[j]),
+            se=float(se[j]),
+            rejected=bool(t.cdf((beta[j] - SHAPE_MIDPOINT) / se[j]) < ALPHA),
+            confirmed=bool(t.sf(beta[j] / se[j]) < ALPHA),
         )
     return out
 
@@ -200,8 +219,8 @@ _MIRROR = {
     "explained_by": "explains",
     "both": "both",
     "indistinguishable": "indistinguishable",
-    "shape_rejected": "shape_holds",
-    "shape_holds": "shape_rejected",
+    "shape_loses": "shape_wins",
+    "shape_wins": "shape_loses",
 }
 
 
@@ -209,18 +228,17 @@ def relate(
     lead: CandidateResult,
     rival: CandidateResult,
     pair: CandidateResult,
-    wells: Sequence[str],
     seed: int,
     comparison: pd.DataFrame | None = None,
 ) -> str:
     """The relation of ``lead`` to ``rival`` given their ``pair`` fitted together (one of
     ``explains``, ``explained_by``, ``both``, ``indistinguishable``, and for two that
     neither adds beyond, told apart by their shapes beyond the trend against the
-    ``comparison`` baseline's predictions, ``shape_rejected`` (the lead's shape) or
-    ``shape_holds`` (the rival's rejected)), recorded on both (``rivals``) and as
+    ``comparison`` baseline's predictions (:func:`_tell_apart`): ``shape_wins`` (the
+    lead's shape wins) or ``shape_loses``), recorded on both (``rivals``) and as
     ``explained_by`` on the one explained; returns it."""
-    rival_beyond = adds_beyond(pair, lead, wells, seed)
-    lead_beyond = adds_beyond(pair, rival, wells, seed)
+    rival_beyond = adds_beyond(pair, lead, seed)
+    lead_beyond = adds_beyond(pair, rival, seed)
     shapes: dict[str, Any] = {}
     if lead_beyond["adds"] and rival_beyond["adds"]:
         relation = "both"
@@ -232,11 +250,11 @@ def relate(
         lead.explained_by = rival.effect
     else:
         relation, shapes = _tell_apart(lead, rival, comparison)
-    pair_spec = pair.spec or pair.effect
+    record = {"pair": pair.spec or pair.effect, "stale": False}
     lead.rivals[rival.effect] = {
         "relation": relation,
         "ranked_first": True,
-        "pair": pair_spec,
+        **record,
         "it_adds": rival_beyond,
         "adds_beyond_it": lead_beyond,
         "shape": shapes.get("lead"),
@@ -245,7 +263,7 @@ def relate(
     rival.rivals[lead.effect] = {
         "relation": _MIRROR[relation],
         "ranked_first": False,
-        "pair": pair_spec,
+        **record,
         "it_adds": lead_beyond,
         "adds_beyond_it": rival_beyond,
         "shape": shapes.get("rival"),
@@ -254,46 +272,82 @@ def relate(
     return relation
 
 
+def _wins(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Shape ``a`` wins over shape ``b``: ``b`` is rejected and ``a`` is not, or ``a`` is
+    confirmed and ``b`` neither confirmed nor testable-and-holding (only ``a`` made a
+    prediction beyond the trend that could have failed and did not)."""
+    if b["rejected"] and not a["rejected"]:
+        return True
+    return bool(a["confirmed"] and not b["confirmed"] and not a["rejected"])
+
+
 def _tell_apart(
     lead: CandidateResult, rival: CandidateResult, comparison: pd.DataFrame | None
 ) -> tuple[str, dict[str, Any]]:
-    """Two rivals neither of which adds beyond the other: by their shapes beyond the trend
-    (:func:`shape_beyond_trend`) the one whose shape the residual rejects is explained by
-    the other (``shape_rejected``: the lead's; ``shape_holds``: the rival's), else
+    """Two rivals neither of which adds beyond the other, by their shapes beyond the trend
+    (:func:`shape_beyond_trend`, judged together): the one whose shape loses (rejected
+    while the other's is not, or unconfirmed while the other's is confirmed) is explained
+    by the other (``shape_loses``: the lead's; ``shape_wins``: the rival's), else
     ``indistinguishable``."""
     if comparison is None or lead.run is None or rival.run is None:
         return "indistinguishable", {}
     both = shape_beyond_trend(comparison, lead.run.predictions, rival.run.predictions)
     shapes = {"lead": both[0], "rival": both[1]}
-    if shapes["lead"]["rejected"] and not shapes["rival"]["rejected"]:
+    if _wins(shapes["rival"], shapes["lead"]):
         lead.explained_by = rival.effect
-        return "shape_rejected", shapes
-    if shapes["rival"]["rejected"] and not shapes["lead"]["rejected"]:
+        return "shape_loses", shapes
+    if _wins(shapes["lead"], shapes["rival"]):
         rival.explained_by = lead.effect
-        return "shape_holds", shapes
+        return "shape_wins", shapes
     return "indistinguishable", shapes
 
 
 def explain_families(results: Sequence[CandidateResult]) -> None:
     """A physics explained in its best form is explained in every form: the other
     candidates of an explained candidate's family (its weaker variants) get the same
-    ``explained_by``."""
-    by_family = {family(c.effect): c.explained_by for c in results if c.explained_by}
+    ``explained_by``, with the form that was weighed (``via_family``)."""
+    by_family = {
+        family(c.effect): (c.explained_by, c.effect)
+        for c in results
+        if c.explained_by and "via_family" not in c.rivals.get(c.explained_by, {})
+    }
     for c in results:
         if c.explained_by is None and family(c.effect) in by_family:
-            c.explained_by = by_family[family(c.effect)]
+            other, form = by_family[family(c.effect)]
+            c.explained_by = other
+            c.rivals.setdefault(
+                other, {"relation": "explained_by", "ranked_first": False, "via_family": form}
+            )
+
+
+def prune_stale(results: Sequence[CandidateResult]) -> None:
+    """A relation with a candidate that ended up explained by a third says nothing about
+    what is named: it is marked ``stale`` (not listed under ``then`` or ``alternatives``,
+    and no longer holding a candidate second)."""
+    explained = {c.effect for c in results if c.explained_by is not None}
+    for c in results:
+        for other, r in c.rivals.items():
+            if other in explained and r["relation"] in ("both", "indistinguishable"):
+                r["stale"] = True
+
+
+def current(c: CandidateResult, relation: str) -> list[str]:
+    """The rivals of ``c`` in ``relation`` to it, not stale."""
+    return [o for o, r in c.rivals.items() if r["relation"] == relation and not r.get("stale")]
 
 
 def second_to(c: CandidateResult) -> str | None:
     """The rival ranked before ``c`` that the data cannot tell it from (``indistinguishable``,
-    ``c`` not ranked first), or None. Such a candidate is not offered on its own: its
-    evidence is the other's, and naming it where the other is not offered would pick one of
-    two equal explanations by the replay's noise."""
+    ``c`` not ranked first, not stale), or None. Such a candidate is neither offered nor
+    named on its own: its evidence is the other's, and naming it where the other is not
+    offered would pick one of two equal explanations by the replay's noise."""
     return next(
         (
             other
             for other, r in c.rivals.items()
-            if r["relation"] == "indistinguishable" and not r.get("ranked_first", True)
+            if r["relation"] == "indistinguishable"
+            and not r.get("ranked_first", True)
+            and not r.get("stale")
         ),
         None,
     )
@@ -303,10 +357,17 @@ def why_explained(c: CandidateResult) -> str:
     """Why an explained candidate is neither named nor offered, in one clause."""
     other = c.explained_by
     r = c.rivals.get(other or "", {})
-    if r.get("relation") == "shape_rejected":
+    if "via_family" in r:
+        return f"explained by {other}, as its stronger form {r['via_family']} is"
+    if r.get("relation") == "shape_loses":
+        how = (
+            "does not fit the residual"
+            if (r.get("shape") or {}).get("rejected")
+            else "is not borne out by the residual, while the other's is"
+        )
         return (
             f"explained by {other}: the two explain the same misfit, and beyond the trend "
-            f"this one's shape does not fit the residual ({_shape_text(r.get('shape'))})"
+            f"this one's shape {how} ({_shape_text(r.get('shape'))})"
         )
     return f"explained by {other}: fitted together, it adds nothing beyond it"
 
@@ -317,7 +378,9 @@ def _shape_text(t: dict[str, Any] | None) -> str:
     return f"slope {t['beta']:.2f} +/- {t['se']:.2f} on its correction, 1 if it were the physics"
 
 
-def _beyond_text(t: dict[str, Any]) -> str:
+def _beyond_text(t: dict[str, Any] | None) -> str:
+    if not t:
+        return "not fitted together"
     return f"fit-once MAPE {t['delta_mape']:+.2f} points, BIC {t['delta_bic']:+.0f}, p = {t['p_value']:.2g}"
 
 
@@ -325,7 +388,9 @@ def rivals_text(c: CandidateResult) -> str:
     """What the rivalry says of a named candidate, in words (empty without rivals)."""
     parts = []
     for other, r in c.rivals.items():
-        rel, it = r["relation"], r["it_adds"]
+        rel, it = r["relation"], r.get("it_adds")
+        if r.get("stale") or "via_family" in r:
+            continue
         if rel == "explains":
             parts.append(
                 f"It explains {other} too: fitted together, {other} adds nothing beyond it "
@@ -342,16 +407,16 @@ def rivals_text(c: CandidateResult) -> str:
                 f"{other} explains the same misfit about as well: neither adds beyond the other "
                 f"({other} beyond it: {_beyond_text(it)}), nor do their shapes beyond the trend "
                 f"tell them apart ({c.effect}: {_shape_text(r.get('shape'))}; {other}: "
-                f"{_shape_text(r.get('its_shape'))}): the data cannot tell them apart, "
-                f"{c.effect} is named by its BIC."
+                f"{_shape_text(r.get('its_shape'))}): the data cannot tell them apart; "
+                f"{c.effect} ranks first by the evidence."
             )
-        elif rel == "shape_holds":
+        elif rel == "shape_wins":
             parts.append(
                 f"{other} explains the same misfit about as well (neither adds beyond the other), "
-                f"but only as a trend: beyond a straight line in time per well its shape does "
-                f"not fit the residual ({_shape_text(r.get('its_shape'))}), {c.effect}'s does "
-                f"({_shape_text(r.get('shape'))})."
+                f"but beyond a straight line in time per well its shape "
+                f"({_shape_text(r.get('its_shape'))}) fits the residual less than "
+                f"{c.effect}'s ({_shape_text(r.get('shape'))})."
             )
-        elif rel in ("explained_by", "shape_rejected"):
+        elif rel in ("explained_by", "shape_loses"):
             parts.append(why_explained(c).replace("explained by", "It is explained by", 1) + ".")
     return " ".join(parts)

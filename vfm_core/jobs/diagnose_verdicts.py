@@ -308,7 +308,12 @@ def live_verdict(
         return _effect_verdict(best, well, ctx)
     if suggestion is not None and offer(suggestion.result, well)[0]:
         return _driver_verdict(suggestion, well, ctx)
-    named = [c for c in results if c.via_driver is not None or _fit_once_names(c, well)]
+    named = [
+        c
+        for c in results
+        if (c.via_driver is not None and c.explained_by is None and rivals.second_to(c) is None)
+        or _fit_once_names(c, well)
+    ]
     if named:
         c = next((x for x in named if x.effect == prefer), named[0])
         return _carried_verdict(c, well, ctx)
@@ -438,6 +443,7 @@ def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
     return (
         c.material
         and c.explained_by is None
+        and rivals.second_to(c) is None  # an alternative is named beside its lead, not alone
         and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
     )
 
@@ -466,8 +472,9 @@ def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> 
 
 
 def _related(c: CandidateResult, relation: str) -> list[str]:
-    """The rivals of ``c`` in ``relation`` to it (:mod:`vfm_core.jobs.diagnose_rivals`)."""
-    return [other for other, r in c.rivals.items() if r["relation"] == relation]
+    """The rivals of ``c`` in ``relation`` to it, not stale
+    (:mod:`vfm_core.jobs.diagnose_rivals`)."""
+    return rivals.current(c, relation)
 
 
 def _via_driver_text(c: CandidateResult) -> str:
@@ -776,7 +783,11 @@ def fit_once_verdict(
     trend_share: float = float("nan"),
 ) -> tuple[str, str | None, str | None, str]:
     """(kind, effect, driver, sentence): see the module docstring for the rule."""
-    material = [c for c in candidates if c.material and c.explained_by is None]
+    material = [
+        c
+        for c in candidates
+        if c.material and c.explained_by is None and rivals.second_to(c) is None
+    ]
     if material:
         return _material_verdict(material, base_mape, floor, protocol, bic_on)
     if top is not None and suggestion is not None and suggestion.result.material:
