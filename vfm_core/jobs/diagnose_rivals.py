@@ -369,7 +369,7 @@ def why_explained(c: CandidateResult) -> str:
             f"explained by {other}: the two explain the same misfit, and beyond the trend "
             f"this one's shape {how} ({_shape_text(r.get('shape'))})"
         )
-    return f"explained by {other}: fitted together, it adds nothing beyond it"
+    return f"explained by {other}: fitted together, it adds nothing material beyond it"
 
 
 def _shape_text(t: dict[str, Any] | None) -> str:
@@ -393,12 +393,12 @@ def rivals_text(c: CandidateResult) -> str:
             continue
         if rel == "explains":
             parts.append(
-                f"It explains {other} too: fitted together, {other} adds nothing beyond it "
+                f"It explains {other} too: fitted together, {other} adds nothing material beyond it "
                 f"({_beyond_text(it)})."
             )
         elif rel == "both":
             parts.append(
-                f"{other} is likely at work too: fitted together, it still lowers the error "
+                f"{other} may be at work too: fitted together, it still lowers the error "
                 f"beyond {c.effect} ({_beyond_text(it)}); once {c.effect} is in the model, "
                 f"diagnose again."
             )
