@@ -303,3 +303,22 @@ def test_vfm_simulate_puts_the_faults_asked_for_into_the_observations(
     assert len(frozen) > 5 and frozen["p_down"].nunique() == 1  # held at one value
     assert main([*args, "--fault", "W02,p_down"]) != 0
     assert "WELL,SENSOR,KIND,START" in capsys.readouterr().err
+
+
+def test_an_impossible_reading_holds_the_measurement_paired_with_it() -> None:
+    """A p_up of 2000 bar a (outside 0..1500) is ``out_of_range``: a measurement paired with
+    that sample is held, not learned (a reading outside the physical span is never real);
+    the samples around it are not."""
+    det = WellSensorFaults()
+    rng = np.random.default_rng(5)
+    t0 = 1_600_000_000 * 10**9
+    hour = 3600 * 10**9
+    for i in range(60):
+        det.update(t0 + i * hour, [0.5, 120.0 + rng.normal(), 30.0 + rng.normal(), 70.0, 0.1, 0.6])
+    bad = t0 + 60 * hour
+    events = det.update(bad, [0.5, 2000.0, 30.0, 70.0, 0.1, 0.6])
+    assert [(e.sensor, e.kind) for e in events] == [("p_up", "out_of_range")]
+    held = det.suspect(bad)
+    assert held is not None and held.kind == "out_of_range" and held.sensor == "p_up"
+    det.update(bad + hour, [0.5, 121.0, 30.0, 70.0, 0.1, 0.6])
+    assert det.suspect(bad + hour) is None and det.suspect(bad - hour) is None

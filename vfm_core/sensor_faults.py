@@ -140,11 +140,12 @@ __all__ = [
 SENSORS: tuple[str, ...] = INPUT_COLUMNS
 KINDS: tuple[str, ...] = ("frozen", "spike", "drift", "offset", "out_of_range")
 #: the kinds whose samples are not learned from (their false-alarm rate was measured within
-#: the budget, see docs/guide/sensor-faults.md); drift and offset are shown, not acted on
-HOLD_KINDS: tuple[str, ...] = ("frozen", "spike")
+#: the budget, see docs/guide/sensor-faults.md; an out-of-range value has none: a reading
+#: outside the input's physical span is never real); drift and offset are shown, not acted on
+HOLD_KINDS: tuple[str, ...] = ("frozen", "spike", "out_of_range")
 #: the kinds whose input is replaced by its fallback in predictions while the fault is open:
-#: the lasting kind of :data:`HOLD_KINDS` (a spike is one sample, decided only when the next
-#: one arrives) and an impossible value
+#: the lasting kinds of :data:`HOLD_KINDS` (a spike is one sample, decided only when the
+#: next one arrives)
 FALLBACK_KINDS: tuple[str, ...] = ("frozen", "out_of_range")
 #: the kinds whose last trusted level is kept when they are raised (:meth:`fallbacks` can
 #: stand in for any of them; the service uses :data:`FALLBACK_KINDS`)
