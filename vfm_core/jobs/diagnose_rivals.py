@@ -66,6 +66,7 @@ __all__ = [
     "prune_stale",
     "current",
     "second_to",
+    "stands_alone",
     "rivals_text",
 ]
 
@@ -351,6 +352,12 @@ def second_to(c: CandidateResult) -> str | None:
         ),
         None,
     )
+
+
+def stands_alone(c: CandidateResult) -> bool:
+    """``c`` may be named or offered on its own: no rival explains it, and it is not an
+    alternative to a better-ranked one (:func:`second_to`)."""
+    return c.explained_by is None and second_to(c) is None
 
 
 def why_explained(c: CandidateResult) -> str:

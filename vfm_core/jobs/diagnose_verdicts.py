@@ -311,8 +311,7 @@ def live_verdict(
     named = [
         c
         for c in results
-        if (c.via_driver is not None and c.explained_by is None and rivals.second_to(c) is None)
-        or _fit_once_names(c, well)
+        if (c.via_driver is not None and rivals.stands_alone(c)) or _fit_once_names(c, well)
     ]
     if named:
         c = next((x for x in named if x.effect == prefer), named[0])
@@ -442,8 +441,7 @@ def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
     test, or the well's)."""
     return (
         c.material
-        and c.explained_by is None
-        and rivals.second_to(c) is None  # an alternative is named beside its lead, not alone
+        and rivals.stands_alone(c)  # an alternative is named beside its lead, not alone
         and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
     )
 
@@ -783,11 +781,7 @@ def fit_once_verdict(
     trend_share: float = float("nan"),
 ) -> tuple[str, str | None, str | None, str]:
     """(kind, effect, driver, sentence): see the module docstring for the rule."""
-    material = [
-        c
-        for c in candidates
-        if c.material and c.explained_by is None and rivals.second_to(c) is None
-    ]
+    material = [c for c in candidates if c.material and rivals.stands_alone(c)]
     if material:
         return _material_verdict(material, base_mape, floor, protocol, bic_on)
     if top is not None and suggestion is not None and suggestion.result.material:
