@@ -237,3 +237,70 @@ def test_relations_with_an_explained_candidate_go_stale(parts: dict[str, np.ndar
     rv.prune_stale([slip, valve])
     assert rv.current(slip, "both") == [] and slip.rivals["valve_sigmoid"]["stale"]
     assert "valve_sigmoid" not in rv.rivals_text(slip)
+
+
+def test_a_shape_that_is_nearly_all_trend_decides_nothing_and_loses_to_nothing() -> None:
+    """Wear beside slip on a field whose gas fraction rises: both take up the trend, slip's
+    correction also follows the gas fraction's ups and downs (its shape is confirmed), wear's
+    is a trend with a slight bend (a hundredth of a percent beyond the straight line), and
+    a slow misfit that neither explains (0.3 %, over months) is left. Wear's test cannot tell a trend proxy from the physics (``decisive`` false): it is
+    neither rejected nor beaten by slip's confirmed shape, and the two stay
+    indistinguishable, the one ranked first by the evidence named."""
+    rng = np.random.default_rng(5)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    trend, wiggle = 0.03 * years, 0.003 * rng.normal(size=n)
+    noise = 0.002 * rng.normal(size=n)
+    kernel = np.ones(90) / 90.0  # a misfit neither explains, slow (months) as real ones are
+    slow = 0.03 * np.concatenate(
+        [np.convolve(rng.normal(size=DAYS + 89), kernel, "valid") for _ in WELLS]
+    )
+    base = _log_run(-(trend + wiggle + slow) + noise)
+    slip = _log_run(noise - slow)  # its correction: the trend and the wiggle
+    bend = 0.0004 * (years - 1.0) ** 2
+    wear = _log_run(-(trend + wiggle + slow) + noise + trend + bend)
+    s_slip, s_wear = rv.shape_beyond_trend(base, slip, wear)
+    assert s_slip["decisive"] and s_slip["confirmed"] and not s_slip["rejected"]
+    assert 0 < s_wear["spread"] < 0.05 and not s_wear["decisive"]
+    assert not s_wear["rejected"] and not s_wear["confirmed"]
+
+    def cand(name: str, p: pd.DataFrame, delta_bic: float) -> dg.CandidateResult:
+        m = dg.mape(p["predicted"], p["measured"])
+        return dg.CandidateResult(
+            effect=name,
+            mape=m,
+            delta_mape=m - 3.0,
+            bic=0.0,
+            delta_bic=delta_bic,
+            n_parameters=1,
+            parameters={},
+            meaning="",
+            material=True,
+            run=RunResult("mm", "pbl:36500d", p),
+            delta_bic_all=delta_bic,
+        )
+
+    lead, rival = cand("erosion", wear, -300.0), cand("slip", slip, -290.0)
+    pair = cand("erosion+slip", slip, -295.0)  # neither adds materially beyond the other
+    assert rv.relate(lead, rival, pair, 0, base) == "indistinguishable"
+    assert lead.explained_by is None and rival.explained_by is None
+    assert rv.stands_alone(lead) and rv.second_to(rival) == "erosion"
+
+
+def test_a_gain_below_a_tenth_of_a_point_is_not_offered(parts: dict[str, np.ndarray]) -> None:
+    """A replay over years finds a few hundredths of a point beyond chance for a candidate that
+    only absorbs misfit: lower beyond chance, but under :data:`dv.MIN_CHANGE`, it is not
+    offered (and a tenth of a point is)."""
+    base = _base_mape(parts)
+    c = _cand("erosion", parts["noise"], -300.0, base)
+    c.replayed = True
+    c.live_run = c.run
+    c.tests["fit_once"] = {"change": -0.5, "rejected": True, "p_value": 1e-6, "per_well": {}}
+    small = {"change": -0.03, "low": -0.05, "high": -0.02, "rejected": True, "per_well": {}}
+    c.tests["live"] = dict(small)
+    c.tests["outage"] = {**small, "rejected": False}
+    assert c.named
+    ok, reason = dv.offer(c, None)
+    assert not ok and "less than 0.1 points" in reason
+    c.tests["live"] = {**small, "change": -dv.MIN_CHANGE}
+    assert dv.offer(c, None) == (True, "live")

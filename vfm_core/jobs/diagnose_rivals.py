@@ -141,6 +141,12 @@ MIN_BLOCKS = 10
 SHAPE_MIDPOINT = 0.5
 #: a detrended correction with a smaller sd (%) predicts nothing beyond the trend
 _MIN_SPREAD_PCT = 1e-6
+#: most one-sided uncertainty (t times the slope's se) of a shape test that decides: a test
+#: whose interval reaches past the midpoint from either end cannot tell a trend proxy (0)
+#: from the physics (1), and a correction that is nearly all trend (wear: a tenth of a
+#: percent beyond the straight line) has a slope that the residual's other misfit, not the
+#: candidate, sets; such a shape is neither rejected nor beaten by a confirmed one
+DECISIVE = SHAPE_MIDPOINT
 
 
 def shape_beyond_trend(
@@ -162,11 +168,13 @@ def shape_beyond_trend(
     G - 1 degrees of freedom (G blocks; at least :data:`MIN_BLOCKS`, else nothing is
     decided). Per candidate: ``beta``, ``se``, ``blocks``, ``spread`` (the sd of its
     detrended correction, %: near 0 it predicts nothing beyond the trend, and nothing can be
-    rejected or confirmed), ``rejected`` (beta below :data:`SHAPE_MIDPOINT` beyond chance,
-    one-sided at :data:`ALPHA`: closer to a trend proxy than to the physics) and
-    ``confirmed`` (beta above 0 beyond chance: the residual follows its shape)."""
+    rejected or confirmed), ``decisive`` (the one-sided uncertainty t se is under
+    :data:`DECISIVE`: the test can tell a trend proxy from the physics), ``rejected`` (beta
+    below :data:`SHAPE_MIDPOINT` beyond chance, one-sided at :data:`ALPHA`: closer to a trend
+    proxy than to the physics; only when decisive) and ``confirmed`` (beta above 0 beyond
+    chance: the residual follows its shape)."""
     empty = {"beta": None, "se": None, "blocks": 0, "spread": 0.0}
-    empty |= {"rejected": False, "confirmed": False}
+    empty |= {"decisive": False, "rejected": False, "confirmed": False}
     m = base["measured"].to_numpy(dtype=float)
     pb = base["predicted"].to_numpy(dtype=float)
     pcs = np.column_stack([c["predicted"].to_numpy(dtype=float) for c in cands])
@@ -206,10 +214,12 @@ def shape_beyond_trend(
     for j, i in enumerate(active):
         if not se[j] > 0:
             continue
+        decisive = bool(t.ppf(1.0 - ALPHA) * se[j] < DECISIVE)
         out[i].update(
             beta=float(beta[j]),
             se=float(se[j]),
-            rejected=bool(t.cdf((beta[j] - SHAPE_MIDPOINT) / se[j]) < ALPHA),
+            decisive=decisive,
+            rejected=decisive and bool(t.cdf((beta[j] - SHAPE_MIDPOINT) / se[j]) < ALPHA),
             confirmed=bool(t.sf(beta[j] / se[j]) < ALPHA),
         )
     return out
@@ -275,11 +285,15 @@ def relate(
 
 def _wins(a: dict[str, Any], b: dict[str, Any]) -> bool:
     """Shape ``a`` wins over shape ``b``: ``b`` is rejected and ``a`` is not, or ``a`` is
-    confirmed and ``b`` neither confirmed nor testable-and-holding (only ``a`` made a
-    prediction beyond the trend that could have failed and did not)."""
+    confirmed and ``b``, though its test was decisive, is not (only ``a`` made a prediction
+    beyond the trend that could have failed and did not). A shape whose test cannot decide
+    (nearly all trend, as wear's) loses to nothing: that the other's shape holds beyond the
+    trend says nothing about which of the two carries the trend itself."""
     if b["rejected"] and not a["rejected"]:
         return True
-    return bool(a["confirmed"] and not b["confirmed"] and not a["rejected"])
+    return bool(
+        a["confirmed"] and b.get("decisive", True) and not b["confirmed"] and not a["rejected"]
+    )
 
 
 def _tell_apart(
@@ -287,7 +301,8 @@ def _tell_apart(
 ) -> tuple[str, dict[str, Any]]:
     """Two rivals neither of which adds beyond the other, by their shapes beyond the trend
     (:func:`shape_beyond_trend`, judged together): the one whose shape loses (rejected
-    while the other's is not, or unconfirmed while the other's is confirmed) is explained
+    while the other's is not, or unconfirmed by a decisive test while the other's is
+    confirmed: :func:`_wins`) is explained
     by the other (``shape_loses``: the lead's; ``shape_wins``: the rival's), else
     ``indistinguishable``."""
     if comparison is None or lead.run is None or rival.run is None:

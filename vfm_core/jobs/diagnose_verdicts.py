@@ -30,7 +30,12 @@ from vfm_core.jobs import diagnose_instrument as inst
 from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
-from vfm_core.jobs.diagnose_results import CandidateResult, Suggestion, brief
+from vfm_core.jobs.diagnose_results import (
+    MATERIAL_MAPE_NEAR_FLOOR,
+    CandidateResult,
+    Suggestion,
+    brief,
+)
 from vfm_core.jobs.diagnose_stats import acts_through
 from vfm_core.jobs.study import mape
 from vfm_core.schema import TIME, WELL
@@ -41,6 +46,7 @@ if TYPE_CHECKING:
 __all__ = [
     "REPLAY_TOP",
     "PHYSICS_ALPHA",
+    "MIN_CHANGE",
     "VerdictContext",
     "model_label",
     "protocol_test",
@@ -70,6 +76,14 @@ REPLAY_TOP = 3
 #: correction is better" harder to find, and so favour the library effect) and the effect's
 #: gain outside the correction's own 95 % interval (:func:`_beats`).
 PHYSICS_ALPHA = 0.05
+#: The smallest fall of the live or the outage MAPE (points) that offers a change of model.
+#: Replayed over years, a flexible candidate that absorbs misfit which is not its physics
+#: lowers a learner's error by a few hundredths of a point, beyond chance (erosion on a
+#: clean field of another physics whose misfit drifts with depletion: -0.03 points); a
+#: change that small is not worth a model change, and naming an effect for it misleads. The
+#: same minimum a candidate must remove near the noise floor in the fit-once evidence
+#: (:data:`vfm_core.jobs.diagnose_results.MATERIAL_MAPE_NEAR_FLOOR`).
+MIN_CHANGE = MATERIAL_MAPE_NEAR_FLOOR
 
 
 def model_label(model: str, classes: Sequence[type[Effect]]) -> str:
@@ -177,10 +191,14 @@ def fdr(
     }
 
 
-def _gain(*tests: dict[str, Any] | None) -> bool:
-    """Some test (the field's, a well's) finds a lower error beyond chance (BH-rejected)."""
+def _gain(*tests: dict[str, Any] | None, least: float = MIN_CHANGE) -> bool:
+    """Some test (the field's, a well's) finds a lower error beyond chance (BH-rejected), by
+    at least ``least`` points (:data:`MIN_CHANGE`)."""
     return any(
-        t is not None and t.get("rejected") and t.get("change") is not None and t["change"] < 0
+        t is not None
+        and t.get("rejected")
+        and t.get("change") is not None
+        and t["change"] <= -least
         for t in tests
     )
 
@@ -192,7 +210,8 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     field, and the field's outage change at most 0: never a change that raises the error
     under a reported protocol; a single well's few outage windows are too few to sign its
     own outage change, so the field's is used) and the field's or the well's own test finds
-    a lower live or outage error beyond chance (BH over the diagnosis's family). Field-wide
+    a lower live or outage error beyond chance (BH over the diagnosis's family), by at least
+    :data:`MIN_CHANGE` points. Field-wide
     evidence counts for a well whose own live estimate agrees in sign: physical effects are
     field-wide, and one well's months are weak evidence alone. And only a candidate the
     fit-once evidence names (*material*: the BIC on the reference meter, which charges
@@ -225,6 +244,9 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
         return True, "live"
     if _gain(c.test("outage"), ot if well is not None else None):
         return True, "outage"
+    tests = (c.test("live"), lt, c.test("outage"), ot)
+    if _gain(*tests, least=0.0):
+        return False, f"lowers the error beyond chance, but by less than {MIN_CHANGE:g} points"
     return False, "within noise"
 
 
@@ -386,8 +408,8 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 "sees): not offered."
                 if worse
                 else f"{ctx.method} (and any network) already carries what it explains: "
-                "neither error falls beyond chance; adding it would add a physical "
-                "parameter to read (interpretability), not accuracy."
+                f"neither error falls beyond chance by {MIN_CHANGE:g} points or more; adding "
+                "it would add a physical parameter to read (interpretability), not accuracy."
             )
         )
     else:
@@ -442,7 +464,7 @@ def _fit_once_names(c: CandidateResult, well: str | None) -> bool:
     return (
         c.material
         and rivals.stands_alone(c)  # an alternative is named beside its lead, not alone
-        and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None)
+        and _gain(c.test("fit_once"), c.test("fit_once", well) if well else None, least=0.0)
     )
 
 
@@ -508,6 +530,7 @@ def _carried_driver(
         and _gain(
             suggestion.result.test("fit_once"),
             suggestion.result.test("fit_once", well) if well else None,
+            least=0.0,
         )
     ):
         return None
@@ -541,7 +564,7 @@ def driver_found(correction: CandidateResult) -> bool:
         correction.replayed
         and correction.live_run is not None
         and correction.material
-        and _gain(correction.test("fit_once"))
+        and _gain(correction.test("fit_once"), least=0.0)
     )
 
 
