@@ -703,7 +703,9 @@ def test_outputs_follow_the_contract(tmp_path: Path) -> None:
     assert bics == sorted(bics)
     for c in data["candidates"]:
         assert {"effect", "mape", "delta_mape", "delta_bic", "parameters", "warnings"} <= set(c)
-        assert {"explained_by", "rivals"} <= set(c)
+        assert {"explained_by", "rivals", "shape"} <= set(c)
+        if c["material"]:  # its own shape beyond the trend, alone
+            assert {"beta", "se", "spread", "decisive", "rejected", "confirmed"} <= set(c["shape"])
     rate = data["candidates"][0]["parameters"]["erosion.rate"]
     assert rate["sd"] > 0 and set(rate["per_well_sd"]) == set(rate["per_well"])
     v = data["verdict"]

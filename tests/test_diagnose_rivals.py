@@ -304,3 +304,29 @@ def test_a_gain_below_a_tenth_of_a_point_is_not_offered(parts: dict[str, np.ndar
     assert not ok and "less than 0.1 points" in reason
     c.tests["live"] = {**small, "change": -dv.MIN_CHANGE}
     assert dv.offer(c, None) == (True, "live")
+
+
+def test_a_named_candidate_whose_shape_cannot_decide_says_its_evidence_is_a_trend(
+    parts: dict[str, np.ndarray],
+) -> None:
+    """own_shapes tests each material candidate alone; a wear-like one (nearly all trend)
+    gets the caveat in its verdict, one whose shape decides does not."""
+    rng = np.random.default_rng(11)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    trend, wiggle = 0.03 * years, 0.01 * rng.normal(size=n)
+    kernel = np.ones(90) / 90.0
+    slow = 0.03 * np.concatenate(
+        [np.convolve(rng.normal(size=DAYS + 89), kernel, "valid") for _ in WELLS]
+    )
+    base = _log_run(-(trend + wiggle + slow))
+    base_mape = _base_mape(parts)
+    wear = _cand("erosion", parts["noise"], -300.0, base_mape)
+    wear.run = RunResult("mm", "pbl:36500d", _log_run(-(wiggle + slow) + 0.0004 * years**2))
+    valve = _cand("valve_sigmoid", parts["noise"], -200.0, base_mape)
+    valve.run = RunResult("mm", "pbl:36500d", _log_run(-(trend + slow)))
+    rv.own_shapes([wear, valve], base)
+    assert wear.shape is not None and not wear.shape["decisive"]
+    assert valve.shape is not None and valve.shape["decisive"] and valve.shape["confirmed"]
+    assert "mostly a trend in time" in rv.trend_text(wear)
+    assert rv.trend_text(valve) == ""

@@ -1228,6 +1228,7 @@ class _DiagnosisRun:
         which; a rival that explains the lead becomes the lead, and is then weighed against
         the earlier rivals it has not met. A physics explained in its best form is explained
         in every form; relations with an explained candidate go stale."""
+        rivals.own_shapes(self.results, self.comp.predictions)
         lead, others = rivals.rivals(self.results)
         self.lead = lead
         if lead is None or not others:

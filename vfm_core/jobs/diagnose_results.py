@@ -145,6 +145,10 @@ class CandidateResult:
     #: "explained_by", "via_family"} for a weaker form of a physics explained in its best
     #: form (:func:`vfm_core.jobs.diagnose_rivals.relate`)
     rivals: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: its own shape beyond the trend, alone (material candidates fitted once:
+    #: :func:`vfm_core.jobs.diagnose_rivals.shape_beyond_trend`): beta, se, blocks, spread,
+    #: decisive, rejected, confirmed; None when not tested
+    shape: dict[str, Any] | None = None
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -200,6 +204,7 @@ class CandidateResult:
             "via_driver": self.via_driver,
             "explained_by": self.explained_by,
             "rivals": self.rivals,
+            "shape": self.shape,
         }
 
 

@@ -68,6 +68,8 @@ __all__ = [
     "second_to",
     "stands_alone",
     "rivals_text",
+    "own_shapes",
+    "trend_text",
 ]
 
 #: most rival physics fitted together with the lead
@@ -442,3 +444,27 @@ def rivals_text(c: CandidateResult) -> str:
         elif rel in ("explained_by", "shape_loses"):
             parts.append(why_explained(c).replace("explained by", "It is explained by", 1) + ".")
     return " ".join(parts)
+
+
+def own_shapes(results: Sequence[CandidateResult], comparison: pd.DataFrame) -> None:
+    """Each material candidate's own shape beyond the trend, alone (``shape``): what the
+    verdict says of a candidate whose evidence is only a trend (:func:`trend_text`)."""
+    for c in results:
+        if c.material and c.run is not None:
+            c.shape = shape_beyond_trend(comparison, c.run.predictions)[0]
+
+
+def trend_text(c: CandidateResult) -> str:
+    """What a named candidate's own shape says when its test cannot decide (nearly all
+    trend, as wear's), in words; empty otherwise. Its evidence is then that the residual
+    trends in time, and any misfit that drifts with the operating point looks the same."""
+    s = c.shape
+    if not s or s.get("decisive") or s.get("blocks", 0) < MIN_BLOCKS:
+        return ""
+    return (
+        f"Its evidence is mostly a trend in time: beyond a straight line per well its "
+        f"correction varies by {s['spread']:.2f} % (sd), too little to test its shape "
+        f"({_shape_text(s)}). Wear is the library's physics for such a trend, but a misfit "
+        "of the model that drifts with the operating point as the field depletes looks the "
+        "same; its physical parameter is worth reading with that in mind."
+    )

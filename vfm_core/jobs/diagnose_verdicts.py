@@ -477,6 +477,9 @@ def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> 
     rival_text = rivals.rivals_text(c)
     if rival_text:
         text += " " + rival_text
+    trend = rivals.trend_text(c)
+    if trend:
+        text += " " + trend
     driver = None if v is None else v["driver"]
     return {
         "kind": kind,
