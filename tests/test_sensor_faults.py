@@ -191,12 +191,14 @@ def http_get(service: Any, path: str) -> httpx.Response:
     return asyncio.run(go())
 
 
-@pytest.mark.timeout(180)
-def _send_stuck_p_down(client: Any, n: int, stuck_from: int) -> None:
-    """Noisy samples of W01 twice a day, p_down stuck at its last reading from ``stuck_from``."""
+def _send_stuck_p_down(
+    client: Any, n: int, stuck_from: int, well: str = "W01", seed: int = 12
+) -> None:
+    """Noisy samples of ``well`` twice a day, p_down stuck at its last reading from
+    ``stuck_from``."""
     from replay.client import sample_of
 
-    rng = np.random.default_rng(12)
+    rng = np.random.default_rng(seed)
     p_down = 0.0
     for i in range(n):
         t = T0 + timedelta(hours=12 * i + 3)
@@ -210,7 +212,7 @@ def _send_stuck_p_down(client: Any, n: int, stuck_from: int) -> None:
             0.1 + 0.001 * float(rng.standard_normal()),
             0.6 + 0.001 * float(rng.standard_normal()),
         )
-        client.send_sample("W01", sample_of(t, inputs))
+        client.send_sample(well, sample_of(t, inputs))
 
 
 def test_detection_off_finds_nothing_and_holds_nothing(tmp_path: Path) -> None:
@@ -238,6 +240,7 @@ def test_detection_off_finds_nothing_and_holds_nothing(tmp_path: Path) -> None:
         )
 
 
+@pytest.mark.timeout(180)
 def test_the_service_shows_a_frozen_transmitter(tmp_path: Path) -> None:
     """Noisy samples twice a day for 120 days, p_down stuck at its last reading from day 100:
     GET /wells/W01 lists the fault (open), /metrics has the gauge and the counter, and a
@@ -322,3 +325,118 @@ def test_an_impossible_reading_holds_the_measurement_paired_with_it() -> None:
     assert held is not None and held.kind == "out_of_range" and held.sensor == "p_up"
     det.update(bad + hour, [0.5, 121.0, 30.0, 70.0, 0.1, 0.6])
     assert det.suspect(bad + hour) is None and det.suspect(bad - hour) is None
+
+
+@pytest.mark.timeout(180)
+def test_every_figure_of_held_measurements_counts_each_one_once(tmp_path: Path) -> None:
+    """The page reads the measurements held at an instrument fault from three places: the
+    service-wide count (``GET /health`` ``rejected``, also ``/metrics``), each well's count
+    (``GET /wells/{well}`` ``rejected``) and the stored statuses (``GET
+    /wells/{well}/history``). Over two wells with a stuck p_down, MPFM readings (one
+    arriving before its sample, settled when the sample comes), a well test over HTTP and
+    the same readings sent again: every held measurement is counted once in each, the
+    service-wide figure is the sum of the wells' (the page's banner counts all wells, a
+    well's line that well only), and a reading sent again is a duplicate, not held again."""
+    from replay.client import FieldClient, sample_of
+    from service.app import Service
+    from service.http import create_app
+    from service.testing import loopback_settings, wait_until
+    from service.transport import MemoryTransport
+    from vfm_core.messages import Measurement
+
+    token = "held-count-test-token-0123456789"
+    settings = loopback_settings(
+        tmp_path, model={"name": "mm", "method": "pbl:3650d"}, http={"token": token}
+    )
+    bus = MemoryTransport(settings.prefix)
+    service = Service(settings, bus)
+    service.start()
+    app = create_app(service)
+
+    def request(method: str, path: str, **kwargs: Any) -> httpx.Response:
+        async def go() -> httpx.Response:
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+                return await client.request(method, path, **kwargs)
+
+        return asyncio.run(go())
+
+    n, stuck_from, reason = 240, 200, "sensor fault at the sample"
+    wells = {"W01": 12, "W02": 13}
+    at = [T0 + timedelta(hours=12 * i + 3) for i in range(n + 1)]
+    try:
+        with FieldClient(bus, settings.prefix) as client:
+            client.wait_for_service("W01")
+            for well, seed in wells.items():
+                _send_stuck_p_down(client, n, stuck_from, well, seed)
+            engine = service.engine
+            assert engine is not None
+            wait_until(
+                lambda: all(engine.has_well(w) and engine.wells[w].samples == n for w in wells),
+                60,
+                "every sample",
+            )
+            # MPFM readings every 5th sample from 150 on: before the fault learned, inside held
+            readings = {w: [at[i] for i in range(150, n, 5)] for w in wells}
+            for well, times in readings.items():
+                for when in times:
+                    client.send_measurement(well, "mpfm", Measurement(time=when, q_total=900.0))
+            # a reading before its sample (it waits), then the sample, still stuck
+            client.send_measurement("W02", "mpfm", Measurement(time=at[n], q_total=900.0))
+            last = engine.wells["W02"].last_inputs
+            assert last is not None
+            client.send_sample("W02", sample_of(at[n], last))
+            readings["W02"].append(at[n])
+            # a well test over HTTP at a stuck sample: held, answered with a sentence
+            body = {"time": at[n - 3].isoformat(), "q_total": 910.0}
+            auth = {"Authorization": f"Bearer {token}"}
+            r = request("POST", "/wells/W01/well-tests", json=body, headers=auth)
+            assert r.status_code == 422 and r.json()["reason"] == reason, r.text
+            expected = sum(len(v) for v in readings.values()) + 1
+
+            def stored() -> dict[str, list[str]]:
+                return {
+                    w: [
+                        m["status"]
+                        for m in request("GET", f"/wells/{w}/history").json()["measurements"]
+                    ]
+                    for w in wells
+                }
+
+            wait_until(
+                lambda: (
+                    sum(len(v) for v in stored().values()) == expected
+                    and "pending" not in sum(stored().values(), [])
+                ),
+                60,
+                "every measurement stored and settled",
+            )
+            # the same again: duplicates, refused, neither held again nor stored again
+            for when in readings["W01"][-3:]:
+                client.send_measurement("W01", "mpfm", Measurement(time=when, q_total=900.0))
+            again = request("POST", "/wells/W01/well-tests", json=body, headers=auth)
+            assert again.status_code == 409 and again.json()["reason"] == "duplicate"
+            wait_until(
+                lambda: request("GET", "/health").json()["rejected"].get("duplicate") == 4,
+                30,
+                "the duplicates counted",
+            )
+
+            statuses = stored()
+            held = {w: statuses[w].count("held") for w in wells}
+            per_well = {
+                w: request("GET", f"/wells/{w}").json()["rejected"].get(reason, 0) for w in wells
+            }
+            health = request("GET", "/health").json()["rejected"][reason]
+            metrics = [
+                ln
+                for ln in request("GET", "/metrics").text.splitlines()
+                if ln.startswith(f'vfm_inputs_rejected_total{{reason="{reason}"}} ')
+            ]
+            assert all(v > 5 for v in held.values()), held  # the fault held some of each
+            assert "learned" in statuses["W01"] and "learned" in statuses["W02"]
+            assert per_well == held  # a well's count is its stored held measurements
+            assert health == sum(held.values())  # the service's: all wells'
+            assert [float(ln.rsplit(" ", 1)[1]) for ln in metrics] == [float(health)]
+    finally:
+        service.stop()

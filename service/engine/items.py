@@ -19,6 +19,7 @@ from service.inputs import Counters
 from service.store import Op
 from vfm_core.learning.streaming import WellLearner
 from vfm_core.messages import Measurement
+from vfm_core.sensor_faults import Fallback
 
 __all__ = [
     "SensorItem",
@@ -42,6 +43,11 @@ class SensorItem:
     time_ns: int
     inputs: tuple[float, ...]
     received_ns: int
+    #: the stand-ins its prediction uses (empty: none), once fed to the instrument-fault
+    #: detectors (:meth:`WellState.watch_sample
+    #: <service.engine.state.WellState.watch_sample>`, at admission, or with its sensor
+    #: block); None: not fed yet
+    stand_ins: tuple[Fallback, ...] | None = None
 
 
 @dataclass(slots=True)

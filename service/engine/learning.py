@@ -42,6 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -54,7 +55,7 @@ from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
 from vfm_core.learning.streaming import learn_many, predict_many
-from vfm_core.sensor_faults import fallback_points, widened_rates
+from vfm_core.sensor_faults import Fallback, fallback_points, widened_rates
 from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
@@ -189,19 +190,28 @@ class Learning:
         return out
 
     def fallback(
-        self, st: WellState, time_ns: int, inputs: tuple[float, ...], rates: Rates | None
+        self,
+        st: WellState,
+        inputs: Sequence[float],
+        rates: Rates | None,
+        used: Sequence[Fallback],
     ) -> tuple[Rates | None, list[dict[str, Any]] | None]:
-        """Keep predicting while an input is flagged: when an input of the sample at
-        ``time_ns`` (epoch ns) has an open fault of a kind that stands in
-        (:data:`vfm_core.sensor_faults.FALLBACK_KINDS`), the rates (Sm3/h) predicted with its
-        fallback value in place of its reading, the interval widened to cover the rates at
-        the ends of the fallback's span (:func:`vfm_core.sensor_faults.widened_rates`), and
-        what stood in (the message's and ``GET /wells/{well}``'s ``fallback``). Otherwise
-        ``rates`` as they are and None. The raw inputs are stored unchanged either way."""
+        """Keep predicting while an input is flagged: when inputs of the sample have an open
+        fault of a kind that stands in (:data:`vfm_core.sensor_faults.FALLBACK_KINDS`;
+        ``used``: their stand-ins, found when the sample was fed to the detectors,
+        :meth:`WellState.watch_sample <service.engine.state.WellState.watch_sample>`), the
+        rates (Sm3/h) predicted with their fallback values in place of the readings, the
+        interval widened to cover the rates at the ends of the fallbacks' spans
+        (:func:`vfm_core.sensor_faults.widened_rates`), and what stood in (the message's and
+        ``GET /wells/{well}``'s ``fallback``, kept as ``st.fallback``). Otherwise ``rates``
+        as they are and None (no stand-in, no rates: the model is not ready, or no finite
+        answer at the stand-ins). The raw inputs are stored unchanged either way.
+
+        The model is asked right after the sample's own prediction, its features and
+        clock at the sample: the worker (:mod:`service.engine.worker`) stacks no later
+        sample of the well into the prediction call of a sample with a stand-in."""
         st.fallback = None
-        faults = st.sensor_faults
-        used = faults.fallbacks(time_ns, inputs) if st.watch_faults and rates else []
-        if not used:
+        if not used or not rates:
             return rates, None
         try:
             answers = [st.learner.predict(p) for p in fallback_points(inputs, used)]

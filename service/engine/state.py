@@ -15,6 +15,7 @@ import logging
 import math
 import statistics
 from collections import OrderedDict, deque
+from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,7 +27,7 @@ from service.engine.learners import Learner, describe
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
-from vfm_core.sensor_faults import SensorFault, WellSensorFaults
+from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults
 from vfm_core.timeutil import iso
 
 __all__ = [
@@ -227,6 +228,32 @@ class WellState:
             else:
                 logger.info("Sensor fault on %s ended: %s %s.", self.well, e.sensor, e.kind)
         return events
+
+    def watch_sample(self, time_ns: int, inputs: tuple[float, ...]) -> tuple[Fallback, ...]:
+        """Feed one accepted sample to the instrument-fault detectors (:meth:`watch_sensors`)
+        before it is predicted; the stand-ins its prediction uses: one per input that then
+        has an open fault of a kind that stands in
+        (:meth:`WellSensorFaults.fallbacks <vfm_core.sensor_faults.WellSensorFaults.fallbacks>`),
+        empty (the usual case: one set test) when none does or the detectors are off."""
+        self.watch_sensors(time_ns, inputs)
+        faults = self.sensor_faults
+        if not self.watch_faults or not faults.stands_in():
+            return ()
+        return tuple(faults.fallbacks(time_ns, inputs))
+
+    def watch_block(
+        self, times_ns: Sequence[int], rows: Sequence[tuple[float, ...]]
+    ) -> dict[int, tuple[Fallback, ...]]:
+        """:meth:`watch_sample` for a sensor block's rows (epoch ns, the six inputs each),
+        in order, before any row is predicted: the rows that some stand-in replaces an
+        input of, by their index in the block, with their stand-ins (so a fault raised or
+        ended in the middle of a block changes the predictions from that row on, as one
+        by one). Empty, the usual case, while no input is flagged."""
+        used: dict[int, tuple[Fallback, ...]] = {}
+        for i, (t, row) in enumerate(zip(times_ns, rows, strict=True)):
+            if stand_ins := self.watch_sample(t, row):
+                used[i] = stand_ins
+        return used
 
     def sensor_faults_view(self) -> list[dict[str, Any]]:
         """GET /wells/{well} ``sensor_faults``: the recent faults, ``end`` null while active."""

@@ -41,9 +41,18 @@ A sensor block (:class:`~service.engine.items.SensorBlockItem`, many samples of 
 one message, checked at intake) is answered at once: its rows not after the well's previous
 sample are refused, the others go through the well's model in one call
 (:meth:`~vfm_core.learning.streaming.WellLearner.predict_block`), are stored row by row and answered
-with one prediction block. A well whose model may change within the block (a measurement
-waits for one of its samples, a scheduled retrain), or that is not ready, takes the rows
-one by one as single samples, so a block is always answered as its rows sent one by one.
+with one prediction block. Its rows are fed to the instrument-fault detectors first
+(:meth:`WellState.watch_block <service.engine.state.WellState.watch_block>`): a row at which
+an input stands in (:mod:`vfm_core.sensor_faults`) is taken as a single sample, predicted
+with its fallback and answered on its own, and the block is split there, so a fault raised
+or ended inside a block changes the predictions from its row on, as one by one. A well
+whose model may change within the block (a measurement waits for one of its samples, a
+scheduled retrain), or that is not ready, takes the rows one by one as single samples, so
+a block is always answered as its rows sent one by one.
+
+Every sample is fed to the detectors when it is admitted, before it is predicted; a
+sample with a stand-in is the last of its well in its prediction call (its fallback is
+asked of the model right after, at the sample's features and clock).
 """
 
 from __future__ import annotations
@@ -409,8 +418,9 @@ class Workers:
 
     # -- samples ----------------------------------------------------------------------------
     def _admit_sample(self, st: WellState, item: SensorItem, b: Batch) -> None:
-        """First pass: refuse a sample that is not after the well's previous one, else keep
-        it for the batch's one prediction call (:meth:`_predict_samples`)."""
+        """First pass: refuse a sample that is not after the well's previous one, else feed
+        it to the instrument-fault detectors (unless its block did) and keep it for the
+        batch's one prediction call (:meth:`_predict_samples`)."""
         t, inputs = item.time_ns, item.inputs
         # the well's previous sample: one taken in this batch, else the last one stored
         last_ns, last_inputs = b.sample_last.get(item.well, (st.last_time_ns, st.last_inputs))
@@ -422,10 +432,16 @@ class Workers:
                 b,
             )
             return
+        if item.stand_ins is None:  # instrument faults (vfm_core.sensor_faults), in order
+            item.stand_ins = st.watch_sample(t, inputs)
         b.samples.append((st, item, t, inputs))
         # another sample of the well may join the call unless its model can change first:
-        # a scheduled retrain (pbl), or a measurement this sample settles and learns
-        b.sample_wells[item.well] = not st.pending and model_fixed_when_predicting(st.learner)
+        # a scheduled retrain (pbl), or a measurement this sample settles and learns; nor
+        # after a sample with a stand-in: its fallback is asked of the model after the call,
+        # which must leave the model's features and clock at this sample
+        b.sample_wells[item.well] = (
+            not st.pending and not item.stand_ins and model_fixed_when_predicting(st.learner)
+        )
         b.sample_last[item.well] = (t, inputs)
 
     def _on_block(self, st: WellState, item: SensorBlockItem, b: Batch) -> None:
@@ -455,22 +471,55 @@ class Workers:
                 return
             t, x = t[keep], x[keep]
         learner = st.learner
-        rates = None
         if (
             st.trial is None  # on trial: one by one, so that the shadow sees every row
             and not st.pending
             and not (self.separators is not None and self.separators.waits_on(st.well))
             and model_fixed_when_predicting(learner)
             and learner.ready
-            and not st.sensor_faults.stands_in()  # a flagged input: its fallback, row by row
         ):
-            try:
-                rates = self.learning.predict_block(st, x, t)
-            except Exception as exc:  # the rows one by one say what fails
-                logger.debug("A block of %s went one by one: %s", item.well, exc)
-        if rates is None:
+            self._split_block(st, item, t, x, b)
+            return
+        for ti, row in zip(t.tolist(), x.tolist(), strict=True):
+            self._handle(SensorItem(item.well, ti, tuple(row), item.received_ns), b)
+
+    def _split_block(
+        self, st: WellState, item: SensorBlockItem, t: np.ndarray, x: np.ndarray, b: Batch
+    ) -> None:
+        """A block's rows to the instrument-fault detectors first, then predicted: each row
+        at which an input stands in as a single sample with its stand-ins (predicted with
+        its fallback by :meth:`_on_sample`, one message each, as one by one), each run of
+        the other rows in one model call (:meth:`_predict_run`). Without a flagged input
+        (the usual case) the block is one run."""
+        rows = [tuple(r) for r in x.tolist()]
+        used = st.watch_block(t.tolist(), rows)  # instrument faults (vfm_core.sensor_faults)
+        start = 0
+        for i in [*used, len(rows)]:
+            if start < i:
+                self._predict_run(st, item, t[start:i], x[start:i], b)
+            if i < len(rows):
+                if st.well in b.sample_wells:  # the row before had a stand-in too: first
+                    self._predict_samples(b)
+                one = SensorItem(item.well, int(t[i]), rows[i], item.received_ns, used[i])
+                self._admit_sample(st, one, b)  # predicted with the batch's samples
+            start = i + 1
+
+    def _predict_run(
+        self, st: WellState, item: SensorBlockItem, t: np.ndarray, x: np.ndarray, b: Batch
+    ) -> None:
+        """Rows of a block (watched, none standing in) in one model call, stored and
+        answered with one prediction block; row by row, as single samples, when the call
+        fails (they say what fails)."""
+        if st.well in b.sample_wells:  # a row before it went as a single sample: first
+            self._predict_samples(b)
+        try:
+            rates = self.learning.predict_block(st, x, t)
+        except Exception as exc:
+            logger.debug("A block of %s went one by one: %s", item.well, exc)
             for ti, row in zip(t.tolist(), x.tolist(), strict=True):
-                self._handle(SensorItem(item.well, ti, tuple(row), item.received_ns), b)
+                self._admit_sample(
+                    st, SensorItem(item.well, ti, tuple(row), item.received_ns, ()), b
+                )
             return
         self._store_block(st, item, t, x, rates, b)
 
@@ -508,8 +557,8 @@ class Workers:
                 message[name] = _json_floats(rates[name][keep]) if name in rates else None
             payload = json.dumps(message, allow_nan=False).encode()
         recent, ops, well, received = st.recent, b.ops, item.well, item.received_ns
+        st.fallback = None  # every input used as read (watched before: _split_block)
         for i, (ti, row) in enumerate(zip(times, rows, strict=True)):
-            st.watch_sensors(ti, row)  # instrument faults (vfm_core.sensor_faults)
             if ok[i]:
                 q = q_total[i]
                 recent.append(Sample(ti, row, q))
@@ -586,9 +635,8 @@ class Workers:
         learner = st.learner
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
-        st.watch_sensors(t, inputs)  # instrument faults (vfm_core.sensor_faults)
         # a flagged input: its fallback stands in, the interval widened (raw inputs stored)
-        rates, fallback = self.learning.fallback(st, t, inputs, rates)
+        rates, fallback = self.learning.fallback(st, inputs, rates, item.stand_ins or ())
         q_total = rates.get("q_total") if rates else None
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs

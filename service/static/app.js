@@ -73,15 +73,16 @@ function alarmsOf(v) {
   const num = (x) => (x == null ? "\u2013" : Number(x).toPrecision(4));
   for (const f of v.fallback || [])
     out.push(`rate predicted with a stand-in for ${f.sensor}: ${num(f.value)} instead of the reading ${num(f.measured)}, interval widened`);
-  // a measurement held (for review, or at an instrument fault) is stored, not refused
+  // a measurement held (for review, or at an instrument fault) is stored, not refused;
+  // these are the well's own counts (GET /wells/{well} rejected), the banner's all wells'
   const counts = Object.entries(v.rejected || {});
   const listed = (rows) => rows.map(([r, k]) => r + " " + k).join(", ");
   const total = (rows) => rows.reduce((a, [, k]) => a + k, 0);
   const heldRows = counts.filter(([r]) => HELD_REASONS.includes(r));
   const bad = counts.filter(([r]) => !HELD_REASONS.includes(r));
   if (heldRows.length)
-    out.push(total(heldRows) + " measurement(s) held since the service started (stored, not learned): " + listed(heldRows));
-  if (bad.length) out.push(total(bad) + " input(s) refused since the service started: " + listed(bad));
+    out.push(total(heldRows) + " measurement(s) of this well held since the service started (stored, not learned): " + listed(heldRows));
+  if (bad.length) out.push(total(bad) + " input(s) of this well refused since the service started: " + listed(bad));
   return out;
 }
 
@@ -154,13 +155,13 @@ async function refreshField() {
     const counted = Object.entries(health.rejected || {}).filter(([, n]) => n > 0);
     const rej = counted.filter(([k]) => !HELD_REASONS.includes(k));
     const held = counted.filter(([k]) => HELD_REASONS.includes(k));
-    const heldText = held.length ? ` Held (stored, not learned): ${held.map(([k, n]) => k + " " + n).join(", ")}.` : "";
+    const heldText = held.length ? ` Held (stored, not learned), all wells: ${held.map(([k, n]) => k + " " + n).join(", ")}.` : "";
     $("#inputs-summary").textContent = `Inputs accepted: ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}. ` +
       `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.` + heldText;
     const banner = $("#banner");
     if (rej.length) {
       banner.hidden = false;
-      banner.textContent = "Refused inputs since the start: " + rej.map(([k, n]) => `${k} (${n})`).join(", ") + ". GET /health gives the reasons.";
+      banner.textContent = "Refused inputs since the start, all wells: " + rej.map(([k, n]) => `${k} (${n})`).join(", ") + ". GET /health gives the reasons.";
     } else banner.hidden = true;
     renderField();
     if (state.well && state.wells[state.well]) {
