@@ -46,14 +46,25 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   arrives (and ends there). A jump at a choke
   move is the process answering the operator, not a fault; the choke itself (a set point:
   a manual change of a few hours is one sample up and back) is not tested for spikes.
-* ``offset`` (a step of one input): the daily means of each input and their day-to-day
-  changes (divided by the square root of the days between, since a process wanders so),
-  robust-scaled by the last year's changes (median, 1.4826 MAD). A change beyond the
-  Gaussian quantile of the daily share, on a day when the choke did not move and no
-  other input's daily mean moved beyond 3 robust sd of its own changes (several inputs
-  moving at once is the process changing, not one transmitter: the other inputs are the
-  witnesses), is a candidate; it is an offset when the level holds (at least halfway)
-  for two more days. The event ends when the level comes back (halfway).
+* ``offset`` (a step of one input): the daily means of each input and two changes of
+  them (divided by the square root of the days between, since a process wanders so): one
+  day's (against the last day) and two days' (against the day before the last: a
+  transmitter that steps in the middle of a day puts half its step into each of two
+  one-day changes and the whole into the two days'). The one day's is robust-scaled
+  (median, 1.4826 MAD) by the last year's day-to-day changes, the two days' by the last
+  year's quiet two-day changes; each is tested at half the daily share. A
+  change is a candidate when it is beyond its limit and every day it spans was quiet:
+  the choke did not move and no other input's daily mean moved beyond 3 robust sd of its
+  own changes (several inputs moving at once is the process changing, not one
+  transmitter: the other inputs are the witnesses). The limit is where the tail of the
+  input's own quiet changes reaches the share (:meth:`WellSensorFaults._tail_limit`: an
+  exponential tail fitted beyond their 90 % quantile, peaks over threshold), never below
+  the Gaussian quantile: a process's daily means have heavier tails than a Gaussian of
+  their robust sd, and a Gaussian limit on them raised false steps far above the budget.
+  A candidate is an offset when the level holds (at least halfway) for two more days.
+  The event ends when the level comes back (halfway). A step of ``p_down`` alone is also
+  what a separator set-point change looks like from one well's inputs; the test cannot
+  tell them apart (see ``docs/guide/sensor-faults.md``).
 * ``drift``: a self-starting two-sided CUSUM (:class:`vfm_core.residual_alarm.ResidualCusum`:
   robust centre and scale of the last year, Bartlett long-run factor over ``lags`` days,
   ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
@@ -175,13 +186,16 @@ _MAD_TO_SD = 1.4826
 _SAME = 1e-9  # relative change below which two readings are the same value
 _SPIKE_MIN_CHANGES = 30
 _FROZEN_MIN_STEPS = 50
-_N_TESTS = 21  # frozen x6, spike x5, drift x5, offset x5 (the choke: frozen only)
+_N_TESTS = 21  # frozen x6, spike x5, drift x5, offset x5 (two changes at half a share each)
 _MIN_DAYS = 30  # day-to-day changes before the drift and offset tests run
 _GAP_NS = 2 * 86_400 * 10**9  # an interval above this and 3 median intervals is a gap
 _MAX_DAY_GAP = 3  # days; a longer gap starts the day-to-day changes afresh
 _CONFIRM_DAYS = 2  # days a step must hold after its day before it is an offset
 _CO_MOVE = 3.0  # robust sd of a raw daily change: another input moving with a step excuses it
 _LEVEL_DAYS = 64  # closed daily means kept per input: the last trusted level before a fault
+# the step test's tail fit begins at this quantile of the scaled changes: the usual start of
+# a peaks-over-threshold fit, far enough out for the tail's law, ~36 excesses in a year
+_TAIL_QUANTILE = 0.9
 _Z90 = NormalDist().inv_cdf(0.95)  # the half-width of a central 90 % interval, in sd
 _MEDIAN_SE = 1.2533  # the standard error of a median of n normal values, in sd / sqrt(n)
 
@@ -240,11 +254,23 @@ class SensorFault:
         )
 
 
+def _median(r: np.ndarray) -> float:
+    """The median of a non-empty 1-d array, as ``np.median`` gives it, by one partial sort
+    (``np.median``'s own checks cost more than the sort at a few hundred values, and the
+    daily tests take thousands of medians a well-year)."""
+    n = len(r)
+    k = n // 2
+    if n % 2:
+        return float(np.partition(r, k)[k])
+    p = np.partition(r, (k - 1, k))
+    return float((p[k - 1] + p[k]) / 2.0)
+
+
 def _median_mad(values: deque[float]) -> tuple[float, float]:
     """The median and 1.4826 MAD (a robust sd) of ``values``."""
     r = np.fromiter(values, dtype=float)
-    centre = float(np.median(r))
-    return centre, _MAD_TO_SD * float(np.median(np.abs(r - centre)))
+    centre = _median(r)
+    return centre, _MAD_TO_SD * _median(np.abs(r - centre))
 
 
 def _num(v: Any) -> float:
@@ -415,7 +441,8 @@ class WellSensorFaults:
         self.budget = self.false_per_well_year / _N_TESTS
         self.arl0_days = 365.25 / self.budget
         # a day's change beyond this many robust sd is a step candidate (two-sided, per day)
-        self._z_day = NormalDist().inv_cdf(1.0 - self.budget / 365.25 / 2.0)
+        self._step_alpha = self.budget / 365.25 / 2.0  # per day, each of two changes
+        self._z_day = NormalDist().inv_cdf(1.0 - self._step_alpha / 2.0)
         self._reset()
 
     # -- the protocol -------------------------------------------------------------------------
@@ -433,6 +460,9 @@ class WellSensorFaults:
         self.pending: _Pending | None = None
         self._interval_cache = (-1, float(_DEFAULT_INTERVAL_NS))
         self._robust_cache: dict[tuple[str, int], tuple[int, float, float]] = {}
+        #: per input, the step test's limit in robust sd (:meth:`_tail_limit`)
+        self._limits = [self._z_day] * n
+        self._limits2 = [self._z_day] * n  # the two-day change's
         self.last_values_before: list[float] | None = None  # the sample before the pending
         self.cusums = [self._new_cusum() for _ in SENSORS]
         self.cusum_zero_ns: list[int | None] = [None] * n
@@ -443,6 +473,15 @@ class WellSensorFaults:
         self.day_n = [0] * n
         self.day_prev: list[tuple[int, float, int] | None] = [None] * n
         self.diffs: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        #: the day-to-day changes of the days the step test runs on (the choke still, no
+        #: other input moving): the tail its limit is fitted to (:meth:`_tail_limit`)
+        self.quiet: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        #: the quiet two-day changes (per square-root day), the day before the last closed
+        #: one, whether the last closed day was quiet, and each candidate's span in days
+        self.quiet2: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.day_prev2: list[tuple[int, float, int] | None] = [None] * n
+        self.prev_alone = [False] * n
+        self.cand_days = [1] * n
         self.cand: list[tuple[float, float, int, float, int] | None] = [None] * n
         self.offset_level: list[tuple[float, float] | None] = [None] * n
         # raw daily means (the co-movement check of the step test)
@@ -803,7 +842,7 @@ class WellSensorFaults:
         n = self.changes_added[i]
         if self.scale_at[i] < 0 or n - self.scale_at[i] >= 16:
             ch = np.fromiter(self.changes[i], dtype=float)
-            self.scale[i] = _MAD_TO_SD * float(np.median(np.abs(ch - np.median(ch))))
+            self.scale[i] = _MAD_TO_SD * _median(np.abs(ch - _median(ch)))
             self.scale_at[i] = n
         return self.scale[i]
 
@@ -850,10 +889,46 @@ class WellSensorFaults:
         ):
             return hit[1], hit[2]
         r = np.fromiter(ref, dtype=float)
-        centre = float(np.median(r))
-        scale = _MAD_TO_SD * float(np.median(np.abs(r - centre)))
+        centre = _median(r)
+        scale = _MAD_TO_SD * _median(np.abs(r - centre))
         self._robust_cache[key] = (self.samples, centre, scale)
+        if key[0] == "diff":  # the step test's limit follows the tail of its quiet days
+            quiet = self.quiet[key[1]]
+            tail = np.fromiter(quiet, dtype=float) if len(quiet) >= _MIN_DAYS else r
+            self._limits[key[1]] = self._tail_limit(tail, centre, scale)
+        elif key[0] == "two":
+            self._limits2[key[1]] = self._tail_limit(r, centre, scale)
         return centre, scale
+
+    def _tail_limit(self, r: np.ndarray, centre: float, scale: float) -> float:
+        """The step test's limit for one input, in robust sd: where the tail of its own
+        scaled day-to-day changes ``|r - centre| / scale`` reaches the daily share
+        ``a = budget / 365.25 / 2`` (two-sided; the one-day and the two-day change share the
+        offset test's), and never below the Gaussian quantile of it.
+
+        The tail is a peaks-over-threshold fit: beyond ``u``, the 90 % quantile of the
+        scaled changes, the excesses are taken as exponential (a generalised Pareto of
+        shape 0, the limit law of the Gaussian's, a mixture of Gaussians' and every
+        light or moderate tail; the shape itself is too noisy to fit from the ~36
+        excesses of a year), with their mean ``b`` as scale. Then ``P(|z| > T) =
+        p_u exp(-(T - u) / b)`` with ``p_u`` the share beyond ``u``, and ``T = u + b
+        ln(p_u / a)``. Why: a process's daily means are not Gaussian in their tails (a
+        day of one sample against one of three, a wander with bursts), and a Gaussian
+        limit on a heavier tail raises its false steps far above the budget; the
+        exponential tail lies above the Gaussian's beyond ``u``, so for a Gaussian
+        input the limit is conservative (median 5.7 sd over a year of changes, 10-90 %
+        4.96-6.5, against the Gaussian 4.5)."""
+        if not scale > 0:
+            return self._z_day
+        z = np.abs(r - centre) / scale
+        k = int(_TAIL_QUANTILE * (len(z) - 1))  # the order statistic at the quantile
+        u = float(np.partition(z, k)[k])
+        over = z[z > u] - u
+        if len(over) < 2:
+            return self._z_day
+        share = len(over) / len(z)
+        limit = u + float(np.mean(over)) * math.log(share / self._step_alpha)
+        return max(self._z_day, limit)
 
     def _samples_per_day(self) -> float:
         return max(1.0, _NS_PER_DAY / max(self._interval_ns(), 1.0))
@@ -904,22 +979,77 @@ class WellSensorFaults:
             self.cand[i] = (step, level_before, c_start, z, held)
             return False
         unit = _UNITS[name]
+        two = self.cand_days[i] == 2
+        span, what, limit = (
+            ("two days", "quiet two-day", self._limits2[i])
+            if two
+            else ("a day", "day-to-day", self._limits[i])
+        )
         self._raise(
             SensorFault(
                 name,
                 "offset",
                 c_start,
                 t,
-                f"{name} stepped by {step:+.4g}{unit} in a day ({z:.1f} times the "
-                f"robust spread of its day-to-day changes, threshold "
-                f"{self._z_day:.2f}) and held there for {held} more days "
-                f"({level:+.4g}{unit}); on the day of the step no other input "
-                f"moved beyond {_CO_MOVE:g} sd of its own and the choke stayed.",
+                f"{name} stepped by {step:+.4g}{unit} in {span} ({z:.1f} times the "
+                f"robust spread of its {what} changes, threshold {limit:.2f} from "
+                f"their own tail) and held there for {held} more days "
+                f"({level:+.4g}{unit}); on the {'days' if two else 'day'} of the step "
+                f"no other input moved beyond {_CO_MOVE:g} sd of its own and the choke "
+                "stayed.",
             ),
             out,
         )
         self.offset_level[i] = (level_before, step)
         return True
+
+    def _step_test(
+        self,
+        i: int,
+        today: tuple[int, float, int],
+        prev: tuple[int, float, int],
+        diff: float,
+        alone: bool,
+        open_kind: str | None,
+    ) -> None:
+        """The step candidates of input ``i`` on a closed day (``today``: day, mean, start
+        ns; ``prev``: the last closed day; ``diff``: their change per square-root day).
+
+        Two changes are tested, each at half the offset test's daily share: one day's
+        (today against the last day), robust-scaled by the last year's changes, and two
+        days' (today against the day before the last), robust-scaled by the last year's
+        quiet two-day changes: a transmitter that steps in the middle of a day puts half
+        its step into each of two one-day changes and the whole of it into the two days'.
+        A change is a candidate when it is beyond its limit (:meth:`_tail_limit`) and every
+        day it spans was quiet (the choke still, no other input moving). The changes of
+        days that are no candidate and carry no open fault join the references."""
+        day, mean, start = today
+        prev2, was_alone = self.day_prev2[i], self.prev_alone[i]
+        self.day_prev2[i], self.prev_alone[i] = prev, alone
+        fresh = self.cand[i] is None and open_kind is None
+        ref = self.diffs[i]
+        if len(ref) >= _MIN_DAYS:
+            centre, scale = self._robust(("diff", i), ref)
+            z = (diff - centre) / scale if scale > 0 else 0.0
+            if fresh and alone and abs(z) > self._limits[i]:
+                self.cand[i] = (mean - prev[1], prev[1], start, abs(z), 0)
+                self.cand_days[i] = 1
+        two = None
+        if prev2 is not None and prev[0] - prev2[0] <= _MAX_DAY_GAP and was_alone and alone:
+            two = (mean - prev2[1]) / math.sqrt(day - prev2[0])
+        ref2 = self.quiet2[i]
+        if two is not None and len(ref2) >= _MIN_DAYS and prev2 is not None:
+            centre, scale = self._robust(("two", i), ref2)
+            z = (two - centre) / scale if scale > 0 else 0.0
+            if fresh and self.cand[i] is None and abs(z) > self._limits2[i]:
+                self.cand[i] = (mean - prev2[1], prev2[1], prev[2], abs(z), 0)
+                self.cand_days[i] = 2
+        if self.cand[i] is None and open_kind is None:
+            ref.append(diff)
+            if alone:  # the days the step test runs on: the null its limits are set from
+                self.quiet[i].append(diff)
+            if two is not None:
+                ref2.append(two)
 
     def _close_day(self, i: int, name: str, t: int, out: list[SensorFault]) -> None:
         """A day of input ``i`` is complete: test its mean against the day before."""
@@ -930,7 +1060,7 @@ class WellSensorFaults:
         prev = self.day_prev[i]
         self.day_prev[i] = (day, mean, start)
         if prev is None or day - prev[0] > _MAX_DAY_GAP:
-            self.cand[i] = None
+            self.cand[i], self.day_prev2[i] = None, None
             return
         # per square-root day between the two: the wander of a process grows so with time,
         # and a day-to-day change across a gap of two or three days must not look bigger
@@ -944,17 +1074,7 @@ class WellSensorFaults:
         alone = not choke and not (moved - {i})
         if self._confirm_step(i, name, mean, t, open_kind, out):
             open_kind = "offset"
-        # the day-to-day change, robust-scaled by the last year's changes
-        ref = self.diffs[i]
-        if len(ref) >= _MIN_DAYS:
-            centre, scale = self._robust(("diff", i), ref)
-            if scale > 0:
-                z = (diff - centre) / scale
-                fresh = self.cand[i] is None and open_kind is None
-                if fresh and abs(z) > self._z_day and alone:
-                    self.cand[i] = (mean - prev[1], prev[1], start, abs(z), 0)
-        if not (self.cand[i] is not None or open_kind is not None):
-            ref.append(diff)
+        self._step_test(i, (day, mean, start), prev, diff, alone, open_kind)
         # a drift: a CUSUM on the day-to-day changes (a ramp shifts their mean)
         if open_kind != "offset":
             cus.update(diff, t)
@@ -1021,6 +1141,11 @@ class WellSensorFaults:
             "day": [self.day_index, self.day_start_ns, self.day_sum, self.day_n],
             "day_prev": [None if d is None else list(d) for d in self.day_prev],
             "diffs": [list(d) for d in self.diffs],
+            "quiet": [list(d) for d in self.quiet],
+            "quiet2": [list(d) for d in self.quiet2],
+            "day_prev2": [None if d is None else list(d) for d in self.day_prev2],
+            "prev_alone": list(self.prev_alone),
+            "cand_days": list(self.cand_days),
             "cand": [None if c is None else list(c) for c in self.cand],
             "offset_level": [None if c is None else list(c) for c in self.offset_level],
             "raw": [
@@ -1076,6 +1201,18 @@ class WellSensorFaults:
         ]
         for dq, saved in zip(self.diffs, data["diffs"], strict=True):
             dq.extend(float(v) for v in saved)
+        # absent from older checkpoints: the step test's tail is then the diffs' own
+        n = len(SENSORS)
+        for dq, saved in zip(self.quiet, data.get("quiet") or [[]] * n, strict=True):
+            dq.extend(float(v) for v in saved)
+        for dq, saved in zip(self.quiet2, data.get("quiet2") or [[]] * n, strict=True):
+            dq.extend(float(v) for v in saved)
+        self.day_prev2 = [
+            None if d is None else (int(d[0]), float(d[1]), int(d[2]))
+            for d in data.get("day_prev2") or [None] * n
+        ]
+        self.prev_alone = [bool(v) for v in data.get("prev_alone") or [False] * n]
+        self.cand_days = [int(v) for v in data.get("cand_days") or [1] * n]
         self.cand = [
             None if c is None else (float(c[0]), float(c[1]), int(c[2]), float(c[3]), int(c[4]))
             for c in data["cand"]

@@ -58,7 +58,7 @@ __all__ = [
 ]
 
 #: Fault kinds that bias the rate model for as long as they last (a spike is one sample)
-#: and whose false rate is within the detectors' budget: an offset (0.44 false per well-year
+#: and whose false rate is within the detectors' budget: an offset (0.22 false per well-year
 #: on clean fields, benchmarks/bench_sensor_faults.py) raises no alarm on the page or in
 #: VfmSensorFault, and names no instrument here either (a false one replaced a right
 #: ``effect erosion`` on a clean-instrument field)
