@@ -40,13 +40,28 @@ is the model's parameters, the covariance P is kept here.
   measurement fell outside the 90 % interval given for it and shrinks by 0.1 ``calibrate``
   if inside, so in the long run 90 % fall inside, whatever the model lacks. The factor widens the intervals
   only; the filter's gain is the Kalman gain.
+- **Variance factor (well tests).** Conformal steps are slow where measurements are few
+  (nine well tests a well over a year move it by a few percent), and a data-driven model's
+  errors on the next well test are larger than its filter's variance says (measured: lr
+  and nn in case 2 have errors 1.6 times their spread; the fit's residuals cannot show it,
+  they are in-sample and already set the meter noise). So a well test's forecast variance
+  also carries a factor c^2 learned from the standardised errors z of the forecasts the
+  filter gave for the well's earlier well tests before learning from them, conjugately:
+  prior c^2 ~ InvGamma(nu0 / 2, nu0 / 2) (the filter is right, worth nu0 = ``cal_prior``
+  = 2 errors), posterior InvGamma((nu0 + n) / 2, (nu0 + sum z^2) / 2) (each error
+  discounts the older ones by 0.99, West and Harrison's variance discount), forecast a
+  Student t with nu0 + n degrees of freedom: the 90 % half-width is
+  t_0.95(nu0 + n) sqrt((nu0 + sum z^2) / (nu0 + n)) sd. A refused error counts as one at
+  the gate. Widens or narrows the intervals only. MPFM readings (twice a day) are left to
+  the conformal factor, which calibrates them in weeks.
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
 Bayesian learning); the layers below stay as fitted. Options: ``drift``, ``drift_<label>``,
 ``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
 (Kalman iterations per update, default 1: the extended filter; more re-linearise at the
 updated mean, which measured no better on the choke models), ``huber`` (3), ``gate`` (6), ``adapt`` (0.02),
-``calibrate`` (0.05), ``params`` (labels to filter, joined with '+'; default all).
+``calibrate`` (0.05), ``cal_prior`` (2; 0: no variance factor), ``params`` (labels to filter,
+joined with '+'; default all).
 """
 
 from __future__ import annotations
@@ -58,6 +73,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.special import stdtrit
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
@@ -101,10 +117,16 @@ _NS_PER_YEAR = 365.25 * 86400e9
 _FD_STEP = 1e-4
 #: refusals in a row after which a well is taken to have changed
 _RESET_AFTER = 3
+#: the intervals' variance factor (see :meth:`BayesianFilter._learn_calibration`): how many
+#: standardised forecast errors the prior (the filter's own variance is right) counts for
+_CAL_PRIOR = 2.0
+#: ... and how much each new error discounts the older ones (a memory of about 100 well
+#: tests a well: West and Harrison's variance discount)
+_CAL_DISCOUNT = 0.99
 #: the per-well state a prediction reads (leading dimension: the well)
 _PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 #: ... and an update changes (its counters aside)
-_LEARN_STATE = (*_PREDICT_STATE, "_run")
+_LEARN_STATE = (*_PREDICT_STATE, "_run", "_cal")
 
 
 def _flat(blocks: list[FilterBlock], n_wells: int) -> torch.Tensor:
@@ -377,6 +399,7 @@ class BayesianFilter(LearningMethod):
         gate: float = 6.0,
         adapt: float = 0.02,
         calibrate: float = 0.05,
+        cal_prior: float = _CAL_PRIOR,
         params: tuple[str, ...] = (),
     ) -> None:
         super().__init__(text)
@@ -395,6 +418,8 @@ class BayesianFilter(LearningMethod):
         self.gate = gate
         self.adapt = adapt
         self.calibrate = calibrate
+        #: prior weight of the intervals' variance factor (0: the filter's variance as it is)
+        self.cal_prior = cal_prior
         self.params = tuple(params)
         self._blocks: list[FilterBlock] = []
         self._layout: dict[str, Any] | None = None
@@ -428,6 +453,7 @@ class BayesianFilter(LearningMethod):
                 "gate": _positive,
                 "adapt": _positive,
                 "calibrate": _positive,
+                "cal_prior": _positive,
                 "params": lambda v: tuple(p for p in v.split("+") if p),
             },
             "bayes:drift=2:noise_well_test=0.01",
@@ -446,6 +472,10 @@ class BayesianFilter(LearningMethod):
         )
         self._h = torch.zeros(n, d, dtype=DTYPE)
         self._scale = torch.zeros(n, 2, dtype=DTYPE)
+        # per meter (MPFM, well test; only the well tests' is learned): the discounted
+        # count and sum of squared standardised forecast errors, and the log factor of
+        # them already in _scale
+        self._cal = torch.zeros(n, 2, 3, dtype=DTYPE)
         self._started = torch.zeros(n, dtype=torch.bool)
         self._counts = {
             k: torch.zeros(n, dtype=torch.int64)
@@ -586,6 +616,7 @@ class BayesianFilter(LearningMethod):
         self._h[has] = h_last[has]
         self._last[has] = t_last[has]
         self._started |= has
+        self._apply_calibration()
 
     def _fix_noise(self, noise: torch.Tensor) -> torch.Tensor:
         for s in (0, 1):
@@ -728,13 +759,81 @@ class BayesianFilter(LearningMethod):
         changed = torch.zeros(batch.n_wells, dtype=torch.bool)
         if self._dim == 0:
             return changed
+        assert batch.well_test is not None
+        # the well tests' variance factor: their forecast errors before learning from them
+        errors = (
+            self._forecast_errors(batch)
+            if self.cal_prior > 0 and bool(batch.well_test.any())
+            else None
+        )
+        fresh = self.cal_prior > 0 and not bool(self._started.all())
         if self.compiled:  # the plain mm: the same steps, compiled
-            return self._compiled_learn(batch)
-        counts = batch.count()
-        for k in range(int(counts.max()) if counts.numel() else 0):
-            one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
-            changed |= self._update(one)
+            changed = self._compiled_learn(batch)
+        else:
+            counts = batch.count()
+            for k in range(int(counts.max()) if counts.numel() else 0):
+                one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
+                changed |= self._update(one)
+        if errors is not None:
+            self._learn_calibration(*errors)
+        if errors is not None or fresh:
+            self._apply_calibration()
         return changed
+
+    # -- the intervals' variance factor ------------------------------------------------------
+    def _forecast_errors(self, batch: Batch) -> tuple[np.ndarray, np.ndarray] | None:
+        """The squared standardised errors [W, N] of the forecasts the filter gave for the
+        well tests of ``batch`` before learning from them: the log error over the filter's
+        own spread sqrt(h (P + Q dt) h + s^2) (:meth:`_spread` without the intervals'
+        factors), and which count [W, N] (well tests of a well with a started filter and
+        a model); None when none does."""
+        assert batch.well_test is not None
+        y = batch.y.numpy()
+        live = batch.mask.numpy() & batch.well_test.numpy() & (y > 0)
+        live &= (self.model.ready.numpy() & self._started.numpy())[:, None]
+        if not live.any():
+            return None
+        mean = predict_rates(self.model, batch).detach().numpy()
+        h, P, last = self._h.numpy(), self._P.numpy(), self._last.numpy()
+        hph = np.einsum("wd,wde,we->w", h, P, h)
+        hqh = (h**2 * self._q.numpy()).sum(1)
+        dt = np.maximum(batch.time_ns.numpy() - last[:, None], 0) / _NS_PER_YEAR
+        var = hph[:, None] + hqh[:, None] * dt + self._noise.numpy()[:, 1:2] ** 2
+        z2 = np.log(np.where(live, y, 1.0) / np.where(live, mean, 1.0)) ** 2 / var
+        live &= np.isfinite(z2)
+        # an error beyond the gate (a refused measurement) counts as one at the gate
+        return np.minimum(np.where(live, z2, 0.0), (self.gate or 6.0) ** 2), live
+
+    def _learn_calibration(self, z2: np.ndarray, live: np.ndarray) -> None:
+        """Learn each well's well-test variance factor c^2 from the squared standardised
+        forecast errors ``z2`` [W, N]: with the prior c^2 ~ InvGamma(nu0 / 2, nu0 / 2) (the
+        filter's variance is right, as much as nu0 = ``cal_prior`` errors say) the
+        posterior after n errors is InvGamma((nu0 + n) / 2, (nu0 + sum z^2) / 2), each
+        error discounting the older ones by :data:`_CAL_DISCOUNT`."""
+        cal = writable(self, "_cal")
+        for k in range(z2.shape[1]):
+            w = np.flatnonzero(live[:, k])
+            cal[w, 1, 0] = _CAL_DISCOUNT * cal[w, 1, 0] + 1.0
+            cal[w, 1, 1] = _CAL_DISCOUNT * cal[w, 1, 1] + z2[w, k]
+
+    def _apply_calibration(self) -> None:
+        """Put each started well's variance factor into its intervals: the forecast of a
+        log rate is then a Student t with nu0 + n degrees of freedom and scale
+        sqrt((nu0 + sum z^2) / (nu0 + n)) times the filter's spread, so the central 90 %
+        interval's half-width is t_0.95(nu0 + n) sqrt(...) sd instead of 1.645 sd. Few
+        errors give a heavy tail (t_0.95(2) = 2.92), many the normal's 1.645 times what
+        the errors say. Kept in ``_scale`` (log), beside the conformal factor."""
+        if self.cal_prior <= 0:
+            return
+        cal, scale = writable(self, "_cal"), writable(self, "_scale")
+        nu = self.cal_prior + cal[..., 0]
+        log_f = np.log(stdtrit(nu, 0.95) / Z90) + 0.5 * np.log((self.cal_prior + cal[..., 1]) / nu)
+        # the well tests' factor (MPFM readings come twice a day: the conformal factor
+        # calibrates them within weeks)
+        log_f[:, 0] = 0.0
+        log_f = np.where(self._started.numpy()[:, None], log_f, cal[..., 2])
+        scale += log_f - cal[..., 2]
+        cal[..., 2] = log_f
 
     def _start_filters(self, one: Batch, live: torch.Tensor) -> None:
         """Start the filter of each ``live`` well that has a model but no filter state yet
@@ -1088,13 +1187,14 @@ class BayesianFilter(LearningMethod):
             started=self._started.clone(),
             run=self._run.clone(),
             scale=self._scale.clone(),
+            cal=self._cal.clone(),
             counts={k: v.clone() for k, v in self._counts.items()},
         )
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        for name in ("P", "last", "noise", "h", "started", "run", "scale"):
+        for name in ("P", "last", "noise", "h", "started", "run", "scale", "cal"):
             if name in state:
                 setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
         for k, v in state.get("counts", {}).items():
