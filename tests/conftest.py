@@ -117,3 +117,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             or any(test == t and part in name for t, part in SLOW_CASES)
         ):
             item.add_marker(slow)
+
+
+@pytest.fixture
+def predict_block_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The row count of every block prediction call the service's engine makes
+    (``Learning.predict_block``, wrapped; the calls still run)."""
+    from service.engine.learning import Learning
+
+    calls: list[int] = []
+    predict_block = Learning.predict_block
+
+    def counted(self: Learning, st: object, inputs: object, times_ns: object) -> object:
+        calls.append(len(times_ns))  # type: ignore[arg-type]
+        return predict_block(self, st, inputs, times_ns)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Learning, "predict_block", counted)
+    return calls

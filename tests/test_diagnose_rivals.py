@@ -158,6 +158,26 @@ def test_an_explained_candidate_is_neither_offered_nor_named(parts: dict[str, np
     assert not ok and reason.startswith("explained by slip")
 
 
+def _run_cand(
+    name: str, p: pd.DataFrame, delta_bic: float, n_parameters: int = 4
+) -> dg.CandidateResult:
+    """A material candidate whose fit-once run predicted ``p`` (baseline MAPE 3 %)."""
+    m = dg.mape(p["predicted"], p["measured"])
+    return dg.CandidateResult(
+        effect=name,
+        mape=m,
+        delta_mape=m - 3.0,
+        bic=0.0,
+        delta_bic=delta_bic,
+        n_parameters=n_parameters,
+        parameters={},
+        meaning="",
+        material=True,
+        run=RunResult("mm", "pbl:36500d", p),
+        delta_bic_all=delta_bic,
+    )
+
+
 def _log_run(log_pred_shift: np.ndarray) -> pd.DataFrame:
     """A prediction frame whose log prediction is 100 shifted by ``log_pred_shift``."""
     p = _frame()
@@ -197,30 +217,14 @@ def test_the_shape_beyond_the_trend_tells_the_physics_from_a_trend_proxy() -> No
     assert flat["spread"] < 1e-6 and not flat["rejected"] and flat["beta"] is None
     assert beside["rejected"]
 
-    def cand(name: str, p: pd.DataFrame, delta_bic: float) -> dg.CandidateResult:
-        m = dg.mape(p["predicted"], p["measured"])
-        return dg.CandidateResult(
-            effect=name,
-            mape=m,
-            delta_mape=m - 3.0,
-            bic=0.0,
-            delta_bic=delta_bic,
-            n_parameters=4,
-            parameters={},
-            meaning="",
-            material=True,
-            run=RunResult("mm", "pbl:36500d", p),
-            delta_bic_all=delta_bic,
-        )
-
-    lead, rival = cand("slip", proxy, -300.0), cand("erosion", physics, -280.0)
-    pair = cand("slip+erosion", physics, -275.0)
+    lead, rival = _run_cand("slip", proxy, -300.0), _run_cand("erosion", physics, -280.0)
+    pair = _run_cand("slip+erosion", physics, -275.0)
     assert rv.relate(lead, rival, pair, 0, base) == "shape_loses"
     assert lead.explained_by == "erosion" and rival.explained_by is None
     assert "does not fit the residual" in rv.why_explained(lead)
     assert "fits the residual less than" in rv.rivals_text(rival)
     # without the comparison's predictions the two stay indistinguishable
-    lead2, rival2 = cand("slip", proxy, -300.0), cand("erosion", physics, -280.0)
+    lead2, rival2 = _run_cand("slip", proxy, -300.0), _run_cand("erosion", physics, -280.0)
     assert rv.relate(lead2, rival2, pair, 0) == "indistinguishable"
 
 
@@ -264,24 +268,8 @@ def test_a_shape_that_is_nearly_all_trend_decides_nothing_and_loses_to_nothing()
     assert 0 < s_wear["spread"] < 0.05 and not s_wear["decisive"]
     assert not s_wear["rejected"] and not s_wear["confirmed"]
 
-    def cand(name: str, p: pd.DataFrame, delta_bic: float) -> dg.CandidateResult:
-        m = dg.mape(p["predicted"], p["measured"])
-        return dg.CandidateResult(
-            effect=name,
-            mape=m,
-            delta_mape=m - 3.0,
-            bic=0.0,
-            delta_bic=delta_bic,
-            n_parameters=1,
-            parameters={},
-            meaning="",
-            material=True,
-            run=RunResult("mm", "pbl:36500d", p),
-            delta_bic_all=delta_bic,
-        )
-
-    lead, rival = cand("erosion", wear, -300.0), cand("slip", slip, -290.0)
-    pair = cand("erosion+slip", slip, -295.0)  # neither adds materially beyond the other
+    lead, rival = _run_cand("erosion", wear, -300.0, 1), _run_cand("slip", slip, -290.0, 1)
+    pair = _run_cand("erosion+slip", slip, -295.0, 1)  # neither adds materially beyond the other
     assert rv.relate(lead, rival, pair, 0, base) == "indistinguishable"
     assert lead.explained_by is None and rival.explained_by is None
     assert rv.stands_alone(lead) and rv.second_to(rival) == "erosion"

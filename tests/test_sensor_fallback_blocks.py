@@ -168,18 +168,9 @@ def same_fallback(a: list[dict[str, Any]] | None, b: list[dict[str, Any]] | None
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("method", ["bayes", "ol"])  # with its own interval, and without
 def test_a_block_gets_the_fallback_from_the_row_a_fault_is_raised_at(
-    bad: pd.DataFrame, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, method: str
+    bad: pd.DataFrame, tmp_path: Path, method: str, predict_block_calls: list[int]
 ) -> None:
-    from service.engine.learning import Learning
-
-    calls: list[int] = []
-    predict_block = Learning.predict_block
-
-    def counted(self: Learning, st: Any, inputs: Any, times_ns: Any) -> Any:
-        calls.append(len(times_ns))
-        return predict_block(self, st, inputs, times_ns)
-
-    monkeypatch.setattr(Learning, "predict_block", counted)
+    calls = predict_block_calls
     times = ns(bad["time"])
     # cut the sending at a block's end inside the frozen run (its middle)
     frozen = np.flatnonzero(bad["p_down"].diff().to_numpy() == 0.0)

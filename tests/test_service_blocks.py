@@ -24,7 +24,6 @@ import pytest
 
 from replay.client import FieldClient, sample_of
 from service.app import Service
-from service.engine.learning import Learning
 from service.errors import InvalidRequest
 from service.inputs import parse_sensor, parse_sensor_block
 from service.testing import loopback_settings, wait_until
@@ -130,17 +129,10 @@ def test_a_block_is_answered_as_its_samples_one_by_one(
     tmp_path: Path,
     field: tuple[Path, pd.DataFrame],
     early_measurement: bool,
-    monkeypatch: pytest.MonkeyPatch,
+    predict_block_calls: list[int],
 ) -> None:
     history, later = field
-    calls: list[int] = []
-    predict_block = Learning.predict_block
-
-    def counted(self: Learning, st: Any, inputs: Any, times_ns: Any) -> Any:
-        calls.append(len(times_ns))
-        return predict_block(self, st, inputs, times_ns)
-
-    monkeypatch.setattr(Learning, "predict_block", counted)
+    calls = predict_block_calls
     one = _stream(tmp_path / "one", history, later, lambda well, k: False, early_measurement)
     assert calls == []
     # W02 sends blocks, W01 a block, then 8 samples, then a block
