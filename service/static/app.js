@@ -827,7 +827,7 @@ function showDiagnosis(j) {
     ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter to read and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
-    <th class="num">&Delta; live [95 %]</th><th class="num">&Delta; outage [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
+    <th class="num">&Delta; live [95 %]</th><th class="num" title="the outage change pooled over the wells diagnosed together: one well has too few outage windows to sign its own (the verdict text gives this well's)">&Delta; outage, all wells [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
   const rows = (d.candidates || []).map((c) => `<tr${c.raises_error ? ' class="worse"' : ""}><td>${esc(c.effect)}</td>
     <td class="num">${c.replayed ? fmt((mineTest(c, "live") || {}).mape, 2) : "\u2013"}</td>
     <td class="num">${change(mineTest(c, "live"))}</td><td class="num">${change((c.tests || {}).outage)}</td>

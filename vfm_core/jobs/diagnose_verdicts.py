@@ -408,7 +408,8 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 "sees): not offered."
                 if worse
                 else f"{ctx.method} (and any network) already carries what it explains: "
-                f"neither error falls beyond chance by {MIN_CHANGE:g} points or more; adding "
+                f"neither error falls both beyond chance and by {MIN_CHANGE:g} points or more; "
+                "adding "
                 "it would add a physical parameter to read (interpretability), not accuracy."
             )
         )
