@@ -368,3 +368,27 @@ def test_the_effects_acting_through_a_driver_are_fitted_with_their_forms() -> No
     assert all(of == "valve" for _, of in names[1:])
     assert dg._kin_classes(classes, [], {"valve"}, "choke", train) == []  # in the model
     assert [c.name for c, _ in dg._kin_classes(classes, [], set(), "p_up", train)] == ["real_gas"]
+
+
+def test_a_wells_carried_verdict_gives_the_fields_fit_once_change_and_its_own(
+    field: dict[str, object],
+) -> None:
+    """The naming rests on the field's fit-once gain; a well without a gain of its own says
+    both figures, labelled, not its own alone as if it were the evidence."""
+    base = field["base"]
+    assert isinstance(base, RunResult)
+    p = base.predictions
+    on_w01 = (p["well"] == "W01").to_numpy()
+    # fit once: the other wells' error nearly gone, W01's unchanged; live: nothing gained
+    fitted = _run(p, np.where(on_w01, p["predicted"] / p["measured"] - 1.0, 0.002))
+    wear = _candidate("erosion", base, fitted, material=True)
+    wear.tests["live"] = dv.protocol_test(p, base.predictions, WELLS, 0)
+    dv.fdr([wear], None, 1, len(WELLS))
+    v = dv.live_verdict([wear], None, "W01", _context(), {}, "erosion")
+    assert v["kind"] == "carried", v["text"]
+    field_change = wear.test("fit_once")["change"]  # type: ignore[index]
+    own_change = wear.test("fit_once", "W01")["change"]  # type: ignore[index]
+    assert field_change < -1.0 and abs(own_change) < 0.01
+    assert "fit-once MAPE over all wells" in v["text"]
+    assert f"({field_change:+.2f} points" in v["text"]
+    assert "on W01 alone" in v["text"] and f"({own_change:+.2f} points" in v["text"]

@@ -155,6 +155,11 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
         ".length / window.vfm.preds.length"
     )
     assert band > 0.9, band
+    legend = page.evaluate(
+        "Array.from(document.querySelectorAll('#rate-chart .u-legend .u-series')).slice(1, 3)"
+        ".map(r => [r.textContent, getComputedStyle(r).display])"
+    )
+    assert [(t[:3], d != "none") for t, d in legend] == [("p05", True), ("p95", True)], legend
     # the parameter chart: c_d over time, every point inside its band value +- 2 sd
     page.wait_for_function(
         "window.vfm.paramName === 'c_d' && window.vfm.charts.param"

@@ -117,6 +117,10 @@ def _colours(page: Page, chart: str, span: dict[str, Any]) -> list[list[float]]:
     )
 
 
+#: the rate chart's legend rows of p05 and p95 (row 0 is the time)
+LEGEND_ROWS = "Array.from(document.querySelectorAll('#rate-chart .u-legend .u-series')).slice(1, 3)"
+
+
 def _purple(rgb: list[float]) -> bool:
     return all(abs(c - p) <= 12 for c, p in zip(rgb, PURPLE, strict=True))
 
@@ -134,6 +138,11 @@ def test_faults_on_the_charts_and_in_the_field_view(
     page.wait_for_function("window.vfm.preds.length > 0")
     assert page.locator('#well-faults li[data-sensor="p_down"][data-kind="frozen"]').count() == 0
     assert not [s for s in _spans(page, "rate") if s["sensor"] == "p_down"]
+    # ol gives no interval: the legend does not list p05 and p95 (they would equal the
+    # prediction), and no band is drawn
+    assert page.evaluate("window.vfm.preds.every(p => !(p.hi > p.lo))")
+    page.wait_for_function(LEGEND_ROWS + ".every(r => getComputedStyle(r).display === 'none')")
+    assert page.evaluate("window.vfm.charts.rate.data[1].every(v => v == null)")
 
     # the rest streams in while the page is open: the fault arrives with the well's view
     # (refreshed every 5 s), its line under the chart and its band on both charts
@@ -153,6 +162,18 @@ def test_faults_on_the_charts_and_in_the_field_view(
     assert (
         "instrument fault: p_down frozen since " + fault["start"][:10]
         in page.locator("#well-alarms").inner_text()
+    )
+    # the stand-in's line says what it did to the interval at the latest prediction: with
+    # ol the interval is the rates across the stand-in's span, empty where the rate does
+    # not depend on p_down (critical flow): then it says nothing was widened
+    last = page.evaluate("window.vfm.latest['W01']")
+    said = (
+        "interval widened to"
+        if last["q_total_p95"] > last["q_total_p05"]
+        else "does not move across the stand-in's span here (nothing to widen)"
+    )
+    page.wait_for_function(
+        f"document.querySelector('#well-alarms').innerText.includes({said!r})", timeout=15_000
     )
     page.wait_for_function(
         "['rate', 'error'].every(c => (window.vfm.charts[c].faultSpans || [])"

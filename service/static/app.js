@@ -71,8 +71,15 @@ function alarmsOf(v) {
     out.push(`instrument fault: ${f.sensor} ${f.kind} since ${day(f.start)}`);
   // a flagged input replaced by its stand-in at the latest sample (GET /wells/{well} fallback)
   const num = (x) => (x == null ? "\u2013" : Number(x).toPrecision(4));
+  // the interval at the latest sample covers the rates across the stand-in's span; with a
+  // method without intervals (ol, pbl) it is that span alone, empty when the rate does not
+  // depend on the input there (critical flow, for p_down): then nothing was widened
+  const last = state.latest[v.well];  // none yet on a page just opened: nothing said
+  const band = last && last.q_total_p05 != null && last.q_total_p95 != null && last.q_total_p95 > last.q_total_p05;
+  const widened = !last ? "" : band ? `, interval widened to ${num(last.q_total_p05)}\u2013${num(last.q_total_p95)} Sm3/h`
+    : "; the predicted rate does not move across the stand-in's span here (nothing to widen)";
   for (const f of v.fallback || [])
-    out.push(`rate predicted with a stand-in for ${f.sensor}: ${num(f.value)} instead of the reading ${num(f.measured)}, interval widened`);
+    out.push(`rate predicted with a stand-in for ${f.sensor}: ${num(f.value)} instead of the reading ${num(f.measured)}${widened}`);
   // a measurement held (for review, or at an instrument fault) is stored, not refused;
   // these are the well's own counts (GET /wells/{well} rejected), the banner's all wells'
   const counts = Object.entries(v.rejected || {});
@@ -452,11 +459,24 @@ async function loadParams(well, rebuild) {
   }
 }
 
+function hasInterval(p) { return p.lo != null && p.hi != null && p.hi > p.lo; }
+
+/* The legend lists p05 and p95 only when some prediction shown has an interval. */
+function showIntervalLegend(u, show) {
+  const rows = u.root.querySelectorAll(".u-legend .u-series");
+  for (const i of [1, 2]) if (rows[i]) rows[i].style.display = show ? "" : "none";
+}
+
 /* Align predictions and measurements on one time axis (uPlot wants one x array). */
 function rateData() {
   const rows = new Map();
   const row = (t) => { let r = rows.get(t); if (!r) { r = [t, null, null, null, null, null]; rows.set(t, r); } return r; };
-  for (const p of state.preds) { const r = row(p.t); r[1] = p.lo; r[2] = p.hi; r[3] = p.q; }
+  // an interval only where the method gives one (bayes, or a stand-in's widened one): a
+  // point whose p05 and p95 equal the prediction (ol, pbl) has none to draw or list
+  for (const p of state.preds) {
+    const r = row(p.t), band = hasInterval(p);
+    r[1] = band ? p.lo : null; r[2] = band ? p.hi : null; r[3] = p.q;
+  }
   for (const m of state.meas) { const r = row(m.t); r[m.source === "well_test" ? 5 : 4] = m.q; }
   const all = Array.from(rows.values()).sort((a, b) => a[0] - b[0]);
   return [0, 1, 2, 3, 4, 5].map((i) => all.map((r) => r[i]));
@@ -492,6 +512,7 @@ function draw() {
   state.dirty = false;
   const keep = state.zoomed;
   state.charts.rate.setData(rateData(), !keep);
+  showIntervalLegend(state.charts.rate, state.preds.some(hasInterval));
   state.charts.error.setData(errorData(), !keep);
   if (keep) {  // the zoom stays, the other charts follow it
     const { min, max } = state.charts.rate.scales.x;

@@ -395,7 +395,6 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
     method lowers neither error beyond chance (or raises the live one): not offered."""
     out_label = ctx.outage.get("label", "outage")
     num = _verdict_numbers(c, well, ctx)
-    fo = c.test("fit_once", well) or c.test("fit_once")
     if c.replayed:
         lt = num["live"]
         worse = lt is not None and lt.get("change") is not None and lt["change"] > 0
@@ -415,10 +414,22 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
         )
     else:
         tail = "it was not replayed under the live protocol."
-    text = (
-        f"The fit-once evidence names {c.effect} ({_change_text(fo, 'fit-once MAPE')}), but " + tail
-    )
+    text = f"The fit-once evidence names {c.effect} ({_fit_once_text(c, well)}), but " + tail
     return _as_named("carried", c, text, num)
+
+
+def _fit_once_text(c: CandidateResult, well: str | None) -> str:
+    """The fit-once change the naming rests on: the field's (pooled over the wells), and a
+    well's own beside it when one well is diagnosed among others (its evidence alone is
+    weaker, and may be nil while the field's names the effect)."""
+    field = c.test("fit_once")
+    own = c.test("fit_once", well) if well is not None else None
+    if field is None or own is None or own is field:
+        return _change_text(field or own, "fit-once MAPE")
+    return (
+        f"{_change_text(field, 'fit-once MAPE over all wells')}; "
+        f"{_change_text(own, f'on {well} alone')}"
+    )
 
 
 def _noise_verdict(
