@@ -33,12 +33,33 @@ better than any part).
 * **Cost.** The update is rank one: with cross-covariances O((M D)^2) for M wells of D
   parameters; block-diagonal O(M D^2).
 
-**Allocation** (:class:`Allocation`), for each reading: the wells' log rates have the prior
-Gaussian N(l, Sigma), Sigma_ij = H_i C_ij H_j^T + tau_i^2 [i = j]; conditioned on the
-reading (linearised as above) their posterior mean gives rates that are then scaled by a
-common factor to sum to the measured total exactly (the booked allocation); the 90 %
-interval of each is its rate times exp(+-1.645 sd) with the posterior sd in log space.
-A shut-in well is allocated 0.
+**Allocation** (:class:`Allocation`), for each reading: the wells' true log rates have the
+prior Gaussian N(l, Sigma); conditioned on the reading (linearised as above) their posterior
+mean gives rates that are then scaled by a common factor to sum to the measured total
+exactly (the booked allocation); the 90 % interval of each is its rate times
+exp(+-1.645 sd), sd the booked rate's sd in log space. A shut-in well is allocated 0.
+Sigma and sd are calibrated from what the allocator sees (:func:`calibrated_prior`):
+
+* **The wells' variance factor.** H_i C_ii H_i^T + tau_i^2 is the variance the filter states
+  for the log error of well i's next well test, and the filter learns how far off that is:
+  c_i^2, the scale of the posterior InvGamma((nu0 + n) / 2, (nu0 + sum z^2) / 2) of the
+  factor on it from the standardised errors z of its forecasts of the well's past well
+  tests (``BayesianFilter._learn_calibration``, prior nu0 = ``cal_prior`` = 2 errors at
+  z^2 = 1), c_i^2 = (nu0 + sum z^2) / (nu0 + n), read from the filter's state, not learned
+  again. The wells' parameter covariance is scaled by it: H_i C_ij H_j^T c_i c_j.
+* **A well test is not the truth.** The calibrated c_i^2 (H_i C_ii H_i^T + tau_i^2) is the
+  variance of a well test's error; the true rate has no test meter noise in it, so each
+  well's misfit (beyond its parameters) is what is left of c_i^2 tau_i^2 after the test
+  meter's own variance: m_i = max(c_i^2 tau_i^2 - s_t^2, 0), s_t the filter's fixed
+  well-test noise if it was given one, else :data:`NOISE_DEFAULTS` (1 %, a test separator's
+  usual noise). So Sigma_ij = c_i c_j H_i C_ij H_j^T + m_i [i = j].
+* **The booking.** The booked rates are scaled to the measured total, so each carries part
+  of the separator meter's error: for the linearised model (log rates l ~ N(mu, Sigma),
+  reading y = w . l + e, e ~ N(0, s^2), S = w Sigma w^T + s^2), the booked log rate is
+  mu + (Sigma w^T + s^2 1) (y - w . mu) / S, whose error has the variance
+  Sigma_ii - (Sigma w^T)_i^2 / S + s^4 / S: the posterior variance plus s^4 / S.
+
+The learning step is not changed by the calibration (it uses tau_i, as above).
 
 ``ol`` and ``pbl`` ignore separator readings (see :func:`check_method`): their fits are
 per-well objectives, solved for all wells at once but independently (the vectorised
@@ -61,7 +82,7 @@ import torch
 from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.learning import DEFAULT_TRAIN, TrainSettings, parse_method
-from vfm_core.learning.bayes import Z90, BayesianFilter
+from vfm_core.learning.bayes import NOISE_DEFAULTS, Z90, BayesianFilter
 from vfm_core.learning.method import NEVER
 from vfm_core.models import make_model
 from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL, WELL_TEST
@@ -76,6 +97,9 @@ __all__ = [
     "SEPARATOR_NOISE",
     "ALLOCATION_COLUMNS",
     "sum_update",
+    "calibrated_prior",
+    "booked_allocation",
+    "well_test_factor",
     "Allocation",
     "SeparatorLearner",
     "WellFilters",
@@ -113,6 +137,71 @@ def sum_update(
     k = c / s
     new_cov = cov - s * torch.outer(k, k)
     return mean + k * innovation, 0.5 * (new_cov + new_cov.T), s
+
+
+def well_test_factor(filt: BayesianFilter | WellFilters) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each well's well-test variance factor c^2 [W] as the ``bayes`` filter learned it (the
+    scale (nu0 + sum z^2) / (nu0 + n) of its InvGamma posterior; 1 with no error yet, or with
+    ``cal_prior`` = 0) and the well-test meter's relative noise s_t [W] (the filter's fixed
+    ``noise_well_test`` if given, else :data:`NOISE_DEFAULTS`)."""
+    if isinstance(filt, WellFilters):
+        parts = [well_test_factor(f) for f in filt.filters]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    n = len(filt.model.wells)
+    meter = filt.noise[1] if filt.noise[1] is not None else NOISE_DEFAULTS[1]
+    noise = torch.full((n,), float(meter), dtype=DTYPE)
+    cal = filt.state_dict().get("cal")
+    nu0 = float(filt.cal_prior)
+    if cal is None or nu0 <= 0:
+        return torch.ones(n, dtype=DTYPE), noise
+    cal = torch.as_tensor(cal, dtype=DTYPE)
+    return (nu0 + cal[:, 1, 1]) / (nu0 + cal[:, 1, 0]), noise
+
+
+def booked_allocation(
+    log_rate: torch.Tensor,
+    flowing: torch.Tensor,
+    sigma: torch.Tensor,
+    s2: float,
+    measured: float,
+    *,
+    booking: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The booked allocation of a reading ``measured`` (Sm3/h, relative noise variance
+    ``s2``) to wells whose log rates (of Sm3/h) have the prior N(``log_rate`` [M], ``sigma``
+    [M, M]) (``flowing`` [M]: the others get 0): the posterior mean given the reading
+    (linearised at the prior mean, shares w), scaled to sum to the reading exactly, and the
+    sd [M] of each booked log rate's error: the posterior variance plus s2^2 / S, with
+    S = w sigma w^T + s2 (the meter's error the booking puts into every rate; ``booking``
+    False: the posterior variance alone, as before the calibration)."""
+    q = torch.where(flowing, log_rate.exp(), torch.zeros_like(log_rate))
+    share = q / float(q.sum())
+    r = math.log(measured) - math.log(float(q.sum()))
+    s_alloc = float(share @ sigma @ share) + s2
+    post_mean = torch.where(flowing, log_rate + (sigma @ share) * r / s_alloc, log_rate)
+    post_var = torch.diagonal(sigma - torch.outer(sigma @ share, sigma @ share) / s_alloc)
+    rates = torch.where(flowing, post_mean.exp(), torch.zeros_like(log_rate))
+    booked = rates * (measured / float(rates.sum()))
+    if booking:
+        post_var = post_var + s2**2 / s_alloc
+    return booked, post_var.clamp(min=0).sqrt()
+
+
+def calibrated_prior(
+    sigma_params: torch.Tensor,
+    tau2: torch.Tensor,
+    factor: torch.Tensor,
+    meter: torch.Tensor,
+) -> torch.Tensor:
+    """The wells' prior covariance of their true log rates [M, M] for an allocation (see the
+    module docstring): ``sigma_params`` [M, M] = H_i C_ij H_j^T (the parameters' part),
+    ``tau2`` [M] the wells' well-test noise variance (0 for a shut-in well), ``factor`` [M]
+    their well-test variance factor c^2, ``meter`` [M] the well-test meter's relative noise.
+    c_i c_j H_i C_ij H_j^T + max(c_i^2 tau_i^2 - s_t^2, 0) [i = j]."""
+    c = factor.clamp(min=0).sqrt()
+    misfit = (factor * tau2 - meter**2).clamp(min=0)
+    misfit = torch.where(tau2 > 0, misfit, torch.zeros_like(misfit))
+    return sigma_params * torch.outer(c, c) + torch.diag(misfit)
 
 
 @dataclass
@@ -265,7 +354,9 @@ class SeparatorLearner:
 
     ``members``: separator -> its wells (names of the model's wells); ``noise``: the
     separators' relative noise (sd), one for all or per separator; ``cross``: keep the
-    cross-covariances; ``huber``/``gate``: down-weight / refuse beyond so many sd."""
+    cross-covariances; ``huber``/``gate``: down-weight / refuse beyond so many sd;
+    ``calibrate``: calibrate the allocation's intervals (see the module docstring; False:
+    the posterior variance of H C H^T + tau^2, as before the calibration, for comparison)."""
 
     def __init__(
         self,
@@ -276,6 +367,7 @@ class SeparatorLearner:
         cross: bool = True,
         huber: float = 3.0,
         gate: float = 6.0,
+        calibrate: bool = True,
     ) -> None:
         if not isinstance(filt, BayesianFilter | WellFilters):
             raise ConfigError(check_method(str(filt)) or "Separator learning needs bayes.")
@@ -288,6 +380,7 @@ class SeparatorLearner:
         self.members = {sep: list(ws) for sep, ws in members.items()}
         self.noise = dict(noise) if isinstance(noise, Mapping) else {s: noise for s in members}
         self.cross = cross
+        self.calibrate = calibrate
         self.huber = huber
         self.gate = gate
         self._d = filt.filter_state()[1].shape[-1]
@@ -448,8 +541,14 @@ class SeparatorLearner:
             sigma = torch.einsum("id,idje,je->ij", hm, joint.view(m, d, m, d), hm)
         else:
             sigma = torch.diag(torch.einsum("id,ide,ie->i", hm, pm, hm))
-        # the wells' log rates: prior covariance (parameters and misfit), then given the sum
-        alloc = self._allocate(sep, when, measured, lh, flowing, sigma + torch.diag(tau2), s2)
+        # the wells' true log rates: prior covariance (parameters and misfit, calibrated),
+        # then given the sum
+        if self.calibrate:
+            factor, meter = well_test_factor(filt)
+            prior = calibrated_prior(sigma, tau2, factor[ix], meter[ix])
+        else:
+            prior = sigma + torch.diag(tau2)
+        alloc = self._allocate(sep, when, measured, lh, flowing, prior, s2)
         if learn:
             alloc.learned = self._learn(sep, theta, grown, pm, hm, share, tau2, s2, r, joint, now)
         return alloc
@@ -524,18 +623,15 @@ class SeparatorLearner:
         s2: float,
     ) -> Allocation:
         """The reading split to the wells: their log rates ``log_rate`` [M] (prior mean, of
-        rates in Sm3/h) with covariance ``sigma`` [M, M], conditioned on the measured total
-        (relative noise variance ``s2``), then scaled to sum to it exactly."""
+        rates in Sm3/h) with covariance ``sigma`` [M, M] (:func:`calibrated_prior`),
+        conditioned on the measured total (relative noise variance ``s2``), then scaled to
+        sum to it exactly; the intervals from the booked rates' variance (the posterior's
+        plus s2^2 / S, the meter's error each booked rate carries)."""
         q = torch.where(flowing, log_rate.exp(), torch.zeros_like(log_rate))
-        total = float(q.sum())
-        share = q / total
-        r = math.log(measured) - math.log(total)
-        s_alloc = float(share @ sigma @ share) + s2
-        post_mean = torch.where(flowing, log_rate + (sigma @ share) * r / s_alloc, log_rate)
-        post_var = torch.diagonal(sigma - torch.outer(sigma @ share, sigma @ share) / s_alloc)
-        rates = torch.where(flowing, post_mean.exp(), torch.zeros_like(log_rate))
-        booked = rates * (measured / float(rates.sum()))
-        spread = Z90 * post_var.clamp(min=0).sqrt()
+        booked, sd = booked_allocation(
+            log_rate, flowing, sigma, s2, measured, booking=self.calibrate
+        )
+        spread = Z90 * sd
         return Allocation(
             time=when,
             separator=sep,
@@ -545,7 +641,7 @@ class SeparatorLearner:
             hi90=(booked * torch.exp(spread)).numpy(),
             q_pred=q.numpy(),
             measured=float(measured),
-            residual=float(measured - total),
+            residual=float(measured - float(q.sum())),
         )
 
 
@@ -606,12 +702,15 @@ def run_separator(
     cross: bool = True,
     noise: float | Mapping[str, float] = SEPARATOR_NOISE,
     window: pd.Timedelta = SAMPLE_WINDOW,
+    calibrate: bool = True,
 ) -> SeparatorRun:
     """The case 2 protocol with separator readings: fit ``model_name`` on the well tests
     before ``split`` (the case's default split), then go through the well tests and the
     readings after it in time order: predict each well test before learning from it; for
     each reading, allocate it and (``learn``) make the joint update. ``learn=False`` is the
-    same run without learning from the readings (the baseline), allocations still made."""
+    same run without learning from the readings (the baseline), allocations still made;
+    ``calibrate=False`` the same run with the allocation's intervals uncalibrated (see
+    :class:`SeparatorLearner`)."""
     from vfm_core.jobs.study import resolve_split
 
     started = time.perf_counter()
@@ -621,7 +720,9 @@ def run_separator(
     is_test = target_mask(frame, WELL_TEST)
     before = (frame[TIME] < split_ts).to_numpy()
     meth = _started_filter(frame, separators, model_name, method, split_ts, seed)
-    learner = SeparatorLearner(meth, separators.members, noise=noise, cross=cross)
+    learner = SeparatorLearner(
+        meth, separators.members, noise=noise, cross=cross, calibrate=calibrate
+    )
     readings = separators.readings
     readings = readings[readings[TIME] >= split_ts].reset_index(drop=True)
     samples = member_samples(frame, readings, separators.members, window=window)
@@ -656,22 +757,33 @@ def run_separator(
                 learner, one_batch, code, by_reading[index], readings.iloc[index], learn
             )
 
+    return SeparatorRun(
+        model=model_name,
+        method=method,
+        predictions=_scored(frame, tests, predicted, p05, p95),
+        allocation=pd.DataFrame(allocations, columns=list(ALLOCATION_COLUMNS)),
+        counts=dict(learner.counts),
+        runtime_s=time.perf_counter() - started,
+    )
+
+
+def _scored(
+    frame: pd.DataFrame,
+    tests: np.ndarray,
+    predicted: np.ndarray,
+    p05: np.ndarray,
+    p95: np.ndarray,
+) -> pd.DataFrame:
+    """The well tests ``tests`` (rows of ``frame``) with their predictions (Sm3/h, by row of
+    ``frame``): time, well, predicted, measured, predicted_p05, predicted_p95."""
     scored = frame.iloc[tests]
-    predictions = pd.DataFrame(
+    return pd.DataFrame(
         {"time": scored[TIME].to_numpy(), "well": scored[WELL].astype(str).to_numpy()}
     ).assign(
         predicted=predicted[tests],
         measured=scored[TARGET].to_numpy(),
         predicted_p05=p05[tests],
         predicted_p95=p95[tests],
-    )
-    return SeparatorRun(
-        model=model_name,
-        method=method,
-        predictions=predictions,
-        allocation=pd.DataFrame(allocations, columns=list(ALLOCATION_COLUMNS)),
-        counts=dict(learner.counts),
-        runtime_s=time.perf_counter() - started,
     )
 
 
