@@ -85,8 +85,11 @@ def _shape(s: dict[str, Any]) -> str:
     return f"{s['beta']:+.2f} +/- {s['se']:.2f} ({verdict})"
 
 
-def _rivals(obs: pd.DataFrame, split: str, drivers: list[str], forms: list[str]) -> None:
-    """Part 2: each state correction against erosion, as the diagnosis fits and weighs."""
+def _rivals(
+    obs: pd.DataFrame, split: str, drivers: list[str], forms: list[str]
+) -> list[dict[str, str]]:
+    """Part 2: each state correction against erosion, as the diagnosis fits and weighs; one
+    row per correction for the table."""
     box: dict[str, Any] = {}
     weigh = dg._DiagnosisRun.weigh_rivals
 
@@ -104,6 +107,7 @@ def _rivals(obs: pd.DataFrame, split: str, drivers: list[str], forms: list[str])
     wear = next(c for c in job.results if c.effect == "erosion")
     print(f"  erosion alone: {wear.delta_mape:+.2f} points, dBIC {wear.delta_bic:+.0f}")
     train = dg._derived(job.frame.iloc[job.train_rows])
+    rows: list[dict[str, str]] = []
     for driver in drivers:
         x = np.asarray(dg.stats.driver_values(train, driver), dtype=float)
         for form, head in dg._correction_heads(driver, x).items():
@@ -128,6 +132,38 @@ def _rivals(obs: pd.DataFrame, split: str, drivers: list[str], forms: list[str])
                 f"adds {state_beyond['adds']}); shapes beyond the trend: erosion "
                 f"{_shape(shapes[0])}, it {_shape(shapes[1])}"
             )
+            rows.append(
+                {
+                    "correction": f"{driver} ({form})",
+                    "alone": f"{state.delta_mape:+.2f}",
+                    "erosion alone": f"{wear.delta_mape:+.2f}",
+                    "pair": f"{pair.delta_mape:+.2f}",
+                    "erosion beyond it": _beyond(wear_beyond),
+                    "it beyond erosion": _beyond(state_beyond),
+                    "its shape beyond the trend": _shape(shapes[1]),
+                }
+            )
+    return rows
+
+
+def _beyond(t: dict[str, Any]) -> str:
+    return f"{t['delta_mape']:+.2f} (p {t['p_value']:.2g}){' adds' if t['adds'] else ''}"
+
+
+def _markdown(path: str, command: str, rows: list[dict[str, str]]) -> None:
+    """The table of part 2 (fit-once points of MAPE against the comparison baseline)."""
+    head = list(rows[0]) if rows else ["correction"]
+    lines = [
+        f"Written by `{command}` (do not edit by hand). Fit-once MAPE changes in points "
+        "against the baseline; 'beyond': the pair against the other alone, with the paired "
+        "block test's p ('adds': material and p < 0.05).",
+        "",
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join("---" for _ in head) + " |",
+        *("| " + " | ".join(r[h] for h in head) + " |" for r in rows),
+    ]
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines) + "\n")
 
 
 def main() -> None:
@@ -140,6 +176,7 @@ def main() -> None:
     parser.add_argument("--split", default="2017-07-01")
     parser.add_argument("--drivers", default="p_up,p_ratio,eta_gas,water_cut")
     parser.add_argument("--forms", default="linear")
+    parser.add_argument("--markdown", help="write part 2's table here")
     args = parser.parse_args()
     started = time.perf_counter()
     hidden = [] if args.case == "none" else [args.case]
@@ -149,7 +186,13 @@ def main() -> None:
     print(f"{args.physics} truth, seed {args.seed}, {args.wells} wells, hidden: {args.case}")
     split = pd.Timestamp(args.split, tz="UTC")
     _truth_misfit(field, split)
-    _rivals(field.observations, args.split, args.drivers.split(","), args.forms.split(","))
+    rows = _rivals(field.observations, args.split, args.drivers.split(","), args.forms.split(","))
+    if args.markdown:
+        command = (
+            f"python benchmarks/bench_state_rival.py --case {args.case} --physics {args.physics} "
+            f"--seed {args.seed} --wells {args.wells} --drivers {args.drivers} --forms {args.forms}"
+        )
+        _markdown(args.markdown, command, rows)
     print(f"{time.perf_counter() - started:.0f} s")
 
 

@@ -318,3 +318,66 @@ def test_a_named_candidate_whose_shape_cannot_decide_says_its_evidence_is_a_tren
     assert valve.shape is not None and valve.shape["decisive"] and valve.shape["confirmed"]
     assert "mostly a trend in time" in rv.trend_text(wear)
     assert rv.trend_text(valve) == ""
+
+
+def _with_wells(c: dg.CandidateResult, key: str, values: list[float], sds: list[float]) -> None:
+    """Give ``c`` one parameter with these per-well values and Laplace sds."""
+    c.parameters = {
+        key: {
+            "value": float(np.median(values)),
+            "per_well": dict(zip(WELLS, values, strict=True)),
+            "per_well_sd": dict(zip(WELLS, sds, strict=True)),
+        }
+    }
+
+
+def test_a_field_wide_effect_whose_wells_disagree_explains_no_effect_of_the_wells(
+    parts: dict[str, np.ndarray],
+) -> None:
+    """Slip is one physics at every well. Fitted alone on a worn field it takes up each
+    well's wear with its own exponent (1.9, 1.0, 1.6, 1.0 +- 0.1-0.3: Cochran's Q far beyond
+    chance) and would "explain" the wear; with its wells' values agreeing it still does."""
+    base = _base_mape(parts)
+    whole = parts["b"] + parts["noise"]
+
+    def rivalry(exponents: list[float]) -> tuple[str, dg.CandidateResult, dg.CandidateResult]:
+        lead = _cand("slip", whole, -300.0, base)
+        _with_wells(lead, "slip.exponent", exponents, [0.1, 0.1, 0.1, 0.3])
+        rival = _cand("erosion", 0.5 * parts["a"] + parts["b"] + parts["noise"], -150.0, base)
+        _with_wells(rival, "erosion.rate", [0.07, 0.0, 0.05, 0.01], [0.005] * 4)
+        pair = _cand("slip+erosion", whole, -290.0, base)
+        rv.own_consistency([lead, rival])
+        return rv.relate(lead, rival, pair, 0), lead, rival
+
+    agree, lead, rival = rivalry([1.0, 1.1, 0.95, 1.05])
+    assert lead.consistency is not None and lead.consistency["consistent"]
+    assert rival.consistency is None  # wear belongs to each well: its rates may differ
+    assert agree == "explains" and rival.explained_by == "slip"
+
+    disagree, lead, rival = rivalry([1.9, 1.0, 1.6, 1.0])
+    k = lead.consistency
+    assert k is not None and k["df"] == 3 and k["p_value"] < 0.001 and not k["consistent"]
+    assert disagree == "explained_by"
+    assert lead.explained_by == "erosion" and rival.explained_by is None
+    assert lead.rivals["erosion"]["reason"] == "wells_disagree"
+    assert "its wells' values disagree (Cochran's Q" in rv.why_explained(lead)
+    assert "It explains slip too" in rv.rivals_text(rival)
+
+
+def test_cochrans_q_by_hand() -> None:
+    """Values 1 and 2 with sds 0.5 and 0.5: weighted mean 1.5, Q = 2 (0.5 / 0.5)^2 = 2 on
+    1 df, p = 0.157; a single well, or an effect of the wells, is not tested."""
+    c = dg.CandidateResult("slip", 3.0, -0.1, 0.0, -10.0, 2, {}, "", True)
+    c.parameters = {
+        "slip.exponent": {
+            "per_well": {"W01": 1.0, "W02": 2.0},
+            "per_well_sd": {"W01": 0.5, "W02": 0.5},
+        }
+    }
+    k = rv.consistency(c)
+    assert k is not None and k["df"] == 1 and abs(k["q"] - 2.0) < 1e-12
+    assert abs(k["p_value"] - 0.1573) < 1e-4 and k["consistent"]
+    c.parameters["slip.exponent"]["per_well"] = {"W01": 1.0}
+    assert rv.consistency(c) is None
+    c.effect = "erosion"
+    assert rv.consistency(c) is None

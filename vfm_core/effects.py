@@ -200,6 +200,13 @@ class Effect:
     spec: ClassVar[str] = ""
     #: True when the effect treats MPFM readings and well tests differently (a meter bias)
     uses_source: ClassVar[bool] = False
+    #: True for physics of the flow law or the fluid (slip, real gas, the critical ratio):
+    #: its parameters correct a correlation that is the same at every well, so the wells'
+    #: fitted values should agree within their uncertainty; False for what belongs to one
+    #: well's hardware or meter (wear, its valve, its MPFM), which differs from well to well.
+    #: The diagnosis uses it to tell a field-wide fit from one that does a well's job
+    #: (:func:`vfm_core.jobs.diagnose_rivals.consistency`).
+    field_wide: ClassVar[bool] = False
 
     @classmethod
     def configure(cls, **values: str) -> type[Effect]:
@@ -469,6 +476,7 @@ class RealGas(Effect):
     """Real gas: upstream Z = 1 + strength (Z_Papay(p_up, t_up, M_gas) - 1); strength 1 is Papay."""
 
     name = "real_gas"
+    field_wide = True
     description = (
         "Real-gas compressibility Z(p_up, t_up) by Papay's correlation in the gas density."
     )
@@ -491,6 +499,7 @@ class Slip(Effect):
     """Phase slip: the mass flux times (G_Simpson / G_homogeneous)^exponent; exponent 1 is Simpson."""
 
     name = "slip"
+    field_wide = True
     description = "Two-phase slip at the throat: a learned exponent on Simpson's slip multiplier."
     parameters = {
         "exponent": Prior(1.0, 0.5, -2.0, 4.0, "-", "exponent on Simpson's slip multiplier")
@@ -512,6 +521,7 @@ class CriticalRatio(Effect):
     """Critical flow: p_cr moves from the constant parameter towards Sachdeva's solved ratio."""
 
     name = "critical_ratio"
+    field_wide = True
     description = (
         "Critical (choked) flow at Sachdeva's solved critical ratio instead of a constant."
     )

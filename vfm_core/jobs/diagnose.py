@@ -1229,6 +1229,7 @@ class _DiagnosisRun:
         the earlier rivals it has not met. A physics explained in its best form is explained
         in every form; relations with an explained candidate go stale."""
         rivals.own_shapes(self.results, self.comp.predictions)
+        rivals.own_consistency(self.results)
         lead, others = rivals.rivals(self.results)
         self.lead = lead
         if lead is None or not others:

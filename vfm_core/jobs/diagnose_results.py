@@ -149,6 +149,10 @@ class CandidateResult:
     #: :func:`vfm_core.jobs.diagnose_rivals.shape_beyond_trend`): beta, se, blocks, spread,
     #: decisive, rejected, confirmed; None when not tested
     shape: dict[str, Any] | None = None
+    #: for a field-wide effect (slip, real gas, the critical ratio), whether its wells'
+    #: fitted values agree (:func:`vfm_core.jobs.diagnose_rivals.consistency`): q, df,
+    #: p_value, consistent; None for an effect of one well's hardware or meter, or untested
+    consistency: dict[str, Any] | None = None
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -205,6 +209,7 @@ class CandidateResult:
             "explained_by": self.explained_by,
             "rivals": self.rivals,
             "shape": self.shape,
+            "consistency": self.consistency,
         }
 
 
