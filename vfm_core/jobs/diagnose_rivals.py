@@ -45,7 +45,7 @@ would not; against a rival that belongs to the wells (wear, a valve curve, a met
 explains nothing: where it would explain the rival or the two could not be told apart, the
 rival explains it (``reason`` ``wells_disagree``). Seen on the Bernoulli truth with wear
 (seeds 75 and 78): slip alone took up the wear with exponents 1.0-1.9 x Simpson's that
-disagree (p 0.0004 and 0.02), and "explained" the wear; on the same seeds' clean fields its
+disagree (p 0.0005 and 0.02), and "explained" the wear; on the same seeds' clean fields its
 wells agree (p 0.4-0.9).
 
 The pair is fitted once per rival; a diagnosis makes at most :data:`RIVALS` more fit-once
