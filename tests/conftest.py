@@ -34,6 +34,7 @@ SLOW_FILES: frozenset[str] = frozenset(
         "test_demo_effects.py",  # vfm demo end to end: 107 s
         "test_service_demo_signals.py",  # the demo stopped by signals: 57 s each
         "test_report.py",  # a study per report test: 15-28 s of set-up each
+        "test_bayes_calibration_compiled.py",  # compiled against reference filters: 30-40 s
         # vfm serve and Debian's Prometheus, an alert firing and resolving: 26-32 s
         "test_prometheus_real.py",
         # a real vfm serve attacked over Zenoh and HTTP (its rig: 105 s of set-up, 140 s in all

@@ -2192,53 +2192,54 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
     w1: np.ndarray,
     b1: np.ndarray,
     y_scale: np.ndarray,
-    low: np.ndarray,
-    high: np.ndarray,
-    prior_var: np.ndarray,
-    q: np.ndarray,
-    keep: np.ndarray,
-    fixed: np.ndarray,
-    huber: float,
-    gate: float,
-    adapt: float,
-    calibrate: float,
-    never: int,
-    reset_after: int,
-    noise_floor: float,
-    z90: float,
-    ns_per_year: float,
+    rules: tuple,  # type: ignore[type-arg]
+    errors: tuple,  # type: ignore[type-arg]
     fx: tuple,  # type: ignore[type-arg]
 ) -> bool:
     """One step of ``BayesianFilter._update`` over every well's measurements, in place;
-    True when the filter took one."""
+    True when the filter took one. ``rules``: the filter's constants (low, high,
+    prior_var, q, keep, fixed, huber, gate, adapt, calibrate, never, reset_after,
+    noise_floor, z90, ns_per_year). ``errors`` (cal [W, 2, 3], counted [1], cap,
+    discount): where cap > 0, each started well's well tests' squared standardised
+    forecast errors (from its state before the batch) are learned into ``cal`` and
+    counted (:func:`_forecast_error_`: ``BayesianFilter._forecast_errors`` and
+    ``_learn_calibration``)."""
     d = state.shape[1]
     pe, scratch = np.zeros(fx[1].shape[0]), _scratch(fx)  # the effects (_factor_at)
     theta, dq, xn, act, H, gain = _bayes_scratch(d, w1.shape[2])
     filt = (state, P, last, noise, h, scale, started)
     tally = (run, updates, downweighted, refused_count, resets, changed)
-    rules = (low, high, prior_var, q, keep, fixed, huber, gate, adapt, calibrate, never,
-             reset_after, noise_floor, z90, ns_per_year)  # fmt: skip
     taken = False
     for w in range(y.shape[0]):
-        # a well's measurements one after another, in column order (the torch path
-        # takes every well's k-th measurement together: the wells do not interact)
-        for j in range(y.shape[1]):
-            if not (mask[w, j] and ready[w] and y[w, j] > 0):
-                continue
-            s = 1 if well_test[w, j] else 0
-            sd_given = _bayes_arrival_(filt, rules, gain[3], w, s, time_ns[w, j])
-            # log h and its gradient H at the current parameters (_log_rate_and_gradient)
-            log_h = log_rate_grad(
-                kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
-                w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
-            )  # fmt: skip
-            log_y = math.log(y[w, j])
-            if _bayes_update_(filt, tally, rules, gain, H, w, s, log_y, log_h, sd_given):
-                taken = True
+        # a started well's well tests' forecast errors (its state before the batch): in a
+        # pass first (phase 0) if a well test follows its first measurement, else in that
+        # one's own step; then (phase 1) its measurements in column order (the torch path
+        # takes every well's k-th together: the wells do not interact)
+        ahead = errors[2] > 0 and started[w] and _later_test(mask, ready, y, well_test, w)
+        own = errors[2] > 0 and started[w] and not ahead
+        for phase in range(0 if ahead else 1, 2):
+            for j in range(y.shape[1]):
+                if not (mask[w, j] and ready[w] and y[w, j] > 0) or (
+                    phase == 0 and not well_test[w, j]
+                ):
+                    continue
+                s, t = (1 if well_test[w, j] else 0), time_ns[w, j]
+                # log h and its gradient H at the current parameters (_log_rate_and_gradient)
+                log_h = log_rate_grad(
+                    kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
+                    w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
+                )  # fmt: skip
+                log_y = math.log(y[w, j])
+                if phase == 0 or (own and s == 1):  # (phase 1: the first measurement)
+                    _forecast_error_(filt, rules, errors, w, t, log_y - log_h)
+                if phase == 1:
+                    sd_given = _bayes_arrival_(filt, rules, gain[3], w, s, t)
+                    if _bayes_update_(filt, tally, rules, gain, H, w, s, log_y, log_h, sd_given):
+                        taken = True
     if taken:  # model.project_() after an update: every well within its bounds
         for w in range(y.shape[0]):
             for i in range(d):
-                state[w, i] = max(min(state[w, i], high[i]), low[i])
+                state[w, i] = max(min(state[w, i], rules[1][i]), rules[0][i])
     return taken
 
 
@@ -2291,6 +2292,55 @@ def _bayes_arrival_(
     Pg[:, :] = P[w]
     last[w] = t
     return sd_given
+
+
+@part
+def _later_test(
+    mask: np.ndarray, ready: np.ndarray, y: np.ndarray, well_test: np.ndarray, w: int
+) -> bool:
+    """Whether well w has a well test after its first measurement in this batch."""
+    seen = False
+    for j in range(y.shape[1]):
+        if mask[w, j] and ready[w] and y[w, j] > 0:
+            if seen and well_test[w, j]:
+                return True
+            seen = True
+    return False
+
+
+@part
+def _forecast_error_(
+    filt: tuple,  # type: ignore[type-arg]
+    rules: tuple,  # type: ignore[type-arg]
+    errors: tuple,  # type: ignore[type-arg]
+    w: int,
+    t: int,
+    error: float,
+) -> None:
+    """Learn from the squared standardised error z^2 of the forecast the filter gave for
+    a well test of well w (at ``t``) before learning from it (``errors``: cal, counted,
+    cap, discount): the log error ``error`` over the forecast's variance h (P + Q dt) h
+    + s^2 (``_spread`` of the well-test meter, without the intervals' factors), capped
+    at ``cap`` (the gate's square: a refused error counts as one at the gate); the
+    discounted count and sum of z^2 in cal[w, 1] grow by 1 and z^2 (the older ones
+    discounted). An error that is not finite is not counted. A rate below the kernels'
+    floor (1e-12 Sm3/h, where the update clamps its log) counts as one at the gate."""
+    _, P, last, noise, h, _, _ = filt
+    q, ns_per_year = rules[3], rules[14]
+    cal, counted, cap, discount = errors
+    d = h.shape[1]
+    hph = 0.0
+    hqh = 0.0
+    for a in range(d):
+        hqh += h[w, a] ** 2 * q[a]
+        for b in range(d):
+            hph += h[w, a] * P[w, a, b] * h[w, b]
+    dt = float(max(t - last[w], 0)) / ns_per_year
+    z2 = error**2 / (hph + hqh * dt + noise[w, 1] ** 2)
+    if math.isfinite(z2):
+        cal[w, 1, 0] = discount * cal[w, 1, 0] + 1.0
+        cal[w, 1, 1] = discount * cal[w, 1, 1] + min(z2, cap)
+        counted[0] += 1
 
 
 @part
@@ -2543,8 +2593,9 @@ def warm_up() -> None:
             x, ones, yes, np.ones((1, 1), dtype=np.int64), yes, np.ones(1, dtype=bool),
             kind, np.ones(1), pos, mu, one[0], 6, np.zeros((1, 6)), one,
             np.ones((1, 6, hidden)), np.ones((1, hidden)), np.ones(1),
-            -np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.zeros(2, dtype=bool),
-            3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16, no_effects(),
+            (-np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.ones(d), np.zeros(2, dtype=bool),
+             3.0, 6.0, 0.02, 0.05, -1, 3, 0.002, 1.645, 3.15e16),
+            (np.zeros((1, 2, 3)), np.zeros(1, dtype=np.int64), 36.0, 0.99), no_effects(),
         )  # fmt: skip
     warm_effects()
     out = [np.zeros((1, 1)) for _ in range(3)]

@@ -123,6 +123,8 @@ _CAL_PRIOR = 2.0
 #: ... and how much each new error discounts the older ones (a memory of about 100 well
 #: tests a well: West and Harrison's variance discount)
 _CAL_DISCOUNT = 0.99
+#: the compiled step's forecast errors when none is wanted (cal, counted, cap 0: off, discount)
+_NO_ERRORS = (np.zeros((0, 2, 3)), np.zeros(1, dtype=np.int64), 0.0, _CAL_DISCOUNT)
 #: the per-well state a prediction reads (leading dimension: the well)
 _PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 #: ... and an update changes (its counters aside)
@@ -556,10 +558,24 @@ class BayesianFilter(LearningMethod):
             "n_phys": n_phys,
             "low": low,
             "high": high,
-            "fixed": np.array([self.noise[0] is not None, self.noise[1] is not None]),
-            "prior_var": self._prior_var.numpy(),
-            "q": self._q.numpy(),
-            "keep": self._keep.to(torch.float64).numpy(),
+            # the filter's constants, in the order the compiled step reads them
+            "rules": (
+                low,
+                high,
+                self._prior_var.numpy(),
+                self._q.numpy(),
+                self._keep.to(torch.float64).numpy(),
+                np.array([self.noise[0] is not None, self.noise[1] is not None]),
+                float(self.huber),
+                float(self.gate),
+                float(self.adapt),
+                float(self.calibrate),
+                int(NEVER),
+                _RESET_AFTER,
+                _NOISE_FLOOR,
+                Z90,
+                _NS_PER_YEAR,
+            ),
             "blocks": [(b.param, b.size) for b in blocks],
         }
 
@@ -656,6 +672,12 @@ class BayesianFilter(LearningMethod):
         """Predictive sd of the log rate [W, N] at these times, for these meters: the
         parameters' variance h (P + Q dt) h, plus the meter's noise, times the calibration
         factor of that meter."""
+        var = self._variance(time_ns, src)
+        return var.clamp(min=0).sqrt() * torch.exp(torch.gather(self._scale, 1, src))
+
+    def _variance(self, time_ns: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+        """Predictive variance of the log rate [W, N] at these times, for these meters,
+        without the intervals' factors: h (P + Q dt) h + s^2."""
         hph = torch.einsum("wd,wde,we->w", self._h, self._P, self._h)
         hqh = (self._h**2 * self._q.unsqueeze(0)).sum(1)
         dt = torch.where(
@@ -664,8 +686,7 @@ class BayesianFilter(LearningMethod):
             torch.zeros(time_ns.shape, dtype=DTYPE),
         )
         noise = torch.gather(self._noise, 1, src) ** 2
-        var = hph.unsqueeze(1) + hqh.unsqueeze(1) * dt + noise
-        return var.clamp(min=0).sqrt() * torch.exp(torch.gather(self._scale, 1, src))
+        return hph.unsqueeze(1) + hqh.unsqueeze(1) * dt + noise
 
     # -- many wells at once ----------------------------------------------------------------------
     def group_key(self) -> Hashable | None:
@@ -761,24 +782,36 @@ class BayesianFilter(LearningMethod):
             return changed
         assert batch.well_test is not None
         # the well tests' variance factor: their forecast errors before learning from them
-        errors = (
-            self._forecast_errors(batch)
-            if self.cal_prior > 0 and bool(batch.well_test.any())
-            else None
-        )
+        wanted = self.cal_prior > 0 and bool(batch.well_test.any())
         fresh = self.cal_prior > 0 and not bool(self._started.all())
-        if self.compiled:  # the plain mm: the same steps, compiled
-            changed = self._compiled_learn(batch)
+        if self.compiled:  # the plain mm: the same steps, compiled (the errors learned too)
+            changed, learned = self._compiled_learn(batch, wanted)
         else:
-            counts = batch.count()
-            for k in range(int(counts.max()) if counts.numel() else 0):
-                one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
-                changed |= self._update(one)
-        if errors is not None:
-            self._learn_calibration(*errors)
-        if errors is not None or fresh:
+            changed, learned = self._torch_learn(batch, wanted)
+        if learned or fresh:
             self._apply_calibration()
         return changed
+
+    def _torch_learn(self, batch: Batch, wanted: bool) -> tuple[torch.Tensor, bool]:
+        """:meth:`_learn` in torch: the k-th measurement of every well together, one extended
+        Kalman step each (:meth:`_update`); when ``wanted``, the well tests' forecast errors
+        learned into the variance factor's statistics: from the update's own forecast when
+        each well has one measurement, else from a forecast of them all first
+        (:meth:`_forecast_errors`), both from the state before the batch. Returns which
+        wells took a measurement [W] and whether any forecast error was learned."""
+        changed = torch.zeros(batch.n_wells, dtype=torch.bool)
+        counts = batch.count()
+        rows = int(counts.max()) if counts.numel() else 0
+        errors = self._forecast_errors(batch) if wanted and rows > 1 else None
+        own: list[tuple[np.ndarray, np.ndarray]] | None = [] if wanted and rows == 1 else None
+        for k in range(rows):
+            one = batch.select(torch.cumsum(batch.mask.long(), 1) == k + 1)
+            changed |= self._update(one, own)
+        if own and own[0][1].any():
+            errors = own[0]
+        if errors is not None:
+            self._learn_calibration(*errors)
+        return changed, errors is not None
 
     # -- the intervals' variance factor ------------------------------------------------------
     def _forecast_errors(self, batch: Batch) -> tuple[np.ndarray, np.ndarray] | None:
@@ -786,7 +819,10 @@ class BayesianFilter(LearningMethod):
         well tests of ``batch`` before learning from them: the log error over the filter's
         own spread sqrt(h (P + Q dt) h + s^2) (:meth:`_spread` without the intervals'
         factors), and which count [W, N] (well tests of a well with a started filter and
-        a model); None when none does."""
+        a model); None when none does. The compiled filter computes the same errors in its
+        update pass (:meth:`_compiled_learn`), the torch path from its update's own forecast
+        when each well has one measurement (:meth:`_update`); this is the reference, and
+        the torch path's for batches with more."""
         assert batch.well_test is not None
         y = batch.y.numpy()
         live = batch.mask.numpy() & batch.well_test.numpy() & (y > 0)
@@ -802,6 +838,16 @@ class BayesianFilter(LearningMethod):
         z2 = np.log(np.where(live, y, 1.0) / np.where(live, mean, 1.0)) ** 2 / var
         live &= np.isfinite(z2)
         # an error beyond the gate (a refused measurement) counts as one at the gate
+        return np.minimum(np.where(live, z2, 0.0), (self.gate or 6.0) ** 2), live
+
+    def _own_errors(
+        self, error: torch.Tensor, var: torch.Tensor, counted: torch.Tensor
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The squared standardised forecast errors [W, 1] of an update's forecast (log
+        ``error`` [W], its variance ``var`` [W]) and which count [W, 1] (``counted``, where
+        finite), capped at the gate as in :meth:`_forecast_errors`."""
+        z2 = (error**2 / var).numpy()[:, None]
+        live = counted.numpy()[:, None] & np.isfinite(z2)
         return np.minimum(np.where(live, z2, 0.0), (self.gate or 6.0) ** 2), live
 
     def _learn_calibration(self, z2: np.ndarray, live: np.ndarray) -> None:
@@ -826,14 +872,14 @@ class BayesianFilter(LearningMethod):
         if self.cal_prior <= 0:
             return
         cal, scale = writable(self, "_cal"), writable(self, "_scale")
-        nu = self.cal_prior + cal[..., 0]
-        log_f = np.log(stdtrit(nu, 0.95) / Z90) + 0.5 * np.log((self.cal_prior + cal[..., 1]) / nu)
-        # the well tests' factor (MPFM readings come twice a day: the conformal factor
-        # calibrates them within weeks)
-        log_f[:, 0] = 0.0
-        log_f = np.where(self._started.numpy()[:, None], log_f, cal[..., 2])
-        scale += log_f - cal[..., 2]
-        cal[..., 2] = log_f
+        # the well tests' factor only (MPFM readings come twice a day: the conformal factor
+        # calibrates them within weeks; their log factor cal[:, 0, 2] stays 0)
+        count, total, before = cal[:, 1, 0], cal[:, 1, 1], cal[:, 1, 2]
+        nu = self.cal_prior + count
+        log_f = np.log(stdtrit(nu, 0.95) / Z90) + 0.5 * np.log((self.cal_prior + total) / nu)
+        log_f = np.where(self._started.numpy(), log_f, before)
+        scale[:, 1] += log_f - before
+        cal[:, 1, 2] = log_f
 
     def _start_filters(self, one: Batch, live: torch.Tensor) -> None:
         """Start the filter of each ``live`` well that has a model but no filter state yet
@@ -923,10 +969,15 @@ class BayesianFilter(LearningMethod):
         idx = torch.arange(len(y))[upd]
         self._noise[idx, src[upd]] = new[upd].sqrt().clamp(min=_NOISE_FLOOR)
 
-    def _update(self, one: Batch) -> torch.Tensor:
-        """One measurement per well (masked where none): an iterated EKF step in log space."""
+    def _update(
+        self, one: Batch, errors: list[tuple[np.ndarray, np.ndarray]] | None = None
+    ) -> torch.Tensor:
+        """One measurement per well (masked where none): an iterated EKF step in log space.
+        With ``errors``, the well tests' squared standardised forecast errors and which count
+        [W, 1] are appended (as :meth:`_forecast_errors` gives them)."""
         model, blocks, n = self.model, self._blocks, one.n_wells
         live = one.mask[:, 0] & model.ready & (one.y[:, 0] > 0)
+        counted = live & self._started & _source(one)[:, 0].bool()  # a started well's test
         self._start_filters(one, live)
         if not bool(live.any()):
             return live
@@ -934,6 +985,8 @@ class BayesianFilter(LearningMethod):
         src = _source(one)[:, 0]
         # the spread the filter gave this measurement before it arrived (for calibration)
         sd_given = self._spread(one.time_ns[:, :1], src.unsqueeze(1))[:, 0]
+        if errors is not None:  # ... and its variance without the intervals' factors
+            var_given = self._variance(one.time_ns[:, :1], src.unsqueeze(1))[:, 0]
         P = self._grow(t)
         self._P = torch.where(live.view(-1, 1, 1), P, self._P)
         self._last = torch.where(live, t, self._last)
@@ -949,6 +1002,8 @@ class BayesianFilter(LearningMethod):
             H = H * keep
             if i == 0:
                 h0, H0 = log_h, H
+                if errors is not None:
+                    errors.append(self._own_errors(y - log_h, var_given, counted))
                 if self.calibrate > 0:
                     self._calibrate_intervals(y, log_h, sd_given, live, src)
                 live, weight, P = self._screen(y, log_h, H, P, R, live)
@@ -1020,16 +1075,24 @@ class BayesianFilter(LearningMethod):
         in the same order (``tests/test_kernels.py``)."""
         return self._layout is not None and kernels_enabled()
 
-    def _compiled_learn(self, batch: Batch) -> torch.Tensor:
+    def _compiled_learn(self, batch: Batch, wanted: bool) -> tuple[torch.Tensor, bool]:
         """:meth:`_learn` on the plain ``mm``, ``hem`` or ``ham`` (see :attr:`compiled`), in
         place: every well's measurements in ``batch`` one after another, each one extended
         Kalman step in log space with its calibration, Huber weight, gate, reset and noise
-        adaptation. Returns which wells took a measurement [W]."""
+        adaptation; when ``wanted``, first each well's well tests' forecast errors, from
+        its state before the batch, learned into the variance factor's statistics (as
+        :meth:`_forecast_errors` then :meth:`_learn_calibration`, in the same compiled
+        pass: no second forecast). Returns which wells took a measurement [W] and whether
+        any forecast error was learned."""
         kernel = compiled()
         lay = self._layout
         assert kernel is not None and batch.well_test is not None and lay is not None
         model: Any = self.model
         n = batch.n_wells
+        errors = _NO_ERRORS
+        if wanted:  # the factor's statistics, learned in place; an error capped at the gate
+            cap = float(self.gate or 6.0) ** 2
+            errors = (writable(self, "_cal"), np.zeros(1, dtype=np.int64), cap, _CAL_DISCOUNT)
         counts = self._counts
         for name in counts:
             if not counts[name].is_contiguous():
@@ -1073,21 +1136,8 @@ class BayesianFilter(LearningMethod):
                 w1,
                 b1,
                 model.y_scale.numpy(),
-                lay["low"],
-                lay["high"],
-                lay["prior_var"],
-                lay["q"],
-                lay["keep"],
-                lay["fixed"],
-                float(self.huber),
-                float(self.gate),
-                float(self.adapt),
-                float(self.calibrate),
-                int(NEVER),
-                _RESET_AFTER,
-                _NOISE_FLOOR,
-                Z90,
-                _NS_PER_YEAR,
+                lay["rules"],
+                errors,
                 *effect_arguments(model, batch),
             )
             if taken:  # written back through torch, as the torch path's in-place update
@@ -1096,7 +1146,7 @@ class BayesianFilter(LearningMethod):
                 for p, k in blocks:
                     p.data.view(n, k).copy_(values[:, start : start + k])
                     start += k
-        return torch.from_numpy(changed)
+        return torch.from_numpy(changed), wanted and bool(errors[1][0] > 0)
 
     def _compiled_spread(self, kernel: Any, mean: torch.Tensor, batch: Batch) -> Forecast:
         """:meth:`predict`'s spread of the rates ``mean``, by the compiled
