@@ -24,15 +24,32 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/bench_sensor_faults.py [--seeds 901,902,903]
         [--wells 8] [--years 4] [--markdown docs/benchmarks/generated/sensor-faults.md]
+
+``--study`` measures instead the error of ``vfm evaluate`` during a fault and after it
+(:func:`study_errors`): per seed, ``vfm simulate`` writes the field clean and again with one
+fault per well (``--study-fault kind:sensor``, ``--fault-days`` long, from a random day at
+least ``--history-days`` after the well's first row and ``--fault-days`` + 60 days before
+its last; seeded), ``vfm evaluate`` (``--models``, ``--methods``, ``--split``) studies both,
+and the study with every input taken as read (``run_study(sensor_faults=False)``, as
+before the study held and stood in) the faulty one. MAPE (%) against the true rate
+(``<field>.truth.parquet``) over the fault's rows (from its first faulty row) and over the
+60 days after it, pooled over the wells, with the wells whose error is within 2x (during)
+and 1.2x (after) of the clean field's::
+
+    nice -n 10 .venv/bin/python benchmarks/bench_sensor_faults.py --study --seeds 4711,4712
+        --wells 3 --years 2.5 --history-days 400 --split 2017-01-01
 """
 
 from __future__ import annotations
 
 import argparse
 import shlex
+import shutil
 import sys
+import tempfile
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -55,6 +72,9 @@ DEFAULT_FAULTS = (
     "out_of_range:p_up:0",
 )
 _DAY_NS = 86_400 * 10**9
+#: the variants of the study compared: the clean field, the faulty one studied as the
+#: service runs (stand-in, held), the faulty one with every input as read
+_VARIANTS = ("clean", "fault", "as read")
 
 
 def run_well(g: pd.DataFrame) -> tuple[list, float]:
@@ -87,6 +107,109 @@ def cost_per_minute_samples(days: int = 20) -> float:
     return 1e6 * (time.process_time() - started) / n
 
 
+def _fault_specs(path: Path, args: argparse.Namespace, seed: int) -> list[str]:
+    """One ``--fault`` spec per well of the field at ``path`` long enough for it (seeded)."""
+    from vfm_core.observations import load_observations
+
+    frame = load_observations(path).frame
+    rng = np.random.default_rng(seed + 20_000)
+    kind, sensor = args.study_fault.split(":")
+    specs = []
+    for well, g in frame.groupby("well", sort=True):
+        t = pd.to_datetime(g["time"], utc=True)
+        span = (t.max() - t.min()).total_seconds() / 86_400
+        latest = span - args.fault_days - 60.0
+        if latest > args.history_days:
+            start = t.min() + pd.Timedelta(days=rng.uniform(args.history_days, latest))
+            specs.append(f"{well},{sensor},{kind},{start.isoformat()},,{args.fault_days:g}")
+    return specs
+
+
+def _errors(pred: pd.DataFrame, truth: pd.DataFrame, fault: dict, after: bool) -> dict:
+    """Absolute errors (%) against the true rate of ``pred``'s rows of the fault's well in
+    the fault (``after``: the 60 days after it), per (model, method)."""
+    t0, t1 = pd.Timestamp(fault["start"]), pd.Timestamp(fault["end"])
+    lo, hi = (t1, t1 + pd.Timedelta(days=60)) if after else (t0, t1)
+    rows = pred[(pred["well"] == fault["well"]) & (pred["time"] >= lo) & (pred["time"] <= hi)]
+    if after:
+        rows = rows[rows["time"] > t1]
+    rows = rows.merge(truth[["well", "time", "q_true"]], on=["well", "time"])
+    err = 100 * (rows["predicted"] - rows["q_true"]).abs() / rows["q_true"]
+    return {key: g.to_numpy() for key, g in err.groupby([rows["model"], rows["method"]])}
+
+
+def study_errors(args: argparse.Namespace) -> str:
+    """The ``--study`` table (see the module docstring)."""
+    from vfm_core.cli import main as vfm
+    from vfm_core.jobs.evaluate import run_study
+    from vfm_core.observations import load_observations
+    from vfm_core.simulate import load_truth
+
+    errors: dict[tuple, list[np.ndarray]] = {}  # (model, method, variant, after) -> per fault
+    n_faults = 0
+    for seed in [int(s) for s in args.seeds.split(",") if s]:
+        folder = Path(tempfile.mkdtemp(prefix=f"bench-faults-{seed}-"))
+        sim = ["simulate", "--wells", str(args.wells), "--years", str(args.years)]
+        sim += ["--seed", str(seed), "--quiet"]
+        vfm([*sim, "--out", str(folder / "clean.parquet")])
+        specs = _fault_specs(folder / "clean.parquet", args, seed)
+        vfm([*sim, "--out", str(folder / "fault.parquet"), *(f"--fault={s}" for s in specs)])
+        preds = {}
+        for name in ("clean", "fault"):
+            vfm(["evaluate", str(folder / f"{name}.parquet"), "--out", str(folder / name),
+                 "--models", args.models, "--methods", args.methods, "--split", args.split,
+                 "--quiet", "--no-report", "--jobs", "1"])  # fmt: skip
+            preds[name] = pd.read_parquet(folder / name / "predictions.parquet")
+        frame = load_observations(folder / "fault.parquet").frame
+        preds["as read"] = run_study(
+            frame, models=args.models.split(","), methods=args.methods.split(","),
+            split=args.split, progress=False, sensor_faults=False,
+        ).predictions  # fmt: skip
+        meta, truth = load_truth(folder / "fault.parquet")
+        truth["time"] = pd.to_datetime(truth["time"], utc=True)
+        for fault in meta["faults"]:
+            n_faults += 1
+            for variant, pred in preds.items():
+                for after in (False, True):
+                    for key, err in _errors(pred, truth, fault, after).items():
+                        errors.setdefault((*key, variant, after), []).append(err)
+        shutil.rmtree(folder, ignore_errors=True)
+    return _study_table(errors, n_faults)
+
+
+def _study_table(errors: dict[tuple, list[np.ndarray]], n_faults: int) -> str:
+    """The ``--study`` table: a column per model and method, a line per variant and span."""
+    combos = sorted({(m, k) for m, k, _, _ in errors})
+    lines = [
+        f"{n_faults} faults (one per well). MAPE (%) against the true rate, pooled; wells: "
+        "those within 2x (during) or 1.2x (after) of the clean field's MAPE.",
+        "",
+        "| | " + " | ".join(f"{m} {k}" for m, k in combos) + " |",
+        "|---|" + "---|" * len(combos),
+    ]
+
+    def pooled(m: str, k: str, v: str, after: bool) -> float:
+        return float(np.mean(np.concatenate(errors[(m, k, v, after)])))
+
+    for after, span, limit in ((False, "during", 2.0), (True, "60 days after", 1.2)):
+        for v in _VARIANTS:
+            cells = [f"{pooled(m, k, v, after):.2f}" for m, k in combos]
+            lines.append(f"| MAPE {span}, {v} | " + " | ".join(cells) + " |")
+        for v in _VARIANTS[1:]:
+            cells = []
+            for m, k in combos:
+                ratio = pooled(m, k, v, after) / pooled(m, k, "clean", after)
+                per_well = zip(
+                    errors[(m, k, v, after)], errors[(m, k, "clean", after)], strict=True
+                )
+                within = sum(np.mean(a) <= limit * np.mean(c) for a, c in per_well)
+                cells.append(f"{ratio:.2f} ({within}/{len(errors[(m, k, v, after)])})")
+            lines.append(
+                f"| {span}: {v} / clean (wells within {limit:g}x) | " + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="901,902,903")
@@ -95,7 +218,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--faults", default=",".join(DEFAULT_FAULTS))
     ap.add_argument("--history-days", type=float, default=180.0)
     ap.add_argument("--markdown", help="also write the tables as Markdown to this file")
+    ap.add_argument("--study", action="store_true", help="error of vfm evaluate at a fault")
+    ap.add_argument("--study-fault", default="frozen:p_down", help="kind:sensor (--study)")
+    ap.add_argument("--fault-days", type=float, default=60.0, help="fault length (--study)")
+    ap.add_argument("--models", default="mm,ham", help="models (--study)")
+    ap.add_argument("--methods", default="bayes,ol", help="methods (--study)")
+    ap.add_argument("--split", default="2017-01-01", help="first day scored (--study)")
     args = ap.parse_args(argv)
+    if args.study:
+        print(study_errors(args))
+        return 0
     seeds = [int(s) for s in args.seeds.split(",") if s]
     scenarios = [s.split(":") for s in args.faults.split(",") if s]
 

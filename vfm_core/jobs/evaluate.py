@@ -34,6 +34,12 @@ forecast. The summary carries the same keys.
 runtime_s, retrains}`` (plus ``outage`` for a run of the outage protocol), so the cost of
 each run can be seen and compared; :func:`slow_runs` names the runs that took more than
 three times the median run and says why, and ``vfm evaluate`` prints it.
+
+At an instrument fault the study does what the service does (:mod:`vfm_core.jobs.study_faults`,
+``run_study(sensor_faults=True)``, the default): ``metrics.json`` has ``"held_at_fault"`` and
+``"fallback_at_fault"`` (per well: the scored measurements not learned from, and those
+predicted with a stand-in; zeros without a fault), and ``predictions.parquet`` has ``held``
+(bool) and ``fallback`` (the sensors stood in for, "" for none) when any row is either.
 """
 
 from __future__ import annotations
@@ -68,6 +74,7 @@ from vfm_core.jobs.study import (
     resolve_split,
     run_prequential,
 )
+from vfm_core.jobs.study_faults import FaultPlan, fault_counts, plan_sensor_faults
 from vfm_core.jobs.workers import StudyWorkers
 from vfm_core.learning import parse_method
 from vfm_core.models import MODELS
@@ -157,6 +164,7 @@ def run_study(
     outage_fractions: str = "held",
     jobs: int = 1,
     workers: StudyWorkers | None = None,
+    sensor_faults: bool = True,
 ) -> StudyResult:
     """Run every model with every method prequentially on one target case.
 
@@ -176,6 +184,10 @@ def run_study(
     spawned workers, see :mod:`vfm_core.jobs.workers`); ``workers``, already started, are
     used instead (and kept open: ``vfm evaluate`` shares them between its cases). The
     results are the same as with one process: each run is seeded and independent.
+
+    ``sensor_faults``: do what the service does at an instrument fault (hold, stand in:
+    :mod:`vfm_core.jobs.study_faults`; the detectors run once over the whole frame); False
+    takes every input as read. Without a fault flagged the results are the same.
     """
     _check_names(models, methods)
     split_ts = resolve_split(targets, split, frame)
@@ -191,6 +203,7 @@ def run_study(
         lengths=lengths,
         seed=seed,
         fractions=outage_fractions,
+        sensor_faults=sensor_faults,
     )
     common = {
         "targets": targets,
@@ -202,8 +215,20 @@ def run_study(
         "phases": plan.phases,
         "run_kwargs": dict(run_kwargs or {}),
         "n_test": plan.n_test,
+        "faults": plan.faults,
     }
-    bar = tqdm(
+    tasks = [
+        {"frame": plan.frame, "runs": runs, "plans": plan.outages, "common": common}
+        for runs in plan.groups.values()
+    ]
+    results = _run_groups(tasks, jobs, workers, _progress_bar(plan, targets, progress))
+    gathered = _gather(plan.order, results, plan.outages, track_parameters)
+    return _study_result(plan, gathered, split_ts, targets, started, data_path, outage_fractions)
+
+
+def _progress_bar(plan: _Plan, targets: str, progress: bool) -> tqdm:
+    """The study's progress bar: every run's scored observations (hidden unless ``progress``)."""
+    return tqdm(
         total=plan.n_test * len(plan.order),
         disable=not progress,
         unit="obs",
@@ -211,13 +236,6 @@ def run_study(
         dynamic_ncols=True,
         mininterval=0.5,
     )
-    tasks = [
-        {"frame": plan.frame, "runs": runs, "plans": plan.outages, "common": common}
-        for runs in plan.groups.values()
-    ]
-    results = _run_groups(tasks, jobs, workers, bar)
-    gathered = _gather(plan.order, results, plan.outages, track_parameters)
-    return _study_result(plan, gathered, split_ts, targets, started, data_path, outage_fractions)
 
 
 @dataclass
@@ -233,6 +251,8 @@ class _Plan:
     lengths: list[tuple[str, pd.Timedelta]]
     n_test: int
     phases: bool
+    #: what the service does at instrument faults, per row (None: inputs taken as read)
+    faults: FaultPlan | None = None
 
 
 def _plan_runs(
@@ -246,8 +266,10 @@ def _plan_runs(
     lengths: list[tuple[str, pd.Timedelta]],
     seed: int,
     fractions: str,
+    sensor_faults: bool = True,
 ) -> _Plan:
-    """Every run of the study, its outage windows (seeded) and what it scores."""
+    """Every run of the study, its outage windows (seeded), what it scores and what its
+    instrument faults change (:func:`plan_sensor_faults`, with ``sensor_faults``)."""
     test_mask = target_mask(frame, targets) & (frame[TIME] >= split).to_numpy()
     phases = has_phases(frame, np.flatnonzero(test_mask))
     frame, combos = _combinations(frame, models, methods, effects)
@@ -258,7 +280,8 @@ def _plan_runs(
         for label, span in lengths
     ]
     order, groups = _serial_order(combos, len(plans))
-    return _Plan(frame, order, groups, plans, lengths, int(test_mask.sum()), phases)
+    faults = plan_sensor_faults(frame) if sensor_faults else None
+    return _Plan(frame, order, groups, plans, lengths, int(test_mask.sum()), phases, faults)
 
 
 def _study_result(
@@ -467,6 +490,7 @@ def _run_group(task: dict[str, Any], report: Callable[[int], None]) -> dict[int,
             effects=common["effects"] if extended else (),
             outage=plan,
             phases=common["phases"],
+            sensor_faults=common["faults"],
             **settings_for(params, model, meth),
             **common["run_kwargs"],
         )
@@ -550,6 +574,7 @@ def write_study(
     staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
         metrics = _clean(result.metrics())
+        metrics.update(fault_counts(result.predictions))  # held_at_fault, fallback_at_fault
         (staging / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
         result.predictions.to_parquet(staging / "predictions.parquet", index=False)
         if not result.outage_predictions.empty:

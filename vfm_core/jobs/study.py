@@ -23,6 +23,7 @@ Two extensions of the ordinary protocol:
 from __future__ import annotations
 
 import copy
+import math
 import re
 import time
 import zlib
@@ -37,6 +38,7 @@ from scipy.special import ndtr
 
 from vfm_core.data import TARGET_CASES, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
+from vfm_core.jobs.study_faults import FaultPlan, fallback_rates
 from vfm_core.learning import (
     DEFAULT_TRAIN,
     NEVER,
@@ -428,11 +430,19 @@ class _Case:
     test_rows: np.ndarray
     wells: list[str]
     hidden: np.ndarray
+    #: [len(frame)] test rows whose measurement the service holds at an instrument fault
+    held: np.ndarray | None = None
+
+    @property
+    def kept_out(self) -> np.ndarray:
+        """[len(frame)] True on the rows not learned from: hidden by an outage, or held at
+        an instrument fault."""
+        return self.hidden if self.held is None else self.hidden | self.held
 
     @property
     def learned(self) -> np.ndarray:
         """[len(frame)] True on the target rows that may be learned from."""
-        return self.is_target & ~self.hidden
+        return self.is_target & ~self.kept_out
 
 
 @dataclass(frozen=True)
@@ -465,11 +475,13 @@ class _Replay:
     param_rows: list[dict[str, Any]]
     phases: tuple[str, ...]
     done: int = 0
+    #: what the service does at instrument faults (:mod:`vfm_core.jobs.study_faults`)
+    faults: FaultPlan | None = None
 
     def __post_init__(self) -> None:
         n = len(self.case.frame)
         self.total = len(self.case.test_rows)
-        self.hidden_t = torch.from_numpy(self.case.hidden)
+        self.hidden_t = torch.from_numpy(self.case.kept_out)
         self.predicted = np.full(n, np.nan)
         self.spread = np.full(n, np.nan)
         self.low = np.full(n, np.nan)
@@ -492,10 +504,27 @@ class _Replay:
             # error (Volve: oil 13.9 -> 19.1 % for mm bayes; see streaming.phase_split)
             for name, q in phase_split(forecast.mean, batch.x).items():
                 self.split_rates[name][rows] = q[where].numpy()
+        if self.faults is not None and self.faults.stand_ins:
+            self.stand_in(batch, where)
+
+    def stand_in(self, batch: Batch, where: torch.Tensor) -> None:
+        """The ``where`` samples with a flagged input predicted again with its stand-in and
+        a widened interval, as the service predicts them (:func:`fallback_rates`)."""
+        assert self.faults is not None
+        for row, rates in fallback_rates(
+            self.meth.predict, batch, where, self.faults.stand_ins
+        ).items():
+            self.predicted[row] = _number(rates.get("q_total"))
+            self.spread[row] = _number(rates.get("q_total_std"))
+            self.low[row] = _number(rates.get("q_total_p05"))
+            self.high[row] = _number(rates.get("q_total_p95"))
+            for name, values in self.split_rates.items():
+                values[row] = _number(rates.get(name))
 
     def learn(self, batch: Batch) -> None:
-        """Let the method learn from ``batch``'s measurements that are not hidden."""
-        if self.case.hidden.any():
+        """Let the method learn from ``batch``'s measurements that are not hidden (nor
+        held at an instrument fault)."""
+        if self.case.kept_out.any():
             keep = batch.mask & ~self.hidden_t[batch.row.clamp(min=0)]
             if not bool(keep.any()):
                 return  # every measurement of this round is hidden: nothing arrives
@@ -510,10 +539,20 @@ class _Replay:
             self.progress(self.done, self.total)
 
 
+def _number(value: float | None) -> float:
+    """A rate of an answer, NaN for none."""
+    return math.nan if value is None else float(value)
+
+
 def _case(
-    frame: pd.DataFrame, targets: str, split: str | pd.Timestamp | None, outage: Outage | None
+    frame: pd.DataFrame,
+    targets: str,
+    split: str | pd.Timestamp | None,
+    outage: Outage | None,
+    faults: FaultPlan | None = None,
 ) -> _Case:
-    """The rows of a run on ``frame``: its ``targets`` after ``split``, ``outage``'s hidden."""
+    """The rows of a run on ``frame``: its ``targets`` after ``split``, ``outage``'s hidden,
+    those ``faults`` holds."""
     split_ts = resolve_split(targets, split, frame)
     is_target = target_mask(frame, targets)
     before = (frame[TIME] < split_ts).to_numpy()
@@ -529,7 +568,12 @@ def _case(
         if len(outage.hidden) != len(frame):
             raise ValueError("The outage plan belongs to another frame; plan it on this one.")
         hidden = np.asarray(outage.hidden, dtype=bool) & is_target & ~before
-    return _Case(frame, targets, split_ts, is_target, before, test_rows, wells, hidden)
+    held = None
+    if faults is not None:
+        if len(faults.held) != len(frame):
+            raise ValueError("The fault plan belongs to another frame; plan it on this one.")
+        held = faults.held & is_target & ~before
+    return _Case(frame, targets, split_ts, is_target, before, test_rows, wells, hidden, held)
 
 
 def _fit_before_split(
@@ -688,6 +732,10 @@ def _predictions_frame(run: _Replay, outage: Outage | None) -> pd.DataFrame:
         predictions["outage"] = outage.label
         predictions["in_outage"] = run.case.hidden[test_rows]
         predictions["days_since"] = _days_since(frame, run.case.learned, test_rows)
+    if run.faults is not None and run.faults.acts_on(test_rows):
+        assert run.case.held is not None
+        predictions["held"] = run.case.held[test_rows]
+        predictions["fallback"] = run.faults.replaced(test_rows)
     predictions["time"] = pd.to_datetime(predictions["time"], utc=True)
     return predictions
 
@@ -709,6 +757,7 @@ def run_prequential(
     initial_fits: dict[Any, Any] | None = None,
     outage: Outage | None = None,
     phases: bool = False,
+    sensor_faults: FaultPlan | None = None,
 ) -> RunResult:
     """Fit on data before ``split``, then predict-then-learn every target observation after it.
 
@@ -730,10 +779,15 @@ def run_prequential(
     ``days_since`` (days since the well's latest measurement learned from). ``phases``
     adds ``predicted_q_gas`` ... ``measured_q_water`` (Sm3/h) when the frame has the phase
     columns.
+
+    ``sensor_faults`` (:func:`vfm_core.jobs.study_faults.plan_sensor_faults` of ``frame``):
+    what the service does at an instrument fault: the measurements it holds are not learned
+    (nor read by a retrain), a flagged input's rows are predicted with its stand-in and a
+    widened interval; the predictions then carry ``held`` and ``fallback`` (sensors, "").
     """
     started = time.perf_counter()
     meth = parse_method(method)
-    case = _case(frame, targets, split, outage)
+    case = _case(frame, targets, split, outage, sensor_faults)
     torch.manual_seed(seed)
     spec = _ModelSpec(model_name, seed, effects, model_kwargs or {})
     model, memory = _fit_before_split(case, meth, spec, train, online, initial_fits)
@@ -750,6 +804,7 @@ def run_prequential(
         track_parameters=track_parameters,
         param_rows=_param_rows(model, case.split_ts, model.ready) if track_parameters else [],
         phases=PHASES if phases and has_phases(frame, case.test_rows) else (),
+        faults=sensor_faults,
     )
     if meth.per_measurement or model.gradient_free:
         _replay_in_rounds(run)

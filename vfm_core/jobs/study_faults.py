@@ -1,0 +1,191 @@
+"""Instrument faults in the study: what the service does at a faulty input, offline.
+
+The service (``service/engine``) feeds every sample of a well to its instrument-fault
+detectors (:class:`vfm_core.sensor_faults.WellSensorFaults`) before it predicts it. While an
+input has an open fault of :data:`~vfm_core.sensor_faults.FALLBACK_KINDS` (frozen, out of
+range) it predicts the sample with a stand-in for that input and a widened interval
+(:meth:`~vfm_core.sensor_faults.WellSensorFaults.fallbacks`,
+:func:`~vfm_core.sensor_faults.fallback_points`, :func:`~vfm_core.sensor_faults.widened_rates`),
+and a measurement whose paired sample lies in a fault of
+:data:`~vfm_core.sensor_faults.HOLD_KINDS` is held (stored, not learned from).
+
+:func:`plan_sensor_faults` runs the same detectors over a study's frame, every well's
+samples in time order as the service receives them (one sample per well and time: a second
+row at the same time carries only its measurement, as the replay sends it), and notes per
+row what the service would do: ``held`` (a measurement there is not learned) and the
+stand-ins its prediction uses. The detectors see only the inputs, never a rate or a model,
+so the plan is the same for every model and method and is made once per study.
+:func:`fallback_rates` asks a study's learning method for a row's rates at the stand-ins,
+as ``Learning.fallback`` asks the service's learner, and widens them with the same
+function. The hold is checked right after the paired sample is fed to the detectors, as
+in the service when a measurement comes after its sample: a spike, decided only when the
+next sample arrives, is then learned (it would be held if the measurement came later).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from vfm_core.data import Batch
+from vfm_core.learning.method import Forecast
+from vfm_core.learning.streaming import phase_split
+from vfm_core.schema import TIME, WELL
+from vfm_core.sensor_faults import (
+    SENSORS,
+    Fallback,
+    WellSensorFaults,
+    fallback_points,
+    widened_rates,
+)
+
+__all__ = ["FaultPlan", "plan_sensor_faults", "fallback_rates", "fault_counts"]
+
+
+@dataclass
+class FaultPlan:
+    """What the service's instrument-fault handling does at each row of one frame.
+
+    ``held`` [len(frame)]: True where a measurement is not learned from (its sample lies in
+    a fault of :data:`~vfm_core.sensor_faults.HOLD_KINDS` once the sample is seen);
+    ``stand_ins``: by row position, the stand-ins (one per flagged input) its prediction
+    uses; rows absent use every input as read."""
+
+    held: np.ndarray
+    stand_ins: dict[int, tuple[Fallback, ...]] = field(default_factory=dict)
+
+    def acts_on(self, rows: np.ndarray) -> bool:
+        """True when any of ``rows`` (positions) is held or predicted with a stand-in."""
+        return bool(self.held[rows].any()) or any(int(r) in self.stand_ins for r in rows)
+
+    def replaced(self, rows: np.ndarray) -> list[str]:
+        """For each of ``rows``, the sensors its prediction stands in for ("p_up", or
+        "p_up,t_up"; "" for none)."""
+        return [",".join(f.sensor for f in self.stand_ins.get(int(r), ())) for r in rows]
+
+
+def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan:
+    """Run one :class:`WellSensorFaults` (``hyperparameters``: its ``__init__`` arguments)
+    per well over ``frame`` (columns ``time``, ``well`` and the six inputs), each well's
+    distinct sample times in order, and note per row what the service would do there (see
+    :class:`FaultPlan`). Rows of one well at one time share its sample's answer."""
+    n = len(frame)
+    held = np.zeros(n, dtype=bool)
+    stand_ins: dict[int, tuple[Fallback, ...]] = {}
+    times = pd.to_datetime(frame[TIME], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
+    values = frame[list(SENSORS)].to_numpy(dtype=float)
+    wells = frame[WELL].astype(str).to_numpy()
+    for well in dict.fromkeys(wells.tolist()):
+        rows = np.flatnonzero(wells == well)
+        rows = rows[np.argsort(times[rows], kind="stable")]
+        det = WellSensorFaults(**hyperparameters)
+        last_t: int | None = None
+        used: tuple[Fallback, ...] = ()
+        in_fault = False
+        for pos in rows.tolist():
+            t = int(times[pos])
+            if t != last_t:  # a new sample: fed to the detectors, then predicted
+                row = values[pos].tolist()
+                det.update(t, row)
+                used = tuple(det.fallbacks(t, row)) if det.stands_in() else ()
+                in_fault = det.suspect(t) is not None
+                last_t = t
+            held[pos] = in_fault
+            if used:
+                stand_ins[pos] = used
+    return FaultPlan(held, stand_ins)
+
+
+def _points_batch(batch: Batch, w: int, s: int, points: list[list[float]]) -> Batch:
+    """Sample ``s`` of well ``w`` of ``batch`` once per point of ``points`` (its six inputs
+    replaced by the point's; time, meter and features as they were), the other wells
+    without samples: one model call answers every point."""
+    k = len(points)
+    assert batch.well_test is not None and batch.extra is not None
+    mask = torch.zeros(batch.n_wells, k, dtype=torch.bool)
+    mask[w] = True
+    x = batch.x[:, s : s + 1].expand(-1, k, -1).clone()
+    x[w] = torch.tensor(points, dtype=batch.x.dtype)
+    return Batch(
+        batch.wells,
+        x,
+        torch.zeros(batch.n_wells, k, dtype=batch.y.dtype),
+        mask,
+        batch.time_ns[:, s : s + 1].expand(-1, k).clone(),
+        batch.row[:, s : s + 1].expand(-1, k).clone(),
+        batch.well_test[:, s : s + 1].expand(-1, k) & mask,
+        batch.extra[:, s : s + 1].expand(-1, k, -1).clone(),
+        batch.extra_names,
+    )
+
+
+def _answers(forecast: Forecast, w: int, x: torch.Tensor) -> list[dict[str, float | None]]:
+    """Well ``w``'s answers in ``forecast`` (one per point, inputs ``x`` [K, 6]) as the
+    service's learner gives them: ``q_total``, its phase split, and ``q_total_std``,
+    ``q_total_p05``, ``q_total_p95`` where the method gives them."""
+    mean = forecast.mean[w : w + 1]
+    phases = phase_split(mean, x.unsqueeze(0))
+    out: list[dict[str, float | None]] = []
+    for j in range(mean.shape[1]):
+        a: dict[str, float | None] = {"q_total": float(mean[0, j])}
+        a.update({name: float(q[0, j]) for name, q in phases.items()})
+        a["q_total_std"] = None if forecast.std is None else float(forecast.std[w, j])
+        if forecast.p05 is not None and forecast.p95 is not None:
+            a["q_total_p05"] = float(forecast.p05[w, j])
+            a["q_total_p95"] = float(forecast.p95[w, j])
+        out.append(a)
+    return out
+
+
+def fallback_rates(
+    predict: Callable[[Batch], Forecast],
+    batch: Batch,
+    where: torch.Tensor,
+    stand_ins: Mapping[int, tuple[Fallback, ...]],
+) -> dict[int, dict[str, float | None]]:
+    """The rates (Sm3/h) of the ``where`` samples of ``batch`` that have stand-ins, by row
+    position: the method (``predict``, at its state now: the sample's own prediction's)
+    asked at :func:`fallback_points` and the answers widened by :func:`widened_rates`, as
+    the service's ``Learning.fallback`` does. A row whose stand-in answer is not finite keeps
+    its prediction at the readings (absent), as in the service."""
+    out: dict[int, dict[str, float | None]] = {}
+    found = torch.nonzero(where & (batch.row >= 0)).tolist()
+    for w, s in found:
+        row = int(batch.row[w, s])
+        used = stand_ins.get(row)
+        if not used:
+            continue
+        points = fallback_points(batch.x[w, s].tolist(), used)
+        one = _points_batch(batch, w, s, points)
+        with torch.no_grad():
+            forecast = predict(one)
+        rates = widened_rates(_answers(forecast, w, one.x[w]))
+        q = rates.get("q_total")
+        if q is not None and math.isfinite(q):
+            out[row] = rates
+    return out
+
+
+def fault_counts(predictions: pd.DataFrame) -> dict[str, dict[str, int]]:
+    """Per well, the scored measurements held at a fault (``held_at_fault``) and those
+    predicted with a stand-in (``fallback_at_fault``), from one run's ``predictions`` (the
+    plan is the same for every model and method: the first run's rows are counted; zero
+    where the predictions carry no ``held`` / ``fallback`` column)."""
+    wells = list(dict.fromkeys(predictions["well"].astype(str))) if len(predictions) else []
+    held = dict.fromkeys(wells, 0)
+    fallback = dict.fromkeys(wells, 0)
+    if len(predictions) and "held" in predictions.columns:
+        first = predictions.iloc[0]
+        one = predictions[
+            (predictions["model"] == first["model"]) & (predictions["method"] == first["method"])
+        ]
+        for well, g in one.groupby(one["well"].astype(str), sort=False):
+            held[well] = int(g["held"].fillna(False).astype(bool).sum())
+            fallback[well] = int((g["fallback"].fillna("").astype(str) != "").sum())
+    return {"held_at_fault": held, "fallback_at_fault": fallback}
