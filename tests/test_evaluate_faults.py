@@ -180,3 +180,21 @@ def test_the_study_and_the_service_agree_at_a_fault(
     # while one well is held and the others learn, the service's optimiser is the well's own
     after = {"bayes": 1e-6, "ol": 5e-3}[method]
     np.testing.assert_allclose(served, predicted, rtol=after)
+
+
+def test_vfm_evaluate_holds_at_a_fault_unless_told_not_to(fields: Any, tmp_path: Path) -> None:
+    """The command line: ``vfm evaluate`` holds the frozen samples' measurements by default
+    and learns from every one with ``--no-sensor-faults``."""
+    from vfm_core.cli import main
+    from vfm_core.observations import save_observations
+
+    _, bad, _ = fields
+    data = save_observations(bad, tmp_path / "field.parquet")
+    held = {}
+    for name, extra in (("default", []), ("off", ["--no-sensor-faults"])):
+        out = tmp_path / name
+        argv = [str(data), "--out", str(out), "--models", "mm", "--methods", "ol"]
+        assert main(["evaluate", *argv, "--split", SPLIT, "--quiet", "--no-report", *extra]) == 0
+        held[name] = json.loads((out / "metrics.json").read_text())["held_at_fault"]
+    assert held["default"][WELL] > 20 and held["default"]["W02"] == 0
+    assert held["off"] == {"W02": 0, WELL: 0}

@@ -172,6 +172,7 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
             outages=_split_list(args.outages),
             outage_fractions=args.outage_fractions,
             workers=workers,
+            sensor_faults=not args.no_sensor_faults,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
         written = write_study(result, out, report=not args.no_report)
@@ -377,6 +378,12 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
         default=None,
         help="processes that run models at once (default: the CPUs this process may use; "
         "1 runs everything in this process); the results are the same",
+    )
+    p.add_argument(
+        "--no-sensor-faults",
+        action="store_true",
+        help="learn from every measurement and predict with the inputs as read, even at an "
+        "instrument fault the detectors flag (default: hold and stand in, as the service does)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_evaluate)
