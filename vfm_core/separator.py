@@ -150,12 +150,7 @@ def well_test_factor(filt: BayesianFilter | WellFilters) -> tuple[torch.Tensor, 
     n = len(filt.model.wells)
     meter = filt.noise[1] if filt.noise[1] is not None else NOISE_DEFAULTS[1]
     noise = torch.full((n,), float(meter), dtype=DTYPE)
-    cal = filt.state_dict().get("cal")
-    nu0 = float(filt.cal_prior)
-    if cal is None or nu0 <= 0:
-        return torch.ones(n, dtype=DTYPE), noise
-    cal = torch.as_tensor(cal, dtype=DTYPE)
-    return (nu0 + cal[:, 1, 1]) / (nu0 + cal[:, 1, 0]), noise
+    return filt.well_test_factor(), noise
 
 
 def booked_allocation(

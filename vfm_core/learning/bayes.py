@@ -1227,6 +1227,17 @@ class BayesianFilter(LearningMethod):
         self._started |= wells
 
     # -- state ----------------------------------------------------------------------------------
+    def well_test_factor(self) -> torch.Tensor:
+        """Each well's learned well-test variance factor c^2 [W]: the scale
+        (nu0 + sum z^2) / (nu0 + n) of its InvGamma posterior (see
+        :meth:`_learn_calibration`); 1 for a well with no error yet, and for every well with
+        ``cal_prior`` = 0. A copy: the allocation of a separator's total reads it
+        (:func:`vfm_core.separator.well_test_factor`)."""
+        nu0 = float(self.cal_prior)
+        if nu0 <= 0:
+            return torch.ones(self._cal.shape[0], dtype=DTYPE)
+        return (nu0 + self._cal[:, 1, 1]) / (nu0 + self._cal[:, 1, 0])
+
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update(
