@@ -27,6 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from bench_speed import tile_wells  # benchmarks/ is on sys.path when a script runs
 
 from vfm_core.data import Batch, make_batch, target_mask
 from vfm_core.jobs.study import wells_of
@@ -42,28 +43,6 @@ HISTORY = 200
 METHODS = (("without", "bayes:cal_prior=0"), ("with", "bayes"))
 
 
-def _tiled(batch: Batch, n_wells: int) -> Batch:
-    """``batch``'s wells repeated (renamed) until there are ``n_wells``."""
-    reps = -(-n_wells // batch.n_wells)
-
-    def rep(t: torch.Tensor) -> torch.Tensor:
-        return t.repeat(reps, *([1] * (t.dim() - 1)))[:n_wells]
-
-    assert batch.well_test is not None and batch.extra is not None
-    names = [f"{w}_{k}" for k in range(reps) for w in batch.wells][:n_wells]
-    return Batch(
-        names,
-        rep(batch.x),
-        rep(batch.y),
-        rep(batch.mask),
-        rep(batch.time_ns),
-        rep(batch.row),
-        rep(batch.well_test),
-        rep(batch.extra),
-        batch.extra_names,
-    )
-
-
 def _as_source(col: Batch, well_test: bool) -> Batch:
     """``col`` with every measurement flagged as a well test (or as an MPFM reading)."""
     assert col.well_test is not None
@@ -74,7 +53,7 @@ def _as_source(col: Batch, well_test: bool) -> Batch:
 def _stream(frame, n_wells: int, calls: int) -> tuple[Batch, list[Batch]]:
     """A history batch (``HISTORY`` rows per well) and ``calls`` one-row columns after it."""
     rows = np.flatnonzero(target_mask(frame, "all"))
-    batch = _tiled(make_batch(frame, wells_of(frame), rows), n_wells)
+    batch = tile_wells(make_batch(frame, wells_of(frame), rows), n_wells)
     rank = torch.cumsum(batch.mask.long(), 1)
     return batch.select(rank <= HISTORY), [
         batch.select(rank == HISTORY + 1 + k) for k in range(calls)

@@ -129,8 +129,9 @@ def river_cost(xs: np.ndarray, ys: np.ndarray, warmup: int) -> float | str:
     return _median_us([lambda i=i: step(i) for i in range(len(dicts))], warmup)
 
 
-def _tile(batch: Batch, n_wells: int) -> Batch:
-    """``batch``'s wells repeated (renamed) until there are ``n_wells``."""
+def tile_wells(batch: Batch, n_wells: int) -> Batch:
+    """``batch``'s wells repeated (renamed) until there are ``n_wells`` (also used by
+    ``bench_bayes_update.py``)."""
     reps = -(-n_wells // batch.n_wells)
 
     def rep(t: torch.Tensor) -> torch.Tensor:
@@ -156,7 +157,7 @@ def _stream(frame, n_wells: int, calls: int) -> tuple[Batch, list[Batch]]:
     it, for ``n_wells`` wells (the simulated wells, repeated under new names)."""
     wells = wells_of(frame)
     rows = np.flatnonzero(target_mask(frame, "all"))
-    batch = _tile(make_batch(frame, wells, rows), n_wells)
+    batch = tile_wells(make_batch(frame, wells, rows), n_wells)
     rank = torch.cumsum(batch.mask.long(), 1)
     history = batch.select(rank <= HISTORY)
     cols = [batch.select(rank == HISTORY + 1 + k) for k in range(calls)]

@@ -43,6 +43,35 @@ def loopback_settings(folder: str | Path, **overrides: Any) -> Settings:
     return load_settings(None, **base)
 
 
+def study_settings(
+    folder: str | Path,
+    data: str | Path,
+    name: str,
+    method: str,
+    until: str,
+    train: dict[str, Any],
+    *,
+    review: bool = False,
+    **overrides: Any,
+) -> Settings:
+    """:func:`loopback_settings` for a service that learns as the study does: model ``name``
+    with ``method``, fitted on ``data``'s rows before ``until`` with ``train``, its retrains
+    without a wall-clock cut (the study's retrains, exactly) and, unless ``review``, the
+    well-test review off (a QC rule of the service that the study has not: it may hold a
+    well test the study learns)."""
+    model = {
+        "name": name,
+        "method": method,
+        "history": str(data),
+        "history_until": until,
+        "train": train,
+        "retrain_budget_s": 0,
+    }
+    if not review:
+        overrides.setdefault("well_test_review", {"enabled": False})
+    return loopback_settings(folder, model=model, **overrides)
+
+
 def wait_until(predicate: Any, timeout: float, what: str, interval: float = 0.05) -> None:
     """Poll ``predicate`` until it is true; TimeoutError naming ``what`` after ``timeout`` s."""
     deadline = time.monotonic() + timeout

@@ -113,23 +113,12 @@ def served_predictions(
     loopback service fitted on the rows before the split and streamed the rest."""
     from replay.client import FieldClient
     from service.app import Service
-    from service.testing import loopback_settings, wait_until
+    from service.testing import study_settings, wait_until
     from service.transport import MemoryTransport
 
-    settings = loopback_settings(
-        tmp_path,
-        model={
-            "name": "mm",
-            "method": method,
-            "history": str(data),
-            "history_until": SPLIT,
-            "train": TRAIN,
-            "retrain_budget_s": 0,
-        },
-        # the study learns every well test it does not hold at a fault; the service's
-        # review (a QC rule of its own, test_well_test_review.py) is off for the same learning
-        well_test_review={"enabled": False},
-    )
+    # the study learns every well test it does not hold at a fault: the service's review
+    # (a QC rule of its own, test_well_test_review.py) is off for the same learning
+    settings = study_settings(tmp_path, data, "mm", method, SPLIT, TRAIN)
     bus = MemoryTransport(settings.prefix)
     service = Service(settings, bus)
     service.start()

@@ -30,7 +30,7 @@ from service.engine import Engine
 from service.engine.checkpoints import Checkpoints
 from service.errors import InvalidRequest
 from service.store import Store
-from service.testing import loopback_settings, wait_until
+from service.testing import loopback_settings, study_settings, wait_until
 from service.transport import MemoryTransport
 from vfm_core.data import target_mask
 from vfm_core.jobs.study import mape, run_prequential
@@ -56,18 +56,7 @@ def field(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, pd.DataFrame]
 
 
 def _settings(folder: Path, data: Path, method: str, **overrides: Any) -> Settings:
-    return loopback_settings(
-        folder,
-        model={
-            "name": "mtl",
-            "method": method,
-            "history": str(data),
-            "history_until": SPLIT,
-            "train": TRAIN,
-            "retrain_budget_s": 0,  # no wall-clock cut: the retrains of the study, exactly
-        },
-        **overrides,
-    )
+    return study_settings(folder, data, "mtl", method, SPLIT, TRAIN, review=True, **overrides)
 
 
 @contextmanager

@@ -27,7 +27,7 @@ import pytest
 
 from replay.client import FieldClient
 from service.app import Service
-from service.testing import loopback_settings, wait_until
+from service.testing import study_settings, wait_until
 from service.transport import MemoryTransport
 from vfm_core.jobs.study import run_prequential
 from vfm_core.learning import DEFAULT_TRAIN
@@ -60,20 +60,9 @@ def test_a_new_well_starts_as_in_the_study(
     train = replace(DEFAULT_TRAIN[model], **TRAIN)
     study = run_prequential(frame, model, method, split=SPLIT, train=train).predictions
     assert study.loc[study["well"] == "W01", "time"].min() >= pd.Timestamp(SPLIT, tz="UTC")
-    settings = loopback_settings(
-        tmp_path,
-        model={
-            "name": model,
-            "method": method,
-            "history": str(data),
-            "history_until": SPLIT,
-            "train": TRAIN,
-            "retrain_budget_s": 0,  # no wall-clock cut: the retrains of the study, exactly
-        },
-        # the study learns every well test; the service's review may hold one (a QC rule of
-        # the service, tested in test_well_test_review.py): off, for the same learning
-        well_test_review={"enabled": False},
-    )
+    # the study learns every well test; the service's review may hold one (a QC rule of
+    # the service, tested in test_well_test_review.py): off, for the same learning
+    settings = study_settings(tmp_path, data, model, method, SPLIT, TRAIN)
     bus = MemoryTransport(settings.prefix)
     service = Service(settings, bus)
     service.start()
