@@ -2252,6 +2252,19 @@ def _bayes_scratch(d: int, hidden: int) -> tuple:  # type: ignore[type-arg]
 
 
 @part
+def _forecast_terms(h: np.ndarray, P: np.ndarray, q: np.ndarray, w: int) -> tuple[float, float]:
+    """The two terms of well w's forecast variance of its log rate, h P h and h Q h (the
+    latter times the years since its last update gives the drift's share)."""
+    hph = 0.0
+    hqh = 0.0
+    for a in range(h.shape[1]):
+        hqh += h[w, a] ** 2 * q[a]
+        for b in range(h.shape[1]):
+            hph += h[w, a] * P[w, a, b] * h[w, b]
+    return hph, hqh
+
+
+@part
 def _bayes_arrival_(
     filt: tuple,  # type: ignore[type-arg]
     rules: tuple,  # type: ignore[type-arg]
@@ -2274,12 +2287,7 @@ def _bayes_arrival_(
             P[w, a, a] = prior_var[a]
         last[w] = t
         started[w] = True
-    hph = 0.0
-    hqh = 0.0
-    for a in range(d):
-        hqh += h[w, a] ** 2 * q[a]
-        for b in range(d):
-            hph += h[w, a] * P[w, a, b] * h[w, b]
+    hph, hqh = _forecast_terms(h, P, q, w)
     dt = float(max(t - last[w], 0)) / ns_per_year if last[w] != never else 0.0
     var = hph + hqh * dt + noise[w, s] ** 2
     sd_given = math.sqrt(max(var, 0.0)) * math.exp(scale[w, s])
@@ -2328,13 +2336,7 @@ def _forecast_error_(
     _, P, last, noise, h, _, _ = filt
     q, ns_per_year = rules[3], rules[14]
     cal, counted, cap, discount = errors
-    d = h.shape[1]
-    hph = 0.0
-    hqh = 0.0
-    for a in range(d):
-        hqh += h[w, a] ** 2 * q[a]
-        for b in range(d):
-            hph += h[w, a] * P[w, a, b] * h[w, b]
+    hph, hqh = _forecast_terms(h, P, q, w)
     dt = float(max(t - last[w], 0)) / ns_per_year
     z2 = error**2 / (hph + hqh * dt + noise[w, 1] ** 2)
     if math.isfinite(z2):
@@ -2475,14 +2477,8 @@ def bayes_spread(
     h + s^2) times the meter's calibration factor (NaN for a well without filter state),
     as std = rate sd and the central 90 % bounds rate exp(+-z90 sd)."""
     n_wells, n_samples = mean.shape
-    d = h.shape[1]
     for w in range(n_wells):
-        hph = 0.0
-        hqh = 0.0
-        for a in range(d):
-            hqh += h[w, a] ** 2 * q[a]
-            for b in range(d):
-                hph += h[w, a] * P[w, a, b] * h[w, b]
+        hph, hqh = _forecast_terms(h, P, q, w)
         for j in range(n_samples):
             rate = mean[w, j]
             if not started[w]:
