@@ -56,12 +56,23 @@ is the model's parameters, the covariance P is kept here.
   the conformal factor, which calibrates them in weeks.
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
-Bayesian learning); the layers below stay as fitted. Options: ``drift``, ``drift_<label>``,
+Bayesian learning); the layers below stay as fitted.
+
+- **Refit (shared models).** ``mtl``'s filter covers each well's task vector only; its
+  network is shared by every well, so no well's filter can carry it, and only a joint fit
+  on every well's measurements moves it. So with ``refresh`` (default ``auto``: every 14
+  days for a shared model, never for the others) the model is refitted on schedule as
+  ``pbl`` retrains it (MAP, warm-started, on every measurement before the due time), and
+  the filter starts again from the refit (:meth:`BayesianFilter._fitted`): an EM-like
+  alternation, the filter the posterior of the task vectors given the network, the refit
+  the network's MAP given the data (see :meth:`BayesianFilter.retrain_due`).
+
+Options: ``drift``, ``drift_<label>``,
 ``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
 (Kalman iterations per update, default 1: the extended filter; more re-linearise at the
 updated mean, which measured no better on the choke models), ``huber`` (3), ``gate`` (6), ``adapt`` (0.02),
 ``calibrate`` (0.05), ``cal_prior`` (2; 0: no variance factor), ``params`` (labels to filter,
-joined with '+'; default all).
+joined with '+'; default all), ``refresh`` (``auto``, ``off`` or a period such as ``30d``).
 """
 
 from __future__ import annotations
@@ -72,6 +83,7 @@ from collections.abc import Hashable, Sequence
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import torch
 from scipy.special import stdtrit
 
@@ -96,6 +108,7 @@ from vfm_core.learning.method import (
     Forecast,
     LearningMethod,
     parse_options,
+    parse_span,
     ready_for_group,
     register,
 )
@@ -125,6 +138,9 @@ _CAL_PRIOR = 2.0
 _CAL_DISCOUNT = 0.99
 #: the compiled step's forecast errors when none is wanted (cal, counted, cap 0: off, discount)
 _NO_ERRORS = (np.zeros((0, 2, 3)), np.zeros(1, dtype=np.int64), 0.0, _CAL_DISCOUNT)
+#: how often a shared model's network is refitted under the filter by default (see
+#: :meth:`BayesianFilter.retrain_due`): the period of the batch learning it is compared with
+_SHARED_REFRESH = pd.Timedelta(days=14)
 #: the per-well state a prediction reads (leading dimension: the well)
 _PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 #: ... and an update changes (its counters aside)
@@ -371,6 +387,25 @@ def _physical_sd(blocks: list[FilterBlock], cov: torch.Tensor) -> dict[str, torc
     return out
 
 
+def _refresh_text(value: str, method: str) -> str:
+    """The ``refresh`` option checked: ``auto``, ``off`` (or 0) or a positive span."""
+    value = value.strip()
+    if value in ("0", "off"):
+        return "off"
+    if value != "auto":
+        parse_span(value, "refresh period", method)
+    return value
+
+
+def _refresh_period(text: str, model: ChokeModel) -> int | None:
+    """The refit's period in ns for ``model`` (None: never): ``auto`` refits a shared
+    model every :data:`_SHARED_REFRESH` and no other."""
+    if text == "off" or (text == "auto" and not model.shared):
+        return None
+    span = _SHARED_REFRESH if text == "auto" else parse_span(text, "refresh period", text)
+    return int(span.value)
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not (math.isfinite(value) and value >= 0):
@@ -403,6 +438,7 @@ class BayesianFilter(LearningMethod):
         calibrate: float = 0.05,
         cal_prior: float = _CAL_PRIOR,
         params: tuple[str, ...] = (),
+        refresh: str = "auto",
     ) -> None:
         super().__init__(text)
         if iterations < 1:
@@ -423,6 +459,9 @@ class BayesianFilter(LearningMethod):
         #: prior weight of the intervals' variance factor (0: the filter's variance as it is)
         self.cal_prior = cal_prior
         self.params = tuple(params)
+        #: the refit's period: ``auto`` (every 14 days for a shared model, else never),
+        #: ``off`` or a span such as ``30d`` (see :meth:`retrain_due`)
+        self.refresh = _refresh_text(refresh, text)
         self._blocks: list[FilterBlock] = []
         self._layout: dict[str, Any] | None = None
 
@@ -457,6 +496,7 @@ class BayesianFilter(LearningMethod):
                 "calibrate": _positive,
                 "cal_prior": _positive,
                 "params": lambda v: tuple(p for p in v.split("+") if p),
+                "refresh": lambda v: _refresh_text(v, text),
             },
             "bayes:drift=2:noise_well_test=0.01",
         )
@@ -484,7 +524,52 @@ class BayesianFilter(LearningMethod):
             for k in ("updates", "downweighted", "refused", "resets")
         }
         self._run = torch.zeros(n, dtype=torch.int64)
+        #: the refit's period (ns; None: none) and each well's next refit (epoch ns)
+        self._period = _refresh_period(self.refresh, model)
+        self._refresh_at = torch.full((n,), NEVER, dtype=torch.int64)
         return self
+
+    # -- the refit under the filter (scheduled retrains) ---------------------------------------
+    def start(self, t_ns: int) -> None:
+        """The refits' calendar (see :meth:`retrain_due`): the first one period after ``t_ns``."""
+        if self._period is not None:
+            self._refresh_at[:] = int(t_ns) + self._period
+
+    def next_due(self) -> int | None:
+        """When the next refit of any well falls due (epoch ns), or None (no refit)."""
+        if self._period is None or not self._refresh_at.numel():
+            return None
+        due = int(self._refresh_at.min())
+        return None if due == NEVER else due
+
+    def retrain_due(self, memory: Memory, now_ns: torch.Tensor) -> torch.Tensor:
+        """Refit the model of every well whose refit is due by ``now_ns`` [W] (MAP, as
+        ``pbl`` retrains: warm-started, on every measurement in ``memory`` before the due
+        time), and start its filter again from the refit (:meth:`_fitted`: the Kalman pass
+        over the refitted history). Why: the filter carries a posterior over each well's
+        filter blocks only; the rest of the model (a shared network's layers, the same for
+        every well) is a point estimate that only a joint fit on every well's
+        measurements can move. Refits missed in a gap collapse into one at the latest due
+        time (no measurement came between them). Returns the refitted wells [W] (bool)."""
+        changed = torch.zeros(len(self.model.wells), dtype=torch.bool)
+        period = self._period
+        if period is None or self.model.gradient_free or self._dim == 0:
+            return changed
+        at = self._refresh_at
+        due = (at != NEVER) & (now_ns != NEVER) & (at <= now_ns)
+        if not bool(due.any()):
+            return changed
+        # the latest due time by now: at + k period, k = floor((now - at) / period)
+        latest = torch.where(due, at + (now_ns - at) // period * period, at)
+        if self.model.shared:  # one calendar for the field: every well refits together
+            latest = torch.full_like(latest, int(latest[due].max()))
+            due = torch.ones_like(due)
+        for t in sorted(set(latest[due].tolist())):
+            wells = due & (latest == t)
+            self.retrain(memory, int(t), None if bool(wells.all()) else wells)
+            changed |= wells & self.model.ready
+        self._refresh_at = torch.where(due, latest + period, at)
+        return changed
 
     def _fixed_or_default(self, s: int) -> float:
         fixed = self.noise[s]
@@ -1249,13 +1334,14 @@ class BayesianFilter(LearningMethod):
             run=self._run.clone(),
             scale=self._scale.clone(),
             cal=self._cal.clone(),
+            refresh_at=self._refresh_at.clone(),
             counts={k: v.clone() for k, v in self._counts.items()},
         )
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        for name in ("P", "last", "noise", "h", "started", "run", "scale", "cal"):
+        for name in ("P", "last", "noise", "h", "started", "run", "scale", "cal", "refresh_at"):
             if name in state:
                 setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
         for k, v in state.get("counts", {}).items():

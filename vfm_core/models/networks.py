@@ -315,6 +315,7 @@ class MultiTask(ChokeModel):
         return out
 
     def filter_blocks(self) -> list[FilterBlock]:
-        """Each well's task vector beta_j (the shared network stays as fitted)."""
+        """Each well's task vector beta_j (the shared network is no well's own: ``bayes``
+        refits it on schedule, see :meth:`vfm_core.learning.bayes.BayesianFilter.retrain_due`)."""
         dim = int(self.beta.shape[1])
         return [make_block(self.beta, [f"beta.{i}" for i in range(dim)], 1.0, 0.05)]

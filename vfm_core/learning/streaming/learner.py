@@ -695,6 +695,7 @@ def model_fixed_when_predicting(learner: Any) -> bool:
     sample waits for the one before."""
     return predicts_in_groups(learner) and (
         type(learner.method).retrain_due is LearningMethod.retrain_due
+        or learner.method.next_due() is None
     )
 
 
