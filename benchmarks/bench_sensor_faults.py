@@ -14,7 +14,13 @@ well's first row and 60 days before its last) and reports:
   its start with the right sensor (``right kind``: and the right kind);
 - ``median delay d``: days from the fault's start to the first fault raised on that
   sensor after it (within 60 days);
-- ``other sensors``: faults raised on other sensors in the 7 days after its start.
+- ``other sensors``: faults raised on other sensors in the 7 days after its start;
+- ``reading unchanged``: injections that changed no reading (an offset up of a choke
+  fully open, which stays at 1), left out of the shares.
+
+Each row's inputs are fed, then its MPFM rate (``WellSensorFaults.measure``: the
+choke-rate witness), as the service and ``vfm evaluate`` feed them. ``--faults larger``
+runs the larger sizes of :data:`LARGER_FAULTS`.
 
 The cost per sample (``us/sample``) is the detector's own CPU time over all clean rows
 (``time.process_time``; the service's whole per-sample path is about 115-125 us of CPU,
@@ -71,6 +77,16 @@ DEFAULT_FAULTS = (
     "drift:p_down:0.1",
     "out_of_range:p_up:0",
 )
+#: the same kinds larger (``--faults larger``, written to ``sensor-faults-sizes.md``): what
+#: the detectors need to find most faults within a week
+LARGER_FAULTS = (
+    "offset:p_down:0.2",
+    "offset:t_up:0.1",
+    "offset:choke:0.1",
+    "offset:choke:0.2",
+    "drift:p_up:0.2",
+    "drift:p_down:0.3",
+)
 _DAY_NS = 86_400 * 10**9
 #: the variants of the study compared: the clean field, the faulty one studied as the
 #: service runs (stand-in, held), the faulty one with every input as read
@@ -78,15 +94,24 @@ _VARIANTS = ("clean", "fault", "as read")
 
 
 def run_well(g: pd.DataFrame) -> tuple[list, float]:
-    """Every fault event of one well's rows (time order) and the detector's time (s)."""
+    """Every fault event of one well's rows (time order) and the detector's time (s): each
+    row's inputs, then its MPFM rate (the choke-rate witness), as the service feeds them."""
     det = WellSensorFaults()
     times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").tolist()
     values = g[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
+    q = pd.to_numeric(g["q_total"], errors="coerce").to_numpy(dtype=float)
+    mpfm = np.where(g["source"].astype(str).to_numpy() == "mpfm", q, np.nan).tolist()
     seen: dict[int, object] = {}
+    last = None
     started = time.process_time()  # CPU time: other processes on the machine do not count
-    for t, row in zip(times, values, strict=True):
-        for e in det.update(t, row):
-            seen[id(e)] = e
+    for t, row, rate in zip(times, values, mpfm, strict=True):
+        if t != last:
+            for e in det.update(t, row):
+                seen[id(e)] = e
+            last = t
+        if rate == rate:  # not NaN
+            for e in det.measure(t, rate, row):
+                seen[id(e)] = e
     return list(seen.values()), time.process_time() - started
 
 
@@ -215,7 +240,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="901,902,903")
     ap.add_argument("--wells", type=int, default=8)
     ap.add_argument("--years", type=float, default=4.0)
-    ap.add_argument("--faults", default=",".join(DEFAULT_FAULTS))
+    ap.add_argument(
+        "--faults",
+        default=",".join(DEFAULT_FAULTS),
+        help="kind:sensor:size,... ('larger': the larger sizes of LARGER_FAULTS)",
+    )
     ap.add_argument("--history-days", type=float, default=180.0)
     ap.add_argument("--markdown", help="also write the tables as Markdown to this file")
     ap.add_argument("--study", action="store_true", help="error of vfm evaluate at a fault")
@@ -229,13 +258,15 @@ def main(argv: list[str] | None = None) -> int:
         print(study_errors(args))
         return 0
     seeds = [int(s) for s in args.seeds.split(",") if s]
-    scenarios = [s.split(":") for s in args.faults.split(",") if s]
+    faults = ",".join(LARGER_FAULTS) if args.faults == "larger" else args.faults
+    scenarios = [s.split(":") for s in faults.split(",") if s]
 
     well_years = 0.0
     false: Counter[str] = Counter()
     by_sensor: Counter[tuple[str, str]] = Counter()
     rows = 0
     spent = 0.0
+    unchanged: Counter[str] = Counter()  # injections that changed no reading
     results: dict[str, list[tuple[bool, bool, float | None, int]]] = {
         ":".join(s): [] for s in scenarios
     }
@@ -260,6 +291,11 @@ def main(argv: list[str] | None = None) -> int:
                 faulty, truth = inject_fault(
                     g, str(well), sensor, kind, start, size=float(size), days=None
                 )
+                name = f"{kind}:{sensor}:{size}"
+                changed = faulty[sensor].to_numpy(dtype=float) != g[sensor].to_numpy(dtype=float)
+                if not changed.any():  # a choke fully open stays at 1: no fault to find
+                    unchanged[name] += 1
+                    continue
                 found, _ = run_well(faulty)
                 t0 = pd.Timestamp(truth["start"]).value
                 on = [e for e in found if e.sensor == sensor and e.detected_ns >= t0]
@@ -271,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 week = t0 + 7 * _DAY_NS
                 others = sum(1 for e in found if e.sensor != sensor and t0 <= e.detected_ns <= week)
-                results[f"{kind}:{sensor}:{size}"].append(
+                results[name].append(
                     (in7, kind_ok, delay if delay is not None and delay <= 60 else None, others)
                 )
 
@@ -294,8 +330,8 @@ def main(argv: list[str] | None = None) -> int:
     lines += [
         "",
         "| injected fault (kind:sensor:size) | wells | found 7d | right kind 7d | "
-        "median delay d | other sensors |",
-        "| --- | ---: | ---: | ---: | ---: | ---: |",
+        "median delay d | other sensors | reading unchanged |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for name, res in results.items():
         n = len(res)
@@ -304,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(
             f"| {name} | {n} | {100 * sum(r[0] for r in res) / max(n, 1):.0f} % | "
             f"{100 * sum(r[1] for r in res) / max(n, 1):.0f} % | {med} | "
-            f"{sum(r[3] for r in res)} |"
+            f"{sum(r[3] for r in res)} | {unchanged[name]} |"
         )
     text = "\n".join(lines)
     print(text)

@@ -347,6 +347,26 @@ def test_a_driver_in_the_faulty_input_needs_its_gain_in_the_interval_too() -> No
     assert inst.instrument_verdicts(spiky, [{**FAULT, "kind": "spike"}], *args[1:]) == []
 
 
+def test_a_choke_offset_found_by_the_rate_names_the_instrument_an_input_offset_does_not() -> None:
+    """The same evidence, all in the fault's interval: a choke offset (found by its witness,
+    the measured rate; within the budget) turns the verdict into ``instrument``; a p_down
+    offset (an input's own step test, above the budget) does not."""
+    rng = np.random.default_rng(14)
+    w1 = _pairs_with_fault(rng, "2021-03-01", "2021-05-01", -3.0, 0.0)
+    args = (
+        lambda v, w: w1,
+        lambda v: {"W01": float(w1["d"].sum())},
+        pd.Timestamp("2020-06-01", tz="UTC"),
+        pd.Timestamp("2021-12-31", tz="UTC"),
+    )
+    for sensor, turns in (("choke", ["W01"]), ("p_down", [])):
+        verdicts = _verdicts("effect", "erosion", None)
+        verdicts.pop("W02")
+        fault = {**FAULT, "sensor": sensor, "kind": "offset"}
+        assert inst.instrument_verdicts(verdicts, [fault], *args) == turns
+        assert verdicts["W01"]["kind"] == ("instrument" if turns else "effect")
+
+
 def test_the_effects_acting_through_a_driver_are_fitted_with_their_forms() -> None:
     times = pd.date_range("2020-01-01", periods=200, freq="D", tz="UTC")
     train = pd.DataFrame(

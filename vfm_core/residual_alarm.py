@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections import deque
+from array import array
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -114,14 +114,58 @@ def _threshold(arl0: float, k: float) -> float:
     return float(brentq(lambda h: cusum_arl0(h, k) - arl0, 0.0, 200.0, xtol=1e-9))
 
 
+_KERNELS: list[Any] = []
+
+
+def _median_and_mad(ref: np.ndarray) -> tuple[float, float]:
+    """``np.median(ref)`` and the median of ``|ref - it|`` (the raw MAD), compiled
+    (:mod:`vfm_core._robust_kernels`) or by partial sorts: the same numbers either way."""
+    if not _KERNELS:
+        try:
+            from vfm_core import _robust_kernels
+
+            _KERNELS.append(_robust_kernels.load())
+        except ImportError:  # pragma: no cover - numba missing
+            _KERNELS.append(None)
+    if _KERNELS[0] is not None:
+        centre, mad = _KERNELS[0].median_mad(ref)
+        if math.isfinite(centre):  # (else a value is not: numpy's rules below)
+            return float(centre), float(mad)
+    if np.isfinite(ref).all():
+        centre = _median(ref)
+        return centre, _median(np.abs(ref - centre), own=True)
+    centre = float(np.median(ref))  # np.median's own handling of NaN
+    return centre, float(np.median(np.abs(ref - centre)))
+
+
+def _median(r: np.ndarray, own: bool = False) -> float:
+    """The median of a non-empty 1-d array of finite values, as ``np.median`` gives it, by
+    one partial sort (``np.median``'s own checks cost more than the sort at a few hundred
+    values). ``own``: ``r`` is a temporary of the caller's, sorted in place (no copy)."""
+    n = len(r)
+    k = n // 2
+    kth = k if n % 2 else (k - 1, k)
+    if own:
+        r.partition(kth)
+        p = r
+    else:
+        p = np.partition(r, kth)
+    return float(p[k]) if n % 2 else float((p[k - 1] + p[k]) / 2.0)
+
+
 def _long_run_factor(ref: np.ndarray, centre: float, scale: float, lags: int) -> float:
     """sqrt(1 + 2 sum_j (1 - j/(L+1)) rho_j), at least 1: the long-run standard deviation of
     autocorrelated period means over their plain one (Bartlett weights, Newey-West),
     from the reference in time order (winsorised at 4 sd, so a spike does not set it)."""
     if lags <= 0 or len(ref) < 3 * lags + 3:
         return 1.0
-    z = np.clip((ref - centre) / scale, -4.0, 4.0)
-    z = z - z.mean()
+    # (np.clip and z.mean() as their ufuncs, in place: the same values, a fraction of the
+    # call cost)
+    z = ref - centre
+    z /= scale
+    np.maximum(z, -4.0, out=z)
+    np.minimum(z, 4.0, out=z)
+    z -= z.sum() / len(z)
     var = float(z @ z)
     if not var > 0:
         return 1.0
@@ -227,7 +271,8 @@ class ResidualCusum:
     def reset(self) -> None:
         """Forget everything (after a model change: the residuals of a new model are a new
         stream)."""
-        self._ref: deque[float] = deque(maxlen=self.window)
+        # the last ``window`` period means, oldest first (an array: numpy reads it in place)
+        self._ref: array[float] = array("d")
         self._open: int | None = None  # the open period's index
         self._sum = 0.0
         self._n = 0
@@ -279,7 +324,7 @@ class ResidualCusum:
         self.n_readings += 1
         if self._period_ns <= 0:
             self._close(residual, t)
-            return self.alarm
+            return self._active is not None  # (self.alarm)
         index = t // self._period_ns
         if self._open is not None and index != self._open and self._n:
             self._close(self._sum / self._n, t)
@@ -304,16 +349,19 @@ class ResidualCusum:
         fraction of its spread when n/20 of them change, and the cost per period (two
         medians and the autocorrelations of up to 365 values) falls as much. The instrument
         -fault detectors run one of these per input and day, so it matters there."""
-        if self._robust is None or self._robust_added >= max(1, len(self._ref) // 20):
-            ref = np.fromiter(self._ref, dtype=float, count=len(self._ref))
-            centre = float(np.median(ref))
-            scale = _MAD_TO_SD * float(np.median(np.abs(ref - centre)))
+        new = len(self._ref) // 20
+        if self._robust is None or self._robust_added >= (new if new > 1 else 1):
+            ref = np.frombuffer(self._ref)  # read-only here: the window's own memory
+            centre, scale = _median_and_mad(ref)
+            scale *= _MAD_TO_SD
             if scale > 0:
                 scale *= _long_run_factor(ref, centre, scale, self.lags)
             self._robust, self._robust_added = (centre, scale), 0
         return self._robust
 
     def _append(self, mean: float) -> None:
+        if len(self._ref) >= self.window:
+            del self._ref[0]
         self._ref.append(mean)
         self._robust_added += 1
 
@@ -327,10 +375,14 @@ class ResidualCusum:
             # residuals that never vary (a model that repeats the meter): nothing to test
             self._append(mean)
             return
-        x = max(-self.clip, min(self.clip, (mean - centre) / scale))
+        # max(-clip, min(clip, .)) and max(0, .) as comparisons: the same values (NaN too)
+        clip, x = self.clip, (mean - centre) / scale
+        x = x if x < clip else clip
+        x = x if x > -clip else -clip
         self.last_x = x
-        self.pos = max(0.0, self.pos + x - self.k)
-        self.neg = max(0.0, self.neg - x - self.k)
+        pos, neg = self.pos + x - self.k, self.neg - x - self.k
+        self.pos = pos if pos > 0.0 else 0.0
+        self.neg = neg if neg > 0.0 else 0.0
         h = self.threshold
         if self._active is None:
             if self.pos > h or self.neg > h:
@@ -384,6 +436,7 @@ class ResidualCusum:
             int(state.get("lags", 3)),
         )
         self._ref.extend(float(v) for v in state.get("reference", []))
+        del self._ref[: max(0, len(self._ref) - self.window)]  # the last window, as saved
         self._open = None if state.get("open") is None else int(state["open"])
         self._sum, self._n = float(state.get("sum", 0.0)), int(state.get("n", 0))
         self.pos, self.neg = float(state.get("pos", 0.0)), float(state.get("neg", 0.0))

@@ -15,7 +15,8 @@ The tests and their thresholds
 
 Every statistical test gets a share of one false-alarm budget: ``false_per_well_year``
 (default 0.1, at most one false fault per ten well-years) is split evenly over the
-``21`` tests that run per well (frozen on 6 inputs, spike on 5, drift on 5, offset on 5).
+``22`` tests that run per well (frozen on 6 inputs, spike on 5, drift on 5, offset on 5,
+and the choke-rate witness).
 A test that looks at every sample gets a per-sample false-alarm probability
 ``alpha = share / samples_per_year``, with the samples per year taken from the well's own
 median interval between samples (so the thresholds hold whether a sample comes every
@@ -70,17 +71,20 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
   ``365.25 / share`` days: a ramp shifts their mean. Centring on the recent median means
   a well's own slow trend (depletion) is not news; a change of trend is.
-* Drift and offset are not tested on the choke (its steps are the operator's; a choke
-  re-zeroed wrongly shows only in the rate, see below). An offset or drift open for
+* Drift and offset are not tested on the choke's own readings (its steps are the
+  operator's). A choke ``offset`` is found by its witness, the measured rate
+  (:mod:`vfm_core.rate_witness`, fed by :meth:`WellSensorFaults.measure`): a move of the
+  reading that the MPFM's rate does not follow. It is closed when the reading comes back
+  the same way, or after ``accept_days``. An offset or drift open for
   ``accept_days`` is closed and the new level taken as real (a set point that moved; the
   evidence says so). While one input has an active fault, the others' daily tests pause:
   one fault at a time is located.
 
 What this does not do (yet): use the rate model's residual and its sensitivity to each
-input to locate a fault that only the measured rate reveals (a choke offset, a slow
-``p_up`` drift that looks like the well's own decline), or a field-wide comparison of the
-wells on one manifold (a separator set-point change moves every well's ``p_down``; a
-transmitter offset moves one).
+input to locate a slow drift that only the measured rate reveals (a ``p_up`` drift that
+looks like the well's own decline), or a field-wide comparison of the wells on one
+manifold (a separator set-point change moves every well's ``p_down``; a transmitter
+offset moves one).
 
 The fallback (keep predicting while an input is flagged)
 --------------------------------------------------------
@@ -95,8 +99,16 @@ at the ends of its 90 % span into the rates and a widened interval; the service 
 (``service/engine/learning.py``, ``Learning.fallback``). The rules and their reasons are in
 :meth:`WellSensorFaults._anchor` and :meth:`WellSensorFaults.fallbacks`.
 
+Cost: ``benchmarks/bench_detector_cost.py`` measures :meth:`WellSensorFaults.update`
+against a prediction's cost, per sample (at 1-3 samples a day nearly every sample closes a
+day and runs the daily tests of five inputs; at one a minute the per-sample tests are
+most of it). The reference windows are arrays that numpy reads in place, and their
+medians, MADs and tail excesses are compiled (:mod:`vfm_core._robust_kernels`: the same
+numbers as numpy's, which run instead with ``VFM_KERNELS=0``).
+
 The object follows the project's small protocol: ``update(time_ns, values)`` returns the
-events that began or ended at that sample; ``active`` lists the open ones; ``state()`` /
+events that began or ended at that sample (``measure(time_ns, q_total, values)`` those of
+a paired MPFM rate); ``active`` lists the open ones; ``state()`` /
 ``restore()`` give and take plain JSON values for a checkpoint.
 
 >>> det = WellSensorFaults()
@@ -118,6 +130,8 @@ events that began or ended at that sample; ``active`` lists the open ones; ``sta
 from __future__ import annotations
 
 import math
+import operator
+from array import array
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -128,6 +142,7 @@ from typing import Any
 import numpy as np
 
 from vfm_core.errors import ConfigError
+from vfm_core.rate_witness import ChokeRateWitness
 from vfm_core.residual_alarm import ResidualCusum
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.timeutil import iso
@@ -144,6 +159,7 @@ __all__ = [
     "widened_rates",
     "WellSensorFaults",
     "faults_of_frame",
+    "mpfm_rates",
     "write_sensor_faults",
 ]
 
@@ -186,13 +202,16 @@ _MAD_TO_SD = 1.4826
 _SAME = 1e-9  # relative change below which two readings are the same value
 _SPIKE_MIN_CHANGES = 30
 _FROZEN_MIN_STEPS = 50
-_N_TESTS = 21  # frozen x6, spike x5, drift x5, offset x5 (two changes at half a share each)
+# frozen x6, spike x5, drift x5, offset x5 (two changes at half a share each), and the
+# choke-rate witness (vfm_core.rate_witness: a choke offset the measured rate reveals)
+_N_TESTS = 22
 _MIN_DAYS = 30  # day-to-day changes before the drift and offset tests run
 _GAP_NS = 2 * 86_400 * 10**9  # an interval above this and 3 median intervals is a gap
 _MAX_DAY_GAP = 3  # days; a longer gap starts the day-to-day changes afresh
 _CONFIRM_DAYS = 2  # days a step must hold after its day before it is an offset
 _CO_MOVE = 3.0  # robust sd of a raw daily change: another input moving with a step excuses it
 _LEVEL_DAYS = 64  # closed daily means kept per input: the last trusted level before a fault
+_REF_DAYS = 365  # daily changes kept per input: the references of the daily tests
 # the step test's tail fit begins at this quantile of the scaled changes: the usual start of
 # a peaks-over-threshold fit, far enough out for the tail's law, ~36 excesses in a year
 _TAIL_QUANTILE = 0.9
@@ -266,11 +285,85 @@ def _median(r: np.ndarray) -> float:
     return float((p[k - 1] + p[k]) / 2.0)
 
 
-def _median_mad(values: deque[float]) -> tuple[float, float]:
+def _median_inplace(r: np.ndarray) -> float:
+    """:func:`_median` of an array of one's own, partly sorted in place (no copy): for a
+    temporary that is not read again in its order."""
+    n = len(r)
+    k = n // 2
+    if n % 2:
+        r.partition(k)
+        return float(r[k])
+    r.partition((k - 1, k))
+    return float((r[k - 1] + r[k]) / 2.0)
+
+
+_KERNELS: list[Any] = []
+
+
+def _kernels() -> Any:
+    """The compiled order statistics (:mod:`vfm_core._robust_kernels`: the same numbers as
+    the numpy expressions, a fraction of their call cost), or None (numpy then)."""
+    if not _KERNELS:
+        try:
+            from vfm_core import _robust_kernels
+
+            _KERNELS.append(_robust_kernels.load())
+        except ImportError:  # pragma: no cover - numba missing
+            _KERNELS.append(None)
+    return _KERNELS[0]
+
+
+def _centre_mad(r: np.ndarray) -> tuple[float, float]:
+    """The median of ``r`` (non-empty; not changed) and the median of its absolute
+    deviations from it (the raw MAD)."""
+    k = _kernels()
+    if k is not None:
+        centre, mad = k.median_mad(r)
+        if math.isfinite(centre):  # (else a value is not: numpy's rules for it)
+            return float(centre), float(mad)
+    centre = _median(r)  # (a copy: r may be a window's own memory)
+    return centre, _median_inplace(np.abs(r - centre))
+
+
+def _excesses(r: np.ndarray, centre: float, scale: float, k: int) -> tuple[float, np.ndarray]:
+    """With ``z = |r - centre| / scale``: its ``k``-th smallest value ``u`` and the excesses
+    ``z - u`` of the values beyond it, in the order of ``r`` (their sum is then numpy's)."""
+    kern = _kernels()
+    if kern is not None:
+        u, over = kern.tail_excesses(r, centre, scale, k)
+        if math.isfinite(u):  # (else a value is not: numpy's rules for it)
+            return float(u), over
+    z = np.abs(r - centre) / scale
+    u = float(np.partition(z, k)[k])
+    return u, z[z > u] - u
+
+
+def _median_mad(values: array[float]) -> tuple[float, float]:
     """The median and 1.4826 MAD (a robust sd) of ``values``."""
-    r = np.fromiter(values, dtype=float)
-    centre = _median(r)
-    return centre, _MAD_TO_SD * _median(np.abs(r - centre))
+    centre, mad = _centre_mad(np.frombuffer(values))
+    return centre, _MAD_TO_SD * mad
+
+
+def _window() -> array[float]:
+    """An empty window of floats (see :func:`_push`): numpy reads it without a copy
+    (``np.frombuffer``), where a deque would be copied value by value."""
+    return array("d")
+
+
+def _push(window: array[float], value: float, maxlen: int) -> None:
+    """Append ``value`` to ``window``, dropping its oldest value beyond ``maxlen`` (as a
+    ``deque(maxlen=...)`` does)."""
+    if len(window) >= maxlen:
+        del window[0]
+    window.append(value)
+
+
+def _refill(window: array[float], saved: Any, maxlen: int) -> None:
+    """Put a checkpoint's values (oldest first) into an empty ``window``: the last
+    ``maxlen`` of them."""
+    window.extend(float(v) for v in saved)
+    if len(window) > maxlen:
+        del window[: len(window) - maxlen]
 
 
 def _num(v: Any) -> float:
@@ -433,6 +526,8 @@ class WellSensorFaults:
             raise ConfigError(f"accept_days must be a positive number of days, got {accept_days}.")
         self.false_per_well_year = float(false_per_well_year)
         self.ranges = {k: (float(v[0]), float(v[1])) for k, v in merged.items()}
+        #: the lower and the upper ends of the ranges, in the order of SENSORS
+        self._bounds = tuple(zip(*(self.ranges[name] for name in SENSORS), strict=True))
         self.frozen_memory = int(frozen_memory)
         self.spike_window = int(spike_window)
         self.lags = int(lags)
@@ -453,13 +548,19 @@ class WellSensorFaults:
         self.last_ns: int | None = None
         self.last_values: list[float] | None = None
         self.frozen = [_Frozen() for _ in SENSORS]
-        self.changes: list[deque[float]] = [deque(maxlen=self.spike_window) for _ in SENSORS]
+        self.changes = [_window() for _ in SENSORS]  # the last spike_window one-step changes
         self.changes_added = [0] * n
         self.scale = [0.0] * n
         self.scale_at = [-1] * n  # changes_added when the scale was computed (-1: never)
         self.pending: _Pending | None = None
         self._interval_cache = (-1, float(_DEFAULT_INTERVAL_NS))
+        #: samples a day at the current sample's median interval (set by :meth:`update`)
+        self._spd = max(1.0, _NS_PER_DAY / _DEFAULT_INTERVAL_NS)
+        #: the median interval (ns) of the last sample, its alpha and samples a day
+        self._rates = (math.nan, math.nan, self._spd)
         self._robust_cache: dict[tuple[str, int], tuple[int, float, float]] = {}
+        #: the cache's keys per input: the day-to-day, quiet two-day and raw daily changes
+        self._keys = tuple(tuple((what, i) for i in range(n)) for what in ("diff", "two", "raw"))
         #: per input, the step test's limit in robust sd (:meth:`_tail_limit`)
         self._limits = [self._z_day] * n
         self._limits2 = [self._z_day] * n  # the two-day change's
@@ -472,26 +573,28 @@ class WellSensorFaults:
         self.day_sum = [0.0] * n
         self.day_n = [0] * n
         self.day_prev: list[tuple[int, float, int] | None] = [None] * n
-        self.diffs: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.diffs = [_window() for _ in SENSORS]  # the last _REF_DAYS day-to-day changes
         #: the day-to-day changes of the days the step test runs on (the choke still, no
         #: other input moving): the tail its limit is fitted to (:meth:`_tail_limit`)
-        self.quiet: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.quiet = [_window() for _ in SENSORS]
         #: the quiet two-day changes (per square-root day), the day before the last closed
         #: one, whether the last closed day was quiet, and each candidate's span in days
-        self.quiet2: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.quiet2 = [_window() for _ in SENSORS]
         self.day_prev2: list[tuple[int, float, int] | None] = [None] * n
         self.prev_alone = [False] * n
         self.cand_days = [1] * n
         self.cand: list[tuple[float, float, int, float, int] | None] = [None] * n
         self.offset_level: list[tuple[float, float] | None] = [None] * n
         # raw daily means (the co-movement check of the step test)
-        self.raw_day, self.raw_n, self.raw_sum = 0, 0, np.zeros(n)
+        self.raw_day, self.raw_n, self.raw_sum = 0, 0, [0.0] * n
         self.raw_choke = self.prev_raw_choke = False
-        self.raw_prev: tuple[int, np.ndarray] | None = None
-        self.raw_diffs: list[deque[float]] = [deque(maxlen=365) for _ in SENSORS]
+        self.raw_prev: tuple[int, list[float]] | None = None
+        self.raw_diffs = [_window() for _ in SENSORS]
         self.day_moved: tuple[set[int], bool] = (set(), False)
         self.open: dict[tuple[str, str], SensorFault] = {}
         self.events: deque[SensorFault] = deque(maxlen=50)
+        #: the choke's offset, from the measured rate (vfm_core.rate_witness)
+        self.witness = ChokeRateWitness(self.budget)
         #: faults raised per "sensor/kind" (kept across restarts through the state)
         self.raised: dict[str, int] = {}
         #: closed daily means per input, (day index, mean), the latest _LEVEL_DAYS days
@@ -647,13 +750,19 @@ class WellSensorFaults:
             return out
         if self.last_ns is not None:
             self.intervals.append(t - self.last_ns)
-        alpha = self._alpha()
+        self.witness.choke(t, x[_CHOKE])
+        interval = self._interval_ns()
+        if interval != self._rates[0]:  # (it changes every 16 samples at most)
+            # the per-sample false-alarm probability of one per-sample test: its share of
+            # the budget over the samples a year (:meth:`samples_per_year`)
+            alpha = self.budget / (365.25 * _NS_PER_DAY / max(interval, 1e9))
+            self._rates = (interval, alpha, max(1.0, _NS_PER_DAY / max(interval, 1.0)))
+        alpha = self._rates[1]
+        self._spd = self._rates[2]  # samples a day, for this sample's tests
         prev = self.last_values
         choke_moved = prev is not None and abs(x[_CHOKE] - prev[_CHOKE]) > _SAME
         # a gap (a shut-in, a historian outage) may hide a real change: no spike across it
-        gap_ok = prev is not None and (t - (self.last_ns or t)) <= max(
-            3 * self._interval_ns(), _GAP_NS
-        )
+        gap_ok = prev is not None and (t - (self.last_ns or t)) <= max(3 * interval, _GAP_NS)
         if prev is not None:
             self._frozen(t, x, prev, alpha, out)
         # the previous sample is decided now that its successor is known
@@ -666,6 +775,42 @@ class WellSensorFaults:
         self.samples += 1
         return out
 
+    def measure(self, time_ns: int, q_total: float, values: Sequence[float]) -> list[SensorFault]:
+        """Feed one MPFM rate (Sm3/h) paired with the sample at ``time_ns`` (epoch ns) whose
+        inputs were ``values`` (the order of :data:`SENSORS`), after that sample's
+        :meth:`update`: the choke-rate witness (:mod:`vfm_core.rate_witness`) tests the
+        choke's latest moves with it. Returns the choke offset raised or ended by it. A rate
+        paired with an older sample (another choke reading than the latest, or before the
+        latest rate) is not taken."""
+        out: list[SensorFault] = []
+        w = self.witness
+        t = int(time_ns)
+        choke, p_up, p_down = (float(values[i]) for i in range(3))
+        if w.u is None or abs(choke - w.u) > _SAME * max(1.0, abs(w.u)):
+            return out
+        self._accept_choke(t, out)
+        found = w.rate(t, float(q_total), p_up, p_down)
+        if found is None:
+            return out
+        if found.action == "close":
+            if ("choke", "offset") in self.open:
+                self.open[("choke", "offset")].evidence += " " + found.evidence
+                self._close("choke", "offset", t, out)
+        elif ("choke", "offset") not in self.open:
+            self._raise(SensorFault("choke", "offset", found.start_ns, t, found.evidence), out)
+        return out
+
+    def _accept_choke(self, t: int, out: list[SensorFault]) -> None:
+        """A choke offset open for ``accept_days`` is closed: its reading is taken as real."""
+        fault = self.open.get(("choke", "offset"))
+        if fault is not None and (t - fault.detected_ns) / _NS_PER_DAY >= self.accept_days:
+            fault.evidence += (
+                f" After {self.accept_days:g} days the reading is taken as the choke's (the "
+                "rate model learns the offset, or the transmitter was set right)."
+            )
+            self._close("choke", "offset", t, out)
+            self.witness.accept()
+
     # -- helpers ------------------------------------------------------------------------------
     def _interval_ns(self) -> float:
         """The median of the last 64 intervals between samples, ns (recomputed every 16)."""
@@ -673,17 +818,13 @@ class WellSensorFaults:
             return float(_DEFAULT_INTERVAL_NS)
         at, value = self._interval_cache
         if at < 0 or self.samples - at >= 16:
-            value = float(np.median(np.fromiter(self.intervals, dtype=float)))
+            value = _median_inplace(np.fromiter(self.intervals, dtype=float))
             self._interval_cache = (self.samples, value)
         return value
 
     def samples_per_year(self) -> float:
         """Samples per year at the well's median interval between samples."""
         return 365.25 * _NS_PER_DAY / max(self._interval_ns(), 1e9)
-
-    def _alpha(self) -> float:
-        """Per-sample false-alarm probability of one per-sample test."""
-        return self.budget / self.samples_per_year()
 
     def _raise(self, fault: SensorFault, out: list[SensorFault]) -> None:
         if fault.kind in _ANCHOR_KINDS:  # the level to stand in for it, before it changes
@@ -705,6 +846,11 @@ class WellSensorFaults:
             out.append(fault)
 
     def _range(self, t: int, x: list[float], out: list[SensorFault]) -> bool:
+        """Raise or close the ``out_of_range`` faults of sample ``x``; True when a value is
+        outside its physical span (NaN and infinities are: the spans are finite)."""
+        lows, highs = self._bounds
+        if not self.open and all(map(operator.le, lows, x)) and all(map(operator.le, x, highs)):
+            return False  # the usual case: every value inside, nothing open to close
         bad = False
         for i, name in enumerate(SENSORS):
             low, high = self.ranges[name]
@@ -734,55 +880,70 @@ class WellSensorFaults:
     def _frozen(
         self, t: int, x: list[float], prev: list[float], alpha: float, out: list[SensorFault]
     ) -> None:
+        """The frozen test of every input at sample ``x`` (``prev``: the sample before)."""
         decay = 1.0 - 1.0 / self.frozen_memory
-        for i, name in enumerate(SENSORS):
-            f = self.frozen[i]
-            unchanged = abs(x[i] - prev[i]) <= _SAME * max(1.0, abs(prev[i]))
-            key = (name, "frozen")
+        is_open = self.open
+        for i, f in enumerate(self.frozen):
+            p = prev[i]
+            a = abs(p)
+            unchanged = abs(x[i] - p) <= _SAME * (a if a > 1.0 else 1.0)  # max(1, |p|)
             if f.prev_unchanged:
                 f.pend_u += 1.0
-                f.pend_uu += float(unchanged)
+                if unchanged:
+                    f.pend_uu += 1.0
             else:
                 f.pend_c += 1.0
-                f.pend_cu += float(unchanged)
+                if unchanged:
+                    f.pend_cu += 1.0
             f.prev_unchanged = unchanged
             f.steps += 1
             if unchanged:
-                if f.run == 1:
-                    f.run_start_ns = self.last_ns if self.last_ns is not None else t
-                f.run += 1
-                if key in self.open or f.n_c + f.n_u < _FROZEN_MIN_STEPS or self._at_bound(i, x[i]):
-                    continue
-                p0 = (f.n_cu + 0.5) / (f.n_c + 1.0)
-                q = min((f.n_uu + 0.5) / (f.n_u + 1.0), 1.0 - 1e-12)
-                limit = max(3, 1 + math.ceil(math.log(alpha / p0) / math.log(q)))
-                if f.run >= limit:
-                    days = (t - f.run_start_ns) / _NS_PER_DAY
-                    self._raise(
-                        SensorFault(
-                            name,
-                            "frozen",
-                            f.run_start_ns,
-                            t,
-                            f"{name} has read {x[i]:.6g}{_UNITS[name]} for {f.run} samples "
-                            f"({days:.1f} days); its history makes a run of {limit} unchanged "
-                            f"values less likely than {alpha:.2g} per sample (P(repeat) "
-                            f"{p0:.3g}, P(repeat again) {q:.3g}).",
-                        ),
-                        out,
-                    )
-                    f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0  # the fault is not history
+                self._frozen_run(i, f, t, x, alpha, out)
                 continue
             # the value changed: the run ends
-            if key in self.open:
-                self._close(name, "frozen", t, out)
+            if is_open and (SENSORS[i], "frozen") in is_open:
+                self._close(SENSORS[i], "frozen", t, out)
                 f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0
             f.run = 1
             f.n_c = f.n_c * decay**f.pend_c + f.pend_c
             f.n_cu = f.n_cu * decay**f.pend_c + f.pend_cu
-            f.n_u = f.n_u * decay**f.pend_u + f.pend_u
-            f.n_uu = f.n_uu * decay**f.pend_u + f.pend_uu
+            if f.pend_u:  # (else decay**0 = 1 and nothing to add: the counts as they are)
+                f.n_u = f.n_u * decay**f.pend_u + f.pend_u
+                f.n_uu = f.n_uu * decay**f.pend_u + f.pend_uu
             f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0
+
+    def _frozen_run(
+        self, i: int, f: _Frozen, t: int, x: list[float], alpha: float, out: list[SensorFault]
+    ) -> None:
+        """Input ``i`` read the same value again: its run grows; raise a frozen fault when
+        the run is longer than its history makes plausible (see the module docstring)."""
+        name = SENSORS[i]
+        if f.run == 1:
+            f.run_start_ns = self.last_ns if self.last_ns is not None else t
+        f.run += 1
+        if (name, "frozen") in self.open or f.n_c + f.n_u < _FROZEN_MIN_STEPS:
+            return
+        if self._at_bound(i, x[i]):
+            return
+        p0 = (f.n_cu + 0.5) / (f.n_c + 1.0)
+        q = min((f.n_uu + 0.5) / (f.n_u + 1.0), 1.0 - 1e-12)
+        limit = max(3, 1 + math.ceil(math.log(alpha / p0) / math.log(q)))
+        if f.run >= limit:
+            days = (t - f.run_start_ns) / _NS_PER_DAY
+            self._raise(
+                SensorFault(
+                    name,
+                    "frozen",
+                    f.run_start_ns,
+                    t,
+                    f"{name} has read {x[i]:.6g}{_UNITS[name]} for {f.run} samples "
+                    f"({days:.1f} days); its history makes a run of {limit} unchanged "
+                    f"values less likely than {alpha:.2g} per sample (P(repeat) "
+                    f"{p0:.3g}, P(repeat again) {q:.3g}).",
+                ),
+                out,
+            )
+            f.pend_c = f.pend_cu = f.pend_u = f.pend_uu = 0.0  # the fault is not history
 
     def _at_bound(self, i: int, v: float) -> bool:
         name = SENSORS[i]
@@ -805,55 +966,79 @@ class WellSensorFaults:
         if p.choke_moved or abs(x[_CHOKE] - p.values[_CHOKE]) > _SAME:
             return spiked  # the process answers the operator
         z = _z_two_sided(alpha)
-        for i, name in enumerate(SENSORS):
-            if i == _CHOKE or len(self.changes[i]) < _SPIKE_MIN_CHANGES:
+        values, changes, scale_at, added = p.values, self.changes, self.scale_at, self.changes_added
+        for i in range(len(SENSORS)):
+            if i == _CHOKE or len(changes[i]) < _SPIKE_MIN_CHANGES:
                 continue
-            s = self._spike_scale(i)
+            if scale_at[i] < 0 or added[i] - scale_at[i] >= 16:
+                self._spike_scale(i)
+            s = self.scale[i]
             if not s > 0:
                 continue
-            up = p.values[i] - before[i]
-            back = p.values[i] - x[i]
+            up = values[i] - before[i]
+            back = values[i] - x[i]
+            zs = z * s
             if (
-                abs(up) > z * s
-                and abs(back) > z * s
+                abs(up) > zs
+                and abs(back) > zs
                 and up * back > 0
                 and abs(x[i] - before[i]) < 0.5 * min(abs(up), abs(back))
             ):
                 spiked.add(i)
-                fault = SensorFault(
-                    name,
-                    "spike",
-                    p.time_ns,
-                    t,
-                    f"{name} jumped by {up:+.4g}{_UNITS[name]} and came back by {-back:+.4g} "
-                    f"at the next sample, {abs(up) / s:.1f} times the robust spread of its "
-                    f"one-step changes ({s:.3g}{_UNITS[name]}; threshold {z:.2f}), with the "
-                    "choke unmoved.",
-                    end_ns=t,
-                )
-                self.events.append(fault)
-                self.raised[f"{name}/spike"] = self.raised.get(f"{name}/spike", 0) + 1
-                out.append(fault)
+                self._spike_event(i, (p.time_ns, t), up, back, s, z, out)
         return spiked
+
+    def _spike_event(
+        self,
+        i: int,
+        span: tuple[int, int],
+        up: float,
+        back: float,
+        s: float,
+        z: float,
+        out: list[SensorFault],
+    ) -> None:
+        """Record a spike of input ``i`` (``span``: the spiked sample's time and its
+        successor's, ns; ``up``, ``back``: the jump and the return; ``s``: the robust spread
+        of its one-step changes; ``z``: the threshold in those)."""
+        name = SENSORS[i]
+        fault = SensorFault(
+            name,
+            "spike",
+            span[0],
+            span[1],
+            f"{name} jumped by {up:+.4g}{_UNITS[name]} and came back by {-back:+.4g} "
+            f"at the next sample, {abs(up) / s:.1f} times the robust spread of its "
+            f"one-step changes ({s:.3g}{_UNITS[name]}; threshold {z:.2f}), with the "
+            "choke unmoved.",
+            end_ns=span[1],
+        )
+        self.events.append(fault)
+        self.raised[f"{name}/spike"] = self.raised.get(f"{name}/spike", 0) + 1
+        out.append(fault)
 
     def _spike_scale(self, i: int) -> float:
         """1.4826 MAD of input ``i``'s recent one-step changes (recomputed every 16 new ones:
-        the median of a few hundred values is the costliest step per sample)."""
+        the median of a few hundred values is the costliest step per sample; :meth:`_spike`
+        asks only when it is due)."""
         n = self.changes_added[i]
         if self.scale_at[i] < 0 or n - self.scale_at[i] >= 16:
-            ch = np.fromiter(self.changes[i], dtype=float)
-            self.scale[i] = _MAD_TO_SD * _median(np.abs(ch - _median(ch)))
+            self.scale[i] = _MAD_TO_SD * _centre_mad(np.frombuffer(self.changes[i]))[1]
             self.scale_at[i] = n
         return self.scale[i]
 
     def _learn_changes(self, p: _Pending, spiked: set[int]) -> None:
         before = self.last_values_before
         if before is not None and p.gap_ok and not p.choke_moved:
-            flagged = self.flagged()
-            for i, name in enumerate(SENSORS):
-                if i not in spiked and name not in flagged:
-                    self.changes[i].append(p.values[i] - before[i])
-                    self.changes_added[i] += 1
+            flagged = self.flagged() if self.open else ()
+            added, values, full = self.changes_added, p.values, self.spike_window
+            for i, (name, ch) in enumerate(zip(SENSORS, self.changes, strict=True)):
+                if (spiked and i in spiked) or (flagged and name in flagged):
+                    continue
+                if len(ch) >= full:  # (_push, inline: six a sample)
+                    del ch[0]
+                ch.append(values[i] - before[i])
+                added[i] += 1
         self.last_values_before = p.values
 
     # -- drift and offset (daily) -------------------------------------------------------------------
@@ -861,40 +1046,45 @@ class WellSensorFaults:
         """The daily drift and offset tests, fed the decided sample ``p``."""
         if spiked:
             return  # a spiked sample is not part of any day's mean
-        x = np.asarray(p.values)
+        x = p.values
         t = p.time_ns
         day = t // _NS_PER_DAY
         self._day_context(day, x, p.choke_moved)
-        flagged = self.flagged()
+        flagged = self.flagged() if self.open else ()
+        day_n, day_sum, day_index, is_open = self.day_n, self.day_sum, self.day_index, self.open
         for i, name in enumerate(SENSORS):
             # a frozen input is the frozen test's; another's fault would only repeat it
-            if i == _CHOKE or any(s != name for s in flagged) or (name, "frozen") in self.open:
-                self.day_n[i], self.day_sum[i], self.cand[i] = 0, 0.0, None
+            if (
+                i == _CHOKE
+                or (flagged and any(s != name for s in flagged))
+                or (is_open and (name, "frozen") in is_open)
+            ):
+                day_n[i], day_sum[i], self.cand[i] = 0, 0.0, None
                 continue
-            if self.day_n[i] and day != self.day_index[i]:
+            if day_n[i] and day != day_index[i]:
                 self._close_day(i, name, t, out)
-            if not self.day_n[i]:
-                self.day_index[i], self.day_start_ns[i] = day, t
-            self.day_sum[i] += float(x[i])
-            self.day_n[i] += 1
+            if not day_n[i]:
+                day_index[i], self.day_start_ns[i] = day, t
+            day_sum[i] += x[i]
+            day_n[i] += 1
 
-    def _robust(self, key: tuple[str, int], ref: deque[float]) -> tuple[float, float]:
+    def _robust(self, key: tuple[str, int], ref: array[float]) -> tuple[float, float]:
         """Median and 1.4826 MAD of a reference of daily values, recomputed once about a
         twentieth of the reference is new (every 18 days with a year's, every day while it
         is under 40 days): n/20 new values barely move the median of n, and the cost per
         sample falls as much."""
         hit = self._robust_cache.get(key)
-        if hit is not None and self.samples - hit[0] < max(1, len(ref) // 20) * (
-            self._samples_per_day()
-        ):
-            return hit[1], hit[2]
-        r = np.fromiter(ref, dtype=float)
-        centre = _median(r)
-        scale = _MAD_TO_SD * _median(np.abs(r - centre))
+        if hit is not None:
+            new = len(ref) // 20
+            if self.samples - hit[0] < (new if new > 1 else 1) * self._spd:  # max(1, n // 20)
+                return hit[1], hit[2]
+        r = np.frombuffer(ref)
+        centre, mad = _centre_mad(r)
+        scale = _MAD_TO_SD * mad
         self._robust_cache[key] = (self.samples, centre, scale)
         if key[0] == "diff":  # the step test's limit follows the tail of its quiet days
             quiet = self.quiet[key[1]]
-            tail = np.fromiter(quiet, dtype=float) if len(quiet) >= _MIN_DAYS else r
+            tail = np.frombuffer(quiet) if len(quiet) >= _MIN_DAYS else r
             self._limits[key[1]] = self._tail_limit(tail, centre, scale)
         elif key[0] == "two":
             self._limits2[key[1]] = self._tail_limit(r, centre, scale)
@@ -920,45 +1110,53 @@ class WellSensorFaults:
         4.96-6.5, against the Gaussian 4.5)."""
         if not scale > 0:
             return self._z_day
-        z = np.abs(r - centre) / scale
-        k = int(_TAIL_QUANTILE * (len(z) - 1))  # the order statistic at the quantile
-        u = float(np.partition(z, k)[k])
-        over = z[z > u] - u
+        n = len(r)
+        k = int(_TAIL_QUANTILE * (n - 1))  # the order statistic at the quantile
+        u, over = _excesses(r, centre, scale, k)
         if len(over) < 2:
             return self._z_day
-        share = len(over) / len(z)
-        limit = u + float(np.mean(over)) * math.log(share / self._step_alpha)
+        share = len(over) / n
+        mean = float(over.sum() / len(over))  # np.mean's arithmetic, without its call cost
+        limit = u + mean * math.log(share / self._step_alpha)
         return max(self._z_day, limit)
 
     def _samples_per_day(self) -> float:
         return max(1.0, _NS_PER_DAY / max(self._interval_ns(), 1.0))
 
-    def _day_context(self, day: int, x: np.ndarray, choke_moved: bool) -> None:
+    def _day_context(self, day: int, x: list[float], choke_moved: bool) -> None:
         """Raw daily means of all inputs: when a day closes, which inputs moved beyond
         ``_CO_MOVE`` robust sd of their own day-to-day changes (several moving at once is
         the process changing, not one transmitter), and whether the choke moved."""
         if self.raw_n and day != self.raw_day:
-            mean = self.raw_sum / self.raw_n
-            moved: set[int] = set()
-            prev = self.raw_prev
-            if prev is not None and day - prev[0] <= _MAX_DAY_GAP + 1:
-                diff = mean - prev[1]
-                for j in range(len(SENSORS)):
-                    ref = self.raw_diffs[j]
-                    if len(ref) >= _MIN_DAYS:
-                        c, sc = self._robust(("raw", j), ref)
-                        if sc > 0 and abs(diff[j] - c) > _CO_MOVE * sc:
-                            moved.add(j)
-                    ref.append(float(diff[j]))
-            self.day_moved = (moved, self.raw_choke or self.prev_raw_choke)
-            self.prev_raw_choke = self.raw_choke
-            self.raw_prev = (self.raw_day, mean)
-            self.raw_sum, self.raw_n, self.raw_choke = np.zeros(len(SENSORS)), 0, False
+            self._close_raw_day(day)
         if not self.raw_n:
             self.raw_day = day
-        self.raw_sum = self.raw_sum + x
+        self.raw_sum = list(map(operator.add, self.raw_sum, x))
         self.raw_n += 1
         self.raw_choke = self.raw_choke or choke_moved
+
+    def _close_raw_day(self, day: int) -> None:
+        """The raw daily means of the day before ``day`` are complete: which inputs moved
+        (see :meth:`_day_context`)."""
+        n = self.raw_n
+        mean = [v / n for v in self.raw_sum]
+        moved: set[int] = set()
+        prev = self.raw_prev
+        if prev is not None and day - prev[0] <= _MAX_DAY_GAP + 1:
+            keys = self._keys[2]
+            for j, (m, before, ref) in enumerate(zip(mean, prev[1], self.raw_diffs, strict=True)):
+                diff = m - before
+                if len(ref) >= _MIN_DAYS:
+                    c, sc = self._robust(keys[j], ref)
+                    if sc > 0 and abs(diff - c) > _CO_MOVE * sc:
+                        moved.add(j)
+                if len(ref) >= _REF_DAYS:  # (_push, inline)
+                    del ref[0]
+                ref.append(diff)
+        self.day_moved = (moved, self.raw_choke or self.prev_raw_choke)
+        self.prev_raw_choke = self.raw_choke
+        self.raw_prev = (self.raw_day, mean)
+        self.raw_sum, self.raw_n, self.raw_choke = [0.0] * len(SENSORS), 0, False
 
     def _confirm_step(
         self, i: int, name: str, mean: float, t: int, open_kind: str | None, out: list[SensorFault]
@@ -1029,7 +1227,7 @@ class WellSensorFaults:
         fresh = self.cand[i] is None and open_kind is None
         ref = self.diffs[i]
         if len(ref) >= _MIN_DAYS:
-            centre, scale = self._robust(("diff", i), ref)
+            centre, scale = self._robust(self._keys[0][i], ref)
             z = (diff - centre) / scale if scale > 0 else 0.0
             if fresh and alone and abs(z) > self._limits[i]:
                 self.cand[i] = (mean - prev[1], prev[1], start, abs(z), 0)
@@ -1039,26 +1237,26 @@ class WellSensorFaults:
             two = (mean - prev2[1]) / math.sqrt(day - prev2[0])
         ref2 = self.quiet2[i]
         if two is not None and len(ref2) >= _MIN_DAYS and prev2 is not None:
-            centre, scale = self._robust(("two", i), ref2)
+            centre, scale = self._robust(self._keys[1][i], ref2)
             z = (two - centre) / scale if scale > 0 else 0.0
             if fresh and self.cand[i] is None and abs(z) > self._limits2[i]:
                 self.cand[i] = (mean - prev2[1], prev2[1], prev[2], abs(z), 0)
                 self.cand_days[i] = 2
         if self.cand[i] is None and open_kind is None:
-            ref.append(diff)
+            _push(ref, diff, _REF_DAYS)
             if alone:  # the days the step test runs on: the null its limits are set from
-                self.quiet[i].append(diff)
+                _push(self.quiet[i], diff, _REF_DAYS)
             if two is not None:
-                ref2.append(two)
+                _push(ref2, two, _REF_DAYS)
 
     def _close_day(self, i: int, name: str, t: int, out: list[SensorFault]) -> None:
         """A day of input ``i`` is complete: test its mean against the day before."""
         mean = self.day_sum[i] / self.day_n[i]
-        self.levels[i].append((self.day_index[i], mean))
         day, start = self.day_index[i], self.day_start_ns[i]
+        self.levels[i].append((day, mean))
         self.day_sum[i], self.day_n[i] = 0.0, 0
         prev = self.day_prev[i]
-        self.day_prev[i] = (day, mean, start)
+        self.day_prev[i] = today = (day, mean, start)
         if prev is None or day - prev[0] > _MAX_DAY_GAP:
             self.cand[i], self.day_prev2[i] = None, None
             return
@@ -1067,17 +1265,41 @@ class WellSensorFaults:
         diff = (mean - prev[1]) / math.sqrt(day - prev[0])
         cus = self.cusums[i]
         was = cus.alarm
-        open_kind = next(
-            (k for (s, k) in self.open if s == name and k in ("drift", "offset")), None
+        open_kind = (
+            next((k for (s, k) in self.open if s == name and k in ("drift", "offset")), None)
+            if self.open
+            else None
         )
         moved, choke = self.day_moved
-        alone = not choke and not (moved - {i})
-        if self._confirm_step(i, name, mean, t, open_kind, out):
+        alone = not choke and (not moved or (len(moved) == 1 and i in moved))  # none but i
+        if self.cand[i] is not None and self._confirm_step(i, name, mean, t, open_kind, out):
             open_kind = "offset"
-        self._step_test(i, (day, mean, start), prev, diff, alone, open_kind)
+        self._step_test(i, today, prev, diff, alone, open_kind)
         # a drift: a CUSUM on the day-to-day changes (a ramp shifts their mean)
         if open_kind != "offset":
             cus.update(diff, t)
+        if open_kind is None and not was and not cus.alarm:  # the usual day: nothing happens
+            if cus.statistic == 0.0:
+                self.cusum_zero_ns[i] = t
+            return
+        self._drift_and_ends(i, name, t, (mean, start), was, open_kind, out)
+
+    def _drift_and_ends(
+        self,
+        i: int,
+        name: str,
+        t: int,
+        today: tuple[float, int],
+        was: bool,
+        open_kind: str | None,
+        out: list[SensorFault],
+    ) -> None:
+        """After input ``i``'s CUSUM took a closed day (``today``: its mean and start ns;
+        ``was``: the CUSUM's alarm before it; ``open_kind``: the input's open drift or
+        offset): raise a drift, close a drift or offset that ended, accept a level that
+        held ``accept_days``."""
+        mean, start = today
+        cus = self.cusums[i]
         if cus.alarm and not was and open_kind is None:
             self._raise(
                 SensorFault(
@@ -1151,19 +1373,20 @@ class WellSensorFaults:
             "raw": [
                 self.raw_day,
                 self.raw_n,
-                self.raw_sum.tolist(),
+                list(self.raw_sum),
                 self.raw_choke,
                 self.prev_raw_choke,
             ],
             "raw_prev": None
             if self.raw_prev is None
-            else [self.raw_prev[0], self.raw_prev[1].tolist()],
+            else [self.raw_prev[0], list(self.raw_prev[1])],
             "raw_diffs": [list(d) for d in self.raw_diffs],
             "day_moved": [sorted(self.day_moved[0]), self.day_moved[1]],
             "events": [e.state() for e in self.events],
             "open": [[s, k] for (s, k) in self.open],
             "raised": dict(self.raised),
             "levels": [[list(d) for d in q] for q in self.levels],
+            "witness": self.witness.state(),
             "anchors": {  # NaN (no level or scale yet) as null: plain JSON
                 k: [x if math.isfinite(x) else None for x in v] for k, v in self.anchors.items()
             },
@@ -1182,8 +1405,8 @@ class WellSensorFaults:
         self.last_values = data["last_values"]
         self.last_values_before = data["last_values_before"]
         self.frozen = [_Frozen(**f) for f in data["frozen"]]
-        for dq, saved in zip(self.changes, data["changes"], strict=True):
-            dq.extend(float(v) for v in saved)
+        for w, saved in zip(self.changes, data["changes"], strict=True):
+            _refill(w, saved, self.spike_window)
         p = data.get("pending")
         self.pending = (
             None
@@ -1199,14 +1422,14 @@ class WellSensorFaults:
         self.day_prev = [
             None if d is None else (int(d[0]), float(d[1]), int(d[2])) for d in data["day_prev"]
         ]
-        for dq, saved in zip(self.diffs, data["diffs"], strict=True):
-            dq.extend(float(v) for v in saved)
+        for w, saved in zip(self.diffs, data["diffs"], strict=True):
+            _refill(w, saved, _REF_DAYS)
         # absent from older checkpoints: the step test's tail is then the diffs' own
         n = len(SENSORS)
-        for dq, saved in zip(self.quiet, data.get("quiet") or [[]] * n, strict=True):
-            dq.extend(float(v) for v in saved)
-        for dq, saved in zip(self.quiet2, data.get("quiet2") or [[]] * n, strict=True):
-            dq.extend(float(v) for v in saved)
+        for w, saved in zip(self.quiet, data.get("quiet") or [[]] * n, strict=True):
+            _refill(w, saved, _REF_DAYS)
+        for w, saved in zip(self.quiet2, data.get("quiet2") or [[]] * n, strict=True):
+            _refill(w, saved, _REF_DAYS)
         self.day_prev2 = [
             None if d is None else (int(d[0]), float(d[1]), int(d[2]))
             for d in data.get("day_prev2") or [None] * n
@@ -1227,11 +1450,12 @@ class WellSensorFaults:
                 self.open[(s, k)] = by_key[(s, k)]
         self.raised = {str(k): int(v) for k, v in data["raised"].items()}
         raw_day, raw_n, raw_sum, self.raw_choke, self.prev_raw_choke = data["raw"]
-        self.raw_day, self.raw_n, self.raw_sum = int(raw_day), int(raw_n), np.asarray(raw_sum)
+        self.raw_day, self.raw_n = int(raw_day), int(raw_n)
+        self.raw_sum = [float(v) for v in raw_sum]
         rp = data["raw_prev"]
-        self.raw_prev = None if rp is None else (int(rp[0]), np.asarray(rp[1], dtype=float))
-        for dq, saved in zip(self.raw_diffs, data["raw_diffs"], strict=True):
-            dq.extend(float(v) for v in saved)
+        self.raw_prev = None if rp is None else (int(rp[0]), [float(v) for v in rp[1]])
+        for w, saved in zip(self.raw_diffs, data["raw_diffs"], strict=True):
+            _refill(w, saved, _REF_DAYS)
         self.day_moved = ({int(j) for j in data["day_moved"][0]}, bool(data["day_moved"][1]))
         # the fallback's levels and anchors (absent from older checkpoints: an anchor is then
         # made when first asked for, from what the detectors hold)
@@ -1242,6 +1466,8 @@ class WellSensorFaults:
             for k, v in (data.get("anchors") or {}).items()
             if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
         }
+        if data.get("witness"):  # absent from older checkpoints: it starts afresh
+            self.witness.restore(data["witness"])
         for i in range(len(SENSORS)):
             self.scale_at[i] = -1
         return True
@@ -1251,9 +1477,21 @@ class WellSensorFaults:
         return [e.as_dict() for e in list(self.events)]  # a copy: the worker appends
 
 
+def mpfm_rates(g: Any) -> list[float]:
+    """Per row of a frame, its MPFM rate (Sm3/h; NaN on other rows, or without the
+    ``source`` and ``q_total`` columns)."""
+    import pandas as pd
+
+    if "q_total" not in g.columns or "source" not in g.columns:
+        return [math.nan] * len(g)
+    q = pd.to_numeric(g["q_total"], errors="coerce").to_numpy(dtype=float)
+    return np.where(g["source"].astype(str).to_numpy() == "mpfm", q, np.nan).tolist()
+
+
 def faults_of_frame(frame: Any, **hyperparameters: Any) -> list[dict[str, Any]]:
     """Run one :class:`WellSensorFaults` per well over an observation frame (columns
-    ``time``, ``well`` and the six inputs) in time order, as the service does live.
+    ``time``, ``well`` and the six inputs; ``source`` and ``q_total`` feed the MPFM's rates
+    to the choke-rate witness) in time order, as the service does live.
     Returns every event as a dict (:meth:`SensorFault.as_dict` plus ``well``)."""
     import pandas as pd
 
@@ -1264,9 +1502,15 @@ def faults_of_frame(frame: Any, **hyperparameters: Any) -> list[dict[str, Any]]:
         times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
         values = g[list(SENSORS)].to_numpy(dtype=float)
         seen: dict[int, SensorFault] = {}
-        for t, row in zip(times.tolist(), values.tolist(), strict=True):
-            for e in det.update(t, row):
-                seen[id(e)] = e
+        last: int | None = None
+        for t, row, q in zip(times.tolist(), values.tolist(), mpfm_rates(g), strict=True):
+            if t != last:  # a second row at one time carries only its measurement
+                for e in det.update(t, row):
+                    seen[id(e)] = e
+                last = t
+            if math.isfinite(q):
+                for e in det.measure(t, q, row):
+                    seen[id(e)] = e
         for e in seen.values():
             out.append({"well": str(well), **e.as_dict()})
     out.sort(key=lambda d: (d["well"], d["start"] or "", d["sensor"], d["kind"]))

@@ -238,7 +238,9 @@ class Pairing:
     def _learn_unless_held(self, st: WellState, p: Pending, sample: Sample, b: Batch) -> None:
         """Learn from the measurement, unless its sample has an input with an instrument
         fault (vfm_core.sensor_faults): then it is kept (status ``held``), counted, not
-        learned from (learn nothing wrong)."""
+        learned from (learn nothing wrong). An MPFM rate feeds the choke-rate witness
+        first (held or not: the witness takes the rate, not the learner)."""
+        st.watch_rate(p.source, sample.time_ns, p.q_total, sample.inputs)
         fault = st.sensor_faults.suspect(sample.time_ns)
         if fault is None:
             if self.review is not None and self.review.enabled and p.source == "well_test":

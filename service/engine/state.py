@@ -220,6 +220,11 @@ class WellState:
         if not self.watch_faults:
             return []
         events = self.sensor_faults.update(time_ns, inputs)
+        self._log_faults(events)
+        return events
+
+    def _log_faults(self, events: Sequence[SensorFault]) -> None:
+        """Log each fault that began (warning, with its evidence) or ended (info)."""
         for e in events:
             if e.end_ns is None:
                 logger.warning(
@@ -227,7 +232,17 @@ class WellState:
                 )
             else:
                 logger.info("Sensor fault on %s ended: %s %s.", self.well, e.sensor, e.kind)
-        return events
+
+    def watch_rate(
+        self, source: str, time_ns: int, q_total: float, inputs: tuple[float, ...]
+    ) -> None:
+        """Feed a paired MPFM rate (Sm3/h, its sample's time and six inputs) to the
+        detectors' choke-rate witness (:mod:`vfm_core.rate_witness`: a move of the choke's
+        reading that the rate does not follow is a choke offset); other sources are too
+        sparse for it. Nothing when ``sensor_faults.enabled`` is false."""
+        if not self.watch_faults or source != "mpfm":
+            return
+        self._log_faults(self.sensor_faults.measure(time_ns, q_total, inputs))
 
     def watch_sample(self, time_ns: int, inputs: tuple[float, ...]) -> tuple[Fallback, ...]:
         """Feed one accepted sample to the instrument-fault detectors (:meth:`watch_sensors`)

@@ -8,7 +8,8 @@ diagnosis's verdict for a well is that fault rather than physics (:func:`instrum
 
 The rule, for a well whose verdict names something (``effect``, ``driver`` or ``carried``)
 and that has a detected fault of a kind that biases the rate for as long as it lasts
-(:data:`INSTRUMENT_KINDS`; a spike is one sample) overlapping the scored period:
+(:data:`INSTRUMENT_KINDS`; a spike is one sample; and a choke offset, found by the measured
+rate: :data:`INSTRUMENT_FAULTS`) overlapping the scored period:
 
 * **the residual coincides**: the verdict's gain (the paired per-measurement differences of
   absolute percentage error, the verdict's candidate less the baseline, replayed with the
@@ -49,6 +50,7 @@ from vfm_core.sensor_faults import SENSORS, faults_of_frame
 
 __all__ = [
     "INSTRUMENT_KINDS",
+    "INSTRUMENT_FAULTS",
     "SENSOR_VARIABLES",
     "ALPHA",
     "BLOCK_DAYS",
@@ -63,6 +65,10 @@ __all__ = [
 #: VfmSensorFault, and names no instrument here either (a false one replaced a right
 #: ``effect erosion`` on a clean-instrument field)
 INSTRUMENT_KINDS = ("frozen", "drift", "out_of_range")
+#: (sensor, kind) pairs that name an instrument besides those kinds: a choke offset, found
+#: by its witness (the MPFM's rate does not follow a move of the reading,
+#: vfm_core.rate_witness), whose false rate is within the detectors' budget
+INSTRUMENT_FAULTS = (("choke", "offset"),)
 #: The variables each input's reading enters (the diagnosis's drivers).
 SENSOR_VARIABLES: dict[str, tuple[str, ...]] = {
     "choke": ("choke",),
@@ -84,16 +90,25 @@ MIN_ROWS = 10
 def input_faults(frame: pd.DataFrame) -> list[dict[str, Any]]:
     """The faults :mod:`vfm_core.sensor_faults` detects in ``frame``'s inputs, every well
     in time order as the service would (dicts with ``well``, ``sensor``, ``kind``,
-    ``start``, ``end``, ``evidence``, ``detected``)."""
+    ``start``, ``end``, ``evidence``, ``detected``); the MPFM's rates (``source``,
+    ``q_total``) feed the choke-rate witness where the frame has them."""
     cols = [TIME, WELL, *SENSORS]
     if any(c not in frame.columns for c in cols):
         return []
-    return faults_of_frame(frame[cols])
+    rates = [c for c in ("source", "q_total") if c in frame.columns]
+    return faults_of_frame(frame[cols + rates])
 
 
 def _utc(x: Any) -> pd.Timestamp:
     t = pd.Timestamp(x)
     return t.tz_localize("UTC") if t.tzinfo is None else t.tz_convert("UTC")
+
+
+def _names_instrument(fault: Mapping[str, Any]) -> bool:
+    """True for a fault that may name an instrument: its kind is one of
+    :data:`INSTRUMENT_KINDS`, or its sensor and kind one of :data:`INSTRUMENT_FAULTS`."""
+    kind = fault.get("kind")
+    return kind in INSTRUMENT_KINDS or (fault.get("sensor"), kind) in INSTRUMENT_FAULTS
 
 
 def _interval(fault: Mapping[str, Any], last: pd.Timestamp) -> tuple[pd.Timestamp, pd.Timestamp]:
@@ -174,7 +189,7 @@ def instrument_verdicts(
         mine = [
             f
             for f in faults
-            if f.get("kind") in INSTRUMENT_KINDS
+            if _names_instrument(f)
             and (single or str(f.get("well")) == w)
             and _interval(f, last)[1] >= _utc(split)
         ]

@@ -13,8 +13,10 @@ and a measurement whose paired sample lies in a fault of
 samples in time order as the service receives them (one sample per well and time: a second
 row at the same time carries only its measurement, as the replay sends it), and notes per
 row what the service would do: ``held`` (a measurement there is not learned) and the
-stand-ins its prediction uses. The detectors see only the inputs, never a rate or a model,
-so the plan is the same for every model and method and is made once per study.
+stand-ins its prediction uses. A row's MPFM rate is fed after its sample, as the service
+feeds a paired rate (the choke-rate witness, :mod:`vfm_core.rate_witness`). The detectors
+see the inputs and the MPFM's rates, never a model, so the plan is the same for every
+model and method and is made once per study.
 :func:`fallback_rates` asks a study's learning method for a row's rates at the stand-ins,
 as ``Learning.fallback`` asks the service's learner, and widens them with the same
 function. The hold is checked right after the paired sample is fed to the detectors, as
@@ -42,6 +44,7 @@ from vfm_core.sensor_faults import (
     Fallback,
     WellSensorFaults,
     fallback_points,
+    mpfm_rates,
     widened_rates,
 )
 
@@ -81,6 +84,7 @@ def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan
     times = pd.to_datetime(frame[TIME], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
     values = frame[list(SENSORS)].to_numpy(dtype=float)
     wells = frame[WELL].astype(str).to_numpy()
+    mpfm = np.asarray(mpfm_rates(frame), dtype=float)
     for well in dict.fromkeys(wells.tolist()):
         rows = np.flatnonzero(wells == well)
         rows = rows[np.argsort(times[rows], kind="stable")]
@@ -96,6 +100,8 @@ def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan
                 used = tuple(det.fallbacks(t, row)) if det.stands_in() else ()
                 in_fault = det.suspect(t) is not None
                 last_t = t
+            if math.isfinite(mpfm[pos]):  # the choke-rate witness (vfm_core.rate_witness)
+                det.measure(t, float(mpfm[pos]), values[pos].tolist())
             held[pos] = in_fault
             if used:
                 stand_ins[pos] = used

@@ -1,0 +1,217 @@
+"""The choke-rate witness: a move of the choke's reading that the measured rate does not
+follow is a choke offset (vfm_core.rate_witness)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vfm_core.errors import ConfigError
+from vfm_core.rate_witness import ChokeRateWitness
+
+DAY = 86_400 * 10**9
+HALF_DAY = DAY // 2
+ELASTICITY = 0.9
+SHARE = 0.1 / 22  # the detectors' budget per test (vfm_core.sensor_faults)
+
+
+def _well(days: int, seed: int, *, noise: float = 0.02, offset: tuple[int, float] | None = None):
+    """A synthetic well sampled twice a day: the operator moves the choke every 6-14 days
+    by 2-8 % (either way); the rate is u**0.9 times 2 % meter noise. ``offset`` = (day,
+    relative size): from that day the reading is the true opening times (1 + size), while
+    the rate keeps following the true opening. Returns (times ns, readings, rates)."""
+    rng = np.random.default_rng(seed)
+    u, next_move = 0.4, 10
+    times, readings, rates = [], [], []
+    for k in range(days * 2):
+        day = k // 2
+        if day == next_move and k % 2 == 0:
+            u = float(np.clip(u * (1 + rng.choice([-1, 1]) * rng.uniform(0.02, 0.08)), 0.1, 0.9))
+            next_move = day + int(rng.integers(6, 15))
+        read = u if offset is None or day < offset[0] else u * (1 + offset[1])
+        times.append(1_500_000_000 * 10**9 + k * HALF_DAY)
+        readings.append(read)
+        rates.append(100.0 * u**ELASTICITY * (1 + noise * rng.standard_normal()))
+    return times, readings, rates
+
+
+def _run(times, readings, rates, witness=None, start=0):
+    w = witness or ChokeRateWitness(SHARE)
+    found = []
+    for t, u, q in zip(times[start:], readings[start:], rates[start:], strict=True):
+        w.choke(t, u)
+        f = w.rate(t, q)
+        if f is not None:
+            found.append(f)
+    return w, found
+
+
+def test_a_reading_that_steps_without_the_rate_is_found_at_its_start():
+    times, readings, rates = _well(500, 1, offset=(400, 0.15))
+    w, found = _run(times, readings, rates)
+    raised = [f for f in found if f.action == "raise"]
+    assert len(raised) == 1
+    step = times[400 * 2]
+    assert raised[0].start_ns == step
+    assert raised[0].time_ns - step <= 7 * DAY
+    assert "did not follow" in raised[0].evidence and "elasticity" in raised[0].evidence
+
+
+def test_the_well_elasticity_is_learned_from_its_moves():
+    times, readings, rates = _well(400, 2)
+    w, found = _run(times, readings, rates)
+    assert found == []
+    beta, s, omega, kappa, se_beta = w.fit()
+    assert abs(beta - ELASTICITY) < 3 * se_beta + 0.05
+    assert abs(beta - ELASTICITY) < abs(0.0 - ELASTICITY) / 5  # far nearer the truth than none
+    assert 0.01 < s < 0.03  # the readings' own noise (2 %)
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_a_clean_well_raises_nothing(seed):
+    times, readings, rates = _well(1100, seed)
+    _, found = _run(times, readings, rates)
+    assert found == []
+
+
+def test_a_rate_that_fell_for_another_reason_is_not_a_choke_offset():
+    """At a small move the rate drops by 8 % (something else changed): short of the
+    response, but not the 'nothing happened' a reading-only move leaves."""
+    times, readings, rates = _well(500, 6)
+    moves = [i for i in range(1, len(readings)) if readings[i] != readings[i - 1]]
+    at = next(i for i in moves if i > 600)
+    rates = [q * (0.92 if i >= at else 1.0) for i, q in enumerate(rates)]
+    _, found = _run(times, readings, rates)
+    assert [f for f in found if f.action == "raise" and f.start_ns == times[at]] == []
+
+
+def test_the_reading_coming_back_closes_the_offset():
+    """The operator stops moving the choke from day 390 to 470; the reading steps +15 % on
+    day 400 and comes back on day 430, the rate following neither."""
+    times, readings, rates = _well(390, 7)
+    u = readings[-1]
+    rng = np.random.default_rng(70)
+    for k in range(390 * 2, 480 * 2):
+        day = k // 2
+        times.append(times[0] + k * HALF_DAY)
+        readings.append(u * 1.15 if 400 <= day < 430 else u)
+        rates.append(100.0 * u**ELASTICITY * (1 + 0.02 * rng.standard_normal()))
+    _, found = _run(times, readings, rates)
+    assert [f.action for f in found] == ["raise", "close"]
+    assert found[0].start_ns == times[400 * 2]
+    assert found[1].start_ns == times[430 * 2]
+    assert "came back" in found[1].evidence
+
+
+def test_the_state_resumes_to_the_same_findings():
+    times, readings, rates = _well(500, 8, offset=(400, 0.15))
+    whole, found = _run(times, readings, rates)
+    first, _ = _run(times[:700], readings[:700], rates[:700])
+    again = ChokeRateWitness(SHARE)
+    again.restore(json.loads(json.dumps(first.state())))
+    _, rest = _run(times, readings, rates, witness=again, start=700)
+    assert [(f.action, f.start_ns, f.time_ns) for f in rest] == [
+        (f.action, f.start_ns, f.time_ns) for f in found
+    ]
+
+
+def test_too_few_moves_or_bad_readings_say_nothing():
+    w = ChokeRateWitness(SHARE)
+    assert w.fit() is None
+    w.choke(0, 0.4)
+    assert w.rate(0, float("nan")) is None
+    assert w.rate(1, -5.0) is None
+    assert w.rate(2, 0.0) is None
+    assert len(w.readings) == 0
+    w.choke(3, 0.5)
+    assert w.rate(4, 10.0) is None  # no elasticity yet
+    assert math.isclose(w.moves_per_year(), 12.0)
+
+
+def test_a_shut_in_or_gap_breaks_the_windows():
+    w = ChokeRateWitness(SHARE)
+    w.choke(0, 0.4)
+    w.rate(0, 10.0)
+    w.choke(DAY, 0.0)  # shut in
+    assert w.u is None and w.closed_segment == w.segment
+    w.choke(2 * DAY, 0.5)  # reopened: a new level, no move across the shut-in
+    assert not w.pending
+    w.choke(10 * DAY, 0.55)  # after a gap of eight days
+    assert not w.pending and w.closed_segment == w.segment
+
+
+@pytest.mark.parametrize("share,window", [(0.0, 7.0), (float("nan"), 7.0), (0.01, 0.5)])
+def test_bad_settings_are_refused(share, window):
+    with pytest.raises(ConfigError):
+        ChokeRateWitness(share, window)
+
+
+# -- through the service ----------------------------------------------------------------------
+
+
+def test_the_service_shows_a_choke_offset_its_mpfm_reveals(tmp_path):
+    """Samples and MPFM readings twice a day for 420 days over the bus; from day 400 the
+    choke's reading is 15 % above the true opening, the rate following the truth:
+    ``GET /wells/W01`` lists a choke offset that began at the step, open (it would be taken
+    as real after 30 days), and ``/metrics`` has it."""
+    import asyncio
+    from datetime import UTC, datetime
+
+    import httpx
+
+    from replay.client import FieldClient, sample_of
+    from service.app import Service
+    from service.http import create_app
+    from service.testing import loopback_settings, wait_until
+    from service.transport import MemoryTransport
+    from vfm_core.messages import Measurement
+    from vfm_core.timeutil import iso
+
+    times, readings, rates = _well(420, 1, offset=(400, 0.15))
+    settings = loopback_settings(tmp_path, model={"name": "mm", "method": "pbl:3650d"})
+    bus = MemoryTransport(settings.prefix)
+    service = Service(settings, bus)
+    service.start()
+    try:
+        with FieldClient(bus, settings.prefix) as client:
+            client.wait_for_service("W01")
+            for t, u, q in zip(times, readings, rates, strict=True):
+                when = datetime.fromtimestamp(t / 1e9, tz=UTC)
+                client.send_sample("W01", sample_of(when, (u, 120.0, 30.0, 60.0, 0.1, 0.6)))
+                client.send_measurement("W01", "mpfm", Measurement(time=when, q_total=q))
+            engine = service.engine
+            assert engine is not None
+            store = service.store
+            assert store is not None
+            wait_until(
+                lambda: (
+                    engine.has_well("W01")
+                    and len(store.history("W01", 0, 2**62, 10_000)[1]) == len(times)
+                    and all(
+                        m.status != "pending" for m in store.history("W01", 0, 2**62, 10_000)[1]
+                    )
+                ),
+                120,
+                "every measurement to be settled",
+            )
+
+            async def get(path: str) -> httpx.Response:
+                transport = httpx.ASGITransport(app=create_app(service))
+                async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+                    return await c.get(path)
+
+            faults = asyncio.run(get("/wells/W01")).json()["sensor_faults"]
+            chokes = [f for f in faults if f["sensor"] == "choke"]
+            assert [(f["kind"], f["end"]) for f in chokes] == [("offset", None)]
+            assert chokes[0]["start"] == iso(times[800])
+            assert "did not follow" in chokes[0]["evidence"]
+            metrics = asyncio.run(get("/metrics")).text
+            assert (
+                'vfm_well_sensor_fault_active{kind="offset",sensor="choke",well="W01"} 1.0'
+                in metrics
+            )
+    finally:
+        service.stop()

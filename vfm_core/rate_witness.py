@@ -1,0 +1,554 @@
+"""Does the measured rate follow the choke's position reading? A witness for a choke offset.
+
+The choke's position reading is a set point that the operator moves, so the input-only
+tests of :mod:`vfm_core.sensor_faults` cannot test it for an offset: every step of it is
+a step of the process. The well's rate can: when the choke really moves, the rate moves
+with it; when only its reading moves (a transmitter re-zeroed wrongly after maintenance,
+a position sensor that slipped, an actuator that no longer moves the choke), the rate
+stays where it was. :class:`ChokeRateWitness` watches one well's choke readings and its
+frequent rate readings (an MPFM's; well tests are too sparse for it) and raises a choke
+``offset`` when a move of the reading is not followed by the rate.
+
+The model, per well and free of any rate model or learning method (so ``vfm evaluate``
+plans it once for every model, as the input tests):
+
+* **A move** is a change of the reading (relative change above ``1e-9``). Its response is
+  ``d = mean(log q after) - mean(log q before)``: the rate readings of the new level in the
+  ``window_days`` after it against those of the old level in the ``window_days`` before it
+  (each at least :data:`MIN_READINGS`). A reading at a choke of zero (shut in) starts
+  afresh.
+* **The well's elasticity** ``beta``: the median of ``d / dlog u`` over its last
+  :data:`MOVES_KEPT` complete moves of at least 1 % (a median, since a move now and then
+  meets another change of the well). A linear valve in critical flow gives about 1.
+* **The spread of a real move's response**: ``sigma^2 = se^2 + tau^2 dlog u^2``, where
+  ``se = s sqrt(1/n_before + 1/n_after)`` is the noise of the two means (``s``: the median
+  within-window sd of the past moves' readings) and ``tau`` the scatter of the elasticity
+  between moves, chosen so that the past moves' standardised residuals
+  ``(d - beta dlog u) / sigma`` have a robust sd (1.4826 MAD) of one (bisection; ``tau = 0``
+  when they are already narrower, and then the residuals' own robust sd, at least one,
+  scales ``sigma``).
+* **The test**, at every rate reading in the ``window_days`` after a move, once the well
+  has :data:`MIN_MOVES` complete moves and ``beta > 0.2``: the shortfall
+  ``z = (beta dlog u - d) sign(dlog u) / sigma`` (how far the rate fell short of the
+  response the reading asks for) beyond ``z_lim``, and the response closer to none than to
+  the expected (``|d| < |d - beta dlog u|``). ``z_lim`` is the one-sided Gaussian quantile of
+  ``share / moves_per_year / looks``: ``share`` is this test's part of the detectors'
+  false-alarm budget (:class:`vfm_core.sensor_faults.WellSensorFaults` gives it), the moves
+  per year are the well's own (at least 12), and ``looks`` (the readings a window holds,
+  at most 12) divides it among the repeated looks at one move (Bonferroni, conservative:
+  the looks share their readings).
+* **The fault** starts at the move and is an ``offset`` of the ``choke``. A move of the
+  reading back by the same amount with no response again closes it (the reading came back);
+  the caller closes it after its ``accept_days`` otherwise. Moves while it is open teach
+  nothing (their readings carry the offset).
+
+What it cannot see: an offset that appears without a change of the reading (a choke
+re-zeroed during a shut-in, where the move is hidden in the gap), one smaller than the
+MPFM's noise over a week allows (about 5 % of the opening at 3 % noise: see the detection
+table in ``docs/guide/sensor-faults.md``), and any well without a frequent meter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from statistics import NormalDist
+from typing import Any
+
+import numpy as np
+
+from vfm_core.errors import ConfigError
+from vfm_core.timeutil import iso
+
+__all__ = ["ChokeFinding", "ChokeRateWitness", "MIN_MOVES", "MIN_READINGS", "MOVES_KEPT"]
+
+#: complete moves (both windows with readings) before the test runs
+MIN_MOVES = 8
+#: rate readings each side of a move for its response
+MIN_READINGS = 3
+#: complete moves kept for the elasticity and the spread
+MOVES_KEPT = 100
+_NS_PER_DAY = 86_400 * 10**9
+_SAME = 1e-9
+_MIN_MOVE = 0.01  # |dlog u| of the moves the elasticity is taken from
+_MIN_BETA = 0.2  # below it the rate barely answers the choke: no power
+_MAD_TO_SD = 1.4826
+_MAX_LOOKS = 12
+_MIN_MOVES_PER_YEAR = 12.0
+_CLOSED_CHOKE = 1e-3  # a reading at or below it is a closed choke (shut in)
+_MIN_DP = 1e-3  # the pressure drop's floor, a share of p_up (a log needs it positive)
+_GAP_NS = 2 * _NS_PER_DAY  # samples further apart: a break (a shut-in, an outage)
+_Z_NONE = NormalDist().inv_cdf(0.995)  # |d| within it: no response (two-sided 99 %)
+
+
+@dataclass
+class ChokeFinding:
+    """What the witness found at a rate reading: ``"raise"`` a choke offset that began at
+    ``start_ns`` (the move), or ``"close"`` the open one; ``time_ns`` is the reading's time
+    and ``evidence`` a sentence with the numbers."""
+
+    action: str
+    start_ns: int
+    time_ns: int
+    evidence: str
+
+
+@dataclass
+class _Move:
+    """A change of the choke reading: when, from and to which reading, its segment."""
+
+    time_ns: int
+    u_before: float
+    u_after: float
+    segment: int
+    decided: bool = False  # raised (or closed) a fault: not learned, not tested again
+    recorded: bool = False  # its response was taken (or refused) for the elasticity
+    #: the window before it, once made: (elasticity, adjusted log rates, largest
+    #: adjustment, mean log p_up and log(p_up - p_down))
+    before: tuple[float, np.ndarray, float, tuple[float, float]] | None = None
+    #: the window after it so far, kept up reading by reading: [elasticity, time of the
+    #: last reading in it, n, sum of adjusted log rates, largest adjustment, sums of log
+    #: p_up and log(p_up - p_down) (NaN once one is unknown)]
+    after: list[float] | None = None
+
+    @property
+    def dlu(self) -> float:
+        return math.log(self.u_after) - math.log(self.u_before)
+
+
+class _Readings:
+    """The rate readings of the last three windows as rows of a growing array (time ns,
+    log q, segment, and at the paired sample log u, log p_up, log(p_up - p_down)): a test
+    slices it instead of converting a list every reading."""
+
+    def __init__(self) -> None:
+        self.buf = np.empty((64, 6))
+        self.n = 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def append(self, row: Sequence[float], oldest_ns: float) -> None:
+        """Add a row; rows before ``oldest_ns`` are dropped when the array is full."""
+        if self.n == len(self.buf):
+            keep = self.buf[: self.n][self.buf[: self.n, 0] >= oldest_ns]
+            if len(keep) > len(self.buf) // 2:
+                self.buf = np.empty((2 * len(self.buf), 6))
+            self.n = len(keep)
+            self.buf[: self.n] = keep
+        self.buf[self.n] = row
+        self.n += 1
+
+    def since(self, oldest_ns: float) -> np.ndarray:
+        """The rows at or after ``oldest_ns`` (a view)."""
+        arr = self.buf[: self.n]
+        return arr[int(np.searchsorted(arr[:, 0], oldest_ns)) :]
+
+    def clear(self) -> None:
+        self.n = 0
+
+
+@dataclass
+class _Windows:
+    """A move's two windows: their numbers of readings and the change of the mean
+    adjusted log rate between them, the largest adjustment, and the change of the mean
+    log p_up and log(p_up - p_down)."""
+
+    n_before: int
+    n_after: int
+    d: float
+    other: float
+    d_log_p_up: float
+    d_log_dp: float
+
+
+@lru_cache(maxsize=512)
+def _quantile(p: float) -> float:
+    """The standard normal quantile of ``p`` (cached: a well's limits repeat)."""
+    return NormalDist().inv_cdf(p)
+
+
+def _median(x: np.ndarray) -> float:
+    """The median of a non-empty 1-d array by a partial sort (``np.median``'s checks cost
+    more than the sort at a hundred values)."""
+    n = len(x)
+    k = n // 2
+    part = np.partition(x, [k - 1, k] if n % 2 == 0 else k)
+    return float(part[k]) if n % 2 else 0.5 * float(part[k - 1] + part[k])
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    return _MAD_TO_SD * _median(np.abs(x - _median(x)))
+
+
+def _num(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _huber_slope(x: np.ndarray, y: np.ndarray, var: np.ndarray) -> tuple[float, float]:
+    """The slope of ``y = beta x`` (through the origin) by weighted least squares with
+    Huber's weights (``c = 1.345``, 95 % efficiency at the Gaussian; a move that met another
+    change of the well weighs less), and its standard error: the standardised residuals'
+    robust sd over ``sqrt(sum x^2 / var)``."""
+    w0 = 1.0 / var
+    w = w0.copy()
+    beta = 0.0
+    for _ in range(20):
+        last, beta = beta, float((w * x * y).sum() / (w * x * x).sum())
+        if abs(beta - last) < 1e-6:
+            break
+        r = (y - beta * x) * np.sqrt(w0)
+        scale = max(_robust_sd(r), 1e-9)
+        u = np.abs(r) / scale
+        w = w0 * np.minimum(1.0, 1.345 / np.maximum(u, 1e-12))
+    scale = max(_robust_sd((y - beta * x) * np.sqrt(w0)), 1.0)
+    return beta, scale / math.sqrt(float((w0 * x * x).sum()))
+
+
+class ChokeRateWitness:
+    """One well's test of whether the measured rate follows the choke reading (see the
+    module docstring). ``share``: false faults per well-year this test may raise;
+    ``window_days``: the days each side of a move its response is taken over."""
+
+    def __init__(self, share: float, window_days: float = 7.0) -> None:
+        if not (math.isfinite(share) and share > 0):
+            raise ConfigError(f"share must be a positive number per well-year, got {share}.")
+        if not (math.isfinite(window_days) and 1.0 <= window_days <= 60.0):
+            raise ConfigError(f"window_days must lie in 1..60 days, got {window_days}.")
+        self.share = float(share)
+        self.window_ns = int(window_days * _NS_PER_DAY)
+        self.u: float | None = None
+        self.last_ns: int | None = None
+        self.segment = 0
+        #: the first segment after the latest break (a shut-in, a gap): nothing before it
+        #: is compared with anything after it
+        self.closed_segment = 0
+        #: the moves whose window after them is still open, oldest first
+        self.pending: deque[_Move] = deque(maxlen=64)
+        #: rate readings: (time ns, log q, segment, and at the paired sample the log of the
+        #: choke reading, of p_up and of p_up - p_down)
+        self.readings = _Readings()
+        #: complete moves: (dlog u, response d, n_before, n_after, pooled within sd)
+        self.moves: deque[tuple[float, float, int, int, float]] = deque(maxlen=MOVES_KEPT)
+        self.move_times: deque[int] = deque(maxlen=400)
+        self.open: _Move | None = None
+        self._fit: tuple[float, float, float, float, float] | None = None  # see fit()
+        self._no_fit = False  # fit() found too few moves since the last complete one
+
+    # -- the protocol ---------------------------------------------------------------------
+    def choke(self, time_ns: int, u: float) -> None:
+        """Feed one sample's choke reading (fraction open, in time order). A closed choke
+        (shut in) or a gap of more than two days between samples is a break: no move across
+        it is tested or learned."""
+        t = int(time_ns)
+        if not math.isfinite(u):
+            return
+        gap = self.last_ns is not None and t - self.last_ns > _GAP_NS
+        self.last_ns = t
+        if u <= _CLOSED_CHOKE or gap:
+            self._record_latest(t)
+            self.pending.clear()
+            self.segment += 1
+            self.closed_segment = self.segment
+            self.u = None if u <= _CLOSED_CHOKE else u
+            return
+        if self.u is None:
+            self.u = u
+            return
+        if abs(u - self.u) <= _SAME * max(1.0, abs(self.u)):
+            return
+        self._record_latest(t)
+        self.segment += 1
+        self.pending.append(_Move(t, self.u, u, self.segment))
+        self.move_times.append(t)
+        self.u = u
+
+    def rate(
+        self, time_ns: int, q: float, p_up: float = math.nan, p_down: float = math.nan
+    ) -> ChokeFinding | None:
+        """Feed one rate reading (Sm3/h, the well's frequent meter, in time order) with its
+        paired sample's ``p_up`` and ``p_down`` (bar a; NaN if unknown) and test the moves of
+        the last ``window_days`` with it (the first finding is returned)."""
+        t = int(time_ns)
+        if not (math.isfinite(q) and q > 0) or self.u is None:
+            return None
+        lp, ldp = math.nan, math.nan
+        if math.isfinite(p_up) and math.isfinite(p_down) and p_up > 0:
+            lp = math.log(p_up)
+            ldp = math.log(max(p_up - p_down, _MIN_DP * p_up))
+        if len(self.readings) and t < self.readings.buf[self.readings.n - 1, 0]:
+            return None  # out of time order: the windows need it in order
+        lq, lu = math.log(q), math.log(self.u)
+        self.readings.append((t, lq, self.segment, lu, lp, ldp), t - 3 * self.window_ns)
+        while self.pending and t >= self.pending[0].time_ns + self.window_ns:
+            self._record(self.pending.popleft(), t)
+        self._extend(t, lq, lu, lp, ldp)
+        for m in self.pending:
+            if not m.decided:
+                found = self._test(m, t)
+                if found is not None:
+                    return found
+        return None
+
+    # -- the response of a move ---------------------------------------------------------------
+    def _windows(self, m: _Move, until: int) -> tuple[np.ndarray, np.ndarray]:
+        """The log rates of the old level in the window before ``m`` and of the new one
+        from ``m`` up to ``until``."""
+        lo = m.time_ns - self.window_ns
+        arr = self.readings.since(lo)
+        t, seg = arr[:, 0], arr[:, 2]
+        before = arr[(seg == m.segment - 1) & (t < m.time_ns), 1]
+        after = arr[(seg == m.segment) & (t >= m.time_ns) & (t <= until), 1]
+        return before, after
+
+    def _adjusted(self, m: _Move, until: int, beta: float) -> _Windows:
+        """The log rates in the window before ``m`` and from ``m`` up to ``until`` (the
+        latest reading), each moved to the choke reading next to ``m`` on its side by the
+        elasticity (``log q - beta (log u - log u_m)``), so other moves inside the windows do
+        not count; the largest such adjustment (its error enters the spread); and the change
+        of the mean log ``p_up`` and log ``p_up - p_down`` between the windows (0 where
+        unknown). The side before the move is made once per elasticity (its readings are
+        all in), the side after it is kept up reading by reading (:meth:`_extend`)."""
+        if m.before is None or m.before[0] != beta:
+            arr = self.readings.since(m.time_ns - self.window_ns)
+            arr = arr[(arr[:, 2] >= self.closed_segment) & (arr[:, 0] < m.time_ns)]
+            m.before = (beta, *self._side(arr, math.log(m.u_before), beta))
+        _, b_values, b_worst, b_p = m.before
+        if m.after is None or m.after[0] != beta or m.after[1] != until:
+            arr = self.readings.since(m.time_ns)
+            arr = arr[arr[:, 0] <= until]
+            values, worst, a_p = self._side(arr, math.log(m.u_after), beta)
+            m.after = [beta, until, len(values), float(values.sum()), worst]
+            m.after += [a_p[0] * len(values), a_p[1] * len(values)]
+        _, _, n_a, total, a_worst, p_sum, dp_sum = m.after
+        n_b = len(b_values)
+        if not (n_a and n_b):
+            return _Windows(n_b, int(n_a), 0.0, 0.0, 0.0, 0.0)
+        d_p = [a / n_a - b for a, b in zip((p_sum, dp_sum), b_p, strict=True)]
+        d_p = [v if math.isfinite(v) else 0.0 for v in d_p]
+        d = total / n_a - float(b_values.mean())
+        return _Windows(n_b, int(n_a), d, max(b_worst, a_worst), d_p[0], d_p[1])
+
+    def _extend(self, t: int, lq: float, lu: float, lp: float, ldp: float) -> None:
+        """Add the reading at ``t`` to the window after each pending move whose window is
+        kept at the elasticity in use (the others are made afresh when tested)."""
+        fit = self._fit
+        for m in self.pending:
+            a = m.after
+            if fit is None or a is None or a[0] != fit[0] or m.decided:
+                continue
+            moved = lu - math.log(m.u_after)
+            a[1] = t
+            a[2] += 1
+            a[3] += lq - a[0] * moved
+            a[4] = max(a[4], abs(moved))
+            a[5] += lp
+            a[6] += ldp
+
+    @staticmethod
+    def _side(
+        arr: np.ndarray, ref: float, beta: float
+    ) -> tuple[np.ndarray, float, tuple[float, float]]:
+        """One window's log rates moved to the reading ``ref`` (log), the largest move, and
+        its mean log p_up and log(p_up - p_down) (NaN where one is unknown)."""
+        if not len(arr):
+            return arr[:, 1], 0.0, (math.nan, math.nan)
+        moved = arr[:, 3] - ref
+        means = arr[:, 4:6].mean(axis=0)
+        return (
+            arr[:, 1] - beta * moved,
+            float(np.abs(moved).max()),
+            (float(means[0]), float(means[1])),
+        )
+
+    def _record_latest(self, t: int) -> None:
+        """The latest move's level ends at ``t`` (another move, a break): its response is
+        complete."""
+        if self.pending:
+            self._record(self.pending[-1], t)
+
+    def _record(self, m: _Move, t: int) -> None:
+        """Keep the response of move ``m`` (its level up to ``t`` or its window's end) for
+        the well's elasticity and spread, once; not while an offset is open or for a move
+        that raised one."""
+        if m.recorded:
+            return
+        m.recorded = True
+        if m.decided or self.open is not None:
+            return
+        b, a = self._windows(m, min(t, m.time_ns + self.window_ns))
+        if len(b) < MIN_READINGS or len(a) < MIN_READINGS:
+            return
+        ss = float(((b - b.mean()) ** 2).sum() + ((a - a.mean()) ** 2).sum())
+        s = math.sqrt(ss / (len(b) + len(a) - 2))
+        self.moves.append((m.dlu, float(a.mean() - b.mean()), len(b), len(a), s))
+        self._fit, self._no_fit = None, False
+
+    # -- the well's elasticity and spread -------------------------------------------------------
+    def fit(self) -> tuple[float, float, float, float, float] | None:
+        """``(beta, s, omega, kappa, se_beta)`` from the complete moves (None before
+        :data:`MIN_MOVES` of them, or with fewer than half that many of 1 % or more)."""
+        if self._fit is not None or self._no_fit:
+            return self._fit
+        self._no_fit = True  # until the next complete move
+        if len(self.moves) < MIN_MOVES:
+            return None
+        arr = np.asarray(self.moves, dtype=float)
+        dlu, d, nb, na, s_each = arr.T
+        big = np.abs(dlu) >= _MIN_MOVE
+        if big.sum() < MIN_MOVES // 2:
+            return None
+        s = float(np.median(s_each))
+        se2 = s * s * (1.0 / nb + 1.0 / na)
+        beta, se_beta = _huber_slope(dlu, d, se2)
+        base = se2 + (se_beta * dlu) ** 2
+        e = d - beta * dlu
+
+        def spread(omega: float) -> float:
+            return _robust_sd(e / np.sqrt(base + omega * omega))
+
+        omega, kappa = 0.0, max(1.0, spread(0.0))
+        if spread(0.0) > 1.0:
+            lo, hi = 0.0, 1.0
+            for _ in range(24):  # omega to 1e-7 (log rate)
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if spread(mid) > 1.0 else (lo, mid)
+            omega, kappa = hi, max(1.0, spread(hi))
+        self._fit = (beta, s, omega, kappa, se_beta)
+        return self._fit
+
+    def moves_per_year(self) -> float:
+        """The well's choke moves per year (the last year's, at least 12)."""
+        if len(self.move_times) < 2:
+            return _MIN_MOVES_PER_YEAR
+        span = (self.move_times[-1] - self.move_times[0]) / _NS_PER_DAY / 365.25
+        return max(_MIN_MOVES_PER_YEAR, (len(self.move_times) - 1) / max(span, 1.0 / 12))
+
+    def limit(self, looks: int) -> float:
+        """The shortfall a move must reach: the one-sided Gaussian quantile of this test's
+        share per move and look."""
+        alpha = self.share / self.moves_per_year() / max(1, min(looks, _MAX_LOOKS))
+        return _quantile(round(1.0 - alpha, 12))
+
+    def _looks(self) -> int:
+        """The looks at one move: the rate readings its window holds at the well's own rate
+        of readings, from the :data:`MIN_READINGS`-th on."""
+        arr = self.readings.since(
+            self.readings.buf[max(self.readings.n - 1, 0), 0] - 3 * self.window_ns
+        )
+        if len(arr) < 2:
+            return _MAX_LOOKS
+        span = max(float(arr[-1, 0] - arr[0, 0]), 1.0)
+        per_window = (len(arr) - 1) * self.window_ns / span
+        return int(per_window) - MIN_READINGS + 1
+
+    # -- the test -------------------------------------------------------------------------------
+    def _test(self, m: _Move, t: int) -> ChokeFinding | None:
+        fit = self.fit()
+        if fit is None or fit[0] <= _MIN_BETA:
+            return None
+        beta, s, omega, kappa, se_beta = fit
+        win = self._adjusted(m, t, beta)
+        n_b, n_a = win.n_before, win.n_after
+        if n_b < MIN_READINGS or n_a < MIN_READINGS:
+            return None
+        d = win.d
+        dlu = m.dlu
+        sign = math.copysign(1.0, dlu)
+        expected = beta * dlu
+        noise = s * s * (1 / n_b + 1 / n_a) + omega * omega + (se_beta * win.other) ** 2
+        sigma = kappa * math.sqrt(noise + (se_beta * dlu) ** 2)
+        # the most of the shortfall the pressures' own change could explain: the rate
+        # follows p_up with an exponent of at most one (critical flow) and the pressure
+        # drop with at most a half (Bernoulli, subcritical); the regime is not known here
+        explained = min(0.0, sign * win.d_log_p_up) + 0.5 * min(0.0, sign * win.d_log_dp)
+        z = ((expected - d) * sign + explained) / sigma
+        z_lim = self.limit(self._looks())
+        # short of the response beyond chance, and no change beyond chance itself: the rate
+        # did what it does when nothing moved (a rate that fell for another reason is not it)
+        if not (z > z_lim and abs(d) <= _Z_NONE * kappa * math.sqrt(noise)):
+            return None
+        m.decided = True
+        text = (
+            f"the choke's reading moved {m.u_before:.4g} -> {m.u_after:.4g} "
+            f"({100 * (math.exp(dlu) - 1):+.1f} %) at {iso(m.time_ns)}, but the measured rate "
+            f"did not follow: {100 * (math.exp(d) - 1):+.1f} % over {n_a} meter readings "
+            f"after it against {n_b} before, where the well's last {len(self.moves)} "
+            f"choke moves (elasticity {beta:.2f}) say {100 * (math.exp(expected) - 1):+.1f} % "
+            f"(short by {z:.1f} sd, threshold {z_lim:.1f})."
+        )
+        if self.open is not None and dlu * self.open.dlu < 0:
+            self.open = None
+            return ChokeFinding(
+                "close", m.time_ns, t, f"The reading came back without the rate: {text}"
+            )
+        self.open = m
+        return ChokeFinding(
+            "raise",
+            m.time_ns,
+            t,
+            text[0].upper() + text[1:] + " The position reading, not the choke, seems to "
+            "have moved: an offset of the choke's transmitter, or a choke that no longer "
+            "answers its actuator.",
+        )
+
+    def accept(self) -> None:
+        """The caller closed the open offset after its acceptance time: the new reading is
+        taken as the choke's."""
+        self.open = None
+
+    # -- state ----------------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Plain JSON values to resume from."""
+
+        def mv(m: _Move | None) -> list[Any] | None:
+            if m is None:
+                return None
+            return [m.time_ns, m.u_before, m.u_after, m.segment, m.decided, m.recorded]
+
+        return {
+            "u": self.u,
+            "last_ns": self.last_ns,
+            "segment": self.segment,
+            "closed_segment": self.closed_segment,
+            "pending": [mv(m) for m in self.pending],
+            "open": mv(self.open),
+            "readings": [  # NaN (no pressure) as null: plain JSON
+                [int(r[0]), float(r[1]), int(r[2]), float(r[3])]
+                + [float(x) if math.isfinite(x) else None for x in r[4:]]
+                for r in self.readings.since(-math.inf).tolist()
+            ],
+            "moves": [list(r) for r in self.moves],
+            "move_times": list(self.move_times),
+        }
+
+    def restore(self, data: Mapping[str, Any]) -> None:
+        """Resume from :meth:`state`."""
+
+        def mv(v: Any) -> _Move | None:
+            if v is None:
+                return None
+            return _Move(int(v[0]), float(v[1]), float(v[2]), int(v[3]), bool(v[4]), bool(v[5]))
+
+        self.u = None if data.get("u") is None else float(data["u"])
+        self.last_ns = None if data.get("last_ns") is None else int(data["last_ns"])
+        self.segment = int(data.get("segment", 0))
+        self.closed_segment = int(data.get("closed_segment", 0))
+        self.pending.clear()
+        self.pending.extend(m for m in (mv(v) for v in data.get("pending", [])) if m is not None)
+        self.open = mv(data.get("open"))
+        self.readings.clear()
+        for r in data.get("readings", []):
+            row = (int(r[0]), float(r[1]), int(r[2]), float(r[3]), _num(r[4]), _num(r[5]))
+            self.readings.append(row, -math.inf)
+        self.moves.clear()
+        self.moves.extend(
+            (float(a), float(b), int(c), int(d), float(e))
+            for a, b, c, d, e in data.get("moves", [])
+        )
+        self.move_times.clear()
+        self.move_times.extend(int(t) for t in data.get("move_times", []))
+        self._fit, self._no_fit = None, False
