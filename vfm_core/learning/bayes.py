@@ -54,6 +54,17 @@ is the model's parameters, the covariance P is kept here.
   t_0.95(nu0 + n) sqrt((nu0 + sum z^2) / (nu0 + n)) sd. A refused error counts as one at
   the gate. Widens or narrows the intervals only. MPFM readings (twice a day) are left to
   the conformal factor, which calibrates them in weeks.
+- **Pooled over the wells (``cal_pool``).** The wells of one filter share a model and a
+  drift allowance, so their factors are alike: each well's prior InvGamma(k / 2, k c0^2 /
+  2) is then the one under which the other wells' errors are most likely (the stated prior
+  counted as one more well; k, its weight in errors, in [nu0, nu0 + their n]; empirical
+  Bayes, the moderated variances of Smyth 2004, see :func:`_pooled_prior`);
+  the well's own errors then update it as above (t with k + n degrees of freedom). Wells
+  that agree give a large k (the factor learned from all of them), wells that disagree a
+  small one (each its own). A filter of one well has no others: the rule above, unless
+  given the other wells' statistics (:meth:`BayesianFilter.pool_with`). Off by default
+  until the service's one-well filters are given them (its allocation checks that they
+  give the factors of one filter over all the wells).
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
 Bayesian learning); the layers below stay as fitted.
@@ -71,7 +82,8 @@ Options: ``drift``, ``drift_<label>``,
 ``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
 (Kalman iterations per update, default 1: the extended filter; more re-linearise at the
 updated mean, which measured no better on the choke models), ``huber`` (3), ``gate`` (6), ``adapt`` (0.02),
-``calibrate`` (0.05), ``cal_prior`` (2; 0: no variance factor), ``params`` (labels to filter,
+``calibrate`` (0.05), ``cal_prior`` (2; 0: no variance factor), ``cal_pool`` (``off``, the
+default; ``on``: the factor's prior from the other wells), ``params`` (labels to filter,
 joined with '+'; default all), ``refresh`` (``auto``, ``off`` or a period such as ``30d``).
 """
 
@@ -85,7 +97,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
-from scipy.special import stdtrit
+from scipy.special import gammaln, stdtrit
 
 from vfm_core.data import DTYPE, Batch
 from vfm_core.errors import ConfigError
@@ -136,6 +148,11 @@ _CAL_PRIOR = 2.0
 #: ... and how much each new error discounts the older ones (a memory of about 100 well
 #: tests a well: West and Harrison's variance discount)
 _CAL_DISCOUNT = 0.99
+#: the prior weights k (as fractions of the way from nu0 to nu0 + n, geometric) among which
+#: the pooled prior's is chosen (see :func:`_pooled_prior`)
+_POOL_GRID = np.linspace(0.0, 1.0, 33)
+#: ... and the fixed-point steps of the prior's scale for each weight
+_POOL_STEPS = 6
 #: the compiled step's forecast errors when none is wanted (cal, counted, cap 0: off, discount)
 _NO_ERRORS = (np.zeros((0, 2, 3)), np.zeros(1, dtype=np.int64), 0.0, _CAL_DISCOUNT)
 #: how often a shared model's network is refitted under the filter by default (see
@@ -406,6 +423,56 @@ def _refresh_period(text: str, model: ChokeModel) -> int | None:
     return int(span.value)
 
 
+def _pooled_prior(
+    count: np.ndarray, total: np.ndarray, nu0: float, outside: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each well's prior for its well-test variance factor c^2 from the other wells' errors:
+    ``(k, c0sq)`` [W], the prior InvGamma(k / 2, k c0sq / 2). ``count`` [W] and ``total``
+    [W] are each well's (discounted) number and sum of squared standardised forecast errors;
+    ``outside`` [K, 2] the same (count, total) of wells of the field outside this filter
+    (the service's one-well filters: :meth:`BayesianFilter.pool_with`).
+
+    Type-II maximum likelihood (empirical Bayes): the prior under which the other wells'
+    errors are most likely, each well's errors given (k, c0sq) a scaled multivariate t,
+    p(z) ∝ Gamma(k/2 + n/2) / Gamma(k/2) (k c0sq / 2)^(k/2) / (k c0sq / 2 + sum z^2 /
+    2)^(k/2 + n/2). The stated prior (c^2 = 1, worth nu0 errors) counts as one more well
+    with nu0 errors of z^2 = 1. k, the prior's weight in errors, is the best of
+    :data:`_POOL_GRID` in [nu0, nu0 + the other wells' n] (never weaker than the stated
+    prior, never worth more errors than it was taken from), c0sq the best for it
+    (:data:`_POOL_STEPS` fixed-point steps). Wells that agree give a large k, wells that
+    disagree the smallest. A well's own errors are left out of its prior (they update it).
+    With no other well's error: k = nu0, c0sq = 1 (the stated prior)."""
+    n_w = len(count)
+    if outside is not None and len(outside):
+        count = np.concatenate([count, outside[:, 0]])
+        total = np.concatenate([total, outside[:, 1]])
+    live = count > 0
+    n_o = count.sum() - count[:n_w]
+    if not (n_o > 0).any():
+        return np.full(n_w, nu0), np.ones(n_w)  # no well has another's errors
+    grid = nu0 * ((nu0 + float(count.sum())) / nu0) ** _POOL_GRID  # [G]
+    a = grid[None, :, None] / 2  # [1, G, 1]: k / 2
+    # the other wells j of each well w, and the stated prior as one more: [W, 1, J + 1]
+    n = np.append(count, nu0)[None, None, :]
+    s = np.append(total, nu0)[None, None, :]
+    others = np.ones((n_w, len(count) + 1), dtype=bool)
+    others[:, :-1] = live[None, :]
+    others[np.arange(n_w), np.arange(n_w)] = False
+    mask = others[:, None, :]
+    m = others.sum(1)[:, None, None]  # [W, 1, 1]
+    pooled = ((s * mask).sum(2) / (n * mask).sum(2))[:, :, None]  # [W, 1, 1]
+    b = a * pooled  # [W, G, 1]: k c0sq / 2, from the pooled mean
+    # the scale's likelihood equation m a / b = sum (a + n/2) / (b + s/2), by fixed point
+    for _ in range(_POOL_STEPS):
+        b = m * a / np.where(mask, (a + n / 2) / (b + s / 2), 0.0).sum(2, keepdims=True)
+    ll = gammaln(a + n / 2) - gammaln(a) + a * np.log(b) - (a + n / 2) * np.log(b + s / 2)
+    ll = np.where(mask, ll, 0.0).sum(2)  # [W, G]
+    ll = np.where(grid[None, :] <= nu0 + n_o[:, None] + 1e-9, ll, -np.inf)
+    best = np.argmax(ll, axis=1)
+    k = grid[best]
+    return k, 2.0 * b[np.arange(n_w), best, 0] / k
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not (math.isfinite(value) and value >= 0):
@@ -437,6 +504,7 @@ class BayesianFilter(LearningMethod):
         adapt: float = 0.02,
         calibrate: float = 0.05,
         cal_prior: float = _CAL_PRIOR,
+        cal_pool: str = "off",
         params: tuple[str, ...] = (),
         refresh: str = "auto",
     ) -> None:
@@ -458,6 +526,12 @@ class BayesianFilter(LearningMethod):
         self.calibrate = calibrate
         #: prior weight of the intervals' variance factor (0: the filter's variance as it is)
         self.cal_prior = cal_prior
+        if cal_pool not in ("on", "off"):
+            raise ConfigError(f"Method '{text}': cal_pool must be 'on' or 'off', not '{cal_pool}'.")
+        #: the variance factor's prior from the other wells' errors (see :func:`_pooled_prior`)
+        self.cal_pool = cal_pool == "on"
+        #: (count, total) [K, 2] of the field's wells outside this filter (:meth:`pool_with`)
+        self._outside: np.ndarray | None = None
         self.params = tuple(params)
         #: the refit's period: ``auto`` (every 14 days for a shared model, else never),
         #: ``off`` or a span such as ``30d`` (see :meth:`retrain_due`)
@@ -495,6 +569,7 @@ class BayesianFilter(LearningMethod):
                 "adapt": _positive,
                 "calibrate": _positive,
                 "cal_prior": _positive,
+                "cal_pool": str,
                 "params": lambda v: tuple(p for p in v.split("+") if p),
                 "refresh": lambda v: _refresh_text(v, text),
             },
@@ -947,11 +1022,21 @@ class BayesianFilter(LearningMethod):
             cal[w, 1, 0] = _CAL_DISCOUNT * cal[w, 1, 0] + 1.0
             cal[w, 1, 1] = _CAL_DISCOUNT * cal[w, 1, 1] + z2[w, k]
 
+    def _factor_prior(self, count: np.ndarray, total: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each well's prior InvGamma(k / 2, k c0sq / 2) for its well-test variance factor:
+        ``(k, c0sq)`` [W], from the other wells' errors (:func:`_pooled_prior`) with
+        ``cal_pool``, else the stated one (k = nu0 = ``cal_prior``, c0sq = 1)."""
+        nu0 = float(self.cal_prior)
+        if self.cal_pool:
+            return _pooled_prior(count, total, nu0, self._outside)
+        return np.full(len(count), nu0), np.ones(len(count))
+
     def _apply_calibration(self) -> None:
-        """Put each started well's variance factor into its intervals: the forecast of a
-        log rate is then a Student t with nu0 + n degrees of freedom and scale
-        sqrt((nu0 + sum z^2) / (nu0 + n)) times the filter's spread, so the central 90 %
-        interval's half-width is t_0.95(nu0 + n) sqrt(...) sd instead of 1.645 sd. Few
+        """Put each started well's variance factor into its intervals: with the prior
+        InvGamma(k / 2, k c0sq / 2) (:meth:`_factor_prior`; k = nu0, c0sq = 1 unpooled) the
+        forecast of a log rate is a Student t with k + n degrees of freedom and scale
+        sqrt((k c0sq + sum z^2) / (k + n)) times the filter's spread, so the central 90 %
+        interval's half-width is t_0.95(k + n) sqrt(...) sd instead of 1.645 sd. Few
         errors give a heavy tail (t_0.95(2) = 2.92), many the normal's 1.645 times what
         the errors say. Kept in ``_scale`` (log), beside the conformal factor."""
         if self.cal_prior <= 0:
@@ -960,8 +1045,9 @@ class BayesianFilter(LearningMethod):
         # the well tests' factor only (MPFM readings come twice a day: the conformal factor
         # calibrates them within weeks; their log factor cal[:, 0, 2] stays 0)
         count, total, before = cal[:, 1, 0], cal[:, 1, 1], cal[:, 1, 2]
-        nu = self.cal_prior + count
-        log_f = np.log(stdtrit(nu, 0.95) / Z90) + 0.5 * np.log((self.cal_prior + total) / nu)
+        k, c0sq = self._factor_prior(count, total)
+        nu = k + count
+        log_f = np.log(stdtrit(nu, 0.95) / Z90) + 0.5 * np.log((k * c0sq + total) / nu)
         log_f = np.where(self._started.numpy(), log_f, before)
         scale[:, 1] += log_f - before
         cal[:, 1, 2] = log_f
@@ -1314,14 +1400,40 @@ class BayesianFilter(LearningMethod):
     # -- state ----------------------------------------------------------------------------------
     def well_test_factor(self) -> torch.Tensor:
         """Each well's learned well-test variance factor c^2 [W]: the scale
-        (nu0 + sum z^2) / (nu0 + n) of its InvGamma posterior (see
-        :meth:`_learn_calibration`); 1 for a well with no error yet, and for every well with
-        ``cal_prior`` = 0. A copy: the allocation of a separator's total reads it
+        (k c0sq + sum z^2) / (k + n) of its InvGamma posterior (see
+        :meth:`_learn_calibration` and :meth:`_factor_prior`); the prior's c0sq for a well
+        with no error yet (1 unpooled), 1 for every well with ``cal_prior`` = 0. A copy: the
+        allocation of a separator's total reads it
         (:func:`vfm_core.separator.well_test_factor`)."""
-        nu0 = float(self.cal_prior)
-        if nu0 <= 0:
+        if self.cal_prior <= 0:
             return torch.ones(self._cal.shape[0], dtype=DTYPE)
-        return (nu0 + self._cal[:, 1, 1]) / (nu0 + self._cal[:, 1, 0])
+        count, total = self._cal[:, 1, 0].numpy(), self._cal[:, 1, 1].numpy()
+        k, c0sq = self._factor_prior(count, total)
+        return torch.from_numpy((k * c0sq + total) / (k + count)).to(DTYPE)
+
+    def well_test_errors(self) -> torch.Tensor:
+        """Each well's (discounted) number and sum of squared standardised well-test
+        forecast errors [W, 2] (the variance factor's statistics, see
+        :meth:`_learn_calibration`). A copy: what :meth:`pool_with` of another filter of the
+        same field takes."""
+        return self._cal[:, 1, :2].clone()
+
+    def pool_with(self, outside: torch.Tensor | None) -> None:
+        """With ``cal_pool``: count ``outside`` [K, 2] (:meth:`well_test_errors` of the
+        field's wells outside this filter, e.g. the service's other one-well filters of the
+        same model) among the other wells whose errors set each well's prior
+        (:func:`_pooled_prior`), and put the factors into the intervals again. One-well
+        filters so pooled give the factors of one filter over all the wells. ``None``: none
+        outside."""
+        if outside is None or outside.numel() == 0:
+            self._outside = None
+        else:
+            values = torch.as_tensor(outside, dtype=DTYPE).reshape(-1, 2).numpy().copy()
+            if not (np.isfinite(values).all() and (values >= 0).all()):
+                raise ValueError("The wells' well-test error statistics must be finite and >= 0.")
+            self._outside = values
+        if self._dim and self.cal_prior > 0:
+            self._apply_calibration()
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
