@@ -62,7 +62,7 @@ import pandas as pd
 
 from vfm_core.faults_sim import inject_fault
 from vfm_core.schema import INPUT_COLUMNS
-from vfm_core.sensor_faults import KINDS, WellSensorFaults
+from vfm_core.sensor_faults import KINDS, WellSensorFaults, mpfm_rates
 from vfm_core.simulate import simulate_field
 
 DEFAULT_FAULTS = (
@@ -99,8 +99,7 @@ def run_well(g: pd.DataFrame) -> tuple[list, float]:
     det = WellSensorFaults()
     times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").tolist()
     values = g[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
-    q = pd.to_numeric(g["q_total"], errors="coerce").to_numpy(dtype=float)
-    mpfm = np.where(g["source"].astype(str).to_numpy() == "mpfm", q, np.nan).tolist()
+    mpfm = mpfm_rates(g)
     seen: dict[int, object] = {}
     last = None
     started = time.process_time()  # CPU time: other processes on the machine do not count

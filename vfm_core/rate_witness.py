@@ -421,7 +421,7 @@ class ChokeRateWitness:
         return self._fit
 
     def moves_per_year(self) -> float:
-        """The well's choke moves per year (the last year's, at least 12)."""
+        """The well's choke moves per year over its last 400 moves (at least 12)."""
         if len(self.move_times) < 2:
             return _MIN_MOVES_PER_YEAR
         span = (self.move_times[-1] - self.move_times[0]) / _NS_PER_DAY / 365.25
