@@ -33,7 +33,7 @@ Usage::
 
 ``--study`` measures instead the error of ``vfm evaluate`` during a fault and after it
 (:func:`study_errors`): per seed, ``vfm simulate`` writes the field clean and again with one
-fault per well (``--study-fault kind:sensor``, ``--fault-days`` long, from a random day at
+fault per well (``--study-fault kind:sensor[:size]``, ``--fault-days`` long, from a random day at
 least ``--history-days`` after the well's first row and ``--fault-days`` + 60 days before
 its last; seeded), ``vfm evaluate`` (``--models``, ``--methods``, ``--split``) studies both,
 and the study with every input taken as read (``run_study(sensor_faults=False)``, as
@@ -137,7 +137,7 @@ def _fault_specs(path: Path, args: argparse.Namespace, seed: int) -> list[str]:
 
     frame = load_observations(path).frame
     rng = np.random.default_rng(seed + 20_000)
-    kind, sensor = args.study_fault.split(":")
+    kind, sensor, *size = args.study_fault.split(":")
     specs = []
     for well, g in frame.groupby("well", sort=True):
         t = pd.to_datetime(g["time"], utc=True)
@@ -145,7 +145,8 @@ def _fault_specs(path: Path, args: argparse.Namespace, seed: int) -> list[str]:
         latest = span - args.fault_days - 60.0
         if latest > args.history_days:
             start = t.min() + pd.Timedelta(days=rng.uniform(args.history_days, latest))
-            specs.append(f"{well},{sensor},{kind},{start.isoformat()},,{args.fault_days:g}")
+            spec = f"{well},{sensor},{kind},{start.isoformat()},{''.join(size)},"
+            specs.append(spec + f"{args.fault_days:g}")
     return specs
 
 
@@ -247,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--history-days", type=float, default=180.0)
     ap.add_argument("--markdown", help="also write the tables as Markdown to this file")
     ap.add_argument("--study", action="store_true", help="error of vfm evaluate at a fault")
-    ap.add_argument("--study-fault", default="frozen:p_down", help="kind:sensor (--study)")
+    ap.add_argument(
+        "--study-fault",
+        default="frozen:p_down",
+        help="kind:sensor[:size] (--study; size as --faults, default the kind's)",
+    )
     ap.add_argument("--fault-days", type=float, default=60.0, help="fault length (--study)")
     ap.add_argument("--models", default="mm,ham", help="models (--study)")
     ap.add_argument("--methods", default="bayes,ol", help="methods (--study)")

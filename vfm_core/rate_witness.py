@@ -39,8 +39,16 @@ plans it once for every model, as the input tests):
   the looks share their readings).
 * **The fault** starts at the move and is an ``offset`` of the ``choke``. A move of the
   reading back by the same amount with no response again closes it (the reading came back);
-  the caller closes it after its ``accept_days`` otherwise. Moves while it is open teach
+  the caller closes it at a break of the well otherwise. Moves while it is open teach
   nothing (their readings carry the offset).
+* **Where the choke is** while the offset is open: the old opening moved by the response
+  the rate showed, ``u_where = u_before exp(d / beta)`` (``d`` is within chance of none, so
+  near the old opening), with sd ``u_where kappa sqrt(noise) / beta`` (the response's
+  noise over the elasticity). The reading is then off by ``shift = u_after - u_where``,
+  taken as additive (a transmitter re-zeroed wrongly: a later move of the reading is a move
+  of the choke), which :meth:`vfm_core.sensor_faults.WellSensorFaults.fallbacks` subtracts
+  from every reading until the offset closes. A transmitter whose span, not its zero, is
+  wrong makes the stand-in off by the span error times the later moves.
 
 What it cannot see: an offset that appears without a change of the reading (a choke
 re-zeroed during a shut-in, where the move is hidden in the gap), one smaller than the
@@ -94,6 +102,11 @@ class ChokeFinding:
     start_ns: int
     time_ns: int
     evidence: str
+    #: for a raised offset: how far the reading moved beyond the choke (reading units,
+    #: fraction open; the reading after the move less the opening the rate's response
+    #: says, ``u_before exp(d / beta)``), and that estimate's standard deviation
+    shift: float = 0.0
+    shift_sd: float = math.nan
 
 
 @dataclass
@@ -106,6 +119,9 @@ class _Move:
     segment: int
     decided: bool = False  # raised (or closed) a fault: not learned, not tested again
     recorded: bool = False  # its response was taken (or refused) for the elasticity
+    #: the rate's response so far is nearer none than the expected one, by a move the
+    #: readings can tell (:meth:`ChokeRateWitness.doubted`): not yet decided
+    doubt: bool = False
     #: the window before it, once made: (elasticity, adjusted log rates, largest
     #: adjustment, mean log p_up and log(p_up - p_down))
     before: tuple[float, np.ndarray, float, tuple[float, float]] | None = None
@@ -235,6 +251,13 @@ class ChokeRateWitness:
         self.moves: deque[tuple[float, float, int, int, float]] = deque(maxlen=MOVES_KEPT)
         self.move_times: deque[int] = deque(maxlen=400)
         self.open: _Move | None = None
+        #: while an offset is open: its shift (reading units), the well's rate constant
+        #: under it (``log q - beta log(reading - shift)``) at the readings that confirmed
+        #: it, and the current level's readings (segment, that constant, and the one under
+        #: the reading taken as right): :meth:`_level_check`
+        self.open_shift = 0.0
+        self.open_ref: deque[float] = deque(maxlen=60)
+        self.open_level: list[tuple[int, float, float]] = []
         self._fit: tuple[float, float, float, float, float] | None = None  # see fit()
         self._no_fit = False  # fit() found too few moves since the last complete one
 
@@ -286,11 +309,63 @@ class ChokeRateWitness:
         while self.pending and t >= self.pending[0].time_ns + self.window_ns:
             self._record(self.pending.popleft(), t)
         self._extend(t, lq, lu, lp, ldp)
+        if self.open is not None:
+            found = self._level_check(t, lq)
+            if found is not None:
+                return found
         for m in self.pending:
             if not m.decided:
                 found = self._test(m, t)
                 if found is not None:
                     return found
+        return None
+
+    def _level_check(self, t: int, lq: float) -> ChokeFinding | None:
+        """While an offset is open: does the rate still say so? At each reading the
+        well's rate constant is taken both ways, ``log q - beta log(reading - shift)`` (the
+        offset stays) and ``log q - beta log(reading)`` (the reading is right again); once
+        the current level (since the latest move or break) has :data:`MIN_READINGS`
+        readings, its mean under each is compared with the constant the offset's own
+        readings gave. Nearer under the reading, by a separation of the two beyond three
+        sd of the means' noise, the offset is closed (the transmitter was set right, also
+        across a shut-in, or the reading moved back); nearer under the offset, the level's
+        readings join the reference (a slow change of the well is followed)."""
+        fit = self.fit()
+        u = self.u
+        if fit is None or u is None or u - self.open_shift <= _CLOSED_CHOKE:
+            return None
+        beta, s = fit[0], fit[1]
+        level = self.open_level
+        if level and level[0][0] != self.segment:
+            level.clear()
+        level.append((self.segment, lq - beta * math.log(u - self.open_shift),
+                      lq - beta * math.log(u)))  # fmt: skip
+        n, n_ref = len(level), len(self.open_ref)
+        if n < MIN_READINGS or n_ref < MIN_READINGS:
+            return None
+        ref = float(np.mean(self.open_ref))
+        stays = float(np.mean([v[1] for v in level]))
+        right = float(np.mean([v[2] for v in level]))
+        noise = s * math.sqrt(1.0 / n + 1.0 / n_ref)
+        if abs(right - ref) < abs(stays - ref) and abs(stays - right) > 3.0 * noise:
+            m = self.open
+            assert m is not None
+            self.open = None
+            for later in self.pending:  # a move back among them is the offset's end
+                later.decided = later.decided or later.time_ns > m.time_ns
+            since = int(self.readings.buf[self.readings.n - n, 0])  # the level's first
+            return ChokeFinding(
+                "close",
+                since,
+                t,
+                f"The rate says the choke's reading is right again: over the {n} meter "
+                f"readings since {iso(since)} the "
+                f"well's rate constant is {100 * (right - ref):+.1f} % off the offset's "
+                f"own with the reading as it is, against {100 * (stays - ref):+.1f} % with "
+                f"the offset's shift of {self.open_shift:.3g} taken off.",
+            )
+        if abs(stays - ref) <= abs(right - ref):  # the offset stays: the level joins
+            self.open_ref.extend(v[1] for v in (level if n == MIN_READINGS else level[-1:]))
         return None
 
     # -- the response of a move ---------------------------------------------------------------
@@ -453,12 +528,21 @@ class ChokeRateWitness:
         beta, s, omega, kappa, se_beta = fit
         win = self._adjusted(m, t, beta)
         n_b, n_a = win.n_before, win.n_after
-        if n_b < MIN_READINGS or n_a < MIN_READINGS:
-            return None
         d = win.d
         dlu = m.dlu
-        sign = math.copysign(1.0, dlu)
         expected = beta * dlu
+        # in doubt from the first reading after the move: its response is nearer none than
+        # the expected one, and the move is one the readings can tell (the expected response
+        # beyond three sd of the means' noise)
+        m.doubt = (
+            n_b >= MIN_READINGS
+            and n_a >= 1
+            and abs(d) < abs(d - expected)
+            and abs(expected) > 3.0 * s * math.sqrt(1 / n_b + 1 / n_a)
+        )
+        if n_b < MIN_READINGS or n_a < MIN_READINGS:
+            return None
+        sign = math.copysign(1.0, dlu)
         noise = s * s * (1 / n_b + 1 / n_a) + omega * omega + (se_beta * win.other) ** 2
         sigma = kappa * math.sqrt(noise + (se_beta * dlu) ** 2)
         # the most of the shortfall the pressures' own change could explain: the rate
@@ -486,6 +570,15 @@ class ChokeRateWitness:
                 "close", m.time_ns, t, f"The reading came back without the rate: {text}"
             )
         self.open = m
+        # where the choke is: the old opening moved by the response the rate showed, over
+        # the elasticity (d is within chance of none, so near the old opening)
+        where = m.u_before * math.exp(d / beta)
+        self.open_shift = m.u_after - where
+        after = self.readings.since(m.time_ns)
+        after = after[after[:, 2] == m.segment]
+        self.open_ref.clear()
+        self.open_ref.extend((after[:, 1] - beta * math.log(where)).tolist())
+        self.open_level = []
         return ChokeFinding(
             "raise",
             m.time_ns,
@@ -493,10 +586,23 @@ class ChokeRateWitness:
             text[0].upper() + text[1:] + " The position reading, not the choke, seems to "
             "have moved: an offset of the choke's transmitter, or a choke that no longer "
             "answers its actuator.",
+            shift=m.u_after - where,
+            shift_sd=where * kappa * math.sqrt(noise) / beta,
         )
 
+    def doubted(self, time_ns: int) -> _Move | None:
+        """The latest undecided move at or before ``time_ns`` (epoch ns) whose rate has so
+        far answered nearer none than the response its reading asks for: a reading paired
+        with a sample after it may carry an offset that the test has not decided yet (it
+        needs :data:`MIN_READINGS` readings). None when no move is in doubt."""
+        t = int(time_ns)
+        for m in reversed(self.pending):
+            if m.time_ns <= t and m.doubt and not m.decided:
+                return m
+        return None
+
     def accept(self) -> None:
-        """The caller closed the open offset after its acceptance time: the new reading is
+        """The caller closed the open offset (at a break of the well): the reading is
         taken as the choke's."""
         self.open = None
 
@@ -507,7 +613,7 @@ class ChokeRateWitness:
         def mv(m: _Move | None) -> list[Any] | None:
             if m is None:
                 return None
-            return [m.time_ns, m.u_before, m.u_after, m.segment, m.decided, m.recorded]
+            return [m.time_ns, m.u_before, m.u_after, m.segment, m.decided, m.recorded, m.doubt]
 
         return {
             "u": self.u,
@@ -516,6 +622,9 @@ class ChokeRateWitness:
             "closed_segment": self.closed_segment,
             "pending": [mv(m) for m in self.pending],
             "open": mv(self.open),
+            "open_shift": self.open_shift,
+            "open_ref": list(self.open_ref),
+            "open_level": [list(v) for v in self.open_level],
             "readings": [  # NaN (no pressure) as null: plain JSON
                 [int(r[0]), float(r[1]), int(r[2]), float(r[3])]
                 + [float(x) if math.isfinite(x) else None for x in r[4:]]
@@ -531,7 +640,9 @@ class ChokeRateWitness:
         def mv(v: Any) -> _Move | None:
             if v is None:
                 return None
-            return _Move(int(v[0]), float(v[1]), float(v[2]), int(v[3]), bool(v[4]), bool(v[5]))
+            m = _Move(int(v[0]), float(v[1]), float(v[2]), int(v[3]), bool(v[4]), bool(v[5]))
+            m.doubt = bool(v[6]) if len(v) > 6 else False  # absent from older checkpoints
+            return m
 
         self.u = None if data.get("u") is None else float(data["u"])
         self.last_ns = None if data.get("last_ns") is None else int(data["last_ns"])
@@ -540,6 +651,10 @@ class ChokeRateWitness:
         self.pending.clear()
         self.pending.extend(m for m in (mv(v) for v in data.get("pending", [])) if m is not None)
         self.open = mv(data.get("open"))
+        self.open_shift = float(data.get("open_shift", 0.0))  # absent from older checkpoints
+        self.open_ref.clear()
+        self.open_ref.extend(float(v) for v in data.get("open_ref", []))
+        self.open_level = [(int(a), float(b), float(c)) for a, b, c in data.get("open_level", [])]
         self.readings.clear()
         for r in data.get("readings", []):
             row = (int(r[0]), float(r[1]), int(r[2]), float(r[3]), _num(r[4]), _num(r[5]))

@@ -74,10 +74,17 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
 * Drift and offset are not tested on the choke's own readings (its steps are the
   operator's). A choke ``offset`` is found by its witness, the measured rate
   (:mod:`vfm_core.rate_witness`, fed by :meth:`WellSensorFaults.measure`): a move of the
-  reading that the MPFM's rate does not follow. It is closed when the reading comes back
-  the same way, or after ``accept_days``. An offset or drift open for
-  ``accept_days`` is closed and the new level taken as real (a set point that moved; the
-  evidence says so). While one input has an active fault, the others' daily tests pause:
+  reading that the MPFM's rate does not follow. It is closed when the rate says the
+  reading is right again (a move back with no response, or the well's rate level, also
+  after a shut-in when a transmitter is usually set right, matching the reading better
+  than the reading less the offset: :mod:`vfm_core.rate_witness`), never by time: its
+  evidence is the rate's, not a level's, and a choke offset left open is stood in for
+  (:meth:`WellSensorFaults.fallbacks`). Until the witness decides a move (it needs three
+  readings after it), a measurement whose rate has so far not followed the move is held
+  too (:meth:`WellSensorFaults.suspect`): a learner fast enough to follow the measured
+  rate learned a 20 % offset's error within the day it took to find it. An input's
+  offset or drift open for ``accept_days`` is closed and the new level taken as real (a
+  set point that moved; the evidence says so). While one input has an active fault, the others' daily tests pause:
   one fault at a time is located.
 
 What this does not do (yet): use the rate model's residual and its sensitivity to each
@@ -94,6 +101,8 @@ an open fault of :data:`FALLBACK_KINDS` (frozen, out of range): a value to use i
 (its last live reading moved by the input's own trend, shrunk towards none when the trend
 is lost in its noise) and a spread (the sd of the input's day-to-day changes times the
 square root of the days since, a random walk's growth, bounded by the physical range).
+A choke offset (:data:`FALLBACK_FAULTS`) stands in with the reading less the shift its
+witness estimated (where the rate says the choke is), with that estimate's sd.
 :func:`fallback_points` and :func:`widened_rates` turn a model's answers at the value and
 at the ends of its 90 % span into the rates and a widened interval; the service uses them
 (``service/engine/learning.py``, ``Learning.fallback``). The rules and their reasons are in
@@ -152,6 +161,8 @@ __all__ = [
     "KINDS",
     "HOLD_KINDS",
     "FALLBACK_KINDS",
+    "FALLBACK_FAULTS",
+    "HOLD_FAULTS",
     "DEFAULT_RANGES",
     "SensorFault",
     "Fallback",
@@ -174,6 +185,14 @@ HOLD_KINDS: tuple[str, ...] = ("frozen", "spike", "out_of_range")
 #: the lasting kinds of :data:`HOLD_KINDS` (a spike is one sample, decided only when the
 #: next one arrives)
 FALLBACK_KINDS: tuple[str, ...] = ("frozen", "out_of_range")
+#: single faults (sensor, kind) that hold learning and stand in though their kind does not:
+#: a choke offset, found by the measured rate (vfm_core.rate_witness) with a false rate
+#: measured within its share of the budget (docs/guide/sensor-faults.md), and whose size
+#: the witness estimates (the stand-in: the reading less that shift). Learning from it
+#: would teach the model the transmitter's offset (bayes pulled c_d 0.81 -> 0.73 in two
+#: weeks on a 20 % offset).
+HOLD_FAULTS: tuple[tuple[str, str], ...] = (("choke", "offset"),)
+FALLBACK_FAULTS: tuple[tuple[str, str], ...] = HOLD_FAULTS
 #: the kinds whose last trusted level is kept when they are raised (:meth:`fallbacks` can
 #: stand in for any of them; the service uses :data:`FALLBACK_KINDS`)
 _ANCHOR_KINDS: tuple[str, ...] = ("frozen", "drift", "offset", "out_of_range")
@@ -494,7 +513,8 @@ class WellSensorFaults:
     (physical span per sensor), ``frozen_memory`` (steps of history of the frozen test),
     ``spike_window`` (one-step changes in the spike test's scale), ``lags`` (days in the
     long-run factor of the drift CUSUM), ``accept_days`` (days after which a drift or
-    offset is closed and the new level taken as real).
+    input offset is closed and the new level taken as real; a choke offset is not closed
+    by time, see the module docstring).
     """
 
     def __init__(
@@ -623,20 +643,47 @@ class WellSensorFaults:
         """The (sensor, kind) pairs with an open fault."""
         return set(list(self.open))
 
-    def suspect(self, time_ns: int, kinds: Sequence[str] = HOLD_KINDS) -> SensorFault | None:
-        """The fault of one of ``kinds`` (active or recent) whose span covers the sample at
-        ``time_ns`` (epoch ns), if any: a measurement paired with that sample would teach the
-        model the fault. By default only the kinds whose false-alarm rate is measured within
-        the budget (:data:`HOLD_KINDS`): a false offset would hold a month of learning."""
+    def suspect(
+        self,
+        time_ns: int,
+        kinds: Sequence[str] = HOLD_KINDS,
+        faults: Sequence[tuple[str, str]] = HOLD_FAULTS,
+    ) -> SensorFault | None:
+        """The fault of one of ``kinds``, or one of the (sensor, kind) ``faults`` (active or
+        recent), whose span covers the sample at ``time_ns`` (epoch ns), if any: a
+        measurement paired with that sample would teach the model the fault. By default only
+        those whose false-alarm rate is measured within the budget (:data:`HOLD_KINDS`,
+        :data:`HOLD_FAULTS`): a false offset would hold a month of learning."""
         t = int(time_ns)
         for e in reversed(list(self.events)):
-            if e.kind not in kinds:
+            if e.kind not in kinds and (e.sensor, e.kind) not in faults:
                 continue
             if e.start_ns <= t and (e.end_ns is None or t < e.end_ns):
                 return e
             if e.kind == "spike" and e.start_ns == t:
                 return e
+        if ("choke", "offset") in faults:
+            return self._choke_doubt(t)
         return None
+
+    def _choke_doubt(self, t: int) -> SensorFault | None:
+        """A provisional choke offset (not an event: no alarm, no count of faults) while
+        the choke-rate witness is in doubt about a move before ``t``: the rate has so far
+        answered it nearer none than the response the reading asks for, and the test has
+        not decided yet (:meth:`vfm_core.rate_witness.ChokeRateWitness.doubted`)."""
+        m = self.witness.doubted(t)
+        if m is None:
+            return None
+        return SensorFault(
+            "choke",
+            "offset",
+            m.time_ns,
+            t,
+            f"Provisional: the choke's reading moved {m.u_before:.4g} -> {m.u_after:.4g} at "
+            f"{iso(m.time_ns)} and the measured rate has not followed it so far; a "
+            "measurement is not learned while the choke-rate witness cannot yet tell a "
+            "transmitter's offset from a real move.",
+        )
 
     def flagged(self) -> set[str]:
         """The sensors with an open fault."""
@@ -680,16 +727,25 @@ class WellSensorFaults:
             scale = _median_mad(self.changes[i])[1] * math.sqrt(self._samples_per_day())
         return float(level), float(trend), float(scale), int(at_ns)
 
-    def stands_in(self, kinds: Sequence[str] = FALLBACK_KINDS) -> bool:
-        """True while an input has an open fault of one of ``kinds`` (its samples are then
-        predicted with its fallback, one by one)."""
-        return any(k in kinds for _, k in self.open)
+    def stands_in(
+        self,
+        kinds: Sequence[str] = FALLBACK_KINDS,
+        faults: Sequence[tuple[str, str]] = FALLBACK_FAULTS,
+    ) -> bool:
+        """True while an input has an open fault of one of ``kinds`` or one of the (sensor,
+        kind) ``faults`` (its samples are then predicted with its fallback, one by one)."""
+        return any(k in kinds or (s, k) in faults for s, k in self.open)
 
     def fallbacks(
-        self, time_ns: int, values: Sequence[float], kinds: Sequence[str] = FALLBACK_KINDS
+        self,
+        time_ns: int,
+        values: Sequence[float],
+        kinds: Sequence[str] = FALLBACK_KINDS,
+        faults: Sequence[tuple[str, str]] = FALLBACK_FAULTS,
     ) -> list[Fallback]:
         """The stand-ins for the inputs of a sample (epoch ns, the six values) that have an
-        open fault of one of ``kinds``; empty when none (the usual case: one dict test).
+        open fault of one of ``kinds`` or one of the (sensor, kind) ``faults``; empty when
+        none (the usual case: one dict test).
 
         Asked before or after :meth:`update` of the sample, the answer is the same: a frozen
         input that reads another value now, or an out-of-range one back in its range, is no
@@ -701,18 +757,22 @@ class WellSensorFaults:
         day), a random walk's growth, capped so that its 90 % span is at most the range.
         With no history to scale it (NaN), the span is the whole range: nothing is known
         of where the input went. The choke (set by the operator in steps, no daily test)
-        falls in that case.
+        falls in that case, except at a choke offset (:meth:`_choke_shift`).
         """
         if not self.open:
             return []
         out: list[Fallback] = []
         done: set[str] = set()
         for (sensor, kind), fault in list(self.open.items()):
-            if kind not in kinds or sensor in done:
+            if (kind not in kinds and (sensor, kind) not in faults) or sensor in done:
                 continue
             i = SENSORS.index(sensor)
             v = float(values[i])
             low, high = self.ranges[sensor]
+            if (sensor, kind) == ("choke", "offset"):
+                out.append(self._choke_shift(fault, v))
+                done.add(sensor)
+                continue
             last = self.last_values
             if kind == "frozen" and last is not None:
                 if abs(v - last[i]) > _SAME * max(1.0, abs(last[i])):
@@ -733,6 +793,25 @@ class WellSensorFaults:
             out.append(Fallback(sensor, kind, i, value, spread, lo, hi, v, fault.start_ns))
             done.add(sensor)
         return out
+
+    def _choke_shift(self, fault: SensorFault, v: float) -> Fallback:
+        """The stand-in for a choke reading ``v`` (fraction open) at an open choke offset:
+        the reading less the shift the witness estimated (where the measured rate says the
+        choke is; :mod:`vfm_core.rate_witness`), with that estimate's sd (constant: a
+        transmitter's offset does not wander), clipped to the range. Absent (a checkpoint of
+        before the shift was kept): the whole move of the reading, with a quarter of it as
+        its sd."""
+        low, high = self.ranges["choke"]
+        key = "choke/offset"
+        if key not in self.anchors:
+            m = self.witness.open
+            move = 0.0 if m is None else m.u_after - m.u_before
+            self.anchors[key] = (move, 0.0, 0.25 * abs(move), fault.start_ns)
+        shift, _, sd, _ = self.anchors[key]
+        value = min(max(v - shift, low), high)
+        sd = sd if math.isfinite(sd) and sd > 0 else 0.25 * abs(shift)
+        lo, hi = max(value - _Z90 * sd, low), min(value + _Z90 * sd, high)
+        return Fallback("choke", "offset", _CHOKE, value, sd, lo, hi, v, fault.start_ns)
 
     def update(self, time_ns: int, values: Sequence[float]) -> list[SensorFault]:
         """Feed one sample (epoch ns, data time, in time order; ``values`` in the order of
@@ -788,7 +867,6 @@ class WellSensorFaults:
         choke, p_up, p_down = (float(values[i]) for i in range(3))
         if w.u is None or abs(choke - w.u) > _SAME * max(1.0, abs(w.u)):
             return out
-        self._accept_choke(t, out)
         found = w.rate(t, float(q_total), p_up, p_down)
         if found is None:
             return out
@@ -798,18 +876,8 @@ class WellSensorFaults:
                 self._close("choke", "offset", t, out)
         elif ("choke", "offset") not in self.open:
             self._raise(SensorFault("choke", "offset", found.start_ns, t, found.evidence), out)
+            self.anchors["choke/offset"] = (found.shift, 0.0, found.shift_sd, found.start_ns)
         return out
-
-    def _accept_choke(self, t: int, out: list[SensorFault]) -> None:
-        """A choke offset open for ``accept_days`` is closed: its reading is taken as real."""
-        fault = self.open.get(("choke", "offset"))
-        if fault is not None and (t - fault.detected_ns) / _NS_PER_DAY >= self.accept_days:
-            fault.evidence += (
-                f" After {self.accept_days:g} days the reading is taken as the choke's (the "
-                "rate model learns the offset, or the transmitter was set right)."
-            )
-            self._close("choke", "offset", t, out)
-            self.witness.accept()
 
     # -- helpers ------------------------------------------------------------------------------
     def _interval_ns(self) -> float:

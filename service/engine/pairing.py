@@ -257,8 +257,9 @@ class Pairing:
         b.ops.append(MarkHeld(well=st.well, source=p.source, time_ns=p.time_ns))
         error = InvalidRequest(
             f"The {p.source} measurement of {st.well} at {iso(p.time_ns)} is stored but "
-            f"not learned from: at its sample ({iso(sample.time_ns)}) {fault.sensor} had a "
-            f"{fault.kind} fault since {iso(fault.start_ns)}. {fault.evidence}",
+            f"not learned from: at its sample ({iso(sample.time_ns)}) {fault.sensor} had "
+            f"{'an' if fault.kind[0] in 'aeiou' else 'a'} {fault.kind} fault since "
+            f"{iso(fault.start_ns)}. {fault.evidence}",
             "sensor fault at the sample",
         )
         refuse(self.counters, error, st.well, b, p.future)

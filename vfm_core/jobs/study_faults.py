@@ -102,6 +102,9 @@ def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan
                 last_t = t
             if math.isfinite(mpfm[pos]):  # the choke-rate witness (vfm_core.rate_witness)
                 det.measure(t, float(mpfm[pos]), values[pos].tolist())
+                # as the service: the rate fed first, then the hold asked (a choke offset
+                # found, or in doubt, with this very reading)
+                in_fault = det.suspect(t) is not None
             held[pos] = in_fault
             if used:
                 stand_ins[pos] = used
