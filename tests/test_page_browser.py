@@ -339,6 +339,16 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
         " && document.querySelector('#field-table tr[data-well=\"W01\"]').innerText.includes('MPFM reads')"
     )
     assert "MPFM reads" not in page.locator('#field-table tr[data-well="W02"]').inner_text()
+    # opened after the replay (no live prediction since): the interval column still gives
+    # each bayes well's latest 90 % interval width, from GET /wells/{well}
+    page.reload()
+    page.wait_for_selector('#field-table tr[data-well="W02"]')
+    assert page.evaluate("Object.keys(window.vfm.latest).length") == 0  # none live
+    width = page.locator('#field-table tr[data-well="W02"] td').nth(6).inner_text()
+    latest = httpx.get(served.proc.http_url + "/wells/W02", timeout=10).json()
+    latest = latest["latest_prediction"]
+    expected = 100 * (latest["q_total_p95"] - latest["q_total_p05"]) / latest["q_total"]
+    assert width != "\u2013" and 0.5 * expected < float(width) < 2 * expected, (width, latest)
     page.screenshot(path=str(SHOTS / "field-alarm.png"), full_page=True)
 
     # nothing of the replay was lost on the way (a well that starts after the split has no

@@ -159,6 +159,8 @@ class Observer:
         self._lock = threading.Lock()
         self._subscribers: set[Subscription] = set()
         self._intervals: dict[str, OrderedDict[int, tuple[float, float]]] = {}
+        #: per well, its latest stored prediction: time ns, q_total, p05, p95 (Sm3/h)
+        self._latest: dict[str, tuple[int, float, float | None, float | None]] = {}
         self._measured: OrderedDict[tuple[str, str, int], float] = OrderedDict()
         self._coverage: dict[str, deque[bool]] = {}
         self.drift_events: Counter[str] = Counter()
@@ -292,6 +294,9 @@ class Observer:
         if op.q_total is None:
             return
         self.predictions[op.well] += 1
+        latest = self._latest.get(op.well)
+        if latest is None or op.time_ns >= latest[0]:
+            self._latest[op.well] = (op.time_ns, op.q_total, op.q_total_p05, op.q_total_p95)
         if op.received_ns > 0 and now_ns >= op.received_ns:
             waited.append((now_ns - op.received_ns) / 1e9)
         if op.q_total_p05 is not None and op.q_total_p95 is not None:
@@ -352,6 +357,17 @@ class Observer:
                     "version_after": change.get("version_after"),
                 }
             )
+
+    def latest_prediction(self, well: str) -> dict[str, Any] | None:
+        """The well's latest prediction stored since the service started: ``time`` (ISO
+        8601 UTC), ``q_total`` and its 90 % interval ``q_total_p05``, ``q_total_p95``
+        (Sm3/h; null for a method without one); None before any. The page reads its
+        interval width from it when no live prediction has reached it yet."""
+        with self._lock:
+            v = self._latest.get(well)
+        if v is None:
+            return None
+        return {"time": iso(v[0]), "q_total": v[1], "q_total_p05": v[2], "q_total_p95": v[3]}
 
     # -- what /metrics reads ----------------------------------------------------------------
     def coverage(self) -> dict[str, tuple[float, int]]:

@@ -246,6 +246,13 @@ class TrialOut(BaseModel):
     )
     model: str = Field(description="the new model (live)")
     shadow_model: str = Field(description="the replaced model, running as the shadow")
+    method: str | None = Field(
+        default=None,
+        description="the new model's learning method (null in a trial of an older service)",
+    )
+    shadow_method: str | None = Field(
+        default=None, description="the shadow's learning method (a change may be of it alone)"
+    )
     n: int = Field(description="measurements paired with both models' predictions")
     mape: float | None = Field(description="MAPE (%) of the new model over those")
     shadow_mape: float | None = Field(description="MAPE (%) of the shadow over the same")
@@ -293,6 +300,11 @@ class HoldoutOut(BaseModel):
     )
     unit: str = "%"
     fit_s: float | None = Field(default=None, description="time the fits took, s")
+    confirmed_worse: bool | None = Field(
+        default=None,
+        description="true when the check said worse and the change was applied as confirmed "
+        "(confirm_worse); null when the check had nothing to compare",
+    )
 
 
 class ModelChangeOut(BaseModel):
@@ -350,6 +362,12 @@ class WellOut(WellSummary):
         default_factory=list,
         description="well tests held for review, not learned until accepted, oldest first "
         "(POST /wells/{well}/measurements/review decides)",
+    )
+    latest_prediction: dict[str, Any] | None = Field(
+        default=None,
+        description="the latest prediction stored since the service started: time, q_total "
+        "and its 90 % interval q_total_p05, q_total_p95 (Sm3/h; null for a method without "
+        "one); null before any",
     )
     sensor_faults: list[dict[str, Any]] = Field(
         default_factory=list,

@@ -71,6 +71,7 @@ def well_state(well: WellPath, engine: MaybeEngineDep, service: ServiceDep) -> d
         out["residual_alarm"] = st.residual_alarm_state()
         out["sensor_faults"] = st.sensor_faults_view()  # vfm_core.sensor_faults
         out["fallback"] = st.fallback  # the inputs replaced at the latest sample, or None
+        out["latest_prediction"] = engine.observer.latest_prediction(well)
     return out
 
 

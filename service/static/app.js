@@ -111,7 +111,8 @@ const day = (iso) => (iso || "").slice(0, 10);
 const minute = (iso) => (iso || "").slice(0, 16).replace("T", " ");
 
 function widthOf(well) {
-  const p = state.latest[well];
+  // the latest live prediction, else (a page opened after the predictions) the well view's
+  const p = state.latest[well] || (state.wells[well] || {}).latest_prediction;
   if (!p || p.q_total_p05 == null || p.q_total_p95 == null || !p.q_total) return null;
   return 100 * (p.q_total_p95 - p.q_total_p05) / p.q_total;
 }
@@ -601,7 +602,10 @@ function renderTrial(v) {
   const test = t.p_value == null ? "" : ` (one-sided p ${fmt(t.p_value, 3)} that the shadow is better)`;
   el.className = "trial " + t.outcome;
   el.dataset.outcome = t.outcome;
-  el.textContent = `Trial of ${t.model} against its shadow ${t.shadow_model} since ${(t.since || "").replace("+00:00", "Z")}: ` +
+  // a change of the learning method alone keeps the model's name: name the methods then
+  const named = t.method && t.shadow_method && t.method !== t.shadow_method;
+  const label = (m, k) => named ? `${m} (${k})` : m;
+  el.textContent = `Trial of ${label(t.model, t.method)} against its shadow ${label(t.shadow_model, t.shadow_method)} since ${(t.since || "").replace("+00:00", "Z")}: ` +
     `MAPE ${fmt(t.mape, 2)} % against the shadow's ${fmt(t.shadow_mape, 2)} % over ${t.n} paired measurement(s)${test}. ` +
     `Outcome: ${what}` + (t.outcome === "running" ? ` until ${(t.until || "").replace("+00:00", "Z")} of data (at least ${t.min_pairs ?? ""} pairs).` : ".") +
     (t.why ? " " + t.why : "") + (t.rule ? ` Rule: ${t.rule}` : "");
