@@ -197,6 +197,7 @@ def test_the_loop_keeps_a_good_change_and_rolls_back_a_wrong_one(
         )
         assert confirmed.status_code == 200, confirmed.text
         assert confirmed.json()["holdout"]["after"] > confirmed.json()["holdout"]["before"]
+        assert confirmed.json()["holdout"]["confirmed_worse"] is True  # the reply says so
         version_wrong = confirmed.json()["version_after"]
         observer = svc.engine.observer
         observer.client_capacity = 1_000_000  # every event of the replay kept for the check

@@ -358,6 +358,8 @@ class ModelChanges:
             shadow_version=old.version,
             shadow=old,
             settings=self.settings.trial,
+            method=new.method.text,
+            shadow_method=old.method.text,
         )
         st.trial = trial
         return trial

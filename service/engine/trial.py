@@ -187,6 +187,8 @@ class Trial:
         shadow_version: int,
         shadow: Learner | None,
         settings: TrialSettings,
+        method: str | None = None,
+        shadow_method: str | None = None,
     ) -> None:
         self.well = well
         self.since_ns = since_ns
@@ -194,6 +196,9 @@ class Trial:
         self.shadow_model = shadow_model
         self.version = version  # the new model's version at the change
         self.shadow_version = shadow_version  # the shadow's at the change
+        # the learning methods (a change of method alone keeps the model's name)
+        self.method = method
+        self.shadow_method = shadow_method
         self.shadow = shadow
         self.duration_ns = int(settings.duration_s * _NS)
         self.max_ns = int(max(settings.max_duration_s, settings.duration_s) * _NS)
@@ -357,14 +362,15 @@ class Trial:
         )
         if learning is not None:
             learning.counters.event(f"trials {outcome}")
+        named = self.method != self.shadow_method  # a change of method: name both
         logger.info(
             "Trial of %s on %s: %s (MAPE %s %% against the shadow %s's %s %% over %d paired "
             "measurement(s)). %s",
-            self.model,
+            _label(self.model, self.method if named else None),
             self.well,
             outcome.replace("_", " "),
             _fmt(summary["mape"]),
-            self.shadow_model,
+            _label(self.shadow_model, self.shadow_method if named else None),
             _fmt(summary["shadow_mape"]),
             self.n,
             self.why,
@@ -379,6 +385,8 @@ class Trial:
             "until": iso(self.since_ns + self.duration_ns),
             "model": self.model,
             "shadow_model": self.shadow_model,
+            "method": self.method,
+            "shadow_method": self.shadow_method,
             "version": self.version,
             "shadow_version": self.shadow_version,
             "n": n,
@@ -412,6 +420,8 @@ class Trial:
             "since_ns": self.since_ns,
             "model": self.model,
             "shadow_model": self.shadow_model,
+            "method": self.method,
+            "shadow_method": self.shadow_method,
             "version": self.version,
             "shadow_version": self.shadow_version,
             "settings": {
@@ -452,6 +462,8 @@ class Trial:
             shadow_version=int(data["shadow_version"]),
             shadow=None,
             settings=settings,
+            method=data.get("method"),  # None in the state of an older service
+            shadow_method=data.get("shadow_method"),
         )
         for k, n, sn, ss in data.get("blocks", []):
             trial.blocks[int(k)] = [int(n), float(sn), float(ss)]
@@ -576,6 +588,11 @@ def _checkpoint(learning: Learning, st: WellState, ops: list[Op]) -> None:
         ops.extend(learning.checkpoints.ops(st))
     finally:
         st.learn_seq = recorded
+
+
+def _label(model: str, method: str | None) -> str:
+    """A model as the log names it: with its method when the trial changed the method."""
+    return model if method is None else f"{model} ({method})"
 
 
 def _fmt(value: float | None) -> str:
