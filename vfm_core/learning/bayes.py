@@ -62,9 +62,13 @@ is the model's parameters, the covariance P is kept here.
   the well's own errors then update it as above (t with k + n degrees of freedom). Wells
   that agree give a large k (the factor learned from all of them), wells that disagree a
   small one (each its own). A filter of one well has no others: the rule above, unless
-  given the other wells' statistics (:meth:`BayesianFilter.pool_with`). Off by default
-  until the service's one-well filters are given them (its allocation checks that they
-  give the factors of one filter over all the wells).
+  given the other wells' statistics (:meth:`BayesianFilter.pool_with`, or a
+  :class:`CalibrationPool` shared by one-well filters, :meth:`BayesianFilter.share_errors`:
+  each reads the others' statistics as they were before its time). The search is compiled
+  (:mod:`vfm_core.learning._pool_kernels`, the same numbers). Off by default: the service
+  does not share a pool yet, and ``vfm evaluate`` replays per-well models in rounds of each
+  well's k-th measurement, not in time order, so its pooled figures use other wells' later
+  errors (docs/guide/bayes.md, "The order of the study's rounds").
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
 Bayesian learning); the layers below stay as fitted.
@@ -91,7 +95,8 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Hashable, Sequence
+import threading
+from collections.abc import Collection, Hashable, Sequence
 from typing import Any
 
 import numpy as np
@@ -128,7 +133,7 @@ from vfm_core.learning.stacking import stack_for_learning, stacked_rates
 from vfm_core.models import ChokeModel
 from vfm_core.models.base import FilterBlock
 
-__all__ = ["BayesianFilter", "laplace_sd", "NOISE_DEFAULTS", "Z90"]
+__all__ = ["BayesianFilter", "CalibrationPool", "laplace_sd", "NOISE_DEFAULTS", "Z90"]
 
 #: a central 90 % interval spans +-Z90 standard deviations (in log space)
 Z90 = 1.6448536269514722
@@ -153,6 +158,9 @@ _CAL_DISCOUNT = 0.99
 _POOL_GRID = np.linspace(0.0, 1.0, 33)
 #: ... and the fixed-point steps of the prior's scale for each weight
 _POOL_STEPS = 6
+#: the publications a :class:`CalibrationPool` keeps per well (a reader asks for the
+#: statistics as they were before its time: a few back cover a batch's or a worker's lag)
+_POOL_KEEP = 8
 #: the compiled step's forecast errors when none is wanted (cal, counted, cap 0: off, discount)
 _NO_ERRORS = (np.zeros((0, 2, 3)), np.zeros(1, dtype=np.int64), 0.0, _CAL_DISCOUNT)
 #: how often a shared model's network is refitted under the filter by default (see
@@ -446,11 +454,27 @@ def _pooled_prior(
     if outside is not None and len(outside):
         count = np.concatenate([count, outside[:, 0]])
         total = np.concatenate([total, outside[:, 1]])
-    live = count > 0
+    kernel = _pool_kernel()
+    if kernel is not None:  # the same numbers, one loop per well (see _pool_kernels)
+        k, c0sq = np.empty(n_w), np.empty(n_w)
+        count, total = np.ascontiguousarray(count, float), np.ascontiguousarray(total, float)
+        kernel.pooled_prior(count, total, n_w, float(nu0), _POOL_GRID, _POOL_STEPS, k, c0sq)
+        return k, c0sq
     n_o = count.sum() - count[:n_w]
     if not (n_o > 0).any():
         return np.full(n_w, nu0), np.ones(n_w)  # no well has another's errors
     grid = nu0 * ((nu0 + float(count.sum())) / nu0) ** _POOL_GRID  # [G]
+    return _pooled_prior_numpy(count, total, n_w, nu0, grid)
+
+
+def _pooled_prior_numpy(
+    count: np.ndarray, total: np.ndarray, n_w: int, nu0: float, grid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_pooled_prior` in numpy (the reference; ``VFM_KERNELS=0``): ``count`` and
+    ``total`` [J0] of the filter's ``n_w`` wells then the outside ones, ``grid`` [G] the
+    prior weights searched. Arrays of wells x weights x wells."""
+    live = count > 0
+    n_o = count.sum() - count[:n_w]
     a = grid[None, :, None] / 2  # [1, G, 1]: k / 2
     # the other wells j of each well w, and the stated prior as one more: [W, 1, J + 1]
     n = np.append(count, nu0)[None, None, :]
@@ -471,6 +495,92 @@ def _pooled_prior(
     best = np.argmax(ll, axis=1)
     k = grid[best]
     return k, 2.0 * b[np.arange(n_w), best, 0] / k
+
+
+class CalibrationPool:
+    """The well-test error statistics of wells whose filters are kept apart (the service's
+    one filter a well), so that each well's variance factor takes its prior from all the
+    others' errors with ``cal_pool=on`` (:meth:`BayesianFilter.share_errors`).
+
+    Ordered in time, as one filter over all the wells learning the field's measurements
+    in time order: a filter reading the pool at time t (a prediction or an update at t)
+    counts each other well's (discounted) error count and sum of squares as they were
+    after its measurements before t (:meth:`outside`); a filter that learned a well test
+    at t publishes its statistics at t (:meth:`publish`). So the order in which threads
+    handle wells with measurements at one time does not change the numbers. Thread-safe
+    (one lock; the service's workers share one pool per model). Holds two numbers and a
+    time per publication, :data:`_POOL_KEEP` publications a well."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._history: dict[str, list[tuple[int, float, float]]] = {}
+        #: the latest publication's time (epoch ns), and a count of changes: a reader after
+        #: every publication that saw the same count reads the same statistics again
+        self.newest = NEVER
+        self.generation = 0
+
+    def publish(self, well: str, time_ns: int, count: float, total: float) -> None:
+        """``well``'s statistics after its measurement at ``time_ns`` (epoch ns): the
+        discounted number ``count`` and sum of squares ``total`` of its standardised
+        well-test forecast errors (finite, >= 0)."""
+        if not (math.isfinite(count) and math.isfinite(total) and count >= 0 and total >= 0):
+            raise ValueError(
+                f"Well {well}'s well-test error statistics must be finite and >= 0, "
+                f"not ({count}, {total})."
+            )
+        with self._lock:
+            rows = self._history.setdefault(well, [])
+            rows.append((int(time_ns), float(count), float(total)))
+            if len(rows) > 1 and rows[-2][0] > rows[-1][0]:
+                rows.sort(key=lambda row: row[0])
+            del rows[:-_POOL_KEEP]
+            self.newest = max(self.newest, int(time_ns)) if self.newest != NEVER else int(time_ns)
+            self.generation += 1  # (after newest: a reader that sees the count sees the time)
+
+    def forget(self, well: str) -> None:
+        """Drop ``well`` (removed, or restarted with a new model)."""
+        with self._lock:
+            self._history.pop(well, None)
+            self.generation += 1
+
+    def outside(self, wells: Collection[str], time_ns: int) -> np.ndarray:
+        """The statistics [K, 2] (count, sum of squares) of every well not in ``wells`` that
+        published before ``time_ns``, each its latest before then; wells in name order."""
+        out = []
+        with self._lock:
+            for well in sorted(self._history):
+                if well in wells:
+                    continue
+                latest = None
+                for t, count, total in self._history[well]:
+                    if t < time_ns:
+                        latest = (count, total)
+                if latest is not None:
+                    out.append(latest)
+        return np.array(out, dtype=float).reshape(-1, 2)
+
+
+def _first_time(batch: Batch, row: int | None = None) -> int | None:
+    """The earliest sample time (epoch ns) of ``batch`` (of its well ``row``), or None."""
+    times = batch.time_ns if row is None else batch.time_ns[row]
+    mask = batch.mask if row is None else batch.mask[row]
+    return int(times[mask].min()) if bool(mask.any()) else None
+
+
+_POOL_KERNEL: list[Any] = []
+
+
+def _pool_kernel() -> Any:
+    """The compiled pooled prior (:mod:`vfm_core.learning._pool_kernels`), or None when the
+    kernels are off or numba is missing (the numpy reference then runs)."""
+    if not _POOL_KERNEL:
+        try:
+            from vfm_core.learning import _pool_kernels
+
+            _POOL_KERNEL.append(_pool_kernels.load())
+        except ImportError:  # pragma: no cover - numba missing
+            _POOL_KERNEL.append(None)
+    return _POOL_KERNEL[0]
 
 
 def _positive(text: str) -> float:
@@ -532,6 +642,12 @@ class BayesianFilter(LearningMethod):
         self.cal_pool = cal_pool == "on"
         #: (count, total) [K, 2] of the field's wells outside this filter (:meth:`pool_with`)
         self._outside: np.ndarray | None = None
+        #: the pool shared with the other wells' filters (:meth:`share_errors`), if any,
+        #: and whether the factors must be put in again at the next reading of it
+        self._pool: CalibrationPool | None = None
+        self._pool_stale = False
+        #: the pool's change count at the last reading after all its publications (-1: none)
+        self._pool_seen = -1
         self.params = tuple(params)
         #: the refit's period: ``auto`` (every 14 days for a shared model, else never),
         #: ``off`` or a span such as ``30d`` (see :meth:`retrain_due`)
@@ -814,6 +930,7 @@ class BayesianFilter(LearningMethod):
         mean = predict_rates(self.model, batch)
         if self._dim == 0 or self.model.gradient_free:
             return Forecast(mean)
+        self._sync_pool(batch)
         return self._forecast(mean, batch)
 
     def _forecast(self, mean: torch.Tensor, batch: Batch) -> Forecast:
@@ -873,6 +990,9 @@ class BayesianFilter(LearningMethod):
         assert isinstance(first, BayesianFilter)
         if first.model.gradient_free or first._dim == 0:
             return Forecast(mean)
+        for k, method in enumerate(methods):  # each well's prior from the pool at its time
+            assert isinstance(method, BayesianFilter)
+            method._sync_pool(batch, k)
         return cls._joined(methods, _PREDICT_STATE)._forecast(mean, batch)
 
     @staticmethod
@@ -929,6 +1049,8 @@ class BayesianFilter(LearningMethod):
         for name, value in joint._counts.items():
             for f, row in zip(filters, value.split(1, 0), strict=True):
                 f._counts[name] = row.clone()  # type: ignore[attr-defined]
+        for f in filters:  # (their factors were put in beside each other: again alone)
+            f._pool_stale = True  # type: ignore[attr-defined]
         for k, moved in zip(ready, changed.tolist(), strict=True):
             out[k] = bool(moved)
         return out
@@ -944,12 +1066,15 @@ class BayesianFilter(LearningMethod):
         # the well tests' variance factor: their forecast errors before learning from them
         wanted = self.cal_prior > 0 and bool(batch.well_test.any())
         fresh = self.cal_prior > 0 and not bool(self._started.all())
+        self._sync_pool(batch)
         if self.compiled:  # the plain mm: the same steps, compiled (the errors learned too)
             changed, learned = self._compiled_learn(batch, wanted)
         else:
             changed, learned = self._torch_learn(batch, wanted)
         if learned or fresh:
             self._apply_calibration()
+        if learned:
+            self._publish(batch)
         return changed
 
     def _torch_learn(self, batch: Batch, wanted: bool) -> tuple[torch.Tensor, bool]:
@@ -1435,6 +1560,64 @@ class BayesianFilter(LearningMethod):
         if self._dim and self.cal_prior > 0:
             self._apply_calibration()
 
+    def share_errors(self, pool: CalibrationPool | None) -> None:
+        """With ``cal_pool``: take each well's variance-factor prior from the errors of the
+        wells of ``pool`` outside this filter (the service's other one-well filters of the
+        same model), read at the time of each prediction or update (:meth:`_sync_pool`),
+        and publish this filter's wells' statistics there whenever a well test adds to
+        them (and now, at each well's last update: a filter restored from a checkpoint
+        brings its statistics back). One-well filters so sharing a pool and fed in time
+        order give the factors of one filter over all the wells fed in time order.
+        ``None``, or ``cal_pool=off``: no pool."""
+        self._pool = pool if self.cal_pool and self.cal_prior > 0 else None
+        self._pool_stale = True
+        if self._pool is not None and self._dim:
+            last = self._last.numpy()
+            for i in np.flatnonzero(self._started.numpy() & (last != NEVER)):
+                self._publish_well(int(i), int(last[i]))
+
+    def _publish_well(self, i: int, time_ns: int) -> None:
+        """Publish well ``i``'s well-test error statistics to the pool at ``time_ns``."""
+        assert self._pool is not None
+        cal = self._cal.numpy()
+        self._pool.publish(
+            str(self.model.wells[i]), time_ns, float(cal[i, 1, 0]), float(cal[i, 1, 1])
+        )
+
+    def _publish(self, batch: Batch) -> None:
+        """Publish the statistics of the wells with a well test in ``batch``, at its time."""
+        if self._pool is None:
+            return
+        assert batch.well_test is not None
+        tested = (batch.mask & batch.well_test).numpy()
+        times = batch.time_ns.numpy()
+        for i in np.flatnonzero(tested.any(1) & self._started.numpy()):
+            self._publish_well(int(i), int(times[i][tested[i]].max()))
+
+    def _sync_pool(self, batch: Batch, row: int | None = None) -> None:
+        """Read the pool (:meth:`share_errors`) as of ``batch``'s earliest sample (of its
+        well ``row``) and, when the other wells' statistics changed, put each well's
+        factor into its intervals again (:meth:`pool_with`)."""
+        pool = self._pool
+        if pool is None or not self._dim:
+            return
+        time_ns = _first_time(batch, row)
+        if time_ns is None:
+            return
+        # after every publication, and none since the last reading: the same statistics
+        generation = pool.generation
+        latest = pool.newest == NEVER or time_ns > pool.newest
+        if latest and not self._pool_stale and self._pool_seen == generation:
+            return
+        self._pool_seen = generation if latest else -1
+        outside = pool.outside(self.model.wells, time_ns)
+        held = np.zeros((0, 2)) if self._outside is None else self._outside
+        if not self._pool_stale and outside.shape == held.shape and np.array_equal(outside, held):
+            return
+        self._pool_stale = False
+        self._outside = outside if len(outside) else None
+        self._apply_calibration()
+
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update(
@@ -1458,3 +1641,5 @@ class BayesianFilter(LearningMethod):
                 setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
         for k, v in state.get("counts", {}).items():
             self._counts[k] = torch.as_tensor(v).clone()
+        if self._pool is not None:  # its statistics back in the pool, its factors again
+            self.share_errors(self._pool)
