@@ -39,12 +39,14 @@ plans it once for every model, as the input tests):
   the looks share their readings).
 * **The fault** starts at the move and is an ``offset`` of the ``choke``. A move of the
   reading back by the same amount with no response again closes it (the reading came back);
-  the caller closes it at a break of the well otherwise. Moves while it is open teach
+  the caller closes it after its ``accept_days`` otherwise, and a later move of the reading
+  back that the rate does not follow is then that offset's end, not a new one (the
+  transmitter set right after the model learned the offset). Moves while it is open teach
   nothing (their readings carry the offset).
-* **Where the choke is** while the offset is open: the old opening moved by the response
-  the rate showed, ``u_where = u_before exp(d / beta)`` (``d`` is within chance of none, so
-  near the old opening), with sd ``u_where kappa sqrt(noise) / beta`` (the response's
-  noise over the elasticity). The reading is then off by ``shift = u_after - u_where``,
+* **Where the choke is** while the offset is open: at the old opening, ``u_where =
+  u_before`` (the test found the response within chance of none), with sd ``u_where kappa
+  sqrt(noise) / beta`` (how far the choke could have moved unseen: the response's noise
+  over the elasticity). The reading is then off by ``shift = u_after - u_where``,
   taken as additive (a transmitter re-zeroed wrongly: a later move of the reading is a move
   of the choke), which :meth:`vfm_core.sensor_faults.WellSensorFaults.fallbacks` subtracts
   from every reading until the offset closes. A transmitter whose span, not its zero, is
@@ -103,8 +105,8 @@ class ChokeFinding:
     time_ns: int
     evidence: str
     #: for a raised offset: how far the reading moved beyond the choke (reading units,
-    #: fraction open; the reading after the move less the opening the rate's response
-    #: says, ``u_before exp(d / beta)``), and that estimate's standard deviation
+    #: fraction open; the reading after the move less the opening before it, where the
+    #: rate says the choke stayed), and that estimate's standard deviation
     shift: float = 0.0
     shift_sd: float = math.nan
 
@@ -258,6 +260,8 @@ class ChokeRateWitness:
         self.open_shift = 0.0
         self.open_ref: deque[float] = deque(maxlen=60)
         self.open_level: list[tuple[int, float, float]] = []
+        #: the log move of the latest offset taken as real (:meth:`accept`), until its end
+        self.accepted: float | None = None
         self._fit: tuple[float, float, float, float, float] | None = None  # see fit()
         self._no_fit = False  # fit() found too few moves since the last complete one
 
@@ -569,10 +573,17 @@ class ChokeRateWitness:
             return ChokeFinding(
                 "close", m.time_ns, t, f"The reading came back without the rate: {text}"
             )
+        if self.accepted is not None and dlu * self.accepted < 0:
+            # the end of an offset taken as real (its transmitter set right): not a new one
+            self.accepted = None
+            return ChokeFinding(
+                "close", m.time_ns, t, f"An accepted offset ended, the reading back: {text}"
+            )
         self.open = m
-        # where the choke is: the old opening moved by the response the rate showed, over
-        # the elasticity (d is within chance of none, so near the old opening)
-        where = m.u_before * math.exp(d / beta)
+        # where the choke is: at the old opening (the test found the response within chance
+        # of none; taking d / beta as a move instead put the stand-in off by that noise over
+        # the elasticity, 7.5 % on a well of elasticity 0.71 whose rate dipped 5.4 %)
+        where = m.u_before
         self.open_shift = m.u_after - where
         after = self.readings.since(m.time_ns)
         after = after[after[:, 2] == m.segment]
@@ -602,8 +613,12 @@ class ChokeRateWitness:
         return None
 
     def accept(self) -> None:
-        """The caller closed the open offset (at a break of the well): the reading is
-        taken as the choke's."""
+        """The caller closed the open offset after its acceptance time: the reading is
+        taken as the choke's. Its direction is kept: a later move of the reading back that
+        the rate does not follow is that offset's end (the transmitter set right), not a
+        new offset."""
+        if self.open is not None:
+            self.accepted = self.open.dlu
         self.open = None
 
     # -- state ----------------------------------------------------------------------------------
@@ -623,6 +638,7 @@ class ChokeRateWitness:
             "pending": [mv(m) for m in self.pending],
             "open": mv(self.open),
             "open_shift": self.open_shift,
+            "accepted": self.accepted,
             "open_ref": list(self.open_ref),
             "open_level": [list(v) for v in self.open_level],
             "readings": [  # NaN (no pressure) as null: plain JSON
@@ -652,6 +668,8 @@ class ChokeRateWitness:
         self.pending.extend(m for m in (mv(v) for v in data.get("pending", [])) if m is not None)
         self.open = mv(data.get("open"))
         self.open_shift = float(data.get("open_shift", 0.0))  # absent from older checkpoints
+        accepted = data.get("accepted")
+        self.accepted = None if accepted is None else float(accepted)
         self.open_ref.clear()
         self.open_ref.extend(float(v) for v in data.get("open_ref", []))
         self.open_level = [(int(a), float(b), float(c)) for a, b, c in data.get("open_level", [])]

@@ -77,9 +77,11 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   reading that the MPFM's rate does not follow. It is closed when the rate says the
   reading is right again (a move back with no response, or the well's rate level, also
   after a shut-in when a transmitter is usually set right, matching the reading better
-  than the reading less the offset: :mod:`vfm_core.rate_witness`), never by time: its
-  evidence is the rate's, not a level's, and a choke offset left open is stood in for
-  (:meth:`WellSensorFaults.fallbacks`). Until the witness decides a move (it needs three
+  than the reading less the offset: :mod:`vfm_core.rate_witness`), or after
+  ``accept_days`` from when it was found: held longer, the model would grow stale, so the
+  reading is then taken as the choke's and learned from (a later move of it back that the
+  rate does not follow is that offset's end, not a new one). While open it is stood in
+  for (:meth:`WellSensorFaults.fallbacks`). Until the witness decides a move (it needs three
   readings after it), a measurement whose rate has so far not followed the move is held
   too (:meth:`WellSensorFaults.suspect`): a learner fast enough to follow the measured
   rate learned a 20 % offset's error within the day it took to find it. An input's
@@ -830,6 +832,7 @@ class WellSensorFaults:
         if self.last_ns is not None:
             self.intervals.append(t - self.last_ns)
         self.witness.choke(t, x[_CHOKE])
+        self._accept_choke(t, out)
         interval = self._interval_ns()
         if interval != self._rates[0]:  # (it changes every 16 samples at most)
             # the per-sample false-alarm probability of one per-sample test: its share of
@@ -878,6 +881,20 @@ class WellSensorFaults:
             self._raise(SensorFault("choke", "offset", found.start_ns, t, found.evidence), out)
             self.anchors["choke/offset"] = (found.shift, 0.0, found.shift_sd, found.start_ns)
         return out
+
+    def _accept_choke(self, t: int, out: list[SensorFault]) -> None:
+        """A choke offset open for ``accept_days`` since it was found is closed: its reading
+        is taken as the choke's. Held that long, the model would grow stale (no wear, no
+        depletion learned); from then on it learns the reading as it is."""
+        fault = self.open.get(("choke", "offset"))
+        if fault is not None and (t - fault.detected_ns) / _NS_PER_DAY >= self.accept_days:
+            fault.evidence += (
+                f" After {self.accept_days:g} days the reading is taken as the choke's: the "
+                "model learns from it again (held longer it would grow stale); a move of the "
+                "reading back that the rate does not follow is the offset's end."
+            )
+            self._close("choke", "offset", t, out)
+            self.witness.accept()
 
     # -- helpers ------------------------------------------------------------------------------
     def _interval_ns(self) -> float:
