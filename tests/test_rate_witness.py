@@ -220,32 +220,33 @@ def test_a_choke_offset_closes_across_a_shut_in_only_when_the_reading_came_back(
 
 
 def test_an_offset_taken_as_real_ends_without_a_new_one():
-    """The operator stops moving the choke from day 390 to 480; the reading is 15 % high
-    from day 400 to 450, the rate following neither step: the offset is found, taken as
-    real after 30 days (the model learns again), and the reading coming back on day 450 is
-    that offset's end, not a new offset."""
+    """The operator stops moving the choke from day 390 to 600; the reading is 15 % high
+    from day 400 to 590, the rate following neither step: the offset is found, taken as
+    real after 180 days (the model learns again), and the reading coming back on day 590
+    is that offset's end, not a new offset."""
     from vfm_core.sensor_faults import WellSensorFaults
 
     times, readings, rates = _well(390, 7)
     u = readings[-1]
     rng = np.random.default_rng(71)
-    for k in range(390 * 2, 480 * 2):
+    for k in range(390 * 2, 600 * 2):
         times.append(times[0] + k * HALF_DAY)
-        readings.append(u * 1.15 if 400 <= k // 2 < 450 else u)
+        readings.append(u * 1.15 if 400 <= k // 2 < 590 else u)
         rates.append(100.0 * u**ELASTICITY * (1 + 0.02 * rng.standard_normal()))
     det = WellSensorFaults()
     events = []
     for t, r, q in zip(times, readings, rates, strict=True):
         x = [r, *(v * (1 + 0.003 * rng.standard_normal()) for v in (120, 30, 60, 0.1, 0.6))]
         events += [(e.kind, e.end_ns) for e in det.update(t, x) + det.measure(t, q, x)]
-    chokes = [e for e in det.events if e.sensor == "choke"]
+    # (half a year without a move also reads as a frozen choke: not the point here)
+    chokes = [e for e in det.events if (e.sensor, e.kind) == ("choke", "offset")]
     assert len(chokes) == 1, [(e.start_ns, e.end_ns, e.evidence[-120:]) for e in chokes]
     found = chokes[0]
     assert found.start_ns == times[800] and found.end_ns is not None
-    assert 30 <= (found.end_ns - found.detected_ns) / DAY < 31  # accepted, before day 450
+    assert 180 <= (found.end_ns - found.detected_ns) / DAY < 181  # accepted before day 590
     assert "taken as the choke's" in found.evidence
     assert det.witness.accepted is None  # the move back was its end
-    assert det.suspect(times[-1]) is None and not det.stands_in()
+    assert not det.stands_in()
 
 
 @pytest.mark.parametrize("share,window", [(0.0, 7.0), (float("nan"), 7.0), (0.01, 0.5)])

@@ -39,7 +39,7 @@ plans it once for every model, as the input tests):
   the looks share their readings).
 * **The fault** starts at the move and is an ``offset`` of the ``choke``. A move of the
   reading back by the same amount with no response again closes it (the reading came back);
-  the caller closes it after its ``accept_days`` otherwise, and a later move of the reading
+  the caller closes it after its acceptance time otherwise, and a later move of the reading
   back that the rate does not follow is then that offset's end, not a new one (the
   transmitter set right after the model learned the offset). Moves while it is open teach
   nothing (their readings carry the offset).
