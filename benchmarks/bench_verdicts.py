@@ -20,7 +20,8 @@ field's verdict and every well's own verdict are checked against the cause put i
 ``vfm simulate --physics``); on a physics without an effect the case is skipped with a note.
 What is right depends on the truth only through :data:`BACKGROUND` (see
 ``docs/benchmarks/verdicts.md`` for why each entry is there).
-Prints one line per diagnosis and a summary; ``--markdown PATH`` writes the table. Run:
+Each line also gives the field verdict's trial forecast (``trial``: the change as the service
+applies it, backtested over the last 30 days of data). Prints one line per diagnosis and a summary; ``--markdown PATH`` writes the table. Run:
 
     python benchmarks/bench_verdicts.py [--cases none,erosion,valve,real_gas,tempcd]
         [--combos mm:ol,mm:bayes,ham:ol] [--seeds 61,62] [--physics sachdeva]
@@ -143,7 +144,7 @@ def main() -> None:
     print(
         f"{'physics':<9} {'case':<9} {'seed':>4} {'model':<5} {'method':<6} "
         f"{'field verdict':<26} {'field':>5} {'wells right':>11} {'live %':>7} {'d live':>7} "
-        f"{'time s':>6}"
+        f"{'d trial':>7} {'time s':>6}"
     )
     for physics in args.physics.split(","):
         for case in args.cases.split(","):
@@ -164,6 +165,7 @@ def main() -> None:
                     wells = {w: v for w, v in verdicts.items() if w != "field"}
                     n_right = sum(right(case, v, physics) for v in wells.values())
                     live_change = ((field_v.get("live") or {}) or {}).get("change")
+                    trial_change = ((field_v.get("trial") or {}) or {}).get("change")
                     row = {
                         "physics": physics,
                         "case": case,
@@ -181,6 +183,7 @@ def main() -> None:
                         "wells_noise": sum(v.get("kind") == "noise" for v in wells.values()),
                         "live": diag.live.get("mape", float("nan")),
                         "change": np.nan if live_change is None else float(live_change),
+                        "trial": np.nan if trial_change is None else float(trial_change),
                         "time_s": elapsed,
                         "well_verdicts": {w: _label(v) for w, v in wells.items()},
                     }
@@ -191,7 +194,7 @@ def main() -> None:
                         f"{physics:<9} {case:<9} {seed:>4} {model:<5} {method:<6} "
                         f"{row['verdict']:<26} {'yes' if row['right'] else 'NO':>5} "
                         f"{n_right:>5}/{len(wells):<5} {row['live']:>7.2f} "
-                        f"{row['change']:>+7.2f} {elapsed:>6.0f}",
+                        f"{row['change']:>+7.2f} {row['trial']:>+7.2f} {elapsed:>6.0f}",
                         flush=True,
                     )
     if rows:
@@ -249,16 +252,18 @@ def _write_markdown(
         + " (`effect` or `carried` naming it).",
         "",
         "| physics | case | seed | model | method | field verdict | right | among the named "
-        "| wells right | live MAPE % | change of live MAPE (points) | time s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| wells right | live MAPE % | change of live MAPE (points) "
+        "| trial forecast (points) | time s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         change = "" if not np.isfinite(r["change"]) else f"{r['change']:+.2f}"
+        trial = "" if not np.isfinite(r.get("trial", np.nan)) else f"{r['trial']:+.2f}"
         lines.append(
             f"| {r['physics']} | {r['case']} | {r['seed']} | {r['model']} | {r['method']} "
             f"| {r['verdict']} | {'yes' if r['right'] else 'no'} "
             f"| {'yes' if r.get('right_among', r['right']) else 'no'} "
-            f"| {r['wells_right']}/{r['wells']} | {r['live']:.2f} | {change} "
+            f"| {r['wells_right']}/{r['wells']} | {r['live']:.2f} | {change} | {trial} "
             f"| {r['time_s']:.0f} |"
         )
     lines.append("")

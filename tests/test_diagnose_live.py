@@ -124,3 +124,56 @@ def test_paired_differences_drop_rows_without_a_prediction() -> None:
     assert out["d"].tolist() == pytest.approx([5.0, -10.0])
     with pytest.raises(ValueError, match="same rows"):
         live.paired_differences(base, cand.iloc[:2])
+
+
+def test_the_trial_forecast_is_the_window_mean_with_a_prediction_interval_of_daily_means() -> None:
+    rng = np.random.default_rng(5)
+    d = rng.normal(-0.5, 1.0, 30)
+    pairs = _pairs(d)
+    out = live.trial_forecast(pairs)
+    assert out["change"] == pytest.approx(d.mean())
+    assert out["n_blocks"] == 30 and out["n"] == 30 and out["window_days"] == live.TRIAL_DAYS
+    from scipy.stats import t as student
+
+    # two independent means of 30 daily values: sd of their difference s sqrt(2/30)
+    half = student.ppf(0.975, 29) * d.std(ddof=1) * np.sqrt(2 / 30)
+    assert out["low"] == pytest.approx(d.mean() - half)
+    assert out["high"] == pytest.approx(d.mean() + half)
+    assert live.trial_forecast(_pairs(d[:2]))["low"] is None  # too few days for an interval
+    assert live.trial_forecast(pairs.iloc[:0])["change"] is None
+
+
+def test_on_a_wearing_well_the_trial_forecast_sees_the_gain_the_whole_history_hides() -> None:
+    """Wear grows: adding it to a wearing well's model, fitted on the whole history as the
+    service installs a change, gains more than the live replay over the whole history says
+    (there the candidate was fitted on the short, little-worn start); the forecast, a
+    backtest of that change over the history's last 30 days, says so, and what a trial
+    then measures over the next 30 days lies within its prediction interval."""
+    from vfm_core.effects import resolve_effect
+    from vfm_core.jobs.diagnose import _with_features
+    from vfm_core.jobs.diagnose_verdicts import trial_test
+    from vfm_core.jobs.study import run_prequential
+    from vfm_core.observations import validate_frame
+    from vfm_core.simulate import simulate_field
+
+    split, end = pd.Timestamp("2016-06-01", tz="UTC"), pd.Timestamp("2016-12-01", tz="UTC")
+    month = pd.Timedelta(days=live.TRIAL_DAYS)
+    ero = resolve_effect("erosion")
+    sim = simulate_field(wells=1, years=1.5, seed=48, hidden=["erosion:rate=0.3"])
+    frame = validate_frame(sim.observations).frame
+    frame = _with_features(frame[frame.time < end + month].reset_index(drop=True), [ero])
+    history = frame[frame.time < end].reset_index(drop=True)
+    base = run_prequential(frame, "mm", "ol", split=split).predictions  # the shadow, on and on
+    cand = run_prequential(history, "mm", "ol", split=split, effects=[ero]).predictions
+    before = base[pd.to_datetime(base["time"], utc=True) < end].reset_index(drop=True)
+    whole = live.paired_test(live.paired_differences(before, cand))
+    since = pd.to_datetime(history["time"], utc=True).max() - month
+    backtest = run_prequential(history, "mm", "ol", split=since, effects=[ero]).predictions
+    forecast = trial_test(before, backtest, ["W01"], since)
+    # the trial: the change made at the end of the history, 30 days of data on
+    applied = run_prequential(frame, "mm", "ol", split=end, effects=[ero]).predictions
+    measured = trial_test(base, applied, ["W01"], end)
+    assert whole["change"] < 0 and forecast["change"] < 0 and measured["change"] < 0
+    assert abs(forecast["change"]) > abs(whole["change"]) + 0.3, (forecast, whole)
+    assert forecast["low"] <= measured["change"] <= forecast["high"], (forecast, measured)
+    assert forecast["n"] > 20 and forecast["base_mape"] > forecast["mape"]

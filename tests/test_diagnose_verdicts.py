@@ -412,3 +412,37 @@ def test_a_wells_carried_verdict_gives_the_fields_fit_once_change_and_its_own(
     assert "fit-once MAPE over all wells" in v["text"]
     assert f"({field_change:+.2f} points" in v["text"]
     assert "on W01 alone" in v["text"] and f"({own_change:+.2f} points" in v["text"]
+
+
+def test_the_trial_forecast_is_in_the_verdict_and_outside_the_false_discovery_family(
+    field: dict[str, object],
+) -> None:
+    """A candidate's backtest (its run over the last 30 days, fitted before them) against
+    the live baseline on the same rows: its change is the window's MAPE difference, per
+    well too; it is stated in the verdict, and it adds no test to the BH family."""
+    base = field["base"]
+    assert isinstance(base, RunResult)
+    frame = base.predictions
+    since = pd.Timestamp(frame["time"].max()) - pd.Timedelta(days=30)
+    late = frame[frame["time"] >= since].reset_index(drop=True)
+    rng = np.random.default_rng(7)
+    c = _candidate("valve_equal_percentage", base, field["close"], material=True)  # type: ignore[arg-type]
+    before = dv.fdr([c], None, 0, len(WELLS))["tests"]
+    # the backtest halves the baseline's error on the window
+    rel = (late["predicted"] / late["measured"] - 1.0).to_numpy()
+    c.trial_run = _run(late, 0.5 * rel + 0.001 * rng.normal(size=len(late)))
+    c.tests["trial"] = dv.trial_test(frame, c.trial_run.predictions, WELLS, since)
+    t = c.test("trial")
+    assert t is not None and t["n"] == len(late) and t["since"] == since.isoformat()
+    want = 100 * (
+        np.abs(0.5 * rel).mean() - np.abs(rel).mean()
+    )  # the window's MAPE difference, points
+    assert t["change"] == pytest.approx(want, abs=0.01)
+    assert t["low"] < t["change"] < t["high"] < 0
+    assert set(t["per_well"]) == set(WELLS)
+    assert dv.fdr([c], None, 0, len(WELLS))["tests"] == before
+    verdict = dv.live_verdict([c], None, "W02", _context(), {"kind": "effect"})
+    mine = c.test("trial", "W02")
+    assert mine is not None and mine is not t  # the well's own, not the field's
+    assert verdict["trial"]["change"] == pytest.approx(mine["change"])
+    assert "its trial would have measured" in verdict["text"]

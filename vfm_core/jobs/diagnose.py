@@ -149,6 +149,7 @@ from vfm_core.effects import (
 )
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.features import STANDARD_FEATURES, standard_features
+from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs import diagnose_verdicts as verdicts
@@ -1087,7 +1088,7 @@ class _DiagnosisRun:
         jobs = self._first_jobs()
         # the replays (live and outage, baseline and the shortlist) are the slow runs: count
         # them from the start so that the progress does not jump back
-        self.n_replays = (2 * max(s.replay_top, 0) + 1) if s.replay_top > 0 else 0
+        self.n_replays = (3 * max(s.replay_top, 0) + 1) if s.replay_top > 0 else 0
         self.bar = _Progress(s.progress, len(jobs) + 1 + self.n_replays)
         self.runs: dict[str, RunResult] = {}
         for key, classes, how, settings, name, at in jobs:
@@ -1269,8 +1270,18 @@ class _DiagnosisRun:
         )
 
     def _replay_runs(self) -> int:
-        """Replays a candidate takes: live, and with outages when the protocol is on."""
-        return 2 if self.plan is not None else 1
+        """Runs a candidate's replay takes: live, with outages when the protocol is on, and
+        its trial backtest when the replay is long enough (:meth:`_trial_since`)."""
+        return (2 if self.plan is not None else 1) + (self._trial_since() is not None)
+
+    def _trial_since(self) -> pd.Timestamp | None:
+        """Start of the trial backtest: :data:`vfm_core.jobs.diagnose_live.TRIAL_DAYS` days
+        before the latest measurement (the trial's default length), when that leaves at
+        least as long again of replay after the split; else None (no backtest)."""
+        frame, s = self.frame, self.s
+        last = frame.loc[target_mask(frame, s.targets), TIME].max()
+        since = last - pd.Timedelta(days=live.TRIAL_DAYS)
+        return since if since - self.split_ts >= pd.Timedelta(days=live.TRIAL_DAYS) else None
 
     def replay(self, c: CandidateResult, classes: list[type[Effect]]) -> None:
         """Replay the model with ``classes`` under the well's method, live and with outages."""
@@ -1287,6 +1298,16 @@ class _DiagnosisRun:
                 s.model,
                 self.plan,
                 at=self.split_ts,
+            )
+        since = self._trial_since()
+        if since is not None:  # as the service installs a change: fitted on all before it
+            c.trial_run = self.run(
+                f"{label} fitted {live.TRIAL_DAYS} days before the end",
+                classes,
+                s.method,
+                s.train,
+                s.model,
+                at=since,
             )
         c.replayed = True
 
@@ -1305,6 +1326,7 @@ class _DiagnosisRun:
             self.pool_wells,
             self.s.seed,
             replay_top=self.s.replay_top,
+            trial_since=self._trial_since(),
         )
 
     def _plan_outages(self) -> None:
@@ -1354,7 +1376,7 @@ class _DiagnosisRun:
             ),
         )[:top_n]
         if self.n_replays:  # the runs counted at the start, made exact now
-            self.bar.add(len(shortlist) * self._replay_runs() - 2 * top_n)
+            self.bar.add(len(shortlist) * self._replay_runs() - 3 * top_n)
         if s.replay_top > 0:
             for c in shortlist:
                 self.replay(c, self.classes_of[c.effect])

@@ -59,6 +59,8 @@ __all__ = [
     "sign_flip_p",
     "paired_test",
     "benjamini_hochberg",
+    "TRIAL_DAYS",
+    "trial_forecast",
 ]
 
 #: Shortest block, days: a month spans the slow drift of an MPFM and a learner's memory.
@@ -69,6 +71,9 @@ MAX_BLOCK_DAYS = 120
 BOOTSTRAP = 2000
 #: Most blocks for which the sign-flip distribution is enumerated exactly (2^16 patterns).
 EXACT_BLOCKS = 16
+#: The window of the trial forecast, days of data: the service's trial of a change
+#: (``trial.duration_s``, 30 days of data by default), backtested at the end of the history.
+TRIAL_DAYS = 30
 #: The false discovery rate controlled over a diagnosis's family of tests.
 FDR_Q = 0.05
 #: The procedure, in words (diagnosis.json and the report say it).
@@ -309,3 +314,53 @@ def benjamini_hochberg(p_values: list[float], q: float = FDR_Q) -> tuple[np.ndar
     out = np.empty(m)
     out[order] = np.minimum(adjusted, 1.0)
     return out <= q, out
+
+
+def trial_forecast(pairs: pd.DataFrame) -> dict[str, Any]:
+    """What a trial of the change would measure, forecast from a backtest of it (points).
+
+    ``pairs`` (:func:`paired_differences`) are the candidate *as the service installs it*
+    (fitted on everything before the last :data:`TRIAL_DAYS` days of data, then learning
+    with the well's method) against the baseline's live replay (the shadow) over those days.
+    ``change`` is their MAPE difference (row-weighted, as the trial's ``mape - shadow_mape``).
+    The interval is a 95 % *prediction* interval for the next window of as many days, under
+    the trial's own rule (:mod:`service.engine.trial`: daily block means of the paired
+    differences, nearly independent): with k daily means of sd s, the next window's mean
+    differs from this one's by a variable of sd s sqrt(1/k + 1/k) (two independent means),
+    so ``change +/- t(0.975, k - 1) s sqrt(2/k)``. It does not cover a gain that grows with
+    time (wear): the next window's gain is then larger than this one's. ``n_blocks`` are
+    the days with pairs; no interval below three."""
+    out: dict[str, Any] = {
+        "change": None,
+        "low": None,
+        "high": None,
+        "n": int(len(pairs)),
+        "n_blocks": 0,
+        "block_days": 1.0,
+        "window_days": float(TRIAL_DAYS),
+        "base_mape": None,
+        "mape": None,
+    }
+    if pairs.empty:
+        return out
+    day = pd.DatetimeIndex(pairs["time"]).as_unit("ns").asi8 // int(86400e9)
+    means = (
+        pd.DataFrame({"w": pairs["well"].to_numpy(), "day": day, "d": pairs["d"].to_numpy()})
+        .groupby(["w", "day"], sort=False)["d"]
+        .mean()
+        .to_numpy(dtype=float)
+    )
+    k = len(means)
+    change = float(pairs["d"].mean())
+    out.update(
+        change=change,
+        n_blocks=int(k),
+        base_mape=float(pairs["base_ape"].mean()),
+        mape=float(pairs["cand_ape"].mean()),
+    )
+    if k >= 3:
+        from scipy.stats import t as student
+
+        half = float(student.ppf(0.975, k - 1)) * float(np.std(means, ddof=1)) * math.sqrt(2.0 / k)
+        out.update(low=change - half, high=change + half)
+    return out

@@ -147,6 +147,10 @@ def _live_lines(diag: Diagnosis) -> list[str]:
                     f"{proto} {t['change']:+.2f} [{t['low']:+.2f}, {t['high']:+.2f}] "
                     f"q {t.get('q_value', float('nan')):.3g}"
                 )
+        t = c.test("trial", focus)
+        if t and t.get("change") is not None:
+            interval = f" [{t['low']:+.2f}, {t['high']:+.2f}]" if t.get("low") is not None else ""
+            parts.append(f"trial forecast {t['change']:+.2f}{interval}")
         flag = "offered" if c.offer else ("raises the error" if c.raises_error else "not offered")
         lines.append(f"  {(c.spec or c.effect):<24} " + "; ".join(parts) + f"  ({flag})")
     if len(diag.pool.get("wells") or []) > 1:

@@ -84,6 +84,8 @@ BRIEF_KEYS = (
     "base_mape",
     "mape",
     "replayed",
+    "window_days",
+    "since",
 )
 
 
@@ -133,6 +135,10 @@ class CandidateResult:
     offer_note: str | None = None
     live_run: RunResult | None = field(default=None, repr=False)
     outage_run: RunResult | None = field(default=None, repr=False)
+    #: the trial backtest: fitted on everything before the last
+    #: :data:`vfm_core.jobs.diagnose_live.TRIAL_DAYS` days of data, as the service installs a
+    #: change, then learning with the well's method (``tests["trial"]``, not in the FDR family)
+    trial_run: RunResult | None = field(default=None, repr=False)
     #: the driver evidence that names this candidate where the fit-once evidence alone does
     #: not (:func:`vfm_core.jobs.diagnose_verdicts.physics_behind_driver`): {"driver",
     #: "correction", "test", "rule"}; None otherwise
@@ -401,6 +407,7 @@ class Diagnosis:
             "outage_baseline_mape": out_base,
             "outage_with_mape": None if ot is None or not replayed else ot.get("mape"),
             "outage_change": brief(ot) if replayed else None,
+            "trial_change": brief(w.test("trial", focus)) if w is not None and replayed else None,
             "fit_once_baseline_mape": self.candidate_baseline_mape,
             "fit_once_with_mape": None if w is None else w.mape,
         }

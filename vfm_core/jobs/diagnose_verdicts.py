@@ -128,6 +128,34 @@ def protocol_test(
     return {**pooled, "replayed": True, "per_well": per_well}
 
 
+def trial_test(
+    base: pd.DataFrame, cand: pd.DataFrame, wells: Sequence[str], since: pd.Timestamp
+) -> dict[str, Any]:
+    """The trial forecast of one candidate (:func:`vfm_core.jobs.diagnose_live.trial_forecast`):
+    ``cand`` is its backtest run (fitted before ``since``, the last
+    :data:`~vfm_core.jobs.diagnose_live.TRIAL_DAYS` days of data, then learning), ``base``
+    the baseline's live replay (the shadow) on the same rows; the field's (pooled over the
+    wells) with each well's own beside it."""
+    keep = (pd.to_datetime(base["time"], utc=True) >= since).to_numpy()
+    shadow = base[keep].reset_index(drop=True)
+    cand = cand.reset_index(drop=True)
+    key = ["well", "time", "measured"]
+    if len(shadow) != len(cand) or not shadow[key].equals(cand[key]):
+        # the same measurements by key (a row the shadow lacks is dropped as not finite)
+        shadow = cand[key].merge(shadow.drop_duplicates(key), on=key, how="left")
+    pairs = live.paired_differences(shadow, cand)
+    one = live.trial_forecast(pairs)
+    per_well = (
+        {
+            w: {**live.trial_forecast(pairs[pairs["well"] == w]), "since": since.isoformat()}
+            for w in wells
+        }
+        if len(wells) > 1
+        else {}
+    )
+    return {**one, "since": since.isoformat(), "replayed": True, "per_well": per_well}
+
+
 def test_candidate(
     c: CandidateResult,
     comp: RunResult,
@@ -136,10 +164,12 @@ def test_candidate(
     wells: Sequence[str],
     seed: int,
     replay_top: int = REPLAY_TOP,
+    trial_since: pd.Timestamp | None = None,
 ) -> None:
     """Fill ``c.tests``: fit-once against the comparison baseline; live and outage against
     the replayed baseline (untested, p = 1, when the candidate was not replayed: only the
-    best ``replay_top`` are)."""
+    best ``replay_top`` are); the trial forecast from ``trial_since`` (:func:`trial_test`)
+    when the candidate has its backtest run."""
     if c.run is not None:
         c.tests["fit_once"] = protocol_test(comp.predictions, c.run.predictions, wells, seed)
     why = (
@@ -157,6 +187,8 @@ def test_candidate(
             )
         else:
             c.tests["outage"] = _untested(wells, why)
+    if c.replayed and c.trial_run is not None and trial_since is not None:
+        c.tests["trial"] = trial_test(base.predictions, c.trial_run.predictions, wells, trial_since)
 
 
 def fdr(
@@ -172,6 +204,8 @@ def fdr(
     protocols: set[str] = set()
     for c in [*results, *([suggestion] if suggestion is not None else [])]:
         for proto, t in c.tests.items():
+            if proto == "trial":  # a forecast of the trial, not a test of the verdict
+                continue
             protocols.add(proto)
             tests.append(t)
             tests += list(t.get("per_well", {}).values())
@@ -275,6 +309,23 @@ def _change_text(t: dict[str, Any] | None, what: str) -> str:
     return f"{what} {t['base_mape']:.2f} -> {t['mape']:.2f} % ({t['change']:+.2f} points{interval})"
 
 
+def _trial_text(t: dict[str, Any] | None) -> str:
+    """``; applied now ...``: the trial forecast in words, or nothing without one."""
+    if t is None or t.get("change") is None:
+        return ""
+    interval = (
+        f", 95 % prediction interval {t['low']:+.2f} to {t['high']:+.2f}"
+        if t.get("low") is not None
+        else ""
+    )
+    return (
+        f"; applied as the service applies a change (fitted on the whole history, then "
+        f"learning), over the last {t.get('window_days', live.TRIAL_DAYS):g} days of data its "
+        f"trial would have measured {t['base_mape']:.2f} % (shadow) -> {t['mape']:.2f} % "
+        f"({t['change']:+.2f} points{interval})"
+    )
+
+
 def _evidence(c: CandidateResult, protocol: str, well: str | None, n_wells: int) -> dict[str, Any]:
     """The field's and the well's test of one protocol, side by side."""
     f, w = c.test(protocol), c.test(protocol, well) if well is not None else None
@@ -305,6 +356,7 @@ def _verdict_numbers(c: CandidateResult, well: str | None, ctx: VerdictContext) 
     return {
         "live": brief(c.test("live", well)),
         "outage": brief(c.test("outage", well)),
+        "trial": brief(c.test("trial", well)),
         "evidence": [_evidence(c, p, well, ctx.n_wells) for p in ("live", "outage")],
         "offer": offer(c, well)[0],
         "reason": offer(c, well)[1],
@@ -359,8 +411,8 @@ def _effect_verdict(best: CandidateResult, well: str | None, ctx: VerdictContext
     text = (
         f"Add {best.spec or best.effect} to {ctx.label}{_who(well)}. Replayed with {ctx.method}, "
         f"{_change_text(num['live'], 'the live MAPE goes')}; "
-        f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence ({why}): "
-        f"{_evidence_text(ev)}. {best.meaning}"
+        f"{_change_text(num['outage'], f'in {out_label} outages')}{_trial_text(num['trial'])}. "
+        f"Evidence ({why}): {_evidence_text(ev)}. {best.meaning}"
     )
     if why == "outage":
         text += (
@@ -383,7 +435,8 @@ def _driver_verdict(
         f"No library effect lowers the error{_who(well)}; the residual depends mostly on "
         f"{suggestion.driver}. A correction {suggestion.text}, replayed with {ctx.method}: "
         f"{_change_text(num['live'], 'the live MAPE goes')}; "
-        f"{_change_text(num['outage'], f'in {out_label} outages')}. Evidence: "
+        f"{_change_text(num['outage'], f'in {out_label} outages')}{_trial_text(num['trial'])}. "
+        "Evidence: "
         f"{_evidence_text(ev)}. Apply it with --effects {suggestion.spec}, or start your "
         "own effect from the code in the report."
     )
@@ -401,7 +454,8 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
         tail = (
             f"adding it to {ctx.label}{_who(well)} with {ctx.method}: "
             f"{_change_text(lt, 'live MAPE')}; "
-            f"{_change_text(num['outage'], f'in {out_label} outages')}. "
+            f"{_change_text(num['outage'], f'in {out_label} outages')}"
+            f"{_trial_text(num['trial'])}. "
             + (
                 "Its live change is above zero (it does not lower the error the operator "
                 "sees): not offered."
@@ -464,6 +518,7 @@ def _noise_verdict(
         "text": text,
         "live": None,
         "outage": None,
+        "trial": None,
         "evidence": [],
         "offer": False,
         "reason": None,
