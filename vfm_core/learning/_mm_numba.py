@@ -2229,18 +2229,32 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
                     kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
                     w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
                 )  # fmt: skip
+                _masked_(H, rules[4])  # by keep: h at this sample, as the update takes it
                 log_y = math.log(y[w, j])
                 if phase == 0 or (own and s == 1):  # (phase 1: the first measurement)
-                    _forecast_error_(filt, rules, errors, w, t, log_y - log_h)
+                    _forecast_error_(filt, rules, errors, H, w, t, log_y - log_h)
                 if phase == 1:
-                    sd_given = _bayes_arrival_(filt, rules, gain[3], w, s, t)
+                    sd_given = _bayes_arrival_(filt, rules, gain[3], H, w, s, t)
                     if _bayes_update_(filt, tally, rules, gain, H, w, s, log_y, log_h, sd_given):
                         taken = True
     if taken:  # model.project_() after an update: every well within its bounds
-        for w in range(y.shape[0]):
-            for i in range(d):
-                state[w, i] = max(min(state[w, i], rules[1][i]), rules[0][i])
+        _project_(state, rules[0], rules[1])
     return taken
+
+
+@part
+def _masked_(H: np.ndarray, keep: np.ndarray) -> None:
+    """H [D] times ``keep`` [D] (1 where the filter learns a parameter, else 0), in place."""
+    for i in range(H.shape[0]):
+        H[i] = H[i] * keep[i]
+
+
+@part
+def _project_(state: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+    """Every well's state [W, D] within its bounds ``low``, ``high`` [D], in place."""
+    for w in range(state.shape[0]):
+        for i in range(state.shape[1]):
+            state[w, i] = max(min(state[w, i], high[i]), low[i])
 
 
 @part
@@ -2253,14 +2267,15 @@ def _bayes_scratch(d: int, hidden: int) -> tuple:  # type: ignore[type-arg]
 
 @part
 def _forecast_terms(h: np.ndarray, P: np.ndarray, q: np.ndarray, w: int) -> tuple[float, float]:
-    """The two terms of well w's forecast variance of its log rate, h P h and h Q h (the
-    latter times the years since its last update gives the drift's share)."""
+    """The two terms of well w's forecast variance of its log rate at a sample, h P h and
+    h Q h with h [D] the sensitivity at that sample (the latter times the years since its
+    last update gives the drift's share)."""
     hph = 0.0
     hqh = 0.0
-    for a in range(h.shape[1]):
-        hqh += h[w, a] ** 2 * q[a]
-        for b in range(h.shape[1]):
-            hph += h[w, a] * P[w, a, b] * h[w, b]
+    for a in range(h.shape[0]):
+        hqh += h[a] ** 2 * q[a]
+        for b in range(h.shape[0]):
+            hph += h[a] * P[w, a, b] * h[b]
     return hph, hqh
 
 
@@ -2269,15 +2284,16 @@ def _bayes_arrival_(
     filt: tuple,  # type: ignore[type-arg]
     rules: tuple,  # type: ignore[type-arg]
     Pg: np.ndarray,
+    H: np.ndarray,
     w: int,
     s: int,
     t: int,
 ) -> float:
     """A measurement of well w from meter s arrives at ``t``: the prior if the well has no
-    filter state yet, the spread the filter gave it before it arrived (``_spread``, the
-    return value), then P after the drift since the last update (``_grow``, kept in
+    filter state yet, the spread the filter gave it before it arrived (``_spread`` with
+    h = ``H``, the sensitivity at this sample; the return value), then P after the drift since the last update (``_grow``, kept in
     ``Pg`` too, in case the measurement is refused)."""
-    _, P, last, noise, h, scale, started = filt
+    _, P, last, noise, _, scale, started = filt
     prior_var, q, never, ns_per_year = rules[2], rules[3], rules[10], rules[14]
     d = Pg.shape[0]
     if not started[w]:  # a model but no filter state yet: the prior
@@ -2287,7 +2303,7 @@ def _bayes_arrival_(
             P[w, a, a] = prior_var[a]
         last[w] = t
         started[w] = True
-    hph, hqh = _forecast_terms(h, P, q, w)
+    hph, hqh = _forecast_terms(H, P, q, w)
     dt = float(max(t - last[w], 0)) / ns_per_year if last[w] != never else 0.0
     var = hph + hqh * dt + noise[w, s] ** 2
     sd_given = math.sqrt(max(var, 0.0)) * math.exp(scale[w, s])
@@ -2321,6 +2337,7 @@ def _forecast_error_(
     filt: tuple,  # type: ignore[type-arg]
     rules: tuple,  # type: ignore[type-arg]
     errors: tuple,  # type: ignore[type-arg]
+    H: np.ndarray,
     w: int,
     t: int,
     error: float,
@@ -2328,15 +2345,15 @@ def _forecast_error_(
     """Learn from the squared standardised error z^2 of the forecast the filter gave for
     a well test of well w (at ``t``) before learning from it (``errors``: cal, counted,
     cap, discount): the log error ``error`` over the forecast's variance h (P + Q dt) h
-    + s^2 (``_spread`` of the well-test meter, without the intervals' factors), capped
+    + s^2 with h = ``H``, the sensitivity at the well test's sample (``_spread`` of the well-test meter, without the intervals' factors), capped
     at ``cap`` (the gate's square: a refused error counts as one at the gate); the
     discounted count and sum of z^2 in cal[w, 1] grow by 1 and z^2 (the older ones
     discounted). An error that is not finite is not counted. A rate below the kernels'
     floor (1e-12 Sm3/h, where the update clamps its log) counts as one at the gate."""
-    _, P, last, noise, h, _, _ = filt
+    _, P, last, noise, _, _, _ = filt
     q, ns_per_year = rules[3], rules[14]
     cal, counted, cap, discount = errors
-    hph, hqh = _forecast_terms(h, P, q, w)
+    hph, hqh = _forecast_terms(H, P, q, w)
     dt = float(max(t - last[w], 0)) / ns_per_year
     z2 = error**2 / (hph + hqh * dt + noise[w, 1] ** 2)
     if math.isfinite(z2):
@@ -2369,17 +2386,15 @@ def _bayes_update_(  # noqa: PLR0913 - one measurement and the filter
     sd_given: float,
 ) -> bool:
     """One measurement (log y) against the filter's log h and its gradient H (masked by
-    ``keep`` here): the conformal calibration, the robust gate (Huber weight, refusal, a
+    ``keep`` already): the conformal calibration, the robust gate (Huber weight, refusal, a
     reset after a run of refusals), the Kalman gain and Joseph update, the bounded state,
     the adapted meter noise and the counts. False when the measurement is refused."""
     state, P, _, noise, h, scale, _ = filt
     run, updates, downweighted, refused_count, resets, changed = tally
-    low, high, _, q, keep, fixed, huber, gate, adapt, calibrate = rules[:10]
+    low, high, _, q, _, fixed, huber, gate, adapt, calibrate = rules[:10]
     reset_after, noise_floor, z90 = rules[11], rules[12], rules[13]
     d, K, Pg = H.shape[0], gain[0], gain[3]
     R = noise[w, s] ** 2
-    for i in range(d):
-        H[i] = H[i] * keep[i]
     if calibrate > 0:  # adaptive conformal calibration of this meter's intervals
         miss = 1.0 if abs(log_y - log_h) > z90 * sd_given else 0.0
         scale[w, s] += calibrate * (miss - 0.1)
@@ -2456,7 +2471,7 @@ def _joseph_(P: np.ndarray, w: int, H: np.ndarray, gain: tuple, Rk: float) -> fl
 @jit
 def bayes_spread(
     mean: np.ndarray,
-    h: np.ndarray,
+    H: np.ndarray,
     P: np.ndarray,
     q: np.ndarray,
     last: np.ndarray,
@@ -2474,11 +2489,10 @@ def bayes_spread(
 ) -> None:
     """``BayesianFilter.predict``'s spread of the rates ``mean`` [W, N] (any model, any
     number of filtered parameters D): the predictive sd of the log rate sqrt(h (P + Q dt)
-    h + s^2) times the meter's calibration factor (NaN for a well without filter state),
+    h + s^2), h = H[w, j] [D] the sensitivity at the predicted sample, times the meter's calibration factor (NaN for a well without filter state),
     as std = rate sd and the central 90 % bounds rate exp(+-z90 sd)."""
     n_wells, n_samples = mean.shape
     for w in range(n_wells):
-        hph, hqh = _forecast_terms(h, P, q, w)
         for j in range(n_samples):
             rate = mean[w, j]
             if not started[w]:
@@ -2487,12 +2501,55 @@ def bayes_spread(
                 p95[w, j] = np.nan
                 continue
             s = 1 if well_test[w, j] else 0
+            hph, hqh = _forecast_terms(H[w, j], P, q, w)
             dt = float(max(time_ns[w, j] - last[w], 0)) / ns_per_year if last[w] != never else 0.0
             var = hph + hqh * dt + noise[w, s] ** 2
             sd = math.sqrt(max(var, 0.0)) * math.exp(scale[w, s])
             std[w, j] = rate * sd
             p05[w, j] = rate * math.exp(-z90 * sd)
             p95[w, j] = rate * math.exp(z90 * sd)
+
+
+@jit
+def bayes_gradients(  # noqa: PLR0913 - the compiled filter's model and a batch
+    state: np.ndarray,
+    h: np.ndarray,
+    keep: np.ndarray,
+    x: np.ndarray,
+    mask: np.ndarray,
+    ready: np.ndarray,
+    kind: int,
+    a_max: np.ndarray,
+    pos: np.ndarray,
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    n_phys: int,
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    w1: np.ndarray,
+    b1: np.ndarray,
+    y_scale: np.ndarray,
+    fx: tuple,  # type: ignore[type-arg]
+    out: np.ndarray,
+) -> None:
+    """The sensitivity h [W, N, D] (into ``out``) of every sample's log rate to the
+    filtered parameters, masked by ``keep``, for :func:`bayes_spread`: the gradient
+    :func:`log_rate_grad` gives at the well's current state (``state`` [W, D]); the
+    filter's stored h [W, D] where there is no sample or no model."""
+    d = state.shape[1]
+    pe, scratch = np.zeros(fx[1].shape[0]), _scratch(fx)
+    theta, dq, xn, act, H, _ = _bayes_scratch(d, w1.shape[2])
+    for w in range(x.shape[0]):
+        for j in range(x.shape[1]):
+            if not (mask[w, j] and ready[w]):
+                out[w, j, :] = h[w]
+                continue
+            log_rate_grad(
+                kind, state, w, x[w, j], a_max[w], pos, mu, sigma, n_phys, x_mean, x_std,
+                w1, b1, y_scale, theta, dq, xn, act, H, fx, pe, scratch, j,
+            )  # fmt: skip
+            for i in range(d):
+                out[w, j, i] = H[i] * keep[i]
 
 
 def _made_up_sample() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -2595,8 +2652,16 @@ def warm_up() -> None:
         )  # fmt: skip
     warm_effects()
     out = [np.zeros((1, 1)) for _ in range(3)]
+    for kind, hidden in ((0, 0), (1, 4), (2, 4)):
+        d = 6 + (hidden + 1 if kind else 0)
+        bayes_gradients(
+            np.zeros((1, d)), np.zeros((1, d)), np.ones(d), x, yes, np.ones(1, dtype=bool),
+            kind, np.ones(1), pos, mu, one[0], 6, np.zeros((1, 6)), one,
+            np.ones((1, 6, hidden)), np.ones((1, hidden)), np.ones(1), no_effects(),
+            np.zeros((1, 1, d)),
+        )  # fmt: skip
     bayes_spread(
-        ones, np.zeros((1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),
+        ones, np.zeros((1, 1, 6)), np.zeros((1, 6, 6)), one[0], np.zeros(1, dtype=np.int64),
         np.ones((1, 2)), np.zeros((1, 2)), np.ones(1, dtype=bool),
         np.ones((1, 1), dtype=np.int64), yes, -1, 1.645, 3.15e16, *out,
     )  # fmt: skip

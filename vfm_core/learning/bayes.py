@@ -158,6 +158,9 @@ _CAL_DISCOUNT = 0.99
 _POOL_GRID = np.linspace(0.0, 1.0, 33)
 #: ... and the fixed-point steps of the prior's scale for each weight
 _POOL_STEPS = 6
+#: columns of a batch whose gradients one batched backward pass takes (its seeds are
+#: columns x wells x columns: bounded for a study's long batches)
+_GRAD_COLUMNS = 64
 #: the publications a :class:`CalibrationPool` keeps per well (a reader asks for the
 #: statistics as they were before its time: a few back cover a batch's or a worker's lag)
 _POOL_KEEP = 8
@@ -221,6 +224,23 @@ def _source(batch: Batch) -> torch.Tensor:
     """0 for MPFM rows, 1 for well tests [W, N]."""
     assert batch.well_test is not None
     return batch.well_test.to(torch.int64)
+
+
+def _well_rows(batch: Batch, start: int, stop: int) -> Batch:
+    """The wells ``start`` to ``stop`` (rows) of ``batch``."""
+    assert batch.well_test is not None and batch.extra is not None
+    rows = slice(start, stop)
+    return Batch(
+        batch.wells[rows],
+        batch.x[rows],
+        batch.y[rows],
+        batch.mask[rows],
+        batch.time_ns[rows],
+        batch.row[rows],
+        batch.well_test[rows],
+        batch.extra[rows],
+        batch.extra_names,
+    )
 
 
 def _laplace(
@@ -933,37 +953,102 @@ class BayesianFilter(LearningMethod):
         self._sync_pool(batch)
         return self._forecast(mean, batch)
 
-    def _forecast(self, mean: torch.Tensor, batch: Batch) -> Forecast:
+    def _forecast(
+        self, mean: torch.Tensor, batch: Batch, h: torch.Tensor | None = None
+    ) -> Forecast:
         """The forecast of the rates ``mean`` [W, N] of ``batch``: their spread from the
-        filter's state."""
+        filter's state, with ``h`` [W, N, D] the sensitivity at each sample (by default
+        :meth:`_sample_gradients`)."""
+        if h is None:
+            h = self._sample_gradients(batch)
         kernel = compiled()
         if kernel is not None:  # the same numbers, compiled (any model)
-            return self._compiled_spread(kernel, mean, batch)
-        sd = self._spread(batch.time_ns, _source(batch))
+            return self._compiled_spread(kernel, mean, batch, h)
+        sd = self._spread(batch.time_ns, _source(batch), h)
         missing = ~self._started.unsqueeze(1).expand_as(mean)
         nan = torch.full_like(mean, float("nan"))
         sd = torch.where(missing, nan, sd)
         return Forecast(mean, mean * sd, mean * torch.exp(-Z90 * sd), mean * torch.exp(Z90 * sd))
 
-    def _spread(self, time_ns: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
-        """Predictive sd of the log rate [W, N] at these times, for these meters: the
-        parameters' variance h (P + Q dt) h, plus the meter's noise, times the calibration
-        factor of that meter."""
-        var = self._variance(time_ns, src)
+    def _spread(self, time_ns: torch.Tensor, src: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Predictive sd of the log rate [W, N] at these times, for these meters, with ``h``
+        [W, N, D] the sensitivity at each sample: the parameters' variance h (P + Q dt) h,
+        plus the meter's noise, times the calibration factor of that meter."""
+        var = self._variance(time_ns, src, h)
         return var.clamp(min=0).sqrt() * torch.exp(torch.gather(self._scale, 1, src))
 
-    def _variance(self, time_ns: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+    def _variance(self, time_ns: torch.Tensor, src: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         """Predictive variance of the log rate [W, N] at these times, for these meters,
-        without the intervals' factors: h (P + Q dt) h + s^2."""
-        hph = torch.einsum("wd,wde,we->w", self._h, self._P, self._h)
-        hqh = (self._h**2 * self._q.unsqueeze(0)).sum(1)
+        without the intervals' factors: h (P + Q dt) h + s^2, h [W, N, D] at each sample.
+        The sensitivity is taken at the predicted sample, not at the well's last measured
+        one: for a hybrid its output-layer part is the network's hidden activations there
+        (the predictive variance of last-layer learning), and the last measured sample is
+        the direction the last update shrank P along (its h P h about the smallest)."""
+        hph = torch.einsum("wnd,wde,wne->wn", h, self._P, h)
+        hqh = (h**2 * self._q).sum(-1)
         dt = torch.where(
             self._last.unsqueeze(1) != NEVER,
             (time_ns - self._last.unsqueeze(1)).clamp(min=0).to(DTYPE) / _NS_PER_YEAR,
             torch.zeros(time_ns.shape, dtype=DTYPE),
         )
         noise = torch.gather(self._noise, 1, src) ** 2
-        return hph.unsqueeze(1) + hqh.unsqueeze(1) * dt + noise
+        return hph + hqh * dt + noise
+
+    def _sample_gradients(self, batch: Batch) -> torch.Tensor:
+        """The sensitivity h [W, N, D] of each sample's log rate to the filtered parameters
+        at their current values, masked by ``keep`` (as an update takes it); the stored h
+        (at the well's last measured sample) where there is no sample or no model. Compiled
+        for the compiled filter (:meth:`_compiled_gradients`), else by one batched backward
+        pass over the columns (:meth:`_torch_sample_gradients`)."""
+        kernel = compiled()
+        if kernel is not None and self._layout is not None:
+            return self._compiled_gradients(kernel, batch)
+        n_w, n = batch.y.shape
+        keep = self._keep.to(DTYPE)
+        out = self._h.unsqueeze(1).expand(n_w, n, self._dim).clone()
+        live = batch.mask & self.model.ready.unsqueeze(1)  # [W, N]
+        if bool(live.any()):
+            H = self._torch_sample_gradients(batch, live)
+            out = torch.where(live.unsqueeze(2), H * keep, out)
+        return out
+
+    def _torch_sample_gradients(self, batch: Batch, live: torch.Tensor) -> torch.Tensor:
+        """The gradient [W, N, D] of every sample's log rate to the filtered parameters: one
+        forward pass of the whole batch, then backward passes batched over its columns
+        (``is_grads_batched``, :data:`_GRAD_COLUMNS` at a time). A well's rate depends only
+        on its own parameters and a sample's only on its own inputs, so the gradient of
+        column k's rates summed over the wells is, per well, that sample's gradient."""
+        blocks = self._blocks
+        n_w, n = live.shape
+        params = [b.param for b in blocks]
+        parts: list[torch.Tensor] = []
+        with torch.enable_grad():
+            log_h = _log_rate(self.model, batch)  # [W, N]
+            weight = live.to(log_h.dtype)
+            for start in range(0, n, _GRAD_COLUMNS):
+                cols = torch.arange(start, min(start + _GRAD_COLUMNS, n))
+                seeds = torch.zeros(len(cols), n_w, n, dtype=log_h.dtype)
+                seeds[torch.arange(len(cols)), :, cols] = weight[:, cols].T
+                grads = torch.autograd.grad(
+                    log_h,
+                    params,
+                    grad_outputs=seeds,
+                    is_grads_batched=True,
+                    retain_graph=start + _GRAD_COLUMNS < n,
+                    allow_unused=True,
+                )
+                parts.append(
+                    torch.cat(
+                        [
+                            (g if g is not None else torch.zeros(len(cols), *b.param.shape))
+                            .reshape(len(cols), n_w, -1)
+                            .detach()
+                            for g, b in zip(grads, blocks, strict=True)
+                        ],
+                        dim=2,
+                    )
+                )
+        return torch.cat(parts, 0).permute(1, 0, 2)  # [W, N, D]
 
     # -- many wells at once ----------------------------------------------------------------------
     def group_key(self) -> Hashable | None:
@@ -990,10 +1075,14 @@ class BayesianFilter(LearningMethod):
         assert isinstance(first, BayesianFilter)
         if first.model.gradient_free or first._dim == 0:
             return Forecast(mean)
+        hs, start = [], 0
         for k, method in enumerate(methods):  # each well's prior from the pool at its time
             assert isinstance(method, BayesianFilter)
             method._sync_pool(batch, k)
-        return cls._joined(methods, _PREDICT_STATE)._forecast(mean, batch)
+            stop = start + method._h.shape[0]  # h at each sample, from each well's own model
+            hs.append(method._sample_gradients(_well_rows(batch, start, stop)))
+            start = stop
+        return cls._joined(methods, _PREDICT_STATE)._forecast(mean, batch, torch.cat(hs, 0))
 
     @staticmethod
     def _joined(methods: Sequence[LearningMethod], names: tuple[str, ...]) -> BayesianFilter:
@@ -1103,7 +1192,7 @@ class BayesianFilter(LearningMethod):
         """The squared standardised errors [W, N] of the forecasts the filter gave for the
         well tests of ``batch`` before learning from them: the log error over the filter's
         own spread sqrt(h (P + Q dt) h + s^2) (:meth:`_spread` without the intervals'
-        factors), and which count [W, N] (well tests of a well with a started filter and
+        factors, h at each well test's sample), and which count [W, N] (well tests of a well with a started filter and
         a model); None when none does. The compiled filter computes the same errors in its
         update pass (:meth:`_compiled_learn`), the torch path from its update's own forecast
         when each well has one measurement (:meth:`_update`); this is the reference, and
@@ -1115,11 +1204,12 @@ class BayesianFilter(LearningMethod):
         if not live.any():
             return None
         mean = predict_rates(self.model, batch).detach().numpy()
-        h, P, last = self._h.numpy(), self._P.numpy(), self._last.numpy()
-        hph = np.einsum("wd,wde,we->w", h, P, h)
-        hqh = (h**2 * self._q.numpy()).sum(1)
+        h = self._sample_gradients(batch).numpy()  # at each well test's sample
+        P, last = self._P.numpy(), self._last.numpy()
+        hph = np.einsum("wnd,wde,wne->wn", h, P, h)
+        hqh = (h**2 * self._q.numpy()).sum(-1)
         dt = np.maximum(batch.time_ns.numpy() - last[:, None], 0) / _NS_PER_YEAR
-        var = hph[:, None] + hqh[:, None] * dt + self._noise.numpy()[:, 1:2] ** 2
+        var = hph + hqh * dt + self._noise.numpy()[:, 1:2] ** 2
         z2 = np.log(np.where(live, y, 1.0) / np.where(live, mean, 1.0)) ** 2 / var
         live &= np.isfinite(z2)
         # an error beyond the gate (a refused measurement) counts as one at the gate
@@ -1279,23 +1369,27 @@ class BayesianFilter(LearningMethod):
             return live
         t = torch.where(live, one.time_ns[:, 0], self._last)
         src = _source(one)[:, 0]
+        m = _flat(blocks, n)
+        theta = m.clone()
+        keep = self._keep.to(DTYPE)
+        log_h, H = self._linearise(one, theta, live)  # the first iteration's, h at this sample
+        H = H * keep
         # the spread the filter gave this measurement before it arrived (for calibration)
-        sd_given = self._spread(one.time_ns[:, :1], src.unsqueeze(1))[:, 0]
+        h_given = torch.where(live.unsqueeze(1), H, self._h).unsqueeze(1)
+        sd_given = self._spread(one.time_ns[:, :1], src.unsqueeze(1), h_given)[:, 0]
         if errors is not None:  # ... and its variance without the intervals' factors
-            var_given = self._variance(one.time_ns[:, :1], src.unsqueeze(1))[:, 0]
+            var_given = self._variance(one.time_ns[:, :1], src.unsqueeze(1), h_given)[:, 0]
         P = self._grow(t)
         self._P = torch.where(live.view(-1, 1, 1), P, self._P)
         self._last = torch.where(live, t, self._last)
         y = torch.log(torch.where(live, one.y[:, 0], torch.ones(n, dtype=DTYPE)))
         R = self._noise[torch.arange(n), src] ** 2
-        m = _flat(blocks, n)
-        theta = m.clone()
-        keep = self._keep.to(DTYPE)
-        h0 = H = log_h = None
+        h0 = None
         Rk = R.clone()
         for i in range(self.kalman_iterations):
-            log_h, H = self._linearise(one, theta, live)
-            H = H * keep
+            if i > 0:
+                log_h, H = self._linearise(one, theta, live)
+                H = H * keep
             if i == 0:
                 h0, H0 = log_h, H
                 if errors is not None:
@@ -1310,7 +1404,7 @@ class BayesianFilter(LearningMethod):
             K = torch.einsum("wde,we->wd", P, H) / S.unsqueeze(1)
             innov = y - log_h - torch.einsum("wd,wd->w", H, m - theta)
             theta = torch.where(live.unsqueeze(1), m + K * innov.unsqueeze(1), m)
-        assert H is not None and h0 is not None
+        assert h0 is not None
         self._P = torch.where(live.view(-1, 1, 1), self._joseph_covariance(K, H, P, Rk), self._P)
         _assign(blocks, theta, live)
         model.project_()
@@ -1393,14 +1487,11 @@ class BayesianFilter(LearningMethod):
         for name in counts:
             if not counts[name].is_contiguous():
                 counts[name] = counts[name].contiguous()
-        if lay["lower"] is None:  # mm: no network
-            w1, b1 = np.zeros((n, 6, 0)), np.zeros((n, 0))
-        else:
-            w1, b1 = (p.detach().numpy() for p in lay["lower"])
+        w1, b1 = self._compiled_network(n)
         changed = np.zeros(n, dtype=bool)
         blocks = lay["blocks"]
         with torch.no_grad():
-            state = np.concatenate([p.detach().numpy().reshape(n, k) for p, k in blocks], axis=1)
+            state = self._compiled_state(n)
             taken = kernel.bayes(
                 state,
                 writable(self, "_P"),
@@ -1444,15 +1535,66 @@ class BayesianFilter(LearningMethod):
                     start += k
         return torch.from_numpy(changed), wanted and bool(errors[1][0] > 0)
 
-    def _compiled_spread(self, kernel: Any, mean: torch.Tensor, batch: Batch) -> Forecast:
+    def _compiled_network(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled filter's hybrid's first layer (W1 [n, 6, hidden], b1 [n, hidden]),
+        as it is now (empty for ``mm``)."""
+        lay = self._layout
+        assert lay is not None
+        if lay["lower"] is None:  # mm: no network
+            return np.zeros((n, 6, 0)), np.zeros((n, 0))
+        w1, b1 = (p.detach().numpy() for p in lay["lower"])
+        return w1, b1
+
+    def _compiled_state(self, n: int) -> np.ndarray:
+        """The compiled filter's state [n, D]: its blocks' parameters, concatenated."""
+        assert self._layout is not None
+        blocks = self._layout["blocks"]
+        return np.concatenate([p.detach().numpy().reshape(n, k) for p, k in blocks], axis=1)
+
+    def _compiled_gradients(self, kernel: Any, batch: Batch) -> torch.Tensor:
+        """:meth:`_sample_gradients` by the compiled ``bayes_gradients`` (the gradient the
+        compiled update takes, at each sample)."""
+        lay, model, n = self._layout, self.model, batch.n_wells
+        assert lay is not None
+        w1, b1 = self._compiled_network(n)
+        m: Any = model
+        out = np.empty((n, batch.y.shape[1], self._dim))
+        with torch.no_grad():
+            kernel.bayes_gradients(
+                self._compiled_state(n),
+                np.ascontiguousarray(self._h.numpy()),
+                lay["rules"][4],
+                np.ascontiguousarray(batch.x.numpy()),
+                np.ascontiguousarray(batch.mask.numpy()),
+                m.ready.numpy(),
+                lay["kind"],
+                m.a_max.numpy(),
+                lay["pos"],
+                lay["mu"],
+                lay["sigma"],
+                lay["n_phys"],
+                m.x_mean.numpy(),
+                m.x_std.numpy(),
+                w1,
+                b1,
+                m.y_scale.numpy(),
+                *effect_arguments(model, batch),
+                out,
+            )
+        return torch.from_numpy(out)
+
+    def _compiled_spread(
+        self, kernel: Any, mean: torch.Tensor, batch: Batch, h: torch.Tensor
+    ) -> Forecast:
         """:meth:`predict`'s spread of the rates ``mean``, by the compiled
-        ``bayes_spread`` (the same arithmetic as :meth:`_spread`)."""
+        ``bayes_spread`` (the same arithmetic as :meth:`_spread`; ``h`` [W, N, D] the
+        sensitivity at each sample)."""
         assert batch.well_test is not None
         out = [np.empty(tuple(mean.shape)) for _ in range(3)]
         with torch.no_grad():
             kernel.bayes_spread(
                 np.ascontiguousarray(mean.numpy()),
-                writable(self, "_h"),
+                np.ascontiguousarray(h.numpy()),
                 writable(self, "_P"),
                 self._q.numpy(),
                 writable(self, "_last"),

@@ -1242,6 +1242,7 @@ def _build() -> SimpleNamespace:
         hybrid_rates=k.hybrid_rates,
         bayes=k.bayes,
         bayes_spread=k.bayes_spread,
+        bayes_gradients=k.bayes_gradients,
         effect_rates=k.effect_rates,
         effect_online=k.effect_online,
     )
