@@ -249,6 +249,50 @@ def test_an_offset_taken_as_real_ends_without_a_new_one():
     assert not det.stands_in()
 
 
+def test_a_restart_during_a_choke_offset_resumes_its_stand_in_and_its_end():
+    """The detectors' state saved while a choke offset is open (a restart of the service)
+    resumes it: the same stand-in at every later sample, and the same end as without the
+    restart when the transmitter is set right during a shut-in (days 410-412; only the rate
+    level after it can tell, from what the witness kept of the offset)."""
+    from vfm_core.sensor_faults import WellSensorFaults
+
+    times, readings, rates = _well(390, 7)
+    u = readings[-1]
+    rng = np.random.default_rng(72)
+    for k in range(390 * 2, 440 * 2):
+        times.append(times[0] + k * HALF_DAY)
+        shut = 820 <= k < 826
+        readings.append(0.0 if shut else u * 1.15 if 400 <= k // 2 < 410 else u)
+        rates.append(
+            math.nan if shut else 100.0 * u**ELASTICITY * (1 + 0.02 * rng.standard_normal())
+        )
+    rows = [
+        [r, *(v * (1 + 0.003 * rng.standard_normal()) for v in (120, 30, 60, 0.1, 0.6))]
+        for r in readings
+    ]
+
+    def run(det, ks):
+        seen = []
+        for k in ks:
+            det.update(times[k], rows[k])
+            measured = det.measure(times[k], rates[k], rows[k]) if math.isfinite(rates[k]) else []
+            ended = [e.end_ns for e in measured]
+            stood = [round(f.value, 12) for f in det.fallbacks(times[k], rows[k])]
+            seen.append((k, ended, stood))
+        return seen
+
+    whole = WellSensorFaults()
+    expected = run(whole, range(len(times)))
+    first = WellSensorFaults()
+    run(first, range(815))  # the offset found (day ~400), open before the shut-in
+    assert ("choke", "offset") in first.open
+    again = WellSensorFaults()
+    assert again.restore(json.loads(json.dumps(first.state())))
+    assert run(again, range(815, len(times))) == expected[815:]
+    assert any(ended for _, ended, _ in expected[826:832])  # ended after the reopening
+    assert any(stood for _, _, stood in expected[815:820])  # and stood in before that
+
+
 @pytest.mark.parametrize("share,window", [(0.0, 7.0), (float("nan"), 7.0), (0.01, 0.5)])
 def test_bad_settings_are_refused(share, window):
     with pytest.raises(ConfigError):
