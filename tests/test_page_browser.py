@@ -201,6 +201,19 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     assert "error" not in (page.locator("#diag-status").get_attribute("class") or ""), status
     verdict = page.locator("#diag-verdict").inner_text()
     assert page.locator("#diag-candidates-table button.apply").count() == 1, verdict
+    # the candidate's trial forecast (its backtest against the shadow) has a column of its
+    # own, this well's figure with its interval, as the diagnosis gives it
+    forecast = page.evaluate(
+        "(() => { const d = window.vfm.diagnosed, c = d.candidates.find(x => x.effect === 'erosion');"
+        " const t = c.tests.trial; return (t.per_well || {})[(d.pool || {}).focus] || t; })()"
+    )
+    assert forecast["change"] is not None and forecast["low"] is not None, forecast
+    assert "trial forecast" in page.locator("#diag-candidates-table thead").inner_text()
+    cell = page.locator("#diag-candidates-table tbody tr td.trial").first.inner_text()
+    assert f"{forecast['change']:.2f}" in cell and f"{forecast['low']:.2f}" in cell, (
+        cell,
+        forecast,
+    )
     page.screenshot(path=str(SHOTS / "diagnosis.png"), full_page=True)
 
     # applying it (confirmed if its held-out check says worse) changes the model shown,

@@ -855,20 +855,23 @@ function showDiagnosis(j) {
     ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter to read and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
-    <th class="num">&Delta; live [95 %]</th><th class="num" title="the outage change pooled over the wells diagnosed together: one well has too few outage windows to sign its own (the verdict text gives this well's)">&Delta; outage, all wells [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
+    <th class="num">&Delta; live [95 %]</th><th class="num" title="the outage change pooled over the wells diagnosed together: one well has too few outage windows to sign its own (the verdict text gives this well's)">&Delta; outage, all wells [95 %]</th>
+    <th class="num" title="what a trial of the change would measure against its shadow: the candidate fitted before the last 30 days of data, as apply installs it, then learning with the well's method, against the live replay over those days (95 % prediction interval of the next window; a forecast, not a test)">&Delta; trial forecast [95 %]</th><th>meaning and evidence</th><th></th></tr>`;
   const rows = (d.candidates || []).map((c) => `<tr${c.raises_error ? ' class="worse"' : ""}><td>${esc(c.effect)}</td>
     <td class="num">${c.replayed ? fmt((mineTest(c, "live") || {}).mape, 2) : "\u2013"}</td>
     <td class="num">${change(mineTest(c, "live"))}</td><td class="num">${change((c.tests || {}).outage)}</td>
+    <td class="num trial">${change(mineTest(c, "trial"))}</td>
     <td>${esc(c.meaning)} <span class="hint">(${esc(evidence(c))}; fit-once ${fmt(c.delta_mape, 2)})</span>${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.join("; ")) + "</span>" : ""}</td>
     <td>${action(c, c.spec || c.effect)}</td></tr>`);
   if (d.suggestion) {
     const s = d.suggestion;
     rows.push(`<tr><td>suggested: ${esc(s.form)}</td><td class="num">${s.replayed ? fmt((mineTest(s, "live") || {}).mape, 2) : fmt(s.mape, 2)}</td>
       <td class="num">${change(mineTest(s, "live"))}</td><td class="num">${change((s.tests || {}).outage)}</td>
+      <td class="num trial">${change(mineTest(s, "trial"))}</td>
       <td>a correction outside the library (${esc(s.driver)}) <span class="hint">(${esc(evidence(s))})</span></td>
       <td>${action(s, s.effects)}</td></tr>`);
   }
-  $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="6" class="hint">No candidate could be tried.</td></tr>`;
+  $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="7" class="hint">No candidate could be tried.</td></tr>`;
   $("#diag-candidates-table").hidden = false;
   const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
     .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
