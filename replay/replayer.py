@@ -58,7 +58,8 @@ class ReplayResult:
             f"Replayed {self.rows:,} rows{since} ({self.samples_sent:,} sensor samples, "
             f"{self.measurements_sent:,} measurements) in {self.elapsed_s:.1f} s ({rate:,.0f} rows/s).",
             f"Predictions: {self.predictions_received:,} received; {self.missing:,} sample(s) got none "
-            "(a well without a model yet gets no prediction until its first measurement; the rest were lost).",
+            "(a well without a model yet gets none until its first measurement, a sample the service "
+            "rejects gets none, its reason counted in /metrics; any other was lost).",
         ]
         if self.skipped:
             lines.append(

@@ -265,3 +265,21 @@ def test_promtool_unit_tests_can_fail(tmp_path: Path) -> None:
     result = run_promtool("test", "rules", str(tmp_path / "alerts_test.yml"))
     assert result.returncode != 0
     assert "VfmWellStarved" in result.stdout + result.stderr
+
+
+def test_the_sensor_fault_alert_fires_on_the_faults_that_raise_an_alarm() -> None:
+    """``VfmSensorFault`` fires on exactly the faults the service calls alarms (each fault's
+    ``alarm`` in ``GET /wells/{well}``, the page's alarm line, a warning in the log):
+    :data:`vfm_core.sensor_faults.ALARM_KINDS` and :data:`~vfm_core.sensor_faults.ALARM_FAULTS`."""
+    from vfm_core.sensor_faults import ALARM_FAULTS, ALARM_KINDS, KINDS, SENSORS, raises_alarm
+
+    (alert,) = [a for a in _alerts() if a["alert"] == "VfmSensorFault"]
+    expr = alert["expr"]
+    kinds = re.findall(r'\{kind=~"([^"]+)"\}', expr)
+    assert len(kinds) == 1, expr
+    assert set(kinds[0].split("|")) == set(ALARM_KINDS)
+    pairs = set(re.findall(r'\{sensor="(\w+)", kind="(\w+)"\}', expr))
+    assert pairs == set(ALARM_FAULTS), expr
+    alarms = {(s, k) for s in SENSORS for k in KINDS if raises_alarm(s, k)}
+    assert ("p_down", "offset") not in alarms and ("p_up", "spike") not in alarms
+    assert ("choke", "offset") in alarms and ("t_up", "frozen") in alarms

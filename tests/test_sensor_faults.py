@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
@@ -27,6 +28,7 @@ from vfm_core.sensor_faults import (
     SensorFault,
     WellSensorFaults,
     faults_of_frame,
+    raises_alarm,
     write_sensor_faults,
 )
 
@@ -198,7 +200,10 @@ def test_sensor_faults_json_lists_every_well_s_faults(field: pd.DataFrame, tmp_p
     assert doc["wells"] == 3 and doc["well_years"] > 3.0
     frozen = [f for f in doc["sensor_faults"] if f["kind"] == "frozen"]
     assert [(f["well"], f["sensor"]) for f in frozen] == [(well, "t_up")]
-    assert set(frozen[0]) == {"well", "sensor", "kind", "start", "end", "evidence", "detected"}
+    assert set(frozen[0]) == {
+        *("well", "sensor", "kind", "start", "end", "evidence", "detected", "alarm")
+    }
+    assert frozen[0]["alarm"] is True
     assert frozen[0]["end"] is None
 
 
@@ -313,6 +318,7 @@ def test_the_service_shows_a_frozen_transmitter(tmp_path: Path) -> None:
         start = pd.Timestamp(faults[0]["start"])
         assert start == pd.Timestamp(T0 + timedelta(hours=12 * (stuck_from - 1) + 3))
         assert "p_down has read" in faults[0]["evidence"]
+        assert faults[0]["alarm"] is True  # a frozen transmitter raises an alarm
         text = http_get(service, "/metrics").text
         assert 'vfm_well_sensor_fault_active{kind="frozen",sensor="p_down",well="W01"} 1.0' in text
         assert 'vfm_well_sensor_fault_active{kind="frozen",sensor="p_up",well="W01"} 0.0' in text
@@ -488,3 +494,31 @@ def test_every_figure_of_held_measurements_counts_each_one_once(tmp_path: Path) 
             assert [float(ln.rsplit(" ", 1)[1]) for ln in metrics] == [float(health)]
     finally:
         service.stop()
+
+
+def test_a_fault_that_raises_an_alarm_is_a_warning_one_only_shown_is_info(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The log follows :func:`raises_alarm`: a frozen input is a warning, an input's own
+    offset (shown, not an alarm: its false rate is above the budget) is info, as its end."""
+    from types import SimpleNamespace
+
+    from service.engine.state import WellState
+
+    t = 1_600_000_000 * 10**9
+    frozen = SensorFault("p_up", "frozen", t, t, "p_up has read 60 bar for 3 days.")
+    offset = SensorFault("p_down", "offset", t, t, "p_down stepped by +2 bar.")
+    ended = SensorFault("p_down", "offset", t, t, "p_down stepped by +2 bar.", end_ns=t + 1)
+    assert raises_alarm("p_up", "frozen") and not raises_alarm("p_down", "offset")
+    assert frozen.as_dict()["alarm"] is True and offset.as_dict()["alarm"] is False
+    with caplog.at_level(logging.INFO, logger="vfm.service.engine"):
+        WellState._log_faults(SimpleNamespace(well="W07"), [frozen, offset, ended])  # type: ignore[arg-type]
+    levels = [(r.levelno, r.getMessage().split(".")[0]) for r in caplog.records]
+    assert levels == [
+        (logging.WARNING, "Sensor fault on W07: p_up frozen"),
+        (
+            logging.INFO,
+            "Sensor fault on W07: p_down offset (shown, not an alarm: its false rate is above the budget)",
+        ),
+        (logging.INFO, "Sensor fault on W07 ended: p_down offset"),
+    ]

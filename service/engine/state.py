@@ -27,7 +27,7 @@ from service.engine.learners import Learner, describe
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
-from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults
+from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults, raises_alarm
 from vfm_core.timeutil import iso
 
 __all__ = [
@@ -224,11 +224,20 @@ class WellState:
         return events
 
     def _log_faults(self, events: Sequence[SensorFault]) -> None:
-        """Log each fault that began (warning, with its evidence) or ended (info)."""
+        """Log each fault that began (with its evidence: a warning for one that raises an
+        alarm, :func:`vfm_core.sensor_faults.raises_alarm`, info for one only shown) or ended
+        (info)."""
         for e in events:
             if e.end_ns is None:
-                logger.warning(
-                    "Sensor fault on %s: %s %s. %s", self.well, e.sensor, e.kind, e.evidence
+                alarm = raises_alarm(e.sensor, e.kind)
+                logger.log(
+                    logging.WARNING if alarm else logging.INFO,
+                    "Sensor fault on %s: %s %s%s. %s",
+                    self.well,
+                    e.sensor,
+                    e.kind,
+                    "" if alarm else " (shown, not an alarm: its false rate is above the budget)",
+                    e.evidence,
                 )
             else:
                 logger.info("Sensor fault on %s ended: %s %s.", self.well, e.sensor, e.kind)

@@ -373,7 +373,8 @@ class WellOut(WellSummary):
         default_factory=list,
         description="instrument faults of the well's inputs, oldest first (the latest 50): "
         "sensor, kind (frozen, spike, drift, offset, out_of_range), start, end (null while "
-        "active), evidence, detected",
+        "active), evidence, detected, alarm (whether it raises an alarm: the page's alarm line, "
+        "the VfmSensorFault alert; an input's own offset and a spike are shown only)",
     )
     fallback: list[dict[str, Any]] | None = Field(
         default=None,

@@ -99,13 +99,12 @@ const HELD_REASONS = ["held for review", "sensor fault at the sample"];
 
 /* Instrument faults (GET /wells/{well} sensor_faults, vfm_core/sensor_faults.py): the
    active ones have no end. A spike begins and ends at its sample. */
-/* The kinds that raise an alarm: those whose measured false rate is within the detectors'
-   budget (benchmarks/bench_sensor_faults.py: frozen and range 0, drift 0.013 per well-year),
-   and a choke offset, found by its witness (the MPFM's rate does not follow a move of the
-   reading; 1 false in 119 well-years); an input's own offset (0.2 per well-year on clean
-   fields, nearly all separator set-point steps) shows on the charts and in the list only. */
-const ALARM_FAULTS = ["frozen", "out_of_range", "drift"];
-const raisesAlarm = (f) => ALARM_FAULTS.includes(f.kind) || (f.sensor === "choke" && f.kind === "offset");
+/* Whether a fault raises an alarm is the service's (each fault's "alarm", from
+   vfm_core.sensor_faults.raises_alarm: the kinds whose measured false rate is within the
+   detectors' budget, and a choke offset, found by its witness); an input's own offset (0.2
+   per well-year on clean fields, nearly all separator set-point steps) and a spike show on
+   the charts and in the list only. */
+const raisesAlarm = (f) => f.alarm === true;
 function activeFaults(v) { return ((v && v.sensor_faults) || []).filter((f) => f.end == null); }
 const day = (iso) => (iso || "").slice(0, 10);
 const minute = (iso) => (iso || "").slice(0, 16).replace("T", " ");
