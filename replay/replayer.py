@@ -28,9 +28,12 @@ from vfm_core.errors import ConfigError, DataError
 from vfm_core.jobs.study import mape
 from vfm_core.messages import validate_prefix
 from vfm_core.schema import SOURCE, SOURCES, TARGET, TIME, WELL
-from vfm_core.timeutil import utc_timestamp
+from vfm_core.timeutil import iso, utc_timestamp
 
 __all__ = ["ReplayResult", "replay_frame", "ReplayError"]
+
+#: samples without a prediction named in the summary (the rest are counted)
+MISSING_SHOWN = 3
 
 
 @dataclass
@@ -50,6 +53,8 @@ class ReplayResult:
     overall_mape: float = float("nan")
     mean_mape: float = float("nan")
     skipped: int = 0
+    #: the first few samples that got no prediction: (well, sample time ns)
+    missing_samples: list[tuple[str, int]] = field(default_factory=list)
 
     def summary(self) -> str:
         rate = self.rows / self.elapsed_s if self.elapsed_s > 0 else float("nan")
@@ -61,6 +66,12 @@ class ReplayResult:
             "(a well without a model yet gets none until its first measurement, a sample the service "
             "rejects gets none, its reason counted in /metrics; any other was lost).",
         ]
+        if self.missing_samples:
+            shown = ", ".join(f"{w} at {iso(t)}" for w, t in self.missing_samples)
+            more = self.missing - len(self.missing_samples)
+            lines.append(
+                f"Without a prediction: {shown}" + (f" and {more:,} more." if more > 0 else ".")
+            )
         if self.skipped:
             lines.append(
                 f"{self.skipped:,} row(s) were not sent: their values fail the message schema."
@@ -133,18 +144,20 @@ def replay_frame(
             opened.close()
 
     predictions = dict(client.predictions)
-    missing = sum(1 for k in sent.samples if k not in predictions)
-    return _score(
+    lacking = [k for k in sent.samples if k not in predictions]
+    result = _score(
         rows,
         predictions,
         start_ts,
         sent=len(sent.samples),
         measurements=sent.measurements,
         received=client.count,
-        missing=missing,
+        missing=len(lacking),
         elapsed=elapsed,
         skipped=sent.skipped,
     )
+    result.missing_samples = lacking[:MISSING_SHOWN]
+    return result
 
 
 def _rows_from(

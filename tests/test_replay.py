@@ -109,3 +109,23 @@ def test_cli_error_exit_code(capsys: pytest.CaptureFixture[str], tmp_path: Path)
     code = main(["replay", str(tmp_path / "missing.parquet"), "--quiet"])
     assert code == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_the_summary_names_the_samples_that_got_no_prediction() -> None:
+    """A replay whose samples got no prediction names the first few (well and time) and
+    counts the rest, so that the user can look them up in the service's log or store."""
+    from replay.replayer import MISSING_SHOWN, ReplayResult
+
+    t0 = pd.Timestamp("2017-03-01T06:00:00Z").value
+    lacking = [("W02", t0 + k * 3_600 * 10**9) for k in range(5)]
+    result = ReplayResult(
+        start=None, rows=10, samples_sent=10, measurements_sent=0, predictions_received=5,
+        missing=len(lacking), elapsed_s=1.0, scored=pd.DataFrame(),
+        missing_samples=lacking[:MISSING_SHOWN],
+    )  # fmt: skip
+    text = result.summary()
+    assert "5 sample(s) got none" in text
+    assert "Without a prediction: W02 at 2017-03-01T06:00:00Z, W02 at 2017-03-01T07:00:00Z" in text
+    assert text.count("W02 at ") == MISSING_SHOWN and "and 2 more." in text
+    complete = ReplayResult(None, 10, 10, 0, 10, 0, 1.0, pd.DataFrame())
+    assert "Without a prediction" not in complete.summary()
