@@ -30,6 +30,7 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/bench_alarms.py [--fields none:41:6:4,...]
         [--models mm,ham] [--methods ol,bayes] [--split-years 1] [--arl0 1000]
+        [--physics sachdeva|bernoulli|gilbert]
         [--markdown docs/benchmarks/generated/alarms.md]
 
 A field is ``hidden:seed:wells:years`` (hidden as ``vfm simulate --hidden``, ``+`` between
@@ -148,6 +149,13 @@ def main() -> None:
     ap.add_argument("--methods", default="ol,bayes")
     ap.add_argument("--split-years", type=float, default=1.0)
     ap.add_argument(
+        "--physics",
+        default="sachdeva",
+        help="the simulator's truth (vfm simulate --physics): a second physics puts the "
+        "models' own choke law out of the truth, so a 'clean' field has a misfit the learner "
+        "follows",
+    )
+    ap.add_argument(
         "--arl0", type=float, default=1000.0, help="target in-control run length, periods"
     )
     ap.add_argument("--markdown", help="also write the table as Markdown to this file")
@@ -170,7 +178,9 @@ def main() -> None:
     print("-" * len(header))
     for text in args.fields.split(","):
         effects, seed, n_wells, years = parse_field(text)
-        sim = simulate_field(wells=n_wells, years=years, seed=seed, hidden=effects)
+        sim = simulate_field(
+            wells=n_wells, years=years, seed=seed, hidden=effects, physics=args.physics
+        )
         frame = validate_frame(sim.observations).frame
         start = pd.Timestamp(sim.truth["start"])
         start = start.tz_localize("UTC") if start.tzinfo is None else start.tz_convert("UTC")
