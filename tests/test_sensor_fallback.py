@@ -231,6 +231,10 @@ def test_the_service_predicts_with_the_fallback_and_learns_nothing_wrong(
         for t in times:
             fb = messages[int(t)]["fallback"]
             assert fb is not None and fb[0]["sensor"] == "p_up" and fb[0]["kind"] == "frozen"
+        # the held MPFM rates witnessed the input (Learning.follow_rate): the stand-in moved
+        # off the history's (kept with the detectors, so in the checkpoint)
+        track = st.sensor_faults.tracks["p_up/frozen"]
+        assert track[0] != 0.0 and track[2] > event.detected_ns
 
         # the same model without the fallback (the reading as it came, its own interval)
         # and at the true inputs (the best this model can do: the truth of the input's part)

@@ -108,7 +108,12 @@ A choke offset (:data:`FALLBACK_FAULTS`) stands in with the reading less the shi
 witness estimated (where the rate says the choke is), with that estimate's sd.
 :func:`fallback_points` and :func:`widened_rates` turn a model's answers at the value and
 at the ends of its 90 % span into the rates and a widened interval; the service uses them
-(``service/engine/learning.py``, ``Learning.fallback``). The rules and their reasons are in
+(``service/engine/learning.py``, ``Learning.fallback``). While the well's rate is still
+measured, each MPFM rate at a stood-in sample is a witness of the input
+(:meth:`WellSensorFaults.follow_rate`, :func:`witness_track`): with the model held, one
+Kalman step moves the stand-in toward the value at which the model's rate matches the
+measured one less the meter's usual bias, by as much as the rate's sensitivity to the
+input and its noise allow (nothing where the rate does not depend on it). The rules and their reasons are in
 :meth:`WellSensorFaults._anchor` and :meth:`WellSensorFaults.fallbacks`.
 
 Cost: ``benchmarks/bench_detector_cost.py`` measures :meth:`WellSensorFaults.update`
@@ -174,6 +179,11 @@ __all__ = [
     "Fallback",
     "fallback_points",
     "widened_rates",
+    "Track",
+    "tracked",
+    "track_variance",
+    "witness_track",
+    "residual_noise",
     "WellSensorFaults",
     "faults_of_frame",
     "mpfm_rates",
@@ -266,6 +276,14 @@ _REF_DAYS = 365  # daily changes kept per input: the references of the daily tes
 _TAIL_QUANTILE = 0.9
 _Z90 = NormalDist().inv_cdf(0.95)  # the half-width of a central 90 % interval, in sd
 _MEDIAN_SE = 1.2533  # the standard error of a median of n normal values, in sd / sqrt(n)
+# the measured rate as a witness of a stood-in input (:func:`witness_track`): a rate further
+# than this many sd of its innovation from the stand-in's is not taken (a bad reading, or a
+# model wrong there: one measurement must not move the stand-in across its whole span)
+_WITNESS_GATE = 4.0
+_WITNESS_MIN_RESIDUALS = 10  # learned log residuals for their spread, else the default
+_WITNESS_LOG_SD = 0.05  # an MPFM reading's noise at its worst (5 %): no residuals yet
+_WITNESS_MIN_LOG_SD = 0.01  # floor: a reading is seldom better than 1 % (as the review's)
+_WANDER_LAG = 30  # days: the lag of the input's variogram that its wander is read at
 
 
 @lru_cache(maxsize=256)
@@ -429,7 +447,11 @@ class Fallback:
     fraction, bar a, degC); ``spread``: the standard deviation of how far the true value
     may have moved since the last trusted level; ``low`` / ``high``: ``value -/+ 1.645
     spread`` (a central 90 % span) clipped to the input's physical range; ``measured``:
-    what the transmitter reads; ``start_ns``: when the fault began (epoch ns)."""
+    what the transmitter reads; ``start_ns``: when the fault began (epoch ns). For the
+    measured rate's witness (:func:`witness_track`): ``wander``, the variance per day of how
+    the input itself wanders (its daily means' variogram, without their noise, unit^2 / day;
+    NaN: unknown, no witness), and ``prior``, the variance of where it is now from that
+    wander (a day's change of its daily means, then ``wander`` a day; unit^2)."""
 
     sensor: str
     kind: str
@@ -440,6 +462,8 @@ class Fallback:
     high: float
     measured: float
     start_ns: int
+    wander: float = math.nan
+    prior: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         """As the prediction message and ``GET /wells/{well}`` show it (``since``: ISO 8601
@@ -505,6 +529,124 @@ def widened_rates(answers: Sequence[Mapping[str, float | None]]) -> dict[str, fl
                 var += ((hi - lo) / (2.0 * _Z90)) ** 2
         centre["q_total_std"] = math.sqrt(var)
     return centre
+
+
+#: the measured rate's correction of one stand-in (:func:`tracked`, :func:`witness_track`):
+#: (shift of its value, the variance of where the input is at the last measurement taken,
+#: that measurement's time ns, and the meter's bias and noise about the model in log space,
+#: :func:`residual_noise`, fixed at the first witness)
+Track = tuple[float, float, int, float, float]
+
+
+def residual_noise(log_residuals: Sequence[float]) -> tuple[float, float]:
+    """The bias and the noise of a meter's rate about the model, in log space: the median
+    and the robust sd (1.4826 MAD about it, at least 0.01) of the well's latest learned log
+    residuals of that meter ``r = log(measured / predicted)``. An MPFM reads its own bias
+    (a slow drift of its factor, which the model, weighing the well tests, does not
+    follow): taken as news of the input, it would move the stand-in to fit it. With fewer
+    than 10 residuals: no bias, 0.05 (an MPFM reading's noise at its worst)."""
+    r = np.array([float(v) for v in log_residuals if math.isfinite(v)])
+    if len(r) < _WITNESS_MIN_RESIDUALS:
+        return 0.0, _WITNESS_LOG_SD
+    bias = float(np.median(r))
+    return bias, max(_MAD_TO_SD * float(np.median(np.abs(r - bias))), _WITNESS_MIN_LOG_SD)
+
+
+def tracked(
+    base: Fallback, track: Track | None, bounds: tuple[float, float], time_ns: int
+) -> Fallback:
+    """The stand-in ``base`` (:meth:`WellSensorFaults.fallbacks`, from the input's history)
+    at a sample (epoch ns) corrected by what the measured rates said of the input so far
+    (``track``, see :func:`witness_track`; None: ``base`` as it is): its value shifted (the
+    trend since is ``base``'s), clipped to ``bounds`` (the input's physical range). Its
+    spread stays ``base``'s, the span is moved with the value: the witness's own variance
+    (:func:`track_variance`) assumes the input wanders as it did before the fault, and an
+    input that does something else (a new trend) would leave a span that narrow behind."""
+    if track is None:
+        return base
+    low, high = bounds
+    value = min(max(base.value + track[0], low), high)
+    spread = base.spread
+    lo, hi = max(value - _Z90 * spread, low), min(value + _Z90 * spread, high)
+    return Fallback(
+        base.sensor,
+        base.kind,
+        base.index,
+        value,
+        spread,
+        lo,
+        hi,
+        base.measured,
+        base.start_ns,
+        base.wander,
+        base.prior,
+    )
+
+
+def track_variance(used: Fallback, track: Track | None, time_ns: int) -> float:
+    """The variance (unit^2) of where the stood-in input is at a sample (epoch ns), as the
+    witness sees it: at the first witness ``used.prior``, later the track's variance grown
+    by the input's ``wander`` since its last measurement; never above ``used``'s spread^2."""
+    cap = used.spread * used.spread
+    if track is None:
+        return min(used.prior, cap)
+    days = max(int(time_ns) - track[2], 0) / _NS_PER_DAY
+    return min(track[1] + used.wander * days, cap)
+
+
+def witness_track(
+    used: Fallback,
+    track: Track | None,
+    answers: Sequence[Mapping[str, float | None]],
+    q_measured: float,
+    noise: tuple[float, float],
+    time_ns: int,
+    bounds: tuple[float, float],
+) -> Track | None:
+    """The measured rate as a witness of the stood-in input: one Kalman step.
+
+    ``used``: the stand-in the sample was predicted with (``track`` applied, :func:`tracked`);
+    ``answers``: the model's at :func:`fallback_points` of that one stand-in (at its value,
+    at the low and at the high end of its span), the model's parameters held (learning
+    is); the rate measured at that sample ``q_measured`` (Sm3/h) by a meter whose bias and
+    noise about the model are ``noise`` (log space, :func:`residual_noise`; the track keeps
+    those of its first witness). The state is the input; its prior is the stand-in's
+    value with the variance :func:`track_variance` (from the input's own wander, not the
+    history's random walk of its noisy daily means). The measurement is the log rate, linear in the input with the slope of the
+    model's log rates across the span (the secant: no extra model call). A rate that could
+    shrink the input's variance by less than 0.1 % (the rate hardly depends on it: ``p_down``
+    at critical flow) is not taken, so the stand-in stays the history's; nor a rate beyond 4
+    sd of its innovation, nor one before the track's last (out of order). Returns the new
+    track (for :func:`tracked`)."""
+    if track is not None and int(time_ns) < track[2]:
+        return track
+    bias, log_sd = noise if track is None else track[3:]
+    if len(answers) != 3 or not (q_measured > 0 and log_sd > 0):
+        return track
+    q = [answers[k].get("q_total") for k in range(3)]
+    if not all(v is not None and math.isfinite(v) and v > 0 for v in q):
+        return track
+    qc, ql, qh = (float(v) for v in q)  # type: ignore[arg-type]
+    width = used.high - used.low
+    slope = (math.log(qh) - math.log(ql)) / width if width > 0 else 0.0
+    prior = track_variance(used, track, time_ns)
+    r = log_sd * log_sd
+    if not (math.isfinite(prior) and prior > 0) or slope * slope * prior < 1e-3 * r:
+        return track
+    innovation = math.log(q_measured) - math.log(qc) - bias
+    s = slope * slope * prior + r
+    if abs(innovation) > _WITNESS_GATE * math.sqrt(s):
+        return track
+    gain = prior * slope / s
+    value = min(max(used.value + gain * innovation, bounds[0]), bounds[1])
+    shift = 0.0 if track is None else track[0]
+    return (
+        shift + value - used.value,
+        prior * (1.0 - gain * slope),
+        int(time_ns),
+        bias,
+        log_sd,
+    )
 
 
 @dataclass
@@ -653,6 +795,12 @@ class WellSensorFaults:
         #: per open fault "sensor/kind": the last trusted level, its trend per day, the
         #: robust sd of the day-to-day changes per square-root day, and the level's time (ns)
         self.anchors: dict[str, tuple[float, float, float, int]] = {}
+        #: per open fault "sensor/kind" of :data:`FALLBACK_KINDS`: what the measured rates
+        #: said of the input so far (:meth:`follow_rate`), the correction of its stand-in
+        self.tracks: dict[str, Track] = {}
+        #: per open fault "sensor/kind" of :data:`_ANCHOR_KINDS`: the input's own wander
+        #: before it (variance per day, :meth:`_wander`), fixed when it is raised
+        self.wanders: dict[str, float] = {}
 
     def _new_cusum(self) -> ResidualCusum:
         # each day's change is its own period (period_s 0): the daily means are made here
@@ -758,6 +906,26 @@ class WellSensorFaults:
             scale = _median_mad(self.changes[i])[1] * math.sqrt(self._samples_per_day())
         return float(level), float(trend), float(scale), int(at_ns)
 
+    def _wander(self, i: int, start_ns: int) -> float:
+        """How input ``i`` itself wanders (variance per day, its unit^2 / day) from its
+        daily means before the day of ``start_ns`` (the last 64, :data:`_LEVEL_DAYS`): the
+        growth of the variance of their changes from one day apart to 30 (robust: 1.4826
+        MAD about the median, so the trend drops out), ``(v30 - v1) / 29``. The noise of a
+        daily mean is in both and cancels: the day-to-day changes (the history's spread)
+        are mostly that noise, and a random walk of them overstates where the input goes
+        in a month (seed 4711's three wells with a frozen ``p_up``: a 90 % span of 4-6 bar
+        either side after 60 days, while the true daily means stayed within 0.8-0.9 bar sd
+        of their mean). NaN without 10 pairs at each lag."""
+        start_day = start_ns // _NS_PER_DAY
+        means = {int(d): m for d, m in self.levels[i] if d < start_day}
+        var = []
+        for lag in (1, _WANDER_LAG):
+            r = np.array([means[d + lag] - m for d, m in means.items() if d + lag in means])
+            if len(r) < 10:
+                return math.nan
+            var.append((_MAD_TO_SD * float(np.median(np.abs(r - np.median(r))))) ** 2)
+        return max(var[1] - var[0], 0.0) / (_WANDER_LAG - 1)
+
     def stands_in(
         self,
         kinds: Sequence[str] = FALLBACK_KINDS,
@@ -814,6 +982,8 @@ class WellSensorFaults:
             if key not in self.anchors:  # a checkpoint of before the fallback existed
                 self.anchors[key] = self._anchor(i, kind, fault.start_ns)
             level, trend, scale, at_ns = self.anchors[key]
+            if key not in self.wanders:  # a checkpoint of before the witness existed
+                self.wanders[key] = self._wander(i, fault.start_ns)
             days = max((int(time_ns) - at_ns) / _NS_PER_DAY, 0.0)
             value = level + trend * days if math.isfinite(level) else (low + high) / 2.0
             value = min(max(value, low), high)
@@ -821,9 +991,44 @@ class WellSensorFaults:
             spread = scale * math.sqrt(max(days, 1.0)) if scale > 0 else widest
             spread = min(spread, widest)
             lo, hi = max(value - _Z90 * spread, low), min(value + _Z90 * spread, high)
-            out.append(Fallback(sensor, kind, i, value, spread, lo, hi, v, fault.start_ns))
+            wander = self.wanders[key]
+            prior = min(scale * scale + wander * max(days - 1.0, 0.0), spread * spread)
+            base = Fallback(
+                sensor, kind, i, value, spread, lo, hi, v, fault.start_ns, wander, prior
+            )
+            out.append(tracked(base, self.tracks.get(key), (low, high), time_ns))
             done.add(sensor)
         return out
+
+    def follow_rate(
+        self,
+        time_ns: int,
+        used: Sequence[Fallback],
+        answers: Sequence[Mapping[str, float | None]],
+        q_measured: float,
+        noise: tuple[float, float],
+    ) -> bool:
+        """A rate (Sm3/h) measured at the sample at ``time_ns`` (epoch ns) that was predicted
+        with the stand-ins ``used`` (from :meth:`fallbacks`) and the model's ``answers`` at
+        their :func:`fallback_points`: with one stood-in input of :data:`FALLBACK_KINDS`
+        whose fault is still open, a Kalman step of its stand-in
+        (:func:`witness_track`; ``noise``: the meter's bias and noise about the model in
+        log space, :func:`residual_noise`, used from the fault's first witness on). The later
+        samples' :meth:`fallbacks` follow it. Several inputs stood in for at once are left
+        as they are (the rate cannot tell which one moved). True when the stand-in moved."""
+        if len(used) != 1 or used[0].kind not in FALLBACK_KINDS:
+            return False
+        f = used[0]
+        fault = self.open.get((f.sensor, f.kind))
+        if fault is None or fault.start_ns != f.start_ns:
+            return False
+        key = f"{f.sensor}/{f.kind}"
+        before = self.tracks.get(key)
+        after = witness_track(f, before, answers, q_measured, noise, time_ns, self.ranges[f.sensor])
+        if after is None or after == before:
+            return False
+        self.tracks[key] = after
+        return after[:2] != (before[:2] if before is not None else (0.0, 0.0))
 
     def _choke_shift(self, fault: SensorFault, v: float) -> Fallback:
         """The stand-in for a choke reading ``v`` (fraction open) at an open choke offset:
@@ -946,6 +1151,7 @@ class WellSensorFaults:
             self.anchors[f"{fault.sensor}/{fault.kind}"] = self._anchor(
                 i, fault.kind, fault.start_ns
             )
+            self.wanders[f"{fault.sensor}/{fault.kind}"] = self._wander(i, fault.start_ns)
         self.open[(fault.sensor, fault.kind)] = fault
         self.events.append(fault)
         key = f"{fault.sensor}/{fault.kind}"
@@ -955,6 +1161,8 @@ class WellSensorFaults:
     def _close(self, sensor: str, kind: str, t: int, out: list[SensorFault]) -> None:
         fault = self.open.pop((sensor, kind), None)
         self.anchors.pop(f"{sensor}/{kind}", None)
+        self.tracks.pop(f"{sensor}/{kind}", None)
+        self.wanders.pop(f"{sensor}/{kind}", None)
         if fault is not None:
             fault.end_ns = t
             out.append(fault)
@@ -1504,6 +1712,8 @@ class WellSensorFaults:
             "anchors": {  # NaN (no level or scale yet) as null: plain JSON
                 k: [x if math.isfinite(x) else None for x in v] for k, v in self.anchors.items()
             },
+            "tracks": {k: list(v) for k, v in self.tracks.items()},
+            "wanders": {k: v if math.isfinite(v) else None for k, v in self.wanders.items()},
         }
 
     def restore(self, data: Mapping[str, Any]) -> bool:
@@ -1571,6 +1781,16 @@ class WellSensorFaults:
         for w, saved in zip(self.raw_diffs, data["raw_diffs"], strict=True):
             _refill(w, saved, _REF_DAYS)
         self.day_moved = ({int(j) for j in data["day_moved"][0]}, bool(data["day_moved"][1]))
+        self._restore_fallback(data)
+        if data.get("witness"):  # absent from older checkpoints: it starts afresh
+            self.witness.restore(data["witness"])
+        for i in range(len(SENSORS)):
+            self.scale_at[i] = -1
+        return True
+
+    def _restore_fallback(self, data: Mapping[str, Any]) -> None:
+        """The stand-ins' state from :meth:`state`: the levels, the open faults' anchors,
+        wanders and witness tracks (each absent from older checkpoints)."""
         # the fallback's levels and anchors (absent from older checkpoints: an anchor is then
         # made when first asked for, from what the detectors hold)
         for q, saved in zip(self.levels, data.get("levels") or [[]] * len(SENSORS), strict=True):
@@ -1580,11 +1800,16 @@ class WellSensorFaults:
             for k, v in (data.get("anchors") or {}).items()
             if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
         }
-        if data.get("witness"):  # absent from older checkpoints: it starts afresh
-            self.witness.restore(data["witness"])
-        for i in range(len(SENSORS)):
-            self.scale_at[i] = -1
-        return True
+        self.tracks = {  # absent from older checkpoints: the stand-in starts uncorrected
+            str(k): (float(v[0]), float(v[1]), int(v[2]), float(v[3]), float(v[4]))
+            for k, v in (data.get("tracks") or {}).items()
+            if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
+        }
+        self.wanders = {
+            str(k): _num(v)
+            for k, v in (data.get("wanders") or {}).items()
+            if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
+        }
 
     def view(self) -> list[dict[str, Any]]:
         """The recent events, newest last, as ``GET /wells/{well}`` shows ``sensor_faults``."""

@@ -55,7 +55,7 @@ from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
 from vfm_core.learning.streaming import learn_many, predict_many
-from vfm_core.sensor_faults import Fallback, fallback_points, widened_rates
+from vfm_core.sensor_faults import Fallback, fallback_points, residual_noise, widened_rates
 from vfm_core.timeutil import from_ns, iso
 
 __all__ = ["Learning"]
@@ -63,6 +63,9 @@ __all__ = ["Learning"]
 logger = logging.getLogger("vfm.service.engine")
 
 Rates = dict[str, float | None]
+#: samples predicted with a stand-in whose answers wait for their measurement (a well's
+#: MPFM reading pairs with one of its latest samples)
+_STAND_INS_KEPT = 64
 
 
 class JointLearning(Protocol):
@@ -195,6 +198,7 @@ class Learning:
         inputs: Sequence[float],
         rates: Rates | None,
         used: Sequence[Fallback],
+        time_ns: int | None = None,
     ) -> tuple[Rates | None, list[dict[str, Any]] | None]:
         """Keep predicting while an input is flagged: when inputs of the sample have an open
         fault of a kind that stands in (:data:`vfm_core.sensor_faults.FALLBACK_KINDS`;
@@ -209,7 +213,9 @@ class Learning:
 
         The model is asked right after the sample's own prediction, its features and
         clock at the sample: the worker (:mod:`service.engine.worker`) stacks no later
-        sample of the well into the prediction call of a sample with a stand-in."""
+        sample of the well into the prediction call of a sample with a stand-in. The
+        stand-ins and answers are kept by the sample's time ``time_ns`` (epoch ns) for
+        its measured rate to witness (:meth:`follow_rate`)."""
         st.fallback = None
         if not used or not rates:
             return rates, None
@@ -223,7 +229,29 @@ class Learning:
         if q_total is None or not math.isfinite(q_total):
             return rates, None
         st.fallback = [f.as_dict() for f in used]
+        if time_ns is not None:
+            kept = st.stand_in_answers
+            kept[int(time_ns)] = (tuple(used), answers)
+            while len(kept) > _STAND_INS_KEPT:
+                kept.popitem(last=False)
         return out, st.fallback
+
+    def follow_rate(self, st: WellState, time_ns: int, q_total: float, source: str) -> bool:
+        """An MPFM rate (Sm3/h) measured at the sample at ``time_ns`` (epoch ns) that was
+        predicted with a stand-in: taken as a witness of the stood-in input
+        (:meth:`WellSensorFaults.follow_rate <vfm_core.sensor_faults.WellSensorFaults.follow_rate>`;
+        the meter's bias and noise from the well's last learned MPFM log residuals,
+        :func:`~vfm_core.sensor_faults.residual_noise`), held or not: the input's stand-in
+        moves, the model does not. True when the stand-in moved. Other sources are not
+        taken (a well test is rare, and its bias is not the MPFM's)."""
+        if source != "mpfm":
+            return False
+        kept = st.stand_in_answers.pop(int(time_ns), None)
+        if kept is None or not st.watch_faults:
+            return False
+        used, answers = kept
+        noise = residual_noise(st.mpfm_residuals)
+        return st.sensor_faults.follow_rate(time_ns, used, answers, q_total, noise)
 
     def predict_block(
         self, st: WellState, inputs: np.ndarray, times_ns: np.ndarray

@@ -241,6 +241,8 @@ class Pairing:
         learned from (learn nothing wrong). An MPFM rate feeds the choke-rate witness
         first (held or not: the witness takes the rate, not the learner)."""
         st.watch_rate(p.source, sample.time_ns, p.q_total, sample.inputs)
+        if st.stand_in_answers:  # a rate measured at a stood-in sample: its witness
+            self.learning.follow_rate(st, sample.time_ns, p.q_total, p.source)
         fault = st.sensor_faults.suspect(sample.time_ns)
         if fault is None:
             if self.review is not None and self.review.enabled and p.source == "well_test":
@@ -286,6 +288,9 @@ class Pairing:
     ) -> None:
         """A measurement about to be learned: its residual against the prediction made at
         its sample (the spread of :class:`~service.engine.alarms.WellTestReview`)."""
+        if source == "mpfm" and sample.predicted is not None and sample.predicted > 0:
+            if q_total > 0:  # the MPFM's bias and noise about the model (Learning.follow_rate)
+                st.mpfm_residuals.append(math.log(q_total / sample.predicted))
         if self.review is None or not self.review.enabled:
             return
         self._seed_residuals(st)

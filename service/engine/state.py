@@ -116,6 +116,12 @@ class WellState:
         self.watch_faults = settings.sensor_faults.enabled
         #: the inputs replaced at the latest sample (Learning.fallback), None when none
         self.fallback: list[dict[str, Any]] | None = None
+        #: per recent sample predicted with a stand-in (time ns, oldest first): the
+        #: stand-ins and the model's answers at their points, for the measured rate to
+        #: witness (Learning.follow_rate); not checkpointed (a restart skips one witness)
+        self.stand_in_answers: OrderedDict[
+            int, tuple[tuple[Fallback, ...], list[dict[str, float | None]]]
+        ] = OrderedDict()
         # model changes over HTTP: what was swapped in, when, and its held-out scores
         self.model_changes: deque[dict[str, Any]] = deque(maxlen=20)
         # while a new model is fitted off the worker: what the old one learned meanwhile
@@ -138,6 +144,9 @@ class WellState:
         # measurements held for review, not decided yet, by (source, time ns), oldest first
         self.log_residuals: deque[float] = deque(maxlen=settings.well_test_review.residuals)
         self.residuals_seeded = False
+        #: log(measured / predicted) of the latest learned MPFM rates (not seeded after a
+        #: restart): the MPFM's bias and noise about the model (Learning.follow_rate)
+        self.mpfm_residuals: deque[float] = deque(maxlen=settings.well_test_review.residuals)
         self.last_learned_ns: dict[str, int] = {}  # source -> time of the latest learned (ns)
         self.reviews: OrderedDict[tuple[str, int], ReviewRow] = OrderedDict()
         self._reviews_view: tuple[ReviewRow, ...] = ()  # what the API reads, replaced whole

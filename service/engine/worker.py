@@ -636,7 +636,7 @@ class Workers:
         if learner.version != st.snapshot.get("version"):  # a pbl retrain ran
             self.checkpoints.changed(st, b.ops, t)
         # a flagged input: its fallback stands in, the interval widened (raw inputs stored)
-        rates, fallback = self.learning.fallback(st, inputs, rates, item.stand_ins or ())
+        rates, fallback = self.learning.fallback(st, inputs, rates, item.stand_ins or (), t)
         q_total = rates.get("q_total") if rates else None
         st.recent.append(Sample(t, inputs, q_total))
         st.last_time_ns, st.last_inputs = t, inputs

@@ -38,7 +38,7 @@ from scipy.special import ndtr
 
 from vfm_core.data import TARGET_CASES, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
-from vfm_core.jobs.study_faults import FaultPlan, fallback_rates
+from vfm_core.jobs.study_faults import FaultPlan, StandInTracks, fallback_rates
 from vfm_core.learning import (
     DEFAULT_TRAIN,
     NEVER,
@@ -487,6 +487,12 @@ class _Replay:
         self.low = np.full(n, np.nan)
         self.high = np.full(n, np.nan)
         self.split_rates = {p: np.full(n, np.nan) for p in self.phases}
+        #: the measured rates as witnesses of the stood-in inputs (as the service's)
+        self.tracks = (
+            StandInTracks(self.case.frame, self.case.learned, self.case.hidden, self.predicted)
+            if self.faults is not None and self.faults.stand_ins
+            else None
+        )
 
     def record(self, batch: Batch, where: torch.Tensor) -> None:
         """Predict ``batch`` and keep the forecasts of its ``where`` samples."""
@@ -512,7 +518,7 @@ class _Replay:
         a widened interval, as the service predicts them (:func:`fallback_rates`)."""
         assert self.faults is not None
         for row, rates in fallback_rates(
-            self.meth.predict, batch, where, self.faults.stand_ins
+            self.meth.predict, batch, where, self.faults.stand_ins, self.tracks
         ).items():
             self.predicted[row] = _number(rates.get("q_total"))
             self.spread[row] = _number(rates.get("q_total_std"))

@@ -38,17 +38,26 @@ import torch
 from vfm_core.data import Batch
 from vfm_core.learning.method import Forecast
 from vfm_core.learning.streaming import phase_split
-from vfm_core.schema import TIME, WELL
+from vfm_core.schema import MPFM, SOURCE, TARGET, TIME, WELL
 from vfm_core.sensor_faults import (
+    DEFAULT_RANGES,
     SENSORS,
     Fallback,
+    Track,
     WellSensorFaults,
     fallback_points,
     mpfm_rates,
+    residual_noise,
+    tracked,
     widened_rates,
+    witness_track,
 )
 
-__all__ = ["FaultPlan", "plan_sensor_faults", "fallback_rates", "fault_counts"]
+__all__ = ["FaultPlan", "StandInTracks", "plan_sensor_faults", "fallback_rates", "fault_counts"]
+
+#: learned residuals per well whose spread is a witness's noise (the service keeps as many:
+#: ``well_test_review.residuals``)
+_RESIDUALS = 50
 
 
 @dataclass
@@ -152,17 +161,95 @@ def _answers(forecast: Forecast, w: int, x: torch.Tensor) -> list[dict[str, floa
     return out
 
 
+class StandInTracks:
+    """The measured rates as witnesses of the stood-in inputs in one run of a study, as the
+    service's detectors keep them (:meth:`WellSensorFaults.follow_rate
+    <vfm_core.sensor_faults.WellSensorFaults.follow_rate>`): per well and fault, the correction
+    of the plan's stand-ins (:func:`~vfm_core.sensor_faults.tracked`), one Kalman step per
+    measurement at a stood-in sample after its prediction
+    (:func:`~vfm_core.sensor_faults.witness_track`). Only the MPFM's rates witness (the
+    well's steady meter; a well test is rare); their bias and noise about the model are
+    those of the well's last 50 learned MPFM log residuals before the fault's first
+    witness (:func:`~vfm_core.sensor_faults.residual_noise`), as the service's.
+
+    ``frame``: the study's rows; ``learned`` [len(frame)]: the rows learned from (their
+    residuals count); ``hidden`` [len(frame)]: rows whose measurement never arrives (an
+    outage: no witness); ``predicted``: the run's predictions by row (Sm3/h), filled as it
+    goes."""
+
+    def __init__(
+        self,
+        frame: pd.DataFrame,
+        learned: np.ndarray,
+        hidden: np.ndarray,
+        predicted: np.ndarray,
+    ) -> None:
+        self.measured = frame[TARGET].to_numpy(dtype=float)
+        self.times = pd.to_datetime(frame[TIME], utc=True).dt.as_unit("ns").astype("int64")
+        self.times = self.times.to_numpy()
+        self.wells = frame[WELL].astype(str).to_numpy()
+        self.mpfm = (frame[SOURCE].astype(str) == MPFM).to_numpy()
+        self.learned, self.hidden, self.predicted = learned, hidden, predicted
+        self.tracks: dict[tuple[str, str, str, int], Track] = {}
+        self._rows: dict[str, np.ndarray] = {}
+
+    def _key(self, row: int, f: Fallback) -> tuple[str, str, str, int]:
+        return (str(self.wells[row]), f.sensor, f.kind, f.start_ns)
+
+    def apply(self, row: int, used: tuple[Fallback, ...]) -> tuple[Fallback, ...]:
+        """The plan's stand-ins of ``row`` corrected by the witnesses so far."""
+        t = int(self.times[row])
+        return tuple(
+            tracked(f, self.tracks.get(self._key(row, f)), DEFAULT_RANGES[f.sensor], t)
+            for f in used
+        )
+
+    def noise(self, row: int) -> tuple[float, float]:
+        """The bias and noise of the well's last learned MPFM log residuals before ``row``."""
+        well = str(self.wells[row])
+        if well not in self._rows:
+            rows = np.flatnonzero((self.wells == well) & self.learned & self.mpfm)
+            self._rows[well] = rows[np.argsort(self.times[rows], kind="stable")]
+        rows = self._rows[well]
+        rows = rows[self.times[rows] < self.times[row]]
+        q, m = self.predicted[rows], self.measured[rows]
+        ok = np.isfinite(q) & np.isfinite(m) & (q > 0) & (m > 0)
+        return residual_noise(np.log(m[ok] / q[ok])[-_RESIDUALS:].tolist())
+
+    def witness(
+        self, row: int, used: tuple[Fallback, ...], answers: list[dict[str, float | None]]
+    ) -> None:
+        """The measurement at ``row`` (predicted with ``used`` and the model's ``answers``
+        at their points) taken as a witness, as :meth:`WellSensorFaults.follow_rate` takes it."""
+        q = float(self.measured[row])
+        if len(used) != 1 or self.hidden[row] or not self.mpfm[row]:
+            return
+        if not (math.isfinite(q) and q > 0):
+            return
+        f = used[0]
+        key = self._key(row, f)
+        before = self.tracks.get(key)
+        noise = before[3:] if before is not None else self.noise(row)
+        t = int(self.times[row])
+        after = witness_track(f, before, answers, q, noise, t, DEFAULT_RANGES[f.sensor])
+        if after is not None:
+            self.tracks[key] = after
+
+
 def fallback_rates(
     predict: Callable[[Batch], Forecast],
     batch: Batch,
     where: torch.Tensor,
     stand_ins: Mapping[int, tuple[Fallback, ...]],
+    tracks: StandInTracks | None = None,
 ) -> dict[int, dict[str, float | None]]:
     """The rates (Sm3/h) of the ``where`` samples of ``batch`` that have stand-ins, by row
     position: the method (``predict``, at its state now: the sample's own prediction's)
     asked at :func:`fallback_points` and the answers widened by :func:`widened_rates`, as
     the service's ``Learning.fallback`` does. A row whose stand-in answer is not finite keeps
-    its prediction at the readings (absent), as in the service."""
+    its prediction at the readings (absent), as in the service. With ``tracks``, each
+    well's samples in order: the stand-ins corrected by the measurements before, then the
+    sample's own measurement taken as a witness (after its prediction: prequential)."""
     out: dict[int, dict[str, float | None]] = {}
     found = torch.nonzero(where & (batch.row >= 0)).tolist()
     for w, s in found:
@@ -170,14 +257,19 @@ def fallback_rates(
         used = stand_ins.get(row)
         if not used:
             continue
+        if tracks is not None:
+            used = tracks.apply(row, used)
         points = fallback_points(batch.x[w, s].tolist(), used)
         one = _points_batch(batch, w, s, points)
         with torch.no_grad():
             forecast = predict(one)
-        rates = widened_rates(_answers(forecast, w, one.x[w]))
+        answers = _answers(forecast, w, one.x[w])
+        rates = widened_rates(answers)
         q = rates.get("q_total")
         if q is not None and math.isfinite(q):
             out[row] = rates
+        if tracks is not None:
+            tracks.witness(row, used, answers)
     return out
 
 
