@@ -293,3 +293,80 @@ def test_one_well_filters_sharing_a_pool_learn_in_one_stacked_update_as_one_by_o
     factors = [[float(m.well_test_factor()) for m in filters] for filters in runs]
     np.testing.assert_allclose(factors[1], factors[0], rtol=1e-12)
     assert max(abs(f - 1.0) for f in factors[0]) > 0.05  # the factors were learned
+
+
+def _toy_forecasts(spec: str, c2: float, rng: np.random.Generator) -> tuple[float, float]:
+    """A linear-Gaussian toy of a field's well tests: six wells whose filters' variance is
+    off by the factor ``c2`` (their meters' noise is sqrt(c2) times what the filters take),
+    ten well tests each, in rounds of equal time; every forecast's 90 % interval is scored
+    before the filter learns its standardised error z ~ N(0, c2) (the filter's own
+    :meth:`~BayesianFilter._learn_calibration` and :meth:`~BayesianFilter._apply_calibration`).
+    Returns the coverage over 150 such fields and the factors' mean squared log error
+    against c2 after the ten tests."""
+    wells = [f"W{i}" for i in range(6)]
+    method = parse_method(spec).bind(make_model("mm", wells))
+    assert isinstance(method, BayesianFilter)
+    method._started[:] = True
+    inside, log_err = [], []
+    for _ in range(150):
+        method._cal.zero_()
+        method._scale.zero_()
+        method._apply_calibration()
+        for _ in range(10):
+            z = rng.normal(0.0, np.sqrt(c2), len(wells))
+            half = bayes.Z90 * np.exp(method._scale[:, 1].numpy())
+            inside.append(np.abs(z) <= half)
+            method._learn_calibration((z**2)[:, None], np.ones((len(wells), 1), dtype=bool))
+            method._apply_calibration()
+        log_err.append(np.log(method.well_test_factor().numpy() / c2))
+    return float(np.mean(inside)), float(np.mean(np.square(log_err)))
+
+
+@pytest.mark.parametrize("c2", [0.25, 4.0])
+def test_the_pooled_factor_calibrates_a_toy_at_two_noise_levels(c2: float) -> None:
+    """Meters half as noisy (c2 = 0.25) or twice as noisy (c2 = 4) as the filters assume:
+    from the stated prior (c^2 = 1) the learned factors move to the truth, more closely
+    pooled (mean squared log error at most half the wells' own), and the pooled 90 %
+    intervals cover 85-95 % of the 9,000 forecasts, the first ones included (sampling sd
+    of the coverage about 0.5 point; measured 93.9 and 88.0 %). Each well's own factor
+    alone covers 98.7 % at c2 = 0.25 (84.9 % at 4): its first forecasts carry the prior's
+    variance."""
+    rng = np.random.default_rng(38)
+    cov_pooled, err_pooled = _toy_forecasts("bayes:cal_pool=on", c2, rng)
+    cov_own, err_own = _toy_forecasts("bayes", c2, rng)
+    assert err_pooled < 0.5 * err_own, (err_pooled, err_own)
+    assert err_own < np.log(c2) ** 2  # each well's own also moved from the prior
+    assert 0.85 <= cov_pooled <= 0.95, cov_pooled
+    if c2 < 1:
+        assert cov_own > 0.95, cov_own
+
+
+def test_a_pooled_study_uses_no_later_measurement_of_another_well() -> None:
+    """With the pooled prior a well's intervals depend on the other wells' errors, so the
+    study replays the field in time order (one round per distinct time): changing the other
+    wells' well tests after a time T leaves every forecast before T as it was (in rounds of
+    each well's k-th well test it did not: a well's k-th forecast counted the others' first
+    k - 1 errors, whenever they came), and moves the first well's intervals after T (the
+    pool carries the errors), not its predictions."""
+    frame = validate_frame(simulate_field(wells=4, years=2, seed=11).observations).frame
+    split = pd.Timestamp("2016-09-01", tz="UTC")
+    tests = frame[(frame["source"] == "well_test") & (frame["time"] >= split)]
+    when = tests["time"].sort_values().iloc[len(tests) // 3]
+    first = sorted(tests["well"].unique())[0]
+    changed = frame.copy()
+    later = (changed["source"] == "well_test") & (changed["time"] > when)
+    later &= changed["well"] != first
+    changed.loc[later, "q_total"] *= 1.3
+    runs = []
+    for data in (frame, changed):
+        pr = run_prequential(data, "mm", "bayes:cal_pool=on", targets="well_test", split=split)
+        runs.append(pr.predictions.sort_values(["time", "well"]).reset_index(drop=True))
+    before, after = runs
+    early = (before["time"] <= when).to_numpy()
+    assert early.sum() >= 10 and (~early).sum() >= 10
+    for column in ("predicted", "predicted_p05", "predicted_p95"):
+        np.testing.assert_allclose(after[column][early], before[column][early], rtol=1e-12)
+    own = (~early & (before["well"] == first)).to_numpy()
+    np.testing.assert_allclose(after["predicted"][own], before["predicted"][own], rtol=1e-12)
+    moved = np.abs(np.log(after["predicted_p95"][own] / before["predicted_p95"][own]))
+    assert float(moved.max()) > 1e-3

@@ -245,8 +245,9 @@ def _same_samples(a: Batch, b: Batch) -> None:
 
 
 def test_study_rounds_and_memory_cut_from_packed_rows_equal_packing_anew():
-    """The study's day rounds (shared models) and its retrain memory select from rows packed
-    once; they hold exactly what a per-day select and a fresh make_batch hold."""
+    """The study's day rounds (shared models), its rounds per distinct time (methods that
+    couple the wells) and its retrain memory select from rows packed once; they hold exactly
+    what a per-day (per-time) select and a fresh make_batch hold."""
     frame = validate_frame(simulate_field(wells=3, years=1.0, seed=4).observations).frame
     t0 = pd.Timestamp(frame["time"].iloc[len(frame) // 2])
     gap = (frame["well"] == frame["well"].iloc[0]) & frame["time"].between(
@@ -262,6 +263,12 @@ def test_study_rounds_and_memory_cut_from_packed_rows_equal_packing_anew():
     assert len(rounds) == len(days) > 100
     for d, got in zip(days, rounds, strict=True):
         _same_samples(test.select(day == d), got)
+    # ... and one round per distinct time (a method that couples the wells)
+    times = torch.unique(test.time_ns[test.mask])
+    by_time = _day_rounds(test, 1)
+    assert len(by_time) == len(times) > len(days)
+    for t, got in list(zip(times, by_time, strict=True))[:150]:
+        _same_samples(test.select((test.time_ns == t) & test.mask), got)
     memory = _StudyMemory(frame, is_target, wells)
     t = pd.DatetimeIndex(frame["time"]).as_unit("ns").asi8
     for until, window in [(t[len(t) // 3], None), (t[-1], 30 * 86_400 * 10**9), (t[-1] + 1, None)]:

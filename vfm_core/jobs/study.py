@@ -357,12 +357,13 @@ class _StudyMemory(FrameMemory):
         )
 
 
-def _day_rounds(test: Batch) -> list[Batch]:
+def _day_rounds(test: Batch, span_ns: int = 86_400 * 10**9) -> list[Batch]:
     """One batch per calendar day (UTC) of ``test``, holding every well's samples of that
     day in time order: what ``test.select(day == d)`` gives for each day, cut by index
     ranges (each well's samples are in time order, so a day is a contiguous run), so the
-    cost grows with the samples and not with days x samples."""
-    day = torch.div(test.time_ns, 86_400 * 10**9, rounding_mode="floor")
+    cost grows with the samples and not with days x samples. ``span_ns`` = 1: one batch
+    per distinct time instead."""
+    day = torch.div(test.time_ns, span_ns, rounding_mode="floor")
     day = torch.where(test.mask, day, torch.full_like(day, NEVER))
     days = torch.unique(day[test.mask])
     if len(days) == 0:
@@ -641,13 +642,21 @@ def _initial_fit(
 
 def _replay_in_rounds(run: _Replay) -> None:
     """The test observations one round at a time, each predicted, then learned from: one
-    round per well's sample (per day of the field for a shared model)."""
+    round per well's sample (per day of the field for a shared model, per distinct time for
+    a method that couples the wells,
+    :attr:`~vfm_core.learning.method.LearningMethod.couples_wells`)."""
     model, test = run.model, run.test
     rounds: list[Batch]
     if model.shared:
         # Shared parameters must see the field in time order: one round per day,
         # holding every well's measurements of that day.
         rounds = _day_rounds(test)
+    elif run.meth.couples_wells:
+        # A method's statistics shared by the wells: one round per distinct time (rounds
+        # of each well's k-th sample would let a well's forecast use another well's later
+        # measurements; a day's round would predict a well's second sample of the day
+        # before learning its first).
+        rounds = _day_rounds(test, 1)
     else:
         rounds = [test.column(k) for k in range(test.x.shape[1])]
     for rb in rounds:

@@ -66,9 +66,9 @@ is the model's parameters, the covariance P is kept here.
   :class:`CalibrationPool` shared by one-well filters, :meth:`BayesianFilter.share_errors`:
   each reads the others' statistics as they were before its time). The search is compiled
   (:mod:`vfm_core.learning._pool_kernels`, the same numbers). Off by default: the service
-  does not share a pool yet, and ``vfm evaluate`` replays per-well models in rounds of each
-  well's k-th measurement, not in time order, so its pooled figures use other wells' later
-  errors (docs/guide/bayes.md, "The order of the study's rounds").
+  does not share a pool yet. The filter then couples its wells (:attr:`couples_wells`), so
+  ``vfm evaluate`` replays it in time order, as a service sees the field
+  (docs/guide/bayes.md, "At other meter noise levels").
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
 Bayesian learning); the layers below stay as fitted.
@@ -1665,6 +1665,12 @@ class BayesianFilter(LearningMethod):
         self._started |= wells
 
     # -- state ----------------------------------------------------------------------------------
+    @property
+    def couples_wells(self) -> bool:
+        """With ``cal_pool`` each well's variance factor takes its prior from the other
+        wells' forecast errors (:func:`_pooled_prior`)."""
+        return bool(self.cal_pool)
+
     def well_test_factor(self) -> torch.Tensor:
         """Each well's learned well-test variance factor c^2 [W]: the scale
         (k c0sq + sum z^2) / (k + n) of its InvGamma posterior (see

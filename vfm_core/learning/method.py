@@ -179,6 +179,13 @@ class LearningMethod(ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.text!r})"
 
+    @property
+    def couples_wells(self) -> bool:
+        """True when a well's forecasts depend on the other wells' measurements through the
+        method (not the model): a study must then replay the field in time order, as a
+        service sees it. False by default."""
+        return False
+
     # -- binding ---------------------------------------------------------------------------
     @property
     def model(self) -> ChokeModel:
