@@ -177,3 +177,62 @@ def test_on_a_wearing_well_the_trial_forecast_sees_the_gain_the_whole_history_hi
     assert abs(forecast["change"]) > abs(whole["change"]) + 0.3, (forecast, whole)
     assert forecast["low"] <= measured["change"] <= forecast["high"], (forecast, measured)
     assert forecast["n"] > 20 and forecast["base_mape"] > forecast["mape"]
+
+
+def test_the_smallest_attainable_p_is_that_of_every_block_lower() -> None:
+    """Whatever the signs, a sign-flip test of B blocks gives no p below 2^-B (2^z / 2^B
+    with z blocks of sum 0); with more blocks than are enumerated, the t approximation's
+    bound; fewer than two blocks, 1."""
+    rng = np.random.default_rng(11)
+    for b in (4, 7, 9):
+        sums = rng.normal(0.0, 1.0, b)
+        low = live.attainable_p(sums)
+        assert low == pytest.approx(2.0**-b)
+        assert live.sign_flip_p(-np.abs(sums)) == pytest.approx(low)  # every block lower
+        for _ in range(20):  # no sign pattern goes below it
+            assert live.sign_flip_p(sums * rng.choice([-1.0, 1.0], b)) >= low - 1e-12
+    assert live.attainable_p(np.array([-1.0, 0.0, -2.0, -1.0, -3.0])) == pytest.approx(2 / 32)
+    big = rng.normal(0.0, 1.0, 30)
+    assert live.attainable_p(big) == pytest.approx(live.sign_flip_p(-np.abs(big)))
+    assert live.attainable_p(np.array([-3.0])) == 1.0
+
+
+def test_filtered_bh_leaves_out_what_cannot_be_rejected_and_is_bh_otherwise() -> None:
+    """Tests that can all reach significance: exactly Benjamini-Hochberg. Tests that cannot
+    (a well with two blocks: p >= 1/4) leave the family, so the others' bar is that of a
+    family without them; it never rejects less than BH over every test."""
+    p = [0.001, 0.008, 0.039, 0.041, 0.042, 0.06, 0.074, 0.205, 0.212, 0.216]
+    rej, q, fam = live.filtered_bh(p, [1e-9] * len(p), 0.05)
+    bh_rej, bh_q = live.benjamini_hochberg(p, 0.05)
+    assert rej.tolist() == bh_rej.tolist() and q == pytest.approx(bh_q) and fam.all()
+    # seven blocks all lower: p = 1/128, among 40 tests of two blocks that cannot reach 0.05
+    p2 = [1 / 128, 1 / 128] + [0.25] * 40
+    reach = [1 / 128, 1 / 128] + [0.25] * 40
+    assert not live.benjamini_hochberg(p2, 0.05)[0].any()  # BH over all: 1/128 > 2 x 0.05/42
+    rej, q, fam = live.filtered_bh(p2, reach, 0.05)
+    assert rej.tolist() == [True, True] + [False] * 40
+    assert fam.tolist() == [True, True] + [False] * 40 and np.all(q[2:] == 1.0)
+    rng = np.random.default_rng(13)
+    for _ in range(200):  # never fewer rejections than BH over every test
+        b = rng.integers(2, 12, size=30)
+        p3, a3 = rng.uniform(0, 1, 30) ** 3, 0.5 ** b.astype(float)
+        p3 = np.maximum(p3, a3)
+        assert (
+            live.filtered_bh(list(p3), list(a3))[0].sum()
+            >= live.benjamini_hochberg(list(p3))[0].sum()
+        )
+
+
+def test_filtered_bh_keeps_the_false_discovery_rate_of_discrete_null_tests() -> None:
+    """Under the complete null, with tests of 2 to 9 blocks as a diagnosis of short wells
+    has them (exact sign-flip p-values of symmetric block sums), any discovery in a family
+    of 40 happens in at most about q = 5 % of 300 families (binomial sd 1.3 %)."""
+    rng = np.random.default_rng(12)
+    any_hit = 0
+    for _ in range(300):
+        blocks = rng.integers(2, 10, size=40)
+        sums = [rng.normal(0.0, 1.0, b) for b in blocks]
+        p = [live.sign_flip_p(s) for s in sums]
+        reach = [live.attainable_p(s) for s in sums]
+        any_hit += bool(live.filtered_bh(p, reach, 0.05)[0].any())
+    assert any_hit / 300 <= 0.08

@@ -446,3 +446,78 @@ def test_the_trial_forecast_is_in_the_verdict_and_outside_the_false_discovery_fa
     assert mine is not None and mine is not t  # the well's own, not the field's
     assert verdict["trial"]["change"] == pytest.approx(mine["change"])
     assert "its trial would have measured" in verdict["text"]
+
+
+def test_a_gain_in_every_block_of_a_short_replay_is_found_beside_a_young_well() -> None:
+    """Issue 36: two wells replayed for six months (the diagnosis of a field a year and a
+    half old), one of them young (45 days: two blocks). Adding wear lowers the older well's
+    live error in each of its seven blocks, by 1-4 points; the young well's hardly moves.
+    A sign-flip test of 7 blocks cannot give p below 1/128, of 2 blocks below 1/4: counted
+    in one family with every candidate's tests on the young well (which can never be
+    rejected), BH's bar for the few that can was out of reach and the verdict was
+    ``noise``. Left out of the family, the older well's gain is found: ``effect`` for the
+    field and that well, not the young one's own evidence; and a candidate whose
+    fit-once change is nil is still not named."""
+    rng = np.random.default_rng(36)
+    old = pd.date_range("2016-06-01", periods=183, freq="D", tz="UTC")
+    young = pd.date_range("2016-10-17", periods=45, freq="D", tz="UTC")
+    frame = pd.concat(
+        [
+            pd.DataFrame({"time": t, "well": w, "source": "mpfm", "in_outage": False})
+            for w, t in (("W01", old), ("W02", young))
+        ],
+        ignore_index=True,
+    )
+    frame["measured"] = 100.0 * (1.0 + 0.01 * rng.normal(size=len(frame)))
+    on_old = (frame["well"] == "W01").to_numpy()
+    days = (frame["time"] - frame["time"].min()).dt.days.to_numpy()
+    wobble = np.repeat(rng.normal(0.0, 0.01, size=len(frame) // 7 + 1), 7)[: len(frame)]
+    wear = np.where(on_old, 0.01 + 0.03 * days / 183.0, 0.0)  # what the learner misses
+    base = _run(frame, wobble + wear)
+    wells = ["W01", "W02"]
+    with_wear = _run(frame, wobble + np.where(on_old, 0.0, 0.0005 * rng.normal(size=len(frame))))
+
+    def made(name: str, run: RunResult, material: bool, replayed: bool) -> dg.CandidateResult:
+        c = dg.CandidateResult(
+            effect=name,
+            mape=0.0,
+            delta_mape=0.0,
+            bic=0.0,
+            delta_bic=-50.0 if material else 5.0,
+            n_parameters=1,
+            parameters={},
+            meaning=f"{name} fitted.",
+            material=material,
+            run=run,
+            delta_bic_all=-50.0 if material else 5.0,
+            spec=name,
+        )
+        c.tests["fit_once"] = dv.protocol_test(base.predictions, run.predictions, wells, 0)
+        if replayed:
+            c.live_run, c.replayed = run, True
+            c.tests["live"] = dv.protocol_test(base.predictions, run.predictions, wells, 0)
+        else:
+            c.tests["live"] = dv._untested(wells, "not replayed")
+        return c
+
+    nothing = [
+        made(n, _run(frame, wobble + wear + 0.002 * rng.normal(size=len(frame))), False, k < 2)
+        for k, n in enumerate(("real_gas", "critical_ratio", "slip", "mpfm_bias"))
+    ]
+    erosion = made("erosion", with_wear, True, True)
+    results = [erosion, *nothing]
+    live_test = erosion.test("live")
+    assert live_test is not None and live_test["per_well"]["W01"]["n_blocks"] == 7
+    assert live_test["per_well"]["W01"]["change"] < -1.0
+    assert live_test["per_well"]["W02"]["n_blocks"] == 2
+    summary = dv.fdr(results, None, 1, len(wells))
+    assert summary["family"] < summary["tests"]  # the young well's tests cannot be rejected
+    ctx = dv.VerdictContext(
+        "mm", "ol", {"mape": 3.0, "per_well": {w: {"mape": 3.0} for w in wells}}, {}, 1.0, 2
+    )
+    field_v = dv.live_verdict(results, None, None, ctx, {})
+    assert (field_v["kind"], field_v["effect"]) == ("effect", "erosion"), field_v["text"]
+    w01 = dv.live_verdict(results, None, "W01", ctx, {}, "erosion")
+    assert (w01["kind"], w01["effect"]) == ("effect", "erosion"), w01["text"]
+    assert not any(c.test("live", "W02")["rejected"] for c in results)  # type: ignore[index]
+    assert all(not dv.offer(c, None)[0] for c in nothing)

@@ -878,7 +878,8 @@ function showDiagnosis(j) {
   $("#diag-drivers").textContent = (!drivers.length ? "" : real.length
     ? "Inputs the residual depends on beyond chance: " + real.map((x) => `${x.name} (p ${fmt(x.p_value, 3)})`).join(", ") + "."
     : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".") +
-    (d.fdr && d.fdr.procedure ? ` False discoveries: ${d.fdr.procedure}; ${d.fdr.rejected} of ${d.fdr.tests} tests rejected.` : "");
+    (d.fdr && d.fdr.procedure ? ` False discoveries: ${d.fdr.procedure}; ${d.fdr.rejected} of ${d.fdr.tests} tests rejected` +
+      (d.fdr.family != null && d.fdr.family < d.fdr.tests ? ` (${d.fdr.family} could reach significance).` : ".") : "");
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
 }
 

@@ -27,13 +27,19 @@ independent blocks, and allow for what correlation is left (:func:`sign_flip_p`)
   block means still positively correlated, the self-normalised sum against Student's t
   with the AR(1) variance inflation (1 + rho)/(1 - rho). A well's own test uses its blocks; the field's (pooled) test
   the blocks of every well.
-* **False discoveries** (:func:`benjamini_hochberg`): every test of a diagnosis (each
-  candidate x protocol, pooled and per well; candidates not replayed enter with p = 1, as
-  they were chosen on the same held-out period) is one family, controlled at
-  :data:`FDR_Q` by the Benjamini-Hochberg step-up procedure. Under the complete null that
-  bounds the chance of any discovery at q; the tests of one candidate over wells and
-  protocols are positively dependent, under which BH still controls the FDR (Benjamini &
-  Yekutieli 2001, PRDS).
+* **False discoveries** (:func:`filtered_bh`): every test of a diagnosis (each candidate x
+  protocol, pooled and per well; candidates not replayed enter with p = 1, as they were
+  chosen on the same held-out period) is one family, controlled at :data:`FDR_Q` by the
+  Benjamini-Hochberg step-up procedure (:func:`benjamini_hochberg`) over the tests that
+  can reach significance. A sign-flip test of B blocks cannot give a p-value below 2^-B
+  whatever the change (:func:`attainable_p`): a well with two blocks, or a protocol with
+  three, can never be rejected, and counting it in the family only raised the bar of the
+  others (a wear candidate lowering one well's live error in each of its 7 blocks, p =
+  1/128, was "noise" in a family of 54 tests). The filter looks at the blocks' sizes, not
+  their signs (independent filtering). Under the complete null that bounds the
+  chance of any discovery at q; the tests of one candidate over wells and protocols are
+  positively dependent, under which BH still controls the FDR (Benjamini & Yekutieli
+  2001, PRDS).
 """
 
 from __future__ import annotations
@@ -59,6 +65,8 @@ __all__ = [
     "sign_flip_p",
     "paired_test",
     "benjamini_hochberg",
+    "attainable_p",
+    "filtered_bh",
     "TRIAL_DAYS",
     "trial_forecast",
 ]
@@ -79,10 +87,12 @@ FDR_Q = 0.05
 #: The procedure, in words (diagnosis.json and the report say it).
 PROCEDURE = (
     "Benjamini-Hochberg at q = 0.05 over every test of the diagnosis (candidates x protocols "
-    "x wells and the field; candidates not replayed count with p = 1); each test one-sided, a "
-    "sign-flip randomisation test of the paired per-measurement differences of absolute "
-    "percentage error summed over held-out blocks of one well (30 days, doubled up to 120 "
-    "while consecutive block means stay correlated)"
+    "x wells and the field; candidates not replayed count with p = 1) that can reach "
+    "significance (a test of B blocks cannot give p below 2^-B: one whose smallest attainable "
+    "p is above q can never be rejected, and is left out of the family); each test "
+    "one-sided, a sign-flip randomisation test of the paired per-measurement differences of "
+    "absolute percentage error summed over held-out blocks of one well (30 days, doubled up "
+    "to 120 while consecutive block means stay correlated)"
 )
 
 
@@ -245,6 +255,32 @@ def sign_flip_p(sums: np.ndarray, rho: float = 0.0) -> float:
     return float(student.cdf(z, df=len(s) - 1))
 
 
+def attainable_p(sums: np.ndarray) -> float:
+    """The smallest p-value :func:`sign_flip_p` can give for block sums of these sizes,
+    whatever their signs: every block lower (1.0 with fewer than two blocks).
+
+    A function of the sums' absolute values alone, which under the null (signs
+    independent of sizes) carry no information about the signs: the exact test's
+    2^z / 2^B (z: blocks whose sum is 0, every sign of which gives the same total), or the
+    t approximation's bound (the self-normalised sum is at most sqrt(B) in size), with no
+    autocorrelation allowed for (any ``rho`` > 0 only raises the p-value), the smaller of the
+    two for up to :data:`EXACT_BLOCKS` blocks. :func:`filtered_bh` leaves out of the family a
+    test that cannot reach significance."""
+    s = np.abs(np.asarray(sums, dtype=float))
+    s = s[np.isfinite(s)]
+    if len(s) < 2 or not np.any(s != 0):
+        return 1.0
+    from scipy.stats import t as student
+
+    bound = float(student.cdf(-math.sqrt(float(s.sum() ** 2 / np.sum(s * s))), df=len(s) - 1))
+    if len(s) > EXACT_BLOCKS:
+        return bound
+    lowest = -float(s.sum())
+    totals = _signs(len(s)) @ s
+    exact = float(np.mean(totals <= lowest + 1e-12 * max(1.0, abs(lowest))))
+    return min(exact, bound)
+
+
 def _interval(well: np.ndarray, s: np.ndarray, n: np.ndarray, seed: int) -> tuple[float, float]:
     """95 % block-bootstrap interval of the row-weighted mean difference (within wells)."""
     rng = np.random.default_rng(seed)
@@ -272,6 +308,7 @@ def paired_test(
             "low": None,
             "high": None,
             "p_value": 1.0,
+            "attainable_p": 1.0,
             "n": 0,
             "n_blocks": 0,
             "block_days": days,
@@ -291,6 +328,7 @@ def paired_test(
         "low": lo,
         "high": hi,
         "p_value": sign_flip_p(s, rho),
+        "attainable_p": attainable_p(s),
         "n": int(len(pairs)),
         "n_blocks": int(len(s)),
         "block_days": float(days),
@@ -314,6 +352,31 @@ def benjamini_hochberg(p_values: list[float], q: float = FDR_Q) -> tuple[np.ndar
     out = np.empty(m)
     out[order] = np.minimum(adjusted, 1.0)
     return out <= q, out
+
+
+def filtered_bh(
+    p_values: list[float], attainable: list[float], q: float = FDR_Q
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Benjamini-Hochberg over the tests that can reach significance: those whose smallest
+    attainable p-value (``attainable``, :func:`attainable_p`) is at most ``q``. BH rejects
+    no test whose p-value is above q, so a test that cannot go below it can never be
+    rejected; in the family it only raises every other test's bar (BH's k q / m). Which
+    tests are in depends on the block sums' sizes only, not on their signs: under the null
+    the filter is independent of the p-value (independent filtering, Bourgon, Gentleman and
+    Huber 2010; Tarone 1990 for discrete tests), so BH over what is left keeps the FDR at
+    ``q``; and it rejects at least what BH over every test rejects. Returns which are
+    rejected, the q-values (BH's adjusted p-values within the family, 1.0 outside it) and
+    which are in the family."""
+    p = np.asarray(p_values, dtype=float)
+    p = np.where(np.isfinite(p), p, 1.0)
+    a = np.asarray(attainable, dtype=float)
+    a = np.where(np.isfinite(a), np.minimum(a, p), 0.0)  # unknown: counted
+    family = a <= q
+    rejected = np.zeros(len(p), dtype=bool)
+    adjusted = np.ones(len(p))
+    if family.any():
+        rejected[family], adjusted[family] = benjamini_hochberg(list(p[family]), q)
+    return rejected, adjusted, family
 
 
 def trial_forecast(pairs: pd.DataFrame) -> dict[str, Any]:

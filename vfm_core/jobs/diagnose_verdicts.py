@@ -197,30 +197,51 @@ def fdr(
     slots: int,
     n_wells: int,
 ) -> dict[str, Any]:
-    """Benjamini-Hochberg over every test of the diagnosis; writes ``q_value`` and
-    ``rejected`` into each. A correction not fitted (``slots``) still counts, with p = 1:
-    the family is fixed before the data decide what is fitted."""
-    tests: list[dict[str, Any]] = []
+    """Benjamini-Hochberg over every test of the diagnosis that can reach significance
+    (:func:`vfm_core.jobs.diagnose_live.filtered_bh`); writes ``q_value``, ``rejected`` and
+    ``in_family`` into each. A candidate not replayed and a correction not fitted
+    (``slots``) still count, with p = 1: the family is fixed before the data decide what
+    is replayed or fitted. Each such placeholder takes the smallest attainable p-value of
+    the tests actually made of its protocol and unit (the field, or its well): it could
+    have reached what they can, so it stays in the family whenever they are."""
+    tests: list[tuple[tuple[str, str], dict[str, Any]]] = []
     protocols: set[str] = set()
     for c in [*results, *([suggestion] if suggestion is not None else [])]:
         for proto, t in c.tests.items():
             if proto == "trial":  # a forecast of the trial, not a test of the verdict
                 continue
             protocols.add(proto)
-            tests.append(t)
-            tests += list(t.get("per_well", {}).values())
-    extra = 0
+            tests.append(((proto, ""), t))
+            tests += [((proto, w), tw) for w, tw in t.get("per_well", {}).items()]
+    reach: dict[tuple[str, str], float] = {}
+    for key, t in tests:
+        if t.get("replayed", True) and "attainable_p" in t:
+            reach[key] = min(reach.get(key, 1.0), float(t["attainable_p"]))
+    extra: list[float] = []
     if slots and suggestion is None:
-        extra = slots * len(protocols) * (1 + (n_wells if n_wells > 1 else 0))
-    p = [float(t.get("p_value", 1.0)) for t in tests] + [1.0] * extra
-    rejected, q = live.benjamini_hochberg(p, live.FDR_Q)
-    for i, t in enumerate(tests):
+        units = sorted({u for _, u in reach} | {""})
+        units = units if n_wells > 1 else [""]
+        extra = [reach.get((pr, u), 0.0) for pr in sorted(protocols) for u in units] * slots
+        extra += [0.0] * (
+            slots * len(protocols) * (1 + (n_wells if n_wells > 1 else 0)) - len(extra)
+        )
+    p = [float(t.get("p_value", 1.0)) for _, t in tests] + [1.0] * len(extra)
+    attainable = [
+        float(t["attainable_p"])
+        if t.get("replayed", True) and "attainable_p" in t
+        else reach.get(key, 0.0)
+        for key, t in tests
+    ] + extra
+    rejected, q, family = live.filtered_bh(p, attainable, live.FDR_Q)
+    for i, (_, t) in enumerate(tests):
         t["q_value"] = float(q[i])
         t["rejected"] = bool(rejected[i])
+        t["in_family"] = bool(family[i])
     return {
         "procedure": live.PROCEDURE,
         "q": live.FDR_Q,
         "tests": len(p),
+        "family": int(family.sum()),
         "rejected": int(rejected.sum()),
     }
 
