@@ -19,6 +19,7 @@ import json
 import shutil
 import sqlite3
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -210,6 +211,11 @@ def replay(
             wait_until(lambda: learned() >= n_tests, 60, "the well tests learned")
             # every reading settled but possibly the last (its wells' next samples never come)
             wait_until(lambda: len(got) >= sent - 1, 60, "the allocations")
+            # ... and the last one too when its wells' samples at its time are still being
+            # taken in (a loaded machine): give it a while, without requiring it
+            deadline = time.monotonic() + 20.0
+            while len(got) < sent and time.monotonic() < deadline:
+                time.sleep(0.1)
         with store.reader() as con:
             tests = pd.DataFrame(
                 con.execute(
