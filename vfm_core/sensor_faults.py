@@ -151,7 +151,7 @@ import operator
 from array import array
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from statistics import NormalDist
 from typing import Any
@@ -568,19 +568,7 @@ def tracked(
     value = min(max(base.value + track[0], low), high)
     spread = base.spread
     lo, hi = max(value - _Z90 * spread, low), min(value + _Z90 * spread, high)
-    return Fallback(
-        base.sensor,
-        base.kind,
-        base.index,
-        value,
-        spread,
-        lo,
-        hi,
-        base.measured,
-        base.start_ns,
-        base.wander,
-        base.prior,
-    )
+    return replace(base, value=value, low=lo, high=hi)
 
 
 def track_variance(used: Fallback, track: Track | None, time_ns: int) -> float:
