@@ -51,6 +51,7 @@ from service.config import Settings
 from service.engine.checkpoints import Checkpoints
 from service.engine.items import Batch, DeferredLearn
 from service.engine.learners import Learner
+from service.engine.pools import Pools, coupled
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
 from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
@@ -110,11 +111,23 @@ class Learning:
         self._last_slow_log = 0.0
         #: wells whose learning moves others' models (set by the separators; None: none)
         self.joint: JointLearning | None = None
+        #: the calibration pools of ``bayes:cal_pool=on`` (each well's learner joins its
+        #: pool through :attr:`WellState.learner <service.engine.state.WellState.learner>`)
+        self.pools = Pools()
 
     def moves_others(self, well: str) -> bool:
         """Whether ``well``'s learning step moves other wells' models (see
         :class:`JointLearning`); the worker then predicts the samples before it first."""
         return self.joint is not None and self.joint.moves_others(well)
+
+    @staticmethod
+    def pools_now(st: WellState, source: str) -> bool:
+        """Whether learning a ``source`` measurement of ``st`` moves the other wells'
+        intervals: a well test of a learner in a calibration pool (``bayes:cal_pool=on``)
+        publishes its errors there. Such a step is taken at once, never deferred, and the
+        samples taken before it are predicted first, so that every later sample of every
+        well of the worker reads the pool after it (as one by one)."""
+        return source == "well_test" and coupled(st.learner)
 
     def catch_up(self, learner: Learner, time_ns: int) -> bool:
         """Before a step at ``time_ns``: one retrain instead of more than
@@ -278,7 +291,12 @@ class Learning:
         # the prediction before learning: for the caller, and its sd for the residual alarm
         wants = p.future is not None or _wants_sd(st)
         before = learner.predict(list(sample.inputs)) if wants else {}
-        if self.batch_learns and not learner.shares_model and not self.moves_others(st.well):
+        if (
+            self.batch_learns
+            and not learner.shares_model
+            and not self.moves_others(st.well)
+            and not self.pools_now(st, p.source)
+        ):
             self.catch_up(learner, p.time_ns)
             b.learns.append(DeferredLearn(st, p, sample, version_before, before))
             b.learn_wells.add(st.well)

@@ -50,6 +50,7 @@ from service.engine.learners import (
     train_settings,
 )
 from service.engine.learning import Learning
+from service.engine.pools import coupled
 from service.engine.state import RECENT_SAMPLES, Pending, WellState
 from service.scaleout import WellSet
 from service.store import AddWell, CheckpointRow, LearnedRow, Op, Store
@@ -103,8 +104,11 @@ class Recovery:
             fitted = _fit_fresh(learners, fresh, history, cfg.model)
         ops: list[Op] = []
         wells = self._well_states(names, learners, checkpoints, fitted, history, ops)
-        # a field-wide model re-learns its wells' measurements merged in time order
-        counts = self._relearn_all(list(wells.values()), ops, merged=field_wide)
+        # a field-wide model re-learns its wells' measurements merged in time order, and so
+        # do wells whose filters share a calibration pool (cal_pool: each reads the others'
+        # errors as they were before its time)
+        merged = field_wide or any(coupled(st.learner) for st in wells.values())
+        counts = self._relearn_all(list(wells.values()), ops, merged=merged)
         restored = relearned_total = 0
         for well, st in wells.items():
             row = checkpoints.get(well)
@@ -179,7 +183,9 @@ class Recovery:
         for well in names:
             origin = "history" if well in fitted else "config/store"
             ops.append(AddWell(well=well, created_ns=now, origin=origin))
-            st = WellState(well, learners[well], self.settings, self.worker_of(well))
+            st = WellState(
+                well, learners[well], self.settings, self.worker_of(well), self.learning.pools
+            )
             row = checkpoints.get(well)
             if row is not None:
                 st.learn_seq = row.learn_seq

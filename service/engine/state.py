@@ -24,6 +24,7 @@ import numpy as np
 
 from service.config import Settings
 from service.engine.learners import Learner, describe
+from service.engine.pools import Pools
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
@@ -82,11 +83,29 @@ class Pending:
     future: Future[WellTestResult] | None = None
 
 
+def _drift_detector(settings: Settings) -> StreamingHotelling | None:
+    """A well's streaming Hotelling T^2 test on its inputs (None: ``drift.enabled`` off)."""
+    d = settings.drift
+    if not d.enabled:
+        return None
+    return StreamingHotelling(reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm)
+
+
 class WellState:
     """One well: its learner and what the service needs to feed it (owned by one worker)."""
 
-    def __init__(self, well: str, learner: Learner, settings: Settings, worker: int) -> None:
+    def __init__(
+        self,
+        well: str,
+        learner: Learner,
+        settings: Settings,
+        worker: int,
+        pools: Pools | None = None,
+    ) -> None:
         self.well = well
+        #: the engine's calibration pools (``bayes:cal_pool=on``): the well's learner joins
+        #: its pool whenever it becomes the well's learner (see :attr:`learner`)
+        self.pools = pools
         self.learner = learner
         self.worker = worker
         self.recent: deque[Sample] = deque(maxlen=RECENT_SAMPLES)
@@ -98,12 +117,7 @@ class WellState:
         self.checkpoint_version = learner.version
         self.errors: deque[float] = deque(maxlen=settings.rolling_window)
         self.learned_inputs: deque[tuple[float, ...]] = deque(maxlen=settings.drift.reference_size)
-        self.detector: StreamingHotelling | None = None
-        if settings.drift.enabled:
-            d = settings.drift
-            self.detector = StreamingHotelling(
-                reference_size=d.reference_size, alpha=d.alpha, confirm=d.confirm
-            )
+        self.detector = _drift_detector(settings)
         self.drift_events: deque[dict[str, Any]] = deque(maxlen=20)
         # the alarm on the model's standardised residuals (service.engine.residual_alarms)
         self.residual_alarm: WellResidualAlarm | None = (
@@ -188,6 +202,18 @@ class WellState:
                 "really changed that much, raise inputs.rate_factor or set it to 0."
             )
         return None
+
+    @property
+    def learner(self) -> Learner:
+        """The well's learner; setting it (at start-up, a model change, a rollback, a
+        trial's end) puts it in its calibration pool (:class:`service.engine.pools.Pools`)."""
+        return self._learner
+
+    @learner.setter
+    def learner(self, learner: Learner) -> None:
+        self._learner = learner
+        if self.pools is not None:
+            self.pools.join(self.well, learner)
 
     def refresh(self) -> None:
         """Rebuild the snapshot the HTTP API reads (replaced whole, so readers never see half)."""

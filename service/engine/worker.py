@@ -277,8 +277,14 @@ class Workers:
             # a measurement changes its own well's model only, unless the model is shared
             # (field-wide, mtl): the other wells' samples taken so far need not wait
             # (or a separator's kept cross-covariances carry the step to its partners)
+            # (or a well test pooled with the other wells' errors, cal_pool: their intervals)
             st = self.wells.get(item.well)
-            first = st is None or st.learner.shares_model or self.learning.moves_others(st.well)
+            first = (
+                st is None
+                or st.learner.shares_model
+                or self.learning.moves_others(st.well)
+                or self.learning.pools_now(st, item.source)
+            )
         else:
             first = True
         if first:
@@ -375,6 +381,7 @@ class Workers:
             new_learner(item.well, self.settings.model),
             self.settings,
             worker_of(self.settings.separators.route(item.well), len(self.queues)),
+            self.learning.pools,
         )
         b.ops.append(AddWell(well=item.well, created_ns=time.time_ns(), origin="first sight"))
         self.registry.created(item.well, st)
@@ -401,6 +408,7 @@ class Workers:
             else [*self.checkpoints.ops(st), RetireWell(well=item.well, retired_ns=item.when_ns)]
         )
         self.store.write(ops)
+        self.learning.pools.leave(item.well)  # its errors no longer set the others' priors
         self.registry.retired_done(item.well, item.purge)
         self.counters.event("wells retired")
         logger.info("Well %s retired%s.", item.well, " and its data removed" if item.purge else "")

@@ -65,9 +65,10 @@ is the model's parameters, the covariance P is kept here.
   given the other wells' statistics (:meth:`BayesianFilter.pool_with`, or a
   :class:`CalibrationPool` shared by one-well filters, :meth:`BayesianFilter.share_errors`:
   each reads the others' statistics as they were before its time). The search is compiled
-  (:mod:`vfm_core.learning._pool_kernels`, the same numbers). Off by default: the service
-  does not share a pool yet. The filter then couples its wells (:attr:`couples_wells`), so
-  ``vfm evaluate`` replays it in time order, as a service sees the field
+  (:mod:`vfm_core.learning._pool_kernels`, the same numbers). Off by default. The service
+  shares one pool among the one-well filters of each model and method
+  (:mod:`service.engine.pools`). The filter then couples its wells (:attr:`couples_wells`),
+  so ``vfm evaluate`` replays it in time order, as a service sees the field
   (docs/guide/bayes.md, "At other meter noise levels").
 
 Networks get the cheap approximation: only their output layer is filtered (last-layer
@@ -172,7 +173,7 @@ _SHARED_REFRESH = pd.Timedelta(days=14)
 #: the per-well state a prediction reads (leading dimension: the well)
 _PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 #: ... and an update changes (its counters aside)
-_LEARN_STATE = (*_PREDICT_STATE, "_run", "_cal")
+_LEARN_STATE = (*_PREDICT_STATE, "_run", "_cal", "_sent_t", "_sent_s")
 
 
 def _flat(blocks: list[FilterBlock], n_wells: int) -> torch.Tensor:
@@ -542,7 +543,8 @@ class CalibrationPool:
     def publish(self, well: str, time_ns: int, count: float, total: float) -> None:
         """``well``'s statistics after its measurement at ``time_ns`` (epoch ns): the
         discounted number ``count`` and sum of squares ``total`` of its standardised
-        well-test forecast errors (finite, >= 0)."""
+        well-test forecast errors (finite, >= 0). A publication at a time already held
+        replaces it (a filter restored from its checkpoint publishes its own again)."""
         if not (math.isfinite(count) and math.isfinite(total) and count >= 0 and total >= 0):
             raise ValueError(
                 f"Well {well}'s well-test error statistics must be finite and >= 0, "
@@ -550,7 +552,12 @@ class CalibrationPool:
             )
         with self._lock:
             rows = self._history.setdefault(well, [])
-            rows.append((int(time_ns), float(count), float(total)))
+            row = (int(time_ns), float(count), float(total))
+            same = [k for k, held in enumerate(rows) if held[0] == row[0]]
+            if same:
+                rows[same[-1]] = row
+            else:
+                rows.append(row)
             if len(rows) > 1 and rows[-2][0] > rows[-1][0]:
                 rows.sort(key=lambda row: row[0])
             del rows[:-_POOL_KEEP]
@@ -729,6 +736,11 @@ class BayesianFilter(LearningMethod):
         # count and sum of squared standardised forecast errors, and the log factor of
         # them already in _scale
         self._cal = torch.zeros(n, 2, 3, dtype=DTYPE)
+        # each well's latest publications to its pool (:meth:`share_errors`): time (epoch
+        # ns; NEVER: none) and (count, sum of squares), oldest first; a checkpoint keeps
+        # them, so a filter restored brings back the statistics others read before its time
+        self._sent_t = torch.full((n, _POOL_KEEP), NEVER, dtype=torch.int64)
+        self._sent_s = torch.zeros(n, _POOL_KEEP, 2, dtype=DTYPE)
         self._started = torch.zeros(n, dtype=torch.bool)
         self._counts = {
             k: torch.zeros(n, dtype=torch.int64)
@@ -1102,10 +1114,12 @@ class BayesianFilter(LearningMethod):
     def learn_key(self) -> Hashable | None:
         """Filters of exactly this class with the same text (every option) on gradient models
         of one specification learn together: the Kalman step written for many wells, on
-        their stacked states."""
+        their stacked states; with ``cal_pool``, only those sharing one pool (the stacked
+        step reads and publishes through the first one's: :meth:`share_errors`)."""
         if type(self) is not BayesianFilter or self.model.gradient_free or self._dim == 0:
             return None
-        return ("bayes", self.model.stack_key(), self.text)
+        pool = None if self._pool is None else id(self._pool)
+        return ("bayes", self.model.stack_key(), self.text, pool)
 
     @classmethod
     def learn_group(
@@ -1719,18 +1733,28 @@ class BayesianFilter(LearningMethod):
         ``None``, or ``cal_pool=off``: no pool."""
         self._pool = pool if self.cal_pool and self.cal_prior > 0 else None
         self._pool_stale = True
-        if self._pool is not None and self._dim:
-            last = self._last.numpy()
-            for i in np.flatnonzero(self._started.numpy() & (last != NEVER)):
+        if self._pool is None or not self._dim:
+            return
+        last, sent_t, sent_s = self._last.numpy(), self._sent_t.numpy(), self._sent_s.numpy()
+        cal = self._cal.numpy()
+        for i in np.flatnonzero(self._started.numpy() & (last != NEVER)):
+            well = str(self.model.wells[i])
+            for k in np.flatnonzero(sent_t[i] != NEVER):  # what it published before
+                self._pool.publish(well, int(sent_t[i, k]), *map(float, sent_s[i, k]))
+            if sent_t[i, -1] == NEVER or not np.array_equal(sent_s[i, -1], cal[i, 1, :2]):
                 self._publish_well(int(i), int(last[i]))
 
     def _publish_well(self, i: int, time_ns: int) -> None:
-        """Publish well ``i``'s well-test error statistics to the pool at ``time_ns``."""
+        """Publish well ``i``'s well-test error statistics to the pool at ``time_ns`` (and
+        keep them among its latest publications)."""
         assert self._pool is not None
         cal = self._cal.numpy()
-        self._pool.publish(
-            str(self.model.wells[i]), time_ns, float(cal[i, 1, 0]), float(cal[i, 1, 1])
-        )
+        count, total = float(cal[i, 1, 0]), float(cal[i, 1, 1])
+        self._pool.publish(str(self.model.wells[i]), time_ns, count, total)
+        sent_t, sent_s = writable(self, "_sent_t"), writable(self, "_sent_s")
+        if sent_t[i, -1] != time_ns:
+            sent_t[i, :-1], sent_s[i, :-1] = sent_t[i, 1:].copy(), sent_s[i, 1:].copy()
+        sent_t[i, -1], sent_s[i, -1] = time_ns, (count, total)
 
     def _publish(self, batch: Batch) -> None:
         """Publish the statistics of the wells with a well test in ``batch``, at its time."""
@@ -1777,6 +1801,8 @@ class BayesianFilter(LearningMethod):
             run=self._run.clone(),
             scale=self._scale.clone(),
             cal=self._cal.clone(),
+            sent_t=self._sent_t.clone(),
+            sent_s=self._sent_s.clone(),
             refresh_at=self._refresh_at.clone(),
             counts={k: v.clone() for k, v in self._counts.items()},
         )
@@ -1784,7 +1810,8 @@ class BayesianFilter(LearningMethod):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        for name in ("P", "last", "noise", "h", "started", "run", "scale", "cal", "refresh_at"):
+        names = ("P", "last", "noise", "h", "started", "run", "scale", "cal", "refresh_at")
+        for name in (*names, "sent_t", "sent_s"):
             if name in state:
                 setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
         for k, v in state.get("counts", {}).items():
