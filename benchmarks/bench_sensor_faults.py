@@ -20,7 +20,10 @@ well's first row and 60 days before its last) and reports:
 
 Each row's inputs are fed, then its MPFM rate (``WellSensorFaults.measure``: the
 choke-rate witness), as the service and ``vfm evaluate`` feed them. ``--faults larger``
-runs the larger sizes of :data:`LARGER_FAULTS`.
+runs the larger sizes of :data:`LARGER_FAULTS`. ``--at subcritical`` starts each fault at a
+random row where the well flows subcritically (the true ``p_down / p_up`` at or above the
+true critical ratio: the rate depends on ``p_down``): the offsets of ``p_down`` that matter
+to the rate (most wells flow critically, where none does).
 
 The cost per sample (``us/sample``) is the detector's own CPU time over all clean rows
 (``time.process_time``; the service's whole per-sample path is about 115-125 us of CPU,
@@ -93,10 +96,10 @@ _DAY_NS = 86_400 * 10**9
 _VARIANTS = ("clean", "fault", "as read")
 
 
-def run_well(g: pd.DataFrame) -> tuple[list, float]:
+def run_well(g: pd.DataFrame, det: WellSensorFaults | None = None) -> tuple[list, float]:
     """Every fault event of one well's rows (time order) and the detector's time (s): each
     row's inputs, then its MPFM rate (the choke-rate witness), as the service feeds them."""
-    det = WellSensorFaults()
+    det = det or WellSensorFaults()
     times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").tolist()
     values = g[list(INPUT_COLUMNS)].to_numpy(dtype=float).tolist()
     mpfm = mpfm_rates(g)
@@ -112,6 +115,21 @@ def run_well(g: pd.DataFrame) -> tuple[list, float]:
             for e in det.measure(t, rate, row):
                 seen[id(e)] = e
     return list(seen.values()), time.process_time() - started
+
+
+def _matters(g: pd.DataFrame, faulty: pd.DataFrame, p_cr: pd.Series, sensor: str, t0: int) -> bool:
+    """Whether the true rate depends on ``p_down`` in the 7 days after ``t0`` (ns) on the
+    true reading or the faulty one: ``p_down / p_up`` reaches the row's true critical ratio
+    (the simulator's ``p_cr_true``) on some row. Only for ``p_down`` (False otherwise)."""
+    if sensor != "p_down":
+        return False
+    times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
+    week = (times >= t0) & (times < t0 + 7 * _DAY_NS)
+    p_up = g["p_up"].to_numpy(dtype=float)[week]
+    ratio = np.maximum(
+        g["p_down"].to_numpy(dtype=float)[week], faulty["p_down"].to_numpy(dtype=float)[week]
+    )
+    return bool(np.any(ratio / p_up >= p_cr.to_numpy(dtype=float)[week]))
 
 
 def cost_per_minute_samples(days: int = 20) -> float:
@@ -246,6 +264,14 @@ def main(argv: list[str] | None = None) -> int:
         help="kind:sensor:size,... ('larger': the larger sizes of LARGER_FAULTS)",
     )
     ap.add_argument("--history-days", type=float, default=180.0)
+    ap.add_argument(
+        "--at",
+        choices=("any", "subcritical"),
+        default="any",
+        help="where faults start: a random day (any), or a random row where the true "
+        "p_down / p_up reaches the true critical ratio (subcritical: the rate depends on "
+        "p_down; wells without such a row are left out)",
+    )
     ap.add_argument("--markdown", help="also write the tables as Markdown to this file")
     ap.add_argument("--study", action="store_true", help="error of vfm evaluate at a fault")
     ap.add_argument(
@@ -271,18 +297,22 @@ def main(argv: list[str] | None = None) -> int:
     rows = 0
     spent = 0.0
     unchanged: Counter[str] = Counter()  # injections that changed no reading
-    results: dict[str, list[tuple[bool, bool, float | None, int]]] = {
+    results: dict[str, list[tuple[bool, bool, float | None, int, bool]]] = {
         ":".join(s): [] for s in scenarios
     }
+    set_points: Counter[str] = Counter()  # p_down steps not raised, per reason
     for seed in seeds:
-        frame = simulate_field(wells=args.wells, years=args.years, seed=seed).observations
+        field = simulate_field(wells=args.wells, years=args.years, seed=seed)
+        frame, p_cr_true = field.observations, field.truth_samples["p_cr_true"]
         rng = np.random.default_rng(seed + 10_000)
         for well, g in frame.groupby("well", sort=True):
             g = g.sort_values("time", kind="stable")
             t = pd.to_datetime(g["time"], utc=True)
             span_days = (t.iloc[-1] - t.iloc[0]).total_seconds() / 86_400
             well_years += span_days / 365.25
-            events, dt = run_well(g)
+            det = WellSensorFaults()
+            events, dt = run_well(g, det)
+            set_points.update(getattr(det, "set_points", {}))
             rows += len(g)
             spent += dt
             false.update(e.kind for e in events)
@@ -292,6 +322,17 @@ def main(argv: list[str] | None = None) -> int:
             for kind, sensor, size in scenarios:
                 offset = rng.uniform(args.history_days, span_days - 60.0)
                 start = t.iloc[0] + pd.Timedelta(days=offset)
+                if args.at == "subcritical":  # a random row where the rate depends on p_down
+                    days = (t - t.iloc[0]).dt.total_seconds().to_numpy() / 86_400
+                    ratio = g["p_down"].to_numpy(dtype=float) / g["p_up"].to_numpy(dtype=float)
+                    at = np.flatnonzero(
+                        (days >= args.history_days)
+                        & (days <= span_days - 60.0)
+                        & (ratio >= p_cr_true.loc[g.index].to_numpy(dtype=float))
+                    )
+                    if not len(at):
+                        continue
+                    start = t.iloc[int(rng.choice(at))]
                 faulty, truth = inject_fault(
                     g, str(well), sensor, kind, start, size=float(size), days=None
                 )
@@ -302,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 found, _ = run_well(faulty)
                 t0 = pd.Timestamp(truth["start"]).value
+                matters = _matters(g, faulty, p_cr_true.loc[g.index], sensor, t0)
                 on = [e for e in found if e.sensor == sensor and e.detected_ns >= t0]
                 first = min(on, key=lambda e: e.detected_ns) if on else None
                 delay = (first.detected_ns - t0) / _DAY_NS if first is not None else None
@@ -312,7 +354,13 @@ def main(argv: list[str] | None = None) -> int:
                 week = t0 + 7 * _DAY_NS
                 others = sum(1 for e in found if e.sensor != sensor and t0 <= e.detected_ns <= week)
                 results[name].append(
-                    (in7, kind_ok, delay if delay is not None and delay <= 60 else None, others)
+                    (
+                        in7,
+                        kind_ok,
+                        delay if delay is not None and delay <= 60 else None,
+                        others,
+                        matters,
+                    )
                 )
 
     lines = [
@@ -333,18 +381,29 @@ def main(argv: list[str] | None = None) -> int:
     lines.append(f"| **all** | {total} | {total / well_years:.3f} | |")
     lines += [
         "",
+        f"`p_down` steps not raised as offsets: {set_points['critical']} in critical flow "
+        f"(the rate does not depend on `p_down`), {set_points['followed']} that the "
+        "measured rate followed (a real change of the back pressure).",
+        "",
         "| injected fault (kind:sensor:size) | wells | found 7d | right kind 7d | "
-        "median delay d | other sensors | reading unchanged |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "median delay d | other sensors | reading unchanged | rate depends on it: wells, "
+        "found 7d |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for name, res in results.items():
         n = len(res)
-        delays = [d for _, _, d, _ in res if d is not None]
+        delays = [d for _, _, d, _, _ in res if d is not None]
         med = f"{np.median(delays):.1f}" if delays else "-"
+        sub = [r for r in res if r[4]]
+        matter = (
+            f"{len(sub)}, {100 * sum(r[0] for r in sub) / len(sub):.0f} %"
+            if name.split(":")[1] == "p_down" and sub
+            else ("0" if name.split(":")[1] == "p_down" else "")
+        )
         lines.append(
             f"| {name} | {n} | {100 * sum(r[0] for r in res) / max(n, 1):.0f} % | "
             f"{100 * sum(r[1] for r in res) / max(n, 1):.0f} % | {med} | "
-            f"{sum(r[3] for r in res)} | {unchanged[name]} |"
+            f"{sum(r[3] for r in res)} | {unchanged[name]} | {matter} |"
         )
     text = "\n".join(lines)
     print(text)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
@@ -522,3 +523,68 @@ def test_a_fault_that_raises_an_alarm_is_a_warning_one_only_shown_is_info(
         ),
         (logging.INFO, "Sensor fault on W07 ended: p_down offset"),
     ]
+
+
+def p_down_step_well(
+    seed: int, p_down: float, step: float, rate_follows: float, mpfm: bool = True
+) -> Iterator[tuple[int, list[float], float]]:
+    """Two years of a synthetic well, two samples a day at random hours, each with an MPFM
+    rate (3 % noise): p_up 100 bar, p_down ``p_down`` bar, the choke still at 0.5, a gas
+    fraction of 0.1 (the lowest critical ratio of the choke laws is then 0.45). At day 500,
+    13:00, p_down's reading steps by ``step`` bar, and the true rate by ``rate_follows``
+    (relative: -0.08 for a real rise of the back pressure in subcritical flow, 0 for a
+    transmitter offset or critical flow). Yields (time ns, inputs, MPFM rate)."""
+    rng = np.random.default_rng(seed)
+    origin = 1_500_000_000 * 10**9
+    t_step = origin + 500 * DAY_NS + 13 * 3_600 * 10**9
+    for d in range(730):
+        for hour in (rng.uniform(0, 11), rng.uniform(12, 23)):
+            t = origin + d * DAY_NS + int(hour * 3_600e9)
+            after = t >= t_step
+            x = [0.5, 100.0 + rng.normal(0.0, 0.2), p_down + rng.normal(0.0, 0.1)]
+            x += [60.0 + rng.normal(0.0, 0.1), 0.1 + rng.normal(0.0, 1e-4)]
+            x += [0.6 + rng.normal(0.0, 1e-4)]
+            x[2] += step if after else 0.0
+            q = 500.0 * (1.0 + (rate_follows if after else 0.0)) * (1.0 + rng.normal(0.0, 0.03))
+            yield t, x, q if mpfm else math.nan
+
+
+def p_down_offsets(seed: int, *args: Any, **kwargs: Any) -> tuple[list[SensorFault], dict]:
+    """The p_down offsets raised on :func:`p_down_step_well` (each row's inputs, then its
+    rate, as the service feeds them) and the steps not raised, per reason."""
+    det = WellSensorFaults()
+    found = []
+    for t, x, q in p_down_step_well(seed, *args, **kwargs):
+        found += det.update(t, x)
+        if q == q:
+            found += det.measure(t, q, x)
+    once = {id(e): e for e in found if e.sensor == "p_down" and e.kind == "offset"}
+    return list(once.values()), det.set_points
+
+
+@pytest.mark.parametrize("seed", [3951, 3952])
+def test_a_p_down_step_in_critical_flow_is_no_offset_of_consequence(seed: int) -> None:
+    """p_down / p_up at 0.2 -> 0.23, below every choke law's critical ratio: the rate does
+    not depend on p_down, so a 3-bar step (about 30 robust sd of its daily changes) is not
+    raised, whether the transmitter or the set point moved, and it is counted as such."""
+    found, set_points = p_down_offsets(seed, 20.0, 3.0, 0.0)
+    assert found == [] and set_points == {"critical": 1}
+
+
+@pytest.mark.parametrize("seed", [3951, 3952])
+def test_a_p_down_offset_in_subcritical_flow_is_raised_and_a_real_change_is_not(
+    seed: int,
+) -> None:
+    """p_down / p_up at 0.7: the rate depends on p_down. A 3-bar step of the reading that
+    the rate does not follow is an offset within a week (its evidence says the rate did
+    not answer); the same step with the rate 8 % lower (a real rise of the back pressure)
+    is a set-point change: not raised. Without an MPFM nothing tells them apart: raised."""
+    t_step = 1_500_000_000 * 10**9 + 500 * DAY_NS + 13 * 3_600 * 10**9
+    found, set_points = p_down_offsets(seed, 70.0, 3.0, 0.0)
+    assert len(found) == 1 and set_points == {}, (found, set_points)
+    assert 0 <= found[0].detected_ns - t_step <= 7 * DAY_NS
+    assert "did not answer the step" in found[0].evidence
+    found, set_points = p_down_offsets(seed, 70.0, 3.0, -0.08)
+    assert found == [] and set_points == {"followed": 1}, (found, set_points)
+    found, set_points = p_down_offsets(seed, 70.0, 3.0, -0.08, mpfm=False)
+    assert len(found) == 1 and "no meter reading" in found[0].evidence

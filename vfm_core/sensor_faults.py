@@ -64,8 +64,14 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   their robust sd, and a Gaussian limit on them raised false steps far above the budget.
   A candidate is an offset when the level holds (at least halfway) for two more days.
   The event ends when the level comes back (halfway). A step of ``p_down`` alone is also
-  what a separator set-point change looks like from one well's inputs; the test cannot
-  tell them apart (see ``docs/guide/sensor-faults.md``).
+  what a separator set-point change looks like from one well's inputs, so a confirmed
+  ``p_down`` step is raised only when it is of consequence and the rate says it is the
+  transmitter (:meth:`WellSensorFaults._set_point`): not where ``p_down / p_up`` stays
+  below the lowest critical ratio of the models' choke laws on both levels
+  (:func:`critical_floor`; the rate does not depend on ``p_down`` there, an offset changes
+  no predicted rate and nothing tells it from the set point), nor where the MPFM's rate
+  moved against the step beyond its noise (a real change of the back pressure in
+  subcritical flow). Such steps are counted in ``set_points``, not raised.
 * ``drift``: a self-starting two-sided CUSUM (:class:`vfm_core.residual_alarm.ResidualCusum`:
   robust centre and scale of the last year, Bartlett long-run factor over ``lags`` days,
   ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
@@ -94,7 +100,8 @@ What this does not do (yet): use the rate model's residual and its sensitivity t
 input to locate a slow drift that only the measured rate reveals (a ``p_up`` drift that
 looks like the well's own decline), or a field-wide comparison of the wells on one
 manifold (a separator set-point change moves every well's ``p_down``; a transmitter
-offset moves one).
+offset moves one): in subcritical flow a set-point step the rate's noise hides is still
+raised as an offset.
 
 The fallback (keep predicting while an input is flagged)
 --------------------------------------------------------
@@ -158,8 +165,9 @@ from typing import Any
 
 import numpy as np
 
+from vfm_core import physics
 from vfm_core.errors import ConfigError
-from vfm_core.rate_witness import ChokeRateWitness
+from vfm_core.rate_witness import MIN_READINGS, ChokeRateWitness
 from vfm_core.residual_alarm import ResidualCusum
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.timeutil import iso
@@ -188,6 +196,7 @@ __all__ = [
     "faults_of_frame",
     "mpfm_rates",
     "write_sensor_faults",
+    "critical_floor",
 ]
 
 #: the sensors watched, in the order of :data:`vfm_core.schema.INPUT_COLUMNS`
@@ -214,8 +223,9 @@ FALLBACK_FAULTS: tuple[tuple[str, str], ...] = HOLD_FAULTS
 #: their kind does not: a choke offset, whose false rate was measured within the budget. The
 #: others are shown, counted and logged at info, not raised: a spike is one sample, and an
 #: input's own offset was raised 0.2-0.5 times a well-year on clean fields (nearly all
-#: separator set-point steps that one well's data cannot tell from a transmitter's offset;
-#: docs/guide/sensor-faults.md), above the budget of 0.1.
+#: separator set-point steps of p_down), above the budget of 0.1; with the steps of no
+#: consequence and those the rate followed set aside (WellSensorFaults._set_point) it is
+#: 0.04-0.06, all kinds together 0.05-0.10 (docs/guide/sensor-faults.md): not decided yet.
 ALARM_KINDS: tuple[str, ...] = ("frozen", "out_of_range", "drift")
 ALARM_FAULTS: tuple[tuple[str, str], ...] = (("choke", "offset"),)
 
@@ -284,6 +294,14 @@ _WITNESS_MIN_RESIDUALS = 10  # learned log residuals for their spread, else the 
 _WITNESS_LOG_SD = 0.05  # an MPFM reading's noise at its worst (5 %): no residuals yet
 _WITNESS_MIN_LOG_SD = 0.01  # floor: a reading is seldom better than 1 % (as the review's)
 _WANDER_LAG = 30  # days: the lag of the input's variogram that its wander is read at
+# A p_down step and the rate (:meth:`WellSensorFaults._set_point`): below the lowest
+# critical ratio the models' choke laws give, the rate does not depend on p_down. The
+# constant law's p_cr prior (0.55 +- 0.05) at -2 sd; Sachdeva's solved ratio at the well's
+# fluid with the fluid priors at +-2 sd in the direction that lowers it.
+_P_CR_LOW = physics.PRIORS["p_cr"].mean - 2.0 * physics.PRIORS["p_cr"].std
+_FOLLOW_P = 0.01  # a true offset taken for a set-point change by the rate's noise alone
+_FOLLOW_DAYS = 7  # days of MPFM readings before a p_down step, at the choke of the step
+_P_DOWN = 2
 
 
 @lru_cache(maxsize=256)
@@ -637,6 +655,30 @@ def witness_track(
     )
 
 
+def critical_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> float:
+    """The lowest critical pressure ratio ``p_down / p_up`` (-) that the models' choke laws
+    give for a well's fluid at ``p_up`` (bar a), ``t_up`` (degC) and the mass fractions:
+    the constant law's ``p_cr`` prior at -2 sd (0.45), or Sachdeva's solved ratio
+    (:func:`vfm_core.physics.sachdeva_critical_ratio`, ideal gas) with the fluid priors at
+    2 sd in the direction that lowers it (a denser gas, a lighter liquid, a larger heat-
+    capacity ratio), whichever is lower. Below it the flow is critical under every such
+    law: the rate does not depend on ``p_down``."""
+    pr = physics.PRIORS
+    eg = min(max(float(eta_gas), 1e-6), 1.0)
+    eo = min(max(float(eta_oil), 0.0), 1.0 - eg)
+    m_gas = pr["m_gas"].mean + 2.0 * pr["m_gas"].std
+    rho_g1 = physics.gas_density(p_up * 1e5, t_up + 273.15, m_gas)
+    v_liq = physics.liquid_specific_volume(
+        eg,
+        eo,
+        pr["rho_oil"].mean - 2.0 * pr["rho_oil"].std,
+        pr["rho_wat"].mean - 2.0 * pr["rho_wat"].std,
+    )
+    kappa = pr["kappa"].mean + 2.0 * pr["kappa"].std
+    y_c = float(physics.sachdeva_critical_ratio(eg, rho_g1, v_liq, kappa, iterations=40))
+    return min(_P_CR_LOW, y_c)
+
+
 @dataclass
 class _Frozen:
     """Markov counts of unchanged steps of one input (exponentially forgotten)."""
@@ -789,6 +831,10 @@ class WellSensorFaults:
         #: per open fault "sensor/kind" of :data:`_ANCHOR_KINDS`: the input's own wander
         #: before it (variance per day, :meth:`_wander`), fixed when it is raised
         self.wanders: dict[str, float] = {}
+        #: p_down steps not raised as offsets, per reason (:meth:`_set_point`): "critical"
+        #: (the rate does not depend on p_down on either level), "followed" (the measured
+        #: rate answered the step as a real change of the back pressure does)
+        self.set_points: dict[str, int] = {}
 
     def _new_cusum(self) -> ResidualCusum:
         # each day's change is its own period (period_s 0): the daily means are made here
@@ -1487,6 +1533,14 @@ class WellSensorFaults:
             self.cand[i] = (step, level_before, c_start, z, held)
             return False
         unit = _UNITS[name]
+        why = ""
+        if i == _P_DOWN:
+            reason, why = self._set_point(level_before, mean, step, c_start)
+            if reason:
+                self.set_points[reason] = self.set_points.get(reason, 0) + 1
+                # the new level is the process's: no two-day change across the step again
+                self.prev_alone[i] = False
+                return False
         two = self.cand_days[i] == 2
         span, what, limit = (
             ("two days", "quiet two-day", self._limits2[i])
@@ -1504,12 +1558,66 @@ class WellSensorFaults:
                 f"their own tail) and held there for {held} more days "
                 f"({level:+.4g}{unit}); on the {'days' if two else 'day'} of the step "
                 f"no other input moved beyond {_CO_MOVE:g} sd of its own and the choke "
-                "stayed.",
+                f"stayed.{why}",
             ),
             out,
         )
         self.offset_level[i] = (level_before, step)
         return True
+
+    def _set_point(
+        self, level_before: float, level: float, step: float, start_ns: int
+    ) -> tuple[str, str]:
+        """Whether a confirmed step of ``p_down`` (daily means ``level_before`` ->
+        ``level``, bar a, from ``start_ns``) is a set-point change rather than an offset of
+        consequence: ``(reason, "")`` with reason ``"critical"`` or ``"followed"`` when it
+        is not raised, else ``("", sentence)`` for the offset's evidence.
+
+        - ``critical``: ``p_down / p_up`` stays below the lowest critical ratio of the
+          models' choke laws (:func:`critical_floor`) on both levels. The rate does not
+          depend on ``p_down`` there: a transmitter offset changes no predicted rate, and
+          nothing the well measures tells it from the separator's set point moving.
+        - ``followed``: the flow may be subcritical, and the MPFM's rate moved against
+          the step (a higher back pressure, a lower rate) beyond its noise: the mean log
+          rate of the readings since the step's day against those of the ``_FOLLOW_DAYS``
+          days before, at the same choke (one-sided Student t at ``_FOLLOW_P``). A
+          transmitter's offset moves the reading only, and the rate stays.
+        """
+        lv = self.levels
+        if not (lv[1] and lv[3] and lv[4] and lv[5]) or not lv[1][-1][1] > 0:
+            return "", ""  # nothing to judge the flow by: raised as before
+        p_up = lv[1][-1][1]
+        floor = critical_floor(p_up, lv[3][-1][1], lv[4][-1][1], lv[5][-1][1])
+        ratio = max(level_before, level) / p_up
+        if ratio < floor:
+            return "critical", ""
+        why = (
+            f" p_down / p_up reached {ratio:.2f}, at or above the lowest critical ratio "
+            f"{floor:.2f}: the rate may depend on p_down"
+        )
+        rows = self.witness.readings.since(start_ns - _FOLLOW_DAYS * _NS_PER_DAY)
+        after = rows[rows[:, 0] >= start_ns]
+        if not len(after):
+            return "", why + "; no meter reading since the step."
+        before = rows[(rows[:, 0] < start_ns) & (rows[:, 2] == after[0, 2])]
+        after = after[after[:, 2] == after[0, 2]]
+        n_b, n_a = len(before), len(after)
+        if n_b < MIN_READINGS or n_a < MIN_READINGS:
+            return "", why + f"; too few meter readings at the step's choke ({n_b}, {n_a})."
+        from scipy.stats import t as student  # (rare: a confirmed p_down step)
+
+        d = float(after[:, 1].mean() - before[:, 1].mean())
+        dev = np.concatenate([before[:, 1] - before[:, 1].mean(), after[:, 1] - after[:, 1].mean()])
+        sd = max(math.sqrt(float(dev @ dev) / (n_b + n_a - 2)), _WITNESS_MIN_LOG_SD)
+        z = -math.copysign(1.0, step) * d / (sd * math.sqrt(1.0 / n_b + 1.0 / n_a))
+        limit = float(student.ppf(1.0 - _FOLLOW_P, n_b + n_a - 2))
+        if z > limit:
+            return "followed", ""
+        return "", why + (
+            f", and the measured rate did not answer the step as a real change would: "
+            f"{100 * d:+.1f} % over {n_a} meter readings against {n_b} before "
+            f"({z:.1f} sd against it, a set-point change needs {limit:.1f})."
+        )
 
     def _step_test(
         self,
@@ -1702,6 +1810,7 @@ class WellSensorFaults:
             },
             "tracks": {k: list(v) for k, v in self.tracks.items()},
             "wanders": {k: v if math.isfinite(v) else None for k, v in self.wanders.items()},
+            "set_points": dict(self.set_points),
         }
 
     def restore(self, data: Mapping[str, Any]) -> bool:
@@ -1761,6 +1870,7 @@ class WellSensorFaults:
             if (s, k) in by_key:
                 self.open[(s, k)] = by_key[(s, k)]
         self.raised = {str(k): int(v) for k, v in data["raised"].items()}
+        self.set_points = {str(k): int(v) for k, v in (data.get("set_points") or {}).items()}
         raw_day, raw_n, raw_sum, self.raw_choke, self.prev_raw_choke = data["raw"]
         self.raw_day, self.raw_n = int(raw_day), int(raw_n)
         self.raw_sum = [float(v) for v in raw_sum]

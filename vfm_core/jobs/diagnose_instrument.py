@@ -60,10 +60,11 @@ __all__ = [
 ]
 
 #: Fault kinds that bias the rate model for as long as they last (a spike is one sample)
-#: and whose false rate is within the detectors' budget: an offset (0.22 false per well-year
-#: on clean fields, benchmarks/bench_sensor_faults.py) raises no alarm on the page or in
-#: VfmSensorFault, and names no instrument here either (a false one replaced a right
-#: ``effect erosion`` on a clean-instrument field)
+#: and whose false rate is within the detectors' budget: an input's offset (0.22 false per
+#: well-year on clean fields before the p_down steps of no consequence and those the rate
+#: followed were set aside, 0.04-0.06 after: benchmarks/bench_sensor_faults.py) raises no
+#: alarm on the page or in VfmSensorFault, and names no instrument here either (a false one
+#: replaced a right ``effect erosion`` on a clean-instrument field)
 INSTRUMENT_KINDS = ("frozen", "drift", "out_of_range")
 #: (sensor, kind) pairs that name an instrument besides those kinds: a choke offset, found
 #: by its witness (the MPFM's rate does not follow a move of the reading,
