@@ -339,22 +339,30 @@ class FieldClient:
         idle_timeout: float,
         final_timeout: float,
         since: float | None = None,
+        first_timeout: float = 30.0,
     ) -> int:
         """Wait until every expected (well, time ns) is answered, or none came for
         ``idle_timeout`` s (wells without a model never answer), at most ``final_timeout`` s.
-        Returns how many are answered."""
-        since = time.monotonic() if since is None else since
-        deadline = time.monotonic() + final_timeout
+        Until the first of them is answered the patience is ``first_timeout`` s instead (a
+        service busy with its first samples on a loaded machine answers late, and it is no
+        sign that it has stopped). The idle clock starts no earlier than this call (the
+        sending's end). Returns how many are answered."""
+        began = time.monotonic()
+        since = began if since is None else since
+        deadline = began + final_timeout
         wanted = set(expected)
-        got = 0
+        got = first = 0
         while time.monotonic() < deadline:
             with self._lock:
                 if self.count >= len(wanted):
                     got = sum(1 for k in wanted if k in self.predictions)
-                idle = time.monotonic() - self.last_at
+                elif not first:
+                    first = sum(1 for k in wanted if k in self.predictions)
+                idle = time.monotonic() - max(self.last_at, began)
             if got == len(wanted):
                 break
-            if idle > idle_timeout and time.monotonic() - since > idle_timeout:
+            patience = idle_timeout if got or first else max(idle_timeout, first_timeout)
+            if idle > patience and time.monotonic() - since > patience:
                 break
             time.sleep(0.05)
         with self._lock:

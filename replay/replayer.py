@@ -110,7 +110,8 @@ def replay_frame(
 
     ``speed``: N times real time; None = as fast as the service takes it. At the end the
     replay waits until a prediction arrived for every sample, or until none arrived for
-    ``idle_timeout`` seconds (wells without a model never answer), at most ``final_timeout``.
+    ``idle_timeout`` seconds (wells without a model never answer; before the first answer,
+    30 s: a service busy with its first samples answers late), at most ``final_timeout``.
     ``bus``: send over this bus (e.g. a service's in-memory transport) instead of opening
     a Zenoh session to ``connect`` (which is then not used); the caller keeps it open.
     """

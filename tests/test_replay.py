@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -129,3 +132,43 @@ def test_the_summary_names_the_samples_that_got_no_prediction() -> None:
     assert text.count("W02 at ") == MISSING_SHOWN and "and 2 more." in text
     complete = ReplayResult(None, 10, 10, 0, 10, 0, 1.0, pd.DataFrame())
     assert "Without a prediction" not in complete.summary()
+
+
+def _answer_later(bus: Any, well: str, times_ns: list[int], after_s: float) -> threading.Thread:
+    """Publish a prediction for each of ``times_ns`` after ``after_s`` s (a busy service)."""
+
+    def publish() -> None:
+        time.sleep(after_s)
+        for t in times_ns:
+            when = pd.Timestamp(t, tz="UTC").isoformat()
+            bus.publish(well, json.dumps({"time": when, "q_total": 100.0}).encode())
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_service_that_answers_late_is_waited_for() -> None:
+    """A service busy with its first samples (a loaded machine) answers after more than the
+    idle timeout: the replay waits for the first answer up to ``first_timeout``, then for the
+    rest with the idle timeout; with no answer at all it gives up after ``first_timeout``."""
+    from replay.client import FieldClient
+    from service.transport import MemoryTransport
+
+    t0 = pd.Timestamp("2017-03-01T06:00:00Z").value
+    expected = [("W01", t0 + k * 60 * 10**9) for k in range(3)]
+    bus = MemoryTransport()
+    with FieldClient(bus, "vfm") as client:
+        thread = _answer_later(bus, "W01", [t for _, t in expected], after_s=1.0)
+        got = client.wait_for_answers(
+            expected, idle_timeout=0.2, final_timeout=30.0, first_timeout=10.0
+        )
+        thread.join()
+        assert got == 3
+    with FieldClient(MemoryTransport(), "vfm") as client:
+        began = time.monotonic()
+        got = client.wait_for_answers(
+            expected, idle_timeout=0.2, final_timeout=30.0, first_timeout=1.0
+        )
+        waited = time.monotonic() - began
+        assert got == 0 and 1.0 <= waited < 10.0, waited
