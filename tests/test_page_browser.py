@@ -362,6 +362,16 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     latest = latest["latest_prediction"]
     expected = 100 * (latest["q_total_p95"] - latest["q_total_p05"]) / latest["q_total"]
     assert width != "\u2013" and 0.5 * expected < float(width) < 2 * expected, (width, latest)
+    # an empty band is no interval (a method without intervals whose rate does not move
+    # across a stand-in's span, p_down in critical flow): a dash, not a certain-looking 0.0
+    cell = '#field-table tr[data-well="W02"] td'
+    page.evaluate(
+        "() => { window.vfm.latest.W02 = {q_total: 100, q_total_p05: 100, q_total_p95: 100};"
+        " renderField(); }"
+    )
+    assert page.locator(cell).nth(6).inner_text() == "\u2013"
+    page.evaluate("() => { delete window.vfm.latest.W02; renderField(); }")
+    assert page.locator(cell).nth(6).inner_text() == width
     page.screenshot(path=str(SHOTS / "field-alarm.png"), full_page=True)
 
     # nothing of the replay was lost on the way (a well that starts after the split has no

@@ -113,6 +113,9 @@ function widthOf(well) {
   // the latest live prediction, else (a page opened after the predictions) the well view's
   const p = state.latest[well] || (state.wells[well] || {}).latest_prediction;
   if (!p || p.q_total_p05 == null || p.q_total_p95 == null || !p.q_total) return null;
+  // an empty band is no interval: a method without intervals (ol, pbl) whose rate does not
+  // move across a stand-in's span (p_down in critical flow) shows a dash, not a certain 0.0
+  if (!(p.q_total_p95 > p.q_total_p05)) return null;
   return 100 * (p.q_total_p95 - p.q_total_p05) / p.q_total;
 }
 
