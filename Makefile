@@ -8,9 +8,10 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 LINTED := vfm_core service replay tests benchmarks examples
 # two test processes (pytest-xdist), a test file each at a time (module fixtures are shared
-# by its tests, in order): the suite in about two thirds of the time on two cores;
+# by its tests, in order): the suite in about two thirds of the time on two cores; the
+# files in collection order, whose longest come first (tests/conftest.py, LONGEST_FIRST);
 # `make test PYTEST_ARGS=` runs it in one process
-PYTEST_ARGS ?= -n 2 --dist loadfile
+PYTEST_ARGS ?= -n 2 --dist loadfile --no-loadscope-reorder
 
 .PHONY: install demo test test-fast lint bench bench-docs docs clean
 

@@ -70,9 +70,9 @@ SLOW_TESTS: frozenset[str] = frozenset(
         "test_effects.py::test_streaming_learner_with_an_effect_learns_the_wear",  # 20 s
         # the diagnosis on whole simulated fields: 28-124 s each
         "test_diagnose.py::test_base_effects_turn_the_diagnosis_to_what_is_still_missing",
-        "test_diagnose.py::test_hidden_library_effect_is_the_verdict_and_halves_the_error",
+        "test_diagnose_library.py::test_hidden_library_effect_is_the_verdict_and_halves_the_error",
         "test_diagnose.py::test_another_implementation_of_the_physics_gets_the_valve_it_differs_by",
-        "test_diagnose.py::test_effects_that_leave_no_trace_are_not_claimed",
+        "test_diagnose_library.py::test_effects_that_leave_no_trace_are_not_claimed",
         "test_diagnose.py::test_outputs_follow_the_contract",
         "test_diagnose.py::test_effect_outside_the_library_gets_a_driver_verdict_and_a_correction",
         "test_diagnose.py::test_noise_floor_estimate_is_close_to_the_truth",
@@ -111,7 +111,34 @@ SLOW_CASES: frozenset[tuple[str, str]] = frozenset(
 )
 
 
+#: the files that take longest (their tests' sum, from the same kind of measurement: the
+#: slow tier at load 6-8 on 2026-11-27, 02:57-03:43 UTC), longest first: they are collected
+#: first, so that ``make test`` (``--dist loadfile --no-loadscope-reorder``: each process
+#: takes the next file in collection order) starts them at once instead of leaving one to
+#: run alone at the end; the other files follow in their usual order
+LONGEST_FIRST: tuple[str, ...] = (
+    "test_diagnose.py",
+    "test_diagnose_library.py",
+    "test_diagnose_replay.py",
+    "test_service_adversarial.py",
+    "test_bayes.py",
+    "test_page_browser.py",
+    "test_service_rollback_live.py",
+    "test_workers.py",
+    "test_bayes_calibration_compiled.py",
+    "test_service_scaleout.py",
+    "test_service_separator.py",
+    "test_service_workbench.py",
+    "test_service_demo_signals.py",
+    "test_demo_effects.py",
+    "test_service_restart.py",
+)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    rank = {file: k for k, file in enumerate(LONGEST_FIRST)}
+    # a stable sort: each file's tests keep their order (module fixtures are shared in it)
+    items.sort(key=lambda item: rank.get(item.nodeid.partition("::")[0].rpartition("/")[2], 99))
     slow = pytest.mark.slow
     for item in items:
         path, _, name = item.nodeid.partition("::")

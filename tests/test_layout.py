@@ -213,7 +213,7 @@ def test_every_slow_entry_names_a_test() -> None:
     import conftest
 
     tests = ROOT / "tests"
-    for file in conftest.SLOW_FILES:
+    for file in (*conftest.SLOW_FILES, *conftest.LONGEST_FIRST):
         assert (tests / file).is_file(), file
     named = [*conftest.SLOW_TESTS, *(test for test, _ in conftest.SLOW_CASES)]
     for entry in named:
