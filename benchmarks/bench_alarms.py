@@ -23,6 +23,10 @@ service does), and reports:
   median day of the first one after the split (these changes have no onset inside the
   tested span: the time is from the split).
 
+``--scales mad,winsorised`` runs the detector with each reference scale
+(:data:`vfm_core.residual_alarm.SCALES`) on the same predictions, one row each: the rule
+before and after, side by side.
+
 ``--iid N`` instead runs the detector on N i.i.d. N(0, 1) periods (three seeds) and prints
 the in-control run length against the design ``--arl0``.
 
@@ -30,7 +34,7 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/bench_alarms.py [--fields none:41:6:4,...]
         [--models mm,ham] [--methods ol,bayes] [--split-years 1] [--arl0 1000]
-        [--physics sachdeva|bernoulli|gilbert]
+        [--physics sachdeva|bernoulli|gilbert] [--scales winsorised,mad]
         [--markdown docs/benchmarks/generated/alarms.md]
 
 A field is ``hidden:seed:wells:years`` (hidden as ``vfm simulate --hidden``, ``+`` between
@@ -128,12 +132,36 @@ def first_alarms(alarms: list[dict], wells: list[str], split: pd.Timestamp):
     return firsts
 
 
-def iid_run_length(arl0: float, n: int) -> None:
+def describe(
+    alarms: list[dict], effects: list[str], truth: dict, split: pd.Timestamp, p: pd.DataFrame
+) -> tuple[str, str]:
+    """The change column (sand-event detections and delays, or the first alarms of a
+    field that changes from the start) and the alarms counted by meter and direction."""
+    note = ""
+    if any(e.startswith("erosion") and "step" in e for e in effects):
+        tested, found, soon, delays = sand_delays(alarms, truth, split, p["time"].max())
+        med = f"{np.median(delays):.0f} d" if delays else "-"
+        note = (
+            f"sand event: {soon}/{tested} wells within 30 d, {found}/{tested} within "
+            f"180 d, median delay {med}"
+        )
+    elif effects:
+        firsts = first_alarms(alarms, sorted(p["well"].unique()), split)
+        med = f"{np.median(firsts):.0f} d after split" if firsts else "-"
+        note = f"{len(firsts)}/{p['well'].nunique()} wells alarmed, first: {med}"
+    streams: dict[str, int] = {}
+    for a in alarms:
+        key = f"{a['source']}:{a['direction']}"
+        streams[key] = streams.get(key, 0) + 1
+    return note, ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
+
+
+def iid_run_length(arl0: float, n: int, scale: str = "winsorised") -> None:
     """The detector as built (scale estimated, not known) on i.i.d. N(0, 1) residuals, one
     per period: periods per false alarm against the design."""
-    print(f"design arl0 = {arl0:g} periods, h = {cusum_threshold(arl0):.3f}")
+    print(f"design arl0 = {arl0:g} periods, h = {cusum_threshold(arl0):.3f}, scale {scale}")
     for seed in range(3):
-        det = ResidualCusum(arl0=arl0, period_s=0.0)
+        det = ResidualCusum(arl0=arl0, period_s=0.0, scale=scale)
         x = np.random.default_rng(seed).standard_normal(n)
         for i, v in enumerate(x):
             det.update(float(v), i)
@@ -158,6 +186,12 @@ def main() -> None:
     ap.add_argument(
         "--arl0", type=float, default=1000.0, help="target in-control run length, periods"
     )
+    ap.add_argument(
+        "--scales",
+        default="winsorised",
+        help="reference scales to compare on the same predictions (comma-separated: "
+        "winsorised, mad)",
+    )
     ap.add_argument("--markdown", help="also write the table as Markdown to this file")
     ap.add_argument(
         "--iid",
@@ -167,11 +201,12 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.iid:
-        iid_run_length(args.arl0, args.iid)
+        for scale in args.scales.split(","):
+            iid_run_length(args.arl0, args.iid, scale)
         return
     rows: list[str] = []
     header = (
-        f"{'field':<26} {'model':<5} {'method':<6} {'well-yr':>7} {'alarms':>6} "
+        f"{'field':<26} {'model':<5} {'method':<6} {'scale':<10} {'well-yr':>7} {'alarms':>6} "
         f"{'alarms/well-yr':>14} {'T2':>5} {'T2/well-yr':>10}  change detected"
     )
     print(header)
@@ -191,47 +226,29 @@ def main() -> None:
                 started = time.perf_counter()
                 run = run_prequential(frame, model, method, split=split)
                 p = run.predictions[np.isfinite(run.predictions["predicted"])]
-                alarms = alarms_from_predictions(p, arl0=args.arl0)
                 wy = well_years(p)
-                wells = sorted(p["well"].unique())
-                note = ""
-                if any(e.startswith("erosion") and "step" in e for e in effects):
-                    tested, found, soon, delays = sand_delays(
-                        alarms, sim.truth, split, p["time"].max()
+                for scale in args.scales.split(","):
+                    alarms = alarms_from_predictions(p, arl0=args.arl0, scale=scale)
+                    note, kinds = describe(alarms, effects, sim.truth, split, p)
+                    rows.append(
+                        f"| `{text}` | {model} | {method} | {scale} | {wy:.1f} | {len(alarms)} | "
+                        f"{len(alarms) / wy:.2f} | {t2} | {t2 / wy:.2f} | {note or '-'} | "
+                        f"{kinds} |"
                     )
-                    med = f"{np.median(delays):.0f} d" if delays else "-"
-                    note = (
-                        f"sand event: {soon}/{tested} wells within 30 d, {found}/{tested} within "
-                        f"180 d, median delay {med}"
+                    print(
+                        f"{text:<26} {model:<5} {method:<6} {scale:<10} {wy:7.1f} "
+                        f"{len(alarms):6d} {len(alarms) / wy:14.2f} {t2:5d} {t2 / wy:10.2f}  "
+                        f"{note} [{kinds}]  ({time.perf_counter() - started:.0f} s)",
+                        flush=True,
                     )
-                elif effects:
-                    firsts = first_alarms(alarms, wells, split)
-                    med = f"{np.median(firsts):.0f} d after split" if firsts else "-"
-                    note = f"{len(firsts)}/{len(wells)} wells alarmed, first: {med}"
-                streams = {}
-                for a in alarms:
-                    key = f"{a['source']}:{a['direction']}"
-                    streams[key] = streams.get(key, 0) + 1
-                kinds = ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
-                rows.append(
-                    f"| `{text}` | {model} | {method} | {wy:.1f} | {len(alarms)} | "
-                    f"{len(alarms) / wy:.2f} | {t2} | {t2 / wy:.2f} | {note or '-'} | {kinds} |"
-                )
-                note += f" [{kinds}]"
-                print(
-                    f"{text:<26} {model:<5} {method:<6} {wy:7.1f} {len(alarms):6d} "
-                    f"{len(alarms) / wy:14.2f} {t2:5d} {t2 / wy:10.2f}  {note.strip()}"
-                    f"  ({time.perf_counter() - started:.0f} s)",
-                    flush=True,
-                )
     if args.markdown:
         command = shlex.join(["python", "benchmarks/bench_alarms.py", *sys.argv[1:]])
         with open(args.markdown, "w", encoding="utf-8") as out:
             out.write(
                 f"Made by `{command}`.\n\n"
-                "| field | model | method | well-yr | alarms | alarms/well-yr | T2 drifts | "
-                "T2/well-yr | change | alarms by meter:direction |\n"
-                "|---|---|---|---:|---:|---:|---:|---:|---|---|\n" + "\n".join(rows) + "\n"
+                "| field | model | method | scale | well-yr | alarms | alarms/well-yr | "
+                "T2 drifts | T2/well-yr | change | alarms by meter:direction |\n"
+                "|---|---|---|---|---:|---:|---:|---:|---:|---|---|\n" + "\n".join(rows) + "\n"
             )
 
 

@@ -803,6 +803,12 @@ class ResidualAlarmSettings(_Section):
         le=30,
         description="lags of the long-run (autocorrelation-corrected) scale, periods",
     )
+    scale: Literal["winsorised", "mad"] = Field(
+        default="winsorised",
+        description="the self-starting reference's centre and scale: 'winsorised' (mean and "
+        "sd of the period means clipped at median +- 3 robust sd) or 'mad' (median and "
+        "1.4826 MAD, the rule before s45: too narrow for period means of varying counts)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> ResidualAlarmSettings:

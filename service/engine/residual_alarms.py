@@ -50,7 +50,14 @@ class WellResidualAlarm:
         if det is None:
             s = self.settings
             det = ResidualCusum(
-                s.arl0, s.k, self._period_s(source), s.window, s.min_periods, s.clip, s.lags
+                s.arl0,
+                s.k,
+                self._period_s(source),
+                s.window,
+                s.min_periods,
+                s.clip,
+                s.lags,
+                s.scale,
             )
             self.detectors[source] = det
         return det
@@ -120,8 +127,17 @@ class WellResidualAlarm:
         the periods, the window ...) starts afresh: its statistic would mean something else."""
         s = self.settings
         for source, saved in (data.get("detectors") or {}).items():
-            design = (s.arl0, s.k, self._period_s(source), s.window, s.min_periods, s.clip, s.lags)
-            keys = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags")
+            design = (
+                s.arl0,
+                s.k,
+                self._period_s(source),
+                s.window,
+                s.min_periods,
+                s.clip,
+                s.lags,
+                s.scale,
+            )
+            keys = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags", "scale")
             if tuple(saved.get(k) for k in keys) != design:
                 continue
             det = self.detector(source)
