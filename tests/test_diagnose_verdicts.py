@@ -521,3 +521,52 @@ def test_a_gain_in_every_block_of_a_short_replay_is_found_beside_a_young_well() 
     assert (w01["kind"], w01["effect"]) == ("effect", "erosion"), w01["text"]
     assert not any(c.test("live", "W02")["rejected"] for c in results)  # type: ignore[index]
     assert all(not dv.offer(c, None)[0] for c in nothing)
+
+
+def _fit_once(name: str, base: float, mape: float, delta_bic: float) -> dg.CandidateResult:
+    """A candidate's fit-once figures only (MAPE in %), for the materiality rule."""
+    return dg.CandidateResult(
+        effect=name,
+        mape=mape,
+        delta_mape=mape - base,
+        bic=0.0,
+        delta_bic=delta_bic,
+        n_parameters=1,
+        parameters={},
+        meaning=f"{name} fitted.",
+        material=False,
+        delta_bic_all=delta_bic,
+        spec=name,
+    )
+
+
+def test_a_gain_below_the_noise_floor_is_no_evidence_near_it() -> None:
+    """Issue 36, seed 52 at the default wear, by its figures: baseline 2.95 %, floor estimate
+    2.86 %; slip, a meter bias and erosion lower the fit-once MAPE by 0.13-0.17 points (BIC
+    -40, -20, -11), each under the floor: 154-194 % "of the error above the floor", which
+    made all three material by the rule near the floor (and the verdict `carried slip`). No
+    model goes below a true floor, so that share is no evidence and none is material. The
+    same gains above a floor that none goes under are material by it (a third or more of the
+    error above it, at most all); and one candidate under the floor voids it for all."""
+    base = 2.95
+
+    def judged(floor_mape: float, mapes: dict[str, float]) -> dict[str, bool]:
+        bics = {"slip": -39.8, "mpfm_bias": -19.7, "erosion": -11.4}
+        results = [_fit_once(n, base, m, bics[n]) for n, m in mapes.items()]
+        floor: dict[str, object] = {"mape": floor_mape}
+        dg._trust_floor(floor, results)
+        for c in results:
+            dg._judge(c, base, floor)
+        return {c.effect: c.material for c in results}
+
+    # the bound itself, one candidate at a time (share nan: no floor, the ordinary rule)
+    assert dg.is_material(-0.15, base, -20.0, -20.0, 1.0)
+    assert not dg.is_material(-0.15, base, -20.0, -20.0, 1.01)
+    assert not dg.is_material(-0.15, base, -20.0, -20.0, float("nan"))
+    assert dg.is_material(-0.30, base, -20.0, -20.0, float("nan"))
+    seed52 = {"slip": 2.78, "mpfm_bias": 2.81, "erosion": 2.82}
+    assert judged(2.86, seed52) == {"slip": False, "mpfm_bias": False, "erosion": False}
+    # 0.37 points above the floor: each removes 35-46 % of it, none goes under
+    assert judged(2.58, seed52) == {"slip": True, "mpfm_bias": True, "erosion": True}
+    # slip alone under the floor: erosion's 87 % is measured against a floor that is none
+    assert judged(2.80, {"slip": 2.78, "erosion": 2.82}) == {"slip": False, "erosion": False}

@@ -1156,8 +1156,9 @@ class _DiagnosisRun:
             )
         )
         self.floor = floor
+        _trust_floor(floor, self.results)
         for c in self.results:
-            _judge(c, comp_mape, floor.get("mape"))
+            _judge(c, comp_mape, floor)
         self._rank()
 
     def fit_once_more(self, more: Sequence[tuple[type[Effect], str | None]]) -> None:
@@ -1172,7 +1173,10 @@ class _DiagnosisRun:
                 _score(cls.name, r_, [cls], self.comp_mape, self.comp, self.train_batch(r_))
             )
             self.results[-1].variant_of = of
-            _judge(self.results[-1], self.comp_mape, self.floor.get("mape"))
+            _judge(self.results[-1], self.comp_mape, self.floor)
+        if self.floor.get("trusted", True) and not _trust_floor(self.floor, self.results):
+            for c in self.results:  # a new candidate went below the floor: judge all again
+                _judge(c, self.comp_mape, self.floor)
         self._rank()
         names = {c.name for c, _ in more}
         self.skipped[:] = [x for x in self.skipped if x["effect"] not in names]
@@ -1437,7 +1441,7 @@ class _DiagnosisRun:
             )
         suggestion = self.suggestion
         if suggestion is not None:
-            _judge(suggestion.result, self.comp_mape, self.floor.get("mape"))
+            _judge(suggestion.result, self.comp_mape, self.floor)
             if s.replay_top > 0:
                 s_cls = [resolve_effect(suggestion.spec)]
                 self.frame = _with_features(self.frame, s_cls)
@@ -1674,12 +1678,31 @@ def _residuals_like(res: pd.DataFrame, run: RunResult) -> pd.DataFrame:
     return out
 
 
-def _judge(c: CandidateResult, base_mape: float, floor: float | None) -> None:
-    """Set a candidate's share of the error above the floor, and whether it is material."""
-    c.share_above_floor = _share(base_mape, c.mape, floor)
-    c.material = is_material(
-        c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, c.share_above_floor
+def _judge(c: CandidateResult, base_mape: float, floor: dict[str, Any]) -> None:
+    """Set a candidate's share of the error above the floor (``floor``: the noise floor's
+    record, MAPE in %), and whether it is material; the share is no evidence when the floor
+    is not ``trusted`` (:func:`_trust_floor`)."""
+    c.share_above_floor = _share(base_mape, c.mape, floor.get("mape"))
+    share = c.share_above_floor if floor.get("trusted", True) else float("nan")
+    c.material = is_material(c.delta_mape, base_mape, c.delta_bic, c.delta_bic_all, share)
+
+
+def _trust_floor(floor: dict[str, Any], results: Sequence[CandidateResult]) -> bool:
+    """Whether the noise floor's estimate is a floor of these data: no candidate's fit-once
+    MAPE (%) went below it. No model goes below a true floor; when one does, the estimate
+    (meter noise from consecutive readings, itself uncertain) is not one here, and the error
+    above it is no measure of what is left to explain, for any candidate. Sets
+    ``floor["trusted"]`` and ``floor["below"]`` (the candidates under it) and returns the
+    first."""
+    mape = floor.get("mape")
+    below = (
+        []
+        if mape is None
+        else [c.effect for c in results if math.isfinite(c.mape) and c.mape < mape]
     )
+    floor["below"] = below
+    floor["trusted"] = not below
+    return not below
 
 
 def _variant_source(results: Sequence[CandidateResult], base_mape: float) -> CandidateResult | None:

@@ -482,8 +482,9 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 "sees): not offered."
                 if worse
                 else f"{ctx.method} (and any network) already carries what it explains: "
-                f"neither error falls both beyond chance and by {MIN_CHANGE:g} points or more; "
-                "adding "
+                f"neither error falls both beyond chance and by {MIN_CHANGE:g} points or more "
+                "(chance judged over all the diagnosis's tests at once, Benjamini-Hochberg, "
+                "not by each interval alone); adding "
                 "it would add a physical parameter to read (interpretability), not accuracy."
             )
         )
