@@ -11,7 +11,7 @@ LINTED := vfm_core service replay tests benchmarks examples
 # by its tests, in order): the suite in about two thirds of the time on two cores; the
 # files in collection order, whose longest come first (tests/conftest.py, LONGEST_FIRST);
 # `make test PYTEST_ARGS=` runs it in one process
-PYTEST_ARGS ?= -n 2 --dist loadfile --no-loadscope-reorder
+PYTEST_ARGS ?= -n 2 --dist loadfile --no-loadscope-reorder --durations=25
 
 .PHONY: install demo test test-fast lint bench bench-docs docs clean
 

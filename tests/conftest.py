@@ -73,7 +73,7 @@ SLOW_TESTS: frozenset[str] = frozenset(
         "test_diagnose_library.py::test_hidden_library_effect_is_the_verdict_and_halves_the_error",
         "test_diagnose.py::test_another_implementation_of_the_physics_gets_the_valve_it_differs_by",
         "test_diagnose_library.py::test_effects_that_leave_no_trace_are_not_claimed",
-        "test_diagnose.py::test_outputs_follow_the_contract",
+        "test_diagnose_library.py::test_outputs_follow_the_contract",
         "test_diagnose.py::test_effect_outside_the_library_gets_a_driver_verdict_and_a_correction",
         "test_diagnose.py::test_noise_floor_estimate_is_close_to_the_truth",
         "test_diagnose.py::test_clean_field_is_noise_with_no_false_discovery",
@@ -82,7 +82,7 @@ SLOW_TESTS: frozenset[str] = frozenset(
         "test_diagnose.py::test_a_users_own_effect_removes_what_the_driver_named",
         # above 30 s in the first run of the fast tier (8:57 under the same load)
         "test_diagnose.py::test_the_suggestion_applies_directly_in_evaluate",  # 38 s
-        "test_diagnose.py::test_progress_is_reported_as_a_fraction_with_a_text",  # 36 s
+        "test_diagnose_library.py::test_progress_is_reported_as_a_fraction_with_a_text",  # 36 s
         "test_diagnose.py::test_json_is_plain_and_finite",  # 32 s
         "test_diagnose_replay.py::test_a_wells_diagnosis_stands_beside_its_pool",  # 82 s
         "test_diagnose_replay.py::test_the_live_baseline_is_the_replay_of_the_wells_method",  # 59 s

@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from diagnose_support import METHOD, PROGRESS, SPLIT
+from diagnose_support import METHOD, SPLIT
 from diagnose_support import diagnose as _diagnose
 from diagnose_support import field as _field
 from diagnose_support import floor as _floor
@@ -595,53 +595,6 @@ def test_a_users_own_effect_removes_what_the_driver_named(monkeypatch: pytest.Mo
 
 
 # --- outputs and command line ----------------------------------------------------------------------
-def test_progress_is_reported_as_a_fraction_with_a_text() -> None:
-    _diagnose("erosion:rate=0.1", 1, 3)
-    events = PROGRESS[("erosion:rate=0.1", 1, 3)]
-    fractions = [f for f, _ in events]
-    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
-    assert all(text for _, text in events) and len(events) >= 8
-    assert events[-1][1] == "verdict: effect"
-
-
-def test_outputs_follow_the_contract(tmp_path: Path) -> None:
-    diag = _diagnose("erosion:rate=0.1")
-    written = write_diagnosis(diag, tmp_path / "out")
-    assert sorted(p.name for p in written) == ["diagnosis.json", "report.html"]
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["diagnosis.json", "report.html"]
-    data = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
-    assert data["model"] == "mm" and data["baseline"]["mape"] == pytest.approx(diag.baseline_mape)
-    scores = [d["score"] for d in data["drivers"]]
-    assert scores == sorted(scores, reverse=True)
-    bics = [c["delta_bic"] for c in data["candidates"]]
-    assert bics == sorted(bics)
-    for c in data["candidates"]:
-        assert {"effect", "mape", "delta_mape", "delta_bic", "parameters", "warnings"} <= set(c)
-        assert {"explained_by", "rivals", "shape"} <= set(c)
-        if c["material"]:  # its own shape beyond the trend, alone
-            assert {"beta", "se", "spread", "decisive", "rejected", "confirmed"} <= set(c["shape"])
-    rate = data["candidates"][0]["parameters"]["erosion.rate"]
-    assert rate["sd"] > 0 and set(rate["per_well_sd"]) == set(rate["per_well"])
-    v = data["verdict"]
-    assert v["kind"] == "effect" and v["effect"] == "erosion" and v["driver"] is None
-    assert v["text"] == diag.verdict
-    # the rivals of other physics: erosion is the only thing missing, so none is at work
-    # beside it (``then``) and none is explained by anything
-    assert {"explains", "then", "alternatives"} <= set(v) and v["then"] == []
-    assert all(c["explained_by"] in (None, "erosion") for c in data["candidates"])
-    h = data["headline"]  # under the live protocol (the method replayed); fit-once beside it
-    assert h["baseline_mape"] == pytest.approx(diag.live["mape"])
-    assert h["fit_once_baseline_mape"] == pytest.approx(diag.candidate_baseline_mape)
-    assert h["with"] == "erosion" and h["with_mape"] < h["baseline_mape"]
-    assert h["live_change"]["change"] < 0 and h["live_change"]["high"] is not None
-    assert data["floor"]["mape"] > 0 and "consecutive readings" in data["floor"]["method"]
-    assert data["noise_test"]["shifts"] > 0 and data["suggestion"] is None
-    html = (tmp_path / "out" / "report.html").read_text()
-    assert "data:image/png;base64," in html and 'src="http' not in html
-    assert "Verdict" in html and "Top candidate: the residual without and with erosion" in html
-    assert "noise floor" in html and "Fitted parameters" in html
-
-
 def test_report_of_a_driver_verdict_shows_the_correction(tmp_path: Path) -> None:
     diag = _diagnose_handmade("temperature")
     write_diagnosis(diag, tmp_path)
