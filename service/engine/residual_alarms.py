@@ -31,6 +31,10 @@ Transition = tuple[str, str, dict[str, Any]]
 _EVENTS_KEPT = 20
 
 
+#: the names of :meth:`WellResidualAlarm._design`'s settings in a detector's saved state
+_DESIGN_KEYS = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags", "scale")
+
+
 class WellResidualAlarm:
     """The residual alarms of one well, one detector per meter (owned by its worker)."""
 
@@ -45,20 +49,17 @@ class WellResidualAlarm:
         s = self.settings
         return s.mpfm_period_s if source == "mpfm" else s.well_test_period_s
 
+    def _design(self, source: str) -> tuple[Any, ...]:
+        """The detector's settings for ``source``, in :class:`ResidualCusum`'s order (and
+        :data:`_DESIGN_KEYS`' in its saved state)."""
+        s = self.settings
+        period = self._period_s(source)
+        return (s.arl0, s.k, period, s.window, s.min_periods, s.clip, s.lags, s.scale)
+
     def detector(self, source: str) -> ResidualCusum:
         det = self.detectors.get(source)
         if det is None:
-            s = self.settings
-            det = ResidualCusum(
-                s.arl0,
-                s.k,
-                self._period_s(source),
-                s.window,
-                s.min_periods,
-                s.clip,
-                s.lags,
-                s.scale,
-            )
+            det = ResidualCusum(*self._design(source))
             self.detectors[source] = det
         return det
 
@@ -125,20 +126,8 @@ class WellResidualAlarm:
     def restore(self, data: dict[str, Any]) -> None:
         """Resume from :meth:`state`. A detector saved under other settings (``arl0``, ``k``,
         the periods, the window ...) starts afresh: its statistic would mean something else."""
-        s = self.settings
         for source, saved in (data.get("detectors") or {}).items():
-            design = (
-                s.arl0,
-                s.k,
-                self._period_s(source),
-                s.window,
-                s.min_periods,
-                s.clip,
-                s.lags,
-                s.scale,
-            )
-            keys = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags", "scale")
-            if tuple(saved.get(k) for k in keys) != design:
+            if tuple(saved.get(k) for k in _DESIGN_KEYS) != self._design(source):
                 continue
             det = self.detector(source)
             det.load_state_dict(saved)
