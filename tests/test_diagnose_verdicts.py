@@ -570,3 +570,31 @@ def test_a_gain_below_the_noise_floor_is_no_evidence_near_it() -> None:
     assert judged(2.58, seed52) == {"slip": True, "mpfm_bias": True, "erosion": True}
     # slip alone under the floor: erosion's 87 % is measured against a floor that is none
     assert judged(2.80, {"slip": 2.78, "erosion": 2.82}) == {"slip": False, "erosion": False}
+
+
+def test_a_carried_verdict_at_its_blocks_smallest_p_says_the_span_limits_it() -> None:
+    """A well's live test that fell in all of its 7 blocks (p = 2^-7, the smallest 7 blocks
+    can give) by 0.18 points, not counted beyond chance over the family (q 0.053): the
+    verdict says the span replayed limits the evidence (a walk on Gilbert, erosion 0.2,
+    seed 6464, W02, said only "neither error falls beyond chance" beside an interval of
+    -0.22 to -0.13). A test with one block against it, or a change under 0.1 points, or one
+    rejected, gets no such sentence."""
+    walk = {
+        "change": -0.18,
+        "low": -0.22,
+        "high": -0.13,
+        "p_value": 2.0**-7,
+        "q_value": 0.0526,
+        "rejected": False,
+        "n_blocks": 7,
+        "block_days": 30.0,
+    }
+    text = dv.few_blocks_text(walk, "W02")
+    assert "On W02 the live error fell in every one of its 7 blocks of 30 days" in text
+    assert "p = 0.0078" in text and "q = 0.053" in text
+    assert "limited by the span replayed" in text
+    assert dv.few_blocks_text({**walk, "p_value": 2.0**-6}, "W02") == ""  # one block against
+    assert dv.few_blocks_text({**walk, "change": -0.05}, "W02") == ""
+    assert dv.few_blocks_text({**walk, "rejected": True}, "W02") == ""
+    assert dv.few_blocks_text(None, "W02") == ""
+    assert dv.few_blocks_text(walk, None).startswith(" The live error fell")

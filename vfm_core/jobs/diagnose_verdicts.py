@@ -62,6 +62,7 @@ __all__ = [
     "service_error",
     "instrument_check",
     "fit_once_verdict",
+    "few_blocks_text",
 ]
 
 #: Candidates replayed under the well's own learning method (live and outage), best first by
@@ -486,12 +487,34 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 "(chance judged over all the diagnosis's tests at once, Benjamini-Hochberg, "
                 "not by each interval alone); adding "
                 "it would add a physical parameter to read (interpretability), not accuracy."
+                + few_blocks_text(lt, well)
             )
         )
     else:
         tail = "it was not replayed under the live protocol."
     text = f"The fit-once evidence names {c.effect} ({_fit_once_text(c, well)}), but " + tail
     return _as_named("carried", c, text, num)
+
+
+def few_blocks_text(t: dict[str, Any] | None, well: str | None) -> str:
+    """A sentence for a live test that lowered the error by :data:`MIN_CHANGE` or more in
+    every one of its blocks, at the smallest p-value its B blocks can give (2^-B), and was
+    still not counted beyond chance over the diagnosis's family: its evidence is limited
+    by the span replayed, not by the change's size. Empty otherwise."""
+    if t is None or t.get("rejected") or t.get("change") is None:
+        return ""
+    b, p = t.get("n_blocks"), t.get("p_value")
+    if not b or p is None or t["change"] > -MIN_CHANGE or p > 1.5 * 2.0 ** -int(b):
+        return ""
+    q = t.get("q_value")
+    who = f"On {well} the" if well is not None else "The"
+    return (
+        f" {who} live error fell in every one of its {b} blocks of "
+        f"{t.get('block_days', 0):g} days (p = {p:.2g}, the smallest {b} blocks can give"
+        + (f"; q = {q:.2g} over the diagnosis's tests" if q is not None else "")
+        + "): the evidence is limited by the span replayed, not by the size of the change; "
+        "a diagnosis with more months of data may decide."
+    )
 
 
 def _fit_once_text(c: CandidateResult, well: str | None) -> str:
