@@ -25,7 +25,10 @@ service does), and reports:
 
 ``--scales mad,winsorised`` runs the detector with each reference scale
 (:data:`vfm_core.residual_alarm.SCALES`) on the same predictions, one row each: the rule
-before and after, side by side.
+before and after, side by side. ``--accepts 0,30`` likewise runs the detector with each
+``accept_periods`` (0: an alarm lasts until its level comes back, the rule before s46; 30:
+an alarm still active after 30 periods closes as an accepted new level and the reference
+restarts from them); the ``closed`` column counts the alarms closed as accepted.
 
 ``--iid N`` instead runs the detector on N i.i.d. N(0, 1) periods (three seeds) and prints
 the in-control run length against the design ``--arl0``.
@@ -34,7 +37,7 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/bench_alarms.py [--fields none:41:6:4,...]
         [--models mm,ham] [--methods ol,bayes] [--split-years 1] [--arl0 1000]
-        [--physics sachdeva|bernoulli|gilbert] [--scales winsorised,mad]
+        [--physics sachdeva|bernoulli|gilbert] [--scales winsorised,mad] [--accepts 0,30]
         [--markdown docs/benchmarks/generated/alarms.md]
 
 A field is ``hidden:seed:wells:years`` (hidden as ``vfm simulate --hidden``, ``+`` between
@@ -44,6 +47,7 @@ several effects and ``;`` instead of ``:`` inside one, e.g. ``erosion;step=0.1:4
 from __future__ import annotations
 
 import argparse
+import itertools
 import shlex
 import sys
 import time
@@ -156,12 +160,15 @@ def describe(
     return note, ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
 
 
-def iid_run_length(arl0: float, n: int, scale: str = "winsorised") -> None:
+def iid_run_length(arl0: float, n: int, scale: str = "winsorised", accept: int = 0) -> None:
     """The detector as built (scale estimated, not known) on i.i.d. N(0, 1) residuals, one
     per period: periods per false alarm against the design."""
-    print(f"design arl0 = {arl0:g} periods, h = {cusum_threshold(arl0):.3f}, scale {scale}")
+    print(
+        f"design arl0 = {arl0:g} periods, h = {cusum_threshold(arl0):.3f}, scale {scale}, "
+        f"accept_periods {accept}"
+    )
     for seed in range(3):
-        det = ResidualCusum(arl0=arl0, period_s=0.0, scale=scale)
+        det = ResidualCusum(arl0=arl0, period_s=0.0, scale=scale, accept_periods=accept)
         x = np.random.default_rng(seed).standard_normal(n)
         for i, v in enumerate(x):
             det.update(float(v), i)
@@ -192,6 +199,11 @@ def main() -> None:
         help="reference scales to compare on the same predictions (comma-separated: "
         "winsorised, mad)",
     )
+    ap.add_argument(
+        "--accepts",
+        default="30",
+        help="accept_periods to compare on the same predictions (comma-separated; 0: never)",
+    )
     ap.add_argument("--markdown", help="also write the table as Markdown to this file")
     ap.add_argument(
         "--iid",
@@ -201,12 +213,15 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.iid:
-        for scale in args.scales.split(","):
-            iid_run_length(args.arl0, args.iid, scale)
+        for scale, accept in itertools.product(
+            args.scales.split(","), map(int, args.accepts.split(","))
+        ):
+            iid_run_length(args.arl0, args.iid, scale, accept)
         return
     rows: list[str] = []
     header = (
-        f"{'field':<26} {'model':<5} {'method':<6} {'scale':<10} {'well-yr':>7} {'alarms':>6} "
+        f"{'field':<26} {'model':<5} {'method':<6} {'scale':<10} {'accept':>6} {'well-yr':>7} "
+        f"{'alarms':>6} {'accepted':>8} "
         f"{'alarms/well-yr':>14} {'T2':>5} {'T2/well-yr':>10}  change detected"
     )
     print(header)
@@ -227,18 +242,24 @@ def main() -> None:
                 run = run_prequential(frame, model, method, split=split)
                 p = run.predictions[np.isfinite(run.predictions["predicted"])]
                 wy = well_years(p)
-                for scale in args.scales.split(","):
-                    alarms = alarms_from_predictions(p, arl0=args.arl0, scale=scale)
+                for scale, accept in itertools.product(
+                    args.scales.split(","), map(int, args.accepts.split(","))
+                ):
+                    alarms = alarms_from_predictions(
+                        p, arl0=args.arl0, scale=scale, accept_periods=accept
+                    )
                     note, kinds = describe(alarms, effects, sim.truth, split, p)
+                    acc = sum(a["closed"] == "accepted" for a in alarms)
                     rows.append(
-                        f"| `{text}` | {model} | {method} | {scale} | {wy:.1f} | {len(alarms)} | "
-                        f"{len(alarms) / wy:.2f} | {t2} | {t2 / wy:.2f} | {note or '-'} | "
-                        f"{kinds} |"
+                        f"| `{text}` | {model} | {method} | {scale} | {accept} | {wy:.1f} | "
+                        f"{len(alarms)} | {acc} | {len(alarms) / wy:.2f} | {t2} | "
+                        f"{t2 / wy:.2f} | {note or '-'} | {kinds} |"
                     )
                     print(
-                        f"{text:<26} {model:<5} {method:<6} {scale:<10} {wy:7.1f} "
-                        f"{len(alarms):6d} {len(alarms) / wy:14.2f} {t2:5d} {t2 / wy:10.2f}  "
-                        f"{note} [{kinds}]  ({time.perf_counter() - started:.0f} s)",
+                        f"{text:<26} {model:<5} {method:<6} {scale:<10} {accept:6d} {wy:7.1f} "
+                        f"{len(alarms):6d} {acc:8d} {len(alarms) / wy:14.2f} {t2:5d} "
+                        f"{t2 / wy:10.2f}  {note} [{kinds}]  "
+                        f"({time.perf_counter() - started:.0f} s)",
                         flush=True,
                     )
     if args.markdown:
@@ -246,9 +267,11 @@ def main() -> None:
         with open(args.markdown, "w", encoding="utf-8") as out:
             out.write(
                 f"Made by `{command}`.\n\n"
-                "| field | model | method | scale | well-yr | alarms | alarms/well-yr | "
-                "T2 drifts | T2/well-yr | change | alarms by meter:direction |\n"
-                "|---|---|---|---|---:|---:|---:|---:|---:|---|---|\n" + "\n".join(rows) + "\n"
+                "| field | model | method | scale | accept | well-yr | alarms | accepted | "
+                "alarms/well-yr | T2 drifts | T2/well-yr | change | alarms by meter:direction |\n"
+                "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|\n"
+                + "\n".join(rows)
+                + "\n"
             )
 
 

@@ -746,7 +746,8 @@ class SensorFaultSettings(_Section):
     enabled: bool = Field(
         default=True,
         description="run the detectors on every sample (about 25 us of CPU per sample at one "
-        "a minute; false: no instrument faults, nothing held)",
+        "a minute; false: no instrument faults, nothing held, and a sample with an input "
+        "outside its physical span refused instead of taken as an out_of_range fault)",
     )
     false_per_well_year: float = Field(
         default=0.1,
@@ -809,6 +810,14 @@ class ResidualAlarmSettings(_Section):
         "sd of the period means clipped at median +- 3 robust sd) or 'mad' (median and "
         "1.4826 MAD, the rule before s45: too narrow for period means of varying counts)",
     )
+    accept_periods: int = Field(
+        default=30,
+        ge=0,
+        le=100_000,
+        description="an alarm still active after this many periods closes as an accepted new "
+        "level and the reference restarts from the periods since its signal (0: never, the "
+        "rule before s46: an alarm whose level never comes back stays active for good)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> ResidualAlarmSettings:
@@ -816,6 +825,11 @@ class ResidualAlarmSettings(_Section):
             raise ValueError(
                 f"residual_alarm.min_periods ({self.min_periods}) must not exceed "
                 f"residual_alarm.window ({self.window})"
+            )
+        if 0 < self.accept_periods < 5:
+            raise ValueError(
+                f"residual_alarm.accept_periods ({self.accept_periods}) must be 0 (never) or "
+                "at least 5 periods"
             )
         if self.clip <= self.k:
             raise ValueError(

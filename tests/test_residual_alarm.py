@@ -125,20 +125,27 @@ def test_daily_periods_average_the_readings_and_the_alarm_clears() -> None:
     assert not det.alarm
     (event,) = det.events
     assert event.end_ns is not None and event.end_ns > since
+    assert event.closed == "cleared"  # back to the reference, not accepted as a new level
 
 
 def test_state_round_trip_continues_identically() -> None:
     rng = np.random.default_rng(11)
     values = np.concatenate([rng.standard_normal(80), rng.standard_normal(40) + 1.5])
-    a = ResidualCusum(period_s=0.0, scale="winsorised")
+    a = ResidualCusum(period_s=0.0, scale="winsorised", accept_periods=20)
     feed(a, values[:90])
     b = ResidualCusum()
     b.load_state_dict(a.state_dict())
-    feed(a, values[90:], start=90)
-    feed(b, values[90:], start=90)
-    assert b.scale == "winsorised"
-    assert (a.alarm, a.statistic, len(a.events)) == (b.alarm, b.statistic, len(b.events))
-    assert a.alarm  # the shift was found
+    feed(a, values[90:100], start=90)
+    feed(b, values[90:100], start=90)
+    assert a.alarm  # the shift was found; saved again inside the alarm
+    c = ResidualCusum()
+    c.load_state_dict(b.state_dict())
+    feed(a, values[100:], start=100)
+    feed(c, values[100:], start=100)
+    assert (c.scale, c.accept_periods) == ("winsorised", 20)
+    assert [e.as_dict() for e in a.events] == [e.as_dict() for e in c.events]
+    assert (a.alarm, a.statistic) == (c.alarm, c.statistic)
+    assert a.events[0].closed == "accepted"  # 20 periods of the new level, across the load
 
 
 def test_residuals_and_settings() -> None:
@@ -172,10 +179,73 @@ def test_alarms_from_predictions_per_well_and_meter() -> None:
         )
     alarms = alarms_from_predictions(pd.concat(rows, ignore_index=True))
     # A may have a false alarm (a design rate of one per 1000 days); it ends again, while
-    # B's shift holds on: its alarm is still active at the end of the data
+    # B's shift holds on: its alarm closes as an accepted new level 30 days after its
+    # signal, and the new level, steady, raises nothing more
     assert all(a["end"] is not None for a in alarms if a["well"] == "A")
     (a,) = [a for a in alarms if a["well"] == "B"]
-    assert a["direction"] == "high" and a["source"] == "mpfm" and a["end"] is None
+    assert a["direction"] == "high" and a["source"] == "mpfm" and a["closed"] == "accepted"
     assert (
         pd.Timestamp("2020-04-10", tz="UTC") <= a["start"] <= pd.Timestamp("2020-04-14", tz="UTC")
     )
+    assert a["end"] - a["start"] == pd.Timedelta(days=30)  # 30 periods after the signal
+    # with accept_periods = 0 (the rule before s46) it holds to the end of the data
+    (old,) = alarms_from_predictions(rows[1], accept_periods=0)
+    assert old["start"] == a["start"] and old["end"] is None and old["closed"] is None
+
+
+def level_shifts(det: ResidualCusum, levels: list[tuple[int, float]], seed: int) -> None:
+    """One reading a day, 2 % log-normal scatter around a level that steps: ``levels`` are
+    (first day, level) pairs."""
+    rng = np.random.default_rng(seed)
+    end = levels[-1][0] + 60
+    for day in range(end):
+        level = [v for first, v in levels if first <= day][-1]
+        det.update(level + 0.02 * float(rng.standard_normal()), day * DAY_NS + DAY_NS // 2)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_alarm_whose_level_stays_is_accepted_and_a_second_change_is_found(seed: int) -> None:
+    # The residuals move 6 % low on day 60 and stay there (the learner settled on a new
+    # bias); on day 260 a second change takes them 6 % lower still. With a reference frozen
+    # for the whole alarm (accept_periods = 0) the first alarm lasts to the end and the
+    # second change raises nothing; with the default of the residual alarm (30) the first
+    # closes as accepted 30 periods after its signal, the reference restarts from those
+    # periods, and the second change is an alarm of its own within days.
+    levels = [(0, 0.0), (60, -0.06), (260, -0.12)]
+    frozen = ResidualCusum(accept_periods=0, scale="winsorised")
+    level_shifts(frozen, levels, seed)
+    (only,) = frozen.events
+    assert only.end_ns is None and only.direction == "low"
+    det = ResidualCusum(accept_periods=30, scale="winsorised")
+    level_shifts(det, levels, seed)
+    first, second = det.events
+    assert first.direction == second.direction == "low"
+    assert 60 * DAY_NS <= first.start_ns <= 64 * DAY_NS
+    assert first.closed == "accepted" and first.end_ns == first.start_ns + 30 * DAY_NS
+    assert 260 * DAY_NS <= second.start_ns <= 265 * DAY_NS
+    assert second.end_ns is not None  # accepted too: the -12 % level held for 30 periods
+    with pytest.raises(ConfigError, match="accept_periods"):
+        ResidualCusum(accept_periods=3)
+
+
+def test_a_state_saved_before_acceptance_existed_still_loads() -> None:
+    # A detector saved before s46 (no accept_periods, no post, events without closed) with
+    # an alarm active: it resumes, keeps its reference and alarm, and the detector it is
+    # loaded into accepts the alarm's level after accept_periods periods from the load.
+    old = ResidualCusum(scale="winsorised")
+    level_shifts(old, [(0, 0.0), (60, -0.06)], seed=4)  # to day 120: the alarm is active
+    assert old.alarm
+    saved = old.state_dict()
+    for key in ("accept_periods", "post"):
+        del saved[key]
+    for e in saved["events"]:
+        del e["closed"]
+    det = ResidualCusum(accept_periods=30)
+    det.load_state_dict(saved)
+    assert det.alarm and det.accept_periods == 30 and det.scale == "winsorised"
+    assert det.state_dict()["reference"] == saved["reference"]
+    rng = np.random.default_rng(5)
+    for day in range(120, 160):
+        det.update(-0.06 + 0.02 * float(rng.standard_normal()), day * DAY_NS + DAY_NS // 2)
+    (event,) = det.events
+    assert event.closed == "accepted" and not det.alarm

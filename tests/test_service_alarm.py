@@ -187,3 +187,39 @@ def test_a_restart_resumes_the_residual_alarm(tmp_path: Path) -> None:
     assert after["events"] == before["events"]
     mpfm = after["streams"]["mpfm"]
     assert mpfm["ready"] and mpfm["periods"] == before["streams"]["mpfm"]["periods"]
+
+
+def test_a_lasting_alarm_closes_as_accepted_and_an_old_saved_detector_resumes() -> None:
+    """The well's alarm with the default settings: MPFM readings 6 % below the model from day
+    40, for good. The alarm's end comes 30 days after its start, as ``closed: accepted``.
+    A state saved before s46 (no ``accept_periods``) resumes under the current settings
+    instead of starting afresh."""
+    from service.config import ResidualAlarmSettings
+    from service.engine.residual_alarms import WellResidualAlarm
+
+    rng = np.random.default_rng(9)
+    alarm = WellResidualAlarm(ResidualAlarmSettings())
+    transitions = []
+    for day in range(120):
+        t = to_ns(T0 + timedelta(days=day, hours=12))
+        q = 1000.0 * (0.94 if day >= 40 else 1.0) * float(np.exp(0.02 * rng.standard_normal()))
+        transitions += [
+            (k, e["start"], dict(e)) for k, _, e in alarm.update("mpfm", q, 1000.0, None, t)
+        ]
+        if day == 60:
+            saved = alarm.state()
+    kinds = [(kind, event["direction"], event["closed"]) for kind, _, event in transitions]
+    assert kinds == [("start", "low", None), ("end", "low", "accepted")]
+    (event,) = alarm.events
+    start = pd.Timestamp(event["start"])
+    assert start - pd.Timestamp(T0 + timedelta(days=40)) <= pd.Timedelta(days=4)
+    assert pd.Timestamp(event["end"]) - start == pd.Timedelta(days=30)
+    assert alarm.view()["accept_periods"] == 30 and not alarm.view()["active"]
+    # the state of day 60 as a service before s46 saved it
+    del saved["detectors"]["mpfm"]["accept_periods"], saved["detectors"]["mpfm"]["post"]
+    for event in saved["events"]:
+        event.pop("closed", None)
+    resumed = WellResidualAlarm(ResidualAlarmSettings())
+    resumed.restore(saved)
+    assert resumed.active and resumed.detectors["mpfm"].accept_periods == 30
+    assert resumed.detectors["mpfm"].n_periods == 60

@@ -53,6 +53,13 @@ in noise and in rate)
 5. **Active span**: while an alarm is active the statistic is capped at ``h`` and the
    scale is frozen; the alarm clears when both sums are back at 0 (the residuals have been
    in control for at least ``h / k`` periods), and a new alarm needs ``h`` again.
+6. **Accepted new level** (``accept_periods``, 0: never, the rule before s46; the residual
+   alarm's default 30): an alarm still active after ``accept_periods`` periods closes as
+   ``accepted``, and the test restarts as in classic CUSUM practice after a signal: both
+   sums at 0, the reference re-estimated from the period means since the signal (the new
+   level; self-starting again if they are fewer than ``min_periods``). Without it the
+   frozen reference of an alarm whose level never comes back (the learner settled on a new
+   bias) keeps the alarm active for good, and a second change inside it raises nothing.
 
 The detector follows the small river-like protocol of the project's detectors:
 ``update(residual, time_ns)``, the ``alarm`` property, ``reset()``, ``state_dict()`` and
@@ -234,6 +241,9 @@ class AlarmEvent:
     end_ns: int | None = None
     peak: float = 0.0
     statistic: float = 0.0
+    #: how it ended: ``cleared`` (the residuals came back to the reference), ``accepted``
+    #: (held their new level for ``accept_periods``: the new reference), None while active
+    closed: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -242,6 +252,7 @@ class AlarmEvent:
             "direction": self.direction,
             "peak": self.peak,
             "statistic": self.statistic,
+            "closed": self.closed,
         }
 
 
@@ -254,7 +265,8 @@ class ResidualCusum:
     (period means in the self-starting reference), ``min_periods`` (periods before the
     first test), ``clip`` (bound on a standardised period mean), ``lags`` (of the long-run
     factor), ``scale`` (``winsorised`` or ``mad``: the reference's centre and scale, see
-    the module docstring).
+    the module docstring), ``accept_periods`` (periods after which a lasting alarm closes
+    as an accepted new level and the reference restarts from them; 0: never).
 
     >>> import numpy as np
     >>> det = ResidualCusum(period_s=0.0)
@@ -280,6 +292,7 @@ class ResidualCusum:
         clip: float = 4.0,
         lags: int = 3,
         scale: str = "mad",
+        accept_periods: int = 0,
     ) -> None:
         if scale not in SCALES:
             raise ConfigError(f"scale must be one of {', '.join(SCALES)}, got {scale!r}.")
@@ -304,6 +317,11 @@ class ResidualCusum:
             raise ConfigError(f"lags must lie between 0 and 30 periods, got {lags}.")
         self.lags = int(lags)
         self.scale = scale
+        if not (accept_periods == 0 or 5 <= accept_periods <= 100_000):
+            raise ConfigError(
+                f"accept_periods must be 0 (never) or 5 to 100000 periods, got {accept_periods}."
+            )
+        self.accept_periods = int(accept_periods)
         self._period_ns = int(round(self.period_s * 1e9))
         self.reset()
 
@@ -324,6 +342,7 @@ class ResidualCusum:
         self.n_periods = 0
         self.events: list[AlarmEvent] = []
         self._active: AlarmEvent | None = None
+        self._post: array[float] = array("d")  # the period means since the active alarm's signal
         # the reference's robust centre and scale (long-run factor included), and the
         # periods added to the reference since they were computed (see _scale)
         self._robust: tuple[float, float] | None = None
@@ -438,9 +457,28 @@ class ResidualCusum:
         self.pos, self.neg = min(self.pos, h), min(self.neg, h)
         if abs(x) > abs(self._active.peak):
             self._active.peak = x
+        if self.accept_periods:
+            self._post.append(mean)
         if self.pos == 0.0 and self.neg == 0.0:
-            self._active.end_ns = time_ns
-            self._active = None
+            self._end(time_ns, "cleared")
+        elif 0 < self.accept_periods <= len(self._post):
+            self._accept(time_ns)
+
+    def _end(self, time_ns: int, closed: str) -> None:
+        assert self._active is not None
+        self._active.end_ns = time_ns
+        self._active.closed = closed
+        self._active = None
+        self._post = array("d")
+
+    def _accept(self, time_ns: int) -> None:
+        """The alarm has held for ``accept_periods``: its level is the new reference (the
+        period means since the signal, the last ``window`` of them), the sums restart at 0."""
+        post = self._post
+        self._end(time_ns, "accepted")
+        self._ref = array("d", post[-self.window :])
+        self._robust, self._robust_added = None, 0
+        self.pos = self.neg = 0.0
 
     # -- state ------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -454,6 +492,7 @@ class ResidualCusum:
             "clip": self.clip,
             "lags": self.lags,
             "scale": self.scale,
+            "accept_periods": self.accept_periods,
             "reference": list(self._ref),
             "open": self._open,
             "sum": self._sum,
@@ -466,9 +505,13 @@ class ResidualCusum:
             "active": self._active is not None,
             "robust": None if self._robust is None else list(self._robust),
             "robust_added": self._robust_added,
+            "post": list(self._post),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Resume from :meth:`state_dict`. A state saved before s46 (no ``accept_periods``,
+        no ``post``) keeps this detector's ``accept_periods``; an alarm active in it counts
+        its periods toward acceptance from the load."""
         self.__init__(  # type: ignore[misc]
             float(state["arl0"]),
             float(state["k"]),
@@ -478,6 +521,7 @@ class ResidualCusum:
             float(state["clip"]),
             int(state.get("lags", 3)),
             str(state.get("scale", "mad")),
+            int(state.get("accept_periods", self.accept_periods)),
         )
         self._ref.extend(float(v) for v in state.get("reference", []))
         del self._ref[: max(0, len(self._ref) - self.window)]  # the last window, as saved
@@ -496,11 +540,13 @@ class ResidualCusum:
                 e.get("end_ns"),
                 float(e["peak"]),
                 float(e.get("statistic", 0.0)),
+                e.get("closed"),
             )
             for e in state.get("events", [])
         ]
         if state.get("active") and self.events and self.events[-1].end_ns is None:
             self._active = self.events[-1]
+            self._post.extend(float(v) for v in state.get("post", []))
 
 
 def alarms_from_predictions(
@@ -514,6 +560,7 @@ def alarms_from_predictions(
     clip: float = 4.0,
     lags: int = 3,
     scale: str = "winsorised",
+    accept_periods: int = 30,
     use_sd: bool = True,
     flush: bool = True,
 ) -> list[dict[str, Any]]:
@@ -521,8 +568,9 @@ def alarms_from_predictions(
     (columns ``time``, ``well``, ``source``, ``predicted``, ``measured`` (Sm3/h) and, for
     methods with intervals, ``predicted_std``), in time order, as the service does live.
 
-    Returns the alarms: ``[{well, source, start, end, direction, peak}]`` with times as
-    pandas Timestamps (UTC; ``end`` None while still active at the end of the data).
+    Returns the alarms: ``[{well, source, start, end, direction, peak, closed}]`` with
+    times as pandas Timestamps (UTC; ``end`` and ``closed`` None while still active at the
+    end of the data; ``closed`` ``cleared`` or ``accepted``, see the module docstring).
     """
     import pandas as pd
 
@@ -532,7 +580,15 @@ def alarms_from_predictions(
     out: list[dict[str, Any]] = []
     for (well, source), g in p.groupby(["well", "source"], sort=True):
         det = ResidualCusum(
-            arl0, k, periods.get(str(source), 0.0), window, min_periods, clip, lags, scale
+            arl0,
+            k,
+            periods.get(str(source), 0.0),
+            window,
+            min_periods,
+            clip,
+            lags,
+            scale,
+            accept_periods,
         )
         times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
         sds: Iterable[float | None] = (
@@ -557,6 +613,7 @@ def alarms_from_predictions(
                     "end": None if e.end_ns is None else pd.Timestamp(e.end_ns, tz="UTC"),
                     "direction": e.direction,
                     "peak": e.peak,
+                    "closed": e.closed,
                 }
             )
     return out

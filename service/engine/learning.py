@@ -519,6 +519,16 @@ class Learning:
                     event["statistic"],
                     event["threshold"],
                 )
+            elif event.get("closed") == "accepted":
+                logger.info(
+                    "Residual alarm on %s (%s) closed at %s: the residuals held their new "
+                    "level for %d periods; accepted as the new level, the test restarts "
+                    "from it.",
+                    st.well,
+                    src,
+                    event["end"],
+                    alarm.settings.accept_periods,
+                )
             else:
                 logger.info(
                     "Residual alarm on %s (%s) ended at %s: the residuals are back in control.",

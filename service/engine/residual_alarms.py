@@ -32,7 +32,17 @@ _EVENTS_KEPT = 20
 
 
 #: the names of :meth:`WellResidualAlarm._design`'s settings in a detector's saved state
-_DESIGN_KEYS = ("arl0", "k", "period_s", "window", "min_periods", "clip", "lags", "scale")
+_DESIGN_KEYS = (
+    "arl0",
+    "k",
+    "period_s",
+    "window",
+    "min_periods",
+    "clip",
+    "lags",
+    "scale",
+    "accept_periods",
+)
 
 
 class WellResidualAlarm:
@@ -54,7 +64,17 @@ class WellResidualAlarm:
         :data:`_DESIGN_KEYS`' in its saved state)."""
         s = self.settings
         period = self._period_s(source)
-        return (s.arl0, s.k, period, s.window, s.min_periods, s.clip, s.lags, s.scale)
+        return (
+            s.arl0,
+            s.k,
+            period,
+            s.window,
+            s.min_periods,
+            s.clip,
+            s.lags,
+            s.scale,
+            s.accept_periods,
+        )
 
     def detector(self, source: str) -> ResidualCusum:
         det = self.detectors.get(source)
@@ -86,6 +106,7 @@ class WellResidualAlarm:
             if event is not None:
                 end_ns = det.events[-1].end_ns
                 event["end"] = iso(end_ns if end_ns is not None else time_ns)
+                event["closed"] = det.events[-1].closed
                 out.append(("end", source, event))
         if len(det.events) > before:
             new = det.events[-1]
@@ -94,6 +115,7 @@ class WellResidualAlarm:
                 "source": source,
                 "start": iso(new.start_ns),
                 "end": None,
+                "closed": None,
                 "direction": new.direction,
                 "statistic": float(new.statistic),
                 "threshold": float(det.threshold),
@@ -125,9 +147,12 @@ class WellResidualAlarm:
 
     def restore(self, data: dict[str, Any]) -> None:
         """Resume from :meth:`state`. A detector saved under other settings (``arl0``, ``k``,
-        the periods, the window ...) starts afresh: its statistic would mean something else."""
+        the periods, the window ...) starts afresh: its statistic would mean something else.
+        One saved before s46 (no ``accept_periods``) resumes under the current one: the
+        acceptance changes what happens after an alarm, not the statistic."""
+        missing = {"accept_periods": self.settings.accept_periods}
         for source, saved in (data.get("detectors") or {}).items():
-            if tuple(saved.get(k) for k in _DESIGN_KEYS) != self._design(source):
+            if tuple(saved.get(k, missing.get(k)) for k in _DESIGN_KEYS) != self._design(source):
                 continue
             det = self.detector(source)
             det.load_state_dict(saved)
@@ -171,6 +196,7 @@ class WellResidualAlarm:
             "source": (lead[1] if lead is not None and active else None),
             "arl0": s.arl0,
             "k": s.k,
+            "accept_periods": s.accept_periods,
             "streams": streams,
             "events": list(self.events),
         }
