@@ -43,7 +43,11 @@ and the study with every input taken as read (``run_study(sensor_faults=False)``
 before the study held and stood in) the faulty one. MAPE (%) against the true rate
 (``<field>.truth.parquet``) over the fault's rows (from its first faulty row) and over the
 60 days after it, pooled over the wells, with the wells whose error is within 2x (during)
-and 1.2x (after) of the clean field's::
+and 1.2x (after) of the clean field's, and how many of the faults the faulty study's
+``sensor_faults.json`` has within 7 days of their start (right well and sensor; right kind).
+An ``out_of_range`` fault's rows are removed when read with every input as read (as
+``vfm evaluate --no-sensor-faults`` reads the file): its "as read" cells during the fault
+are "-"::
 
     nice -n 10 .venv/bin/python benchmarks/bench_sensor_faults.py --study --seeds 4711,4712
         --wells 3 --years 2.5 --history-days 400 --split 2017-01-01
@@ -52,6 +56,7 @@ and 1.2x (after) of the clean field's::
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import shutil
 import sys
@@ -190,6 +195,7 @@ def study_errors(args: argparse.Namespace) -> str:
 
     errors: dict[tuple, list[np.ndarray]] = {}  # (model, method, variant, after) -> per fault
     n_faults = 0
+    found = np.zeros(2, dtype=int)  # in sensor_faults.json within 7 days: sensor, and kind
     for seed in [int(s) for s in args.seeds.split(",") if s]:
         folder = Path(tempfile.mkdtemp(prefix=f"bench-faults-{seed}-"))
         sim = ["simulate", "--wells", str(args.wells), "--years", str(args.years)]
@@ -210,14 +216,35 @@ def study_errors(args: argparse.Namespace) -> str:
         ).predictions  # fmt: skip
         meta, truth = load_truth(folder / "fault.parquet")
         truth["time"] = pd.to_datetime(truth["time"], utc=True)
+        combos = [(m, k) for m in args.models.split(",") for k in args.methods.split(",")]
+        written = json.loads((folder / "fault" / "sensor_faults.json").read_text())
         for fault in meta["faults"]:
             n_faults += 1
+            found += _found_in(written["sensor_faults"], fault)
             for variant, pred in preds.items():
                 for after in (False, True):
-                    for key, err in _errors(pred, truth, fault, after).items():
+                    got = _errors(pred, truth, fault, after)
+                    for key in combos:  # none: no row predicted there (removed as read)
+                        err = got.get(key, np.empty(0))
                         errors.setdefault((*key, variant, after), []).append(err)
         shutil.rmtree(folder, ignore_errors=True)
-    return _study_table(errors, n_faults)
+    return _study_table(errors, n_faults) + (
+        f"\n\nIn `vfm evaluate`'s sensor_faults.json within 7 days of the start: {found[0]} of "
+        f"{n_faults} on the right well and sensor, {found[1]} with the right kind."
+    )
+
+
+def _found_in(written: list[dict], fault: dict) -> np.ndarray:
+    """[right sensor, right kind]: whether ``written`` (``sensor_faults.json``'s faults)
+    has one on ``fault``'s well and sensor detected within 7 days of its start."""
+    t0 = pd.Timestamp(fault["start"])
+    on = [
+        f
+        for f in written
+        if (f["well"], f["sensor"]) == (fault["well"], fault["sensor"])
+        and t0 <= pd.Timestamp(f["detected"]) <= t0 + pd.Timedelta(days=7)
+    ]
+    return np.array([bool(on), any(f["kind"] == fault["kind"] for f in on)], dtype=int)
 
 
 def _study_table(errors: dict[tuple, list[np.ndarray]], n_faults: int) -> str:
@@ -232,21 +259,29 @@ def _study_table(errors: dict[tuple, list[np.ndarray]], n_faults: int) -> str:
     ]
 
     def pooled(m: str, k: str, v: str, after: bool) -> float:
-        return float(np.mean(np.concatenate(errors[(m, k, v, after)])))
+        joined = np.concatenate(errors[(m, k, v, after)])
+        return float(np.mean(joined)) if len(joined) else float("nan")
+
+    def cell(x: float) -> str:  # "-": no row predicted (an input out of range, removed)
+        return f"{x:.2f}" if np.isfinite(x) else "-"
 
     for after, span, limit in ((False, "during", 2.0), (True, "60 days after", 1.2)):
         for v in _VARIANTS:
-            cells = [f"{pooled(m, k, v, after):.2f}" for m, k in combos]
+            cells = [cell(pooled(m, k, v, after)) for m, k in combos]
             lines.append(f"| MAPE {span}, {v} | " + " | ".join(cells) + " |")
         for v in _VARIANTS[1:]:
             cells = []
             for m, k in combos:
                 ratio = pooled(m, k, v, after) / pooled(m, k, "clean", after)
-                per_well = zip(
-                    errors[(m, k, v, after)], errors[(m, k, "clean", after)], strict=True
-                )
+                per_well = [
+                    (a, c)
+                    for a, c in zip(
+                        errors[(m, k, v, after)], errors[(m, k, "clean", after)], strict=True
+                    )
+                    if len(a) and len(c)
+                ]
                 within = sum(np.mean(a) <= limit * np.mean(c) for a, c in per_well)
-                cells.append(f"{ratio:.2f} ({within}/{len(errors[(m, k, v, after)])})")
+                cells.append(f"{cell(ratio)} ({within}/{len(per_well)})")
             lines.append(
                 f"| {span}: {v} / clean (wells within {limit:g}x) | " + " | ".join(cells) + " |"
             )

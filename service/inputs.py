@@ -217,16 +217,64 @@ def classify_errors(errors: list[dict[str, Any]]) -> tuple[str, str]:
 
 
 def parse_sensor(
-    payload: bytes | str | dict[str, Any], limits: Limits = DEFAULT_LIMITS
+    payload: bytes | str | dict[str, Any],
+    limits: Limits = DEFAULT_LIMITS,
+    *,
+    out_of_span: bool = False,
 ) -> SensorSample:
-    """A checked :class:`SensorSample` from JSON (or an already decoded object)."""
+    """A checked :class:`SensorSample` from JSON (or an already decoded object).
+
+    ``out_of_span`` (the service, while it watches instrument faults): a sample whose only
+    problem is one or more inputs outside their physical span
+    (:data:`vfm_core.sensor_faults.DEFAULT_RANGES`: a negative pressure, a choke or a
+    fraction outside 0..1, a temperature below -60 degC) is accepted with its raw values
+    (:func:`_set_aside`): the detectors raise an ``out_of_range`` fault, the prediction
+    stands in for the input and its measurements are held. Without it, refused as before."""
     data = payload if isinstance(payload, dict) else _loads(payload, limits)
     _check_numbers(data, _NUMERIC_SENSOR)
     try:
         return SensorSample.model_validate(data)
     except ValidationError as exc:
+        sample = _set_aside(data) if out_of_span else None
+        if sample is not None:
+            return sample
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
         raise InvalidRequest(sentence, reason) from None
+
+
+#: in-span values that pass every rule of :class:`SensorSample` with any valid rest (see
+#: :func:`_set_aside`): a choke half open, 20 degC, no gas nor oil
+_STAND_INS = {"choke": 0.5, "t_up": 20.0, "eta_gas": 0.0, "eta_oil": 0.0}
+
+
+def _set_aside(data: dict[str, Any]) -> SensorSample | None:
+    """``data`` (numbers checked, :func:`_check_numbers`) as a sample with its raw values
+    when every input outside its physical span is set aside and the rest passes every rule
+    of :class:`SensorSample` (its time too); None when no input is outside. Raises
+    :class:`InvalidRequest` with the rest's reason when it breaks a rule: a zero pressure
+    (inside the span, 0..1500 bar a), a p_down at or above an in-span p_up."""
+    from vfm_core.sensor_faults import DEFAULT_RANGES
+
+    try:
+        raw = {name: float(data[name]) for name in _NUMERIC_SENSOR}
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return None
+    aside = [n for n, v in raw.items() if not DEFAULT_RANGES[n][0] <= v <= DEFAULT_RANGES[n][1]]
+    if not aside:
+        return None
+    probe = dict(data, **{n: _STAND_INS[n] for n in aside if n in _STAND_INS})
+    if "p_up" in aside and "p_down" in aside:
+        probe.update(p_up=2.0, p_down=1.0)
+    elif "p_up" in aside:  # above the kept p_down (a p_down of 0 still fails its own rule)
+        probe["p_up"] = raw["p_down"] + 1.0
+    elif "p_down" in aside:
+        probe["p_down"] = raw["p_up"] / 2.0
+    try:
+        checked = SensorSample.model_validate(probe)
+    except ValidationError as exc:
+        reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
+        raise InvalidRequest(sentence, reason) from None
+    return checked.model_copy(update={n: raw[n] for n in aside})
 
 
 #: the times :func:`quick_sensor` reads itself: ISO 8601 with a ``T``, whole seconds or up to
@@ -341,6 +389,8 @@ def parse_sensor_block(
     check_time: Callable[[datetime, str], None],
     earliest_ns: int,
     latest_ns: int,
+    *,
+    out_of_span: bool = False,
 ) -> SensorBlock:
     """The samples of a decoded sensor block (:func:`is_block`), checked row by row.
 
@@ -353,7 +403,7 @@ def parse_sensor_block(
     is the worker's check, as for single samples. A block that is not arrays of one
     length, or holds more than ``max_samples`` rows, is refused whole
     (:class:`InvalidRequest`). ``earliest_ns`` and ``latest_ns`` bound the times (epoch
-    ns), as ``check_time`` does."""
+    ns), as ``check_time`` does; ``out_of_span`` as for :func:`parse_sensor`."""
     n = _block_length(data, max_samples)
     x, bad = _block_columns(data, n)
     ns, unread = _block_times(data["time"], earliest_ns, latest_ns)
@@ -365,7 +415,7 @@ def parse_sensor_block(
         bad |= (gas < 0) | (gas > 1) | (oil < 0) | (oil > 1) | (gas + oil > 1.0 + 1e-9)
         bad |= t_up <= -273.15
     keep = ~bad
-    refused = _rows_alone(data, bad, x, ns, keep, check_time)
+    refused = _rows_alone(data, bad, x, ns, keep, check_time, out_of_span)
     rows = np.flatnonzero(keep)
     return SensorBlock(ns[rows], x[rows], refused)
 
@@ -427,15 +477,18 @@ def _rows_alone(
     ns: np.ndarray,
     keep: np.ndarray,
     check_time: Callable[[datetime, str], None],
+    out_of_span: bool = False,
 ) -> list[tuple[int, InvalidRequest]]:
-    """Each row the column checks flagged, read as one sample: refused with that sample's
-    reason and sentence, or (if it passes after all) written back into ``x``, ``ns`` and
-    ``keep``. Returns the refused rows with their errors."""
+    """Each row the column checks flagged, read as one sample (``out_of_span`` as for
+    :func:`parse_sensor`): refused with that sample's reason and sentence, or (if it passes
+    after all) written back into ``x``, ``ns`` and ``keep``. Returns the refused rows with
+    their errors."""
     refused: list[tuple[int, InvalidRequest]] = []
-    keep = ~bad
+    # (``keep`` is the caller's array, written in place: a row that passes alone is kept)
     for i in np.flatnonzero(bad).tolist():  # the row alone decides, with one sample's words
         try:
-            sample = parse_sensor({name: data[name][i] for name in _BLOCK_FIELDS})
+            row = {name: data[name][i] for name in _BLOCK_FIELDS}
+            sample = parse_sensor(row, out_of_span=out_of_span)
             check_time(sample.time, "sample")
             ns[i] = to_ns(sample.time)
         except InvalidRequest as error:

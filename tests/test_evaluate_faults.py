@@ -9,7 +9,8 @@ before.
 The field (seed 6151, used by no other test, set no threshold): two wells; W01's rows
 before the split removed, so that it starts after it in the service (streamed from the
 split, its detectors see every row of it, as the study's) and in the study alike; its
-``p_down`` frozen for 45 days from 200 days after its first row.
+``p_up`` frozen for 45 days from 200 days after its first row (a frozen ``p_down`` holds
+nothing where the flow is critical, as W01's is: tests/test_sensor_hold.py).
 """
 
 from __future__ import annotations
@@ -42,13 +43,13 @@ TRAIN = {"max_iter": 60, "patience": 10}
 
 @pytest.fixture(scope="module")
 def fields() -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Any]]:
-    """The clean field, the same with W01's p_down frozen, and the fault's truth."""
+    """The clean field, the same with W01's p_up frozen, and the fault's truth."""
     frame = validate_frame(simulate_field(wells=2, years=1.3, seed=6151).observations).frame
     late = (frame["well"] == WELL) & (frame["time"] < pd.Timestamp(SPLIT, tz="UTC"))
     clean = validate_frame(frame[~late].reset_index(drop=True)).frame
     first = clean.loc[clean["well"] == WELL, "time"].min()
     start = first + pd.Timedelta(days=200)
-    bad, truth = inject_fault(clean, WELL, "p_down", "frozen", start, days=FAULT_DAYS)
+    bad, truth = inject_fault(clean, WELL, "p_up", "frozen", start, days=FAULT_DAYS)
     return clean, validate_frame(bad).frame, truth
 
 
@@ -70,7 +71,7 @@ def test_a_clean_field_is_studied_as_before(fields: Any, tmp_path: Path) -> None
 def test_the_study_holds_and_stands_in_at_a_frozen_input(fields: Any, tmp_path: Path) -> None:
     """The measurements at the frozen samples (once recognised) are held: the model learns
     nothing over them (its parameters stay put), and their rows are predicted with a
-    stand-in for p_down; metrics.json counts them per well."""
+    stand-in for p_up; metrics.json counts them per well."""
     _, bad, truth = fields
     plan = plan_sensor_faults(bad)
     run = {"split": SPLIT, "track_parameters": True}
@@ -82,7 +83,7 @@ def test_the_study_holds_and_stands_in_at_a_frozen_input(fields: Any, tmp_path: 
     t0, t1 = pd.Timestamp(truth["start"]), pd.Timestamp(truth["end"])
     assert len(held) > 20
     assert held["time"].between(t0, t1).all()  # inside the fault: no false hold
-    assert (held["fallback"] == "p_down").all()  # the frozen p_down stood in for
+    assert (held["fallback"] == "p_up").all()  # the frozen p_up stood in for
     assert not p.loc[p["well"] != WELL, "held"].any()
     # learned nothing over the held rows: W01's parameters as they were before them
     par = acted.parameters[acted.parameters["well"] == WELL]
@@ -187,3 +188,53 @@ def test_vfm_evaluate_holds_at_a_fault_unless_told_not_to(fields: Any, tmp_path:
         held[name] = json.loads((out / "metrics.json").read_text())["held_at_fault"]
     assert held["default"][WELL] > 20 and held["default"]["W02"] == 0
     assert held["off"] == {"W02": 0, WELL: 0}
+
+
+def test_vfm_evaluate_keeps_a_reading_out_of_range_and_stands_in_for_it(
+    fields: Any, tmp_path: Path
+) -> None:
+    """A p_down of -1 bar a (a transmitter out of its span) for 10 days before the split and
+    10 days after it on W02: ``vfm evaluate`` drops no row (the loader keeps them raw and
+    counts them), writes both spans to sensor_faults.json as ``out_of_range`` faults with
+    their evidence, predicts the rows after the split with a stand-in for p_down (finite,
+    within 5 % of the meter on average) and learns nothing from any of them: the
+    predictions are those of the same field with the rows before the split removed."""
+    from vfm_core.cli import main
+    from vfm_core.observations import save_observations
+
+    clean, _, _ = fields
+    split = pd.Timestamp(SPLIT, tz="UTC")
+    bad, early = inject_fault(
+        clean, "W02", "p_down", "out_of_range", split - pd.Timedelta(days=20), days=10
+    )
+    bad, late = inject_fault(
+        bad, "W02", "p_down", "out_of_range", split + pd.Timedelta(days=30), days=10
+    )
+    data = save_observations(bad, tmp_path / "field.parquet")
+    out = tmp_path / "out"
+    argv = [str(data), "--out", str(out), "--models", "mm", "--methods", "ol", "--split", SPLIT]
+    assert main(["evaluate", *argv, "--quiet", "--no-report", "--jobs", "1"]) == 0
+    faults = json.loads((out / "sensor_faults.json").read_text())["sensor_faults"]
+    ranged = [f for f in faults if f["kind"] == "out_of_range"]
+    assert [(f["well"], f["sensor"]) for f in ranged] == [("W02", "p_down")] * 2
+    for fault, truth in zip(ranged, (early, late), strict=True):
+        assert pd.Timestamp(fault["start"]) == pd.Timestamp(truth["start"])
+        assert pd.Timestamp(fault["end"]) > pd.Timestamp(truth["end"])  # the next good row
+        assert "p_down read -1 bar, outside its physical span 0..1500 bar" in fault["evidence"]
+    pred = pd.read_parquet(out / "predictions.parquet")
+    w2 = pred[pred["well"] == "W02"]
+    after = bad[(bad["well"] == "W02") & (bad["time"] >= split) & (bad["source"] != "")]
+    assert len(w2) == len(after)  # every measurement after the split predicted and scored
+    t0, t1 = pd.Timestamp(late["start"]), pd.Timestamp(late["end"])
+    inside = w2[w2["time"].between(t0, t1)]
+    assert len(inside) >= 5 and (inside["fallback"] == "p_down").all() and inside["held"].all()
+    error = (inside["predicted"] - inside["measured"]).abs() / inside["measured"]
+    assert error.mean() < 0.05  # the stand-in's rate: as near the meter as elsewhere
+    # the rows out of range before the split were not learned: the same study without them
+    kept = validate_frame(bad, keep_out_of_range=True).frame
+    gone = kept["time"].between(pd.Timestamp(early["start"]), pd.Timestamp(early["end"]))
+    without = run_study(
+        kept[~(gone & (kept["well"] == "W02"))].reset_index(drop=True),
+        models=["mm"], methods=["ol"], split=SPLIT, progress=False,
+    )  # fmt: skip
+    np.testing.assert_allclose(pred["predicted"], without.predictions["predicted"], rtol=1e-9)

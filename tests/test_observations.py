@@ -262,6 +262,52 @@ def test_zero_upstream_pressure_is_counted_before_pressure_order() -> None:
     assert validate_frame(frame).removed == {"negative or zero pressure": 1}
 
 
+#: inputs outside their physical span (vfm_core.sensor_faults.DEFAULT_RANGES): kept with
+#: ``keep_out_of_range`` (vfm evaluate), removed otherwise under the reason given
+OUT_OF_SPAN = {
+    "p_down": (-1.0, "negative or zero pressure"),
+    "p_up": (-1.0, "negative or zero pressure"),
+    "choke": (1.2, "choke outside 0..1"),
+    "eta_gas": (-0.1, "fraction outside 0..1"),
+}
+
+
+@pytest.mark.parametrize("column", list(OUT_OF_SPAN))
+def test_an_input_out_of_its_span_is_kept_raw_for_the_detectors_when_asked(
+    column: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``keep_out_of_range``: a row whose only problem is an input outside its physical span
+    is kept with its raw value and counted (an out_of_range fault for the detectors, not a
+    lost row); without it the row is removed as before. A p_up of -1 is also below p_down:
+    that check does not see the input set aside."""
+    value, reason = OUT_OF_SPAN[column]
+    frame = make_frame(4)
+    frame.loc[1, column] = value
+    assert validate_frame(frame).removed == {reason: 1}
+    with caplog.at_level(logging.WARNING, logger="vfm.observations"):
+        result = validate_frame(frame, name="f.csv", keep_out_of_range=True)
+    assert result.removed == {}
+    assert result.kept == {"input out of range": 1}
+    assert len(result.frame) == 4
+    assert result.frame.loc[1, column] == value  # the raw value, not a stand-in
+    assert "kept 1 row with an input outside its physical span" in caplog.text
+    assert "input out of range: 1 row kept" in result.summary()
+
+
+def test_a_row_out_of_span_with_another_problem_is_still_removed() -> None:
+    """Kept are only rows whose other checks pass: a negative p_down with a fraction sum
+    above 1 is removed (under the first reason), and so is a zero pressure, which lies
+    inside the detectors' span (0..1500 bar a) and would reach the model as read."""
+    frame = make_frame(6)
+    frame.loc[1, ["p_down", "eta_gas", "eta_oil"]] = [-1.0, 0.5, 0.6]
+    frame.loc[3, "p_down"] = 0.0
+    frame.loc[5, "choke"] = -0.5  # kept
+    result = validate_frame(frame, keep_out_of_range=True)
+    assert result.removed == {"negative or zero pressure": 1, "fractions sum above 1": 1}
+    assert result.kept == {"input out of range": 1}
+    assert result.frame["choke"].min() == -0.5
+
+
 def test_duplicate_rows_are_removed_keeping_the_first() -> None:
     frame = make_frame(3)
     duplicate = frame.iloc[[0, 0]].assign(choke=[0.9, 0.7])

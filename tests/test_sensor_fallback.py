@@ -282,3 +282,56 @@ def test_the_service_predicts_with_the_fallback_and_learns_nothing_wrong(
         again = st.learner.predict(probe[list(SENSORS)].to_numpy(float)[0].tolist())
         assert stored[t_probe].q_total == pytest.approx(again["q_total"], rel=1e-9)
         assert stored[t_probe].q_total_p95 == pytest.approx(again["q_total_p95"], rel=1e-9)
+
+
+@pytest.mark.timeout(120)
+def test_the_service_takes_a_reading_out_of_its_span_and_stands_in_for_it(
+    field: Any, tmp_path: Path
+) -> None:
+    """A p_down of -1 bar a and a choke of 1.5 (transmitters out of their span; refused as
+    bad input before) are taken: stored raw, raised as ``out_of_range`` faults in ``GET
+    /wells/{well}`` (sensor, start, end, evidence), predicted with a stand-in for that input
+    (near the rate at the good samples around), and the measurements paired with them are
+    held, not learned. A zero pressure (inside the span) is still refused."""
+    from service.testing import wait_until
+    from vfm_core.messages import measurement_key, sensors_key
+    from vfm_core.timeutil import iso
+
+    obs, _, _, _ = field
+    with running(tmp_path) as (service, client, messages):
+        send(client, service, obs.iloc[:80], messages)
+        row = obs.iloc[80]
+        t = pd.Timestamp(row["time"])
+        prefix = service.settings.prefix
+        sent = []
+        for i, changes in enumerate(({"p_down": -1.0}, {"choke": 1.5}, {"p_down": 0.0}, {})):
+            when = t + pd.Timedelta(minutes=i + 1)
+            data = {"time": when.isoformat(), **{s: float(row[s]) for s in SENSORS}, **changes}
+            client.put_raw(sensors_key(prefix, WELL), json.dumps(data))
+            if changes != {"p_down": 0.0}:  # (a rate there would pair with a sample nearby)
+                rate = {"time": when.isoformat(), "q_total": float(row["q_total"])}
+                client.put_raw(measurement_key(prefix, WELL, "mpfm"), json.dumps(rate))
+            sent.append(when.value)
+        st = service.engine.wells[WELL]
+        wait_until(lambda: st.last_time_ns == sent[-1] and not st.pending, 30, "the samples")
+        wait_until(lambda: sent[-1] in messages, 30, "the last prediction")
+        view = http_get(service, f"/wells/{WELL}")
+        ranged = [f for f in view["sensor_faults"] if f["kind"] == "out_of_range"]
+        assert [(f["sensor"], f["start"], f["end"]) for f in ranged] == [
+            ("p_down", iso(sent[0]), iso(sent[1])),
+            ("choke", iso(sent[1]), iso(sent[3])),  # the zero-pressure sample was refused
+        ]
+        assert "p_down read -1 bar, outside its physical span" in ranged[0]["evidence"]
+        assert view["rejected"] == {"sensor fault at the sample": 2, "negative or zero pressure": 1}
+        good = messages[sent[3]]["q_total"]
+        for t_ns, sensor, raw in ((sent[0], "p_down", -1.0), (sent[1], "choke", 1.5)):
+            (fb,) = messages[t_ns]["fallback"]
+            assert (fb["sensor"], fb["kind"], fb["measured"]) == (sensor, "out_of_range", raw)
+            assert messages[t_ns]["q_total"] == pytest.approx(good, rel=0.1)
+        assert messages[sent[3]]["fallback"] is None
+        samples, measured = service.store.history(WELL, 0, 2**62, 100_000)
+        stored = {s.time_ns: s for s in samples}
+        assert stored[sent[0]].p_down == -1.0 and stored[sent[1]].choke == 1.5  # raw values
+        assert sent[2] not in stored
+        status = {m.time_ns: m.status for m in measured}
+        assert [status[t_ns] for t_ns in (*sent[:2], sent[3])] == ["held", "held", "learned"]

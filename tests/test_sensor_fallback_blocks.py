@@ -5,7 +5,7 @@ A block's rows are fed to the detectors before any is stored, and each row whose
 an open fault of a kind that stands in is predicted with its fallback and a widened
 interval, as a single sample would be; the rows without one keep the block's one model call.
 
-The simulated field (seed 5583, one well, 0.8 years, p_down frozen for 30 days from day 200)
+The simulated field (seed 5583, one well, 0.8 years, p_up frozen for 30 days from day 200)
 is used by no other test and sets no threshold: the test compares the two ways of sending
 the same rows, which must agree.
 """
@@ -33,12 +33,13 @@ BLOCK = 12  # rows per block: the fault's detection falls inside a block, not at
 
 @pytest.fixture(scope="module")
 def bad() -> pd.DataFrame:
-    """One well's rows with p_down frozen for 30 days from day 200."""
+    """One well's rows with p_up frozen for 30 days from day 200 (a frozen p_down holds
+    nothing in this well's critical flow: tests/test_sensor_hold.py)."""
     from vfm_core.simulate import simulate_field
 
     obs = simulate_field(wells=1, years=0.8, seed=5583).observations.reset_index(drop=True)
     start = pd.to_datetime(obs["time"], utc=True).iloc[0] + pd.Timedelta(days=200)
-    frame, _ = inject_fault(obs, WELL, "p_down", "frozen", start, days=30)
+    frame, _ = inject_fault(obs, WELL, "p_up", "frozen", start, days=30)
     return frame
 
 
@@ -173,7 +174,7 @@ def test_a_block_gets_the_fallback_from_the_row_a_fault_is_raised_at(
     calls = predict_block_calls
     times = ns(bad["time"])
     # cut the sending at a block's end inside the frozen run (its middle)
-    frozen = np.flatnonzero(bad["p_down"].diff().to_numpy() == 0.0)
+    frozen = np.flatnonzero(bad["p_up"].diff().to_numpy() == 0.0)
     cut = (int(np.median(frozen)) // BLOCK) * BLOCK
     one = run(tmp_path / "one", method, bad, blocks=False, cut=cut)
     assert calls == []
@@ -182,10 +183,10 @@ def test_a_block_gets_the_fallback_from_the_row_a_fault_is_raised_at(
     # the fault stood in: its rows have a fallback, and it is raised inside a block
     flagged = sorted(t for t, f in one["published"].items() if f is not None)
     assert len(flagged) > 20
-    assert {e["sensor"] for f in one["published"].values() if f for e in f} == {"p_down"}
+    assert {e["sensor"] for f in one["published"].values() if f for e in f} == {"p_up"}
     first = int(np.searchsorted(times, flagged[0]))
     assert first % BLOCK != 0, "the fault is raised at a block's first row: no test"
-    assert one["fallback_at_cut"] is not None and one["fallback_at_cut"][0]["sensor"] == "p_down"
+    assert one["fallback_at_cut"] is not None and one["fallback_at_cut"][0]["sensor"] == "p_up"
 
     # per row, the block path gives what one by one gives
     assert block["published"].keys() == one["published"].keys()

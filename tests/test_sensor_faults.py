@@ -249,7 +249,8 @@ def _send_stuck_p_down(
     client: Any, n: int, stuck_from: int, well: str = "W01", seed: int = 12
 ) -> None:
     """Noisy samples of ``well`` twice a day, p_down stuck at its last reading from
-    ``stuck_from``."""
+    ``stuck_from``; p_down / p_up about 0.75, where the rate depends on p_down (in critical
+    flow a frozen p_down holds nothing: tests/test_sensor_hold.py)."""
     from replay.client import sample_of
 
     rng = np.random.default_rng(seed)
@@ -257,7 +258,7 @@ def _send_stuck_p_down(
     for i in range(n):
         t = T0 + timedelta(hours=12 * i + 3)
         if i < stuck_from:
-            p_down = 30.0 + 0.2 * float(rng.standard_normal())
+            p_down = 90.0 + 0.2 * float(rng.standard_normal())
         inputs = (
             0.4,
             120.0 + 0.4 * float(rng.standard_normal()),

@@ -60,6 +60,62 @@ def test_bad_sensor_payloads(payload: bytes, reason: str) -> None:
     assert info.value.message.endswith(".") and len(info.value.message) > 15
 
 
+#: inputs outside their physical span (vfm_core.sensor_faults.DEFAULT_RANGES), each alone:
+#: taken raw while the service watches instrument faults (an out_of_range fault)
+OUT_OF_SPAN = [
+    {"p_up": -5.0},
+    {"p_down": -1.0},
+    {"p_down": 1600.0},  # above the span and above p_up
+    {"p_up": -5.0, "p_down": -6.0},
+    {"choke": 1.5},
+    {"choke": -0.1},
+    {"eta_gas": 1.2},
+    {"eta_oil": -0.5},
+    {"t_up": -300.0},
+]
+
+
+@pytest.mark.parametrize("changes", OUT_OF_SPAN)
+def test_an_input_out_of_its_span_is_taken_raw_while_faults_are_watched(
+    changes: dict[str, float],
+) -> None:
+    """``out_of_span=True`` (the service's intake while it watches instrument faults): the
+    sample is taken with its raw values, in a block too; without it, refused as before."""
+    from service.inputs import parse_sensor_block
+
+    payload = _with(**changes)
+    with pytest.raises(InvalidRequest):
+        parse_sensor(payload)
+    sample = parse_sensor(payload, out_of_span=True)
+    assert sample.inputs() == [changes.get(k, v) for k, v in GOOD.items() if k != "time"]
+    rows = [GOOD, {**GOOD, **changes, "time": "2020-01-01T00:01:00Z"}]
+    block = {k: [r[k] for r in rows] for k in GOOD}
+    taken = parse_sensor_block(block, 10, lambda t, what: None, 0, 2**62, out_of_span=True)
+    assert taken.refused == [] and taken.inputs[1].tolist() == sample.inputs()
+    refused = parse_sensor_block(block, 10, lambda t, what: None, 0, 2**62)
+    assert [row for row, _ in refused.refused] == [1] and len(refused.times_ns) == 1
+
+
+@pytest.mark.parametrize(
+    ("changes", "reason"),
+    [
+        ({"p_down": 0.0}, "negative or zero pressure"),  # inside the span 0..1500 bar a
+        ({"p_up": -5.0, "p_down": 0.0}, "negative or zero pressure"),
+        ({"choke": 1.5, "p_down": 150.0}, "p_down >= p_up"),  # both in span: still wrong
+        ({"eta_gas": 0.7, "eta_oil": 0.6, "t_up": -100.0}, "fractions sum above 1"),
+        ({"choke": 2.0, "time": "yesterday"}, "wrong type"),
+    ],
+)
+def test_out_of_span_takes_only_a_sample_whose_other_checks_pass(
+    changes: dict[str, object], reason: str
+) -> None:
+    """The inputs outside their span are set aside; what is left must pass every check,
+    and a sample refused is refused with the reason of what is left."""
+    with pytest.raises(InvalidRequest) as info:
+        parse_sensor(_with(**changes), out_of_span=True)
+    assert info.value.reason == reason
+
+
 def test_good_sensor_payload() -> None:
     sample = parse_sensor(_with())
     assert sample.inputs() == [0.5, 100.0, 20.0, 60.0, 0.1, 0.5]

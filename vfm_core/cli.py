@@ -141,10 +141,12 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
         write_study,
     )
     from vfm_core.models import MODELS
-    from vfm_core.observations import load_observations
+    from vfm_core.observations import load_observations, outside_span
     from vfm_core.sensor_faults import write_sensor_faults
 
-    loaded = load_observations(args.data)
+    # with the detectors on, a reading outside its physical span is kept (an out_of_range
+    # fault: stood in for, not learned); taken as read, it is removed as before
+    loaded = load_observations(args.data, keep_out_of_range=not args.no_sensor_faults)
     print(loaded.summary())
     models = _split_list(args.models) or list(MODELS)
     methods = _split_list(args.methods) or list(DEFAULT_METHODS)
@@ -180,8 +182,12 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
         if loaded.separators:  # the separators' totals: learned from and allocated
             from vfm_core.jobs.evaluate import write_allocation
 
+            # the allocation takes every input as read: without the rows kept out of span
+            frame = loaded.frame
+            if loaded.kept:
+                frame = frame[~outside_span(frame).any(axis=1)].reset_index(drop=True)
             path, lines = write_allocation(
-                loaded.frame,
+                frame,
                 loaded.separators,
                 out,
                 models=models,

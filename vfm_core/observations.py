@@ -38,6 +38,14 @@ Problems come in two kinds:
   the ``vfm.observations`` logger with its count, and returned in ``LoadResult.removed``.
   A row that matches several reasons is counted under the first, in the order of
   ``FILTER_REASONS``.
+* With ``keep_out_of_range=True`` (``vfm evaluate``, which runs the instrument-fault
+  detectors over the rows), a row whose only problem is an input outside its physical span
+  (:data:`vfm_core.sensor_faults.DEFAULT_RANGES`: a negative pressure, a choke or a fraction
+  outside 0..1) is kept with its raw values and counted in ``LoadResult.kept`` under
+  :data:`KEPT_OUT_OF_RANGE`: the detectors raise an ``out_of_range`` fault there, the study
+  predicts the row with a stand-in for that input and learns nothing from it. A row is kept
+  so when it passes every other check with those inputs set aside; a zero pressure lies
+  inside the span (0..1500 bar a) and is still removed.
 """
 
 from __future__ import annotations
@@ -71,7 +79,13 @@ from vfm_core.separator_format import (
     split_separator_rows,
 )
 
-__all__ = ["LoadResult", "load_observations", "validate_frame", "save_observations"]
+__all__ = [
+    "LoadResult",
+    "load_observations",
+    "validate_frame",
+    "save_observations",
+    "outside_span",
+]
 
 logger = logging.getLogger("vfm.observations")
 
@@ -91,6 +105,9 @@ FILTER_REASONS: tuple[str, ...] = (
     "source without rate",
     "duplicate row",
 )
+
+#: Why a row with an impossible input is kept (``keep_out_of_range``): see the module docstring.
+KEPT_OUT_OF_RANGE = "input out of range"
 
 #: Slack on eta_gas + eta_oil <= 1, so fractions computed in floating point are not removed.
 FRACTION_SUM_TOLERANCE = 1e-9
@@ -133,7 +150,9 @@ class LoadResult:
     ``frame`` is the typed, time-ordered frame (see the module docstring); ``path`` the
     file (or frame name) it came from; ``n_read`` the number of data rows in the input;
     ``removed`` the number of rows removed per reason (only reasons with a count above
-    zero); ``reordered`` whether rows had to be sorted into (time, well) order.
+    zero); ``reordered`` whether rows had to be sorted into (time, well) order; ``kept`` the
+    rows kept although an input lies outside its physical span, per reason
+    (:data:`KEPT_OUT_OF_RANGE`; only with ``keep_out_of_range``).
     """
 
     frame: pd.DataFrame
@@ -143,6 +162,7 @@ class LoadResult:
     reordered: bool = False
     #: the separators' readings and member wells (empty without separator rows)
     separators: SeparatorData = field(default_factory=SeparatorData)
+    kept: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> str:
         """One short sentence block for people, e.g. for a CLI or a log line."""
@@ -152,6 +172,8 @@ class LoadResult:
         if n_removed:
             reasons = ", ".join(f"{reason}: {count:,}" for reason, count in self.removed.items())
             text += f"; removed {n_removed:,} ({reasons})"
+        for reason, count in self.kept.items():
+            text += f"; {reason}: {_rows(count)} kept with raw values (out_of_range faults)"
         if self.separators:
             text += f"; {len(self.separators.readings):,} separator readings set apart"
         if self.reordered:
@@ -164,13 +186,15 @@ def load_observations(
     *,
     filter_illogical: bool = True,
     separators: dict[str, str] | None = None,
+    keep_out_of_range: bool = False,
 ) -> LoadResult:
     """Read an observation file (``.csv``, ``.csv.gz``, ``.parquet`` or ``.pq``) and check it.
 
     Raises :class:`DataError` if the file does not exist and
     :class:`ObservationFormatError` if it breaks the format; see the module docstring for
     what is checked, what is removed and how rows are numbered in messages. ``separators``
-    maps wells to separators, as for :func:`validate_frame`.
+    maps wells to separators, as for :func:`validate_frame`; ``keep_out_of_range`` keeps the
+    rows whose only problem is an input outside its physical span (module docstring).
     """
     file = Path(path)
     name = str(path)
@@ -183,7 +207,13 @@ def load_observations(
     if not file.is_file():
         raise DataError(f"{name} is not a file; give the path of an observation file.")
     raw = _read_csv(file, name) if kind == "csv" else _read_parquet(file, name)
-    return validate_frame(raw, name=name, filter_illogical=filter_illogical, separators=separators)
+    return validate_frame(
+        raw,
+        name=name,
+        filter_illogical=filter_illogical,
+        separators=separators,
+        keep_out_of_range=keep_out_of_range,
+    )
 
 
 def validate_frame(
@@ -192,12 +222,15 @@ def validate_frame(
     name: str = "<frame>",
     filter_illogical: bool = True,
     separators: dict[str, str] | None = None,
+    keep_out_of_range: bool = False,
 ) -> LoadResult:
     """Check, type, filter and sort an observation frame held in memory.
 
     Accepts text columns (as read from CSV) as well as typed ones. ``name`` stands for
     the file in messages. The input frame is not changed. ``separators`` maps wells to the
     separators they flow into (configuration; the ``separator`` column does the same).
+    ``keep_out_of_range``: keep a row whose only problem is an input outside its physical
+    span, counted in ``LoadResult.kept`` (module docstring).
     """
     missing = [column for column in REQUIRED_COLUMNS if column not in frame.columns]
     if missing:
@@ -218,9 +251,19 @@ def validate_frame(
     out[SOURCE] = _parse_source(out[SOURCE], name)
 
     removed: dict[str, int] = {}
+    kept: dict[str, int] = {}
     out, separator_data = split_separator_rows(out, name=name, mapping=separators, removed=removed)
     if filter_illogical:
-        keep = _filter(out, rate_columns, name, removed)
+        outside = outside_span(out) if keep_out_of_range else None
+        keep = _filter(out, rate_columns, name, removed, outside)
+        if outside is not None and (count := int((outside.any(axis=1) & keep).sum())):
+            kept[KEPT_OUT_OF_RANGE] = count
+            logger.warning(
+                "%s: kept %s with an input outside its physical span (raw values; "
+                "out_of_range sensor faults, predicted with a stand-in, not learned).",
+                name,
+                _rows(count),
+            )
         out = out.loc[keep]
 
     times = pd.DatetimeIndex(out[TIME]).asi8
@@ -235,6 +278,7 @@ def validate_frame(
         removed=removed,
         reordered=reordered,
         separators=separator_data,
+        kept=kept,
     )
 
 
@@ -422,13 +466,35 @@ def _as_text(raw: pd.Series) -> pd.Series:
 # --- filtering -----------------------------------------------------------------------
 
 
+def outside_span(frame: pd.DataFrame) -> np.ndarray:
+    """[rows, 6] True where an input is finite and outside its physical span
+    (:data:`vfm_core.sensor_faults.DEFAULT_RANGES`, the order of ``INPUT_COLUMNS``)."""
+    from vfm_core.sensor_faults import DEFAULT_RANGES
+
+    x = frame[list(INPUT_COLUMNS)].to_numpy(dtype=np.float64)
+    low = np.array([DEFAULT_RANGES[c][0] for c in INPUT_COLUMNS])
+    high = np.array([DEFAULT_RANGES[c][1] for c in INPUT_COLUMNS])
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(x) & ((x < low) | (x > high))
+
+
 def _filter(
-    frame: pd.DataFrame, rate_columns: list[str], name: str, removed: dict[str, int]
+    frame: pd.DataFrame,
+    rate_columns: list[str],
+    name: str,
+    removed: dict[str, int],
+    outside: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Return the mask of rows to keep; fill ``removed`` and log one warning per reason."""
+    """Return the mask of rows to keep; fill ``removed`` and log one warning per reason.
+    ``outside`` [rows, 6]: inputs set aside (outside their span, kept for the detectors):
+    the checks other than ``non-finite input`` do not see them."""
+    columns = list(INPUT_COLUMNS)
 
     def col(column: str) -> np.ndarray:
-        return frame[column].to_numpy(dtype=np.float64)
+        v = frame[column].to_numpy(dtype=np.float64)
+        if outside is not None and column in columns:
+            v = np.where(outside[:, columns.index(column)], np.nan, v)
+        return v
 
     choke, p_up, p_down = col("choke"), col("p_up"), col("p_down")
     eta_gas, eta_oil, q_total = col("eta_gas"), col("eta_oil"), col(TARGET)
@@ -437,7 +503,8 @@ def _filter(
     has_rate = ~np.isnan(q_total)
     has_source = (frame[SOURCE] != "").to_numpy()
 
-    # NaN compares False, and rows with NaN inputs are taken by the first reason anyway.
+    # NaN compares False, and rows with NaN inputs are taken by the first reason anyway (an
+    # input set aside as outside its span is NaN here, so only the other checks see the row).
     masks = {
         "non-finite input": ~np.isfinite(inputs).all(axis=1),
         "negative or zero pressure": (p_up <= 0) | (p_down <= 0),

@@ -679,6 +679,14 @@ def critical_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> 
     return min(_P_CR_LOW, y_c)
 
 
+@lru_cache(maxsize=4096)
+def _rounded_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> float:
+    """:func:`critical_floor` of inputs rounded by the caller (0.1 bar, 0.5 K, 0.001 of a
+    fraction: the floor moves by far less than its own -2 sd margin across such a step),
+    remembered: a frozen input's samples ask it again and again at nearly the same point."""
+    return critical_floor(p_up, t_up, eta_gas, eta_oil)
+
+
 @dataclass
 class _Frozen:
     """Markov counts of unchanged steps of one input (exponentially forgotten)."""
@@ -861,23 +869,53 @@ class WellSensorFaults:
         time_ns: int,
         kinds: Sequence[str] = HOLD_KINDS,
         faults: Sequence[tuple[str, str]] = HOLD_FAULTS,
+        values: Sequence[float] | None = None,
     ) -> SensorFault | None:
         """The fault of one of ``kinds``, or one of the (sensor, kind) ``faults`` (active or
         recent), whose span covers the sample at ``time_ns`` (epoch ns), if any: a
         measurement paired with that sample would teach the model the fault. By default only
         those whose false-alarm rate is measured within the budget (:data:`HOLD_KINDS`,
-        :data:`HOLD_FAULTS`): a false offset would hold a month of learning."""
+        :data:`HOLD_FAULTS`): a false offset would hold a month of learning.
+
+        With the sample's six ``values`` given, a frozen ``p_down`` does not count where it
+        cannot matter to the rate (:meth:`p_down_moot`: the flow is critical under every
+        choke law over the stand-in's 90 % span): a measurement there teaches the model
+        nothing about ``p_down``, and holding it would only cost learning."""
         t = int(time_ns)
         for e in reversed(list(self.events)):
             if e.kind not in kinds and (e.sensor, e.kind) not in faults:
                 continue
             if e.start_ns <= t and (e.end_ns is None or t < e.end_ns):
+                if (e.sensor, e.kind) == ("p_down", "frozen") and values is not None:
+                    if self.p_down_moot(t, values):
+                        continue
                 return e
             if e.kind == "spike" and e.start_ns == t:
                 return e
         if ("choke", "offset") in faults:
             return self._choke_doubt(t)
         return None
+
+    def p_down_moot(self, time_ns: int, values: Sequence[float]) -> bool:
+        """True when a frozen ``p_down`` cannot matter to the rate of the sample at
+        ``time_ns`` (epoch ns; ``values``: its six inputs, observation units): the other
+        inputs it needs have no open fault, and ``p_down / p_up`` stays below the lowest
+        critical ratio of the models' choke laws (:func:`critical_floor`) both at the
+        reading and at the top of its stand-in's 90 % span (:meth:`fallbacks`). The flow
+        is then critical under every law: the rate does not depend on ``p_down``, and a
+        measurement there cannot teach the model its fault."""
+        if any(sensor not in ("p_down", "choke") for sensor, _ in self.open):
+            return False
+        p_up, t_up, eta_gas, eta_oil = (float(values[i]) for i in (1, 3, 4, 5))
+        high = float(values[2])
+        if not all(map(math.isfinite, (p_up, t_up, eta_gas, eta_oil, high))) or p_up <= 0:
+            return False
+        for f in self.fallbacks(time_ns, values):
+            if f.sensor == "p_down":
+                high = max(high, f.high)
+        return high / p_up < _rounded_floor(
+            round(p_up, 1), round(t_up * 2.0) / 2.0, round(eta_gas, 3), round(eta_oil, 3)
+        )
 
     def _choke_doubt(self, t: int) -> SensorFault | None:
         """A provisional choke offset (not an event: no alarm, no count of faults) while

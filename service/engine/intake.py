@@ -114,6 +114,9 @@ class Intake:
         self.limits = Limits(settings.inputs.max_payload_bytes, settings.inputs.max_json_depth)
         self._future_ns = int(settings.inputs.max_future_s * 1e9)
         self._earliest_ns = to_ns(settings.inputs.earliest_time)
+        #: a sample with an input outside its physical span is taken (an ``out_of_range``
+        #: fault: stored raw, stood in for, not learned) while faults are watched
+        self._out_of_span = bool(settings.sensor_faults.enabled)
         #: the wells this instance owns (scale-out, ``zenoh.wells``)
         self.own = WellSet(settings.zenoh.wells)
         #: the worker itself calls :meth:`deliver`: a message that does not fit is held,
@@ -165,7 +168,8 @@ class Intake:
                         return
                     item = SensorBlockItem(well, block.times_ns, block.inputs, received_ns)
                 else:
-                    sample = parse_sensor(data, self.limits)
+                    # watched for instrument faults, an input out of its span is one
+                    sample = parse_sensor(data, self.limits, out_of_span=self._out_of_span)
                     self.check_time(sample.time, "sample")
                     item = SensorItem(well, to_ns(sample.time), tuple(sample.inputs()), received_ns)
             else:
@@ -231,6 +235,7 @@ class Intake:
             self.check_time,
             to_ns(self.settings.inputs.earliest_time),
             time.time_ns() + self._future_ns,
+            out_of_span=self._out_of_span,
         )
 
     def submit_well_test(self, well: str, measurement: Measurement) -> Future[WellTestResult]:

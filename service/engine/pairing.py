@@ -243,7 +243,7 @@ class Pairing:
         st.watch_rate(p.source, sample.time_ns, p.q_total, sample.inputs)
         if st.stand_in_answers:  # a rate measured at a stood-in sample: its witness
             self.learning.follow_rate(st, sample.time_ns, p.q_total, p.source)
-        fault = st.sensor_faults.suspect(sample.time_ns)
+        fault = st.sensor_faults.suspect(sample.time_ns, values=sample.inputs)
         if fault is None:
             if self.review is not None and self.review.enabled and p.source == "well_test":
                 if st.well in b.learn_wells:  # judged by the model after what came before

@@ -431,7 +431,8 @@ class _Case:
     test_rows: np.ndarray
     wells: list[str]
     hidden: np.ndarray
-    #: [len(frame)] test rows whose measurement the service holds at an instrument fault
+    #: [len(frame)] test rows whose measurement the service holds at an instrument fault, and
+    #: the rows before the split with an input outside its physical span (never learned)
     held: np.ndarray | None = None
 
     @property
@@ -580,6 +581,8 @@ def _case(
         if len(faults.held) != len(frame):
             raise ValueError("The fault plan belongs to another frame; plan it on this one.")
         held = faults.held & is_target & ~before
+        if faults.out_of_span is not None:  # an impossible reading: never learned
+            held |= faults.out_of_span & is_target
     return _Case(frame, targets, split_ts, is_target, before, test_rows, wells, hidden, held)
 
 

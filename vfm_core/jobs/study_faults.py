@@ -67,10 +67,15 @@ class FaultPlan:
     ``held`` [len(frame)]: True where a measurement is not learned from (its sample lies in
     a fault of :data:`~vfm_core.sensor_faults.HOLD_KINDS` once the sample is seen);
     ``stand_ins``: by row position, the stand-ins (one per flagged input) its prediction
-    uses; rows absent use every input as read."""
+    uses; rows absent use every input as read; ``out_of_span``: the rows that are never
+    learned from, whatever the split (an impossible reading teaches nothing; the loader
+    keeps them only for ``vfm evaluate``, ``keep_out_of_range``)."""
 
     held: np.ndarray
     stand_ins: dict[int, tuple[Fallback, ...]] = field(default_factory=dict)
+    #: [len(frame)] rows whose sample has an input outside its physical span (an
+    #: ``out_of_range`` fault): never learned from, before the split either (None: none)
+    out_of_span: np.ndarray | None = None
 
     def acts_on(self, rows: np.ndarray) -> bool:
         """True when any of ``rows`` (positions) is held or predicted with a stand-in."""
@@ -94,6 +99,13 @@ def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan
     values = frame[list(SENSORS)].to_numpy(dtype=float)
     wells = frame[WELL].astype(str).to_numpy()
     mpfm = np.asarray(mpfm_rates(frame), dtype=float)
+    spans = {**DEFAULT_RANGES, **(hyperparameters.get("ranges") or {})}
+    low = np.array([spans[name][0] for name in SENSORS])
+    high = np.array([spans[name][1] for name in SENSORS])
+    with np.errstate(invalid="ignore"):
+        out_of_span = np.isfinite(values).all(axis=1) & ((values < low) | (values > high)).any(
+            axis=1
+        )
     for well in dict.fromkeys(wells.tolist()):
         rows = np.flatnonzero(wells == well)
         rows = rows[np.argsort(times[rows], kind="stable")]
@@ -107,17 +119,17 @@ def plan_sensor_faults(frame: pd.DataFrame, **hyperparameters: Any) -> FaultPlan
                 row = values[pos].tolist()
                 det.update(t, row)
                 used = tuple(det.fallbacks(t, row)) if det.stands_in() else ()
-                in_fault = det.suspect(t) is not None
+                in_fault = det.suspect(t, values=row) is not None
                 last_t = t
             if math.isfinite(mpfm[pos]):  # the choke-rate witness (vfm_core.rate_witness)
                 det.measure(t, float(mpfm[pos]), values[pos].tolist())
                 # as the service: the rate fed first, then the hold asked (a choke offset
                 # found, or in doubt, with this very reading)
-                in_fault = det.suspect(t) is not None
+                in_fault = det.suspect(t, values=values[pos].tolist()) is not None
             held[pos] = in_fault
             if used:
                 stand_ins[pos] = used
-    return FaultPlan(held, stand_ins)
+    return FaultPlan(held, stand_ins, out_of_span if out_of_span.any() else None)
 
 
 def _points_batch(batch: Batch, w: int, s: int, points: list[list[float]]) -> Batch:
