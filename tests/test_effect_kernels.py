@@ -754,3 +754,88 @@ def test_slip_on_a_dry_gas_has_a_finite_gradient_in_both_paths() -> None:
     assert float(rate.detach().reshape(-1)[0]) == pytest.approx(q, rel=1e-12)
     np.testing.assert_allclose(got[:6], dq, rtol=1e-9, atol=1e-9 * np.abs(dq).max())
     assert got[6] == pytest.approx(de[1], abs=1e-9)
+
+
+# -- fit_batch's training steps with compiled effects (kernels.FitSteps) -------------------
+#: the compiled loops, as they are (the tests below watch them)
+_FIT_RUN, _FIT_SEARCH = kernels.FitSteps.run, kernels.FitSteps.search
+
+
+def _fit_run(
+    monkeypatch: pytest.MonkeyPatch, flag: str, history: Batch, effects: list, name: str
+) -> tuple[dict[str, torch.Tensor], list[list[int]], list[str]]:
+    """An initial fit (early stopping on mini-batches), a retrain on mini-batches with given
+    counts and one on the batch in one (the convergence stop), all on ``history``: the
+    parameters, the counts run, and which compiled loops ran (``search``, ``run``) on a
+    model with effects."""
+    from vfm_core.learning.training import fit_batch
+
+    monkeypatch.setenv("VFM_FIT_KERNEL", flag)
+    ran: list[str] = []
+    for what, original in (("run", _FIT_RUN), ("search", _FIT_SEARCH)):
+
+        def spy(self, *a, _what=what, _original=original):  # type: ignore[no-untyped-def]
+            ran.append(_what if self.effects else f"{_what} without effects")
+            return _original(self, *a)
+
+        monkeypatch.setattr(kernels.FitSteps, what, spy)
+    model = make_model(name, history.wells, effects=effects)
+    settings = replace(DEFAULT_TRAIN[name], batch_size=32, max_iter=80, patience=15)
+    counts = [fit_batch(model, history, settings)["iterations"].tolist()]
+    given = torch.tensor([50, 10, 35])
+    counts.append(fit_batch(model, history, settings, iterations=given)["iterations"].tolist())
+    whole = replace(settings, batch_size=1000, retrain_tol=0.2)
+    counts.append(fit_batch(model, history, whole, iterations=given)["iterations"].tolist())
+    state = {k: v.detach().clone() for k, v in model.named_parameters()}
+    return state, counts, ran
+
+
+@pytest.mark.parametrize(
+    ("name", "effects"),
+    [
+        ("mm", ["slip"]),
+        ("mm", ["critical_ratio", "slip", "mpfm_bias"]),
+        ("mm", ["mpfm_bias"]),
+        ("mm", [_STEP]),
+        ("mm", ["valve_equal_percentage"]),
+        ("mm", ["erosion", "valve", "real_gas"]),
+        ("mm", [_SEASON]),
+        ("ham", ["erosion", "mpfm_bias"]),
+        ("hem", ["slip", "valve_sigmoid"]),
+    ],
+)
+def test_the_fit_with_compiled_effects_matches_the_torch_loop(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame, name: str, effects: list[str]
+) -> None:
+    """``fit_batch`` on a model with compiled effects runs the compiled loops (early
+    stopping's search and each pass 2), on the same mini-batches as torch's: the same
+    counts, and every parameter (the effects' too) equal to 1e-9 of its scale. Every
+    well's choke moves in these 150 samples: at one fixed opening a valve's parameters are
+    undetermined (their gradient is rounding, which Adam's normalisation amplifies, in
+    either path), as is the critical ratio's weight alone on these wells."""
+    history, _ = _stream(frame, effects)
+    slow, slow_counts, slow_ran = _fit_run(monkeypatch, "0", history, effects, name)
+    fast, fast_counts, fast_ran = _fit_run(monkeypatch, "1", history, effects, name)
+    assert slow_ran == [] and fast_ran == ["search", "run", "run", "run"]
+    assert fast_counts == slow_counts and max(fast_counts[0]) > 0
+    assert set(fast) == set(slow)
+    for key in slow:
+        _close(fast[key], slow[key], key, rtol=1e-9)
+    # the effects learned: their parameters left the prior mean for some well
+    moved = [v for k, v in slow.items() if k.startswith("effect_params.")]
+    assert len(moved) == len(effects) and any(float(v.abs().max()) > 1e-3 for v in moved)
+
+
+def test_the_fit_without_a_compiled_form_keeps_the_torch_loop(
+    monkeypatch: pytest.MonkeyPatch, frame: pd.DataFrame
+) -> None:
+    """An effect without a compiled form (a user's own hook), or the critical ratio beside
+    real gas: ``fit_batch`` runs the torch loop."""
+    history, _ = _stream(frame, ["erosion"])
+    history = history.select(torch.cumsum(history.mask.long(), 1) <= 40)
+    for effects in ([_OwnErosion], ["critical_ratio", "real_gas"], ["erosion", _OwnErosion]):
+        model = make_model("mm", history.wells, effects=effects)
+        assert kernels.fit_parameters(model) is None
+    assert kernels.fit_parameters(make_model("hem", ["a"], effects=["erosion"])) is not None
+    state, _, ran = _fit_run(monkeypatch, "1", history, [_OwnErosion], "mm")
+    assert ran == [] and float(state["effect_params.own_erosion.z"].abs().max()) > 0

@@ -850,6 +850,121 @@ def effect_online(  # noqa: PLR0913 - the arrays of one update
 
 
 @jit
+def effect_fit_steps(  # noqa: PLR0913 - the arrays of a training chunk
+    z: np.ndarray,
+    moments: tuple,  # type: ignore[type-arg]
+    counts: np.ndarray,
+    todo: np.ndarray,
+    data: tuple,  # type: ignore[type-arg]
+    n_full: np.ndarray,
+    model: tuple,  # type: ignore[type-arg]
+    noise: float,
+    hyper: tuple,  # type: ignore[type-arg]
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+    eff: tuple,  # type: ignore[type-arg]
+    fx: tuple,  # type: ignore[type-arg]
+    valid: tuple,  # type: ignore[type-arg]
+) -> None:
+    """Training steps of :func:`vfm_core.learning.training.fit_batch` on ``mm`` with
+    compiled effects, in place, as :func:`fit_steps` on the plain ``mm`` (the same
+    mini-batches, objective, per-well clip, Adam or SGD, projection), the gradient through
+    the rate q_plain F as :func:`effect_online` takes it. ``z`` [W, 6] and its (m, v) in
+    ``moments``; ``eff`` the effects' parameters, moments, rows of ``counts`` [R, W] and
+    bounds (:func:`effect_online`); ``data``: x, y, has (the chunk's mini-batches, step s
+    in columns [s width, (s + 1) width), or [0, width) at every step when ``same``),
+    width, same; ``model``: a_max, y_scale, mu, sigma, z_low, z_high; ``hyper`` lr,
+    beta1, beta2, eps. ``fx`` the effects of the chunk's samples (:func:`_factor_at`,
+    their columns those of ``x``). Each step's objective per well (before the step) is
+    added to ``losses`` [W]. ``valid``: (validate, xv, yv, hv, fxv, val_out): with
+    validate, the mean squared scaled error on the held-out rows after step s goes to
+    ``val_out[w, s]``."""
+    x, y, has, width, same = data
+    a_max, scale, mu, sigma, z_low, z_high = model
+    ze, me, ve, rows, low_e, high_e = eff
+    grad, theta, dq, zero = np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(6, np.int64)
+    ge, pe, scratch = np.zeros(ze.shape[1]), np.zeros(ze.shape[1]), _scratch(fx)
+    size, root = np.ones(counts.shape[0]), np.ones(counts.shape[0])
+    for w in range(z.shape[0]):
+        n = n_full[w]
+        weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
+        for s in range(todo[w]):
+            c0, n_data, d_factor = _mini_batch(has, w, s, width, same, n, scale[w])
+            for i in range(6):
+                theta[i] = mu[i] + sigma[i] * z[w, i]
+            effect_values(w, ze, fx[1], fx[2], pe)
+            grad[:] = 0.0
+            ge[:] = 0.0
+            sse = 0.0
+            for j in range(c0, c0 + width):
+                if not has[w, j]:
+                    continue
+                q = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
+                fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
+                e = (q * fxj - y[w, j]) / scale[w]
+                sse += e * e
+                g = e * d_factor
+                for i in range(6):
+                    grad[i] += g * (dq[i] * fxj)
+                for k in range(ge.shape[0]):
+                    ge[k] += g * (q * scratch[0][k] + scratch[2][k] * fxj)
+            if n > 0:  # the objective: mean squared scaled error plus the weighted prior
+                penalty = _squares(w, z) + _squares(w, ze)
+                losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
+            sq = _prior_(w, z, grad, sigma, weight) + _prior_(w, ze, ge, fx[2], weight)
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                _corrections_(counts, w, size, root, hyper)
+            _bounded_step_(w, z, moments[0], moments[1], grad, zero, size, root, clip, z_low, z_high, hyper, adam)  # fmt: skip
+            _bounded_step_(w, ze, me, ve, ge, rows, size, root, clip, low_e, high_e, hyper, adam)
+            if valid[0]:
+                val_out = valid[5]
+                val_out[w, s] = _effect_validation(w, z, ze, model, valid, theta, dq, pe, scratch)
+
+
+@jit
+def _squares(w: int, z: np.ndarray) -> float:
+    """Well w's sum of squared standardised parameters (its prior penalty, unweighted)."""
+    total = 0.0
+    for k in range(z.shape[1]):
+        total += z[w, k] * z[w, k]
+    return total
+
+
+@jit
+def _effect_validation(  # noqa: PLR0913 - one well's parameters and its scratch arrays
+    w: int,
+    z: np.ndarray,
+    ze: np.ndarray,
+    model: tuple,  # type: ignore[type-arg]
+    valid: tuple,  # type: ignore[type-arg]
+    theta: np.ndarray,
+    dq: np.ndarray,
+    pe: np.ndarray,
+    scratch: tuple,  # type: ignore[type-arg]
+) -> float:
+    """The mean squared scaled error of well w (``mm`` with compiled effects) on its
+    held-out rows (``valid``: validate, xv, yv, hv, fxv, val_out), early stopping's
+    measure."""
+    _, xv, yv, hv, fxv, _ = valid
+    a_max, scale, mu, sigma, _, _ = model
+    for i in range(6):
+        theta[i] = mu[i] + sigma[i] * z[w, i]
+    effect_values(w, ze, fxv[1], fxv[2], pe)
+    sse = 0.0
+    n_val = 0
+    for j in range(hv.shape[1]):
+        if not hv[w, j]:
+            continue
+        n_val += 1
+        q = _rate_at(fxv, pe, scratch, theta, xv[w, j], a_max[w], dq)
+        e = (q * _factor_at(fxv, pe, scratch, xv[w, j, 0], w, j) - yv[w, j]) / scale[w]
+        sse += e * e
+    return sse / max(float(n_val), 1.0)
+
+
+@jit
 def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     kind: int,
     z: np.ndarray,
@@ -905,17 +1020,17 @@ def hybrid_online(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of one update
     hyper, zero = (lr, beta1, beta2, eps), np.zeros(z.shape[1], np.int64)
     net, moments = (w1, b1, w2, b2), (mw1, vw1, mb1, vb1, mw2, vw2, mb2, vb2)
     work, grads = _hybrid_scratch(z.shape[1], w1.shape[2])
-    data = (x, y, mask, a_max, scale, x_mean, x_std, mu)
+    data = (x, y, mask, a_max, scale, x_mean, x_std, mu, 0, y.shape[1])
     size, root = np.zeros(counts.shape[0]), np.zeros(counts.shape[0])
     for w in range(y.shape[0]):
-        weight, d_factor = map_weights(mask, w, noise, scale[w])
+        weight, d_fac = map_weights(mask, w, noise, scale[w])
         held = (z[w].copy(), w1[w].copy(), b1[w].copy(), w2[w].copy(), b2[w].copy(), ze[w].copy())
         for _ in range(steps):
             _hybrid_theta_(work[0], mu, sigma, z, pos, w)
             effect_values(w, ze, fx[1], fx[2], pe)
             _zero_(grads)
             ge[:] = 0.0
-            gb2 = _hybrid_gradients_(kind, w, net, grads, ge, work, data, fx, pe, scratch, d_factor)
+            gb2, _ = _hybrid_gradients_(kind, w, net, grads, ge, work, data, fx, pe, scratch, d_fac)
             # the physical parameters standardised, plus the prior's pull; then the clip
             sq = _net_squares(_prior_(w, z, grads[0], sigma, weight), grads, gb2)
             sq += _prior_(w, ze, ge, fx[2], weight)
@@ -1022,14 +1137,16 @@ def _hybrid_gradients_(  # noqa: PLR0913 - one well's samples and its gradients
     pe: np.ndarray,
     scratch: tuple,  # type: ignore[type-arg]
     d_factor: float,
-) -> float:
+) -> tuple[float, float]:
     """The MAP data term's gradient of well w's hybrid (``kind`` 1 hem, 2 ham) summed over
-    its samples into ``grads`` (z, W1, b1, W2) and the effects' ``ge``; returns b2's.
-    ``data``: x, y, mask, a_max, y_scale, x_mean, x_std, mu."""
-    x, y, mask, a_max, scale, x_mean, x_std, mu = data
+    its samples in columns [c0, c0 + width) into ``grads`` (z, W1, b1, W2) and the
+    effects' ``ge``; returns b2's and the sum of squared scaled errors. ``data``: x, y,
+    mask, a_max, y_scale, x_mean, x_std, mu, c0, width."""
+    x, y, mask, a_max, scale, x_mean, x_std, mu, c0, width = data
     theta, dq, gz = work[0], work[1], grads[0]
     gb2 = 0.0
-    for j in range(y.shape[1]):
+    sse = 0.0
+    for j in range(c0, c0 + width):
         if not mask[w, j]:
             continue
         fxj = _factor_at(fx, pe, scratch, x[w, j, 0], w, j)
@@ -1043,7 +1160,9 @@ def _hybrid_gradients_(  # noqa: PLR0913 - one well's samples and its gradients
             plain = _rate_at(fx, pe, scratch, theta, x[w, j], a_max[w], dq)
             rate = plain * fxj + scale[w] * o
             dq_do = scale[w]
-        g = (rate - y[w, j]) / scale[w] * d_factor
+        e = (rate - y[w, j]) / scale[w]
+        sse += e * e
+        g = e * d_factor
         for i in range(gz.shape[0]):
             gz[i] += g * (dq[i] * fxj)
         for k in range(ge.shape[0]):
@@ -1051,7 +1170,7 @@ def _hybrid_gradients_(  # noqa: PLR0913 - one well's samples and its gradients
         g_o = g * dq_do
         gb2 += g_o
         _net_backward_(net, w, g_o, grads, work)
-    return gb2
+    return gb2, sse
 
 
 @part
@@ -1179,6 +1298,106 @@ def fit_steps(  # noqa: PLR0913, PLR0912, PLR0915 - the arrays of a training chu
                 _hybrid_theta_(work[0], mu, sigma, z, pos, w)
                 valid = (xv, yv, hv, a_max, scale, x_mean, x_std, mu)
                 val_out[w, s] = _fit_validation(kind, w, net, work, valid)
+
+
+@jit
+def hybrid_effect_fit_steps(  # noqa: PLR0913 - the arrays of a training chunk
+    kind: int,
+    params: tuple,  # type: ignore[type-arg]
+    moments: tuple,  # type: ignore[type-arg]
+    counts: np.ndarray,
+    todo: np.ndarray,
+    data: tuple,  # type: ignore[type-arg]
+    n_full: np.ndarray,
+    model: tuple,  # type: ignore[type-arg]
+    noise: float,
+    hyper: tuple,  # type: ignore[type-arg]
+    max_norm: float,
+    adam: bool,
+    losses: np.ndarray,
+    eff: tuple,  # type: ignore[type-arg]
+    fx: tuple,  # type: ignore[type-arg]
+    valid: tuple,  # type: ignore[type-arg]
+) -> None:
+    """Training steps of :func:`vfm_core.learning.training.fit_batch` on ``hem`` (``kind``
+    1) or ``ham`` (2) with compiled effects, in place, as :func:`fit_steps` on the plain
+    hybrid (the prior on every parameter, the network's He-scaled), the gradient through
+    the effects as :func:`hybrid_online` takes it (:func:`_hybrid_gradients_`).
+    ``params`` z, W1, b1, W2, b2 and ``moments`` their (m, v) in that order; ``counts``
+    [5 + E, W]; ``model``: a_max, y_scale, pos, mu, sigma, x_mean, x_std, z_low, z_high;
+    ``data``, ``eff``, ``fx``, ``valid``, ``losses`` as :func:`effect_fit_steps` has them."""
+    z, w1, b1, w2, b2 = params
+    net = (w1, b1, w2, b2)
+    x, y, has, width, same = data
+    a_max, scale, pos, mu, sigma, x_mean, x_std, z_low, z_high = model
+    ze, me, ve, rows, low_e, high_e = eff
+    ge, pe, scratch = np.zeros(ze.shape[1]), np.zeros(ze.shape[1]), _scratch(fx)
+    work, grads = _hybrid_scratch(z.shape[1], w1.shape[2])
+    size, root = np.ones(counts.shape[0]), np.ones(counts.shape[0])
+    for w in range(z.shape[0]):
+        n = n_full[w]
+        weight = noise**2 / max(n, 1.0) if n > 0 else 0.0
+        for s in range(todo[w]):
+            c0, n_data, d_factor = _mini_batch(has, w, s, width, same, n, scale[w])
+            _hybrid_theta_(work[0], mu, sigma, z, pos, w)
+            effect_values(w, ze, fx[1], fx[2], pe)
+            _zero_(grads)
+            ge[:] = 0.0
+            step = (x, y, has, a_max, scale, x_mean, x_std, mu, c0, width)
+            gb2, sse = _hybrid_gradients_(kind, w, net, grads, ge, work, step, fx, pe, scratch, d_factor)  # fmt: skip
+            if n > 0:  # the objective: mean squared scaled error plus the weighted prior
+                penalty = _fit_penalty(kind, w, z, net) + _squares(w, ze)
+                losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
+            sq, gb2 = _fit_prior_pull_(kind, w, z, net, grads, gb2, sigma, weight)
+            sq += _prior_(w, ze, ge, fx[2], weight)
+            clip = min(max_norm / (math.sqrt(sq) + 1e-12), 1.0)
+            if adam:
+                _corrections_(counts, w, size, root, hyper)
+            _adam_(z[w], grads[0], moments[0][w], moments[1][w], clip, size[0], root[0], hyper, adam)  # fmt: skip
+            for i in range(z.shape[1]):
+                z[w, i] = max(min(z[w, i], z_high[i]), z_low[i])
+            _net_step_(w, net, moments[2:], grads, gb2, clip, size, root, hyper, adam)
+            _bounded_step_(w, ze, me, ve, ge, rows, size, root, clip, low_e, high_e, hyper, adam)
+            if valid[0]:
+                _hybrid_theta_(work[0], mu, sigma, z, pos, w)
+                effect_values(w, ze, fx[1], fx[2], pe)
+                val_out = valid[5]
+                val_out[w, s] = _hybrid_effect_validation(kind, w, net, work, model, valid, pe, scratch)  # fmt: skip
+
+
+@jit
+def _hybrid_effect_validation(  # noqa: PLR0913 - one well's network and its scratch arrays
+    kind: int,
+    w: int,
+    net: tuple,  # type: ignore[type-arg]
+    work: tuple,  # type: ignore[type-arg]
+    model: tuple,  # type: ignore[type-arg]
+    valid: tuple,  # type: ignore[type-arg]
+    pe: np.ndarray,
+    scratch: tuple,  # type: ignore[type-arg]
+) -> float:
+    """The mean squared scaled error of well w's hybrid with compiled effects on its
+    held-out rows (``valid``: validate, xv, yv, hv, fxv, val_out; theta in ``work`` and the
+    effects' values in ``pe`` already), early stopping's measure."""
+    _, xv, yv, hv, fxv, _ = valid
+    a_max, scale, _, mu, _, x_mean, x_std, _, _ = model
+    theta, dq = work[0], work[1]
+    sse = 0.0
+    n_val = 0
+    for j in range(hv.shape[1]):
+        if not hv[w, j]:
+            continue
+        n_val += 1
+        o = _net_forward_(net, w, xv, j, x_mean, x_std, work)
+        fxj = _factor_at(fxv, pe, scratch, xv[w, j, 0], w, j)
+        if kind == 2:
+            theta[5] = mu[5] * math.exp(o)
+            rate = _rate_at(fxv, pe, scratch, theta, xv[w, j], a_max[w], dq) * fxj
+        else:
+            rate = _rate_at(fxv, pe, scratch, theta, xv[w, j], a_max[w], dq) * fxj + scale[w] * o
+        e = (rate - yv[w, j]) / scale[w]
+        sse += e * e
+    return sse / max(float(n_val), 1.0)
 
 
 @part
@@ -2738,3 +2957,52 @@ def warm_mtl_fit_steps() -> None:
         yes, 1, True, np.ones(1), np.ones(1), 1, 0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, True,
         np.zeros((1, 1)), True, x, ones, yes, yes[0], np.zeros(1),
     )  # fmt: skip
+
+
+def warm_effect_fit_steps() -> None:
+    """Run :func:`effect_fit_steps` once on a made-up sample, every effect code in one model,
+    with the held-out error."""
+    x, ones, yes = _made_up_sample()
+    mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
+    one = np.ones(6)
+    terms = np.array(
+        [[FX_EROSION, 0, 2, 0, 1, 0], [FX_VALVE, 2, 2, 0, 2, 0], [FX_FAMILY, 4, 1, 0, 1, 0],
+         [FX_BIAS, 5, 2, 0, 0, 0], [FX_GAS, 7, 1, 0, 0, 0], [FX_SLIP, 8, 1, 0, 0, 0],
+         [FX_SUGGEST, 9, 1, 0, 0, 0], [FX_CRITICAL, 10, 1, 0, 0, 0]],
+        dtype=np.int64,
+    )  # fmt: skip
+    p = 11
+    fx = (terms, np.zeros(p), np.ones(p), np.ones((1, 1, 2)), np.zeros((1, 1), dtype=bool),
+          np.ones((1, 1), np.int64), np.ones(1) / 2)  # fmt: skip
+    eff = (np.zeros((1, p)), np.zeros((1, p)), np.zeros((1, p)),
+           np.array([1, 1, 2, 2, 3, 4, 4, 5, 6, 7, 8]), -np.ones(p), np.ones(p))  # fmt: skip
+    effect_fit_steps(
+        np.zeros((1, 6)), (np.zeros((1, 6)), np.zeros((1, 6))), np.zeros((9, 1)),
+        np.ones(1, dtype=np.int64), (x, ones, yes, 1, False), np.ones(1),
+        (np.ones(1), np.ones(1), mu, one, -one, one), 0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0, True,
+        np.zeros(1), eff, fx, (True, x, ones, yes, fx, np.zeros((1, 1))),
+    )  # fmt: skip
+
+
+def warm_hybrid_effect_fit_steps() -> None:
+    """Run :func:`hybrid_effect_fit_steps` once per kind on a made-up sample with one
+    effect, with the held-out error."""
+    x, ones, yes = _made_up_sample()
+    mu = np.array([840.0, 1017.5, 1.28, 0.0205, 0.55, 0.825])
+    one = np.ones(6)
+    fx = (np.array([[FX_SLIP, 0, 1, 0, 0, 0]], dtype=np.int64), np.zeros(1), np.ones(1),
+          np.ones((1, 1, 2)), np.zeros((1, 1), dtype=bool), np.ones((1, 1), np.int64),
+          np.ones(1) / 2)  # fmt: skip
+    for kind in (1, 2):
+        params = (np.zeros((1, 6)), np.ones((1, 6, 4)), np.ones((1, 4)), np.ones((1, 4, 1)),
+                  np.ones((1, 1)))  # fmt: skip
+        moments = tuple(np.zeros_like(a) for a in params for _ in range(2))
+        eff = (np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)), np.array([5]),
+               -np.ones(1), np.ones(1))  # fmt: skip
+        model = (np.ones(1), np.ones(1), np.arange(6), mu, one, np.zeros((1, 6)), np.ones((1, 6)),
+                 -one, one)  # fmt: skip
+        hybrid_effect_fit_steps(
+            kind, params, moments, np.zeros((6, 1)), np.ones(1, dtype=np.int64),
+            (x, ones, yes, 1, False), np.ones(1), model, 0.05, (1e-3, 0.9, 0.999, 1e-8), 1.0,
+            True, np.zeros(1), eff, fx, (True, x, ones, yes, fx, np.zeros((1, 1))),
+        )  # fmt: skip

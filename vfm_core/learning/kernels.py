@@ -22,8 +22,11 @@ arithmetic, in the same order, as one loop over wells and samples:
   ``np.dot``, the rest fused), each well for its own count, with the convergence stop of a retrain on
   the whole batch; :class:`MtlFitSteps`: the same for ``mtl`` with two residual blocks, whose
   shared network steps the whole field together (one count, one early-stopping and one
-  convergence decision for the field). ``VFM_FIT_KERNEL=0`` turns these off alone (a
-  comparison side by side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
+  convergence decision for the field). ``mm``, ``hem`` and ``ham`` with compiled effects
+  (below) train there too (``effect_fit_steps``, ``hybrid_effect_fit_steps``: the fit's
+  step with the effects' gradient of the online kernels, each mini-batch's times, well
+  tests and feature columns beside its rows). ``VFM_FIT_KERNEL=0`` turns these off alone
+  (a comparison side by side: ``benchmarks/bench_study.py --fit-kernel 0,1``).
 
 Effects that multiply the rate (their ``area_factor`` or ``output_factor``: erosion,
 erosion_time, valve, the valve families, mpfm_bias; :meth:`vfm_core.effects.Effect.compiled_factor`)
@@ -32,9 +35,10 @@ run on the same kernels: a compiled per-effect function
 dF / d(effect parameters), the rate is the plain one times F, and the effects' parameters
 step, filter and clip beside the mechanistic ones (:func:`effect_online_steps`,
 :func:`effect_rates` for ``mm``; :func:`hybrid_online_steps`, :func:`hybrid_rates` and
-the filter for ``hem`` and ``ham``). The library's two effects that change the flux
-itself (real_gas: Papay's Z in the gas density; slip: the flux times a power of Simpson's
-slip multiplier) run there too, one of each per model: the kernels compute that flux and
+the filter for ``hem`` and ``ham``; :class:`FitSteps` for the batch fit of all three).
+The library's two effects that change the flux itself (real_gas: Papay's Z in the gas
+density; slip: the flux times a power of Simpson's slip multiplier) run there too, one
+of each per model: the kernels compute that flux and
 its derivatives in closed form (:func:`vfm_core.learning._mm_numba.flux_rate_grad`,
 through Z to M_gas and through both fluxes of the slip factor), and their factor in F is 1.
 ``suggest`` (the generic correction ``vfm diagnose`` proposes: linear, log-linear or
@@ -370,10 +374,16 @@ def hybrid_online_steps(
 
 def fit_parameters(model: Any) -> list[torch.nn.Parameter] | None:
     """The parameters :func:`fit_steps` trains, in its order (z; then W1, b1, W2, b2 of a
-    hybrid), when it computes ``model``'s training steps (the plain ``mm`` or a plain
-    hybrid, the kernels enabled); else None."""
+    hybrid; then each effect's z of a model with compiled effects), when it computes
+    ``model``'s training steps (the plain ``mm`` or a plain hybrid, either with compiled
+    effects (:func:`effects_applies`, :func:`hybrid_effects_applies`), the plain ``nn`` or
+    ``lr``, the kernels enabled); else None."""
     if mm_online_applies(model) and _lazy("fit_steps") is not None:
         return [model.phys.z]
+    if effects_applies(model) and _lazy("effect_fit_steps") is not None:
+        return effect_parameters(model)
+    if hybrid_effects_applies(model) and _lazy("hybrid_effect_fit_steps") is not None:
+        return hybrid_parameters(model)
     if hybrid_applies(model) and _lazy("fit_steps") is not None:
         return hybrid_parameters(model)
     if plain_nn(model) and _lazy("nn_fit_steps") is not None:
@@ -529,12 +539,14 @@ def _early_stopping(  # noqa: PLR0913 - the pass's state
 
 class FitSteps:
     """:func:`vfm_core.learning.training.fit_batch`'s training loops, compiled
-    (:func:`vfm_core.learning._mm_numba.fit_steps`, ``nn_fit_steps``) for the plain ``mm``,
-    a plain hybrid or the plain ``nn``: :meth:`run` (the second pass: each well its own
-    number of steps) and :meth:`search` (the first: early stopping on the held-out slice),
-    each with a fresh Adam (or SGD) of ``opt``'s settings, in place, on the sampler's
-    mini-batches. The same arithmetic as the torch loops (``tests/test_kernels.py``
-    compares them), without a torch call per step."""
+    (:func:`vfm_core.learning._mm_numba.fit_steps`, ``effect_fit_steps``, ``nn_fit_steps``,
+    ``hybrid_effect_fit_steps``, ``lr_fit_steps``) for the plain ``mm``, a plain hybrid,
+    either with compiled effects, the plain ``nn`` or ``lr``: :meth:`run` (the second
+    pass: each well its own number of steps) and :meth:`search` (the first: early stopping
+    on the held-out slice), each with a fresh Adam (or SGD) of ``opt``'s settings, in
+    place, on the sampler's mini-batches. The same arithmetic as the torch loops
+    (``tests/test_kernels.py`` and ``tests/test_effect_kernels.py`` compare them), without
+    a torch call per step."""
 
     #: steps per call while early stopping watches (the steps past its stop are wasted)
     SEARCH_CHUNK = 16
@@ -544,15 +556,29 @@ class FitSteps:
     ) -> None:
         self.model, self.params = model, params
         self.adam, self.hyper = _optimiser_settings(opt)
-        self.network = len(params) == 6  # nn: W1, b1, W2, b2, W3, b3
-        self.linear = len(params) == 2  # lr: w, b
-        self.kind = 0 if len(params) <= 2 else (2 if model.compiled_as() == "ham" else 1)
+        # mm or a hybrid with compiled effects: its own tensors, then each effect's z
+        self.effects = effects_applies(model) or hybrid_effects_applies(model)
+        self.own = 1 if effects_applies(model) else 5  # the model's own tensors
+        self.network = len(params) == 6 and not self.effects  # nn: W1, b1, W2, b2, W3, b3
+        self.linear = len(params) == 2 and not self.effects  # lr: w, b
+        self.sampler: Any = None
+        self.val_fx: tuple[np.ndarray, ...] | None = None
+        self.full_fx: tuple[Any, tuple[np.ndarray, ...]] | None = None
+        shape = compiled_effects(model) or model.compiled_as()
+        self.kind = 0 if len(params) <= 2 or shape == "mm" else (2 if shape == "ham" else 1)
         self.n_w = int(params[0].shape[0])
 
     def _begin(self) -> None:
         """The arrays the kernel steps (the parameters' own memory) and a fresh optimiser."""
         n_w = self.n_w
         self.values = [_in_place(p) for p in self.params]
+        if self.effects:  # the model's own; the effects' parameters side by side
+            own = self.own
+            self.values, self.eff = self.values[:own], self.values[own:]
+            self.state = _effect_state(self.model, self.eff, None, own)
+            self.moments = tuple(np.zeros_like(v) for v in self.values for _ in range(2))
+            self.counts = np.zeros((len(self.params), n_w))
+            return
         if len(self.params) == 1:  # mm, no network: empty arrays of its shapes
             self.values += [np.zeros((n_w, 6, 0)), np.zeros((n_w, 0)), np.zeros((n_w, 0, 1))]
             self.values += [np.zeros((n_w, 1))]
@@ -560,7 +586,56 @@ class FitSteps:
         self.counts = np.zeros((len(self.values) if self.network or self.linear else 5, n_w))
 
     def _end(self) -> None:
+        if self.effects:
+            _effect_state_back(self.eff, None, self.state)
+            _written_back(list(self.params), self.values + self.eff)
+            return
         _written_back(list(self.params), self.values[: len(self.params)])
+
+    def _chunk_fx(self, same: bool) -> tuple[np.ndarray, ...]:
+        """The effects of the sampler's last chunk as the kernel reads them (:func:`_fx`;
+        the whole batch's, once, when every step is on the whole batch)."""
+        sampler = self.sampler
+        if not same:
+            return _fx(self.model, sampler.taken_batch())
+        if self.full_fx is None or self.full_fx[0] is not sampler:
+            self.full_fx = (sampler, _fx(self.model, sampler.batch))
+        return self.full_fx[1]
+
+    def _effect_steps(  # noqa: PLR0913 - one chunk's arrays
+        self,
+        data: tuple[Any, ...],
+        todo: np.ndarray,
+        n_full: np.ndarray,
+        noise: float,
+        max_norm: float,
+        losses: np.ndarray,
+        val: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> None:
+        """:meth:`_steps` on ``mm`` or a hybrid with compiled effects (``effect_fit_steps``,
+        ``hybrid_effect_fit_steps``): ``data`` x, y, has, width, same."""
+        model = self.model
+        fx = self._chunk_fx(bool(data[4]))
+        a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
+        valid: tuple[Any, ...]
+        if val is None:
+            empty = (np.zeros((1, 0, 6)), np.zeros((1, 0)), np.zeros((1, 0), dtype=bool))
+            valid = (False, *empty, fx, np.zeros((1, 1)))
+        else:
+            valid = (True, *val[:3], self.val_fx, val[3])
+        rest = (float(noise), self.hyper, float(max_norm), self.adam, losses, self.state, fx, valid)
+        bounds = buffer_views(model.phys, _BOUNDS)
+        if self.own == 1:
+            scales = (a_max, y_scale, *buffer_views(model.phys, ("mu", "sigma")), *bounds)
+            _lazy("effect_fit_steps")(
+                self.values[0], self.moments, self.counts, todo, data[:5], n_full, scales, *rest
+            )
+            return
+        layout = (a_max, y_scale, *physics_layout(model), x_mean, x_std, *bounds)
+        _lazy("hybrid_effect_fit_steps")(
+            self.kind, tuple(self.values), self.moments, self.counts, todo, data[:5], n_full,
+            layout, *rest,
+        )  # fmt: skip
 
     def _inputs(self, x: torch.Tensor) -> np.ndarray:
         """The rows as the kernel reads them: normalised for ``nn``, in file units else."""
@@ -592,6 +667,9 @@ class FitSteps:
         )
         empty = (np.zeros((1, 0, 6)), np.zeros((1, 0)), np.zeros((1, 0), dtype=bool))
         validation = (True, *val) if val is not None else (False, *empty, np.zeros((1, 1)))
+        if self.effects:
+            self._effect_steps(data, todo, n_full, noise, max_norm, losses, val)
+            return
         steps = (noise, lr, beta1, beta2, eps, max_norm, self.adam, losses, *validation)
         if self.network or self.linear:
             (y_scale,) = buffer_views(model, ("y_scale",))
@@ -635,6 +713,7 @@ class FitSteps:
         Returns the steps each well took."""
         want = iterations.clone()
         n_w = self.n_w
+        self.sampler = sampler
         with torch.no_grad():
             self._begin()
             n_full = sampler.counts.to(torch.float64).numpy()
@@ -686,6 +765,8 @@ class FitSteps:
             np.ascontiguousarray(val.y.numpy()),
             np.ascontiguousarray(val.mask.numpy()),
         )
+        self.sampler = sampler
+        self.val_fx = _fx(self.model, val) if self.effects else None
         with torch.no_grad():
             self._begin()
             n_full = sampler.counts.to(torch.float64).numpy()

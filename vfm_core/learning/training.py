@@ -382,6 +382,7 @@ class _Sampler:
         self.chunk = max(1, min(16, self._CHUNK_SAMPLES // max(batch.n_wells * size, 1)))
         self.taken = 0
         self._queue: list[Batch] = []
+        self._rows: tuple[torch.Tensor, ...] | None = None  # take()'s last draw
 
     def _draw(self, c: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The rows of ``c`` iterations' mini-batches [W, c size] (each well's draws from
@@ -439,7 +440,31 @@ class _Sampler:
         idx, has = self._draw(c)
         x = torch.gather(batch.x, 1, idx.unsqueeze(-1).expand(-1, -1, batch.x.shape[-1]))
         self.taken += c
-        return x, torch.gather(batch.y, 1, idx), has, c, False
+        y = torch.gather(batch.y, 1, idx)
+        self._rows = (idx, has, x, y)
+        return x, y, has, c, False
+
+    def taken_batch(self) -> Batch:
+        """The samples of the last :meth:`take` as one batch [W, c size] (every column of
+        it: times, well tests, feature columns, for a model with effects), or the whole
+        batch when every well fits in one."""
+        if self.full or self._rows is None:
+            return self.batch
+        idx, has, x, y = self._rows
+        batch = self.batch
+        assert batch.well_test is not None and batch.extra is not None
+        ex = torch.gather(batch.extra, 1, idx.unsqueeze(-1).expand(-1, -1, batch.extra.shape[-1]))
+        return Batch(
+            batch.wells,
+            x,
+            y,
+            has,
+            torch.gather(batch.time_ns, 1, idx),
+            torch.gather(batch.row, 1, idx),
+            torch.gather(batch.well_test, 1, idx),
+            ex,
+            batch.extra_names,
+        )
 
     def next(self) -> tuple[Batch, torch.Tensor]:
         """The next iteration's mini-batch and the full counts per well."""
