@@ -12,7 +12,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from replay.replayer import replay_frame
     from vfm_core.observations import load_observations
 
-    loaded = load_observations(args.data)
+    # a row whose only problem is an input outside its physical span is sent as it is: the
+    # service raises an out_of_range fault on it (or refuses it, without fault detection)
+    loaded = load_observations(args.data, keep_out_of_range=True)
     print(loaded.summary())
     result = replay_frame(
         loaded.frame,
@@ -47,7 +49,9 @@ def register(subparsers: Any) -> None:
         help="stream an observation file over Zenoh through a running service, then score its predictions",
         description="Publish each row in time order (sensor sample, then its measurement) with BLOCK "
         "congestion control once the service's subscriber matched; collect the predictions and print "
-        "their MAPE against the file's measurements per well and overall.",
+        "their MAPE against the file's measurements per well and overall. A row with an input outside "
+        "its physical span is sent with its raw values (an out_of_range fault in the service); a row "
+        "with another problem is removed and counted.",
     )
     p.add_argument("data", help="observation file (.parquet or .csv)")
     pace = p.add_mutually_exclusive_group()

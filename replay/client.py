@@ -39,11 +39,13 @@ import zenoh
 from pydantic import ValidationError
 from tqdm import tqdm
 
+from vfm_core import observations
 from vfm_core.errors import ConfigError, VFMError
 from vfm_core.messages import (
     Measurement,
     SensorSample,
     measurement_key,
+    sample_outside_span,
     sensor_block,
     sensors_key,
     validate_prefix,
@@ -219,18 +221,33 @@ class ZenohBus:
         self.close()
 
 
-def sample_of(when: datetime, inputs: Iterable[float]) -> SensorSample:
-    """A sensor sample from its time and six inputs (INPUT_COLUMNS order); ValidationError if bad."""
+def sample_of(
+    when: datetime, inputs: Iterable[float], *, out_of_span: bool = False
+) -> SensorSample:
+    """A sensor sample from its time and six inputs (INPUT_COLUMNS order); ValidationError if bad.
+
+    ``out_of_span``: a sample whose only problem is one or more inputs outside their
+    physical span (a negative pressure, a choke or a fraction outside 0..1, a temperature
+    below -60 degC; :func:`vfm_core.messages.sample_outside_span`) keeps its raw values
+    instead: a service that watches instrument faults raises an ``out_of_range`` fault on
+    it, one that does not refuses it and counts the reason."""
     choke, p_up, p_down, t_up, eta_gas, eta_oil = (float(v) for v in inputs)
-    return SensorSample(
-        time=when,
-        choke=choke,
-        p_up=p_up,
-        p_down=p_down,
-        t_up=t_up,
-        eta_gas=eta_gas,
-        eta_oil=eta_oil,
-    )
+    data = {
+        "time": when,
+        "choke": choke,
+        "p_up": p_up,
+        "p_down": p_down,
+        "t_up": t_up,
+        "eta_gas": eta_gas,
+        "eta_oil": eta_oil,
+    }
+    try:
+        return SensorSample.model_validate(data)
+    except ValidationError:
+        kept = sample_outside_span(data) if out_of_span else None
+        if kept is None:
+            raise
+        return kept
 
 
 @dataclass
@@ -240,6 +257,8 @@ class Streamed:
     samples: list[tuple[str, int]] = field(default_factory=list)  # (well, sample time ns)
     measurements: int = 0
     skipped: int = 0  # rows whose values fail the message schema
+    #: samples sent with an input outside its physical span (raw values: out_of_range faults)
+    out_of_span: int = 0
     started: float = 0.0  # time.monotonic() when sending began
 
 
@@ -411,7 +430,10 @@ class FieldClient:
         sample, then its measurement if it has one. ``speed``: N times real time (None: as
         fast as the bus takes them); ``stop`` ends the stream early. A second row of a well
         at the same time carries only its measurement; rows whose values fail the message
-        schema are skipped and counted."""
+        schema are skipped and counted. A row whose only problem is an input outside its
+        physical span is sent with its raw values (``sample_of(..., out_of_span=True)``) and
+        counted in ``out_of_span``: the service decides (an ``out_of_range`` fault while it
+        watches instrument faults, else refused with its reason)."""
         out = Streamed(started=time.monotonic())
         if rows.empty:
             return out
@@ -419,6 +441,7 @@ class FieldClient:
         t0_data = times[0]
         wells = rows[WELL].astype(str).to_numpy()
         x = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+        outside = np.asarray(observations.outside_span(rows).any(axis=1))  # sent raw, counted
         q = rows[TARGET].to_numpy(dtype=float)
         src = rows[SOURCE].astype(str).to_numpy()
         py_times = [t.to_pydatetime() for t in times]
@@ -442,10 +465,11 @@ class FieldClient:
             t_ns = to_ns(when)
             if last_sent.get(well) != t_ns:
                 try:
-                    sample = sample_of(when, x[i])
+                    sample = sample_of(when, x[i], out_of_span=True)
                 except ValidationError:
                     out.skipped += 1
                     continue
+                out.out_of_span += bool(outside[i])
                 self.send_sample(well, sample)
                 out.samples.append((well, t_ns))
                 last_sent[well] = t_ns

@@ -1,7 +1,8 @@
 """Replay an observation file through a running service, exactly as live data arrive.
 
 For each row in time order (from ``start`` on): the sensor sample on
-``<prefix>/<well>/sensors``, then, if the row has one, the measurement on
+``<prefix>/<well>/sensors`` (an input outside its physical span sent raw: the service
+decides, see :meth:`replay.client.FieldClient.stream`), then, if the row has one, the measurement on
 ``<prefix>/<well>/measurements/<source>``, sent by the field client
 (:class:`replay.client.FieldClient`) over Zenoh (or any :class:`replay.client.FieldBus`,
 such as the service's in-memory transport). Every Zenoh publisher uses BLOCK congestion
@@ -55,6 +56,8 @@ class ReplayResult:
     skipped: int = 0
     #: the first few samples that got no prediction: (well, sample time ns)
     missing_samples: list[tuple[str, int]] = field(default_factory=list)
+    #: samples sent with an input outside its physical span, raw (out_of_range faults)
+    out_of_span: int = 0
 
     def summary(self) -> str:
         rate = self.rows / self.elapsed_s if self.elapsed_s > 0 else float("nan")
@@ -71,6 +74,13 @@ class ReplayResult:
             more = self.missing - len(self.missing_samples)
             lines.append(
                 f"Without a prediction: {shown}" + (f" and {more:,} more." if more > 0 else ".")
+            )
+        if self.out_of_span:
+            lines.append(
+                f"{self.out_of_span:,} sample(s) with an input outside its physical span were sent "
+                "with their raw values: a service that watches instrument faults raises an "
+                "out_of_range fault on them, stands in for the input and holds their "
+                "measurements; one that does not refuses them, its reason counted in /metrics."
             )
         if self.skipped:
             lines.append(
@@ -158,6 +168,7 @@ def replay_frame(
         skipped=sent.skipped,
     )
     result.missing_samples = lacking[:MISSING_SHOWN]
+    result.out_of_span = sent.out_of_span
     return result
 
 

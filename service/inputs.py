@@ -29,7 +29,13 @@ import orjson
 from pydantic import TypeAdapter, ValidationError
 
 from service.errors import InvalidRequest
-from vfm_core.messages import Measurement, SensorSample, parse_key, well_id_problem
+from vfm_core.messages import (
+    Measurement,
+    SensorSample,
+    parse_key,
+    sample_outside_span,
+    well_id_problem,
+)
 from vfm_core.timeutil import REPRESENTABLE_MAX, REPRESENTABLE_MIN, to_ns
 
 __all__ = [
@@ -242,39 +248,18 @@ def parse_sensor(
         raise InvalidRequest(sentence, reason) from None
 
 
-#: in-span values that pass every rule of :class:`SensorSample` with any valid rest (see
-#: :func:`_set_aside`): a choke half open, 20 degC, no gas nor oil
-_STAND_INS = {"choke": 0.5, "t_up": 20.0, "eta_gas": 0.0, "eta_oil": 0.0}
-
-
 def _set_aside(data: dict[str, Any]) -> SensorSample | None:
     """``data`` (numbers checked, :func:`_check_numbers`) as a sample with its raw values
     when every input outside its physical span is set aside and the rest passes every rule
-    of :class:`SensorSample` (its time too); None when no input is outside. Raises
-    :class:`InvalidRequest` with the rest's reason when it breaks a rule: a zero pressure
-    (inside the span, 0..1500 bar a), a p_down at or above an in-span p_up."""
-    from vfm_core.sensor_faults import DEFAULT_RANGES
-
+    of :class:`SensorSample` (:func:`vfm_core.messages.sample_outside_span`, the rule the
+    replay sends by); None when no input is outside. Raises :class:`InvalidRequest` with
+    the rest's reason when it breaks a rule: a zero pressure (inside the span, 0..1500 bar
+    a), a p_down at or above an in-span p_up."""
     try:
-        raw = {name: float(data[name]) for name in _NUMERIC_SENSOR}
-    except (KeyError, TypeError, ValueError, OverflowError):
-        return None
-    aside = [n for n, v in raw.items() if not DEFAULT_RANGES[n][0] <= v <= DEFAULT_RANGES[n][1]]
-    if not aside:
-        return None
-    probe = dict(data, **{n: _STAND_INS[n] for n in aside if n in _STAND_INS})
-    if "p_up" in aside and "p_down" in aside:
-        probe.update(p_up=2.0, p_down=1.0)
-    elif "p_up" in aside:  # above the kept p_down (a p_down of 0 still fails its own rule)
-        probe["p_up"] = raw["p_down"] + 1.0
-    elif "p_down" in aside:
-        probe["p_down"] = raw["p_up"] / 2.0
-    try:
-        checked = SensorSample.model_validate(probe)
+        return sample_outside_span(data)
     except ValidationError as exc:
         reason, sentence = classify_errors(exc.errors(include_url=False))  # type: ignore[arg-type]
         raise InvalidRequest(sentence, reason) from None
-    return checked.model_copy(update={n: raw[n] for n in aside})
 
 
 #: the times :func:`quick_sensor` reads itself: ISO 8601 with a ``T``, whole seconds or up to

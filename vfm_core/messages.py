@@ -43,6 +43,7 @@ from vfm_core.timeutil import iso, time_problem
 
 __all__ = [
     "SensorSample",
+    "sample_outside_span",
     "Measurement",
     "Prediction",
     "prediction_json",
@@ -117,6 +118,44 @@ class SensorSample(BaseModel):
     def inputs(self) -> list[float]:
         """The six model inputs in :data:`vfm_core.schema.INPUT_COLUMNS` order."""
         return [self.choke, self.p_up, self.p_down, self.t_up, self.eta_gas, self.eta_oil]
+
+
+#: in-span values that pass every rule of :class:`SensorSample` with any valid rest (see
+#: :func:`sample_outside_span`): a choke half open, 20 degC, no gas nor oil
+_STAND_INS = {"choke": 0.5, "t_up": 20.0, "eta_gas": 0.0, "eta_oil": 0.0}
+
+
+def sample_outside_span(data: Mapping[str, Any]) -> SensorSample | None:
+    """``data`` (a time and the six inputs) as a sample with its raw values when every input
+    outside its physical span (:data:`vfm_core.sensor_faults.DEFAULT_RANGES`: a negative
+    pressure, a choke or a fraction outside 0..1, a temperature below -60 degC) is set aside
+    and the rest passes every rule of :class:`SensorSample` (its time too); None when no
+    input is outside, or an input is missing, no number or not finite. Raises pydantic's
+    ``ValidationError`` with the rest's problem when it breaks a rule: a zero pressure
+    (inside the span, 0..1500 bar a), a p_down at or above an in-span p_up.
+
+    One rule for both sides of the interface: the service takes such a sample while it
+    watches instrument faults (an ``out_of_range`` fault), the replay sends it as it is."""
+    from vfm_core.sensor_faults import DEFAULT_RANGES
+
+    try:
+        raw = {name: float(data[name]) for name in INPUT_COLUMNS}
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return None
+    if not all(map(math.isfinite, raw.values())):  # NaN is outside no span: refused as it is
+        return None
+    aside = [n for n, v in raw.items() if not DEFAULT_RANGES[n][0] <= v <= DEFAULT_RANGES[n][1]]
+    if not aside:
+        return None
+    probe = dict(data, **{n: _STAND_INS[n] for n in aside if n in _STAND_INS})
+    if "p_up" in aside and "p_down" in aside:
+        probe.update(p_up=2.0, p_down=1.0)
+    elif "p_up" in aside:  # above the kept p_down (a p_down of 0 still fails its own rule)
+        probe["p_up"] = raw["p_down"] + 1.0
+    elif "p_down" in aside:
+        probe["p_down"] = raw["p_up"] / 2.0
+    checked = SensorSample.model_validate(probe)
+    return checked.model_copy(update={n: raw[n] for n in aside})
 
 
 class Measurement(BaseModel):
