@@ -598,3 +598,12 @@ def test_a_carried_verdict_at_its_blocks_smallest_p_says_the_span_limits_it() ->
     assert dv.few_blocks_text({**walk, "rejected": True}, "W02") == ""
     assert dv.few_blocks_text(None, "W02") == ""
     assert dv.few_blocks_text(walk, None).startswith(" The live error fell")
+
+
+def test_a_noise_verdict_names_what_it_did_not_test() -> None:
+    """A valve skipped because the choke hardly moves (a walk on Bernoulli, seed 6767, said
+    only "no candidate explains the residual"): the noise verdict's text names it and why."""
+    why = "the choke hardly moves (largest P5-P95 span 0.020 in one well), so a valve curve cannot be told from C_D"
+    text = dv.untested_text([{"effect": "valve", "reason": why}])
+    assert text == f" Not tested: valve ({why})."
+    assert dv.untested_text([]) == ""

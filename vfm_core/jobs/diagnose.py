@@ -1543,6 +1543,9 @@ class _DiagnosisRun:
                 self.fit_once,
                 None if w is None else by_well["field"]["effect"],
             )
+        for v in by_well.values():  # "none lowers the error" is no verdict on the untested
+            if v["kind"] == "noise":
+                v["text"] += verdicts.untested_text(self.skipped)
         if len(pool) == 1:
             by_well[pool[0]] = by_well["field"]
         if s.instrument:

@@ -63,6 +63,7 @@ __all__ = [
     "instrument_check",
     "fit_once_verdict",
     "few_blocks_text",
+    "untested_text",
 ]
 
 #: Candidates replayed under the well's own learning method (live and outage), best first by
@@ -494,6 +495,15 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
         tail = "it was not replayed under the live protocol."
     text = f"The fit-once evidence names {c.effect} ({_fit_once_text(c, well)}), but " + tail
     return _as_named("carried", c, text, num)
+
+
+def untested_text(skipped: Sequence[dict[str, str]]) -> str:
+    """A sentence for a ``noise`` verdict naming the candidates the diagnosis did not test,
+    with their reasons (``skipped``: ``{"effect", "reason"}`` each): "none lowers the error"
+    is then not a verdict on them. Empty when none was skipped."""
+    if not skipped:
+        return ""
+    return " Not tested: " + "; ".join(f"{x['effect']} ({x['reason']})" for x in skipped) + "."
 
 
 def few_blocks_text(t: dict[str, Any] | None, well: str | None) -> str:
