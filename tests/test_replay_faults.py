@@ -13,7 +13,6 @@ its summary. No threshold: the span is the physical one (``DEFAULT_RANGES``).
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,6 +22,7 @@ import httpx
 import numpy as np
 import pandas as pd
 import pytest
+from http_support import http_get
 
 from replay.client import FieldClient, sample_of
 from replay.replayer import ReplayResult, replay_frame
@@ -74,18 +74,6 @@ def in_memory(folder: Path, field: dict[str, Any], enabled: bool) -> Iterator[tu
         yield service, bus
     finally:
         service.stop()
-
-
-def http_get(service: Any, path: str) -> dict[str, Any]:
-    from service.http import create_app
-
-    async def go() -> httpx.Response:
-        transport = httpx.ASGITransport(app=create_app(service))
-        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-            return await client.get(path)
-
-    out: dict[str, Any] = asyncio.run(go()).json()
-    return out
 
 
 def _ns(times: Any) -> np.ndarray:

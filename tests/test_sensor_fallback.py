@@ -13,7 +13,6 @@ of its noise: the stand-in was then the frozen reading itself, no better and no 
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
 from collections.abc import Iterator
@@ -21,10 +20,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pandas as pd
 import pytest
+from http_support import http_get
 
 from vfm_core.faults_sim import inject_fault
 from vfm_core.sensor_faults import (
@@ -158,18 +157,6 @@ def running(folder: Path) -> Iterator[tuple[Any, Any, dict[int, dict[str, Any]]]
     finally:
         unsubscribe()
         service.stop()
-
-
-def http_get(service: Any, path: str) -> dict[str, Any]:
-    from service.http import create_app
-
-    async def go() -> httpx.Response:
-        transport = httpx.ASGITransport(app=create_app(service))
-        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-            return await client.get(path)
-
-    out: dict[str, Any] = asyncio.run(go()).json()
-    return out
 
 
 def send(client: Any, service: Any, rows: pd.DataFrame, messages: dict[int, Any]) -> None:
