@@ -607,3 +607,38 @@ def test_a_noise_verdict_names_what_it_did_not_test() -> None:
     text = dv.untested_text([{"effect": "valve", "reason": why}])
     assert text == f" Not tested: valve ({why})."
     assert dv.untested_text([]) == ""
+
+
+def test_a_noise_verdict_names_candidates_beyond_chance_but_below_the_minimum() -> None:
+    """Real gas on a Sachdeva field (bench_verdicts seeds 64, 65): a refitted C_D takes up
+    nearly all of it, and what is left lowers the fit-once error beyond chance by less than
+    the 0.1-point minimum, so the verdict is ``noise``. It says so: the candidate that fell
+    below the minimum, and that the data support (BIC over every measurement), is named with
+    its change and q; the same gain without the BIC's support (a well's own test found
+    critical_ratio at -0.005 points on seed 70), a candidate that changes nothing, one that
+    lowers the error by more than the minimum (another story: not offered for other reasons)
+    and a material one are not."""
+    rng = np.random.default_rng(5)
+    frame = _frame(rng)
+    r = 0.02 + 0.02 * rng.normal(size=len(frame))
+    base = _run(frame, r)
+    small = _candidate("real_gas", base, _run(frame, 0.975 * r))
+    small.delta_bic_all = -30.0
+    unsupported = _candidate("mpfm_bias", base, _run(frame, 0.975 * r))
+    none = _candidate("erosion", base, _run(frame, r + 0.002 * rng.normal(size=len(frame))))
+    large = _candidate("slip", base, _run(frame, 0.85 * r))
+    named = _candidate("critical_ratio", base, _run(frame, 0.98 * r), material=True)
+    results = [small, unsupported, none, large, named]
+    dv.fdr(results, None, 0, len(WELLS))
+    assert unsupported.test("fit_once")["rejected"]
+    found = dv.below_minimum(results, None)
+    assert [x["effect"] for x in found] == ["real_gas"]
+    change = small.test("fit_once")["change"]
+    assert -dv.MIN_CHANGE < change < 0 and found[0]["change"] == change
+    assert found[0]["q_value"] < 0.05
+    text = dv.below_minimum_text(found)
+    assert f"real_gas ({change:+.2f} points, q = " in text and "below the minimum" in text
+    # a well's own test counts too; nothing found, nothing said
+    assert [x["effect"] for x in dv.below_minimum(results, "W01")] == ["real_gas"]
+    assert dv.below_minimum([unsupported, none, large, named], None) == []
+    assert dv.below_minimum_text([]) == ""

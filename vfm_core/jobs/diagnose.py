@@ -1543,8 +1543,11 @@ class _DiagnosisRun:
                 self.fit_once,
                 None if w is None else by_well["field"]["effect"],
             )
-        for v in by_well.values():  # "none lowers the error" is no verdict on the untested
+        for key, v in by_well.items():  # "none lowers the error" is no verdict on the untested
             if v["kind"] == "noise":
+                found = verdicts.below_minimum(self.results, None if key == "field" else key)
+                v["below_minimum"] = found
+                v["text"] += verdicts.below_minimum_text(found)
                 v["text"] += verdicts.untested_text(self.skipped)
         if len(pool) == 1:
             by_well[pool[0]] = by_well["field"]
@@ -1560,7 +1563,7 @@ class _DiagnosisRun:
                 self.notes,
             )
         for v in by_well.values():  # present on every verdict, empty when nothing is related
-            for key in RIVAL_KEYS:
+            for key in (*RIVAL_KEYS, "below_minimum"):
                 v.setdefault(key, [])
 
     def live_verdicts(self) -> None:

@@ -31,6 +31,7 @@ from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_results import (
+    MATERIAL_BIC,
     MATERIAL_MAPE_NEAR_FLOOR,
     CandidateResult,
     Suggestion,
@@ -64,6 +65,8 @@ __all__ = [
     "fit_once_verdict",
     "few_blocks_text",
     "untested_text",
+    "below_minimum",
+    "below_minimum_text",
 ]
 
 #: Candidates replayed under the well's own learning method (live and outage), best first by
@@ -504,6 +507,56 @@ def untested_text(skipped: Sequence[dict[str, str]]) -> str:
     if not skipped:
         return ""
     return " Not tested: " + "; ".join(f"{x['effect']} ({x['reason']})" for x in skipped) + "."
+
+
+def below_minimum(results: Sequence[CandidateResult], well: str | None) -> list[dict[str, Any]]:
+    """The candidates that the data support (BIC over every measurement lower by more than
+    :data:`MATERIAL_BIC`) and whose fit-once evidence lowers the error beyond chance
+    (BH-rejected, the field's test or ``well``'s own) but by less than :data:`MIN_CHANGE`
+    points, not material: too little to act on, whether physics at work (real gas that a
+    refitted C_D nearly absorbs) or a flexible term taking up meter drift. (Without the BIC
+    condition a well's own test lists candidates that change its error by a ten-thousandth
+    of a point in every block.)
+    ``[{"effect", "change", "q_value"}]``, largest fall first; the change in MAPE points,
+    from the test that found it."""
+    out = []
+    for c in results:
+        if c.material or not c.delta_bic_all < -MATERIAL_BIC:
+            continue
+        tests = [c.test("fit_once")] + ([c.test("fit_once", well)] if well is not None else [])
+        found = [
+            t
+            for t in tests
+            if t is not None
+            and t.get("rejected")
+            and t.get("change") is not None
+            and -MIN_CHANGE < t["change"] < 0.0
+        ]
+        if found:
+            t = min(found, key=lambda x: x["change"])
+            out.append(
+                {"effect": c.spec or c.effect, "change": t["change"], "q_value": t.get("q_value")}
+            )
+    return sorted(out, key=lambda x: x["change"])
+
+
+def below_minimum_text(found: Sequence[dict[str, Any]]) -> str:
+    """A sentence for a ``noise`` verdict naming :func:`below_minimum`'s candidates: the
+    effect may be at work, it is not worth adding. Empty when there are none."""
+    if not found:
+        return ""
+    each = ", ".join(
+        f"{x['effect']} ({x['change']:+.2f} points"
+        + (f", q = {x['q_value']:.2g}" if x.get("q_value") is not None else "")
+        + ")"
+        for x in found
+    )
+    return (
+        f" Beyond chance but below the minimum: {each} lowered the fit-once error by less "
+        f"than {MIN_CHANGE:g} points, though the data support it (BIC lower by more than "
+        f"{MATERIAL_BIC:g}): too little to act on (physics at work that the fitted "
+        "parameters nearly absorb, or a flexible term taking up meter drift)."
+    )
 
 
 def few_blocks_text(t: dict[str, Any] | None, well: str | None) -> str:
