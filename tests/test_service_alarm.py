@@ -11,48 +11,28 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Iterator
-from contextlib import contextmanager
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
 import pandas as pd
 import pytest
+from alarm_support import INPUTS, T0, fixed_model_service, send_readings, wait_learned
 
 from replay.client import FieldClient, sample_of
 from service.app import Service
 from service.config import load_settings
 from service.http import create_app
-from service.testing import loopback_settings, wait_until
-from service.transport import MemoryTransport
+from service.testing import wait_until
 from vfm_core.errors import ConfigError
-from vfm_core.messages import Measurement
 from vfm_core.residual_alarm import alarms_from_predictions
 from vfm_core.timeutil import iso, to_ns
 
 pytestmark = pytest.mark.timeout(180)
 
-T0 = datetime(2021, 5, 1, 0, 0, tzinfo=UTC)
-INPUTS = (0.4, 120.0, 30.0, 60.0, 0.1, 0.6)  # fraction, bar a, bar a, degC, -, -
 STEP_DAY = 70
 DAYS = 90
-
-
-@contextmanager
-def running(folder: Path, **overrides: Any) -> Iterator[tuple[Service, FieldClient]]:
-    settings = loopback_settings(folder, model={"name": "mm", "method": "pbl:3650d"}, **overrides)
-    bus = MemoryTransport(settings.prefix)
-    service = Service(settings, bus)
-    service.start()
-    try:
-        with FieldClient(bus, settings.prefix) as client:
-            client.wait_for_service("W01")
-            yield service, client
-    finally:
-        service.stop()
 
 
 def http_get(service: Service, path: str) -> httpx.Response:
@@ -68,32 +48,20 @@ def http_get(service: Service, path: str) -> httpx.Response:
 
 def send_field(client: FieldClient, seed: int) -> list[datetime]:
     """Two MPFM readings a day with 3 % noise around 1000 Sm3/h, +12 % from STEP_DAY."""
-    rng = np.random.default_rng(seed)
-    times = [T0 + timedelta(hours=12 * i + 3) for i in range(2 * DAYS)]
-    for t in times:
-        level = 1000.0 * (1.12 if t >= T0 + timedelta(days=STEP_DAY) else 1.0)
-        q = level * float(np.exp(0.03 * rng.standard_normal()))
-        client.send_sample("W01", sample_of(t, INPUTS))
-        client.send_measurement("W01", "mpfm", Measurement(time=t, q_total=q))
-    return times
+    return send_readings(client, lambda day: 1.12 if day >= STEP_DAY else 1.0, DAYS, seed)
 
 
 def test_a_step_raises_the_residual_alarm_everywhere_it_is_shown(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level(logging.INFO, logger="vfm.service.engine")
-    with running(tmp_path) as (service, client):
+    with fixed_model_service(tmp_path) as (service, client):
         assert service.engine is not None
         sub = service.engine.observer.subscribe("W01")
         times = send_field(client, seed=2)
         store = service.store
         assert store is not None
-
-        def all_learned() -> bool:
-            rows = store.history("W01", 0, 2**62, 10_000)[1]
-            return len(rows) == len(times) and all(m.status == "learned" for m in rows)
-
-        wait_until(all_learned, 60, "every measurement to be learned")
+        wait_learned(service, len(times))
         view = http_get(service, "/wells/W01").json()
         alarm = view["residual_alarm"]
         assert alarm["enabled"] and alarm["active"]
@@ -141,7 +109,7 @@ def test_a_step_raises_the_residual_alarm_everywhere_it_is_shown(
 
 
 def test_the_residual_alarm_can_be_switched_off(tmp_path: Path) -> None:
-    with running(tmp_path, residual_alarm={"enabled": False}) as (service, client):
+    with fixed_model_service(tmp_path, residual_alarm={"enabled": False}) as (service, client):
         client.send_sample("W01", sample_of(T0, INPUTS))
         engine = service.engine
         assert engine is not None
@@ -166,21 +134,12 @@ def test_a_restart_resumes_the_residual_alarm(tmp_path: Path) -> None:
     """The detectors go into the well's checkpoint: after a clean stop and a start, the alarm
     is still active with its start, and the stream tests at once (no new self-starting
     period of ``min_periods``)."""
-    with running(tmp_path) as (service, client):
+    with fixed_model_service(tmp_path) as (service, client):
         times = send_field(client, seed=2)
-        store = service.store
-        assert store is not None
-        wait_until(
-            lambda: (
-                sum(m.status == "learned" for m in store.history("W01", 0, 2**62, 10_000)[1])
-                == len(times)
-            ),
-            60,
-            "every measurement to be learned",
-        )
+        wait_learned(service, len(times))
         before = http_get(service, "/wells/W01").json()["residual_alarm"]
     assert before["active"]
-    with running(tmp_path) as (service, _):
+    with fixed_model_service(tmp_path) as (service, _):
         after = http_get(service, "/wells/W01").json()["residual_alarm"]
     assert after["active"] and after["since"] == before["since"]
     assert after["direction"] == before["direction"]

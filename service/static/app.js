@@ -221,13 +221,46 @@ const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a", al
   fault: "rgba(106,27,154,0.8)" };
 const BAND_PX = 5;  // height of the alarm band and of the fault band under it (CSS px)
 
-/* The residual alarms of the well on view as spans {t0, t1, source, direction}, t1 null while
-   active (drawn to the chart's right edge). From GET /wells/{well}, refreshed every 5 s. */
+/* A residual alarm's event (GET /wells/{well} residual_alarm.events) whose detector started
+   over (service/engine/residual_alarms.py WellResidualAlarm.reset, meant for a model change:
+   the new model's residuals are a new stream): its end is "reset", not a time. */
+const alarmReset = (e) => e.end === "reset" || e.closed === "reset";
+
+/* The residual alarms of the well on view as spans {t0, t1, ...event}, t1 null while active
+   (drawn to the chart's right edge); one ended by a model change ends at the first model-change
+   marker after its start (at its start when none is on the chart). From GET /wells/{well},
+   refreshed every 5 s. */
 function alarmBands() {
   const ra = state.view && state.view.residual_alarm;
-  return ((ra && ra.events) || []).map((e) => ({
-    t0: secs(e.start), t1: e.end && e.end !== "reset" ? secs(e.end) : null, source: e.source, direction: e.direction,
-  }));
+  return ((ra && ra.events) || []).map((e) => {
+    const t0 = secs(e.start);
+    let t1 = e.end == null ? null : secs(e.end);
+    if (alarmReset(e)) {
+      const change = state.markers.filter((m) => m.kind === "model" && m.t >= t0).map((m) => m.t);
+      t1 = change.length ? Math.min(...change) : t0;
+    }
+    return { ...e, t0, t1 };
+  });
+}
+
+/* A residual alarm in plain words: the meter, its side of the model, its span and how it
+   ended (vfm_core/residual_alarm.py: "cleared" when the residuals came back, "accepted" when
+   it lasted accept_periods periods; end "reset" when its detector started over; events saved
+   before s46 have no "closed": "ended"). */
+function alarmText(e, acceptPeriods) {
+  const meter = e.source === "well_test" ? "well tests" : (e.source || "measurements").toUpperCase();
+  const side = e.direction === "high" ? "above" : e.direction === "low" ? "below" : "off";
+  const n = acceptPeriods ?? (state.view && state.view.residual_alarm && state.view.residual_alarm.accept_periods);
+  const what = `${meter} ${side} the model`;
+  if (e.end == null) {
+    const accept = n > 0 ? `; accepted as the new level if it lasts ${n} periods` : "";
+    return `${what} since ${minute(e.start)} UTC (active${accept})`;
+  }
+  if (alarmReset(e)) return `${what} from ${minute(e.start)} UTC: ended by a model change`;
+  const how = e.closed === "cleared" ? "cleared: the residuals came back"
+    : e.closed === "accepted" ? `accepted as the new level after ${n ?? "accept_periods"} periods: the alarm restarts from it`
+    : "ended";
+  return `${what} ${minute(e.start)} to ${minute(e.end)} UTC: ${how}`;
 }
 
 /* The instrument faults of the well on view as spans {t0, t1, sensor, kind, evidence}, t1 null
@@ -274,7 +307,7 @@ function markersPlugin(source = () => state.markers, bands = alarmBands, faults 
         const dpr = devicePixelRatio;
         const xmin = u.scales.x.min, xmax = u.scales.x.max;
         ctx.save();
-        spans(u, bands(), top, MARK_COLORS.alarm);
+        u.alarmSpans = spans(u, bands(), top, MARK_COLORS.alarm);
         u.faultSpans = spans(u, faults(), top + (BAND_PX + 1) * dpr, MARK_COLORS.fault);
         ctx.restore();
         for (const m of source()) {
@@ -299,12 +332,16 @@ function markersPlugin(source = () => state.markers, bands = alarmBands, faults 
           ctx.restore();
         }
       },
-      // hovering a fault band names the fault (the chart's title attribute: no text drawn)
+      // hovering a band names its alarm or fault (the chart's title attribute: no text drawn);
+      // the two bands touch, so the hover margin reaches only away from the other band
       setCursor: (u) => {
         const dpr = devicePixelRatio, { left, top } = u.cursor;
         const x = left * dpr + u.bbox.left, y = top * dpr + u.bbox.top;
-        const hit = (u.faultSpans || []).filter((s) => left >= 0 && x >= s.x0 - dpr && x <= s.x1 + dpr && y >= s.y0 - 3 * dpr && y <= s.y1 + 3 * dpr);
-        const title = hit.map((s) => "Instrument fault: " + faultText(s)).join("\n");
+        const on = (s, above, below) => left >= 0 && x >= s.x0 - dpr && x <= s.x1 + dpr && y >= s.y0 - above && y <= s.y1 + below;
+        const alarms = (u.alarmSpans || []).filter((s) => on(s, 3 * dpr, 0));
+        const faults = (u.faultSpans || []).filter((s) => on(s, 0, 3 * dpr));
+        const title = [...alarms.map((s) => "Residual alarm: " + alarmText(s)),
+          ...faults.map((s) => "Instrument fault: " + faultText(s))].join("\n");
         if (u.over.title !== title) u.over.title = title;
       },
     },
@@ -358,11 +395,20 @@ function makeCharts() {
     width: chartWidth(resEl), height: 230,
     scales: { x: { time: false } },
     series: [
-      { label: $("#residual-input").value },
+      { label: $("#residual-input").value, value: (u, v) => (v == null ? "\u2013" : String(Number(v.toPrecision(6)))) },
       { label: "error %", stroke: "#1f4e79", paths: () => null, points: pts(4, "#1f4e79"), value: (u, v) => fmt(v, 1) },
     ],
-    axes: [{ label: $("#residual-input").selectedOptions[0].textContent }, { label: "%", size: 50 }],
+    axes: [{ label: $("#residual-input").selectedOptions[0].textContent, values: tickLabels }, { label: "%", size: 50 }],
   }, [[], []], resEl);
+}
+
+/* Tick labels of a numeric axis with as many decimals as the tick spacing needs, so that an
+   input that barely moves (a choke from 0.540 to 0.542, ticks 0.0002 apart) gets distinct
+   labels (uPlot's default rounds to 3 decimals: 0.54, 0.54, 0.541, 0.541, 0.541, ...). */
+function tickLabels(u, splits, axisIdx, space, incr) {
+  let d = 0;
+  while (d < 12 && Math.abs(incr * 10 ** d - Math.round(incr * 10 ** d)) > 1e-6 * Math.max(1, incr * 10 ** d)) d++;
+  return splits.map((v) => (v == null ? "" : v.toFixed(d)));
 }
 
 /* The parameter chart: value, value -/+ 2 sd (the band), the bounds dashed. */
@@ -542,7 +588,7 @@ function renderWellHeader() {
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
   $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
-  renderTrial(v); renderVersions(v); renderFaults(v); renderReview(v);
+  renderTrial(v); renderVersions(v); renderFaults(v); renderAlarms(v); renderReview(v);
 }
 
 /* Well tests held for review (GET /wells/{well} held_for_review): far off the model and the
@@ -590,6 +636,40 @@ function renderFaults(v) {
   el.innerHTML = !list.length ? "" : `<span class="mk fault"><b>Instrument faults</b></span> <span class="hint">(newest first; GET /wells/${esc(state.well)}: sensor_faults)</span>` +
     `<ul>${shown.map((f) => `<li class="${f.end == null ? "active" : "past"}" data-sensor="${esc(f.sensor)}" data-kind="${esc(f.kind)}"` +
       ` data-start="${esc(f.start)}" data-active="${f.end == null}">${esc(faultText(f))}</li>`).join("")}</ul>` +
+    (list.length > shown.length ? `<span class="hint">and ${list.length - shown.length} earlier</span>` : "");
+  state.dirty = true;  // the bands come with the view: redraw
+}
+
+/* What a period of the residual alarm's meters is, from its streams (the settings'
+   residual_alarm.mpfm_period_s and well_test_period_s): "a period: a day of MPFM readings; ". */
+function periodWords(ra) {
+  const words = Object.entries(ra.streams || {}).map(([source, st]) => {
+    const meter = source === "well_test" ? "well test" : source.toUpperCase() + " reading";
+    const p = st.period_s || 0;
+    if (!(p > 0)) return `one ${meter}`;
+    const span = p % 86400 === 0 ? (p === 86400 ? "a day" : `${p / 86400} days`) : `${fmt(p / 3600, 1)} h`;
+    return `${span} of ${meter}s`;
+  });
+  return words.length ? `a period: ${words.join(", ")}; ` : "";
+}
+
+/* The well's residual alarms as lines under the rate chart beside the instrument faults,
+   newest first (the latest 8; the API keeps the latest 20): the meter, the side of the model,
+   the span and how each ended. */
+function renderAlarms(v) {
+  const ra = (v && v.residual_alarm) || {};
+  const list = (ra.events || []).slice().reverse();
+  const el = $("#well-residual-alarms");
+  const key = JSON.stringify([state.well, list, ra.accept_periods]);
+  if (state.alarmsKey === key) return;  // unchanged: no redraw
+  state.alarmsKey = key;
+  el.hidden = !list.length;
+  const shown = list.slice(0, 8);
+  const closed = (e) => (alarmReset(e) ? "reset" : e.closed || (e.end == null ? "" : "ended"));
+  el.innerHTML = !list.length ? "" : `<span class="mk alarm"><b>Residual alarms</b></span> <span class="hint">(newest first; ` +
+    `${periodWords(ra)}GET /wells/${esc(state.well)}: residual_alarm.events)</span>` +
+    `<ul>${shown.map((e) => `<li class="${e.end == null ? "active" : "past"}" data-source="${esc(e.source)}" data-direction="${esc(e.direction)}"` +
+      ` data-start="${esc(e.start)}" data-closed="${esc(closed(e))}" data-active="${e.end == null}">${esc(alarmText(e, ra.accept_periods))}</li>`).join("")}</ul>` +
     (list.length > shown.length ? `<span class="hint">and ${list.length - shown.length} earlier</span>` : "");
   state.dirty = true;  // the bands come with the view: redraw
 }
