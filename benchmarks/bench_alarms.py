@@ -28,7 +28,9 @@ service does), and reports:
 before and after, side by side. ``--accepts 0,30`` likewise runs the detector with each
 ``accept_periods`` (0: an alarm lasts until its level comes back, the rule before s46; 30:
 an alarm still active after 30 periods closes as an accepted new level and the reference
-restarts from them); the ``closed`` column counts the alarms closed as accepted.
+restarts from them); the ``closed`` column counts the alarms closed as accepted. A value
+ending in ``r`` (``30r``) keeps s46's rule after an accepted alarm (``alarm_on_return``:
+a return toward the level before it may raise an alarm); without it, s47's quiet way back.
 
 ``--iid N`` instead runs the detector on N i.i.d. N(0, 1) periods (three seeds) and prints
 the in-control run length against the design ``--arl0``.
@@ -160,7 +162,12 @@ def describe(
     return note, ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
 
 
-def iid_run_length(arl0: float, n: int, scale: str = "winsorised", accept: int = 0) -> None:
+def _accept(spec: str) -> tuple[int, bool]:
+    """``30`` -> (30, False); ``30r`` -> (30, True): accept_periods and alarm_on_return."""
+    return int(spec.rstrip("r")), spec.endswith("r")
+
+
+def iid_run_length(arl0: float, n: int, scale: str = "winsorised", accept: str = "0") -> None:
     """The detector as built (scale estimated, not known) on i.i.d. N(0, 1) residuals, one
     per period: periods per false alarm against the design."""
     print(
@@ -168,7 +175,14 @@ def iid_run_length(arl0: float, n: int, scale: str = "winsorised", accept: int =
         f"accept_periods {accept}"
     )
     for seed in range(3):
-        det = ResidualCusum(arl0=arl0, period_s=0.0, scale=scale, accept_periods=accept)
+        periods, on_return = _accept(accept)
+        det = ResidualCusum(
+            arl0=arl0,
+            period_s=0.0,
+            scale=scale,
+            accept_periods=periods,
+            alarm_on_return=on_return,
+        )
         x = np.random.default_rng(seed).standard_normal(n)
         for i, v in enumerate(x):
             det.update(float(v), i)
@@ -202,7 +216,9 @@ def main() -> None:
     ap.add_argument(
         "--accepts",
         default="30",
-        help="accept_periods to compare on the same predictions (comma-separated; 0: never)",
+        help="accept_periods to compare on the same predictions (comma-separated; 0: never; "
+        "a trailing r, e.g. 30r: a return toward the level before an accepted alarm may "
+        "raise one, the rule of s46)",
     )
     ap.add_argument("--markdown", help="also write the table as Markdown to this file")
     ap.add_argument(
@@ -213,9 +229,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.iid:
-        for scale, accept in itertools.product(
-            args.scales.split(","), map(int, args.accepts.split(","))
-        ):
+        for scale, accept in itertools.product(args.scales.split(","), args.accepts.split(",")):
             iid_run_length(args.arl0, args.iid, scale, accept)
         return
     rows: list[str] = []
@@ -243,10 +257,15 @@ def main() -> None:
                 p = run.predictions[np.isfinite(run.predictions["predicted"])]
                 wy = well_years(p)
                 for scale, accept in itertools.product(
-                    args.scales.split(","), map(int, args.accepts.split(","))
+                    args.scales.split(","), args.accepts.split(",")
                 ):
+                    periods, on_return = _accept(accept)
                     alarms = alarms_from_predictions(
-                        p, arl0=args.arl0, scale=scale, accept_periods=accept
+                        p,
+                        arl0=args.arl0,
+                        scale=scale,
+                        accept_periods=periods,
+                        alarm_on_return=on_return,
                     )
                     note, kinds = describe(alarms, effects, sim.truth, split, p)
                     acc = sum(a["closed"] == "accepted" for a in alarms)
@@ -256,7 +275,7 @@ def main() -> None:
                         f"{t2 / wy:.2f} | {note or '-'} | {kinds} |"
                     )
                     print(
-                        f"{text:<26} {model:<5} {method:<6} {scale:<10} {accept:6d} {wy:7.1f} "
+                        f"{text:<26} {model:<5} {method:<6} {scale:<10} {accept:>6} {wy:7.1f} "
                         f"{len(alarms):6d} {acc:8d} {len(alarms) / wy:14.2f} {t2:5d} "
                         f"{t2 / wy:10.2f}  {note} [{kinds}]  "
                         f"({time.perf_counter() - started:.0f} s)",

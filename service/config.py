@@ -818,6 +818,12 @@ class ResidualAlarmSettings(_Section):
         "level and the reference restarts from the periods since its signal (0: never, the "
         "rule before s46: an alarm whose level never comes back stays active for good)",
     )
+    alarm_on_return: bool = Field(
+        default=False,
+        description="whether, after an accepted alarm, a return toward the level before it "
+        "may raise an alarm (false, the default since s47: going back is quiet, going "
+        "beyond the old level is an alarm; true: the rule of s46)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> ResidualAlarmSettings:

@@ -249,3 +249,47 @@ def test_a_state_saved_before_acceptance_existed_still_loads() -> None:
         det.update(-0.06 + 0.02 * float(rng.standard_normal()), day * DAY_NS + DAY_NS // 2)
     (event,) = det.events
     assert event.closed == "accepted" and not det.alarm
+
+
+def _catching_up(seed: int, jump_at: int | None = None) -> np.ndarray:
+    """Period means: N(0, 1), 3 sd low from period 100 and back to 0 linearly over 90
+    periods (a learner following a change slowly); from ``jump_at`` 3 sd high."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(400)
+    level = np.where(t >= 100, -3.0 * np.clip(1.0 - (t - 100) / 90.0, 0.0, None), 0.0)
+    if jump_at is not None:
+        level[jump_at:] = 3.0
+    return rng.standard_normal(len(t)) + level
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_the_way_back_after_an_accepted_alarm_is_quiet_and_beyond_it_is_not(seed: int) -> None:
+    # s46's rule (alarm_on_return): the low alarm is accepted 30 periods after its signal,
+    # at a level the learner then leaves, and the way back to 0 is an alarm the other way
+    # (the echo of bench_alarms' sand fields). s47's default: the way back is quiet; a
+    # change beyond the level before the alarm (3 sd high at period 140, while the
+    # residuals are still on their way back) is an alarm within a few periods.
+    values = _catching_up(seed)
+    echo = ResidualCusum(period_s=0.0, scale="winsorised", accept_periods=30, alarm_on_return=True)
+    feed(echo, values)
+    assert [(e.direction, e.closed) for e in echo.events][:2] == [
+        ("low", "accepted"),
+        ("high", "accepted"),
+    ]
+    det = ResidualCusum(period_s=0.0, scale="winsorised", accept_periods=30)
+    feed(det, values)
+    low = [e for e in det.events if e.start_ns >= 90 * DAY_NS]
+    assert [(e.direction, e.closed) for e in low] == [("low", "accepted")]
+    assert 100 * DAY_NS <= low[0].start_ns <= 105 * DAY_NS
+    # beyond the old level, during the way back: found
+    beyond = ResidualCusum(period_s=0.0, scale="winsorised", accept_periods=30)
+    jumped = _catching_up(seed, jump_at=140)
+    feed(beyond, jumped[:135])
+    assert beyond.state_dict()["back"] is not None  # inside the quiet way back
+    resumed = ResidualCusum()
+    resumed.load_state_dict(beyond.state_dict())
+    feed(beyond, jumped[135:], start=135)
+    feed(resumed, jumped[135:], start=135)
+    high = [e for e in beyond.events if e.direction == "high" and e.start_ns >= 140 * DAY_NS]
+    assert high and high[0].start_ns <= 145 * DAY_NS
+    assert [e.as_dict() for e in resumed.events] == [e.as_dict() for e in beyond.events]

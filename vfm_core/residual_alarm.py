@@ -60,6 +60,14 @@ in noise and in rate)
    level; self-starting again if they are fewer than ``min_periods``). Without it the
    frozen reference of an alarm whose level never comes back (the learner settled on a new
    bias) keeps the alarm active for good, and a second change inside it raises nothing.
+7. **A quiet way back** (``alarm_on_return`` False, the default since s47): after an
+   accepted alarm, a return toward the level before it is no alarm. A learner that follows
+   a change slowly (``mm`` after a sand event) is often still on its way when its alarm is
+   accepted; the way back to the old level then looked like a change in the other
+   direction. Until the reference's centre is back at the level before the alarm, or for
+   ``window`` periods at most, the side pointing back is tested against that old level
+   instead of the new centre: going back is quiet, going beyond it is an alarm. The side
+   pointing away from the old level is tested as before.
 
 The detector follows the small river-like protocol of the project's detectors:
 ``update(residual, time_ns)``, the ``alarm`` property, ``reset()``, ``state_dict()`` and
@@ -266,7 +274,9 @@ class ResidualCusum:
     first test), ``clip`` (bound on a standardised period mean), ``lags`` (of the long-run
     factor), ``scale`` (``winsorised`` or ``mad``: the reference's centre and scale, see
     the module docstring), ``accept_periods`` (periods after which a lasting alarm closes
-    as an accepted new level and the reference restarts from them; 0: never).
+    as an accepted new level and the reference restarts from them; 0: never),
+    ``alarm_on_return`` (whether a return toward the level before an accepted alarm may
+    raise one; step 7 of the module docstring).
 
     >>> import numpy as np
     >>> det = ResidualCusum(period_s=0.0)
@@ -293,6 +303,7 @@ class ResidualCusum:
         lags: int = 3,
         scale: str = "mad",
         accept_periods: int = 0,
+        alarm_on_return: bool = False,
     ) -> None:
         if scale not in SCALES:
             raise ConfigError(f"scale must be one of {', '.join(SCALES)}, got {scale!r}.")
@@ -322,6 +333,7 @@ class ResidualCusum:
                 f"accept_periods must be 0 (never) or 5 to 100000 periods, got {accept_periods}."
             )
         self.accept_periods = int(accept_periods)
+        self.alarm_on_return = bool(alarm_on_return)
         self._period_ns = int(round(self.period_s * 1e9))
         self.reset()
 
@@ -347,6 +359,10 @@ class ResidualCusum:
         # periods added to the reference since they were computed (see _scale)
         self._robust: tuple[float, float] | None = None
         self._robust_added = 0
+        # the centre when the active alarm was signalled, and after an accepted alarm the
+        # quiet way back (step 7): (the accepted direction, the old centre, periods left)
+        self._signal_centre: float | None = None
+        self._back: tuple[str, float, int] | None = None
 
     @property
     def alarm(self) -> bool:
@@ -441,7 +457,8 @@ class ResidualCusum:
         x = x if x < clip else clip
         x = x if x > -clip else -clip
         self.last_x = x
-        pos, neg = self.pos + x - self.k, self.neg - x - self.k
+        xp, xn = (x, x) if self._back is None else self._way_back(mean, centre, scale, x)
+        pos, neg = self.pos + xp - self.k, self.neg - xn - self.k
         self.pos = pos if pos > 0.0 else 0.0
         self.neg = neg if neg > 0.0 else 0.0
         h = self.threshold
@@ -449,6 +466,7 @@ class ResidualCusum:
             if self.pos > h or self.neg > h:
                 direction = "high" if self.pos >= self.neg else "low"
                 self._active = AlarmEvent(time_ns, direction, peak=x, statistic=self.statistic)
+                self._signal_centre, self._back = centre, None
                 self.events.append(self._active)
                 self.pos, self.neg = min(self.pos, h), min(self.neg, h)
             else:
@@ -464,6 +482,25 @@ class ResidualCusum:
         elif 0 < self.accept_periods <= len(self._post):
             self._accept(time_ns)
 
+    def _way_back(self, mean: float, centre: float, scale: float, x: float) -> tuple[float, float]:
+        """The two sides' standardised period means after an accepted alarm (step 7): the
+        side pointing back to the old centre is measured from it while the centre has not
+        reached it again; the bracket ends there, or after ``window`` periods."""
+        assert self._back is not None
+        accepted, old, left = self._back
+        back = (old - centre) if accepted == "low" else (centre - old)
+        if left <= 0 or back <= 0.0:
+            self._back = None
+            return x, x
+        self._back = (accepted, old, left - 1)
+        clip = self.clip
+        y = (mean - old) / scale
+        y = y if y < clip else clip
+        y = y if y > -clip else -clip
+        # an accepted low level: the way up is quiet below the old centre (pos side);
+        # an accepted high level: the way down above it (neg side)
+        return (min(x, y), x) if accepted == "low" else (x, max(x, y))
+
     def _end(self, time_ns: int, closed: str) -> None:
         assert self._active is not None
         self._active.end_ns = time_ns
@@ -475,6 +512,9 @@ class ResidualCusum:
         """The alarm has held for ``accept_periods``: its level is the new reference (the
         period means since the signal, the last ``window`` of them), the sums restart at 0."""
         post = self._post
+        assert self._active is not None
+        if not self.alarm_on_return and self._signal_centre is not None:
+            self._back = (self._active.direction, self._signal_centre, self.window)
         self._end(time_ns, "accepted")
         self._ref = array("d", post[-self.window :])
         self._robust, self._robust_added = None, 0
@@ -493,6 +533,7 @@ class ResidualCusum:
             "lags": self.lags,
             "scale": self.scale,
             "accept_periods": self.accept_periods,
+            "alarm_on_return": self.alarm_on_return,
             "reference": list(self._ref),
             "open": self._open,
             "sum": self._sum,
@@ -506,6 +547,8 @@ class ResidualCusum:
             "robust": None if self._robust is None else list(self._robust),
             "robust_added": self._robust_added,
             "post": list(self._post),
+            "signal_centre": self._signal_centre,
+            "back": None if self._back is None else list(self._back),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -522,6 +565,7 @@ class ResidualCusum:
             int(state.get("lags", 3)),
             str(state.get("scale", "mad")),
             int(state.get("accept_periods", self.accept_periods)),
+            bool(state.get("alarm_on_return", self.alarm_on_return)),
         )
         self._ref.extend(float(v) for v in state.get("reference", []))
         del self._ref[: max(0, len(self._ref) - self.window)]  # the last window, as saved
@@ -533,6 +577,11 @@ class ResidualCusum:
         robust = state.get("robust")
         self._robust = None if robust is None else (float(robust[0]), float(robust[1]))
         self._robust_added = int(state.get("robust_added", 0))
+        # (a state saved before s47 has none: an alarm active in it is accepted as before)
+        centre = state.get("signal_centre")
+        self._signal_centre = None if centre is None else float(centre)
+        back = state.get("back")
+        self._back = None if back is None else (str(back[0]), float(back[1]), int(back[2]))
         self.events = [
             AlarmEvent(
                 int(e["start_ns"]),
@@ -561,6 +610,7 @@ def alarms_from_predictions(
     lags: int = 3,
     scale: str = "winsorised",
     accept_periods: int = 30,
+    alarm_on_return: bool = False,
     use_sd: bool = True,
     flush: bool = True,
 ) -> list[dict[str, Any]]:
@@ -589,6 +639,7 @@ def alarms_from_predictions(
             lags,
             scale,
             accept_periods,
+            alarm_on_return,
         )
         times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
         sds: Iterable[float | None] = (

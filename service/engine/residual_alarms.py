@@ -42,6 +42,7 @@ _DESIGN_KEYS = (
     "lags",
     "scale",
     "accept_periods",
+    "alarm_on_return",
 )
 
 
@@ -74,6 +75,7 @@ class WellResidualAlarm:
             s.lags,
             s.scale,
             s.accept_periods,
+            s.alarm_on_return,
         )
 
     def detector(self, source: str) -> ResidualCusum:
@@ -148,9 +150,13 @@ class WellResidualAlarm:
     def restore(self, data: dict[str, Any]) -> None:
         """Resume from :meth:`state`. A detector saved under other settings (``arl0``, ``k``,
         the periods, the window ...) starts afresh: its statistic would mean something else.
-        One saved before s46 (no ``accept_periods``) resumes under the current one: the
-        acceptance changes what happens after an alarm, not the statistic."""
-        missing = {"accept_periods": self.settings.accept_periods}
+        One saved before s46 (no ``accept_periods``) or s47 (no ``alarm_on_return``)
+        resumes under the current settings: they change what happens after an alarm, not
+        the statistic."""
+        missing = {
+            "accept_periods": self.settings.accept_periods,
+            "alarm_on_return": self.settings.alarm_on_return,
+        }
         for source, saved in (data.get("detectors") or {}).items():
             if tuple(saved.get(k, missing.get(k)) for k in _DESIGN_KEYS) != self._design(source):
                 continue
@@ -197,6 +203,7 @@ class WellResidualAlarm:
             "arl0": s.arl0,
             "k": s.k,
             "accept_periods": s.accept_periods,
+            "alarm_on_return": s.alarm_on_return,
             "streams": streams,
             "events": list(self.events),
         }

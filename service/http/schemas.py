@@ -356,7 +356,7 @@ class WellOut(WellSummary):
     residual_alarm: dict[str, Any] | None = Field(
         default=None,
         description="the alarm on the model's standardised residuals: enabled, active, "
-        "statistic, threshold, since, direction, source, arl0, k, accept_periods, streams (per "
+        "statistic, threshold, since, direction, source, arl0, k, accept_periods, alarm_on_return, streams (per "
         "meter), events (with closed: cleared | accepted once ended)",
     )
     held_for_review: list[HeldForReview] = Field(
