@@ -92,6 +92,8 @@ _CLOSED_CHOKE = 1e-3  # a reading at or below it is a closed choke (shut in)
 _MIN_DP = 1e-3  # the pressure drop's floor, a share of p_up (a log needs it positive)
 _GAP_NS = 2 * _NS_PER_DAY  # samples further apart: a break (a shut-in, an outage)
 _Z_NONE = NormalDist().inv_cdf(0.995)  # |d| within it: no response (two-sided 99 %)
+_BISECTIONS = 24  # of omega in [0, 1]: to 1e-7 (log rate)
+_HUBER_STEPS = 20  # reweightings of the elasticity's Huber fit at most
 
 
 @dataclass
@@ -125,8 +127,9 @@ class _Move:
     #: readings can tell (:meth:`ChokeRateWitness.doubted`): not yet decided
     doubt: bool = False
     #: the window before it, once made: (elasticity, adjusted log rates, largest
-    #: adjustment, mean log p_up and log(p_up - p_down))
-    before: tuple[float, np.ndarray, float, tuple[float, float]] | None = None
+    #: adjustment, mean log p_up and log(p_up - p_down), mean adjusted log rate (NaN when
+    #: empty))
+    before: tuple[float, np.ndarray, float, tuple[float, float], float] | None = None
     #: the window after it so far, kept up reading by reading: [elasticity, time of the
     #: last reading in it, n, sum of adjusted log rates, largest adjustment, sums of log
     #: p_up and log(p_up - p_down) (NaN once one is unknown)]
@@ -145,6 +148,8 @@ class _Readings:
     def __init__(self) -> None:
         self.buf = np.empty((64, 6))
         self.n = 0
+        #: changes with every append or clear (what is cached of the rows is keyed by it)
+        self.version = 0
 
     def __len__(self) -> int:
         return self.n
@@ -159,14 +164,16 @@ class _Readings:
             self.buf[: self.n] = keep
         self.buf[self.n] = row
         self.n += 1
+        self.version += 1
 
     def since(self, oldest_ns: float) -> np.ndarray:
         """The rows at or after ``oldest_ns`` (a view)."""
         arr = self.buf[: self.n]
-        return arr[int(np.searchsorted(arr[:, 0], oldest_ns)) :]
+        return arr[int(arr[:, 0].searchsorted(oldest_ns)) :]
 
     def clear(self) -> None:
         self.n = 0
+        self.version += 1
 
 
 @dataclass
@@ -198,8 +205,64 @@ def _median(x: np.ndarray) -> float:
     return float(part[k]) if n % 2 else 0.5 * float(part[k - 1] + part[k])
 
 
+_KERNELS: list[Any] = []
+
+
+def _kernels() -> Any:
+    """The compiled order statistics (:mod:`vfm_core._robust_kernels`: the same numbers as
+    the numpy expressions below, a fraction of their call cost), or None (numpy then)."""
+    if not _KERNELS:
+        try:
+            from vfm_core import _robust_kernels
+
+            _KERNELS.append(_robust_kernels.load())
+        except ImportError:  # pragma: no cover - numba missing
+            _KERNELS.append(None)
+    return _KERNELS[0]
+
+
 def _robust_sd(x: np.ndarray) -> float:
+    k = _kernels()
+    if k is not None:
+        centre, mad = k.median_mad(x)
+        if math.isfinite(centre):  # (else a value is not: numpy's rules for it)
+            return _MAD_TO_SD * float(mad)
     return _MAD_TO_SD * _median(np.abs(x - _median(x)))
+
+
+def _median_of_any(x: np.ndarray) -> float:
+    """``np.median(x)`` (``x`` non-empty, any layout; compiled when its values are finite)."""
+    k = _kernels()
+    if k is not None:
+        centre = k.median_mad(x)[0]
+        if math.isfinite(centre):
+            return float(centre)
+    return float(np.median(x))
+
+
+def _omega_kappa(e: np.ndarray, base: np.ndarray) -> tuple[float, float]:
+    """The scatter ``omega`` of the elasticity between moves and the spread's factor
+    ``kappa`` (see the module docstring): bisection of [0, 1] for the ``omega`` at which
+    the robust sd of ``e / sqrt(base + omega^2)`` is one (0 when it is one or less
+    already), and ``kappa`` that robust sd at it, at least one. Compiled when it can be
+    (:func:`vfm_core._robust_kernels.scaled_spread_root`, the same numbers)."""
+    k = _kernels()
+    if k is not None:
+        omega, kappa = k.scaled_spread_root(e, base, _BISECTIONS)
+        if math.isfinite(omega):  # (else a value is not: numpy's rules for it)
+            return float(omega), float(kappa)
+
+    def spread(omega: float) -> float:
+        return _robust_sd(e / np.sqrt(base + omega * omega))
+
+    omega, kappa = 0.0, max(1.0, spread(0.0))
+    if spread(0.0) > 1.0:
+        lo, hi = 0.0, 1.0
+        for _ in range(_BISECTIONS):  # omega to 1e-7 (log rate)
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if spread(mid) > 1.0 else (lo, mid)
+        omega, kappa = hi, max(1.0, spread(hi))
+    return omega, kappa
 
 
 def _num(v: Any) -> float:
@@ -210,11 +273,17 @@ def _huber_slope(x: np.ndarray, y: np.ndarray, var: np.ndarray) -> tuple[float, 
     """The slope of ``y = beta x`` (through the origin) by weighted least squares with
     Huber's weights (``c = 1.345``, 95 % efficiency at the Gaussian; a move that met another
     change of the well weighs less), and its standard error: the standardised residuals'
-    robust sd over ``sqrt(sum x^2 / var)``."""
+    robust sd over ``sqrt(sum x^2 / var)``. Compiled when it can be
+    (:func:`vfm_core._robust_kernels.huber_slope`, the same numbers)."""
+    k = _kernels()
+    if k is not None:
+        beta, se = k.huber_slope(x, y, var, _HUBER_STEPS)
+        if math.isfinite(beta):  # (else a value is not finite: numpy's rules for it)
+            return float(beta), float(se)
     w0 = 1.0 / var
     w = w0.copy()
     beta = 0.0
-    for _ in range(20):
+    for _ in range(_HUBER_STEPS):
         last, beta = beta, float((w * x * y).sum() / (w * x * x).sum())
         if abs(beta - last) < 1e-6:
             break
@@ -264,6 +333,7 @@ class ChokeRateWitness:
         self.accepted: float | None = None
         self._fit: tuple[float, float, float, float, float] | None = None  # see fit()
         self._no_fit = False  # fit() found too few moves since the last complete one
+        self._looks_at = (-1, _MAX_LOOKS)  # (readings.version, _looks() at it)
 
     # -- the protocol ---------------------------------------------------------------------
     def choke(self, time_ns: int, u: float) -> None:
@@ -394,8 +464,10 @@ class ChokeRateWitness:
         if m.before is None or m.before[0] != beta:
             arr = self.readings.since(m.time_ns - self.window_ns)
             arr = arr[(arr[:, 2] >= self.closed_segment) & (arr[:, 0] < m.time_ns)]
-            m.before = (beta, *self._side(arr, math.log(m.u_before), beta))
-        _, b_values, b_worst, b_p = m.before
+            values, worst, b_p = self._side(arr, math.log(m.u_before), beta)
+            mean = float(values.mean()) if len(values) else math.nan
+            m.before = (beta, values, worst, b_p, mean)
+        _, b_values, b_worst, b_p, b_mean = m.before
         if m.after is None or m.after[0] != beta or m.after[1] != until:
             arr = self.readings.since(m.time_ns)
             arr = arr[arr[:, 0] <= until]
@@ -406,10 +478,17 @@ class ChokeRateWitness:
         n_b = len(b_values)
         if not (n_a and n_b):
             return _Windows(n_b, int(n_a), 0.0, 0.0, 0.0, 0.0)
-        d_p = [a / n_a - b for a, b in zip((p_sum, dp_sum), b_p, strict=True)]
-        d_p = [v if math.isfinite(v) else 0.0 for v in d_p]
-        d = total / n_a - float(b_values.mean())
-        return _Windows(n_b, int(n_a), d, max(b_worst, a_worst), d_p[0], d_p[1])
+        d_p = p_sum / n_a - b_p[0]
+        d_dp = dp_sum / n_a - b_p[1]
+        d = total / n_a - b_mean
+        return _Windows(
+            n_b,
+            int(n_a),
+            d,
+            max(b_worst, a_worst),
+            d_p if math.isfinite(d_p) else 0.0,
+            d_dp if math.isfinite(d_dp) else 0.0,
+        )
 
     def _extend(self, t: int, lq: float, lu: float, lp: float, ldp: float) -> None:
         """Add the reading at ``t`` to the window after each pending move whose window is
@@ -480,22 +559,11 @@ class ChokeRateWitness:
         big = np.abs(dlu) >= _MIN_MOVE
         if big.sum() < MIN_MOVES // 2:
             return None
-        s = float(np.median(s_each))
+        s = _median_of_any(s_each)
         se2 = s * s * (1.0 / nb + 1.0 / na)
         beta, se_beta = _huber_slope(dlu, d, se2)
         base = se2 + (se_beta * dlu) ** 2
-        e = d - beta * dlu
-
-        def spread(omega: float) -> float:
-            return _robust_sd(e / np.sqrt(base + omega * omega))
-
-        omega, kappa = 0.0, max(1.0, spread(0.0))
-        if spread(0.0) > 1.0:
-            lo, hi = 0.0, 1.0
-            for _ in range(24):  # omega to 1e-7 (log rate)
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if spread(mid) > 1.0 else (lo, mid)
-            omega, kappa = hi, max(1.0, spread(hi))
+        omega, kappa = _omega_kappa(d - beta * dlu, base)
         self._fit = (beta, s, omega, kappa, se_beta)
         return self._fit
 
@@ -514,7 +582,14 @@ class ChokeRateWitness:
 
     def _looks(self) -> int:
         """The looks at one move: the rate readings its window holds at the well's own rate
-        of readings, from the :data:`MIN_READINGS`-th on."""
+        of readings, from the :data:`MIN_READINGS`-th on (kept until the next reading)."""
+        if self._looks_at[0] == self.readings.version:
+            return self._looks_at[1]
+        looks = self._count_looks()
+        self._looks_at = (self.readings.version, looks)
+        return looks
+
+    def _count_looks(self) -> int:
         arr = self.readings.since(
             self.readings.buf[max(self.readings.n - 1, 0), 0] - 3 * self.window_ns
         )

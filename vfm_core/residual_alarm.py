@@ -209,12 +209,15 @@ def _long_run_factor(ref: np.ndarray, centre: float, scale: float, lags: int) ->
     if lags <= 0 or len(ref) < 3 * lags + 3:
         return 1.0
     # (np.clip and z.mean() as their ufuncs, in place: the same values, a fraction of the
-    # call cost)
-    z = ref - centre
-    z /= scale
-    np.maximum(z, -4.0, out=z)
-    np.minimum(z, 4.0, out=z)
-    z -= z.sum() / len(z)
+    # call cost; compiled in one call when it can be, the same numbers again)
+    kern = _KERNELS[0] if _KERNELS else None
+    z = kern.clipped_deviations(ref, centre, scale) if kern is not None else ref[:0]
+    if len(z) != len(ref):  # (no kernel, or a value not finite: numpy's rules for it)
+        z = ref - centre
+        z /= scale
+        np.maximum(z, -4.0, out=z)
+        np.minimum(z, 4.0, out=z)
+        z -= z.sum() / len(z)
     var = float(z @ z)
     if not var > 0:
         return 1.0

@@ -1138,8 +1138,11 @@ class WellSensorFaults:
         if self.last_ns is not None:
             self.intervals.append(t - self.last_ns)
         self.witness.choke(t, x[_CHOKE])
-        self._accept_choke(t, out)
-        interval = self._interval_ns()
+        if self.open:  # (a choke offset to accept: none without an open fault)
+            self._accept_choke(t, out)
+        at, interval = self._interval_cache  # (:meth:`_interval_ns`'s cached answer, inline)
+        if at < 0 or self.samples - at >= 16 or not self.intervals:
+            interval = self._interval_ns()
         if interval != self._rates[0]:  # (it changes every 16 samples at most)
             # the per-sample false-alarm probability of one per-sample test: its share of
             # the budget over the samples a year (:meth:`samples_per_year`)
@@ -1281,6 +1284,19 @@ class WellSensorFaults:
             p = prev[i]
             a = abs(p)
             unchanged = abs(x[i] - p) <= _SAME * (a if a > 1.0 else 1.0)  # max(1, |p|)
+            if not (unchanged or f.prev_unchanged or f.pend_c or f.pend_u):
+                # the usual step of a live input: changed after a changed one, nothing
+                # pending (the general rule below with pend_c = 1, the rest 0: decay**1 is
+                # decay, and a count plus 0.0 is the count; a fault closed now resets the
+                # pending counts first, and the counts stay)
+                f.steps += 1
+                f.run = 1
+                if is_open and (SENSORS[i], "frozen") in is_open:
+                    self._close(SENSORS[i], "frozen", t, out)
+                    continue
+                f.n_c = f.n_c * decay + 1.0
+                f.n_cu = f.n_cu * decay
+                continue
             if f.prev_unchanged:
                 f.pend_u += 1.0
                 if unchanged:
@@ -1426,6 +1442,14 @@ class WellSensorFaults:
         if before is not None and p.gap_ok and not p.choke_moved:
             flagged = self.flagged() if self.open else ()
             added, values, full = self.changes_added, p.values, self.spike_window
+            if not (spiked or flagged):  # the usual sample: every input learns its change
+                for ch, v, b in zip(self.changes, values, before, strict=True):
+                    if len(ch) >= full:
+                        del ch[0]
+                    ch.append(v - b)
+                self.changes_added = [a + 1 for a in added]
+                self.last_values_before = p.values
+                return
             for i, (name, ch) in enumerate(zip(SENSORS, self.changes, strict=True)):
                 if (spiked and i in spiked) or (flagged and name in flagged):
                     continue
@@ -1444,8 +1468,19 @@ class WellSensorFaults:
         t = p.time_ns
         day = t // _NS_PER_DAY
         self._day_context(day, x, p.choke_moved)
-        flagged = self.flagged() if self.open else ()
         day_n, day_sum, day_index, is_open = self.day_n, self.day_sum, self.day_index, self.open
+        if not is_open:  # the usual sample: no input set aside (a day's close may raise a
+            # drift or an offset, which sets none aside for the inputs after it)
+            day_n[_CHOKE], day_sum[_CHOKE], self.cand[_CHOKE] = 0, 0.0, None  # no daily tests
+            for i in range(1, len(SENSORS)):
+                if day_n[i] and day != day_index[i]:
+                    self._close_day(i, SENSORS[i], t, out)
+                if not day_n[i]:
+                    day_index[i], self.day_start_ns[i] = day, t
+                day_sum[i] += x[i]
+                day_n[i] += 1
+            return
+        flagged = self.flagged()
         for i, name in enumerate(SENSORS):
             # a frozen input is the frozen test's; another's fault would only repeat it
             if (
@@ -1506,11 +1541,17 @@ class WellSensorFaults:
             return self._z_day
         n = len(r)
         k = int(_TAIL_QUANTILE * (n - 1))  # the order statistic at the quantile
-        u, over = _excesses(r, centre, scale, k)
-        if len(over) < 2:
+        kern = _kernels()
+        u, count, total = (
+            kern.tail_sum(r, centre, scale, k) if kern is not None else (math.nan, 0, math.nan)
+        )
+        if not math.isfinite(u):  # (no kernel, a value not finite, or many excesses)
+            u, over = _excesses(r, centre, scale, k)
+            count, total = len(over), float(over.sum())
+        if count < 2:
             return self._z_day
-        share = len(over) / n
-        mean = float(over.sum() / len(over))  # np.mean's arithmetic, without its call cost
+        share = count / n
+        mean = total / count  # np.mean's arithmetic, without its call cost
         limit = u + mean * math.log(share / self._step_alpha)
         return max(self._z_day, limit)
 
@@ -1537,14 +1578,19 @@ class WellSensorFaults:
         moved: set[int] = set()
         prev = self.raw_prev
         if prev is not None and day - prev[0] <= _MAX_DAY_GAP + 1:
-            keys = self._keys[2]
+            keys, cache, samples, spd = self._keys[2], self._robust_cache, self.samples, self._spd
             for j, (m, before, ref) in enumerate(zip(mean, prev[1], self.raw_diffs, strict=True)):
                 diff = m - before
-                if len(ref) >= _MIN_DAYS:
-                    c, sc = self._robust(keys[j], ref)
+                n_ref = len(ref)
+                if n_ref >= _MIN_DAYS:
+                    hit = cache.get(keys[j])  # (:meth:`_robust`'s cached answer, inline)
+                    if hit is not None and samples - hit[0] < max(1, n_ref // 20) * spd:
+                        c, sc = hit[1], hit[2]
+                    else:
+                        c, sc = self._robust(keys[j], ref)
                     if sc > 0 and abs(diff - c) > _CO_MOVE * sc:
                         moved.add(j)
-                if len(ref) >= _REF_DAYS:  # (_push, inline)
+                if n_ref >= _REF_DAYS:  # (_push, inline)
                     del ref[0]
                 ref.append(diff)
         self.day_moved = (moved, self.raw_choke or self.prev_raw_choke)
@@ -1682,8 +1728,15 @@ class WellSensorFaults:
         self.day_prev2[i], self.prev_alone[i] = prev, alone
         fresh = self.cand[i] is None and open_kind is None
         ref = self.diffs[i]
-        if len(ref) >= _MIN_DAYS:
-            centre, scale = self._robust(self._keys[0][i], ref)
+        cache, spd, samples = self._robust_cache, self._spd, self.samples
+        n = len(ref)
+        if n >= _MIN_DAYS:
+            # (:meth:`_robust`'s cached answer, inline: twice per input and day)
+            hit = cache.get(self._keys[0][i])
+            if hit is not None and samples - hit[0] < max(1, n // 20) * spd:
+                centre, scale = hit[1], hit[2]
+            else:
+                centre, scale = self._robust(self._keys[0][i], ref)
             z = (diff - centre) / scale if scale > 0 else 0.0
             if fresh and alone and abs(z) > self._limits[i]:
                 self.cand[i] = (mean - prev[1], prev[1], start, abs(z), 0)
@@ -1692,18 +1745,30 @@ class WellSensorFaults:
         if prev2 is not None and prev[0] - prev2[0] <= _MAX_DAY_GAP and was_alone and alone:
             two = (mean - prev2[1]) / math.sqrt(day - prev2[0])
         ref2 = self.quiet2[i]
-        if two is not None and len(ref2) >= _MIN_DAYS and prev2 is not None:
-            centre, scale = self._robust(self._keys[1][i], ref2)
+        n2 = len(ref2)
+        if two is not None and n2 >= _MIN_DAYS and prev2 is not None:
+            hit = cache.get(self._keys[1][i])
+            if hit is not None and samples - hit[0] < max(1, n2 // 20) * spd:
+                centre, scale = hit[1], hit[2]
+            else:
+                centre, scale = self._robust(self._keys[1][i], ref2)
             z = (two - centre) / scale if scale > 0 else 0.0
             if fresh and self.cand[i] is None and abs(z) > self._limits2[i]:
                 self.cand[i] = (mean - prev2[1], prev2[1], prev[2], abs(z), 0)
                 self.cand_days[i] = 2
-        if self.cand[i] is None and open_kind is None:
-            _push(ref, diff, _REF_DAYS)
+        if self.cand[i] is None and open_kind is None:  # (_push, inline)
+            if n >= _REF_DAYS:
+                del ref[0]
+            ref.append(diff)
             if alone:  # the days the step test runs on: the null its limits are set from
-                _push(self.quiet[i], diff, _REF_DAYS)
+                quiet = self.quiet[i]
+                if len(quiet) >= _REF_DAYS:
+                    del quiet[0]
+                quiet.append(diff)
             if two is not None:
-                _push(ref2, two, _REF_DAYS)
+                if n2 >= _REF_DAYS:
+                    del ref2[0]
+                ref2.append(two)
 
     def _close_day(self, i: int, name: str, t: int, out: list[SensorFault]) -> None:
         """A day of input ``i`` is complete: test its mean against the day before."""
