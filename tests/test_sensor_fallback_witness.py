@@ -126,6 +126,23 @@ def test_an_input_the_rate_does_not_depend_on_stays_the_history_s_stand_in() -> 
     assert "p_down/frozen" not in det.tracks  # it was asked, and it had nothing to say
 
 
+def test_the_wander_is_the_input_s_own_random_walk() -> None:
+    """Before the freeze the true p_up is a random walk of 0.005 bar^2 a day (steps of
+    0.05 bar a half day) under a transmitter's noise of 0.2 bar a sample: the witness's
+    prior growth (``Fallback.wander``) is read off the last year's daily changes, within
+    a factor of 1.5 of it in the median of ten wells and of 5 on every well. From the last
+    64 daily means alone (34 changes 30 days apart, mostly the same days) it came out at a
+    tenth of it in the median, and zero on two wells of ten: the stand-in then stopped
+    following the rates after its first steps."""
+    true = 2 * 0.05**2
+    ratios = []
+    for seed in range(1, 11):
+        _, rows = run("p_up", critical=False, seed=seed, witness=False)
+        ratios.append(rows[0][1].wander / true)
+    assert all(0.2 < r < 5.0 for r in ratios), ratios
+    assert 1 / 1.5 < float(np.median(ratios)) < 1.5, ratios
+
+
 def test_the_kalman_step_moves_as_far_as_the_rate_can_tell() -> None:
     """One step by hand: the input moves toward the value the rate asks for (less the
     meter's bias), by the share of its variance over the innovation's; the span keeps the
@@ -139,16 +156,22 @@ def test_the_kalman_step_moves_as_far_as_the_rate_can_tell() -> None:
     track = witness_track(f, None, answers, q, (0.01, 0.01), 10, bounds)
     assert track is not None
     prior, noise = 4.0, 1e-4  # the first witness's prior is ``prior``, not spread^2
-    gain = prior * slope / (slope**2 * prior + noise)
-    assert math.isclose(track[0], gain * 0.02, rel_tol=1e-6)  # 0.8 x 2 bar
-    assert math.isclose(track[1], prior * (1.0 - gain * slope), rel_tol=1e-6)  # 0.8 bar^2
-    assert track[3:] == (0.01, 0.01)  # the meter's bias and noise, kept
+    vb = (1.2533 * 0.01) ** 2 / 50  # the bias: a median of 50 residuals of sd 0.01
+    s = slope**2 * prior + vb + noise
+    gain, gain_b = prior * slope / s, vb / s
+    assert math.isclose(track[0], gain * 0.02, rel_tol=1e-4)  # 0.79 x 2 bar
+    assert math.isclose(track[1], prior * (1.0 - gain * slope), rel_tol=1e-4)  # 0.81 bar^2
+    assert track[3:5] == (0.01, 0.01)  # the meter's bias and noise, kept
+    # what the rate said of the meter's bias: its share of the innovation, and the variances
+    assert math.isclose(track[5], gain_b * 0.02, rel_tol=1e-4)
+    assert math.isclose(track[6], vb * (1.0 - gain_b), rel_tol=1e-4)
+    assert math.isclose(track[7], -gain * vb, rel_tol=1e-4)
     moved = tracked(f, track, bounds, 10)
-    assert math.isclose(moved.value, 101.6, rel_tol=1e-6)
+    assert math.isclose(moved.value, 100.0 + gain * 0.02, rel_tol=1e-6)
     assert moved.spread == f.spread and math.isclose(moved.high - moved.low, 6.58, rel_tol=1e-3)
-    assert math.isclose(track_variance(moved, track, 10), 0.8, rel_tol=1e-6)
+    assert math.isclose(track_variance(moved, track, 10), track[1], rel_tol=1e-6)
     later = 10 + 20 * DAY  # the input's own wander since: 0.01 bar^2 a day
-    assert math.isclose(track_variance(moved, track, later), 0.8 + 0.2, rel_tol=1e-6)
+    assert math.isclose(track_variance(moved, track, later), track[1] + 0.2, rel_tol=1e-6)
     far = 100.0 * math.exp(0.3)  # 30 bar away: beyond 4 sd of the innovation
     assert witness_track(f, None, answers, far, (0.01, 0.01), 10, bounds) is None
     assert witness_track(f, track, answers, q, (0.01, 0.01), 5, bounds) == track  # older
@@ -187,6 +210,11 @@ def test_the_witnessed_stand_in_survives_a_checkpoint() -> None:
             d.follow_rate(
                 t, used, [rate(p, False) for p in fallback_points(row, used)], q[j], (0.0, 0.02)
             )
+    # a checkpoint of before the meter's bias was a state: that bias taken as exact
+    five = {**saved, "tracks": {k: v[:5] for k, v in saved["tracks"].items()}}
+    older = WellSensorFaults()
+    assert older.restore(five)
+    assert older.tracks["p_up/frozen"] == (*saved["tracks"]["p_up/frozen"][:5], 0.0, 0.0, 0.0)
     # a checkpoint of before the witness existed: the stand-in is the history's again
     old = WellSensorFaults()
     assert old.restore({k: v for k, v in saved.items() if k not in ("tracks", "wanders")})

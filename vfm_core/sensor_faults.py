@@ -551,9 +551,14 @@ def widened_rates(answers: Sequence[Mapping[str, float | None]]) -> dict[str, fl
 
 #: the measured rate's correction of one stand-in (:func:`tracked`, :func:`witness_track`):
 #: (shift of its value, the variance of where the input is at the last measurement taken,
-#: that measurement's time ns, and the meter's bias and noise about the model in log space,
-#: :func:`residual_noise`, fixed at the first witness)
-Track = tuple[float, float, int, float, float]
+#: that measurement's time ns, the meter's bias and noise about the model in log space,
+#: :func:`residual_noise`, fixed at the first witness, then what the rates said of that
+#: bias: its correction, the correction's variance and its covariance with the input's;
+#: a checkpoint of before them restores with zeros, a bias taken as exact)
+Track = tuple[float, float, int, float, float, float, float, float]
+#: residuals whose median is a witness's meter bias (the service and the study keep 50):
+#: that median's own variance, (1.2533 sd)^2 / 50, is the bias's prior in the witness
+_WITNESS_RESIDUALS = 50
 
 
 def residual_noise(log_residuals: Sequence[float]) -> tuple[float, float]:
@@ -616,17 +621,21 @@ def witness_track(
     at the low and at the high end of its span), the model's parameters held (learning
     is); the rate measured at that sample ``q_measured`` (Sm3/h) by a meter whose bias and
     noise about the model are ``noise`` (log space, :func:`residual_noise`; the track keeps
-    those of its first witness). The state is the input; its prior is the stand-in's
-    value with the variance :func:`track_variance` (from the input's own wander, not the
-    history's random walk of its noisy daily means). The measurement is the log rate, linear in the input with the slope of the
-    model's log rates across the span (the secant: no extra model call). A rate that could
-    shrink the input's variance by less than 0.1 % (the rate hardly depends on it: ``p_down``
-    at critical flow) is not taken, so the stand-in stays the history's; nor a rate beyond 4
-    sd of its innovation, nor one before the track's last (out of order). Returns the new
-    track (for :func:`tracked`)."""
+    those of its first witness). The state is the input and the meter's bias. The input's
+    prior is the stand-in's value with the variance :func:`track_variance` (from the
+    input's own wander, not the history's random walk of its noisy daily means); the
+    bias's is ``noise``'s, with the variance of a median of the 50 residuals it is taken
+    from, ``(1.2533 sd)^2 / 50``: a bias read off a few weeks of a noisy meter is itself
+    uncertain, and a rate that keeps missing the model by that much is as likely the meter's
+    bias as the input. The measurement is the log rate, linear in the input with the slope
+    of the model's log rates across the span (the secant: no extra model call), plus the
+    bias. A rate that could shrink the input's variance by less than 0.1 % (the rate
+    hardly depends on it: ``p_down`` at critical flow) is not taken, so the stand-in stays
+    the history's; nor a rate beyond 4 sd of its innovation, nor one before the track's last
+    (out of order). Returns the new track (for :func:`tracked`)."""
     if track is not None and int(time_ns) < track[2]:
         return track
-    bias, log_sd = noise if track is None else track[3:]
+    bias, log_sd = noise if track is None else track[3:5]
     if len(answers) != 3 or not (q_measured > 0 and log_sd > 0):
         return track
     q = [answers[k].get("q_total") for k in range(3)]
@@ -639,20 +648,34 @@ def witness_track(
     r = log_sd * log_sd
     if not (math.isfinite(prior) and prior > 0) or slope * slope * prior < 1e-3 * r:
         return track
-    innovation = math.log(q_measured) - math.log(qc) - bias
-    s = slope * slope * prior + r
+    if track is None:
+        shift, b, vb, cov = 0.0, 0.0, (_MEDIAN_SE * log_sd) ** 2 / _WITNESS_RESIDUALS, 0.0
+    else:
+        shift, b, vb, cov = track[0], track[5], track[6], track[7]
+        cov = max(min(cov, math.sqrt(prior * vb)), -math.sqrt(prior * vb))
+    innovation = math.log(q_measured) - math.log(qc) - bias - b
+    s = slope * slope * prior + 2.0 * slope * cov + vb + r
     if abs(innovation) > _WITNESS_GATE * math.sqrt(s):
         return track
-    gain = prior * slope / s
+    gain, gain_b = (prior * slope + cov) / s, (cov * slope + vb) / s
     value = min(max(used.value + gain * innovation, bounds[0]), bounds[1])
-    shift = 0.0 if track is None else track[0]
     return (
         shift + value - used.value,
-        prior * (1.0 - gain * slope),
+        prior - gain * (slope * prior + cov),
         int(time_ns),
         bias,
         log_sd,
+        b + gain_b * innovation,
+        vb - gain_b * (slope * cov + vb),
+        cov - gain * (slope * cov + vb),
     )
+
+
+def _saved_track(v: Sequence[Any]) -> Track:
+    """A checkpoint's track (:data:`Track`); one of before the meter's bias was a state (five
+    values) restores with that bias taken as exact (zero correction and variance)."""
+    b = (float(v[5]), float(v[6]), float(v[7])) if len(v) >= 8 else (0.0, 0.0, 0.0)
+    return (float(v[0]), float(v[1]), int(v[2]), float(v[3]), float(v[4]), *b)
 
 
 def critical_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> float:
@@ -979,23 +1002,32 @@ class WellSensorFaults:
         return float(level), float(trend), float(scale), int(at_ns)
 
     def _wander(self, i: int, start_ns: int) -> float:
-        """How input ``i`` itself wanders (variance per day, its unit^2 / day) from its
-        daily means before the day of ``start_ns`` (the last 64, :data:`_LEVEL_DAYS`): the
-        growth of the variance of their changes from one day apart to 30 (robust: 1.4826
-        MAD about the median, so the trend drops out), ``(v30 - v1) / 29``. The noise of a
-        daily mean is in both and cancels: the day-to-day changes (the history's spread)
-        are mostly that noise, and a random walk of them overstates where the input goes
-        in a month (seed 4711's three wells with a frozen ``p_up``: a 90 % span of 4-6 bar
-        either side after 60 days, while the true daily means stayed within 0.8-0.9 bar sd
-        of their mean). NaN without 10 pairs at each lag."""
+        """How input ``i`` itself wanders (variance per day, its unit^2 / day) before the day
+        of ``start_ns``: the growth of the variance of its daily means' changes from one day
+        apart to 30, ``(v30 - v1) / 29`` (robust: 1.4826 MAD about the median, so the trend
+        drops out). The noise of a daily mean is in both and cancels: the day-to-day changes
+        (the history's spread) are mostly that noise, and a random walk of them overstates
+        where the input goes in a month (seed 4711's three wells with a frozen ``p_up``: a
+        90 % span of 4-6 bar either side after 60 days, while the true daily means stayed
+        within 0.8-0.9 bar sd of their mean).
+
+        The changes are the last year's day-to-day changes (:attr:`diffs`, those the drift
+        test watches, less the days since the fault's), a 30-day change the sum of 30 in a
+        row: some 300 of them. The last 64 daily means gave 34, mostly over the same days,
+        whose spread is too small: below 0.005 bar^2 a day on 5 of 17 wells with a frozen
+        ``p_up`` (seeds 5101-5104, 5121-5124; a year's: 0.04-0.24), which stopped the
+        witness's stand-in after its first steps. A change across a gap of two or three
+        days is per square-root day (as the drift test keeps it); one across a longer gap,
+        or a step held as an offset candidate, is not among them (nor in the sums). NaN
+        without 40 changes."""
+        ref = np.asarray(self.diffs[i], dtype=float)
         start_day = start_ns // _NS_PER_DAY
-        means = {int(d): m for d, m in self.levels[i] if d < start_day}
-        var = []
-        for lag in (1, _WANDER_LAG):
-            r = np.array([means[d + lag] - m for d, m in means.items() if d + lag in means])
-            if len(r) < 10:
-                return math.nan
-            var.append((_MAD_TO_SD * float(np.median(np.abs(r - np.median(r))))) ** 2)
+        since = sum(1 for d, _ in self.levels[i] if d >= start_day)  # the fault's own days
+        d = ref[: len(ref) - since] if since else ref
+        if len(d) < _WANDER_LAG + 10:
+            return math.nan
+        sums = np.convolve(d, np.ones(_WANDER_LAG), mode="valid")
+        var = [(_MAD_TO_SD * float(np.median(np.abs(r - np.median(r))))) ** 2 for r in (d, sums)]
         return max(var[1] - var[0], 0.0) / (_WANDER_LAG - 1)
 
     def stands_in(
@@ -2002,7 +2034,7 @@ class WellSensorFaults:
             if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
         }
         self.tracks = {  # absent from older checkpoints: the stand-in starts uncorrected
-            str(k): (float(v[0]), float(v[1]), int(v[2]), float(v[3]), float(v[4]))
+            str(k): _saved_track(v)
             for k, v in (data.get("tracks") or {}).items()
             if (str(k).split("/")[0], str(k).split("/")[-1]) in self.open
         }

@@ -241,7 +241,7 @@ class StandInTracks:
         f = used[0]
         key = self._key(row, f)
         before = self.tracks.get(key)
-        noise = before[3:] if before is not None else self.noise(row)
+        noise = before[3:5] if before is not None else self.noise(row)
         t = int(self.times[row])
         after = witness_track(f, before, answers, q, noise, t, DEFAULT_RANGES[f.sensor])
         if after is not None:
