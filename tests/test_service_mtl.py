@@ -94,10 +94,16 @@ def _feed(service: Service, client: FieldClient, rows: pd.DataFrame) -> None:
         wait_until(handled, 60, "the day's messages to be handled")
 
 
-def _streamed(client: FieldClient, study: pd.DataFrame) -> np.ndarray:
+def _received(client: FieldClient, study: pd.DataFrame) -> list[tuple[str, int]]:
+    """The study's (well, time ns) keys, once the client has received a prediction for each
+    (they are published after the service counts the sample handled: wait for them)."""
     keys = [(w, t.value) for w, t in zip(study["well"], study["time"], strict=True)]
     wait_until(lambda: all(k in client.predictions for k in keys), 30, "every prediction")
-    return np.array([client.predictions[k] for k in keys])
+    return keys
+
+
+def _streamed(client: FieldClient, study: pd.DataFrame) -> np.ndarray:
+    return np.array([client.predictions[k] for k in _received(client, study)])
 
 
 def _study(frame: pd.DataFrame, method: str) -> pd.DataFrame:
@@ -147,8 +153,10 @@ def test_a_restart_continues_with_the_same_numbers(
     days = live["time"].dt.floor("D")
     half = days < days.unique()[len(days.unique()) // 2]
     settings = _settings(tmp_path, data, "ol", store={"checkpoint_every": 7})
+    boundary = days.unique()[len(days.unique()) // 2]
     with _serving(settings) as (service, client):
         _feed(service, client, live[half])
+        _received(client, study[study["time"].dt.floor("D") < boundary])
         first = dict(client.predictions)
         engine = service.engine
         assert engine is not None
@@ -170,6 +178,7 @@ def test_a_restart_continues_with_the_same_numbers(
             before["measurements_remembered"],
         )
         _feed(service, client, live[~half])
+        _received(client, study[study["time"].dt.floor("D") >= boundary])
         second = dict(client.predictions)
     both = {**first, **second}
     keys = [(w, t.value) for w, t in zip(study["well"], study["time"], strict=True)]
