@@ -71,6 +71,7 @@ from typing import Any
 import numpy as np
 
 from vfm_core.errors import ConfigError
+from vfm_core.residual_alarm import robust_kernels
 from vfm_core.timeutil import iso
 
 __all__ = ["ChokeFinding", "ChokeRateWitness", "MIN_MOVES", "MIN_READINGS", "MOVES_KEPT"]
@@ -205,24 +206,8 @@ def _median(x: np.ndarray) -> float:
     return float(part[k]) if n % 2 else 0.5 * float(part[k - 1] + part[k])
 
 
-_KERNELS: list[Any] = []
-
-
-def _kernels() -> Any:
-    """The compiled order statistics (:mod:`vfm_core._robust_kernels`: the same numbers as
-    the numpy expressions below, a fraction of their call cost), or None (numpy then)."""
-    if not _KERNELS:
-        try:
-            from vfm_core import _robust_kernels
-
-            _KERNELS.append(_robust_kernels.load())
-        except ImportError:  # pragma: no cover - numba missing
-            _KERNELS.append(None)
-    return _KERNELS[0]
-
-
 def _robust_sd(x: np.ndarray) -> float:
-    k = _kernels()
+    k = robust_kernels()
     if k is not None:
         centre, mad = k.median_mad(x)
         if math.isfinite(centre):  # (else a value is not: numpy's rules for it)
@@ -232,7 +217,7 @@ def _robust_sd(x: np.ndarray) -> float:
 
 def _median_of_any(x: np.ndarray) -> float:
     """``np.median(x)`` (``x`` non-empty, any layout; compiled when its values are finite)."""
-    k = _kernels()
+    k = robust_kernels()
     if k is not None:
         centre = k.median_mad(x)[0]
         if math.isfinite(centre):
@@ -246,7 +231,7 @@ def _omega_kappa(e: np.ndarray, base: np.ndarray) -> tuple[float, float]:
     the robust sd of ``e / sqrt(base + omega^2)`` is one (0 when it is one or less
     already), and ``kappa`` that robust sd at it, at least one. Compiled when it can be
     (:func:`vfm_core._robust_kernels.scaled_spread_root`, the same numbers)."""
-    k = _kernels()
+    k = robust_kernels()
     if k is not None:
         omega, kappa = k.scaled_spread_root(e, base, _BISECTIONS)
         if math.isfinite(omega):  # (else a value is not: numpy's rules for it)
@@ -275,7 +260,7 @@ def _huber_slope(x: np.ndarray, y: np.ndarray, var: np.ndarray) -> tuple[float, 
     change of the well weighs less), and its standard error: the standardised residuals'
     robust sd over ``sqrt(sum x^2 / var)``. Compiled when it can be
     (:func:`vfm_core._robust_kernels.huber_slope`, the same numbers)."""
-    k = _kernels()
+    k = robust_kernels()
     if k is not None:
         beta, se = k.huber_slope(x, y, var, _HUBER_STEPS)
         if math.isfinite(beta):  # (else a value is not finite: numpy's rules for it)

@@ -147,9 +147,11 @@ def _threshold(arl0: float, k: float) -> float:
 _KERNELS: list[Any] = []
 
 
-def _median_and_mad(ref: np.ndarray) -> tuple[float, float]:
-    """``np.median(ref)`` and the median of ``|ref - it|`` (the raw MAD), compiled
-    (:mod:`vfm_core._robust_kernels`) or by partial sorts: the same numbers either way."""
+def robust_kernels() -> Any:
+    """The compiled order statistics and sums of :mod:`vfm_core._robust_kernels` (the same
+    numbers as the numpy expressions they replace, a fraction of their call cost), loaded
+    once a process, or None (numba missing: numpy then). The detectors of this module,
+    :mod:`vfm_core.rate_witness` and :mod:`vfm_core.sensor_faults` share them."""
     if not _KERNELS:
         try:
             from vfm_core import _robust_kernels
@@ -157,8 +159,15 @@ def _median_and_mad(ref: np.ndarray) -> tuple[float, float]:
             _KERNELS.append(_robust_kernels.load())
         except ImportError:  # pragma: no cover - numba missing
             _KERNELS.append(None)
-    if _KERNELS[0] is not None:
-        centre, mad = _KERNELS[0].median_mad(ref)
+    return _KERNELS[0]
+
+
+def _median_and_mad(ref: np.ndarray) -> tuple[float, float]:
+    """``np.median(ref)`` and the median of ``|ref - it|`` (the raw MAD), compiled
+    (:mod:`vfm_core._robust_kernels`) or by partial sorts: the same numbers either way."""
+    kern = robust_kernels()
+    if kern is not None:
+        centre, mad = kern.median_mad(ref)
         if math.isfinite(centre):  # (else a value is not: numpy's rules below)
             return float(centre), float(mad)
     if np.isfinite(ref).all():
@@ -210,7 +219,7 @@ def _long_run_factor(ref: np.ndarray, centre: float, scale: float, lags: int) ->
         return 1.0
     # (np.clip and z.mean() as their ufuncs, in place: the same values, a fraction of the
     # call cost; compiled in one call when it can be, the same numbers again)
-    kern = _KERNELS[0] if _KERNELS else None
+    kern = robust_kernels()
     z = kern.clipped_deviations(ref, centre, scale) if kern is not None else ref[:0]
     if len(z) != len(ref):  # (no kernel, or a value not finite: numpy's rules for it)
         z = ref - centre

@@ -168,7 +168,7 @@ import numpy as np
 from vfm_core import physics
 from vfm_core.errors import ConfigError
 from vfm_core.rate_witness import MIN_READINGS, ChokeRateWitness
-from vfm_core.residual_alarm import ResidualCusum
+from vfm_core.residual_alarm import ResidualCusum, robust_kernels
 from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.timeutil import iso
 
@@ -383,26 +383,10 @@ def _median_inplace(r: np.ndarray) -> float:
     return float((r[k - 1] + r[k]) / 2.0)
 
 
-_KERNELS: list[Any] = []
-
-
-def _kernels() -> Any:
-    """The compiled order statistics (:mod:`vfm_core._robust_kernels`: the same numbers as
-    the numpy expressions, a fraction of their call cost), or None (numpy then)."""
-    if not _KERNELS:
-        try:
-            from vfm_core import _robust_kernels
-
-            _KERNELS.append(_robust_kernels.load())
-        except ImportError:  # pragma: no cover - numba missing
-            _KERNELS.append(None)
-    return _KERNELS[0]
-
-
 def _centre_mad(r: np.ndarray) -> tuple[float, float]:
     """The median of ``r`` (non-empty; not changed) and the median of its absolute
     deviations from it (the raw MAD)."""
-    k = _kernels()
+    k = robust_kernels()
     if k is not None:
         centre, mad = k.median_mad(r)
         if math.isfinite(centre):  # (else a value is not: numpy's rules for it)
@@ -414,7 +398,7 @@ def _centre_mad(r: np.ndarray) -> tuple[float, float]:
 def _excesses(r: np.ndarray, centre: float, scale: float, k: int) -> tuple[float, np.ndarray]:
     """With ``z = |r - centre| / scale``: its ``k``-th smallest value ``u`` and the excesses
     ``z - u`` of the values beyond it, in the order of ``r`` (their sum is then numpy's)."""
-    kern = _kernels()
+    kern = robust_kernels()
     if kern is not None:
         u, over = kern.tail_excesses(r, centre, scale, k)
         if math.isfinite(u):  # (else a value is not: numpy's rules for it)
@@ -1573,7 +1557,7 @@ class WellSensorFaults:
             return self._z_day
         n = len(r)
         k = int(_TAIL_QUANTILE * (n - 1))  # the order statistic at the quantile
-        kern = _kernels()
+        kern = robust_kernels()
         u, count, total = (
             kern.tail_sum(r, centre, scale, k) if kern is not None else (math.nan, 0, math.nan)
         )
