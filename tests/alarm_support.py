@@ -32,11 +32,13 @@ INPUTS = (0.4, 120.0, 30.0, 60.0, 0.1, 0.6)  # fraction, bar a, bar a, degC, -, 
 
 @contextmanager
 def fixed_model_service(
-    folder: Path, *, http: bool = False, **overrides: Any
+    folder: Path, *, http: bool = False, token: str | None = None, **overrides: Any
 ) -> Iterator[tuple[Service, FieldClient]]:
     """The service (``mm`` + ``pbl:3650d``, store in ``folder``, settings ``overrides``) and a
     field client on its bus, once it listens to ``W01``; with ``http`` its HTTP API runs on a
-    loopback port (``service.http_url``)."""
+    loopback port (``service.http_url``), its mutating endpoints behind ``token`` if given."""
+    if token is not None:
+        overrides["http"] = {"token": token}
     settings = loopback_settings(folder, model={"name": "mm", "method": "pbl:3650d"}, **overrides)
     bus = MemoryTransport(settings.prefix)
     with ExitStack() as stack:
@@ -60,15 +62,17 @@ def send_readings(
     noise: float = 0.03,
     inputs: tuple[float, ...] = INPUTS,
     choke_spread: float = 0.0,
+    start: datetime = T0,
 ) -> list[datetime]:
-    """``W01``'s samples and MPFM readings, two a day (03:00 and 15:00 UTC from :data:`T0`)
-    for ``days`` days: the reading is ``1000 * level(day)`` Sm3/h times a log-normal error of
+    """``W01``'s samples and MPFM readings, two a day (3 and 15 hours after each midnight
+    from ``start``, :data:`T0` by default) for ``days`` days: the reading is
+    ``1000 * level(day)`` Sm3/h (``day`` counted from :data:`T0`) times a log-normal error of
     sd ``noise``. The samples carry ``inputs``, their choke (fraction) drawn uniformly from
     ``choke_spread`` above it (from a generator of its own: the readings' errors are the same
     with or without it). Returns the times sent."""
     rng = np.random.default_rng(seed)
     chokes = np.random.default_rng(seed + 1).uniform(0.0, choke_spread, 2 * days)
-    times = [T0 + timedelta(hours=12 * i + 3) for i in range(2 * days)]
+    times = [start + timedelta(hours=12 * i + 3) for i in range(2 * days)]
     for i, t in enumerate(times):
         q = 1000.0 * level((t - T0).days) * float(np.exp(noise * rng.standard_normal()))
         sample = (inputs[0] + float(chokes[i]), *inputs[1:])

@@ -148,6 +148,48 @@ def test_a_restart_resumes_the_residual_alarm(tmp_path: Path) -> None:
     assert mpfm["ready"] and mpfm["periods"] == before["streams"]["mpfm"]["periods"]
 
 
+def test_a_model_change_ends_the_alarm_and_the_new_model_is_tested_afresh(
+    tmp_path: Path,
+) -> None:
+    """An alarm active when the operator changes the model ends there ("ended by a model
+    change": end and closed ``reset``, a store row, the gauge back to 0); the new model's
+    residuals are a new stream, not judged against the old model's level: after 20 more
+    days its MPFM stream has 19 closed periods and is not yet tested (``min_periods`` 30), and no
+    alarm began after the change."""
+    token = "alarm-change-token-0123456789"
+    with fixed_model_service(tmp_path, http=True, token=token) as (service, client):
+        times = send_field(client, seed=2)
+        wait_learned(service, len(times))
+        with httpx.Client(base_url=service.http_url, timeout=120) as http:
+            assert http.get("/wells/W01").json()["residual_alarm"]["active"]
+            changed = http.put(
+                "/wells/W01/model",
+                json={"method": "ol", "confirm_worse": True},
+                headers={"Authorization": f"Bearer {token}"},
+            )
+            assert changed.status_code == 200, changed.text
+            alarm = http.get("/wells/W01").json()["residual_alarm"]
+            assert not alarm["active"] and alarm["streams"] == {}
+            (event,) = alarm["events"]
+            assert (event["end"], event["closed"]) == ("reset", "reset")
+            assert 'vfm_well_residual_alarm_active{well="W01"} 0.0' in http.get("/metrics").text
+            later = send_readings(
+                client, lambda day: 1.12, 20, seed=3, start=T0 + timedelta(days=DAYS)
+            )
+            wait_learned(service, len(times) + len(later))
+            after = http.get("/wells/W01").json()["residual_alarm"]
+        store = service.store
+        assert store is not None
+        with store.reader() as con:
+            kinds = con.execute(
+                "SELECT source, kind FROM residual_alarms WHERE well = 'W01' ORDER BY time_ns"
+            ).fetchall()
+    assert kinds == [("mpfm", "start"), ("mpfm", "end")]
+    # 19 closed periods (the 20th day is still open); the old stream had 89
+    assert after["streams"]["mpfm"]["periods"] == 19 and not after["streams"]["mpfm"]["ready"]
+    assert len(after["events"]) == 1 and not after["active"]
+
+
 def test_a_lasting_alarm_closes_as_accepted_and_an_old_saved_detector_resumes() -> None:
     """The well's alarm with the default settings: MPFM readings 6 % below the model from day
     40, for good. The alarm's end comes 30 days after its start, as ``closed: accepted``.

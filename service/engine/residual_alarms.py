@@ -131,12 +131,19 @@ class WellResidualAlarm:
     def active(self) -> bool:
         return any(d.alarm for d in self.detectors.values())
 
-    def reset(self) -> None:
-        """Start over (a new model's residuals are a new stream); past events stay listed."""
-        for event in self._open.values():
+    def reset(self) -> list[Transition]:
+        """Start over at a model change: the new model's residuals are a new stream, tested
+        once each meter has ``min_periods`` periods of them again (the change's trial judges
+        the new model meanwhile). Past events stay listed; an active alarm ends with end and
+        closed ``"reset"`` and is returned as an ``end`` transition."""
+        out: list[Transition] = []
+        for source, event in self._open.items():
             event["end"] = event.get("end") or "reset"
+            event["closed"] = "reset"
+            out.append(("end", source, event))
         self._open.clear()
         self.detectors.clear()
+        return out
 
     def state(self) -> dict[str, Any]:
         """Plain values (JSON) for the well's checkpoint side-car: each meter's detector and

@@ -51,7 +51,13 @@ import numpy as np
 from scipy import stats
 
 from service.config import Settings, TrialSettings
-from service.store import InsertModelVersion, InsertTrial, Op, PruneModelVersions
+from service.store import (
+    InsertModelVersion,
+    InsertResidualAlarm,
+    InsertTrial,
+    Op,
+    PruneModelVersions,
+)
 from vfm_core.errors import VFMError
 from vfm_core.learning.streaming import Learner, WellLearner
 from vfm_core.timeutil import from_ns, iso
@@ -559,6 +565,7 @@ def install(
     st.learner = new
     st.model_changes.append(change)
     st.errors.clear()  # the rolling error from now on is the new model's
+    ops.extend(_restart_alarm(st, when_ns))
     st.refresh()
     recorded, st.learn_seq = st.learn_seq, seq
     try:
@@ -577,6 +584,37 @@ def install(
         note,
     )
     return change
+
+
+def _restart_alarm(st: WellState, when_ns: int | None) -> list[Op]:
+    """A model change restarts the well's residual alarm: the new model's residuals are a
+    new stream (``docs/guide/alarms.md``). An alarm still active ends, recorded at
+    ``when_ns`` (data time, epoch ns) as ended by the change."""
+    alarm = st.residual_alarm
+    if alarm is None:
+        return []
+    at = when_ns if when_ns is not None else time.time_ns()
+    ops: list[Op] = []
+    for _kind, source, event in alarm.reset():
+        ops.append(
+            InsertResidualAlarm(
+                well=st.well,
+                time_ns=at,
+                source=source,
+                kind="end",
+                direction=str(event["direction"]),
+                statistic=float(event["statistic"]),
+                threshold=float(event["threshold"]),
+            )
+        )
+        logger.info(
+            "Residual alarm on %s (%s) ended at %s by the model change: the new model's "
+            "residuals are tested afresh.",
+            st.well,
+            source,
+            iso(at),
+        )
+    return ops
 
 
 def _checkpoint(learning: Learning, st: WellState, ops: list[Op]) -> None:
