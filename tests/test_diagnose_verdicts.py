@@ -12,6 +12,8 @@ correction that is not material) nothing is named.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -642,3 +644,52 @@ def test_a_noise_verdict_names_candidates_beyond_chance_but_below_the_minimum() 
     assert [x["effect"] for x in dv.below_minimum(results, "W01")] == ["real_gas"]
     assert dv.below_minimum([unsupported, none, large, named], None) == []
     assert dv.below_minimum_text([]) == ""
+
+
+def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_interval_is() -> None:
+    """A sigmoid valve on four Bernoulli wells, `ham` + `bayes`, a year after the split (a
+    page walk, seed 4848): the fit-once evidence lowered the error 0.44 points with p = 0.016
+    over 14 blocks, not rejected over the diagnosis's 66 tests (q 0.21), so the verdict is
+    ``noise``, and it said nothing of the valve; a choke correction's live interval (-1.04 to
+    -0.05) sat beside "not beyond chance". Now the valve is listed as suggestive with its p
+    and q, and the correction's sentence says the interval is for that test alone. Not
+    listed: a candidate that is not material, one rejected (then it is named, not merely
+    suggested), one whose p is not below 0.05, and one that lowers the error by less than
+    the 0.1-point minimum."""
+    rng = np.random.default_rng(6)
+    frame = _frame(rng)
+    r = 0.02 + 0.02 * rng.normal(size=len(frame))
+    base = _run(frame, r)
+
+    def with_test(name: str, material: bool, **t: Any) -> dg.CandidateResult:
+        c = _candidate(name, base, _run(frame, r), material=material)
+        c.tests["fit_once"] = {"change": -0.44, "p_value": 0.016, "q_value": 0.21} | t
+        c.tests["fit_once"].setdefault("rejected", False)
+        return c
+
+    valve = with_test("valve_convex", True)
+    results = [
+        valve,
+        with_test("slip", False),
+        with_test("erosion", True, rejected=True, q_value=0.01),
+        with_test("real_gas", True, p_value=0.06),
+        with_test("critical_ratio", True, change=-0.05),
+    ]
+    found = dv.suggestive(results, None)
+    assert found == [{"effect": "valve_convex", "change": -0.44, "p_value": 0.016, "q_value": 0.21}]
+    text = dv.suggestive_text(found)
+    assert (
+        "Suggestive, not established" in text
+        and "valve_convex (-0.44 points, p = 0.016, q = 0.21)" in text
+    )
+    assert "nothing is named" in text
+    assert dv.suggestive(results[1:], None) == [] and dv.suggestive_text([]) == ""
+    # a well's own test counts too (here the well's test is the field's: no per_well)
+    assert [x["effect"] for x in dv.suggestive(results, "W01")] == ["valve_convex"]
+    live = {"change": -0.45, "low": -1.04, "high": -0.05, "p_value": 0.041, "q_value": 0.21}
+    alone = dv._alone_text(live)
+    assert (
+        alone
+        == ": its interval and p = 0.041 are for this test alone; over all the diagnosis's tests q = 0.21"
+    )
+    assert dv._alone_text(None) == "" and dv._alone_text({"change": -0.1}) == ""

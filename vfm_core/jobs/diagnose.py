@@ -1545,9 +1545,13 @@ class _DiagnosisRun:
             )
         for key, v in by_well.items():  # "none lowers the error" is no verdict on the untested
             if v["kind"] == "noise":
-                found = verdicts.below_minimum(self.results, None if key == "field" else key)
+                who = None if key == "field" else key
+                found = verdicts.below_minimum(self.results, who)
                 v["below_minimum"] = found
                 v["text"] += verdicts.below_minimum_text(found)
+                hint = verdicts.suggestive(self.results, who)
+                v["suggestive"] = hint
+                v["text"] += verdicts.suggestive_text(hint)
                 v["text"] += verdicts.untested_text(self.skipped)
         if len(pool) == 1:
             by_well[pool[0]] = by_well["field"]
@@ -1563,7 +1567,7 @@ class _DiagnosisRun:
                 self.notes,
             )
         for v in by_well.values():  # present on every verdict, empty when nothing is related
-            for key in (*RIVAL_KEYS, "below_minimum"):
+            for key in (*RIVAL_KEYS, "below_minimum", "suggestive"):
                 v.setdefault(key, [])
 
     def live_verdicts(self) -> None:

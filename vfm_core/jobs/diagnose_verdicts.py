@@ -67,6 +67,8 @@ __all__ = [
     "untested_text",
     "below_minimum",
     "below_minimum_text",
+    "suggestive",
+    "suggestive_text",
 ]
 
 #: Candidates replayed under the well's own learning method (live and outage), best first by
@@ -559,6 +561,79 @@ def below_minimum_text(found: Sequence[dict[str, Any]]) -> str:
     )
 
 
+#: A fit-once test's own p-value below which a material candidate that the false-discovery
+#: control did not reject is reported as suggestive (:func:`suggestive`): the level the
+#: control holds the family at, applied to one test alone.
+SUGGESTIVE_P = 0.05
+
+
+def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dict[str, Any]]:
+    """The candidates that the fit-once evidence points at without establishing them:
+    material (the data support them, by at least :data:`MIN_CHANGE` points), the fit-once
+    test (the field's, or ``well``'s own) lowers the error by :data:`MIN_CHANGE` points or
+    more with its own p below :data:`SUGGESTIVE_P`, but Benjamini-Hochberg over the
+    diagnosis's tests does not reject it. Nothing is named for them: a ``noise`` verdict
+    lists them so that a short span's weak evidence is not read as none (a valve on four
+    wells, a year after the split: p = 0.016 alone over 14 blocks, q = 0.21).
+    ``[{"effect", "change", "p_value", "q_value"}]``, largest fall first (MAPE points)."""
+    out = []
+    for c in results:
+        if not c.material or not rivals.stands_alone(c):
+            continue
+        tests = [c.test("fit_once")] + ([c.test("fit_once", well)] if well is not None else [])
+        found = [
+            t
+            for t in tests
+            if t is not None
+            and not t.get("rejected")
+            and t.get("change") is not None
+            and t["change"] <= -MIN_CHANGE
+            and t.get("p_value") is not None
+            and t["p_value"] < SUGGESTIVE_P
+        ]
+        if found:
+            t = min(found, key=lambda x: x["p_value"])
+            out.append(
+                {
+                    "effect": c.spec or c.effect,
+                    "change": t["change"],
+                    "p_value": t["p_value"],
+                    "q_value": t.get("q_value"),
+                }
+            )
+    return sorted(out, key=lambda x: x["change"])
+
+
+def suggestive_text(found: Sequence[dict[str, Any]]) -> str:
+    """A sentence for a ``noise`` verdict naming :func:`suggestive`'s candidates. Empty when
+    there are none."""
+    if not found:
+        return ""
+    each = ", ".join(
+        f"{x['effect']} ({x['change']:+.2f} points, p = {x['p_value']:.2g}"
+        + (f", q = {x['q_value']:.2g}" if x.get("q_value") is not None else "")
+        + ")"
+        for x in found
+    )
+    return (
+        f" Suggestive, not established: the fit-once evidence points at {each}, beyond "
+        f"chance for its own test (p < {SUGGESTIVE_P:g}) but not over all the diagnosis's "
+        "tests (q); nothing is named for it. A diagnosis over more months of data may decide."
+    )
+
+
+def _alone_text(t: dict[str, Any] | None) -> str:
+    """``: its interval and p = ... are for this test alone ...``: why a 95 % interval that
+    excludes 0 can sit beside "not beyond chance" (the false-discovery control over the
+    diagnosis's tests). Empty without a p-value."""
+    if t is None or t.get("p_value") is None:
+        return ""
+    q = t.get("q_value")
+    return f": its interval and p = {t['p_value']:.2g} are for this test alone" + (
+        f"; over all the diagnosis's tests q = {q:.2g}" if q is not None else ""
+    )
+
+
 def few_blocks_text(t: dict[str, Any] | None, well: str | None) -> str:
     """A sentence for a live test that lowered the error by :data:`MIN_CHANGE` or more in
     every one of its blocks, at the smallest p-value its B blocks can give (2^-B), and was
@@ -615,9 +690,11 @@ def _noise_verdict(
     )
     if fit_once.get("kind") == "driver" or (suggestion is not None and not suggestion.result.offer):
         if suggestion is not None:
+            lt = suggestion.result.test("live", well)
             text += (
                 f" A correction in {suggestion.driver} was fitted but does not lower the error "
-                f"the operator sees beyond chance ({_change_text(suggestion.result.test('live', well), 'live MAPE')})."
+                f"the operator sees beyond chance ({_change_text(lt, 'live MAPE')}"
+                f"{_alone_text(lt)})."
             )
     return {
         "kind": "noise",
