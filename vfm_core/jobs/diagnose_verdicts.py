@@ -511,6 +511,27 @@ def untested_text(skipped: Sequence[dict[str, str]]) -> str:
     return " Not tested: " + "; ".join(f"{x['effect']} ({x['reason']})" for x in skipped) + "."
 
 
+def _fit_once_tests(c: CandidateResult, well: str | None) -> list[dict[str, Any]]:
+    """``c``'s fit-once tests with a change: the field's, and ``well``'s own if given."""
+    tests = [c.test("fit_once")] + ([c.test("fit_once", well)] if well is not None else [])
+    return [t for t in tests if t is not None and t.get("change") is not None]
+
+
+def _each(found: Sequence[dict[str, Any]]) -> str:
+    """``real_gas (-0.06 points, q = 0.017), ...``: listed candidates with their change
+    (MAPE points) and, where they have them, their p and q."""
+    return ", ".join(
+        f"{x['effect']} ({x['change']:+.2f} points"
+        + "".join(
+            f", {name} = {x[key]:.2g}"
+            for key, name in (("p_value", "p"), ("q_value", "q"))
+            if x.get(key) is not None
+        )
+        + ")"
+        for x in found
+    )
+
+
 def below_minimum(results: Sequence[CandidateResult], well: str | None) -> list[dict[str, Any]]:
     """The candidates that the data support (BIC over every measurement lower by more than
     :data:`MATERIAL_BIC`) and whose fit-once evidence lowers the error beyond chance
@@ -525,14 +546,10 @@ def below_minimum(results: Sequence[CandidateResult], well: str | None) -> list[
     for c in results:
         if c.material or not c.delta_bic_all < -MATERIAL_BIC:
             continue
-        tests = [c.test("fit_once")] + ([c.test("fit_once", well)] if well is not None else [])
         found = [
             t
-            for t in tests
-            if t is not None
-            and t.get("rejected")
-            and t.get("change") is not None
-            and -MIN_CHANGE < t["change"] < 0.0
+            for t in _fit_once_tests(c, well)
+            if t.get("rejected") and -MIN_CHANGE < t["change"] < 0.0
         ]
         if found:
             t = min(found, key=lambda x: x["change"])
@@ -547,14 +564,8 @@ def below_minimum_text(found: Sequence[dict[str, Any]]) -> str:
     effect may be at work, it is not worth adding. Empty when there are none."""
     if not found:
         return ""
-    each = ", ".join(
-        f"{x['effect']} ({x['change']:+.2f} points"
-        + (f", q = {x['q_value']:.2g}" if x.get("q_value") is not None else "")
-        + ")"
-        for x in found
-    )
     return (
-        f" Beyond chance but below the minimum: {each} lowered the fit-once error by less "
+        f" Beyond chance but below the minimum: {_each(found)} lowered the fit-once error by less "
         f"than {MIN_CHANGE:g} points, though the data support it (BIC lower by more than "
         f"{MATERIAL_BIC:g}): too little to act on (physics at work that the fitted "
         "parameters nearly absorb, or a flexible term taking up meter drift)."
@@ -580,13 +591,10 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
     for c in results:
         if not c.material or not rivals.stands_alone(c):
             continue
-        tests = [c.test("fit_once")] + ([c.test("fit_once", well)] if well is not None else [])
         found = [
             t
-            for t in tests
-            if t is not None
-            and not t.get("rejected")
-            and t.get("change") is not None
+            for t in _fit_once_tests(c, well)
+            if not t.get("rejected")
             and t["change"] <= -MIN_CHANGE
             and t.get("p_value") is not None
             and t["p_value"] < SUGGESTIVE_P
@@ -609,14 +617,8 @@ def suggestive_text(found: Sequence[dict[str, Any]]) -> str:
     there are none."""
     if not found:
         return ""
-    each = ", ".join(
-        f"{x['effect']} ({x['change']:+.2f} points, p = {x['p_value']:.2g}"
-        + (f", q = {x['q_value']:.2g}" if x.get("q_value") is not None else "")
-        + ")"
-        for x in found
-    )
     return (
-        f" Suggestive, not established: the fit-once evidence points at {each}, beyond "
+        f" Suggestive, not established: the fit-once evidence points at {_each(found)}, beyond "
         f"chance for its own test (p < {SUGGESTIVE_P:g}) but not over all the diagnosis's "
         "tests (q); nothing is named for it. A diagnosis over more months of data may decide."
     )
