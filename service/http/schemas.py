@@ -357,7 +357,8 @@ class WellOut(WellSummary):
         default=None,
         description="the alarm on the model's standardised residuals: enabled, active, "
         "statistic, threshold, since, direction, source, arl0, k, accept_periods, alarm_on_return, streams (per "
-        "meter), events (with closed: cleared | accepted once ended)",
+        "meter), events (with closed: cleared | accepted | reset once ended; reset: ended "
+        "by a model change, which restarts the detectors)",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,
