@@ -26,6 +26,7 @@ import time
 import numpy as np
 import pandas as pd
 
+from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import run_prequential
 from vfm_core.runtime import configure
 from vfm_core.simulate import simulate_field
@@ -65,13 +66,17 @@ def main() -> None:
         f"{'cov90 %':>7} {'width90 %':>9} {'time s':>7}"
     )
     for hidden in args.hidden.split(","):
-        field = simulate_field(
-            wells=args.wells,
-            years=args.years,
-            seed=args.seed,
-            hidden=[hidden],
-            physics=args.physics,
-        )
+        try:
+            field = simulate_field(
+                wells=args.wells,
+                years=args.years,
+                seed=args.seed,
+                hidden=[hidden],
+                physics=args.physics,
+            )
+        except ConfigError as exc:  # an effect that the chosen truth has of its own
+            print(f"{hidden:<15} skipped: {exc}", flush=True)
+            continue
         obs, truth = field.observations, field.truth_samples
         q_true = truth.set_index(["time", "well"])["q_true"]
         for case in args.cases.split(","):
