@@ -52,9 +52,10 @@ from service.engine.checkpoints import Checkpoints
 from service.engine.items import Batch, DeferredLearn
 from service.engine.learners import Learner
 from service.engine.pools import Pools, coupled
+from service.engine.residual_alarms import alarm_op
 from service.engine.state import Pending, Sample, WellState, WellTestResult
 from service.inputs import Counters
-from service.store import InsertDriftEvent, InsertResidualAlarm, MarkLearned, Op
+from service.store import InsertDriftEvent, MarkLearned, Op
 from vfm_core.learning.streaming import learn_many, predict_many
 from vfm_core.sensor_faults import Fallback, fallback_points, residual_noise, widened_rates
 from vfm_core.timeutil import from_ns, iso
@@ -495,17 +496,7 @@ class Learning:
         alarm = st.residual_alarm
         assert alarm is not None
         for kind, src, event in alarm.update(source, q_total, sample.predicted, sd, time_ns):
-            ops.append(
-                InsertResidualAlarm(
-                    well=st.well,
-                    time_ns=time_ns,
-                    source=src,
-                    kind=kind,
-                    direction=event["direction"],
-                    statistic=float(event["statistic"]),
-                    threshold=float(event["threshold"]),
-                )
-            )
+            ops.append(alarm_op(st.well, time_ns, (kind, src, event)))
             if kind == "start":
                 self.counters.event("residual alarms")
                 logger.warning(

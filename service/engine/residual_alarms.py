@@ -20,10 +20,11 @@ from collections import deque
 from typing import Any
 
 from service.config import ResidualAlarmSettings
+from service.store import InsertResidualAlarm
 from vfm_core.residual_alarm import ResidualCusum, cusum_threshold, standardised_residual
 from vfm_core.timeutil import iso
 
-__all__ = ["WellResidualAlarm", "Transition", "disabled_view"]
+__all__ = ["WellResidualAlarm", "Transition", "disabled_view", "alarm_op"]
 
 #: (kind "start" | "end", source, the event as the API shows it)
 Transition = tuple[str, str, dict[str, Any]]
@@ -44,6 +45,21 @@ _DESIGN_KEYS = (
     "accept_periods",
     "alarm_on_return",
 )
+
+
+def alarm_op(well: str, time_ns: int, transition: Transition) -> InsertResidualAlarm:
+    """The store's row of an alarm that began or ended (``transition``) on ``well`` at
+    ``time_ns`` (data time, epoch ns)."""
+    kind, source, event = transition
+    return InsertResidualAlarm(
+        well=well,
+        time_ns=time_ns,
+        source=source,
+        kind=kind,
+        direction=str(event["direction"]),
+        statistic=float(event["statistic"]),
+        threshold=float(event["threshold"]),
+    )
 
 
 class WellResidualAlarm:

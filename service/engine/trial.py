@@ -51,9 +51,9 @@ import numpy as np
 from scipy import stats
 
 from service.config import Settings, TrialSettings
+from service.engine.residual_alarms import alarm_op
 from service.store import (
     InsertModelVersion,
-    InsertResidualAlarm,
     InsertTrial,
     Op,
     PruneModelVersions,
@@ -595,23 +595,13 @@ def _restart_alarm(st: WellState, when_ns: int | None) -> list[Op]:
         return []
     at = when_ns if when_ns is not None else time.time_ns()
     ops: list[Op] = []
-    for _kind, source, event in alarm.reset():
-        ops.append(
-            InsertResidualAlarm(
-                well=st.well,
-                time_ns=at,
-                source=source,
-                kind="end",
-                direction=str(event["direction"]),
-                statistic=float(event["statistic"]),
-                threshold=float(event["threshold"]),
-            )
-        )
+    for transition in alarm.reset():
+        ops.append(alarm_op(st.well, at, transition))
         logger.info(
             "Residual alarm on %s (%s) ended at %s by the model change: the new model's "
             "residuals are tested afresh.",
             st.well,
-            source,
+            transition[1],
             iso(at),
         )
     return ops
