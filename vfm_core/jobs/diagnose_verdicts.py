@@ -585,7 +585,7 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
     more with its own p below :data:`SUGGESTIVE_P`, but Benjamini-Hochberg over the
     diagnosis's tests does not reject it. Nothing is named for them: a ``noise`` verdict
     lists them so that a short span's weak evidence is not read as none (a valve on four
-    wells, a year after the split: p = 0.016 alone over 14 blocks, q = 0.21).
+    wells, a year after the split: p = 0.016 alone over 14 blocks, q = 0.13).
     ``[{"effect", "change", "p_value", "q_value"}]``, largest fall first (MAPE points)."""
     out = []
     for c in results:
