@@ -18,6 +18,11 @@ service does), and reports:
   (at the clean fields' rate of about 0.4 alarms per well-year an unrelated alarm falls
   within 30 days about 3 % of the time, within 180 days about 18 %), and the median delay
   (days, event to the first alarm within 180 days);
+- for ``mpfm_bias;onset=event`` fields (a meter that starts to read off: its bias steps
+  and its drift begins at a time the truth records per well, ``meter_event``): the same
+  counts for the residual alarm, and beside them for the service's MPFM-against-well-test
+  band (:func:`vfm_core.meter_check.mpfm_checks`: a well test the MPFM's median within
+  24 h differs from by more than 10 %), which needs no model;
 - for ``erosion`` (slow wear from the start) and ``mpfm_bias`` (a meter biased from the
   start and drifting away from the well tests): the share of wells with an alarm and the
   median day of the first one after the split (these changes have no onset inside the
@@ -60,6 +65,7 @@ import pandas as pd
 from service.config import DriftSettings
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.jobs.study import run_prequential
+from vfm_core.meter_check import mpfm_checks
 from vfm_core.observations import validate_frame
 from vfm_core.residual_alarm import ResidualCusum, alarms_from_predictions, cusum_threshold
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL
@@ -110,12 +116,17 @@ def well_years(predictions: pd.DataFrame) -> float:
     return float(((span["max"] - span["min"]) / DAY).sum() / 365.25)
 
 
-def sand_delays(alarms: list[dict], truth: dict, split: pd.Timestamp, last: pd.Timestamp):
+def event_delays(
+    alarms: list[dict], truth: dict, split: pd.Timestamp, last: pd.Timestamp, key: str
+):
+    """Per well whose event ``key`` (the truth's ``sand_event`` or ``meter_event``) lies at
+    least 30 days after the split and 180 days before ``last``: whether an alarm started
+    within 30 and within 180 days after it, and the delays (days) of those within 180."""
     tested, found, soon, delays = 0, 0, 0, []
     for well, info in truth["wells"].items():
-        if "sand_event" not in info:
+        if key not in info:
             continue
-        event = pd.Timestamp(info["sand_event"])
+        event = pd.Timestamp(info[key])
         event = event.tz_localize("UTC") if event.tzinfo is None else event.tz_convert("UTC")
         if event < split + 30 * DAY or event > last - 180 * DAY:
             continue
@@ -129,6 +140,23 @@ def sand_delays(alarms: list[dict], truth: dict, split: pd.Timestamp, last: pd.T
     return tested, found, soon, delays
 
 
+def _event_note(what: str, found: tuple[int, int, int, list[float]]) -> str:
+    tested, hit, soon, delays = found
+    med = f"{np.median(delays):.0f} d" if delays else "-"
+    return (
+        f"{what}: {soon}/{tested} wells within 30 d, {hit}/{tested} within 180 d, "
+        f"median delay {med}"
+    )
+
+
+def band_alarms(frame: pd.DataFrame) -> list[dict]:
+    """The service's MPFM-against-well-test band (:func:`vfm_core.meter_check.mpfm_checks`,
+    its defaults) as alarm starts: every well test the MPFM disagrees with."""
+    checks = mpfm_checks(frame)
+    off = checks[~checks["agrees"].astype(bool)]
+    return [{"well": w, "start": t} for w, t in zip(off["well"], off["time"], strict=True)]
+
+
 def first_alarms(alarms: list[dict], wells: list[str], split: pd.Timestamp):
     firsts = []
     for w in wells:
@@ -139,22 +167,32 @@ def first_alarms(alarms: list[dict], wells: list[str], split: pd.Timestamp):
 
 
 def describe(
-    alarms: list[dict], effects: list[str], truth: dict, split: pd.Timestamp, p: pd.DataFrame
+    alarms: list[dict],
+    effects: list[str],
+    truth: dict,
+    split: pd.Timestamp,
+    p: pd.DataFrame,
+    frame: pd.DataFrame,
 ) -> tuple[str, str]:
-    """The change column (sand-event detections and delays, or the first alarms of a
-    field that changes from the start) and the alarms counted by meter and direction."""
+    """The change column (sand-event or meter-event detections and delays, or the first
+    alarms of a field that changes from the start) and the alarms counted by meter and
+    direction."""
     note = ""
+    last = p["time"].max()
     if any(e.startswith("erosion") and "step" in e for e in effects):
-        tested, found, soon, delays = sand_delays(alarms, truth, split, p["time"].max())
-        med = f"{np.median(delays):.0f} d" if delays else "-"
-        note = (
-            f"sand event: {soon}/{tested} wells within 30 d, {found}/{tested} within "
-            f"180 d, median delay {med}"
-        )
+        found = event_delays(alarms, truth, split, last, "sand_event")
+        note = _event_note("sand event", found)
+    elif any(e.startswith("mpfm_bias") and "onset=event" in e for e in effects):
+        note = _event_note("meter event", event_delays(alarms, truth, split, last, "meter_event"))
+        band = event_delays(band_alarms(frame), truth, split, last, "meter_event")
+        note += "; " + _event_note("MPFM band", band)
     elif effects:
         firsts = first_alarms(alarms, sorted(p["well"].unique()), split)
         med = f"{np.median(firsts):.0f} d after split" if firsts else "-"
         note = f"{len(firsts)}/{p['well'].nunique()} wells alarmed, first: {med}"
+    else:
+        tested = [a for a in band_alarms(frame) if a["start"] >= split]
+        note = f"MPFM band: {len(tested)} well tests off by more than 10 %"
     streams: dict[str, int] = {}
     for a in alarms:
         key = f"{a['source']}:{a['direction']}"
@@ -267,7 +305,7 @@ def main() -> None:
                         accept_periods=periods,
                         alarm_on_return=on_return,
                     )
-                    note, kinds = describe(alarms, effects, sim.truth, split, p)
+                    note, kinds = describe(alarms, effects, sim.truth, split, p, frame)
                     acc = sum(a["closed"] == "accepted" for a in alarms)
                     rows.append(
                         f"| `{text}` | {model} | {method} | {scale} | {accept} | {wy:.1f} | "

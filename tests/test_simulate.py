@@ -392,6 +392,29 @@ def test_mpfm_bias_moves_only_the_mpfm(plain_field: SimulatedField) -> None:
     assert size["fraction_up"] == 1.0 and size["mean_rel_change"] >= 0.06
 
 
+def test_a_meter_that_starts_to_read_off(plain_field: SimulatedField) -> None:
+    """onset=event: the MPFM reads as before until the truth's meter_event, then 1 + bias +
+    drift * years since it; the well tests and the sand event's draw stay as they were."""
+    field = simulate_field(**SMALL, hidden=["mpfm_bias:bias=0.1:drift=0.2:onset=event"])
+    obs, base = field.observations, plain_field.observations
+    mpfm = (obs["source"] == "mpfm").to_numpy()
+    test = (obs["source"] == "well_test").to_numpy()
+    np.testing.assert_array_equal(obs.loc[test, "q_total"], base.loc[test, "q_total"])
+    ratio = obs["q_total"].to_numpy() / base["q_total"].to_numpy()
+    for well, info in field.truth["wells"].items():
+        event = pd.Timestamp(info["meter_event"])
+        start, end = pd.Timestamp(info["start"]), pd.Timestamp(info["end"])
+        assert start + (end - start) / 2 <= event <= end
+        rows = (obs["well"] == well).to_numpy() & mpfm
+        days = ((obs["time"] - event) / pd.Timedelta(days=1)).to_numpy()
+        on = np.maximum(days, 0.0) / 365.25
+        expected = np.where(days >= 0, 1.1 + 0.2 * on, 1.0)
+        # rtol 1e-8: the recorded meter_event is rounded to the second (0.2/yr: 6e-9 a second)
+        np.testing.assert_allclose(ratio[rows], expected[rows], rtol=1e-8)
+    assert field.truth["hidden"]["mpfm_bias"]["params"]["onset"] == "event"
+    assert "meter_event" not in plain_field.truth["wells"]["W01"]
+
+
 def test_hidden_as_mapping_fills_defaults() -> None:
     field = simulate_field(wells=1, years=0.5, hidden={"erosion": {"rate": 0.1}, "slip": {}})
     assert field.truth["hidden"]["erosion"]["params"] == {
@@ -441,7 +464,11 @@ def test_parse_hidden_forms() -> None:
     assert parsed == {"erosion": {"rate": 0.06, "basis": "throughput", "step": 0.1}, "slip": {}}
     assert parse_hidden(["valve:family=sigmoid"])["valve"] == {"family": "sigmoid"}
     assert parse_hidden(["valve:family=1"])["valve"] == {"family": list(physics.AREA_FUNCTIONS)[1]}
-    assert parse_hidden(["mpfm_bias:bias=-0.05"])["mpfm_bias"] == {"bias": -0.05, "drift": 0.03}
+    assert parse_hidden(["mpfm_bias:bias=-0.05"])["mpfm_bias"] == {
+        "bias": -0.05,
+        "drift": 0.03,
+        "onset": "start",
+    }
 
 
 def test_parse_hidden_errors_name_the_valid_choices() -> None:

@@ -269,12 +269,20 @@ HIDDEN_EFFECTS: dict[str, EffectSpec] = {
         EffectSpec(
             "mpfm_bias",
             "The MPFM is biased and drifts against the well tests: "
-            "mpfm_factor = 1 + bias + drift * years since the well's start.",
+            "mpfm_factor = 1 + bias + drift * years since the onset (the well's start, or "
+            "with onset=event a time the truth records per well: a meter that starts to "
+            "read off).",
             "MPFM readings above the well tests for positive bias/drift, the gap growing "
             "with time; well tests and the true rate are unaffected.",
             {
-                "bias": ParamSpec(0.06, "relative MPFM bias at the well's start", "-", -0.5, 1.0),
+                "bias": ParamSpec(0.06, "relative MPFM bias from the onset on", "-", -0.5, 1.0),
                 "drift": ParamSpec(0.03, "relative MPFM drift", "1/yr", -0.2, 0.2),
+                "onset": ParamSpec(
+                    "start",
+                    "when the bias and drift begin: at the well's start, or at a time drawn "
+                    "per well in the second half of its life (the truth's meter_event)",
+                    choices=("start", "event"),
+                ),
             },
         ),
         EffectSpec(
@@ -950,7 +958,9 @@ class _Well:
         if len(dev):
             keep[1:] = dev[1:, 0] >= np.maximum.accumulate(dev[:, 1])[:-1]  # no overlaps
         self.deviations = np.column_stack([dev, dev_factor])[keep]
-        self.sand_event = self.t0 + (self.t1 - self.t0) * float(self.rng("effects").uniform(0.5, 1))
+        events = self.rng("effects").uniform(0.5, 1, 2)  # the sand event's, then the meter's
+        self.sand_event = self.t0 + (self.t1 - self.t0) * float(events[0])
+        self.meter_event = self.t0 + (self.t1 - self.t0) * float(events[1])
 
         # The target: the plain model's rate at the initial opening and start state.
         t_first = np.array([self.t0])
@@ -1069,7 +1079,12 @@ class _Well:
         factor = base_factor.copy()
         if "mpfm_bias" in self.hidden:
             spec = self.hidden["mpfm_bias"]
-            factor = factor * (1.0 + float(spec["bias"]) + float(spec["drift"]) * years)
+            if spec.get("onset") == "event":
+                on = np.maximum(t - self.meter_event, 0.0) / DAYS_PER_YEAR
+                step = np.where(t >= self.meter_event, float(spec["bias"]), 0.0)
+                factor = factor * (1.0 + step + float(spec["drift"]) * on)
+            else:
+                factor = factor * (1.0 + float(spec["bias"]) + float(spec["drift"]) * years)
         in_outage = _inside(t, self.outages)[0]
         is_mpfm = ~is_test & ~in_outage
         q_meas = np.full(n, np.nan)
@@ -1251,6 +1266,8 @@ class _Well:
         }
         if "erosion" in self.hidden:
             out["sand_event_day"] = self.sand_event
+        if self.hidden.get("mpfm_bias", {}).get("onset") == "event":
+            out["meter_event_day"] = self.meter_event
         return out
 
 
@@ -1387,8 +1404,9 @@ def _wells_truth(
         info["end"] = iso(info.pop("end_day"))
         for key in ("shut_ins_days", "data_gaps_days", "mpfm_outages_days"):
             info[key.removesuffix("_days")] = [[iso(a), iso(b)] for a, b in info.pop(key)]
-        if "sand_event_day" in info:
-            info["sand_event"] = iso(info.pop("sand_event_day"))
+        for key in ("sand_event", "meter_event"):
+            if f"{key}_day" in info:
+                info[key] = iso(info.pop(f"{key}_day"))
         end_day = info.pop("plateau_end_day")
         info["plateau_end"] = iso(end_day) if end_day is not None else None
         per_well[name] = info

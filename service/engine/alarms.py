@@ -1,7 +1,9 @@
 """The well's alarm when its MPFM disagrees with its well tests, and the well-test QC.
 
 A well test is the reference a multiphase meter is checked against. When a well test is
-stored, :meth:`MpfmCheck.on_well_test` compares it with the median of the well's MPFM
+stored, :meth:`MpfmCheck.on_well_test` compares it (the rule of
+:func:`vfm_core.meter_check.compare`, which :func:`vfm_core.meter_check.mpfm_checks` applies
+offline) with the median of the well's MPFM
 readings within ``alarms.mpfm_well_test_window_s`` (24 h) of it, either side; when they
 differ by more than ``alarms.mpfm_well_test_rel`` (10 %) of the well test, the well's
 state carries the alarm "MPFM reads X % above/below the well test of <date>" until a
@@ -25,13 +27,13 @@ import statistics
 import time
 from collections.abc import Sequence
 from functools import lru_cache
-from typing import Any
 
 from scipy import stats
 
 from service.config import Settings
 from service.engine.state import WellState
 from service.store import InsertMeasurement, Op, ReviewRow, SampleRow, Store
+from vfm_core.meter_check import compare
 from vfm_core.timeutil import iso
 
 __all__ = ["MpfmCheck", "WellTestReview"]
@@ -92,30 +94,27 @@ class MpfmCheck:
     ) -> None:
         if q_total <= 0:
             return
-        readings = self.near(st, time_ns, uncommitted)
-        if not readings:
+        found = compare(self.near(st, time_ns, uncommitted), q_total, self.rel)
+        if found is None:
             return
-        median = float(statistics.median(readings))
-        rel = (median - q_total) / q_total
-        agrees = abs(rel) <= self.rel
+        rel = found["relative_difference"]
         when = (iso(time_ns) or "")[:16].replace("T", " ") + " UTC"
-        check: dict[str, Any] = {
+        st.mpfm_check = {
             "well_test_time": iso(time_ns),
             "well_test_q_total": q_total,
-            "mpfm_median": median,
-            "mpfm_readings": len(readings),
+            "mpfm_median": found["mpfm_median"],
+            "mpfm_readings": found["mpfm_readings"],
             "window_s": self.window_s,
             "relative_difference": rel,
             "threshold": self.rel,
-            "agrees": agrees,
+            "agrees": found["agrees"],
             "alarm": None
-            if agrees
+            if found["agrees"]
             else (
                 f"MPFM reads {abs(rel) * 100:.0f} % {'above' if rel > 0 else 'below'} "
                 f"the well test of {when}"
             ),
         }
-        st.mpfm_check = check
 
     def load(self, st: WellState) -> None:
         """At start: compare the well's latest stored well test (all its readings are in)."""

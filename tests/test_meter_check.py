@@ -1,0 +1,55 @@
+"""The MPFM-against-well-test rule offline (vfm_core.meter_check), on numbers checked by hand."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from vfm_core.meter_check import compare, mpfm_checks
+
+T0 = pd.Timestamp("2020-03-01 12:00", tz="UTC")
+H = pd.Timedelta(hours=1)
+
+
+def _row(well: str, source: str, when: pd.Timestamp, q: float) -> dict:
+    return {"time": when, "well": well, "source": source, "q_total": q}
+
+
+def test_each_well_test_is_compared_with_the_median_within_24_h() -> None:
+    frame = pd.DataFrame(
+        [
+            _row("W01", "mpfm", T0 - 23 * H, 105.0),
+            _row("W01", "mpfm", T0 + 2 * H, 112.0),
+            _row("W01", "mpfm", T0 + 24 * H, 111.0),  # on the window's edge: in
+            _row("W01", "mpfm", T0 + 25 * H, 500.0),  # outside the window: not used
+            _row("W01", "well_test", T0, 100.0),
+            _row("W02", "mpfm", T0 - H, 190.0),
+            _row("W02", "mpfm", T0 + H, 210.0),
+            _row("W02", "well_test", T0, 200.0),
+            _row("W03", "well_test", T0, 50.0),  # no MPFM reading near it: not compared
+            _row("W03", "mpfm", T0 + 48 * H, 50.0),
+        ]
+    )
+    checks = mpfm_checks(frame).set_index("well")
+    assert list(checks.index) == ["W01", "W02"]
+    # W01: median(105, 112, 111) = 111 against 100: 11 % above, outside the 10 % band
+    assert checks.loc["W01", "mpfm_median"] == 111.0
+    assert checks.loc["W01", "mpfm_readings"] == 3
+    assert checks.loc["W01", "relative_difference"] == pytest.approx(0.11)
+    assert not checks.loc["W01", "agrees"]
+    # W02: median(190, 210) = 200 against 200
+    assert checks.loc["W02", "relative_difference"] == 0.0 and checks.loc["W02", "agrees"]
+    assert checks.loc["W01", "time"] == T0
+    # a wider band accepts W01; a narrower window leaves it one reading (112: 12 % above)
+    assert mpfm_checks(frame, rel=0.12).set_index("well").loc["W01", "agrees"]
+    narrow = mpfm_checks(frame, window_s=3 * 3600.0).set_index("well")
+    assert narrow.loc["W01", "mpfm_readings"] == 1
+    assert narrow.loc["W01", "relative_difference"] == pytest.approx(0.12)
+
+
+def test_nothing_to_compare() -> None:
+    assert compare([], 100.0, 0.1) is None
+    assert compare([100.0], 0.0, 0.1) is None
+    assert compare([100.0], float("nan"), 0.1) is None
+    empty = mpfm_checks(pd.DataFrame([_row("W01", "mpfm", T0, 10.0)]))
+    assert empty.empty and "relative_difference" in empty.columns
