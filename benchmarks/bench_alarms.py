@@ -18,6 +18,8 @@ service does), and reports:
   (at the clean fields' rate of about 0.4 alarms per well-year an unrelated alarm falls
   within 30 days about 3 % of the time, within 180 days about 18 %), and the median delay
   (days, event to the first alarm within 180 days);
+- for ``erosion;onset=event`` fields (wear that begins at the sand event, with or
+  without a step): the same counts, from the event;
 - for ``mpfm_bias;onset=event`` fields (a meter that starts to read off: its bias steps
   and its drift begins at a time the truth records per well, ``meter_event``): the same
   counts for the residual alarm, and beside them for the service's MPFM-against-well-test
@@ -65,7 +67,7 @@ import pandas as pd
 from service.config import DriftSettings
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.jobs.study import run_prequential
-from vfm_core.meter_check import mpfm_checks
+from vfm_core.meter_check import SAME_Z, SHIFT_Z, mpfm_checks
 from vfm_core.observations import validate_frame
 from vfm_core.residual_alarm import ResidualCusum, alarms_from_predictions, cusum_threshold
 from vfm_core.schema import INPUT_COLUMNS, SOURCE, TARGET, TIME, WELL
@@ -149,6 +151,39 @@ def _event_note(what: str, found: tuple[int, int, int, list[float]]) -> str:
     )
 
 
+def which_moved(
+    alarms: list[dict], checks: pd.DataFrame, truth: dict, key: str, last: pd.Timestamp
+) -> str:
+    """For each well whose event ``key`` had a residual alarm on the MPFM stream within 180
+    days (event before ``last`` - 180 days), the first well test compared with the MPFM
+    after that alarm began (within 180 days of the event), read as the service's
+    ``which_moved`` reads it (:func:`vfm_core.meter_check.which_moved`): ``meter`` (|z| > 3),
+    ``unclear`` or ``well`` (|z| < 1), counted. A meter event should say ``meter``, a well
+    that changed ``well``."""
+    said = {"meter": 0, "unclear": 0, "well": 0}
+    for well, info in truth["wells"].items():
+        if key not in info:
+            continue
+        event = pd.Timestamp(info[key])
+        if event > last - 180 * DAY:
+            continue
+        starts = [
+            a["start"]
+            for a in alarms
+            if a["well"] == well
+            and a["source"] == "mpfm"
+            and event <= a["start"] <= event + 180 * DAY
+        ]
+        if not starts:
+            continue
+        c = checks[(checks["well"] == well) & (checks["time"] >= min(starts))]
+        c = c[(c["time"] <= event + 180 * DAY) & c["shifted"].notna()]
+        if len(c):
+            z = abs(float(c["z"].iloc[0]))
+            said["meter" if z > SHIFT_Z else "well" if z < SAME_Z else "unclear"] += 1
+    return "first well test after the MPFM alarm: " + ", ".join(f"{k} {v}" for k, v in said.items())
+
+
 def band_alarms(frame: pd.DataFrame) -> list[dict]:
     """The service's MPFM-against-well-test band (:func:`vfm_core.meter_check.mpfm_checks`,
     its defaults) as alarm starts: every well test the MPFM disagrees with."""
@@ -179,13 +214,16 @@ def describe(
     direction."""
     note = ""
     last = p["time"].max()
-    if any(e.startswith("erosion") and "step" in e for e in effects):
+    if any(e.startswith("erosion") and ("step" in e or "onset=event" in e) for e in effects):
         found = event_delays(alarms, truth, split, last, "sand_event")
-        note = _event_note("sand event", found)
+        step = any(e.startswith("erosion") and "step" in e for e in effects)
+        note = _event_note("sand event" if step else "wear onset", found)
+        note += "; " + which_moved(alarms, mpfm_checks(frame), truth, "sand_event", last)
     elif any(e.startswith("mpfm_bias") and "onset=event" in e for e in effects):
         note = _event_note("meter event", event_delays(alarms, truth, split, last, "meter_event"))
         band = event_delays(band_alarms(frame), truth, split, last, "meter_event")
         note += "; " + _event_note("MPFM band", band)
+        note += "; " + which_moved(alarms, mpfm_checks(frame), truth, "meter_event", last)
     elif effects:
         firsts = first_alarms(alarms, sorted(p["well"].unique()), split)
         med = f"{np.median(firsts):.0f} d after split" if firsts else "-"

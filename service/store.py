@@ -1286,15 +1286,16 @@ class Store:
             ).fetchone()
         return int(row[0]) if row is not None and row[0] is not None else None
 
-    def latest_well_test(self, well: str) -> tuple[int, float] | None:
-        """The time (epoch ns) and q_total (Sm3/h) of the well's latest stored well test."""
+    def latest_well_tests(self, well: str, n: int) -> list[tuple[int, float]]:
+        """The time (epoch ns) and q_total (Sm3/h) of the well's last ``n`` stored well
+        tests, oldest first."""
         with self.reader() as con:
-            row = con.execute(
+            rows = con.execute(
                 "SELECT time_ns, q_total FROM measurements WHERE well = ? AND source = 'well_test'"
-                " AND status != 'unpaired' ORDER BY time_ns DESC LIMIT 1",
-                (well,),
-            ).fetchone()
-        return (int(row[0]), float(row[1])) if row is not None else None
+                " AND status != 'unpaired' ORDER BY time_ns DESC LIMIT ?",
+                (well, int(n)),
+            ).fetchall()
+        return [(int(t), float(q)) for t, q in reversed(rows)]
 
     def counts(self) -> dict[str, int]:
         with self.reader() as con:

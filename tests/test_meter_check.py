@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import pandas as pd
 import pytest
 
-from vfm_core.meter_check import compare, mpfm_checks
+from vfm_core.meter_check import against_usual, compare, mpfm_checks, which_moved
 
 T0 = pd.Timestamp("2020-03-01 12:00", tz="UTC")
 H = pd.Timedelta(hours=1)
@@ -53,3 +55,41 @@ def test_nothing_to_compare() -> None:
     assert compare([100.0], float("nan"), 0.1) is None
     empty = mpfm_checks(pd.DataFrame([_row("W01", "mpfm", T0, 10.0)]))
     assert empty.empty and "relative_difference" in empty.columns
+
+
+def test_a_pair_against_the_usual_difference() -> None:
+    earlier = [0.02, 0.01, 0.03, 0.02, 0.025, 0.015, 0.02, 0.01]
+    # log ratios: median log(1.02); MAD of the logs about 0.0049 -> sd 0.0073, floored at 0.01
+    usual = against_usual(earlier, 0.09)
+    assert usual is not None
+    assert usual["usual_difference"] == pytest.approx(0.02)
+    assert usual["usual_spread"] == 0.01
+    assert usual["z"] == pytest.approx(math.log(1.09 / 1.02) / 0.01)
+    assert usual["shifted"]
+    assert not against_usual(earlier, 0.04)["shifted"]  # z = 1.9
+    assert against_usual(earlier[:7], 0.09) is None  # fewer than MIN_PAIRS
+    assert against_usual(earlier, -1.0) is None
+
+
+def test_which_moved_beside_an_mpfm_alarm() -> None:
+    alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
+    check = {
+        "well_test_time": "2020-05-20T06:00:00+00:00",
+        "relative_difference": 0.01,
+        "usual_difference": 0.008,
+    }
+    said = {z: which_moved(alarm, {**check, "z": z}) for z in (4.0, -3.5, 2.0, 0.5)}
+    assert [said[z]["moved"] for z in (4.0, -3.5, 2.0, 0.5)] == [
+        "meter",
+        "meter",
+        "unclear",
+        "well",
+    ]
+    assert "usually +0.8 %" in said[0.5]["text"] and "2020-05-20" in said[0.5]["text"]
+    # nothing to say: the alarm is on the well tests, the well test came before the
+    # alarm, or it was not set against earlier pairs
+    assert which_moved({**alarm, "source": "well_test"}, {**check, "z": 4.0}) is None
+    early = {**check, "z": 4.0, "well_test_time": "2020-04-20T06:00:00+00:00"}
+    assert which_moved(alarm, early) is None
+    assert which_moved(alarm, {**check, "z": None}) is None
+    assert which_moved(alarm, None) is None

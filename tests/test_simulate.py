@@ -298,6 +298,7 @@ def test_erosion_grows_with_throughput() -> None:
         "rate": 0.04,
         "basis": "throughput",
         "step": 0.0,
+        "onset": "start",
     }
     assert_size_recorded(field, "erosion", change)
 
@@ -315,6 +316,23 @@ def test_erosion_on_time_with_a_sand_event() -> None:
         expected = info["c_d"] * (1 + 0.05 * years[rows]) * np.where(after, 1.1, 1.0)
         np.testing.assert_allclose(field.truth_samples.loc[rows, "c_d_true"], expected, rtol=1e-9)
     assert field.truth["hidden"]["erosion"]["size"]["c_d_change_per_year"] > 0.05
+
+
+@pytest.mark.parametrize("basis", ["time", "throughput"])
+def test_wear_that_starts_at_the_sand_event(basis: str) -> None:
+    """onset=event: C_D is the well's own until its sand event, then grows with the time
+    (or the volume) since it."""
+    field = simulate_field(**SMALL, hidden=[f"erosion:basis={basis}:rate=0.3:onset=event"])
+    obs, c_d_true = field.observations, field.truth_samples["c_d_true"].to_numpy()
+    for well, info in field.truth["wells"].items():
+        rows = (obs["well"] == well).to_numpy()
+        days = (obs.loc[rows, "time"] - pd.Timestamp(info["sand_event"])) / pd.Timedelta(days=1)
+        before, after = (days < 0).to_numpy(), (days > 30).to_numpy()
+        np.testing.assert_allclose(c_d_true[rows][before], info["c_d"], rtol=1e-12)
+        assert (c_d_true[rows][after] > info["c_d"]).all()
+        if basis == "time":
+            expected = info["c_d"] * (1 + 0.3 * np.maximum(days.to_numpy(), 0) / 365.25)
+            np.testing.assert_allclose(c_d_true[rows], expected, rtol=1e-8)
 
 
 @pytest.mark.parametrize("family", ["equal_percentage", "sigmoid", "2"])
@@ -421,6 +439,7 @@ def test_hidden_as_mapping_fills_defaults() -> None:
         "rate": 0.1,
         "basis": "throughput",
         "step": 0.0,
+        "onset": "start",
     }
     assert set(field.truth["hidden"]) == {"erosion", "slip"}
     for spec in HIDDEN_EFFECTS.values():
@@ -461,7 +480,8 @@ def test_parse_hidden_forms() -> None:
     assert parse_hidden([]) == {}
     assert set(parse_hidden(["erosion,real_gas"])) == {"erosion", "real_gas"}
     parsed = parse_hidden(["erosion:rate=0.06:step=0.1", "slip"])
-    assert parsed == {"erosion": {"rate": 0.06, "basis": "throughput", "step": 0.1}, "slip": {}}
+    erosion = {"rate": 0.06, "basis": "throughput", "step": 0.1, "onset": "start"}
+    assert parsed == {"erosion": erosion, "slip": {}}
     assert parse_hidden(["valve:family=sigmoid"])["valve"] == {"family": "sigmoid"}
     assert parse_hidden(["valve:family=1"])["valve"] == {"family": list(physics.AREA_FUNCTIONS)[1]}
     assert parse_hidden(["mpfm_bias:bias=-0.05"])["mpfm_bias"] == {

@@ -7,6 +7,20 @@ over a whole observation frame): the median of the well's MPFM readings within
 they differ by more than ``rel`` (10 %) of the well test, the meter disagrees with it
 (:func:`compare`). A well test with no MPFM reading in its window is not compared.
 
+Against its usual difference (:func:`against_usual`): a meter that has read 2 % high for
+months and reads 9 % high today moved by 7 %, though the band still takes it. Each compared
+well test's log ratio is set against the median of the well's last ``USUAL_PAIRS`` (20)
+earlier ones, in robust standard deviations (1.4826 MAD, at least ``MIN_SPREAD``, 1 %):
+``z``; from ``MIN_PAIRS`` (8) earlier pairs on. ``|z| > SHIFT_Z`` (3) says the MPFM moved
+against the well tests (the meter, not the well: a well that changed moves both meters).
+This is what tells a residual alarm on the MPFM's stream apart (:func:`which_moved`): the
+alarm says the MPFM left the model; a well test after it began says whether the
+well went with it (``|z| < SAME_Z``, 1: the MPFM reads against it as usual), or the meter
+moved (``|z| > SHIFT_Z``), or it cannot tell (in between). On clean simulated fields 4 to
+5 % of the pairs have ``|z| > 3`` (the pairs' tails are heavier than a Gaussian's), so the
+z is read only beside an alarm, never as an alarm of its own (alarms guide, "A meter that
+starts to read off").
+
 Why a fixed band and not a sequential test on the same pairs: a pair's spread is 2.5 to
 5 % on simulated fields (the meter's noise over one to three readings, the well test's,
 and the rate moving within the 24 h), and well tests come 3 to 8 weeks apart, so a CUSUM
@@ -27,7 +41,25 @@ import pandas as pd
 
 from vfm_core import schema
 
-__all__ = ["compare", "mpfm_checks"]
+__all__ = [
+    "MIN_PAIRS",
+    "SAME_Z",
+    "SHIFT_Z",
+    "USUAL_PAIRS",
+    "against_usual",
+    "compare",
+    "mpfm_checks",
+    "which_moved",
+]
+
+#: earlier pairs a well test is set against, at most and at least; the z beyond which the
+#: MPFM moved; the least robust sd of a pair's log ratio (1 %: a well test's own noise)
+USUAL_PAIRS = 20
+MIN_PAIRS = 8
+SHIFT_Z = 3.0
+#: the |z| within which a well test says the MPFM reads as it usually does against it
+SAME_Z = 1.0
+MIN_SPREAD = 0.01
 
 
 def compare(readings: Sequence[float], q_total: float, rel: float) -> dict[str, Any] | None:
@@ -52,10 +84,72 @@ def compare(readings: Sequence[float], q_total: float, rel: float) -> dict[str, 
     }
 
 
+def against_usual(earlier: Sequence[float], difference: float) -> dict[str, Any] | None:
+    """A pair's ``difference`` (relative, as :func:`compare` gives it) against the well's
+    ``earlier`` ones (relative, oldest first; the last :data:`USUAL_PAIRS` are used):
+    ``{"usual_difference", "usual_spread", "z", "shifted"}`` (the median, the robust sd of
+    the log ratios, the pair's z, whether ``|z| > SHIFT_Z``), or None with fewer than
+    :data:`MIN_PAIRS` earlier pairs.
+
+    >>> r = against_usual([0.02, 0.01, 0.03, 0.02, 0.025, 0.015, 0.02, 0.01], 0.09)
+    >>> round(r["usual_difference"], 3), r["shifted"]
+    (0.02, True)
+    """
+    logs = np.log1p(np.asarray(earlier[-USUAL_PAIRS:], dtype=float))
+    logs = logs[np.isfinite(logs)]
+    if len(logs) < MIN_PAIRS or not difference > -1.0:
+        return None
+    centre = float(np.median(logs))
+    spread = max(1.4826 * float(np.median(np.abs(logs - centre))), MIN_SPREAD)
+    z = (math.log1p(difference) - centre) / spread
+    return {
+        "usual_difference": math.expm1(centre),
+        "usual_spread": spread,
+        "z": z,
+        "shifted": abs(z) > SHIFT_Z,
+    }
+
+
+def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Beside an active residual alarm on the MPFM's stream (``alarm``: the residual
+    alarm's view, ``source`` ``mpfm``, ``since`` ISO), what the latest well test compared
+    since the alarm began says (``check``: the well's MPFM check, with
+    :func:`against_usual`'s fields): ``{"well_test_time", "z", "moved", "text"}`` with
+    ``moved`` ``meter`` (``|z| > SHIFT_Z``), ``well`` (``|z| < SAME_Z``) or ``unclear``.
+    None when the alarm is on another stream, or no such well test has been set against
+    its usual difference yet.
+
+    >>> alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
+    >>> check = {"well_test_time": "2020-05-20T06:00:00+00:00", "z": 4.2,
+    ...          "relative_difference": 0.09, "usual_difference": 0.01}
+    >>> which_moved(alarm, check)["moved"]
+    'meter'
+    """
+    if alarm.get("source") != "mpfm" or not alarm.get("since") or check is None:
+        return None
+    z, when = check.get("z"), check.get("well_test_time")
+    if z is None or not math.isfinite(z) or not when:
+        return None
+    if pd.Timestamp(when) < pd.Timestamp(alarm["since"]):
+        return None
+    day = str(when)[:10]
+    now, usual = 100 * check["relative_difference"], 100 * check["usual_difference"]
+    reads = f"the MPFM reads {now:+.1f} % against the well test of {day}, usually {usual:+.1f} %"
+    if abs(z) > SHIFT_Z:
+        moved, text = "meter", f"{reads} (z {z:+.1f}): the meter moved, not the well"
+    elif abs(z) < SAME_Z:
+        moved, text = "well", f"{reads} (z {z:+.1f}): the well test moved with it: the well changed"
+    else:
+        moved, text = "unclear", f"{reads} (z {z:+.1f}): this well test cannot tell meter from well"
+    return {"well_test_time": when, "z": z, "moved": moved, "text": text}
+
+
 def mpfm_checks(frame: pd.DataFrame, rel: float = 0.10, window_s: float = 86_400.0) -> pd.DataFrame:
     """Every well test of ``frame`` (validated observations) compared with the MPFM
-    readings within ``window_s`` of it, by :func:`compare`: one row per compared well test,
-    columns ``well``, ``time``, ``well_test_q_total`` and :func:`compare`'s fields."""
+    readings within ``window_s`` of it, by :func:`compare`, and with the well's earlier
+    pairs by :func:`against_usual` (NaN / None before :data:`MIN_PAIRS`): one row per
+    compared well test, columns ``well``, ``time``, ``well_test_q_total`` and the two
+    functions' fields."""
     rows: list[dict[str, Any]] = []
     window = int(round(window_s * 1e9))
     ns = pd.to_datetime(frame[schema.TIME], utc=True).dt.as_unit("ns").astype("int64")
@@ -65,12 +159,24 @@ def mpfm_checks(frame: pd.DataFrame, rel: float = 0.10, window_s: float = 86_400
         times = mpfm["_ns"].to_numpy()
         rates = mpfm[schema.TARGET].to_numpy(dtype=float)
         tests = g[g[schema.SOURCE] == schema.WELL_TEST]
+        earlier: list[float] = []
         for t, q in zip(tests["_ns"], tests[schema.TARGET].to_numpy(dtype=float), strict=True):
             lo = np.searchsorted(times, t - window, "left")
             hi = np.searchsorted(times, t + window, "right")
             found = compare([float(r) for r in rates[lo:hi] if math.isfinite(r)], q, rel)
-            if found is not None:
-                when = pd.Timestamp(int(t), tz="UTC")
-                rows.append({"well": str(well), "time": when, "well_test_q_total": q, **found})
+            if found is None:
+                continue
+            usual = against_usual(earlier, found["relative_difference"]) or _NO_USUAL
+            earlier.append(found["relative_difference"])
+            when = pd.Timestamp(int(t), tz="UTC")
+            rows.append({"well": str(well), "time": when, "well_test_q_total": q, **found, **usual})
     columns = ["well", "time", "well_test_q_total", "mpfm_median", "mpfm_readings"]
-    return pd.DataFrame(rows, columns=[*columns, "relative_difference", "agrees"])
+    return pd.DataFrame(rows, columns=[*columns, "relative_difference", "agrees", *_NO_USUAL])
+
+
+_NO_USUAL: dict[str, Any] = {
+    "usual_difference": math.nan,
+    "usual_spread": math.nan,
+    "z": math.nan,
+    "shifted": None,
+}

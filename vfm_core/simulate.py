@@ -238,6 +238,12 @@ HIDDEN_EFFECTS: dict[str, EffectSpec] = {
                 "step": ParamSpec(
                     0.0, "relative C_D step at the sand event (0.1 = +10 %)", "-", -0.5, 2.0
                 ),
+                "onset": ParamSpec(
+                    "start",
+                    "when wear begins: at the well's start, or at the sand event (the truth's "
+                    "sand_event: wear that starts inside the data)",
+                    choices=("start", "event"),
+                ),
             },
         ),
         EffectSpec(
@@ -881,18 +887,23 @@ class _Well:
 
         With basis=throughput the wear is the cumulative produced volume (Sm3, from the
         previous operating pass, linear between grid points) over the well's nominal
-        throughput, the target rate for one year.
+        throughput, the target rate for one year; with onset=event both count from the
+        sand event on (none before it).
         """
         c_d = np.full(len(t), self.fluid.c_d)
         spec = self.hidden.get("erosion")
         if spec is None:
             return c_d
+        begins = self.sand_event if spec.get("onset") == "event" else self.t0
         if spec["basis"] == "time":
-            worn = (t - self.t0) / DAYS_PER_YEAR
+            worn = np.maximum(t - begins, 0.0) / DAYS_PER_YEAR
         elif self.cumulative is None:
             worn = np.zeros(len(t))
         else:
-            worn = np.interp(t, self.grid, self.cumulative) / (self.target * HOURS_PER_YEAR)
+            produced = np.interp(t, self.grid, self.cumulative)
+            if begins > self.t0:  # the volume produced since the onset
+                produced = np.maximum(produced - np.interp(begins, self.grid, self.cumulative), 0)
+            worn = produced / (self.target * HOURS_PER_YEAR)
         c_d = c_d * (1.0 + float(spec["rate"]) * worn)
         return c_d * np.where(t >= self.sand_event, 1.0 + float(spec["step"]), 1.0)
 

@@ -12,8 +12,14 @@ stored (a replay, or a well test entered as it happens): the comparison is made 
 once, when the first MPFM reading past the window arrives. A well test with no MPFM
 reading in its window leaves the previous comparison in place.
 
+Each compared well test is also set against the well's earlier ones
+(:func:`vfm_core.meter_check.against_usual`: ``usual_difference``, ``usual_spread``, ``z``,
+``shifted``; while the MPFM's residual alarm is active, against the ones before the alarm
+began), which is what tells, beside that alarm, whether the meter or the well moved
+(:func:`vfm_core.meter_check.which_moved`).
+
 It runs on the well's worker, once or twice per well test (one indexed query each),
-never per sample; at start, once per well on its latest stored well test.
+never per sample; at start, once per well on each of its last 40 stored well tests.
 
 :class:`WellTestReview` is the well-test QC: a well test far outside the model's
 predictive distribution and off the MPFM near it is held for the operator's review
@@ -33,7 +39,7 @@ from scipy import stats
 from service.config import Settings
 from service.engine.state import WellState
 from service.store import InsertMeasurement, Op, ReviewRow, SampleRow, Store
-from vfm_core.meter_check import compare
+from vfm_core.meter_check import USUAL_PAIRS, against_usual, compare
 from vfm_core.timeutil import iso
 
 __all__ = ["MpfmCheck", "WellTestReview"]
@@ -98,6 +104,12 @@ class MpfmCheck:
         if found is None:
             return
         rel = found["relative_difference"]
+        cut = time_ns  # while the MPFM's residual alarm is active: the pairs before it
+        det = None if st.residual_alarm is None else st.residual_alarm.detectors.get("mpfm")
+        if det is not None and det.alarm and det.since_ns is not None:
+            cut = min(cut, det.since_ns)
+        usual = against_usual([r for t, r in st.mpfm_pairs if t < cut], rel)
+        self._remember(st, time_ns, rel)
         when = (iso(time_ns) or "")[:16].replace("T", " ") + " UTC"
         st.mpfm_check = {
             "well_test_time": iso(time_ns),
@@ -114,16 +126,34 @@ class MpfmCheck:
                 f"MPFM reads {abs(rel) * 100:.0f} % {'above' if rel > 0 else 'below'} "
                 f"the well test of {when}"
             ),
+            # against the well's earlier pairs (vfm_core.meter_check.against_usual)
+            "usual_difference": None if usual is None else usual["usual_difference"],
+            "usual_spread": None if usual is None else usual["usual_spread"],
+            "z": None if usual is None else usual["z"],
+            "shifted": None if usual is None else usual["shifted"],
         }
 
+    @staticmethod
+    def _remember(st: WellState, time_ns: int, rel: float) -> None:
+        """Keep the pair (a well test compared again replaces its first comparison), the
+        last ``2 * USUAL_PAIRS`` in time order (the usual ones before an alarm stay while
+        it lasts)."""
+        pairs = [p for p in st.mpfm_pairs if p[0] != time_ns]
+        pairs.append((time_ns, rel))
+        pairs.sort()
+        st.mpfm_pairs = pairs[-2 * USUAL_PAIRS :]
+
     def load(self, st: WellState) -> None:
-        """At start: compare the well's latest stored well test (all its readings are in)."""
+        """At start: compare the well's last ``2 * USUAL_PAIRS`` stored well tests in time
+        order (all their readings are in), so the latest is set against the ones before it
+        as it was live; one indexed query each."""
         if not self.enabled:
             return
-        latest = self.store.latest_well_test(st.well)
-        if latest is not None:
-            self._compare(st, latest[0], latest[1], ())
-            st.mpfm_recheck = latest  # its window may not have passed yet
+        tests = self.store.latest_well_tests(st.well, 2 * USUAL_PAIRS)
+        for time_ns, q_total in tests:
+            self._compare(st, time_ns, q_total, ())
+        if tests:
+            st.mpfm_recheck = tests[-1]  # its window may not have passed yet
 
 
 @lru_cache(maxsize=1024)

@@ -28,6 +28,7 @@ from service.engine.pools import Pools
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
+from vfm_core.meter_check import which_moved
 from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults, raises_alarm
 from vfm_core.timeutil import iso
 
@@ -152,6 +153,8 @@ class WellState:
         # the latest well test against the MPFM readings near it (service.engine.alarms),
         # replaced whole; and a well test to compare again once its window has passed
         self.mpfm_check: dict[str, Any] | None = None
+        #: (epoch ns, MPFM's relative difference) of the last compared well tests, oldest first
+        self.mpfm_pairs: list[tuple[int, float]] = []
         self.mpfm_recheck: tuple[int, float] | None = None
         # well-test QC (service.engine.alarms.WellTestReview): log(measured / predicted) of
         # the latest learned measurements (seeded from the store on first use), and the
@@ -244,9 +247,15 @@ class WellState:
         }
 
     def residual_alarm_state(self) -> dict[str, Any]:
-        """The residual alarm for the API (GET /wells/{well} ``residual_alarm``)."""
+        """The residual alarm for the API (GET /wells/{well} ``residual_alarm``), with
+        ``which_moved`` (:func:`vfm_core.meter_check.which_moved`) while an alarm is active."""
         alarm = self.residual_alarm
-        return disabled_view() if alarm is None else alarm.view()
+        if alarm is None:
+            return disabled_view()
+        view = alarm.view()
+        if view["active"]:
+            view["which_moved"] = which_moved(view, self.mpfm_check)
+        return view
 
     def watch_sensors(self, time_ns: int, inputs: tuple[float, ...]) -> list[SensorFault]:
         """Feed one accepted sample (epoch ns, the six inputs) to the instrument-fault

@@ -143,6 +143,20 @@ class MpfmCheckOut(BaseModel):
     threshold: float = Field(description="alarms.mpfm_well_test_rel")
     agrees: bool
     alarm: str | None = Field(description="the alarm's sentence while they disagree, else None")
+    usual_difference: float | None = Field(
+        default=None,
+        description="the median relative difference of the well's earlier pairs (up to 20; "
+        "None before 8): what this MPFM usually reads against the well tests",
+    )
+    usual_spread: float | None = Field(
+        default=None, description="their robust sd in log space (at least 0.01)"
+    )
+    z: float | None = Field(
+        default=None, description="this pair against the usual difference, in usual spreads"
+    )
+    shifted: bool | None = Field(
+        default=None, description="|z| > 3: the MPFM moved against the well tests"
+    )
 
 
 class WellSummary(BaseModel):
@@ -358,7 +372,9 @@ class WellOut(WellSummary):
         description="the alarm on the model's standardised residuals: enabled, active, "
         "statistic, threshold, since, direction, source, arl0, k, accept_periods, alarm_on_return, streams (per "
         "meter), events (with closed: cleared | accepted | reset once ended; reset: ended "
-        "by a model change, which restarts the detectors)",
+        "by a model change, which restarts the detectors), and while active which_moved: "
+        "for an alarm on the MPFM's stream, what a well test compared since it began says "
+        "(well_test_time, z, moved: meter | well | unclear, text), else null",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,

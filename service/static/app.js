@@ -60,6 +60,8 @@ function alarmsOf(v) {
     const side = ra.direction === "high" ? "above" : "below";
     const meter = ra.source === "well_test" ? "well tests" : (ra.source || "measurements").toUpperCase();
     out.push(`residual alarm: ${meter} ${side} the model since ${(ra.since || "").slice(0, 10)}`);
+    // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
+    if (ra.which_moved) out.push(ra.which_moved.text);
   }
   for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");

@@ -1,0 +1,45 @@
+"""The workbench names which meter moved beside a residual alarm on the MPFM's stream, in a
+real browser (Playwright driving Debian's chromium).
+
+The well of :mod:`test_service_which_moved` (``mm`` fitted once, two MPFM readings a day and a
+well test a week): its MPFM reads 12 % high from day 70 while the well tests stay. The
+well's alarm line must carry the residual alarm and, after it, ``which_moved``'s sentence
+("... the meter moved, not the well"), as ``GET /wells/{well}`` gives it.
+
+Screenshots go to ``$VFM_SCREENSHOTS`` (default ``tests/artifacts/``, ignored by git).
+Skipped, with the reason, when ``/usr/bin/chromium`` or the ``playwright`` package is
+missing (CI sets ``VFM_REQUIRE_BROWSER=1``: there a missing browser fails).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+from alarm_support import fixed_model_service
+from browser_support import SHOTS, browser_marks, open_page
+from test_service_which_moved import send_field, wait_learned_all
+
+pytestmark = browser_marks(180)
+
+
+def test_the_page_says_the_meter_moved(tmp_path: Path) -> None:
+    with (
+        fixed_model_service(tmp_path, http=True) as (service, client),
+        open_page() as (page, errors),
+    ):
+        wait_learned_all(service, send_field(client, meter_moved=True, seed=3))
+        view = httpx.get(service.http_url + "/wells/W01", timeout=30).json()
+        moved = view["residual_alarm"]["which_moved"]
+        assert moved["moved"] == "meter", moved
+        page.goto(service.http_url + "/#well=W01")
+        line = page.locator("#well-alarms")
+        line.wait_for()
+        page.wait_for_function(
+            "document.querySelector('#well-alarms').textContent.includes('the meter moved')"
+        )
+        text = line.inner_text()
+        since = view["residual_alarm"]["since"][:10]
+        assert f"residual alarm: MPFM above the model since {since}; {moved['text']}" in text
+        page.screenshot(path=str(SHOTS / "which-moved.png"))
+        assert not errors, errors

@@ -1,0 +1,89 @@
+"""Beside a residual alarm on the MPFM's stream, the well tests say whether the meter or the
+well moved (vfm_core.meter_check: the pair's z against the well's usual difference).
+
+The well runs ``mm`` with a retrain period longer than the data (``pbl:3650d``, see
+``alarm_support``): two MPFM readings a day with 3 % noise around 1000 Sm3/h, and a well
+test a week (1 % noise) at the true rate. On day 70 the MPFM reads 12 % higher: either the
+meter moved (the well tests stay at 1000) or the well did (they go to 1120 with it). The
+residual alarm is the same in both; the well tests after it tell them apart.
+"""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+from alarm_support import INPUTS, T0, fixed_model_service
+from test_service_alarm import http_get
+
+from replay.client import FieldClient, sample_of
+from service.app import Service
+from service.testing import wait_until
+from vfm_core.messages import Measurement
+
+pytestmark = pytest.mark.timeout(180)
+
+STEP_DAY, DAYS = 70, 90
+
+
+def send_field(client: FieldClient, meter_moved: bool, seed: int) -> int:
+    """In time order: two samples with an MPFM reading a day (3 and 15 h; +12 % from
+    STEP_DAY) and each week a sample with a well test at 09:00; returns the measurements."""
+    rng = np.random.default_rng(seed)
+    n = 0
+    for day in range(DAYS):
+        meter = 1.12 if day >= STEP_DAY else 1.0
+        well = 1.0 if meter_moved or day < STEP_DAY else 1.12
+        for hour, source, level, noise in (
+            (3, "mpfm", meter, 0.03),
+            (9, "well_test", well, 0.01),
+            (15, "mpfm", meter, 0.03),
+        ):
+            if source == "well_test" and day % 7 != 3:
+                continue
+            t = T0 + timedelta(days=day, hours=hour)
+            client.send_sample("W01", sample_of(t, INPUTS))
+            q = 1000.0 * level * float(np.exp(noise * rng.standard_normal()))
+            client.send_measurement("W01", source, Measurement(time=t, q_total=q))
+            n += 1
+    return n
+
+
+@pytest.mark.parametrize("meter_moved", [True, False])
+def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> None:
+    with fixed_model_service(tmp_path) as (service, client):
+        wait_learned_all(service, send_field(client, meter_moved, seed=3))
+        view = http_get(service, "/wells/W01").json()
+    alarm, check = view["residual_alarm"], view["mpfm_check"]
+    assert alarm["active"] and alarm["source"] == "mpfm" and alarm["direction"] == "high"
+    # the latest well test (day 87) against the ten before the alarm (not the two after it)
+    assert check["well_test_time"].startswith("2021-07-27")
+    assert abs(check["usual_difference"]) < 0.03 and 0.01 <= check["usual_spread"] < 0.04
+    moved = alarm["which_moved"]
+    assert moved["well_test_time"] == check["well_test_time"]
+    if meter_moved:  # the MPFM reads 12 % above the well test, usually about 0
+        assert check["relative_difference"] == pytest.approx(0.12, abs=0.04)
+        assert check["shifted"] and check["z"] > 3
+        assert moved["moved"] == "meter" and "the meter moved" in moved["text"]
+    else:  # the well tests went up with the MPFM
+        assert abs(check["relative_difference"]) < 0.04 and not check["shifted"]
+        assert moved["moved"] == "well" and "the well changed" in moved["text"]
+    # a restart sets the latest well test against the same earlier ones (from the store)
+    with fixed_model_service(tmp_path) as (service, _):
+        again = http_get(service, "/wells/W01").json()
+    assert again["mpfm_check"]["z"] == pytest.approx(check["z"], rel=1e-12)
+    assert again["residual_alarm"]["which_moved"] == moved
+
+
+def wait_learned_all(service: Service, count: int) -> None:
+    """Every measurement stored and decided (a well test off the model may be held)."""
+    store = service.store
+    assert store is not None
+
+    def stored() -> bool:
+        rows = store.history("W01", 0, 2**62, 10_000)[1]
+        return len(rows) == count and all(m.status != "pending" for m in rows)
+
+    wait_until(stored, 60, "every measurement to be stored and decided")
