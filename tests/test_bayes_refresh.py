@@ -10,6 +10,7 @@ the filter starts again from the refit.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -19,7 +20,7 @@ import torch
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
 from vfm_core.jobs.study import mape, run_prequential, wells_of
-from vfm_core.learning import DEFAULT_TRAIN, parse_method
+from vfm_core.learning import DEFAULT_TRAIN, bayes, parse_method
 from vfm_core.learning.memory import FrameMemory
 from vfm_core.models import make_model
 from vfm_core.observations import validate_frame
@@ -40,19 +41,29 @@ def _due_after_start(text: str, model_name: str) -> int | None:
 
 def test_the_refit_is_on_for_shared_models_and_can_be_set() -> None:
     """``auto`` (the default) refits a shared model every 14 days and no other; ``off``
-    and a span set it; a bad span says what is wrong."""
+    and a span set it; a bad span says what is wrong; ``period`` (read by the service)
+    says the same, also before binding."""
     assert _due_after_start("bayes", "mtl") == 14 * DAY
-    assert _due_after_start("bayes", "nn") is None
+    for name in ("nn", "hem", "ham", "mm", "lr"):
+        assert _due_after_start("bayes", name) is None, name
     assert _due_after_start("bayes:refresh=off", "mtl") is None
     assert _due_after_start("bayes:refresh=0", "mtl") is None
     assert _due_after_start("bayes:refresh=30d", "nn") == 30 * DAY
+    assert parse_method("bayes:refresh=30d").period == pd.Timedelta(days=30)
+    assert parse_method("bayes:refresh=off").period is None
+    assert parse_method("bayes").bind(make_model("ham", ["A"])).period is None
+    assert parse_method("bayes").bind(make_model("mtl", ["A"])).period == pd.Timedelta(days=14)
     with pytest.raises(ConfigError, match="refresh period 'soon' is not a positive time span"):
         parse_method("bayes:refresh=soon")
 
 
-def test_missed_refits_collapse_into_one_and_the_calendar_survives_a_checkpoint() -> None:
-    """A gap of 100 days (seven refits due) gives one refit, at the latest due time, on
-    the measurements before it; the next one falls 14 days later, also after a restore."""
+def test_missed_refits_each_run_and_the_calendar_survives_a_checkpoint(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A gap of 100 days (seven refits due) runs the seven refits, each on the
+    measurements before its due time, as ``pbl`` retrains; the filter starts again once,
+    after the last (its two Kalman passes over the history); the next refit falls 14 days
+    later, also after a restore."""
     frame = validate_frame(simulate_field(wells=2, years=1.0, seed=23).observations).frame
     wells = wells_of(frame)
     memory = FrameMemory(frame, target_mask(frame, "all"), wells)
@@ -66,9 +77,18 @@ def test_missed_refits_collapse_into_one_and_the_calendar_survives_a_checkpoint(
     before = {k: v.clone() for k, v in model.state_dict().items()}
     assert not method.retrain_due(memory, torch.full((2,), t_split + DAY)).any()
     assert method.n_retrains == 0
+    passes = []
+    history_pass = bayes._history_pass
+
+    def counted(*args: Any) -> Any:
+        passes.append(1)
+        return history_pass(*args)
+
+    monkeypatch.setattr(bayes, "_history_pass", counted)
     changed = method.retrain_due(memory, torch.full((2,), t_split + 100 * DAY))
-    assert changed.all() and method.n_retrains == 1
-    assert method.retrains == [t_split + 98 * DAY]
+    assert changed.all() and method.n_retrains == 7
+    assert method.retrains == [t_split + k * 14 * DAY for k in range(1, 8)]
+    assert len(passes) == 2  # one start of the filter: two passes over the history
     assert method.next_due() == t_split + 112 * DAY
     # the shared layers moved (refitted on the 98 more days), not only the task vectors
     assert not torch.allclose(model.state_dict()["w_in"], before["w_in"])

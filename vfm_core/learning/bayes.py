@@ -77,11 +77,13 @@ Bayesian learning); the layers below stay as fitted.
 - **Refit (shared models).** ``mtl``'s filter covers each well's task vector only; its
   network is shared by every well, so no well's filter can carry it, and only a joint fit
   on every well's measurements moves it. So with ``refresh`` (default ``auto``: every 14
-  days for a shared model, never for the others) the model is refitted on schedule as
-  ``pbl`` retrains it (MAP, warm-started, on every measurement before the due time), and
-  the filter starts again from the refit (:meth:`BayesianFilter._fitted`): an EM-like
-  alternation, the filter the posterior of the task vectors given the network, the refit
-  the network's MAP given the data (see :meth:`BayesianFilter.retrain_due`).
+  days for a shared model, never for the others; a period such as ``14d`` refits any
+  model, e.g. a per-well network's lower layers) the model is refitted on schedule as
+  ``pbl`` retrains it (MAP, warm-started, on every measurement before the due time; every
+  missed refit of a gap runs), and the filter starts again from the refit
+  (:meth:`BayesianFilter._fitted`): an EM-like alternation, the filter the posterior of
+  the task vectors given the network, the refit the network's MAP given the data (see
+  :meth:`BayesianFilter.retrain_due`).
 
 Options: ``drift``, ``drift_<label>``,
 ``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
@@ -750,6 +752,8 @@ class BayesianFilter(LearningMethod):
         #: the refit's period (ns; None: none) and each well's next refit (epoch ns)
         self._period = _refresh_period(self.refresh, model)
         self._refresh_at = torch.full((n,), NEVER, dtype=torch.int64)
+        #: the wells whose refit now is followed by another before the filter starts
+        self._starts_later = torch.zeros(n, dtype=torch.bool)
         return self
 
     # -- the refit under the filter (scheduled retrains) ---------------------------------------
@@ -757,6 +761,20 @@ class BayesianFilter(LearningMethod):
         """The refits' calendar (see :meth:`retrain_due`): the first one period after ``t_ns``."""
         if self._period is not None:
             self._refresh_at[:] = int(t_ns) + self._period
+
+    @property
+    def period(self) -> pd.Timedelta | None:
+        """The refit's period (None: no refit), as ``pbl``'s ``period``: the service reads it
+        for its shortest retrain period and its catch-up (one refit on everything in place
+        of more than ``model.max_catch_up_retrains`` missed ones). Before :meth:`bind`,
+        ``auto`` reads as the shared models' period."""
+        if hasattr(self, "_period"):
+            return None if self._period is None else pd.Timedelta(self._period, unit="ns")
+        if self.refresh == "off":
+            return None
+        if self.refresh == "auto":
+            return _SHARED_REFRESH
+        return parse_span(self.refresh, "refresh period", self.text)
 
     def next_due(self) -> int | None:
         """When the next refit of any well falls due (epoch ns), or None (no refit)."""
@@ -771,27 +789,38 @@ class BayesianFilter(LearningMethod):
         time), and start its filter again from the refit (:meth:`_fitted`: the Kalman pass
         over the refitted history). Why: the filter carries a posterior over each well's
         filter blocks only; the rest of the model (a shared network's layers, the same for
-        every well) is a point estimate that only a joint fit on every well's
-        measurements can move. Refits missed in a gap collapse into one at the latest due
-        time (no measurement came between them). Returns the refitted wells [W] (bool)."""
+        every well; a per-well network's layers below the output) is a point estimate that
+        only a fit on the measurements can move. Refits missed in a gap each run, as
+        ``pbl``'s retrains do: each warm-started fit takes the early-stopped count of
+        iterations further, so one refit in place of several leaves the model less fitted
+        (measured: docs/guide/bayes.md, "Per-well networks on request"); the filter starts
+        again after a well's last one only. Returns the refitted wells [W] (bool)."""
         changed = torch.zeros(len(self.model.wells), dtype=torch.bool)
         period = self._period
         if period is None or self.model.gradient_free or self._dim == 0:
             return changed
-        at = self._refresh_at
+        at = self._refresh_at.clone()
         due = (at != NEVER) & (now_ns != NEVER) & (at <= now_ns)
         if not bool(due.any()):
             return changed
-        # the latest due time by now: at + k period, k = floor((now - at) / period)
-        latest = torch.where(due, at + (now_ns - at) // period * period, at)
         if self.model.shared:  # one calendar for the field: every well refits together
-            latest = torch.full_like(latest, int(latest[due].max()))
-            due = torch.ones_like(due)
-        for t in sorted(set(latest[due].tolist())):
-            wells = due & (latest == t)
-            self.retrain(memory, int(t), None if bool(wells.all()) else wells)
-            changed |= wells & self.model.ready
-        self._refresh_at = torch.where(due, latest + period, at)
+            now_ns = torch.full_like(now_ns, int(now_ns[due].max()))
+            at = torch.full_like(at, int(at[due].min()))
+        try:
+            while True:
+                due = (at != NEVER) & (now_ns != NEVER) & (at <= now_ns)
+                if not bool(due.any()):
+                    break
+                t = int(at[due].min())
+                wells = due & (at == t)
+                # a well with another refit due by now starts its filter after that one
+                self._starts_later = wells & (at + period <= now_ns)
+                self.retrain(memory, t, None if bool(wells.all()) else wells)
+                changed |= wells & self.model.ready
+                at = torch.where(wells, at + period, at)
+        finally:
+            self._starts_later = torch.zeros_like(due)
+        self._refresh_at = at
         return changed
 
     def _fixed_or_default(self, s: int) -> float:
@@ -901,6 +930,10 @@ class BayesianFilter(LearningMethod):
         has few rows."""
         if self._dim == 0 or self.model.gradient_free:
             return
+        if bool(self._starts_later.any()):  # a refit with another one due before the filter
+            wells = wells & ~self._starts_later
+            if not bool(wells.any()):
+                return
         model, blocks = self.model, self._blocks
         order = torch.argsort(
             torch.where(batch.mask, batch.time_ns, torch.full_like(batch.time_ns, NEVER)),
