@@ -381,3 +381,99 @@ def test_cochrans_q_by_hand() -> None:
     assert rv.consistency(c) is None
     c.effect = "erosion"
     assert rv.consistency(c) is None
+
+
+def test_a_slope_above_one_beyond_chance_is_no_confirmation() -> None:
+    """The residual beyond the trend moves three times as much as a candidate's correction
+    does (slope about 3, far above 1 beyond chance): the size its trend calls for is not
+    the size of its ups and downs, so its shape is not confirmed (a fitted correction's
+    errors shrink the slope below 1, never above). Against a rival whose shape holds at
+    a slope a little below 1 (a valve, on the Bernoulli truth's sigmoid valve: 0.85 +/-
+    0.03 beside wear's 1.89 +/- 0.25) the overshooting one loses."""
+    rng = np.random.default_rng(11)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    trend, wiggle = 0.03 * years, 0.004 * rng.normal(size=n)
+    valve_wiggle = 0.004 * rng.normal(size=n)
+    noise = 0.002 * rng.normal(size=n)
+    # r = trend + 3 wiggle + valve_wiggle - noise
+    base = _log_run(-(trend + 3.0 * wiggle + valve_wiggle) + noise)
+    over = _log_run(-(trend + 3.0 * wiggle + valve_wiggle) + noise + trend + wiggle)
+    valve = _log_run(-(trend + 3.0 * wiggle + valve_wiggle) + noise + trend + valve_wiggle / 0.85)
+    (alone,) = rv.shape_beyond_trend(base, over)
+    assert alone["beta"] > 2.0 and alone["decisive"] and alone["overshoots"]
+    assert not alone["confirmed"] and not alone["rejected"] and not alone["at_physics"]
+    assert "above 1 beyond chance" in rv._shape_text(alone)
+    s_over, s_valve = rv.shape_beyond_trend(base, over, valve)
+    assert s_valve["confirmed"] and not s_valve["overshoots"] and not s_over["confirmed"]
+
+    lead, rival = _run_cand("erosion", over, -300.0, 1), _run_cand("valve_sigmoid", valve, -290.0)
+    pair = _run_cand("erosion+valve_sigmoid", valve, -295.0)  # neither adds beyond the other
+    assert rv.relate(lead, rival, pair, 0, base) == "shape_loses"
+    assert lead.explained_by == "valve_sigmoid" and rival.explained_by is None
+
+
+def test_an_undecided_trend_loses_to_a_field_wide_physics_at_its_own_slope() -> None:
+    """The construction of the test above on wear beside slip (wear nearly all trend, slip's
+    shape confirmed at slope about 1), now with slip's wells agreeing on one exponent: slip
+    carries the trend as well as wear (neither adds beyond the other) and its ups and downs
+    at their size, with one value at every well; wear, predicting nothing beyond the trend,
+    is explained by it. With slip's wells disagreeing (each well's own exponent taking up
+    its own trend, as on worn fields) wear explains slip, as before."""
+    rng = np.random.default_rng(5)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    trend, wiggle = 0.03 * years, 0.003 * rng.normal(size=n)
+    noise = 0.002 * rng.normal(size=n)
+    kernel = np.ones(90) / 90.0
+    slow = 0.03 * np.concatenate(
+        [np.convolve(rng.normal(size=DAYS + 89), kernel, "valid") for _ in WELLS]
+    )
+    base = _log_run(-(trend + wiggle + slow) + noise)
+    slip_run = _log_run(noise - slow)
+    bend = 0.0004 * (years - 1.0) ** 2
+    wear_run = _log_run(-(trend + wiggle + slow) + noise + trend + bend)
+
+    def rivalry(exponents: list[float]) -> tuple[str, dg.CandidateResult, dg.CandidateResult]:
+        lead, rival = (
+            _run_cand("erosion", wear_run, -300.0, 1),
+            _run_cand("slip", slip_run, -290.0, 1),
+        )
+        _with_wells(rival, "slip.exponent", exponents, [0.1, 0.1, 0.1, 0.3])
+        pair = _run_cand("erosion+slip", slip_run, -295.0, 1)
+        return rv.relate(lead, rival, pair, 0, base), lead, rival
+
+    agree, lead, rival = rivalry([1.0, 1.1, 0.95, 1.05])
+    assert rival.consistency is not None and rival.consistency["consistent"]
+    shape = lead.rivals["slip"]["its_shape"]
+    assert shape["at_physics"] and not lead.rivals["slip"]["shape"]["decisive"]
+    assert agree == "shape_loses" and lead.explained_by == "slip" and rival.explained_by is None
+    assert "one value at every well" in rv.why_explained(lead)
+
+    disagree, lead, rival = rivalry([1.9, 1.0, 1.6, 1.0])
+    assert disagree == "explains" and rival.explained_by == "erosion"
+
+
+def test_a_lead_that_is_mostly_trend_must_beat_the_operating_point_physics(
+    parts: dict[str, np.ndarray],
+) -> None:
+    """Wear named by a trend alone (its own shape cannot decide) is weighed against the best
+    field-wide candidate that lowers the error, material or not (on the clean Bernoulli field
+    of seed 75, slip: -0.13 points alone, under the material minimum); a lead whose shape
+    decides, or one already weighed against a field-wide rival, is not."""
+    base = _base_mape(parts)
+    wear = _cand("erosion", parts["b"] + parts["noise"], -100.0, base)
+    slip = _cand("slip", parts["a"] + parts["noise"], -110.0, base)
+    slip.material, slip.delta_mape = False, -0.13
+    gas = _cand("real_gas", parts["a"] + parts["noise"], +20.0, base)
+    gas.material, gas.delta_mape = False, 0.09
+    undecided = {"beta": -2.6, "se": 0.83, "blocks": 70, "spread": 0.08, "decisive": False}
+    wear.shape = {**undecided, "rejected": False, "confirmed": False}
+    assert rv.mostly_trend(wear)
+    lead, others = rv.rivals([slip, wear, gas])
+    assert lead is wear and others == [slip]
+    wear.shape = {**wear.shape, "decisive": True}
+    assert rv.rivals([slip, wear, gas]) == (wear, [])
+    wear.shape = {**wear.shape, "decisive": False}
+    slip.material = True  # a material field-wide rival is weighed anyway, once
+    assert rv.rivals([wear, slip, gas]) == (wear, [slip])

@@ -48,8 +48,17 @@ rival explains it (``reason`` ``wells_disagree``). Seen on the Bernoulli truth w
 disagree (p 0.0005 and 0.02), and "explained" the wear; on the same seeds' clean fields its
 wells agree (p 0.4-0.9).
 
-The pair is fitted once per rival; a diagnosis makes at most :data:`RIVALS` more fit-once
-runs.
+A lead whose evidence is mostly a trend (wear: its own shape cannot decide) must also beat
+the operating-point physics the library has, material or not (:func:`operating_point_rival`:
+the best field-wide candidate that lowers the fit-once error and the BIC), and an undecided
+shape loses to a field-wide rival whose wells agree and whose shape holds at the physics'
+own slope (:func:`_wins`). On the Bernoulli truth without wear (seed 75) erosion had been
+named for two of four wells; slip, non-material alone (-0.13 points), agrees across wells
+and holds beyond the trend at 0.95 +/- 0.21, and now explains it. A shape whose slope is
+above 1 beyond chance is not confirmed (``overshoots``: seed 83's wear at 1.89 +/- 0.25).
+
+The pair is fitted once per rival; a diagnosis makes at most :data:`RIVALS` + 1 more
+fit-once runs.
 """
 
 from __future__ import annotations
@@ -71,6 +80,8 @@ __all__ = [
     "ALPHA",
     "family",
     "rivals",
+    "mostly_trend",
+    "operating_point_rival",
     "adds_beyond",
     "shape_beyond_trend",
     "relate",
@@ -107,7 +118,9 @@ def rivals(
     results: Sequence[CandidateResult],
 ) -> tuple[CandidateResult | None, list[CandidateResult]]:
     """The lead (the best material candidate fitted, ``results`` best first) and its rivals:
-    the best material candidate of each other physics, at most :data:`RIVALS`."""
+    the best material candidate of each other physics, at most :data:`RIVALS`, and for a
+    lead whose evidence is mostly a trend its operating-point rival
+    (:func:`operating_point_rival`) when no field-wide rival is among them."""
     named = [c for c in results if c.material and c.run is not None]
     if not named:
         return None, []
@@ -119,7 +132,43 @@ def rivals(
         out.append(c)
         if len(out) == RIVALS:
             break
-    return lead, out
+    extra = operating_point_rival(lead, out, results)
+    return lead, out + ([extra] if extra is not None else [])
+
+
+def mostly_trend(c: CandidateResult) -> bool:
+    """``c``'s own shape beyond the trend was tested and cannot decide (nearly all trend, as
+    wear's): its evidence is that the residual trends in time."""
+    s = c.shape
+    return bool(s and s.get("blocks", 0) >= MIN_BLOCKS and not s.get("decisive"))
+
+
+def operating_point_rival(
+    lead: CandidateResult, others: Sequence[CandidateResult], results: Sequence[CandidateResult]
+) -> CandidateResult | None:
+    """The rival a lead whose evidence is mostly a trend (:func:`mostly_trend`) must beat,
+    material or not: the best field-wide candidate (a flow-law or fluid correction, a
+    function of the operating point: slip, the critical ratio, the real gas) that lowers
+    the fit-once error and the BIC, when no field-wide candidate is among ``others``. On a
+    field that depletes, a misfit of the flow law drifts with the operating point and
+    trends in time as wear does; being material against the baseline is not the question,
+    but whether the trend needs the lead once the flow law may follow the operating point.
+    None when the lead's shape decides, or no such candidate was fitted."""
+    if not mostly_trend(lead) or any(field_wide(c) for c in others):
+        return None
+    return next(
+        (
+            c
+            for c in results
+            if c is not lead
+            and not c.material
+            and c.run is not None
+            and field_wide(c)
+            and c.delta_mape < 0
+            and c.delta_bic < 0
+        ),
+        None,
+    )
 
 
 def adds_beyond(pair: CandidateResult, one: CandidateResult, seed: int) -> dict[str, Any]:
@@ -163,8 +212,12 @@ _MIN_SPREAD_PCT = 1e-6
 #: whose interval reaches past the midpoint from either end cannot tell a trend proxy (0)
 #: from the physics (1), and a correction that is nearly all trend (wear: a tenth of a
 #: percent beyond the straight line) has a slope that the residual's other misfit, not the
-#: candidate, sets; such a shape is neither rejected nor beaten by a confirmed one
+#: candidate, sets; such a shape is neither rejected nor beaten by a confirmed one (but see
+#: :func:`_wins` for a field-wide physics at its own slope)
 DECISIVE = SHAPE_MIDPOINT
+#: the physics' own slope: a fitted correction's errors shrink the slope below it
+#: (regression dilution), never above; a slope above it beyond chance is no confirmation
+SHAPE_PHYSICS = 1.0
 
 
 def shape_beyond_trend(
@@ -189,10 +242,17 @@ def shape_beyond_trend(
     rejected or confirmed), ``decisive`` (the one-sided uncertainty t se is under
     :data:`DECISIVE`: the test can tell a trend proxy from the physics), ``rejected`` (beta
     below :data:`SHAPE_MIDPOINT` beyond chance, one-sided at :data:`ALPHA`: closer to a trend
-    proxy than to the physics; only when decisive) and ``confirmed`` (beta above 0 beyond
-    chance: the residual follows its shape)."""
+    proxy than to the physics; only when decisive), ``overshoots`` (beta above
+    :data:`SHAPE_PHYSICS` beyond chance, one-sided at :data:`ALPHA`: the residual moves
+    beyond the trend more than the correction does, so the size its trend calls for is not
+    the size its ups and downs call for, which one physics would not give; a fitted
+    correction's errors only shrink the slope), ``confirmed`` (beta above 0 beyond chance
+    and not overshooting: the residual follows its shape at its size) and ``at_physics``
+    (confirmed, and not below :data:`SHAPE_PHYSICS` beyond chance either: 1 inside its
+    two-sided interval at 2 x :data:`ALPHA`)."""
     empty = {"beta": None, "se": None, "blocks": 0, "spread": 0.0}
     empty |= {"decisive": False, "rejected": False, "confirmed": False}
+    empty |= {"overshoots": False, "at_physics": False}
     m = base["measured"].to_numpy(dtype=float)
     pb = base["predicted"].to_numpy(dtype=float)
     pcs = np.column_stack([c["predicted"].to_numpy(dtype=float) for c in cands])
@@ -228,19 +288,29 @@ def shape_beyond_trend(
     n, k = len(r), len(active)
     factor = groups / (groups - 1) * (n - 1) / max(n - k, 1)
     se = np.sqrt(np.clip(factor * np.diag(bread @ (scores.T @ scores) @ bread), 0.0, None))
-    t = sps.t(df=groups - 1)
     for j, i in enumerate(active):
-        if not se[j] > 0:
-            continue
-        decisive = bool(t.ppf(1.0 - ALPHA) * se[j] < DECISIVE)
-        out[i].update(
-            beta=float(beta[j]),
-            se=float(se[j]),
-            decisive=decisive,
-            rejected=decisive and bool(t.cdf((beta[j] - SHAPE_MIDPOINT) / se[j]) < ALPHA),
-            confirmed=bool(t.sf(beta[j] / se[j]) < ALPHA),
-        )
+        if se[j] > 0:
+            out[i].update(_judge_slope(float(beta[j]), float(se[j]), groups - 1))
     return out
+
+
+def _judge_slope(beta: float, se: float, df: int) -> dict[str, Any]:
+    """A shape's slope ``beta`` (se ``se``, Student's t on ``df``) judged: ``decisive``,
+    ``rejected``, ``overshoots``, ``confirmed`` and ``at_physics``
+    (:func:`shape_beyond_trend`)."""
+    t = sps.t(df=df)
+    decisive = bool(t.ppf(1.0 - ALPHA) * se < DECISIVE)
+    overshoots = bool(t.sf((beta - SHAPE_PHYSICS) / se) < ALPHA)
+    confirmed = bool(t.sf(beta / se) < ALPHA) and not overshoots
+    return {
+        "beta": beta,
+        "se": se,
+        "decisive": decisive,
+        "rejected": decisive and bool(t.cdf((beta - SHAPE_MIDPOINT) / se) < ALPHA),
+        "overshoots": overshoots,
+        "confirmed": confirmed,
+        "at_physics": confirmed and bool(t.cdf((beta - SHAPE_PHYSICS) / se) >= ALPHA),
+    }
 
 
 _MIRROR = {
@@ -306,17 +376,32 @@ def relate(
     return relation
 
 
-def _wins(a: dict[str, Any], b: dict[str, Any]) -> bool:
+def _wins(a: dict[str, Any], b: dict[str, Any], a_agrees: bool = False) -> bool:
     """Shape ``a`` wins over shape ``b``: ``b`` is rejected and ``a`` is not, or ``a`` is
     confirmed and ``b``, though its test was decisive, is not (only ``a`` made a prediction
     beyond the trend that could have failed and did not). A shape whose test cannot decide
     (nearly all trend, as wear's) loses to nothing: that the other's shape holds beyond the
-    trend says nothing about which of the two carries the trend itself."""
+    trend says nothing about which of the two carries the trend itself. Except to a
+    field-wide physics whose wells agree on one value (``a_agrees``, :func:`_agrees`) and
+    whose shape holds at the physics' own slope (``at_physics``): one value for every well
+    that carries the trend as well as the other does (neither adds beyond the other) and
+    the ups and downs beyond it at their size is the whole misfit; a candidate that
+    predicts nothing testable beyond the trend adds nothing to it (its own test, undecided,
+    decides nothing, whether it reads "confirmed" or not)."""
     if b["rejected"] and not a["rejected"]:
         return True
+    if a_agrees and a.get("at_physics") and not b.get("decisive", True):
+        return True  # an undecided test (even "confirmed") decides nothing
     return bool(
         a["confirmed"] and b.get("decisive", True) and not b["confirmed"] and not a["rejected"]
     )
+
+
+def _agrees(c: CandidateResult) -> bool:
+    """``c`` is field-wide and its wells' fitted values agree (:func:`consistency`)."""
+    if c.consistency is None:
+        c.consistency = consistency(c)
+    return bool(c.consistency is not None and c.consistency["consistent"])
 
 
 def _tell_apart(
@@ -332,9 +417,9 @@ def _tell_apart(
         return "indistinguishable", {}
     both = shape_beyond_trend(comparison, lead.run.predictions, rival.run.predictions)
     shapes = {"lead": both[0], "rival": both[1]}
-    if _wins(shapes["rival"], shapes["lead"]):
+    if _wins(shapes["rival"], shapes["lead"], _agrees(rival)):
         return "shape_loses", shapes
-    if _wins(shapes["lead"], shapes["rival"]):
+    if _wins(shapes["lead"], shapes["rival"], _agrees(lead)):
         return "shape_wins", shapes
     return "indistinguishable", shapes
 
@@ -475,10 +560,17 @@ def why_explained(c: CandidateResult) -> str:
             f"p = {k['p_value']:.2g}): it takes up, well by well, what {other} describes"
         )
     if r.get("relation") == "shape_loses":
+        own = r.get("shape") or {}
         how = (
             "does not fit the residual"
-            if (r.get("shape") or {}).get("rejected")
-            else "is not borne out by the residual, while the other's is"
+            if own.get("rejected")
+            else (
+                "is not borne out by the residual, while the other's is"
+                if own.get("decisive", True)
+                else "predicts too little to test, while the other's, one value at every "
+                "well, holds at the physics' own slope"
+                f" ({_shape_text(r.get('its_shape'))})"
+            )
         )
         return (
             f"explained by {other}: the two explain the same misfit, and beyond the trend "
@@ -490,7 +582,10 @@ def why_explained(c: CandidateResult) -> str:
 def _shape_text(t: dict[str, Any] | None) -> str:
     if not t or t.get("beta") is None:
         return "no shape beyond the trend to test"
-    return f"slope {t['beta']:.2f} +/- {t['se']:.2f} on its correction, 1 if it were the physics"
+    text = f"slope {t['beta']:.2f} +/- {t['se']:.2f} on its correction, 1 if it were the physics"
+    if t.get("overshoots"):
+        text += " (above 1 beyond chance: no confirmation)"
+    return text
 
 
 def _beyond_text(t: dict[str, Any] | None) -> str:
