@@ -185,17 +185,22 @@ def _log_run(log_pred_shift: np.ndarray) -> pd.DataFrame:
     return p
 
 
+def _misfit(seed: int, per_year: float, sd: float) -> tuple[np.ndarray, ...]:
+    """Over every well's days: a trend of ``per_year``, two wiggles of sd ``sd`` (in two
+    variables) and a noise of sd 0.002, drawn in that order from ``seed``."""
+    rng = np.random.default_rng(seed)
+    n = DAYS * len(WELLS)
+    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
+    one, two = sd * rng.normal(size=n), sd * rng.normal(size=n)
+    return per_year * years, one, two, 0.002 * rng.normal(size=n)
+
+
 def test_the_shape_beyond_the_trend_tells_the_physics_from_a_trend_proxy() -> None:
     """The misfit is a trend (5 % over the years) plus a small wiggle in one variable (0.3 %):
     the physics removes both, a trend proxy the trend and a wiggle in another variable. Their
     errors differ too little to be material, so the encompassing test cannot tell them apart;
     the shape beyond the trend can."""
-    rng = np.random.default_rng(3)
-    n = DAYS * len(WELLS)
-    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
-    trend, wiggle = 0.025 * years, 0.003 * rng.normal(size=n)
-    other = 0.003 * rng.normal(size=n)
-    noise = 0.002 * rng.normal(size=n)
+    trend, wiggle, other, noise = _misfit(3, 0.025, 0.003)
     base = _log_run(-(trend + wiggle) + noise)  # r = trend + wiggle - noise
     physics = _log_run(noise)  # its correction: trend + wiggle
     proxy = _log_run(-(trend + wiggle) + noise + trend + other)
@@ -390,12 +395,7 @@ def test_a_slope_above_one_beyond_chance_is_no_confirmation() -> None:
     errors shrink the slope below 1, never above). Against a rival whose shape holds at
     a slope a little below 1 (a valve, on the Bernoulli truth's sigmoid valve: 0.85 +/-
     0.03 beside wear's 1.89 +/- 0.25) the overshooting one loses."""
-    rng = np.random.default_rng(11)
-    n = DAYS * len(WELLS)
-    years = np.tile(np.arange(DAYS) / 365.25, len(WELLS))
-    trend, wiggle = 0.03 * years, 0.004 * rng.normal(size=n)
-    valve_wiggle = 0.004 * rng.normal(size=n)
-    noise = 0.002 * rng.normal(size=n)
+    trend, wiggle, valve_wiggle, noise = _misfit(11, 0.03, 0.004)
     # r = trend + 3 wiggle + valve_wiggle - noise
     base = _log_run(-(trend + 3.0 * wiggle + valve_wiggle) + noise)
     over = _log_run(-(trend + 3.0 * wiggle + valve_wiggle) + noise + trend + wiggle)

@@ -127,10 +127,7 @@ class MpfmCheck:
                 f"the well test of {when}"
             ),
             # against the well's earlier pairs (vfm_core.meter_check.against_usual)
-            "usual_difference": None if usual is None else usual["usual_difference"],
-            "usual_spread": None if usual is None else usual["usual_spread"],
-            "z": None if usual is None else usual["z"],
-            "shifted": None if usual is None else usual["shifted"],
+            **(usual or dict.fromkeys(("usual_difference", "usual_spread", "z", "shifted"))),
         }
 
     @staticmethod
