@@ -7,7 +7,14 @@ import math
 import pandas as pd
 import pytest
 
-from vfm_core.meter_check import against_usual, compare, mpfm_checks, which_moved
+from vfm_core.meter_check import (
+    MIN_PAIRS,
+    against_usual,
+    awaiting_well_test,
+    compare,
+    mpfm_checks,
+    which_moved,
+)
 
 T0 = pd.Timestamp("2020-03-01 12:00", tz="UTC")
 H = pd.Timedelta(hours=1)
@@ -93,3 +100,32 @@ def test_which_moved_beside_an_mpfm_alarm() -> None:
     assert which_moved(alarm, early) is None
     assert which_moved(alarm, {**check, "z": None}) is None
     assert which_moved(alarm, None) is None
+
+
+def test_awaiting_the_well_test_that_says_which_moved() -> None:
+    alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
+    day = 86_400 * 10**9
+    start = pd.Timestamp("2020-01-01", tz="UTC").value
+    tests = [start + k * 12 * day for k in range(10)]  # 2020-01-01 .. 2020-04-18, every 12 d
+    waiting = awaiting_well_test(alarm, None, tests)
+    assert waiting is not None and waiting["pairs"] == 10
+    assert waiting["typical_gap_days"] == pytest.approx(12.0)
+    assert waiting["last_well_test"].startswith("2020-04-18")
+    assert waiting["due"].startswith("2020-04-30")
+    assert "due about 2020-04-30" in waiting["text"]
+    # too few pairs before the alarm: the next well test cannot tell either, and it says so
+    few = awaiting_well_test(alarm, None, tests[: MIN_PAIRS - 1])
+    assert few is not None and few["pairs"] == MIN_PAIRS - 1
+    assert f"needs {MIN_PAIRS} well tests" in few["text"]
+    # one well test: no gap, no due date
+    one = awaiting_well_test(alarm, None, tests[:1])
+    assert one is not None and one["typical_gap_days"] is None and one["due"] is None
+    # which_moved has its answer, or the alarm is on the well tests: nothing awaited
+    check = {
+        "well_test_time": "2020-05-20T06:00:00+00:00",
+        "relative_difference": 0.1,
+        "usual_difference": 0.0,
+        "z": 4.0,
+    }
+    assert awaiting_well_test(alarm, check, tests) is None
+    assert awaiting_well_test({**alarm, "source": "well_test"}, None, tests) is None

@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 from alarm_support import fixed_model_service
 from browser_support import SHOTS, browser_marks, open_page
-from test_service_which_moved import send_field, wait_learned_all
+from test_service_which_moved import STEP_DAY, send_field, wait_learned_all
 
 pytestmark = browser_marks(180)
 
@@ -42,4 +42,26 @@ def test_the_page_says_the_meter_moved(tmp_path: Path) -> None:
         since = view["residual_alarm"]["since"][:10]
         assert f"residual alarm: MPFM above the model since {since}; {moved['text']}" in text
         page.screenshot(path=str(SHOTS / "which-moved.png"))
+        assert not errors, errors
+
+
+def test_before_the_next_well_test_the_page_says_when_it_is_due(tmp_path: Path) -> None:
+    """The data stop three days after the step, before the next well test: the alarm line
+    says that the next well test tells which moved, and when it is due."""
+    with (
+        fixed_model_service(tmp_path, http=True) as (service, client),
+        open_page() as (page, errors),
+    ):
+        wait_learned_all(service, send_field(client, True, seed=3, days=STEP_DAY + 3))
+        view = httpx.get(service.http_url + "/wells/W01", timeout=30).json()
+        waiting = view["residual_alarm"]["awaiting_well_test"]
+        assert waiting is not None and waiting["due"].startswith("2021-07-13"), waiting
+        page.goto(service.http_url + "/#well=W01")
+        page.locator("#well-alarms").wait_for()
+        page.wait_for_function(
+            "document.querySelector('#well-alarms').textContent.includes('due about 2021-07-13')"
+        )
+        text = page.locator("#well-alarms").inner_text()
+        assert waiting["text"] in text and "the meter moved" not in text
+        page.screenshot(path=str(SHOTS / "which-moved-awaiting.png"))
         assert not errors, errors

@@ -28,12 +28,13 @@ pytestmark = pytest.mark.timeout(180)
 STEP_DAY, DAYS = 70, 90
 
 
-def send_field(client: FieldClient, meter_moved: bool, seed: int) -> int:
-    """In time order: two samples with an MPFM reading a day (3 and 15 h; +12 % from
-    STEP_DAY) and each week a sample with a well test at 09:00; returns the measurements."""
+def send_field(client: FieldClient, meter_moved: bool, seed: int, days: int = DAYS) -> int:
+    """In time order, over ``days`` days: two samples with an MPFM reading a day (3 and
+    15 h; +12 % from STEP_DAY) and each week a sample with a well test at 09:00 (days 3,
+    10, ...); returns the measurements."""
     rng = np.random.default_rng(seed)
     n = 0
-    for day in range(DAYS):
+    for day in range(days):
         meter = 1.12 if day >= STEP_DAY else 1.0
         well = 1.0 if meter_moved or day < STEP_DAY else 1.12
         for hour, source, level, noise in (
@@ -75,6 +76,25 @@ def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> No
         again = http_get(service, "/wells/W01").json()
     assert again["mpfm_check"]["z"] == pytest.approx(check["z"], rel=1e-12)
     assert again["residual_alarm"]["which_moved"] == moved
+    assert alarm["awaiting_well_test"] is None  # which_moved has the answer
+
+
+def test_before_the_next_well_test_the_alarm_says_when_it_is_due(tmp_path: Path) -> None:
+    """The MPFM steps on day 70 and the data stop before the well test of day 73: the alarm
+    is up, no well test can say which moved yet, and the view says when the next is due
+    (a week after the last, from the gaps between the ten compared before the alarm)."""
+    with fixed_model_service(tmp_path) as (service, client):
+        wait_learned_all(service, send_field(client, True, seed=3, days=STEP_DAY + 3))
+        view = http_get(service, "/wells/W01").json()
+    alarm = view["residual_alarm"]
+    assert alarm["active"] and alarm["source"] == "mpfm"
+    assert alarm["which_moved"] is None
+    waiting = alarm["awaiting_well_test"]
+    assert waiting["pairs"] == 10  # days 3, 10, ..., 66
+    assert waiting["last_well_test"].startswith("2021-07-06")  # day 66
+    assert waiting["typical_gap_days"] == pytest.approx(7.0)
+    assert waiting["due"].startswith("2021-07-13")  # day 73
+    assert "the next one tells whether the meter or the well moved" in waiting["text"]
 
 
 def wait_learned_all(service: Service, count: int) -> None:

@@ -48,6 +48,7 @@ __all__ = [
     "USUAL_PAIRS",
     "against_usual",
     "compare",
+    "awaiting_well_test",
     "mpfm_checks",
     "which_moved",
 ]
@@ -142,6 +143,54 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
     else:
         moved, text = "unclear", f"{reads} (z {z:+.1f}): this well test cannot tell meter from well"
     return {"well_test_time": when, "z": z, "moved": moved, "text": text}
+
+
+def awaiting_well_test(
+    alarm: dict[str, Any], check: dict[str, Any] | None, test_ns: Sequence[int]
+) -> dict[str, Any] | None:
+    """Beside an active residual alarm on the MPFM's stream that :func:`which_moved` cannot
+    read yet, what will tell: ``{"last_well_test", "typical_gap_days", "due", "pairs",
+    "text"}``. ``test_ns`` are the times (epoch ns) of the well's well tests compared with
+    its MPFM (the service keeps the last ``2 * USUAL_PAIRS``); ``typical_gap_days`` is the
+    median gap between them (days; None below three), ``due`` the last one plus that gap,
+    ``pairs`` how many came before the alarm (from :data:`MIN_PAIRS` on, the next well test
+    can say which moved). None when :func:`which_moved` has its answer, or the alarm is not
+    on the MPFM's stream.
+
+    >>> alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
+    >>> day = 86_400 * 10**9
+    >>> tests = [pd.Timestamp("2020-01-01", tz="UTC").value + k * 30 * day for k in range(9)]
+    >>> awaiting_well_test(alarm, None, tests)["due"][:10]
+    '2020-09-27'
+    """
+    if alarm.get("source") != "mpfm" or not alarm.get("since"):
+        return None
+    if which_moved(alarm, check) is not None:
+        return None
+    ns = np.sort(np.asarray(list(test_ns), dtype=np.int64))
+    pairs = int(np.sum(ns < pd.Timestamp(alarm["since"]).value))
+    gap = float(np.median(np.diff(ns))) / 86_400e9 if len(ns) >= 3 else None
+    last = pd.Timestamp(int(ns[-1]), tz="UTC") if len(ns) else None
+    due = last + pd.Timedelta(days=gap) if last is not None and gap is not None else None
+    if pairs < MIN_PAIRS:
+        text = (
+            f"which moved, the meter or the well, needs {MIN_PAIRS} well tests compared with "
+            f"the MPFM before the alarm; this well has {pairs}"
+        )
+    else:
+        text = (
+            "no well test since the alarm: the next one tells whether the meter or the well moved"
+        )
+        if last is not None:
+            text += f" (last {last.date().isoformat()}"
+            text += f", due about {due.date().isoformat()})" if due is not None else ")"
+    return {
+        "last_well_test": None if last is None else last.isoformat(),
+        "typical_gap_days": gap,
+        "due": None if due is None else due.isoformat(),
+        "pairs": pairs,
+        "text": text,
+    }
 
 
 def mpfm_checks(frame: pd.DataFrame, rel: float = 0.10, window_s: float = 86_400.0) -> pd.DataFrame:

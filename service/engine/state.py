@@ -28,7 +28,7 @@ from service.engine.pools import Pools
 from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
-from vfm_core.meter_check import which_moved
+from vfm_core.meter_check import awaiting_well_test, which_moved
 from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults, raises_alarm
 from vfm_core.timeutil import iso
 
@@ -248,13 +248,17 @@ class WellState:
 
     def residual_alarm_state(self) -> dict[str, Any]:
         """The residual alarm for the API (GET /wells/{well} ``residual_alarm``), with
-        ``which_moved`` (:func:`vfm_core.meter_check.which_moved`) while an alarm is active."""
+        ``which_moved`` (:func:`vfm_core.meter_check.which_moved`) and
+        ``awaiting_well_test`` (:func:`vfm_core.meter_check.awaiting_well_test`) while an
+        alarm is active."""
         alarm = self.residual_alarm
         if alarm is None:
             return disabled_view()
         view = alarm.view()
         if view["active"]:
             view["which_moved"] = which_moved(view, self.mpfm_check)
+            tests = [t for t, _ in self.mpfm_pairs]
+            view["awaiting_well_test"] = awaiting_well_test(view, self.mpfm_check, tests)
         return view
 
     def watch_sensors(self, time_ns: int, inputs: tuple[float, ...]) -> list[SensorFault]:

@@ -374,7 +374,9 @@ class WellOut(WellSummary):
         "meter), events (with closed: cleared | accepted | reset once ended; reset: ended "
         "by a model change, which restarts the detectors), and while active which_moved: "
         "for an alarm on the MPFM's stream, what a well test compared since it began says "
-        "(well_test_time, z, moved: meter | well | unclear, text), else null",
+        "(well_test_time, z, moved: meter | well | unclear, text), else null; and while it "
+        "is null for such an alarm, awaiting_well_test: what will tell (last_well_test, "
+        "typical_gap_days, due, pairs: well tests compared before the alarm, text)",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,

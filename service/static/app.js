@@ -62,6 +62,8 @@ function alarmsOf(v) {
     out.push(`residual alarm: ${meter} ${side} the model since ${(ra.since || "").slice(0, 10)}`);
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
+    // none yet: when the next well test is due, or why it cannot tell
+    else if (ra.awaiting_well_test) out.push(ra.awaiting_well_test.text);
   }
   for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
