@@ -676,7 +676,15 @@ def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_in
         with_test("critical_ratio", True, change=-0.05),
     ]
     found = dv.suggestive(results, None)
-    assert found == [{"effect": "valve_convex", "change": -0.44, "p_value": 0.016, "q_value": 0.21}]
+    assert found == [
+        {
+            "effect": "valve_convex",
+            "change": -0.44,
+            "p_value": 0.016,
+            "q_value": 0.21,
+            "variants": [],
+        }
+    ]
     text = dv.suggestive_text(found)
     assert (
         "Suggestive, not established" in text
@@ -686,6 +694,13 @@ def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_in
     assert dv.suggestive(results[1:], None) == [] and dv.suggestive_text([]) == ""
     # a well's own test counts too (here the well's test is the field's: no per_well)
     assert [x["effect"] for x in dv.suggestive(results, "W01")] == ["valve_convex"]
+    # valve families are one physics: the best is listed, the others beside it
+    sigmoid = with_test("valve_sigmoid", True, change=-0.30)
+    both = dv.suggestive([sigmoid, *results], None)
+    assert [(x["effect"], x["variants"]) for x in both] == [("valve_convex", ["valve_sigmoid"])]
+    assert "valve_convex (-0.44 points, p = 0.016, q = 0.21; also valve_sigmoid)" in (
+        dv.suggestive_text(both)
+    )
     live = {"change": -0.45, "low": -1.04, "high": -0.05, "p_value": 0.041, "q_value": 0.21}
     alone = dv._alone_text(live)
     assert (

@@ -527,6 +527,7 @@ def _each(found: Sequence[dict[str, Any]]) -> str:
             for key, name in (("p_value", "p"), ("q_value", "q"))
             if x.get(key) is not None
         )
+        + (f"; also {', '.join(x['variants'])}" if x.get("variants") else "")
         + ")"
         for x in found
     )
@@ -586,8 +587,10 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
     diagnosis's tests does not reject it. Nothing is named for them: a ``noise`` verdict
     lists them so that a short span's weak evidence is not read as none (a valve on four
     wells, a year after the split: p = 0.016 alone over 14 blocks, q = 0.13).
-    ``[{"effect", "change", "p_value", "q_value"}]``, largest fall first (MAPE points)."""
-    out = []
+    ``[{"effect", "change", "p_value", "q_value", "variants"}]``, largest fall first (MAPE
+    points); one entry a physics (:func:`vfm_core.jobs.diagnose_rivals.family`: the valve
+    families are one), its best variant, the others that qualified in ``variants``."""
+    out: list[dict[str, Any]] = []
     for c in results:
         if not c.material or not rivals.stands_alone(c):
             continue
@@ -607,9 +610,17 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
                     "change": t["change"],
                     "p_value": t["p_value"],
                     "q_value": t.get("q_value"),
+                    "variants": [],
                 }
             )
-    return sorted(out, key=lambda x: x["change"])
+    best: dict[str, dict[str, Any]] = {}
+    for x in sorted(out, key=lambda x: x["change"]):
+        kind = rivals.family(x["effect"])
+        if kind in best:
+            best[kind]["variants"].append(x["effect"])
+        else:
+            best[kind] = x
+    return list(best.values())
 
 
 def suggestive_text(found: Sequence[dict[str, Any]]) -> str:
