@@ -708,3 +708,20 @@ def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_in
         == ": its interval and p = 0.041 are for this test alone; over all the diagnosis's tests q = 0.21"
     )
     assert dv._alone_text(None) == "" and dv._alone_text({"change": -0.1}) == ""
+
+
+def test_a_noise_verdicts_correction_says_why_it_is_not_named() -> None:
+    """A temperature-dependent C_D on a Sachdeva field (seed 66, ``mm`` + ``ol``): the t_up
+    correction lowered the live MAPE by 0.04 points with q = 0.0075 over the diagnosis's
+    tests, beyond chance but under the minimum change, and the noise verdict said it "does
+    not lower the error ... beyond chance", beside its own q. Each case now reads as it is."""
+    assert dv._correction_how(None) == "does not lower the error the operator sees beyond chance"
+    not_beyond = {"change": -0.3, "p_value": 0.2, "q_value": 0.5, "rejected": False}
+    assert dv._correction_how(not_beyond).startswith("does not lower")
+    small = {"change": -0.04, "p_value": 7.4e-05, "q_value": 0.0075, "rejected": True}
+    assert dv._correction_how(small) == (
+        f"lowers the error the operator sees beyond chance, but by less than the "
+        f"{dv.MIN_CHANGE:g}-point minimum"
+    )
+    large = {**small, "change": -dv.MIN_CHANGE - 0.05}
+    assert dv._correction_how(large).endswith("yet is not offered")

@@ -682,6 +682,20 @@ def _fit_once_text(c: CandidateResult, well: str | None) -> str:
     )
 
 
+def _correction_how(lt: dict[str, Any] | None) -> str:
+    """What a correction that a ``noise`` verdict mentions did to the live error, by its
+    live test ``lt``: not beyond chance; beyond chance but by less than :data:`MIN_CHANGE`
+    points; or beyond chance and not offered (its candidate line says why)."""
+    if lt is None or not lt.get("rejected") or lt.get("change") is None:
+        return "does not lower the error the operator sees beyond chance"
+    if lt["change"] > -MIN_CHANGE:
+        return (
+            "lowers the error the operator sees beyond chance, but by less than the "
+            f"{MIN_CHANGE:g}-point minimum"
+        )
+    return "lowers the error the operator sees beyond chance, yet is not offered"
+
+
 def _noise_verdict(
     suggestion: Suggestion | None,
     well: str | None,
@@ -704,10 +718,10 @@ def _noise_verdict(
     if fit_once.get("kind") == "driver" or (suggestion is not None and not suggestion.result.offer):
         if suggestion is not None:
             lt = suggestion.result.test("live", well)
+            how = _correction_how(lt)
             text += (
-                f" A correction in {suggestion.driver} was fitted but does not lower the error "
-                f"the operator sees beyond chance ({_change_text(lt, 'live MAPE')}"
-                f"{_alone_text(lt)})."
+                f" A correction in {suggestion.driver} was fitted but {how} "
+                f"({_change_text(lt, 'live MAPE')}{_alone_text(lt)})."
             )
     return {
         "kind": "noise",
