@@ -2,7 +2,10 @@
 
 Real parts only: the service (store in tmp_path, Zenoh peer on a free loopback port
 without multicast, HTTP on a free port) and the replay tool in its own Zenoh session.
-One replay feeds every check of this module.
+One replay feeds every check of this module. Its reference is `vfm evaluate`'s run with
+its instrument-fault plan (`vfm_core.jobs.study_faults`): the service's detectors are primed
+on the history as the study's see the whole file, so both hold the same measurements (here
+a week of W01's in September: a choke move that the MPFM's rate did not follow at once).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from replay.replayer import ReplayResult, replay_frame
 from service.app import running
 from service.testing import loopback_settings
 from vfm_core.jobs.study import RunResult, mape, metrics_records, run_prequential
+from vfm_core.jobs.study_faults import plan_sensor_faults
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -37,6 +41,7 @@ class Run:
     health: dict[str, Any]
     history: dict[str, Any]
     reference: RunResult
+    held: int  # measurements after the split that the study's fault plan holds
 
 
 @pytest.fixture(scope="module")
@@ -62,8 +67,11 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
             history = http.get(
                 "/wells/W01/history", params={"start": "2016-06-01", "end": "2016-07-01"}
             ).json()
-    reference = run_prequential(frame, "mm", "ol", split=SPLIT)
-    yield Run(frame, result, wells, health, history, reference)
+    plan = plan_sensor_faults(frame)
+    reference = run_prequential(frame, "mm", "ol", split=SPLIT, sensor_faults=plan)
+    after = (frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")).to_numpy()
+    held = int((plan.held & after & frame["q_total"].notna().to_numpy()).sum())
+    yield Run(frame, result, wells, health, history, reference, held)
 
 
 def test_every_sample_gets_a_prediction(run: Run) -> None:
@@ -75,7 +83,9 @@ def test_every_sample_gets_a_prediction(run: Run) -> None:
     assert r.predictions_received == n_rows - 1
     assert run.health["accepted"]["sensors"] == n_rows
     assert run.health["not_ready"] == 1
-    assert run.health["rejected_total"] == 0 and run.health["overflow"] == 0
+    # the measurements at a suspected instrument fault are stored, not learned: counted
+    held = {"sensor fault at the sample": run.held} if run.held else {}
+    assert run.health["rejected"] == held and run.health["overflow"] == 0
     assert run.health["predictions_published"] == n_rows - 1
 
 
@@ -119,14 +129,18 @@ def test_well_state_over_http(run: Run) -> None:
         ).sum()
     )
     assert (w1["model"], w1["method"], w1["ready"]) == ("mm", "ol", True)
-    assert w1["version"] == 1 + n_meas  # the history fit, then one update per measurement
+    # the history fit, then one update per measurement learned (not the held ones)
+    assert w1["version"] == 1 + n_meas - run.held
     assert w1["n_updates"] == w1["version"]
     assert set(w1["parameters"]) >= {"rho_oil", "rho_wat", "kappa", "m_gas", "p_cr", "c_d"}
     assert w1["parameters"]["c_d"]["unit"] == "-" and w1["parameters"]["rho_oil"]["unit"] == "kg/m3"
     final = run.reference.final_model
     assert final is not None
     c_d = float(final.physical_parameters()["c_d"][final.wells.index("W01")])
-    assert w1["parameters"]["c_d"]["value"] == pytest.approx(c_d, rel=1e-9)
+    # the same to 1e-9; with measurements held, within 1e-4: the study's one Adam optimiser
+    # over every well counts its steps on while one well is held (sensor-faults guide)
+    tol = 1e-4 if run.held else 1e-9
+    assert w1["parameters"]["c_d"]["value"] == pytest.approx(c_d, rel=tol)
     assert w1["last_update"].startswith("2016-12")
     assert w1["drift"]["enabled"] in (True, False)
     assert run.wells["W02"]["version"] >= 400 and run.wells["W02"]["ready"]
@@ -196,7 +210,9 @@ def test_periodic_learning_follows_the_study_calendar(tmp_path) -> None:
             frame, connect=svc.locators, start=SPLIT, progress=False, idle_timeout=2.0
         )
         state = httpx.get(f"{svc.http_url}/wells/W01", timeout=10).json()
-    reference = run_prequential(frame, "mm", "pbl:30d", split=SPLIT)
+    reference = run_prequential(
+        frame, "mm", "pbl:30d", split=SPLIT, sensor_faults=plan_sensor_faults(frame)
+    )
     (ref,) = metrics_records(reference.predictions)
     assert result.per_well["n"].iloc[0] == ref["n"]
     assert result.per_well["mape"].iloc[0] == pytest.approx(ref["mape"], rel=1e-6)

@@ -194,6 +194,7 @@ __all__ = [
     "residual_noise",
     "WellSensorFaults",
     "faults_of_frame",
+    "feed_frame",
     "mpfm_rates",
     "write_sensor_faults",
     "critical_floor",
@@ -2044,30 +2045,38 @@ def mpfm_rates(g: Any) -> list[float]:
     return np.where(g["source"].astype(str).to_numpy() == "mpfm", q, np.nan).tolist()
 
 
+def feed_frame(det: WellSensorFaults, g: Any) -> list[SensorFault]:
+    """Feed one well's rows (a frame with ``time`` and the six inputs, in time order;
+    ``source`` and ``q_total`` give the MPFM's rates) to ``det`` as the service feeds them
+    live: each distinct sample time once, then a row's MPFM rate to the choke-rate witness.
+    Returns the faults that began or ended (each once, in the order first seen)."""
+    import pandas as pd
+
+    times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
+    values = g[list(SENSORS)].to_numpy(dtype=float)
+    seen: dict[int, SensorFault] = {}
+    last: int | None = None
+    for t, row, q in zip(times.tolist(), values.tolist(), mpfm_rates(g), strict=True):
+        if t != last:  # a second row at one time carries only its measurement
+            for e in det.update(t, row):
+                seen[id(e)] = e
+            last = t
+        if math.isfinite(q):
+            for e in det.measure(t, q, row):
+                seen[id(e)] = e
+    return list(seen.values())
+
+
 def faults_of_frame(frame: Any, **hyperparameters: Any) -> list[dict[str, Any]]:
     """Run one :class:`WellSensorFaults` per well over an observation frame (columns
     ``time``, ``well`` and the six inputs; ``source`` and ``q_total`` feed the MPFM's rates
     to the choke-rate witness) in time order, as the service does live.
     Returns every event as a dict (:meth:`SensorFault.as_dict` plus ``well``)."""
-    import pandas as pd
 
     out: list[dict[str, Any]] = []
     f = frame.sort_values(["well", "time"], kind="stable")
     for well, g in f.groupby("well", sort=True):
-        det = WellSensorFaults(**hyperparameters)
-        times = pd.to_datetime(g["time"], utc=True).dt.as_unit("ns").astype("int64").to_numpy()
-        values = g[list(SENSORS)].to_numpy(dtype=float)
-        seen: dict[int, SensorFault] = {}
-        last: int | None = None
-        for t, row, q in zip(times.tolist(), values.tolist(), mpfm_rates(g), strict=True):
-            if t != last:  # a second row at one time carries only its measurement
-                for e in det.update(t, row):
-                    seen[id(e)] = e
-                last = t
-            if math.isfinite(q):
-                for e in det.measure(t, q, row):
-                    seen[id(e)] = e
-        for e in seen.values():
+        for e in feed_frame(WellSensorFaults(**hyperparameters), g):
             out.append({"well": str(well), **e.as_dict()})
     out.sort(key=lambda d: (d["well"], d["start"] or "", d["sensor"], d["kind"]))
     return out

@@ -192,6 +192,7 @@ class Recovery:
                 self.checkpoints.restore_side_car(st, row.extra)
             elif well in fitted and by_well:
                 self._seed_drift_reference(st, by_well[well])
+                st.prime_sensor_faults(_priming_rows(by_well[well]))
             wells[well] = st
         return wells
 
@@ -360,6 +361,23 @@ class Recovery:
         now = time.monotonic()
         for p in self.store.pending(st.well):
             st.pending.append(Pending(p.time_ns, p.source, p.q_total, p.via, now))
+
+
+#: the history a fresh well's instrument-fault detectors are primed on: its last
+#: ``PRIME_DAYS`` days, at most ``PRIME_ROWS`` rows (a year of daily changes is the drift
+#: test's reference; at one sample a minute the cap keeps start-up to seconds a well)
+PRIME_DAYS = 400
+PRIME_ROWS = 100_000
+
+
+def _priming_rows(own: pd.DataFrame) -> pd.DataFrame:
+    """A well's history rows for :meth:`WellState.prime_sensor_faults`, in time order: the
+    last :data:`PRIME_DAYS` days, at most :data:`PRIME_ROWS` rows."""
+    rows = own.sort_values("time", kind="stable")
+    times = pd.to_datetime(rows["time"], utc=True)
+    if len(times):
+        rows = rows[(times >= times.iloc[-1] - pd.Timedelta(days=PRIME_DAYS)).to_numpy()]
+    return rows.tail(PRIME_ROWS)
 
 
 def _fit_fresh(

@@ -29,7 +29,13 @@ from service.engine.residual_alarms import WellResidualAlarm, disabled_view
 from service.store import ReviewRow, SampleRow
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.meter_check import awaiting_well_test, which_moved
-from vfm_core.sensor_faults import Fallback, SensorFault, WellSensorFaults, raises_alarm
+from vfm_core.sensor_faults import (
+    Fallback,
+    SensorFault,
+    WellSensorFaults,
+    feed_frame,
+    raises_alarm,
+)
 from vfm_core.timeutil import iso
 
 __all__ = [
@@ -270,6 +276,27 @@ class WellState:
         events = self.sensor_faults.update(time_ns, inputs)
         self._log_faults(events)
         return events
+
+    def prime_sensor_faults(self, rows: Any) -> list[SensorFault]:
+        """Feed the history's rows (a frame in time order, see
+        :func:`vfm_core.sensor_faults.feed_frame`) to the instrument-fault detectors before
+        the first live sample, so that their references start from the well's history as
+        the study's do (see :mod:`service.engine.recovery`). The faults found there are
+        kept (one still open goes on live) and logged in one line. Nothing when
+        ``sensor_faults.enabled`` is false."""
+        if not self.watch_faults or len(rows) == 0:
+            return []
+        found = feed_frame(self.sensor_faults, rows)
+        began = [f"{e.sensor} {e.kind}" for e in found if e.start_ns is not None]
+        still = [f"{s.sensor} {s.kind}" for s in self.sensor_faults.active]
+        logger.info(
+            "Instrument-fault detectors of %s primed on %d history rows; faults there: %s%s.",
+            self.well,
+            len(rows),
+            ", ".join(dict.fromkeys(began)) or "none",
+            f" (still open: {', '.join(still)})" if still else "",
+        )
+        return found
 
     def _log_faults(self, events: Sequence[SensorFault]) -> None:
         """Log each fault that began (with its evidence: a warning for one that raises an
