@@ -124,3 +124,82 @@ def test_a_wearing_field_is_followed_better_with_the_refit() -> None:
     assert score["bayes"] < 0.6 * score["bayes:refresh=off"], score
     assert score["bayes"] < 1.25 * score["pbl:14d"], score
     assert on.predictions["predicted_p95"].notna().all()
+
+
+def test_the_compiled_history_pass_is_the_torch_pass() -> None:
+    """The filter's start compiled (:mod:`vfm_core.learning._history_kernels`) gives the torch
+    reference's state, covariance, innovations, last sensitivity and time on two thousand
+    rows a well, with outliers (Huber-weighted and refused rows), gaps, a well left out of
+    the start (no rows) and one with its rows at the end only."""
+    kernel = bayes._history_kernel()
+    if kernel is None:
+        pytest.skip("the compiled kernels are off here")
+    g = torch.Generator().manual_seed(5)
+    n_w, n, d = 4, 2000, 9
+    dtype = torch.float64
+    jac = 0.3 * torch.randn(n_w, n, d, generator=g, dtype=dtype)
+    log_h = torch.randn(n_w, n, generator=g, dtype=dtype)
+    y = log_h + 0.03 * torch.randn(n_w, n, generator=g, dtype=dtype)
+    y[:, ::97] += 0.5  # beyond the Huber point or the gate
+    ok = torch.rand(n_w, n, generator=g) > 0.1
+    ok[2] = False
+    ok[3, :1500] = False
+    time_ns = torch.cumsum(torch.randint(1, 3 * DAY, (n_w, n), generator=g), 1)
+    src = (torch.rand(n_w, n, generator=g) > 0.9).long()
+    noise = torch.tensor([[0.03, 0.01]] * n_w, dtype=dtype)
+    prior_var = 0.1 + torch.rand(d, generator=g, dtype=dtype)
+    q = 0.05 * torch.rand(d, generator=g, dtype=dtype)
+    fast = bayes._history_pass(y, log_h, jac, ok, src, time_ns, noise, prior_var, q)
+    p0 = bayes._history_start(ok, time_ns, prior_var, q)
+    r_var = torch.gather(noise, 1, src) ** 2
+    slow = bayes._history_pass_torch(y, log_h, jac, ok, time_ns, r_var, p0, q)
+    names = ("m", "P", "innovations", "hph", "h_last", "t_last")
+    for name, a, b in zip(names, fast, slow, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-14), name
+    m, P = fast[0], fast[1]
+    assert (m[2] == 0).all() and torch.equal(P[2], torch.diag(p0[2]))  # untouched
+    assert int(fast[5][2]) == bayes.NEVER
+    assert (m[0].abs() > 1e-6).any()  # the pass moved the state of a well with rows
+    z = (fast[2] / (fast[3] + r_var).sqrt()).abs()
+    assert bool(((z > 3) & ok).any()) and bool(((z > 6) & ok).any())  # both rules ran
+
+
+def test_a_refit_restarts_the_refitted_wells_only_as_the_differences_would(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A refit of one well of ``ham`` (its refit due, the other's not) starts that well's
+    filter again, linearised by the compiled gradient at its own rows: the same start as
+    the central differences over the whole field give (to their truncation error), and the
+    other well's filter and parameters untouched."""
+    if bayes.compiled() is None:
+        pytest.skip("the compiled kernels are off here")
+    frame = validate_frame(simulate_field(wells=2, years=1.0, seed=29).observations).frame
+    wells = wells_of(frame)
+    memory = FrameMemory(frame, target_mask(frame, "all"), wells)
+    t_split = int(pd.Timestamp("2016-07-01", tz="UTC").value)
+    runs = {}
+    for linear in ("compiled", "differences"):
+        model = make_model("ham", wells)
+        method = parse_method("bayes:refresh=14d").bind(
+            model, train=replace(DEFAULT_TRAIN["ham"], max_iter=60, early_stopping=False)
+        )
+        assert method.compiled
+        method.fit(memory.batch(t_split))
+        method.start(t_split)
+        before = method.filter_state()[:2]
+        with monkeypatch.context() as patch:
+            if linear == "differences":
+                patch.setattr(bayes, "compiled", lambda: None)
+            now = torch.tensor([t_split + 20 * DAY, t_split + DAY])
+            changed = method.retrain_due(memory, now)
+        assert changed.tolist() == [True, False]
+        runs[linear] = (*method.filter_state()[:2], *before)
+    # theta [W, D] and P [W, D, D] after the refit, then before it
+    fast, slow = runs["compiled"], runs["differences"]
+    assert not torch.equal(fast[1], slow[1])  # two ways to linearise, not one
+    for a, b in zip(fast, slow, strict=True):
+        assert torch.allclose(a, b, rtol=1e-6, atol=1e-12)
+    theta, P, theta0, P0 = fast
+    assert not torch.allclose(theta[0], theta0[0]) and not torch.allclose(P[0], P0[0])
+    assert torch.equal(theta[1], theta0[1]) and torch.equal(P[1], P0[1])  # not refitted

@@ -83,7 +83,11 @@ Bayesian learning); the layers below stay as fitted.
   missed refit of a gap runs), and the filter starts again from the refit
   (:meth:`BayesianFilter._fitted`): an EM-like alternation, the filter the posterior of
   the task vectors given the network, the refit the network's MAP given the data (see
-  :meth:`BayesianFilter.retrain_due`).
+  :meth:`BayesianFilter.retrain_due`). The start's Kalman passes run compiled
+  (:mod:`vfm_core.learning._history_kernels`, the torch loop's numbers to rounding), and
+  after a refit of the compiled filter the history is linearised by the compiled gradient
+  at the refitted wells' rows only (:meth:`BayesianFilter._linearised`): a refit of a
+  case-1 field costs about what its fit does (docs/guide/bayes.md, session 50).
 
 Options: ``drift``, ``drift_<label>``,
 ``noise_mpfm``, ``noise_well_test`` (relative sd; default: from the data), ``iterations``
@@ -100,6 +104,7 @@ import copy
 import math
 import threading
 from collections.abc import Collection, Hashable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -348,21 +353,68 @@ def _history_pass(
     log y = log h + J m + e. Returns the state m [W, D] (offset from the fit) and P at the
     last row, the one-step-ahead innovations and their parameter variance [W, N], the last
     sensitivity [W, D] and the last time [W]."""
-    n_w, n, d = jac.shape
-    m = torch.zeros(n_w, d, dtype=DTYPE)
-    # the start: around the fit, as far as the well can have drifted over its history (at
-    # least a year's drift, at most the prior): the fit is the history's average
+    P0 = _history_start(ok, time_ns, prior_var, q)
+    R_all = torch.gather(noise, 1, src) ** 2
+    kernel = _history_kernel()
+    if kernel is not None:
+        arrays = (y, log_h, jac, ok, R_all, time_ns, P0, q.to(DTYPE))
+        out = kernel.history_pass(
+            *(np.ascontiguousarray(a.numpy()) for a in arrays),
+            int(NEVER),
+            _NS_PER_YEAR,
+        )
+        return tuple(torch.from_numpy(a) for a in out)
+    return _history_pass_torch(y, log_h, jac, ok, time_ns, R_all, P0, q)
+
+
+def _history_start(
+    ok: torch.Tensor, time_ns: torch.Tensor, prior_var: torch.Tensor, q: torch.Tensor
+) -> torch.Tensor:
+    """The history pass's start [W, D] (the diagonal of P): around the fit, as far as the
+    well can have drifted over its history (at least a year's drift, at most the prior):
+    the fit is the history's average."""
     first = torch.where(ok, time_ns, torch.full_like(time_ns, NEVER)).min(dim=1).values
     final = torch.where(ok, time_ns, torch.full_like(time_ns, -1)).max(dim=1).values
     span = ((final - first).clamp(min=0).to(DTYPE) / _NS_PER_YEAR).clamp(min=1.0)
-    P0 = torch.minimum(prior_var.unsqueeze(0), q.unsqueeze(0) * span.unsqueeze(1))
+    return torch.minimum(prior_var.unsqueeze(0), q.unsqueeze(0) * span.unsqueeze(1))
+
+
+_HISTORY_KERNEL: list[Any] = []
+
+
+def _history_kernel() -> Any:
+    """The compiled history pass (:mod:`vfm_core.learning._history_kernels`), or None when
+    the kernels are off or numba is missing (the torch reference then runs)."""
+    if not _HISTORY_KERNEL:
+        try:
+            from vfm_core.learning import _history_kernels
+
+            _HISTORY_KERNEL.append(_history_kernels.load())
+        except ImportError:  # pragma: no cover - numba missing
+            _HISTORY_KERNEL.append(None)
+    return _HISTORY_KERNEL[0]
+
+
+def _history_pass_torch(
+    y: torch.Tensor,
+    log_h: torch.Tensor,
+    jac: torch.Tensor,
+    ok: torch.Tensor,
+    time_ns: torch.Tensor,
+    R_all: torch.Tensor,
+    P0: torch.Tensor,
+    q: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """:func:`_history_pass` in torch, all wells a row at a time (the reference of the
+    compiled pass, :mod:`vfm_core.learning._history_kernels`)."""
+    n_w, n, d = jac.shape
+    m = torch.zeros(n_w, d, dtype=DTYPE)
     P = torch.diag_embed(P0)
     eye = torch.eye(d, dtype=DTYPE)
     last = torch.full((n_w,), NEVER, dtype=torch.int64)
     h_last = torch.zeros(n_w, d, dtype=DTYPE)
     innov = torch.zeros(n_w, n, dtype=DTYPE)
     hph_all = torch.zeros(n_w, n, dtype=DTYPE)
-    R_all = torch.gather(noise, 1, src) ** 2
     qd = torch.diag_embed(q)
     for k in range(n):
         live = ok[:, k]
@@ -754,6 +806,8 @@ class BayesianFilter(LearningMethod):
         self._refresh_at = torch.full((n,), NEVER, dtype=torch.int64)
         #: the wells whose refit now is followed by another before the filter starts
         self._starts_later = torch.zeros(n, dtype=torch.bool)
+        #: True while :meth:`retrain_due` refits (the start then linearises compiled)
+        self._refitting = False
         return self
 
     # -- the refit under the filter (scheduled retrains) ---------------------------------------
@@ -806,6 +860,7 @@ class BayesianFilter(LearningMethod):
         if self.model.shared:  # one calendar for the field: every well refits together
             now_ns = torch.full_like(now_ns, int(now_ns[due].max()))
             at = torch.full_like(at, int(at[due].min()))
+        self._refitting = True
         try:
             while True:
                 due = (at != NEVER) & (now_ns != NEVER) & (at <= now_ns)
@@ -820,6 +875,7 @@ class BayesianFilter(LearningMethod):
                 at = torch.where(wells, at + period, at)
         finally:
             self._starts_later = torch.zeros_like(due)
+            self._refitting = False
         self._refresh_at = at
         return changed
 
@@ -942,8 +998,7 @@ class BayesianFilter(LearningMethod):
         )
         batch = _reorder(batch, order)
         theta = _flat(blocks, batch.n_wells)
-        log_h, jac = _jacobian_fd(model, blocks, batch)
-        jac = jac * self._keep.to(DTYPE)
+        log_h, jac = self._linearised(batch, wells)
         ok = batch.mask & (batch.y > 0) & torch.isfinite(log_h) & wells.unsqueeze(1)
         y = torch.log(torch.where(ok, batch.y, torch.ones_like(batch.y)))
         src = _source(batch)
@@ -974,6 +1029,30 @@ class BayesianFilter(LearningMethod):
         self._last[has] = t_last[has]
         self._started |= has
         self._apply_calibration()
+
+    def _linearised(self, batch: Batch, wells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """log h [W, N] and its sensitivity J [W, N, D] (masked by ``keep``) at the current
+        parameters, for the start's Kalman passes. After a refit (:meth:`retrain_due`) with
+        the compiled filter (:attr:`compiled`): J from the compiled closed-form gradient the
+        updates take, at the refitted wells' samples only (the others' rows are not read);
+        it differs from the central differences by their truncation error (measured 1e-12
+        to 1e-7 relative). Otherwise (the first fit, the torch path) by central differences over
+        every well (2 D model evaluations of the whole history: 90 % of a refit's cost on a
+        case-1 field; docs/guide/bayes.md, "Per-well networks on request", session 50)."""
+        model = self.model
+        kernel = compiled()
+        if (
+            getattr(self, "_refitting", False)
+            and kernel is not None
+            and self._layout is not None
+            and bool(model.ready[wells].all())
+        ):
+            with torch.no_grad():
+                log_h = torch.log(torch.clamp(predict_rates(model, batch), min=1e-12))
+            only = replace(batch, mask=batch.mask & wells.unsqueeze(1))
+            return log_h, self._compiled_gradients(kernel, only)
+        log_h, jac = _jacobian_fd(model, self._blocks, batch)
+        return log_h, jac * self._keep.to(DTYPE)
 
     def _fix_noise(self, noise: torch.Tensor) -> torch.Tensor:
         for s in (0, 1):
