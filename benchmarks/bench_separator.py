@@ -33,7 +33,8 @@ rates and gradients, the allocation and the update) is timed with N = 1, 10, 100
 update of the ``bayes`` filter. Run (seeds that no test uses):
 
     nice -n 10 python benchmarks/bench_separator.py [--fields 6:1101:erosion,...]
-        [--models mm,ham] [--years 5] [--markdown docs/benchmarks/generated/separator.md]
+        [--models mm,ham] [--years 5] [--physics sachdeva]
+        [--markdown docs/benchmarks/generated/separator.md]
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ from vfm_core.models import make_model
 from vfm_core.observations import validate_frame
 from vfm_core.separator import SeparatorLearner, run_separator
 from vfm_core.separator_sim import simulate_separator_field
+from vfm_core.sim_physics import DEFAULT_PHYSICS
 
 DEFAULT_FIELDS = (
     "6:1101:erosion,8:1102:erosion,10:1103:erosion,12:1104:erosion,6:1105:none,10:1106:none,"
@@ -69,10 +71,14 @@ VARIANTS = {
 
 
 def _field_rows(
-    wells: int, seed: int, hidden: str, years: float, models: list[str]
+    wells: int, seed: int, hidden: str, years: float, models: list[str], physics: str
 ) -> list[dict[str, Any]]:
     field = simulate_separator_field(
-        wells=wells, years=years, seed=seed, hidden=[] if hidden == "none" else [hidden]
+        wells=wells,
+        years=years,
+        seed=seed,
+        hidden=[] if hidden == "none" else [hidden],
+        physics=physics,
     )
     loaded = validate_frame(field.observations)
     truth = field.truth_samples[["time", "well", "q_true"]]
@@ -217,6 +223,9 @@ def main() -> None:
     )
     parser.add_argument("--models", default="mm,ham")
     parser.add_argument("--years", type=float, default=5.0)
+    parser.add_argument(
+        "--physics", default=DEFAULT_PHYSICS, help="the truth physics (vfm simulate --physics)"
+    )
     parser.add_argument("--sizes", default="1,10,100", help="wells per separator for the cost")
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--markdown", default=None, help="write the tables here (Markdown)")
@@ -226,7 +235,9 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for spec in args.fields.split(","):
         wells, seed, hidden = spec.split(":", 2)
-        rows += _field_rows(int(wells), int(seed), hidden, args.years, args.models.split(","))
+        rows += _field_rows(
+            int(wells), int(seed), hidden, args.years, args.models.split(","), args.physics
+        )
     table = pd.DataFrame(rows)
     costs = pd.DataFrame([_update_cost(int(n), args.repeats) for n in args.sizes.split(",")])
     costs["joint_x_single"] = costs["joint_ms"] / costs["single_ms"]
@@ -243,9 +254,10 @@ def main() -> None:
 def _write_markdown(
     path: Path, args: argparse.Namespace, table: pd.DataFrame, costs: pd.DataFrame, took: float
 ) -> None:
+    physics = "" if args.physics == DEFAULT_PHYSICS else f" --physics {args.physics}"
     lines = [
         f"Written by `nice -n 10 python benchmarks/bench_separator.py --fields {args.fields} "
-        f"--models {args.models} --years {args.years:g} --markdown {path}` "
+        f"--models {args.models} --years {args.years:g}{physics} --markdown {path}` "
         "(do not edit by hand).",
         "",
         f"Fields of {args.years:g} years simulated with `vfm simulate --separator` (one "

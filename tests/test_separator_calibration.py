@@ -60,10 +60,17 @@ def test_booked_rates_cover_90_percent_when_the_prior_is_right():
     assert cov_post >= 0.84, cov_post
 
 
-INPUTS = {"A": [0.45, 100.0, 25.0, 60.0, 0.1, 0.7], "B": [0.5, 110.0, 25.0, 60.0, 0.1, 0.7]}
+INPUTS = {
+    "A": [0.45, 100.0, 25.0, 60.0, 0.1, 0.7],
+    "B": [0.5, 110.0, 25.0, 60.0, 0.1, 0.7],
+    "C": [0.4, 105.0, 25.0, 60.0, 0.1, 0.7],
+    "D": [0.55, 95.0, 25.0, 60.0, 0.1, 0.7],
+}
 
 
-def _filter_after_tests(error_sd: float, wells: tuple = ("A", "B"), n_tests: int = 12):
+def _filter_after_tests(
+    error_sd: float, wells: tuple = ("A", "B"), n_tests: int = 12, method: str = "bayes"
+):
     """A ``bayes`` filter over ``mm`` wells, started with a tight covariance, that then
     learns ``n_tests`` monthly well tests whose log errors about its forecast have the sd
     ``error_sd`` (its stated well-test sd is about 1 %); each well's errors are drawn from
@@ -75,7 +82,7 @@ def _filter_after_tests(error_sd: float, wells: tuple = ("A", "B"), n_tests: int
     rows = torch.zeros(n, 1, dtype=torch.int64)
     t0 = int(pd.Timestamp("2020-01-01", tz="UTC").value)
     model = make_model("mm", wells, seed=0)
-    meth = parse_method("bayes")
+    meth = parse_method(method)
     meth.bind(model, train=DEFAULT_TRAIN.get("mm", TrainSettings()))
     times = torch.full((n, 1), t0, dtype=torch.int64)
     model.setup(Batch(wells, x, torch.full((n, 1), 50.0, dtype=DTYPE), mask, times, rows))
@@ -130,3 +137,35 @@ def test_calibrated_prior_scales_the_parameters_and_keeps_the_misfit_beyond_the_
     # the second well's tests scatter less than its meter: no misfit left
     assert torch.allclose(prior, expected)
     assert float(prior[2].abs().sum()) == 0.0
+
+
+def test_a_separators_members_pool_their_variance_factors():
+    # four wells whose tests fall far closer to the forecasts than the filter states (as
+    # when its tau is the residual of a fit that could not follow a drift): each well's own
+    # factor, from its 6 errors, stays pulled towards the stated prior (c^2 = 1); pooled
+    # over the separator's members (their prior the one under which the others' errors
+    # are most likely) they come nearer to what the errors say
+    wells = ("A", "B", "C", "D")
+    meth = _filter_after_tests(0.001, wells, n_tests=6)
+    errors = meth.well_test_errors()
+    said = errors[:, 1] / errors[:, 0]  # each well's mean squared standardised error
+    own, _ = well_test_factor(meth)
+    ix = torch.arange(4)
+    pooled, meter = well_test_factor(meth, ix)
+    assert bool((said < 0.2).all()), said
+    nearer = (pooled / said).log().abs() < (own / said).log().abs()
+    assert bool((pooled < own).all()) and bool(nearer.all()), (said, own, pooled)
+    assert float(pooled.max()) < 0.1 * float(own.min()), (own, pooled)
+    assert torch.allclose(meter, torch.full_like(meter, 0.01))
+    # a subset is pooled over its own members; a lone well keeps its own factor
+    assert torch.allclose(well_test_factor(meth, torch.tensor([2]))[0], own[2:3])
+    pair, _ = well_test_factor(meth, torch.tensor([0, 3]))
+    assert bool((pair < own[[0, 3]]).all()) and not torch.allclose(pair, pooled[[0, 3]])
+    # one-well filters (the service's) pool to the same numbers
+    one = [_filter_after_tests(0.001, (w,), n_tests=6) for w in wells]
+    assert torch.allclose(well_test_factor(WellFilters(list(wells), one), ix)[0], pooled)
+    # the factors cal_pool=on gives a filter over these wells (the same errors: the factor
+    # widens the intervals only); such a filter, pooling already, keeps its own
+    field = _filter_after_tests(0.001, wells, n_tests=6, method="bayes:cal_pool=on")
+    assert torch.allclose(well_test_factor(field)[0], pooled)
+    assert torch.allclose(well_test_factor(field, ix)[0], well_test_factor(field)[0])

@@ -45,8 +45,14 @@ Sigma and sd are calibrated from what the allocator sees (:func:`calibrated_prio
   c_i^2, the scale of the posterior InvGamma((nu0 + n) / 2, (nu0 + sum z^2) / 2) of the
   factor on it from the standardised errors z of its forecasts of the well's past well
   tests (``BayesianFilter._learn_calibration``, prior nu0 = ``cal_prior`` = 2 errors at
-  z^2 = 1), c_i^2 = (nu0 + sum z^2) / (nu0 + n), read from the filter's state, not learned
-  again. The wells' parameter covariance is scaled by it: H_i C_ij H_j^T c_i c_j.
+  z^2 = 1), c_i^2 = (nu0 + sum z^2) / (nu0 + n), read from the filter's statistics, not
+  learned again. Each well's prior is pooled over the separator's other members (the
+  empirical Bayes prior of ``cal_pool``, :func:`~vfm_core.learning.bayes.pooled_factor`):
+  they share a model and a drift allowance, and a well's own 8-15 well tests a year leave
+  its factor near the stated prior, c^2 = 1, which is far off when the filter's tau_i is
+  (e.g. a fit that could not follow a fast drift booked it as test noise: tau_i 3-6 %
+  where the tests scatter by 1 %). The wells' parameter covariance is scaled by it:
+  H_i C_ij H_j^T c_i c_j.
 * **A well test is not the truth.** The calibrated c_i^2 (H_i C_ii H_i^T + tau_i^2) is the
   variance of a well test's error; the true rate has no test meter noise in it, so each
   well's misfit (beyond its parameters) is what is left of c_i^2 tau_i^2 after the test
@@ -82,7 +88,7 @@ import torch
 from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.learning import DEFAULT_TRAIN, TrainSettings, parse_method
-from vfm_core.learning.bayes import NOISE_DEFAULTS, Z90, BayesianFilter
+from vfm_core.learning.bayes import NOISE_DEFAULTS, Z90, BayesianFilter, pooled_factor
 from vfm_core.learning.method import NEVER
 from vfm_core.models import make_model
 from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL, WELL_TEST
@@ -139,13 +145,38 @@ def sum_update(
     return mean + k * innovation, 0.5 * (new_cov + new_cov.T), s
 
 
-def well_test_factor(filt: BayesianFilter | WellFilters) -> tuple[torch.Tensor, torch.Tensor]:
+def well_test_factor(
+    filt: BayesianFilter | WellFilters, wells: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Each well's well-test variance factor c^2 [W] as the ``bayes`` filter learned it (the
     scale (nu0 + sum z^2) / (nu0 + n) of its InvGamma posterior; 1 with no error yet, or with
     ``cal_prior`` = 0) and the well-test meter's relative noise s_t [W] (the filter's fixed
-    ``noise_well_test`` if given, else :data:`NOISE_DEFAULTS`)."""
+    ``noise_well_test`` if given, else :data:`NOISE_DEFAULTS`).
+
+    ``wells`` (indices [M] of one separator's members): their factors [M], each with its
+    prior pooled over the other members' errors (:func:`pooled_factor`: the factor a filter
+    over the members alone would learn with ``cal_pool``), and their s_t [M]. The members
+    share a model and a drift allowance, so their factors are alike, and a well's own
+    handful of well tests leaves its factor near the stated prior (c^2 = 1). Left as the
+    filter learned them when it pools already (``cal_pool``: over the field), learns no
+    factor (``cal_prior`` = 0), the members' filters differ in ``cal_prior``, or there is
+    one member."""
+    factor, meter = _own_factor(filt)
+    if wells is None:
+        return factor, meter
+    factor, meter = factor[wells], meter[wells]
+    filters = filt.filters if isinstance(filt, WellFilters) else [filt]
+    nu0 = {float(f.cal_prior) for f in filters}
+    if len(wells) < 2 or len(nu0) != 1 or min(nu0) <= 0 or any(f.cal_pool for f in filters):
+        return factor, meter
+    errors = torch.cat([f.well_test_errors() for f in filters])[wells]
+    return torch.from_numpy(pooled_factor(errors.numpy(), nu0.pop())).to(DTYPE), meter
+
+
+def _own_factor(filt: BayesianFilter | WellFilters) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`well_test_factor` of every well of ``filt``, each its filter's own."""
     if isinstance(filt, WellFilters):
-        parts = [well_test_factor(f) for f in filt.filters]
+        parts = [_own_factor(f) for f in filt.filters]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     n = len(filt.model.wells)
     meter = filt.noise[1] if filt.noise[1] is not None else NOISE_DEFAULTS[1]
@@ -539,8 +570,8 @@ class SeparatorLearner:
         # the wells' true log rates: prior covariance (parameters and misfit, calibrated),
         # then given the sum
         if self.calibrate:
-            factor, meter = well_test_factor(filt)
-            prior = calibrated_prior(sigma, tau2, factor[ix], meter[ix])
+            factor, meter = well_test_factor(filt, ix)
+            prior = calibrated_prior(sigma, tau2, factor, meter)
         else:
             prior = sigma + torch.diag(tau2)
         alloc = self._allocate(sep, when, measured, lh, flowing, prior, s2)

@@ -141,7 +141,14 @@ from vfm_core.learning.stacking import stack_for_learning, stacked_rates
 from vfm_core.models import ChokeModel
 from vfm_core.models.base import FilterBlock
 
-__all__ = ["BayesianFilter", "CalibrationPool", "laplace_sd", "NOISE_DEFAULTS", "Z90"]
+__all__ = [
+    "BayesianFilter",
+    "CalibrationPool",
+    "laplace_sd",
+    "pooled_factor",
+    "NOISE_DEFAULTS",
+    "Z90",
+]
 
 #: a central 90 % interval spans +-Z90 standard deviations (in log space)
 Z90 = 1.6448536269514722
@@ -540,6 +547,19 @@ def _pooled_prior(
         return np.full(n_w, nu0), np.ones(n_w)  # no well has another's errors
     grid = nu0 * ((nu0 + float(count.sum())) / nu0) ** _POOL_GRID  # [G]
     return _pooled_prior_numpy(count, total, n_w, nu0, grid)
+
+
+def pooled_factor(errors: np.ndarray, nu0: float) -> np.ndarray:
+    """Each well's well-test variance factor c^2 [W] with its prior taken from the other
+    wells' errors, as ``cal_pool`` gives it to a filter over these wells alone: ``errors``
+    [W, 2] each well's (discounted) number and sum of squared standardised forecast errors
+    (:meth:`BayesianFilter.well_test_errors`), ``nu0`` the stated prior's weight
+    (``cal_prior``, > 0). The scale (k c0sq + sum z^2) / (k + n) of the posterior under the
+    prior InvGamma(k / 2, k c0sq / 2) of :func:`_pooled_prior`."""
+    count = np.ascontiguousarray(errors[:, 0], dtype=float)
+    total = np.ascontiguousarray(errors[:, 1], dtype=float)
+    k, c0sq = _pooled_prior(count, total, float(nu0))
+    return (k * c0sq + total) / (k + count)
 
 
 def _pooled_prior_numpy(
