@@ -101,6 +101,8 @@ joined with '+'; default all), ``refresh`` (``auto``, ``off`` or a period such a
 from __future__ import annotations
 
 import copy
+import functools
+import importlib
 import math
 import threading
 from collections.abc import Collection, Hashable, Sequence
@@ -386,20 +388,20 @@ def _history_start(
     return torch.minimum(prior_var.unsqueeze(0), q.unsqueeze(0) * span.unsqueeze(1))
 
 
-_HISTORY_KERNEL: list[Any] = []
+@functools.cache
+def _kernels(module: str) -> Any:
+    """The compiled kernels of ``vfm_core.learning.<module>`` (its ``load()``, once), or
+    None when the kernels are off or numba is missing (the reference then runs)."""
+    try:
+        return importlib.import_module(f"vfm_core.learning.{module}").load()
+    except ImportError:  # pragma: no cover - numba missing
+        return None
 
 
 def _history_kernel() -> Any:
-    """The compiled history pass (:mod:`vfm_core.learning._history_kernels`), or None when
-    the kernels are off or numba is missing (the torch reference then runs)."""
-    if not _HISTORY_KERNEL:
-        try:
-            from vfm_core.learning import _history_kernels
-
-            _HISTORY_KERNEL.append(_history_kernels.load())
-        except ImportError:  # pragma: no cover - numba missing
-            _HISTORY_KERNEL.append(None)
-    return _HISTORY_KERNEL[0]
+    """The compiled history pass (:mod:`vfm_core.learning._history_kernels`), or None (the
+    torch reference then runs)."""
+    return _kernels("_history_kernels")
 
 
 def _history_pass_torch(
@@ -668,20 +670,10 @@ def _first_time(batch: Batch, row: int | None = None) -> int | None:
     return int(times[mask].min()) if bool(mask.any()) else None
 
 
-_POOL_KERNEL: list[Any] = []
-
-
 def _pool_kernel() -> Any:
-    """The compiled pooled prior (:mod:`vfm_core.learning._pool_kernels`), or None when the
-    kernels are off or numba is missing (the numpy reference then runs)."""
-    if not _POOL_KERNEL:
-        try:
-            from vfm_core.learning import _pool_kernels
-
-            _POOL_KERNEL.append(_pool_kernels.load())
-        except ImportError:  # pragma: no cover - numba missing
-            _POOL_KERNEL.append(None)
-    return _POOL_KERNEL[0]
+    """The compiled pooled prior (:mod:`vfm_core.learning._pool_kernels`), or None (the
+    numpy reference then runs)."""
+    return _kernels("_pool_kernels")
 
 
 def _positive(text: str) -> float:
