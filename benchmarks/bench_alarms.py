@@ -65,6 +65,7 @@ import numpy as np
 import pandas as pd
 
 from service.config import DriftSettings
+from vfm_core import meter_check
 from vfm_core.hotelling import StreamingHotelling
 from vfm_core.jobs.study import run_prequential
 from vfm_core.meter_check import SAME_Z, SHIFT_Z, mpfm_checks
@@ -157,31 +158,39 @@ def which_moved(
     """For each well whose event ``key`` had a residual alarm on the MPFM stream within 180
     days (event before ``last`` - 180 days), the first well test compared with the MPFM
     after that alarm began (within 180 days of the event), read as the service's
-    ``which_moved`` reads it (:func:`vfm_core.meter_check.which_moved`): ``meter`` (|z| > 3),
-    ``unclear`` or ``well`` (|z| < 1), counted. A meter event should say ``meter``, a well
-    that changed ``well``."""
+    ``which_moved`` reads it (:func:`vfm_core.meter_check.which_moved`, with the alarm's
+    size at its raise): ``meter``, ``unclear`` or ``well``, counted; beside it in brackets
+    the z alone (the rule before s51: ``meter`` |z| > 3, ``well`` |z| < 1). A meter event
+    should say ``meter``, a well that changed ``well``."""
     said = {"meter": 0, "unclear": 0, "well": 0}
+    alone = dict(said)
     for well, info in truth["wells"].items():
         if key not in info:
             continue
         event = pd.Timestamp(info[key])
         if event > last - 180 * DAY:
             continue
-        starts = [
-            a["start"]
+        found = [
+            a
             for a in alarms
             if a["well"] == well
             and a["source"] == "mpfm"
             and event <= a["start"] <= event + 180 * DAY
         ]
-        if not starts:
+        if not found:
             continue
-        c = checks[(checks["well"] == well) & (checks["time"] >= min(starts))]
+        first = min(found, key=lambda a: a["start"])
+        c = checks[(checks["well"] == well) & (checks["time"] >= first["start"])]
         c = c[(c["time"] <= event + 180 * DAY) & c["shifted"].notna()]
         if len(c):
-            z = abs(float(c["z"].iloc[0]))
-            said["meter" if z > SHIFT_Z else "well" if z < SAME_Z else "unclear"] += 1
-    return "first well test after the MPFM alarm: " + ", ".join(f"{k} {v}" for k, v in said.items())
+            row = c.iloc[0]
+            alarm = {"source": "mpfm", "since": first["start"].isoformat(), "shift": first["shift"]}
+            check = {**row.to_dict(), "well_test_time": row["time"].isoformat()}
+            said[meter_check.which_moved(alarm, check)["moved"]] += 1
+            z = abs(float(row["z"]))
+            alone["meter" if z > SHIFT_Z else "well" if z < SAME_Z else "unclear"] += 1
+    counts = ", ".join(f"{k} {v} ({alone[k]})" for k, v in said.items())
+    return "first well test after the MPFM alarm (z alone): " + counts
 
 
 def band_alarms(frame: pd.DataFrame) -> list[dict]:

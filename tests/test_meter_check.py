@@ -102,6 +102,32 @@ def test_which_moved_beside_an_mpfm_alarm() -> None:
     assert which_moved(alarm, None) is None
 
 
+def test_which_moved_sets_the_pair_against_the_alarms_size() -> None:
+    """With the alarm's size known: ``well`` only where the pair is also far from where a
+    meter move would put it; a shift within two spreads cannot be told by one well test
+    (a slow meter drift raises its alarm at a small shift); ``meter`` only in the
+    alarm's direction."""
+    alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
+    check = {
+        "well_test_time": "2020-05-20T06:00:00+00:00",
+        "relative_difference": 0.01,
+        "usual_difference": 0.008,
+        "usual_spread": 0.03,
+    }
+    small = which_moved({**alarm, "shift": 0.04}, {**check, "z": 0.2})
+    assert small["moved"] == "unclear" and "no one well test can tell" in small["text"]
+    assert "+4.0 %" in small["text"] and small["alarm_shift"] == 0.04
+    assert small["meter_z"] == pytest.approx((0.2 * 0.03 - math.log1p(0.04)) / 0.03)
+    large = which_moved({**alarm, "shift": 0.12}, {**check, "z": 0.2})
+    assert large["moved"] == "well" and large["meter_z"] < -2
+    assert which_moved({**alarm, "shift": 0.12}, {**check, "z": 3.8})["moved"] == "meter"
+    against = which_moved({**alarm, "shift": 0.12}, {**check, "z": -3.8})
+    assert against["moved"] == "unclear"  # the pair moved the other way from the alarm
+    # without a size (an alarm from before s51): the z alone, as before
+    assert which_moved(alarm, {**check, "z": 0.2})["moved"] == "well"
+    assert which_moved({**alarm, "shift": None}, {**check, "z": 0.2})["meter_z"] is None
+
+
 def test_awaiting_the_well_test_that_says_which_moved() -> None:
     alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
     day = 86_400 * 10**9
@@ -112,7 +138,12 @@ def test_awaiting_the_well_test_that_says_which_moved() -> None:
     assert waiting["typical_gap_days"] == pytest.approx(12.0)
     assert waiting["last_well_test"].startswith("2020-04-18")
     assert waiting["due"].startswith("2020-04-30")
-    assert "due about 2020-04-30" in waiting["text"]
+    assert "due about 2020-04-30" in waiting["text"] and not waiting["overdue"]
+    # the well's data past the due date: overdue, and since when
+    late = awaiting_well_test(alarm, None, tests, pd.Timestamp("2020-05-09", tz="UTC").value)
+    assert late["overdue"] and "overdue since 2020-04-30, usually 12 days" in late["text"]
+    early = awaiting_well_test(alarm, None, tests, pd.Timestamp("2020-04-29", tz="UTC").value)
+    assert not early["overdue"] and "due about 2020-04-30" in early["text"]
     # too few pairs before the alarm: the next well test cannot tell either, and it says so
     few = awaiting_well_test(alarm, None, tests[: MIN_PAIRS - 1])
     assert few is not None and few["pairs"] == MIN_PAIRS - 1

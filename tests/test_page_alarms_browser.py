@@ -52,8 +52,10 @@ def expected_text(event: dict[str, Any], accept_periods: int) -> str:
         "accepted": f"accepted as the new level after {accept_periods} periods: "
         "the alarm restarts from it",
     }[event["closed"]]
+    shift = event.get("shift")  # its size at the raise (s51), where known
+    by = "" if shift is None else f" by {abs(100 * shift):.1f} %"
     return (
-        f"{event['source'].upper()} {side} the model "
+        f"{event['source'].upper()} {side} the model{by} "
         f"{minute(event['start'])} to {minute(event['end'])} UTC: {how}"
     )
 
@@ -156,4 +158,9 @@ def test_residual_alarms_listed_and_named_on_the_page(tmp_path: Path) -> None:
             "MPFM below the model since 2021-06-01 03:00 UTC "
             "(active; accepted as the new level if it lasts 30 periods)"
         )
+        sized = page.evaluate(
+            "alarmText({source: 'mpfm', direction: 'low', start: '2021-06-01T03:00:00+00:00',"
+            " end: null, closed: null, shift: -0.0634}, 30)"
+        )
+        assert sized.startswith("MPFM below the model by 6.3 % since 2021-06-01 03:00 UTC")
         assert errors == [], errors

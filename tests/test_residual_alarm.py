@@ -10,6 +10,7 @@ import pytest
 
 from vfm_core.errors import ConfigError
 from vfm_core.residual_alarm import (
+    AlarmSize,
     ResidualCusum,
     alarms_from_predictions,
     cusum_arl0,
@@ -188,6 +189,9 @@ def test_alarms_from_predictions_per_well_and_meter() -> None:
         pd.Timestamp("2020-04-10", tz="UTC") <= a["start"] <= pd.Timestamp("2020-04-14", tz="UTC")
     )
     assert a["end"] - a["start"] == pd.Timedelta(days=30)  # 30 periods after the signal
+    # its size at the raise: the 8 % step (2 % scatter: the median of the readings between
+    # the start and the raise against the 30 before)
+    assert a["shift"] == pytest.approx(0.08, abs=0.02)
     # with accept_periods = 0 (the rule before s46) it holds to the end of the data
     (old,) = alarms_from_predictions(rows[1], accept_periods=0)
     assert old["start"] == a["start"] and old["end"] is None and old["closed"] is None
@@ -293,3 +297,23 @@ def test_the_way_back_after_an_accepted_alarm_is_quiet_and_beyond_it_is_not(seed
     high = [e for e in beyond.events if e.direction == "high" and e.start_ns >= 140 * DAY_NS]
     assert high and high[0].start_ns <= 145 * DAY_NS
     assert [e.as_dict() for e in resumed.events] == [e.as_dict() for e in beyond.events]
+
+
+def test_an_alarms_size_is_the_step_against_the_readings_before_it() -> None:
+    """AlarmSize by hand: readings at 100 Sm3/h, the model 100 Sm3/h, then 7 % above it;
+    ratios not positive are skipped; too few readings before the start give None; the
+    state round-trips; the keep bounds the memory."""
+    size = AlarmSize(keep=50)
+    for day in range(60):
+        measured = 100.0 * (1.07 if day >= 40 else 1.0) * (1.0 + 0.001 * (-1) ** day)
+        size.add(day * DAY_NS, measured, 100.0)
+    size.add(60 * DAY_NS, 0.0, 100.0)  # not positive: skipped
+    size.add(60 * DAY_NS, 100.0, None)  # no prediction: skipped
+    found = size.at_raise(40 * DAY_NS, 45 * DAY_NS)
+    assert found is not None and found["readings"] == 6 and found["reference"] == 30
+    assert found["shift"] == pytest.approx(0.07, abs=0.003)
+    assert size.at_raise(15 * DAY_NS, 20 * DAY_NS) is None  # 5 kept before day 15 (keep 50)
+    again = AlarmSize(keep=50)
+    again.restore(size.state())
+    assert again.at_raise(40 * DAY_NS, 45 * DAY_NS) == found
+    assert len(size.state()["t"]) == 50

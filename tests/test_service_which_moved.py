@@ -28,10 +28,16 @@ pytestmark = pytest.mark.timeout(180)
 STEP_DAY, DAYS = 70, 90
 
 
-def send_field(client: FieldClient, meter_moved: bool, seed: int, days: int = DAYS) -> int:
+def send_field(
+    client: FieldClient,
+    meter_moved: bool,
+    seed: int,
+    days: int = DAYS,
+    tests_until: int | None = None,
+) -> int:
     """In time order, over ``days`` days: two samples with an MPFM reading a day (3 and
     15 h; +12 % from STEP_DAY) and each week a sample with a well test at 09:00 (days 3,
-    10, ...); returns the measurements."""
+    10, ...; none from day ``tests_until`` on); returns the measurements."""
     rng = np.random.default_rng(seed)
     n = 0
     for day in range(days):
@@ -42,7 +48,9 @@ def send_field(client: FieldClient, meter_moved: bool, seed: int, days: int = DA
             (9, "well_test", well, 0.01),
             (15, "mpfm", meter, 0.03),
         ):
-            if source == "well_test" and day % 7 != 3:
+            if source == "well_test" and (
+                day % 7 != 3 or (tests_until is not None and day >= tests_until)
+            ):
                 continue
             t = T0 + timedelta(days=day, hours=hour)
             client.send_sample("W01", sample_of(t, INPUTS))
@@ -59,6 +67,10 @@ def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> No
         view = http_get(service, "/wells/W01").json()
     alarm, check = view["residual_alarm"], view["mpfm_check"]
     assert alarm["active"] and alarm["source"] == "mpfm" and alarm["direction"] == "high"
+    # the alarm's size at its raise: the MPFM's 12 % step against the model fitted once,
+    # from the few readings between the alarm's start and its raise (3 % noise each)
+    assert abs(np.log1p(alarm["shift"]) - np.log1p(0.12)) < 3 * alarm["shift_se"]
+    assert 0.01 < alarm["shift_se"] < 0.04
     # the latest well test (day 87) against the ten before the alarm (not the two after it)
     assert check["well_test_time"].startswith("2021-07-27")
     assert abs(check["usual_difference"]) < 0.03 and 0.01 <= check["usual_spread"] < 0.04
@@ -68,14 +80,18 @@ def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> No
         assert check["relative_difference"] == pytest.approx(0.12, abs=0.04)
         assert check["shifted"] and check["z"] > 3
         assert moved["moved"] == "meter" and "the meter moved" in moved["text"]
+        assert abs(moved["meter_z"]) < 3  # the pair moved by about the alarm's size
     else:  # the well tests went up with the MPFM
         assert abs(check["relative_difference"]) < 0.04 and not check["shifted"]
         assert moved["moved"] == "well" and "the well changed" in moved["text"]
+        assert moved["meter_z"] < -2  # far below where a meter move would put the pair
+    assert moved["alarm_shift"] == alarm["shift"]
     # a restart sets the latest well test against the same earlier ones (from the store)
     with fixed_model_service(tmp_path) as (service, _):
         again = http_get(service, "/wells/W01").json()
     assert again["mpfm_check"]["z"] == pytest.approx(check["z"], rel=1e-12)
     assert again["residual_alarm"]["which_moved"] == moved
+    assert again["residual_alarm"]["shift"] == alarm["shift"]
     assert alarm["awaiting_well_test"] is None  # which_moved has the answer
 
 
@@ -95,6 +111,20 @@ def test_before_the_next_well_test_the_alarm_says_when_it_is_due(tmp_path: Path)
     assert waiting["typical_gap_days"] == pytest.approx(7.0)
     assert waiting["due"].startswith("2021-07-13")  # day 73
     assert "the next one tells whether the meter or the well moved" in waiting["text"]
+    assert not waiting["overdue"] and "due about 2021-07-13" in waiting["text"]
+
+
+def test_an_overdue_well_test_is_said_to_be_overdue(tmp_path: Path) -> None:
+    """The same step, the data going on to day 79 without a well test after day 66: the
+    well test due on day 73 is overdue, and the text says since when, not "due about"."""
+    with fixed_model_service(tmp_path) as (service, client):
+        sent = send_field(client, True, seed=3, days=STEP_DAY + 10, tests_until=STEP_DAY)
+        wait_learned_all(service, sent)
+        view = http_get(service, "/wells/W01").json()
+    waiting = view["residual_alarm"]["awaiting_well_test"]
+    assert waiting["due"].startswith("2021-07-13") and waiting["overdue"]
+    assert "overdue since 2021-07-13, usually 7 days" in waiting["text"]
+    assert "due about" not in waiting["text"]
 
 
 def wait_learned_all(service: Service, count: int) -> None:

@@ -113,18 +113,35 @@ def against_usual(earlier: Sequence[float], difference: float) -> dict[str, Any]
 
 def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str, Any] | None:
     """Beside an active residual alarm on the MPFM's stream (``alarm``: the residual
-    alarm's view, ``source`` ``mpfm``, ``since`` ISO), what the latest well test compared
-    since the alarm began says (``check``: the well's MPFM check, with
-    :func:`against_usual`'s fields): ``{"well_test_time", "z", "moved", "text"}`` with
-    ``moved`` ``meter`` (``|z| > SHIFT_Z``), ``well`` (``|z| < SAME_Z``) or ``unclear``.
-    None when the alarm is on another stream, or no such well test has been set against
-    its usual difference yet.
+    alarm's view, ``source`` ``mpfm``, ``since`` ISO, and ``shift``, the alarm's relative
+    size when known, with ``shift_se``, its standard error in log terms,
+    :class:`vfm_core.residual_alarm.AlarmSize`), what the latest well test
+    compared since the alarm began says (``check``: the well's MPFM check, with
+    :func:`against_usual`'s fields): ``{"well_test_time", "z", "moved", "text",
+    "alarm_shift", "meter_z"}`` with ``moved`` ``meter``, ``well`` or ``unclear``. None
+    when the alarm is on another stream, or no such well test has been set against its
+    usual difference yet.
+
+    Two readings of the pair's move ``d`` (its z times the pairs' spread): if the meter
+    moved, ``d`` is the alarm's shift (the well tests stayed); if the well moved, ``d`` is
+    0 (both meters went with it). ``meter`` when ``|z| > SHIFT_Z`` (and, with a known
+    shift, in its direction); ``well`` when ``|z| < SAME_Z`` and, with a known shift, the
+    pair lies at least ``SHIFT_Z - SAME_Z`` spreads from it (``meter_z``: how many spreads
+    ``d`` is from the shift; the spread there is the pairs' and the shift's standard error
+    together). A shift within two spreads can be neither told apart nor
+    ruled out by one well test: ``unclear``, and the text says so (a meter that drifts
+    slowly raises its alarm at a small shift). Without a shift (an alarm from before s51)
+    the z alone decides, as before.
 
     >>> alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
     >>> check = {"well_test_time": "2020-05-20T06:00:00+00:00", "z": 4.2,
-    ...          "relative_difference": 0.09, "usual_difference": 0.01}
+    ...          "relative_difference": 0.09, "usual_difference": 0.01, "usual_spread": 0.02}
     >>> which_moved(alarm, check)["moved"]
     'meter'
+    >>> which_moved({**alarm, "shift": 0.02}, {**check, "z": 0.3})["moved"]
+    'unclear'
+    >>> which_moved({**alarm, "shift": 0.08}, {**check, "z": 0.3})["moved"]
+    'well'
     """
     if alarm.get("source") != "mpfm" or not alarm.get("since") or check is None:
         return None
@@ -136,17 +153,44 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
     day = str(when)[:10]
     now, usual = 100 * check["relative_difference"], 100 * check["usual_difference"]
     reads = f"the MPFM reads {now:+.1f} % against the well test of {day}, usually {usual:+.1f} %"
-    if abs(z) > SHIFT_Z:
+    shift, spread = _number(alarm.get("shift")), _number(check.get("usual_spread"))
+    known = spread > 0 and shift > -1.0
+    s = math.log1p(shift) if known else math.nan
+    se = _number(alarm.get("shift_se"))
+    # the spread a meter move would leave: the pair's, and the shift's own uncertainty
+    wide = math.hypot(spread, se if se >= 0 else 0.0) if known else math.nan
+    meter_z = (z * spread - s) / wide if known else None
+    apart = SHIFT_Z - SAME_Z
+    if abs(z) > SHIFT_Z and (not known or z * s > 0):
         moved, text = "meter", f"{reads} (z {z:+.1f}): the meter moved, not the well"
-    elif abs(z) < SAME_Z:
+    elif abs(z) < SAME_Z and (meter_z is None or abs(meter_z) >= apart):
         moved, text = "well", f"{reads} (z {z:+.1f}): the well test moved with it: the well changed"
+    elif known and abs(s) < apart * wide:
+        size = f"the alarm's shift ({100 * shift:+.1f} %) is within {apart:.0f} of the pairs' "
+        size += f"spreads ({100 * wide:.1f} %)"
+        moved, text = "unclear", f"{reads} (z {z:+.1f}); {size}: no one well test can tell"
     else:
         moved, text = "unclear", f"{reads} (z {z:+.1f}): this well test cannot tell meter from well"
-    return {"well_test_time": when, "z": z, "moved": moved, "text": text}
+    return {
+        "well_test_time": when,
+        "z": z,
+        "moved": moved,
+        "text": text,
+        "alarm_shift": shift if known else None,
+        "meter_z": meter_z,
+    }
+
+
+def _number(v: Any) -> float:
+    """``v`` as a finite float, or NaN (None, text, inf)."""
+    return float(v) if isinstance(v, int | float) and math.isfinite(v) else math.nan
 
 
 def awaiting_well_test(
-    alarm: dict[str, Any], check: dict[str, Any] | None, test_ns: Sequence[int]
+    alarm: dict[str, Any],
+    check: dict[str, Any] | None,
+    test_ns: Sequence[int],
+    now_ns: int | None = None,
 ) -> dict[str, Any] | None:
     """Beside an active residual alarm on the MPFM's stream that :func:`which_moved` cannot
     read yet, what will tell: ``{"last_well_test", "typical_gap_days", "due", "pairs",
@@ -154,14 +198,20 @@ def awaiting_well_test(
     its MPFM (the service keeps the last ``2 * USUAL_PAIRS``); ``typical_gap_days`` is the
     median gap between them (days; None below three), ``due`` the last one plus that gap,
     ``pairs`` how many came before the alarm (from :data:`MIN_PAIRS` on, the next well test
-    can say which moved). None when :func:`which_moved` has its answer, or the alarm is not
-    on the MPFM's stream.
+    can say which moved), ``overdue`` whether ``now_ns`` (the well's latest data time,
+    epoch ns; None: not known) is past ``due``: the text then says since when, instead of
+    "due about" a date gone by. None when :func:`which_moved` has its answer, or the alarm
+    is not on the MPFM's stream.
 
     >>> alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
     >>> day = 86_400 * 10**9
     >>> tests = [pd.Timestamp("2020-01-01", tz="UTC").value + k * 30 * day for k in range(9)]
     >>> awaiting_well_test(alarm, None, tests)["due"][:10]
     '2020-09-27'
+    >>> late = pd.Timestamp("2020-10-20", tz="UTC").value
+    >>> later = {**alarm, "since": "2020-08-01T00:00:00+00:00"}
+    >>> awaiting_well_test(later, None, tests, late)["text"][-42:]
+    'overdue since 2020-09-27, usually 30 days)'
     """
     if alarm.get("source") != "mpfm" or not alarm.get("since"):
         return None
@@ -172,6 +222,7 @@ def awaiting_well_test(
     gap = float(np.median(np.diff(ns))) / 86_400e9 if len(ns) >= 3 else None
     last = pd.Timestamp(int(ns[-1]), tz="UTC") if len(ns) else None
     due = last + pd.Timedelta(days=gap) if last is not None and gap is not None else None
+    overdue = due is not None and now_ns is not None and int(now_ns) > due.value
     if pairs < MIN_PAIRS:
         text = (
             f"which moved, the meter or the well, needs {MIN_PAIRS} well tests compared with "
@@ -183,12 +234,16 @@ def awaiting_well_test(
         )
         if last is not None:
             text += f" (last {last.date().isoformat()}"
-            text += f", due about {due.date().isoformat()})" if due is not None else ")"
+            if due is not None and overdue:
+                text += f", overdue since {due.date().isoformat()}, usually {gap:.0f} days)"
+            else:
+                text += f", due about {due.date().isoformat()})" if due is not None else ")"
     return {
         "last_well_test": None if last is None else last.isoformat(),
         "typical_gap_days": gap,
         "due": None if due is None else due.isoformat(),
         "pairs": pairs,
+        "overdue": overdue,
         "text": text,
     }
 

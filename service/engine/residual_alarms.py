@@ -21,7 +21,12 @@ from typing import Any
 
 from service.config import ResidualAlarmSettings
 from service.store import InsertResidualAlarm
-from vfm_core.residual_alarm import ResidualCusum, cusum_threshold, standardised_residual
+from vfm_core.residual_alarm import (
+    AlarmSize,
+    ResidualCusum,
+    cusum_threshold,
+    standardised_residual,
+)
 from vfm_core.timeutil import iso
 
 __all__ = ["WellResidualAlarm", "Transition", "disabled_view", "alarm_op"]
@@ -70,6 +75,8 @@ class WellResidualAlarm:
         self.detectors: dict[str, ResidualCusum] = {}
         self.events: deque[dict[str, Any]] = deque(maxlen=_EVENTS_KEPT)
         self._open: dict[str, dict[str, Any]] = {}  # source -> its active event
+        #: per meter, the readings' log ratios to the model that size an alarm
+        self.sizes: dict[str, AlarmSize] = {}
         self.alarms = 0  # alarms raised since start
 
     def _period_s(self, source: str) -> float:
@@ -114,6 +121,8 @@ class WellResidualAlarm:
         if predicted is None:
             return []
         residual = standardised_residual(float(measured), float(predicted), sd)
+        size = self.sizes.setdefault(source, AlarmSize())
+        size.add(time_ns, float(measured), float(predicted))
         det = self.detector(source)
         before = len(det.events)
         was = det.alarm
@@ -138,6 +147,11 @@ class WellResidualAlarm:
                 "statistic": float(new.statistic),
                 "threshold": float(det.threshold),
             }
+            onset = new.start_ns if new.onset_ns is None else new.onset_ns
+            sized = size.at_raise(onset, new.start_ns)
+            event["onset"] = iso(onset)
+            event["shift"] = None if sized is None else sized["shift"]
+            event["shift_se"] = None if sized is None else sized["se"]
             self.events.append(event)
             self._open[source] = event
             out.append(("start", source, event))
@@ -159,6 +173,7 @@ class WellResidualAlarm:
             out.append(("end", source, event))
         self._open.clear()
         self.detectors.clear()
+        self.sizes.clear()
         return out
 
     def state(self) -> dict[str, Any]:
@@ -168,6 +183,7 @@ class WellResidualAlarm:
         return {
             "detectors": {src: det.state_dict() for src, det in self.detectors.items()},
             "events": list(self.events),
+            "sizes": {src: size.state() for src, size in self.sizes.items()},
         }
 
     def restore(self, data: dict[str, Any]) -> None:
@@ -185,6 +201,8 @@ class WellResidualAlarm:
                 continue
             det = self.detector(source)
             det.load_state_dict(saved)
+        for source, saved in (data.get("sizes") or {}).items():  # (none before s51)
+            self.sizes.setdefault(str(source), AlarmSize()).restore(saved)
         self.events.extend(dict(e) for e in data.get("events") or [])
         for event in self.events:  # the alarms still active go on
             resumed = self.detectors.get(str(event.get("source")))
@@ -208,6 +226,8 @@ class WellResidualAlarm:
                 "readings": det.n_readings,
                 "periods": det.n_periods,
                 "period_s": det.period_s,
+                "shift": (self._open.get(source) or {}).get("shift") if det.alarm else None,
+                "shift_se": (self._open.get(source) or {}).get("shift_se") if det.alarm else None,
             }
             rank = (stat / det.threshold if det.threshold > 0 else 0.0) + (2.0 if det.alarm else 0)
             if lead is None or rank > lead[0]:
@@ -222,6 +242,8 @@ class WellResidualAlarm:
             "threshold": top["threshold"] if top else float(self.detector_threshold()),
             "since": first["since"] if first else None,
             "direction": first["direction"] if first else None,
+            "shift": first["shift"] if first else None,
+            "shift_se": first["shift_se"] if first else None,
             "source": (lead[1] if lead is not None and active else None),
             "arl0": s.arl0,
             "k": s.k,

@@ -264,7 +264,9 @@ class WellState:
         if view["active"]:
             view["which_moved"] = which_moved(view, self.mpfm_check)
             tests = [t for t, _ in self.mpfm_pairs]
-            view["awaiting_well_test"] = awaiting_well_test(view, self.mpfm_check, tests)
+            view["awaiting_well_test"] = awaiting_well_test(
+                view, self.mpfm_check, tests, self.last_time_ns
+            )
         return view
 
     def watch_sensors(self, time_ns: int, inputs: tuple[float, ...]) -> list[SensorFault]:

@@ -374,9 +374,12 @@ class WellOut(WellSummary):
         "meter), events (with closed: cleared | accepted | reset once ended; reset: ended "
         "by a model change, which restarts the detectors), and while active which_moved: "
         "for an alarm on the MPFM's stream, what a well test compared since it began says "
-        "(well_test_time, z, moved: meter | well | unclear, text), else null; and while it "
-        "is null for such an alarm, awaiting_well_test: what will tell (last_well_test, "
-        "typical_gap_days, due, pairs: well tests compared before the alarm, text)",
+        "(well_test_time, z, moved: meter | well | unclear, text, alarm_shift: the alarm's "
+        "relative size at its raise, meter_z: the pair's distance from it in spreads), else "
+        "null; and while it is null for such an alarm, awaiting_well_test: what will tell "
+        "(last_well_test, typical_gap_days, due, pairs: well tests compared before the "
+        "alarm, overdue: the well's data is past due, text); shift: the active alarm's "
+        "relative size (measured against the model, at its raise; null when unknown)",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,

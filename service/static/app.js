@@ -59,7 +59,9 @@ function alarmsOf(v) {
   if (ra && ra.active) {
     const side = ra.direction === "high" ? "above" : "below";
     const meter = ra.source === "well_test" ? "well tests" : (ra.source || "measurements").toUpperCase();
-    out.push(`residual alarm: ${meter} ${side} the model since ${(ra.since || "").slice(0, 10)}`);
+    // its size at the raise, where known (vfm_core.residual_alarm.AlarmSize)
+    const by = typeof ra.shift === "number" ? ` by ${Math.abs(100 * ra.shift).toFixed(1)} %` : "";
+    out.push(`residual alarm: ${meter} ${side} the model${by} since ${(ra.since || "").slice(0, 10)}`);
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
@@ -255,7 +257,8 @@ function alarmText(e, acceptPeriods) {
   const meter = e.source === "well_test" ? "well tests" : (e.source || "measurements").toUpperCase();
   const side = e.direction === "high" ? "above" : e.direction === "low" ? "below" : "off";
   const n = acceptPeriods ?? (state.view && state.view.residual_alarm && state.view.residual_alarm.accept_periods);
-  const what = `${meter} ${side} the model`;
+  const by = typeof e.shift === "number" ? ` by ${Math.abs(100 * e.shift).toFixed(1)} %` : "";
+  const what = `${meter} ${side} the model${by}`;
   if (e.end == null) {
     const accept = n > 0 ? `; accepted as the new level if it lasts ${n} periods` : "";
     return `${what} since ${minute(e.start)} UTC (active${accept})`;
