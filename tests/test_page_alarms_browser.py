@@ -53,7 +53,7 @@ def expected_text(event: dict[str, Any], accept_periods: int) -> str:
         "the alarm restarts from it",
     }[event["closed"]]
     shift = event.get("shift")  # its size at the raise (s51), where known
-    by = "" if shift is None else f" by {abs(100 * shift):.1f} %"
+    by = "" if shift is None else f" (a shift of {100 * shift:+.1f} %)"
     return (
         f"{event['source'].upper()} {side} the model{by} "
         f"{minute(event['start'])} to {minute(event['end'])} UTC: {how}"
@@ -162,5 +162,7 @@ def test_residual_alarms_listed_and_named_on_the_page(tmp_path: Path) -> None:
             "alarmText({source: 'mpfm', direction: 'low', start: '2021-06-01T03:00:00+00:00',"
             " end: null, closed: null, shift: -0.0634}, 30)"
         )
-        assert sized.startswith("MPFM below the model by 6.3 % since 2021-06-01 03:00 UTC")
+        assert sized.startswith(
+            "MPFM below the model (a shift of -6.3 %) since 2021-06-01 03:00 UTC"
+        )
         assert errors == [], errors

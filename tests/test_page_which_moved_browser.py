@@ -40,8 +40,8 @@ def test_the_page_says_the_meter_moved(tmp_path: Path) -> None:
         )
         text = line.inner_text()
         since = view["residual_alarm"]["since"][:10]
-        by = f"{100 * view['residual_alarm']['shift']:.1f} %"  # its size at the raise
-        line_text = f"residual alarm: MPFM above the model by {by} since {since}; {moved['text']}"
+        by = f"(a shift of {100 * view['residual_alarm']['shift']:+.1f} %)"  # its size
+        line_text = f"residual alarm: MPFM above the model {by} since {since}; {moved['text']}"
         assert line_text in text
         page.screenshot(path=str(SHOTS / "which-moved.png"))
         assert not errors, errors

@@ -60,7 +60,7 @@ function alarmsOf(v) {
     const side = ra.direction === "high" ? "above" : "below";
     const meter = ra.source === "well_test" ? "well tests" : (ra.source || "measurements").toUpperCase();
     // its size at the raise, where known (vfm_core.residual_alarm.AlarmSize)
-    const by = typeof ra.shift === "number" ? ` by ${Math.abs(100 * ra.shift).toFixed(1)} %` : "";
+    const by = shiftText(ra.shift);
     out.push(`residual alarm: ${meter} ${side} the model${by} since ${(ra.since || "").slice(0, 10)}`);
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
@@ -253,11 +253,18 @@ function alarmBands() {
    ended (vfm_core/residual_alarm.py: "cleared" when the residuals came back, "accepted" when
    it lasted accept_periods periods; end "reset" when its detector started over; events saved
    before s46 have no "closed": "ended"). */
+/* An alarm's size at its raise (vfm_core.residual_alarm.AlarmSize): how far the meter's
+   readings moved against the model, " (a shift of +6.3 %)", or "" when not known. */
+function shiftText(shift) {
+  if (typeof shift !== "number") return "";
+  return ` (a shift of ${shift >= 0 ? "+" : "-"}${Math.abs(100 * shift).toFixed(1)} %)`;
+}
+
 function alarmText(e, acceptPeriods) {
   const meter = e.source === "well_test" ? "well tests" : (e.source || "measurements").toUpperCase();
   const side = e.direction === "high" ? "above" : e.direction === "low" ? "below" : "off";
   const n = acceptPeriods ?? (state.view && state.view.residual_alarm && state.view.residual_alarm.accept_periods);
-  const by = typeof e.shift === "number" ? ` by ${Math.abs(100 * e.shift).toFixed(1)} %` : "";
+  const by = shiftText(e.shift);
   const what = `${meter} ${side} the model${by}`;
   if (e.end == null) {
     const accept = n > 0 ? `; accepted as the new level if it lasts ${n} periods` : "";
