@@ -144,6 +144,15 @@ def test_awaiting_the_well_test_that_says_which_moved() -> None:
     assert late["overdue"] and "overdue since 2020-04-30, usually 12 days" in late["text"]
     early = awaiting_well_test(alarm, None, tests, pd.Timestamp("2020-04-29", tz="UTC").value)
     assert not early["overdue"] and "due about 2020-04-30" in early["text"]
+    # an alarm whose shift is within two of the pairs' spreads (the latest check, before
+    # it): one well test will not tell either, and the text says so
+    before = {"well_test_time": "2020-04-18T06:00:00+00:00", "z": 0.4, "usual_spread": 0.03}
+    before |= {"relative_difference": 0.01, "usual_difference": 0.0}
+    small = awaiting_well_test({**alarm, "shift": 0.04, "shift_se": 0.01}, before, tests)
+    assert "its shift (+4.0 %) is within 2 of the pairs' spreads (3.2 %)" in small["text"]
+    assert "one well test will not tell" in small["text"] and "due about" in small["text"]
+    large = awaiting_well_test({**alarm, "shift": 0.12, "shift_se": 0.01}, before, tests)
+    assert large["text"].startswith("no well test since the alarm: the next one tells")
     # too few pairs before the alarm: the next well test cannot tell either, and it says so
     few = awaiting_well_test(alarm, None, tests[: MIN_PAIRS - 1])
     assert few is not None and few["pairs"] == MIN_PAIRS - 1

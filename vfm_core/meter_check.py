@@ -153,12 +153,10 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
     day = str(when)[:10]
     now, usual = 100 * check["relative_difference"], 100 * check["usual_difference"]
     reads = f"the MPFM reads {now:+.1f} % against the well test of {day}, usually {usual:+.1f} %"
-    shift, spread = _number(alarm.get("shift")), _number(check.get("usual_spread"))
-    known = spread > 0 and shift > -1.0
-    s = math.log1p(shift) if known else math.nan
-    se = _number(alarm.get("shift_se"))
-    # the spread a meter move would leave: the pair's, and the shift's own uncertainty
-    wide = math.hypot(spread, se if se >= 0 else 0.0) if known else math.nan
+    shift = _number(alarm.get("shift"))
+    s, wide = _shift_and_spread(alarm, check.get("usual_spread"))
+    known = math.isfinite(wide)
+    spread = _number(check.get("usual_spread"))
     meter_z = (z * spread - s) / wide if known else None
     apart = SHIFT_Z - SAME_Z
     if abs(z) > SHIFT_Z and (not known or z * s > 0):
@@ -181,6 +179,17 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
     }
 
 
+def _shift_and_spread(alarm: dict[str, Any], spread: Any) -> tuple[float, float]:
+    """The alarm's shift in log terms and the spread a pair would have about it if the
+    meter moved (the pairs' robust sd and the shift's standard error together); NaN both
+    where either is not known."""
+    shift, spread = _number(alarm.get("shift")), _number(spread)
+    if not (spread > 0 and shift > -1.0):
+        return math.nan, math.nan
+    se = _number(alarm.get("shift_se"))
+    return math.log1p(shift), math.hypot(spread, se if se >= 0 else 0.0)
+
+
 def _number(v: Any) -> float:
     """``v`` as a finite float, or NaN (None, text, inf)."""
     return float(v) if isinstance(v, int | float) and math.isfinite(v) else math.nan
@@ -198,7 +207,8 @@ def awaiting_well_test(
     its MPFM (the service keeps the last ``2 * USUAL_PAIRS``); ``typical_gap_days`` is the
     median gap between them (days; None below three), ``due`` the last one plus that gap,
     ``pairs`` how many came before the alarm (from :data:`MIN_PAIRS` on, the next well test
-    can say which moved), ``overdue`` whether ``now_ns`` (the well's latest data time,
+    can say which moved, unless the alarm's shift is within two of the pairs' spreads in
+    ``check``, :func:`which_moved`: the text then says so), ``overdue`` whether ``now_ns`` (the well's latest data time,
     epoch ns; None: not known) is past ``due``: the text then says since when, instead of
     "due about" a date gone by. None when :func:`which_moved` has its answer, or the alarm
     is not on the MPFM's stream.
@@ -232,6 +242,13 @@ def awaiting_well_test(
         text = (
             "no well test since the alarm: the next one tells whether the meter or the well moved"
         )
+        s, wide = _shift_and_spread(alarm, (check or {}).get("usual_spread"))
+        if abs(s) < (SHIFT_Z - SAME_Z) * wide:  # (False with NaN)
+            text = (
+                f"no well test since the alarm; its shift ({100 * math.expm1(s):+.1f} %) is "
+                f"within {SHIFT_Z - SAME_Z:.0f} of the pairs' spreads ({100 * wide:.1f} %): "
+                "one well test will not tell whether the meter or the well moved"
+            )
         if last is not None:
             text += f" (last {last.date().isoformat()}"
             if due is not None and overdue:
