@@ -384,6 +384,35 @@ def test_a_long_gap_runs_one_retrain_not_thousands(tmp_path: Path) -> None:
     assert time.perf_counter() - started < 60  # (a hang would hit the test's timeout)
 
 
+def test_a_hybrid_on_well_tests_catches_up_its_refits_and_one_with_an_mpfm_has_none(
+    tmp_path: Path,
+) -> None:
+    """``bayes`` (``refresh=auto``) on ``ham``: a well whose history is well tests only
+    refits every 14 days, and a year's gap collapses into one refit on the calendar's
+    phase; a well with an MPFM has no refit to catch up."""
+    settings = loopback_settings(tmp_path, model={"name": "ham", "method": "bayes"})
+    learning = Learning(settings, Counters(), None)  # type: ignore[arg-type]
+    day = 86_400 * 10**9
+    x = torch.tensor([list(INPUTS)] * 30, dtype=torch.float64)
+    x[:, 0] = torch.linspace(0.3, 0.6, 30)
+    y = torch.linspace(900.0, 1300.0, 30, dtype=torch.float64)
+    t = torch.tensor([to_ns(T0 + timedelta(days=7 * i)) for i in range(30)])
+    for tests_only in (True, False):
+        learner = new_learner("W01", settings.model)
+        learner.fit_history(x, y, t, well_test=torch.full((30,), tests_only))
+        due = learner.method.next_due()
+        if not tests_only:
+            assert due is None and not learning.catch_up(learner, int(t[-1]) + 365 * day)
+            continue
+        assert due == int(t[-1]) + 14 * day
+        before = learner.method.n_retrains
+        gap = due + 365 * day  # 27 refits due
+        assert learning.catch_up(learner, gap)
+        assert learner.method.n_retrains == before + 1
+        nxt = learner.method.next_due()
+        assert nxt is not None and gap < nxt <= gap + 14 * day and (nxt - due) % (14 * day) == 0
+
+
 # -- the engine: new wells off the receiver thread, retiring ----------------------------------------
 def test_new_wells_are_built_by_their_worker_and_capped(tmp_path: Path) -> None:
     settings = loopback_settings(

@@ -77,8 +77,10 @@ Bayesian learning); the layers below stay as fitted.
 - **Refit (shared models).** ``mtl``'s filter covers each well's task vector only; its
   network is shared by every well, so no well's filter can carry it, and only a joint fit
   on every well's measurements moves it. So with ``refresh`` (default ``auto``: every 14
-  days for a shared model, never for the others; a period such as ``14d`` refits any
-  model, e.g. a per-well network's lower layers) the model is refitted on schedule as
+  days for a shared model; for a hybrid's wells, ``hem`` and ``ham``, every 14 days while
+  a well learns from well tests only (no MPFM reading in the last 30 days, see
+  :meth:`BayesianFilter.start`), its network's lower layers then refitted; never for the
+  others; a period such as ``14d`` refits any model's every well) the model is refitted on schedule as
   ``pbl`` retrains it (MAP, warm-started, on every measurement before the due time; every
   missed refit of a gap runs), and the filter starts again from the refit
   (:meth:`BayesianFilter._fitted`): an EM-like alternation, the filter the posterior of
@@ -142,6 +144,7 @@ from vfm_core.learning.method import (
 from vfm_core.learning.stacking import stack_for_learning, stacked_rates
 from vfm_core.models import ChokeModel
 from vfm_core.models.base import FilterBlock
+from vfm_core.models.physical import Mechanistic
 
 __all__ = [
     "BayesianFilter",
@@ -186,6 +189,10 @@ _NO_ERRORS = (np.zeros((0, 2, 3)), np.zeros(1, dtype=np.int64), 0.0, _CAL_DISCOU
 #: how often a shared model's network is refitted under the filter by default (see
 #: :meth:`BayesianFilter.retrain_due`): the period of the batch learning it is compared with
 _SHARED_REFRESH = pd.Timedelta(days=14)
+#: ``auto`` refits a per-well hybrid's well only while it learns from well tests only: a
+#: well with an MPFM reading in this span before (see :meth:`BayesianFilter._tests_only`)
+#: has a meter, and its filter follows it without a refit
+_MPFM_LAPSE = pd.Timedelta(days=30)
 #: the per-well state a prediction reads (leading dimension: the well)
 _PREDICT_STATE = ("_P", "_h", "_last", "_noise", "_scale", "_started")
 #: ... and an update changes (its counters aside)
@@ -506,10 +513,16 @@ def _refresh_text(value: str, method: str) -> str:
     return value
 
 
+def _per_well_hybrid(model: ChokeModel) -> bool:
+    """True for a hybrid (``hem``, ``ham``, with or without effects) of per-well networks."""
+    return isinstance(model, Mechanistic) and model.net is not None and not model.shared
+
+
 def _refresh_period(text: str, model: ChokeModel) -> int | None:
     """The refit's period in ns for ``model`` (None: never): ``auto`` refits a shared
-    model every :data:`_SHARED_REFRESH` and no other."""
-    if text == "off" or (text == "auto" and not model.shared):
+    model every :data:`_SHARED_REFRESH`, and a per-well hybrid's wells as often while they
+    learn from well tests only (see :meth:`BayesianFilter.start`); no other model."""
+    if text == "off" or (text == "auto" and not (model.shared or _per_well_hybrid(model))):
         return None
     span = _SHARED_REFRESH if text == "auto" else parse_span(text, "refresh period", text)
     return int(span.value)
@@ -816,6 +829,12 @@ class BayesianFilter(LearningMethod):
         #: the refit's period (ns; None: none) and each well's next refit (epoch ns)
         self._period = _refresh_period(self.refresh, model)
         self._refresh_at = torch.full((n,), NEVER, dtype=torch.int64)
+        #: ``auto`` on a per-well hybrid: a well's refits run while it learns from well
+        #: tests only (:meth:`start`, :meth:`_note_meters`; the others keep no meter times)
+        self._by_meter = self.refresh == "auto" and _per_well_hybrid(model)
+        #: each well's latest measurement the filter saw, per meter (MPFM, well test;
+        #: epoch ns, NEVER: none; numpy: an update reads and writes a few of them)
+        self._meter_t = np.full((n, 2), NEVER, dtype=np.int64)
         #: the wells whose refit now is followed by another before the filter starts
         self._starts_later = torch.zeros(n, dtype=torch.bool)
         #: True while :meth:`retrain_due` refits (the start then linearises compiled)
@@ -824,9 +843,56 @@ class BayesianFilter(LearningMethod):
 
     # -- the refit under the filter (scheduled retrains) ---------------------------------------
     def start(self, t_ns: int) -> None:
-        """The refits' calendar (see :meth:`retrain_due`): the first one period after ``t_ns``."""
-        if self._period is not None:
-            self._refresh_at[:] = int(t_ns) + self._period
+        """The refits' calendar (see :meth:`retrain_due`): the first one period after ``t_ns``.
+        With ``auto`` on a per-well hybrid, for the wells that learn from well tests only at
+        ``t_ns`` (:meth:`_tests_only`); the others get none (NEVER)."""
+        if self._period is None:
+            return
+        at = int(t_ns) + self._period
+        if self._by_meter:
+            never = torch.full_like(self._refresh_at, NEVER)
+            self._refresh_at = torch.where(self._tests_only(int(t_ns)), at, never)
+        else:
+            self._refresh_at[:] = at
+
+    def _tests_only(self, t_ns: int | torch.Tensor) -> torch.Tensor:
+        """Which wells [W] learn from well tests only at ``t_ns`` (epoch ns, or [W]): the
+        filter has seen a measurement of theirs, and no MPFM reading in the
+        :data:`_MPFM_LAPSE` before (none at all, or its meter failed that long ago)."""
+        meter = torch.from_numpy(self._meter_t)
+        mpfm = meter[:, 0]
+        seen = (meter != NEVER).any(1)
+        t = torch.as_tensor(t_ns, dtype=torch.int64)
+        lapsed = torch.where(mpfm == NEVER, torch.ones_like(seen), t - mpfm > _MPFM_LAPSE.value)
+        return seen & lapsed
+
+    def _note_meters(self, batch: Batch, calendar: bool) -> None:
+        """With :attr:`_by_meter`: keep each well's latest measurement per meter from
+        ``batch`` (its masked rows), and with ``calendar`` (a batch learned from): an MPFM
+        reading ends a well's refits; a well test of a well without refits starts them, one
+        period on, when the well learns from well tests only (:meth:`_tests_only`: none
+        before, or a meter failed for :data:`_MPFM_LAPSE`)."""
+        if not self._by_meter or batch.well_test is None:
+            return
+        # (plain Python over the rows: an update has one a well, where a torch or numpy
+        # call each would cost a third of the compiled step; bench_bayes_update.py)
+        held, at = self._meter_t, None
+        rows = zip(
+            batch.mask.tolist(), batch.well_test.tolist(), batch.time_ns.tolist(), strict=True
+        )
+        for i, (mask, tests, times) in enumerate(rows):
+            for ok, test, t in zip(mask, tests, times, strict=True):
+                s = 1 if test else 0
+                if not ok or (held[i, s] != NEVER and t <= held[i, s]):
+                    continue
+                held[i, s] = t
+                if not calendar or self._period is None:
+                    continue
+                at = self._refresh_at.numpy() if at is None else at
+                if not test:
+                    at[i] = NEVER
+                elif at[i] == NEVER and (held[i, 0] == NEVER or t - held[i, 0] > _MPFM_LAPSE.value):
+                    at[i] = t + self._period
 
     @property
     def period(self) -> pd.Timedelta | None:
@@ -996,6 +1062,7 @@ class BayesianFilter(LearningMethod):
         where the well is now. The noise of each meter comes from the fit's residuals,
         corrected for the parameters it took and shrunk towards the defaults when a meter
         has few rows."""
+        self._note_meters(batch, calendar=False)
         if self._dim == 0 or self.model.gradient_free:
             return
         if bool(self._starts_later.any()):  # a refit with another one due before the filter
@@ -1261,7 +1328,10 @@ class BayesianFilter(LearningMethod):
             return out
         filters = [methods[k] for k in ready]
         stacked, batch = stack_for_learning([m.model for m in filters], [batches[k] for k in ready])
+        for k in ready:  # each its own meters (and refit calendar); the joint none
+            methods[k]._note_meters(batches[k], calendar=True)  # type: ignore[attr-defined]
         joint = cls._joined(filters, _LEARN_STATE)
+        joint._by_meter = False
         joint._on(stacked.model)
         joint._counts = {
             name: torch.cat([f._counts[name] for f in filters], 0)  # type: ignore[attr-defined]
@@ -1287,6 +1357,7 @@ class BayesianFilter(LearningMethod):
         model = self.model
         model.setup(batch)
         changed = torch.zeros(batch.n_wells, dtype=torch.bool)
+        self._note_meters(batch, calendar=True)
         if self._dim == 0:
             return changed
         assert batch.well_test is not None
@@ -1795,12 +1866,21 @@ class BayesianFilter(LearningMethod):
         self, theta: torch.Tensor, P: torch.Tensor, now_ns: torch.Tensor, wells: torch.Tensor
     ) -> None:
         """Take a joint update's result for ``wells`` [W] (bool): parameters theta [W, D]
-        (then kept within their bounds), covariance P [W, D, D], last update ``now_ns`` [W]."""
+        (then kept within their bounds), covariance P [W, D, D], last update ``now_ns`` [W].
+        A separator's wells: its readings count as an MPFM's in :meth:`_note_meters` (such a
+        well is not refitted under ``auto``: its filter follows the separator)."""
         _assign(self._blocks, theta, wells)
         self.model.project_()
         self._P[wells] = P[wells]  # in place: the compiled filter reads this same tensor
         self._last[wells] = now_ns[wells]
         self._started |= wells
+        if self._by_meter:
+            held = self._meter_t
+            for i in torch.nonzero(wells & (now_ns != NEVER)).flatten().tolist():
+                t = int(now_ns[i])
+                if held[i, 0] == NEVER or t > held[i, 0]:
+                    held[i, 0] = t
+                self._refresh_at[i] = NEVER
 
     # -- state ----------------------------------------------------------------------------------
     @property
@@ -1928,6 +2008,7 @@ class BayesianFilter(LearningMethod):
             sent_t=self._sent_t.clone(),
             sent_s=self._sent_s.clone(),
             refresh_at=self._refresh_at.clone(),
+            meter_t=torch.from_numpy(self._meter_t.copy()),
             counts={k: v.clone() for k, v in self._counts.items()},
         )
         return state
@@ -1935,9 +2016,13 @@ class BayesianFilter(LearningMethod):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
         names = ("P", "last", "noise", "h", "started", "run", "scale", "cal", "refresh_at")
+        # (one saved before session 51 has no meter_t: NEVER, none seen, until the next
+        # measurements; its refresh_at then holds no refit of a hybrid under auto)
         for name in (*names, "sent_t", "sent_s"):
             if name in state:
                 setattr(self, f"_{name}", torch.as_tensor(state[name]).clone())
+        if "meter_t" in state:
+            self._meter_t = torch.as_tensor(state["meter_t"]).numpy().copy()
         for k, v in state.get("counts", {}).items():
             self._counts[k] = torch.as_tensor(v).clone()
         if self._pool is not None:  # its statistics back in the pool, its factors again
