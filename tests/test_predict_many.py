@@ -265,12 +265,28 @@ def test_predict_block_equals_one_by_one(
 def test_predict_block_refuses_a_model_that_may_retrain_while_predicting(
     field: pd.DataFrame,
 ) -> None:
+    """A scheduled retrain runs at the first sample at or after its due time: a block that
+    ends before it is predicted in one call (as one by one), one that reaches it is
+    refused (the service then takes its rows one by one)."""
     learner = _fitted(field, "mm", (), "pbl:14d")[0]
-    rows = _rows(field, "W01").iloc[HISTORY : HISTORY + 3]
+    due = learner.method.next_due()
+    assert due is not None
+    rows = _rows(field, "W01").iloc[HISTORY:]
+    ns = pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8
+    xs = rows[list(INPUT_COLUMNS)].to_numpy()
+    early = int((ns < due).sum())
+    assert 2 <= early < len(ns)
+    one = copy.deepcopy(learner)
+    expected = [
+        one.predict(list(x), when=w) for x, w in zip(xs[:early], rows["time"], strict=False)
+    ]
+    got = learner.predict_block(xs[:early], ns[:early])
+    for i, a in enumerate(expected):
+        _close({k: v for k, v in a.items() if v is not None}, {k: float(got[k][i]) for k in got})
+    assert streaming.model_fixed_when_predicting(learner, int(ns[early - 1]))
+    assert not streaming.model_fixed_when_predicting(learner, int(ns[early]))
     with pytest.raises(ValueError, match="retrained on a schedule"):
-        learner.predict_block(
-            rows[list(INPUT_COLUMNS)].to_numpy(), pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8
-        )
+        learner.predict_block(xs[early : early + 3], ns[early : early + 3])
     with pytest.raises(ValueError, match="not ready"):
         WellLearner("W99", "mm", "ol").predict_block(
             rows[list(INPUT_COLUMNS)].to_numpy(), pd.DatetimeIndex(rows["time"]).as_unit("ns").asi8

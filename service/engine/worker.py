@@ -47,7 +47,7 @@ an input stands in (:mod:`vfm_core.sensor_faults`) is taken as a single sample, 
 with its fallback and answered on its own, and the block is split there, so a fault raised
 or ended inside a block changes the predictions from its row on, as one by one. A well
 whose model may change within the block (a measurement waits for one of its samples, a
-scheduled retrain), or that is not ready, takes the rows one by one as single samples, so
+scheduled retrain due by the block's last row), or that is not ready, takes the rows one by one as single samples, so
 a block is always answered as its rows sent one by one.
 
 Every sample is fed to the detectors when it is admitted, before it is predicted; a
@@ -483,7 +483,7 @@ class Workers:
             st.trial is None  # on trial: one by one, so that the shadow sees every row
             and not st.pending
             and not (self.separators is not None and self.separators.waits_on(st.well))
-            and model_fixed_when_predicting(learner)
+            and model_fixed_when_predicting(learner, int(t[-1]))
             and learner.ready
         ):
             self._split_block(st, item, t, x, b)

@@ -341,7 +341,8 @@ class WellLearner:
         ``q_total``, ``q_gas``, ``q_oil``, ``q_water`` as an array [N] (Sm3/h), and with a
         method that gives intervals also ``q_total_std``, ``q_total_p05``, ``q_total_p95``.
         """
-        if not model_fixed_when_predicting(self) or not self.ready:
+        last = int(np.asarray(times_ns, dtype=np.int64).reshape(-1)[-1]) if len(times_ns) else None
+        if not model_fixed_when_predicting(self, last) or not self.ready:
             raise ValueError(
                 f"predict_block needs a ready model that predicting cannot change; {self.well} "
                 f"({self.name}) is {'not ready' if not self.ready else 'retrained on a schedule'}."
@@ -687,16 +688,20 @@ _WELL_PREDICT = WellLearner.predict
 _WELL_LEARN = WellLearner.learn
 
 
-def model_fixed_when_predicting(learner: Any) -> bool:
+def model_fixed_when_predicting(learner: Any, until_ns: int | None = None) -> bool:
     """True when predicting cannot change ``learner``'s model: a learner that predicts in
     groups (:func:`predicts_in_groups`) whose method has no scheduled retrains (``ol``,
-    ``bayes``). Several samples of such a well can then be predicted in one call
+    ``bayes`` on most models), or, for samples up to ``until_ns`` (epoch ns; a block's
+    last), none due by then (a retrain runs at the first sample at or after its due time).
+    Several samples of such a well can then be predicted in one call
     (:func:`predict_many`); with ``pbl`` a sample may first retrain the model, so each
     sample waits for the one before."""
-    return predicts_in_groups(learner) and (
-        type(learner.method).retrain_due is LearningMethod.retrain_due
-        or learner.method.next_due() is None
-    )
+    if not predicts_in_groups(learner):
+        return False
+    if type(learner.method).retrain_due is LearningMethod.retrain_due:
+        return True
+    due = learner.method.next_due()
+    return due is None or (until_ns is not None and int(until_ns) < int(due))
 
 
 def predicts_in_groups(learner: Any) -> bool:
