@@ -20,7 +20,10 @@ well's first row and 60 days before its last) and reports:
 
 Each row's inputs are fed, then its MPFM rate (``WellSensorFaults.measure``: the
 choke-rate witness), as the service and ``vfm evaluate`` feed them. ``--faults larger``
-runs the larger sizes of :data:`LARGER_FAULTS`. ``--at subcritical`` starts each fault at a
+runs the larger sizes of :data:`LARGER_FAULTS`. ``--hidden`` (as ``vfm simulate --hidden``
+takes it, e.g. ``erosion:rate=0.15,valve``) and ``--physics`` simulate fields whose wells
+change physically (choke wear, a valve curve, real gas, ...): the false faults are then
+those such real changes raise, which must stay within the same budget. ``--at subcritical`` starts each fault at a
 random row where the well flows subcritically (the true ``p_down / p_up`` at or above the
 true critical ratio: the rate depends on ``p_down``): the offsets of ``p_down`` that matter
 to the rate (most wells flow critically, where none does).
@@ -288,6 +291,16 @@ def _study_table(errors: dict[tuple, list[np.ndarray]], n_faults: int) -> str:
     return "\n".join(lines)
 
 
+def _fields(args: argparse.Namespace) -> str:
+    """What the fields are, for the table's first line (the default: clean fields)."""
+    if not args.hidden and args.physics == "sachdeva":
+        return "Clean fields"
+    return (
+        f"Fields without instrument faults ({args.physics} physics, hidden effects "
+        f"{args.hidden or 'none'})"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="901,902,903")
@@ -306,6 +319,16 @@ def main(argv: list[str] | None = None) -> int:
         help="where faults start: a random day (any), or a random row where the true "
         "p_down / p_up reaches the true critical ratio (subcritical: the rate depends on "
         "p_down; wells without such a row are left out)",
+    )
+    ap.add_argument(
+        "--hidden",
+        default="",
+        help="hidden physical effects of the fields, as vfm simulate --hidden takes them "
+        "(e.g. erosion:rate=0.15,valve): real changes of the wells that must raise no "
+        "instrument fault (default none: clean fields)",
+    )
+    ap.add_argument(
+        "--physics", default="sachdeva", help="the fields' truth physics (vfm simulate --physics)"
     )
     ap.add_argument("--markdown", help="also write the tables as Markdown to this file")
     ap.add_argument("--study", action="store_true", help="error of vfm evaluate at a fault")
@@ -337,7 +360,13 @@ def main(argv: list[str] | None = None) -> int:
     }
     set_points: Counter[str] = Counter()  # p_down steps not raised, per reason
     for seed in seeds:
-        field = simulate_field(wells=args.wells, years=args.years, seed=seed)
+        field = simulate_field(
+            wells=args.wells,
+            years=args.years,
+            seed=seed,
+            hidden=[args.hidden] if args.hidden else [],
+            physics=args.physics,
+        )
         frame, p_cr_true = field.observations, field.truth_samples["p_cr_true"]
         rng = np.random.default_rng(seed + 10_000)
         for well, g in frame.groupby("well", sort=True):
@@ -401,7 +430,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         f"Command: `{' '.join(['python', 'benchmarks/bench_sensor_faults.py', *map(shlex.quote, sys.argv[1:] if argv is None else argv)])}`",
         "",
-        f"Clean fields: seeds {args.seeds}, {args.wells} wells, {args.years:g} years: "
+        f"{_fields(args)}: seeds {args.seeds}, {args.wells} wells, "
+        f"{args.years:g} years: "
         f"{well_years:.1f} well-years, {rows} samples; detector cost "
         f"{1e6 * spent / max(rows, 1):.0f} us/sample of CPU at the simulator's 1-3 samples a "
         f"day, {cost_per_minute_samples():.0f} us/sample at one sample a minute.",

@@ -527,14 +527,20 @@ def test_a_fault_that_raises_an_alarm_is_a_warning_one_only_shown_is_info(
 
 
 def p_down_step_well(
-    seed: int, p_down: float, step: float, rate_follows: float, mpfm: bool = True
+    seed: int,
+    p_down: float,
+    step: float,
+    rate_follows: float,
+    mpfm: bool = True,
+    ramp: float = 0.0,
 ) -> Iterator[tuple[int, list[float], float]]:
     """Two years of a synthetic well, two samples a day at random hours, each with an MPFM
     rate (3 % noise): p_up 100 bar, p_down ``p_down`` bar, the choke still at 0.5, a gas
     fraction of 0.1 (the lowest critical ratio of the choke laws is then 0.45). At day 500,
     13:00, p_down's reading steps by ``step`` bar, and the true rate by ``rate_follows``
     (relative: -0.08 for a real rise of the back pressure in subcritical flow, 0 for a
-    transmitter offset or critical flow). Yields (time ns, inputs, MPFM rate)."""
+    transmitter offset or critical flow). ``ramp`` (bar a day) raises p_down over the 10
+    days before the step (the set point's own wander). Yields (time ns, inputs, MPFM rate)."""
     rng = np.random.default_rng(seed)
     origin = 1_500_000_000 * 10**9
     t_step = origin + 500 * DAY_NS + 13 * 3_600 * 10**9
@@ -546,6 +552,7 @@ def p_down_step_well(
             x += [60.0 + rng.normal(0.0, 0.1), 0.1 + rng.normal(0.0, 1e-4)]
             x += [0.6 + rng.normal(0.0, 1e-4)]
             x[2] += step if after else 0.0
+            x[2] += ramp * min(max((t - t_step) / DAY_NS + 10.0, 0.0), 10.0)
             q = 500.0 * (1.0 + (rate_follows if after else 0.0)) * (1.0 + rng.normal(0.0, 0.03))
             yield t, x, q if mpfm else math.nan
 
@@ -561,6 +568,20 @@ def p_down_offsets(seed: int, *args: Any, **kwargs: Any) -> tuple[list[SensorFau
             found += det.measure(t, q, x)
     once = {id(e): e for e in found if e.sensor == "p_down" and e.kind == "offset"}
     return list(once.values()), det.set_points
+
+
+@pytest.mark.parametrize("seed", [3951, 3953])
+def test_a_set_point_step_after_some_wander_raises_no_drift(seed: int) -> None:
+    """A 3-bar step of p_down in critical flow (0.2 -> 0.23 of p_up) after ten days of
+    wander the same way (0.1 bar a day, about one robust sd of its daily changes): the
+    step's one or two days of change wait for the step test, which sets the step aside as
+    a set point, so they do not push the drift CUSUM over its threshold (before, they
+    raised a p_down drift here)."""
+    det = WellSensorFaults()
+    found = []
+    for t, x, q in p_down_step_well(seed, 20.0, 3.0, 0.0, ramp=0.1):
+        found += det.update(t, x) + det.measure(t, q, x)
+    assert [(e.sensor, e.kind) for e in found] == [] and det.set_points == {"critical": 1}
 
 
 @pytest.mark.parametrize("seed", [3951, 3952])

@@ -462,6 +462,15 @@ class ResidualCusum:
             self._robust, self._robust_added = (centre, scale), 0
         return self._robust
 
+    def add_reference(self, mean: float) -> None:
+        """Add one period mean to the reference, as :meth:`update` would, without testing
+        it (no sums move, no alarm): a period another test has explained (a step of the
+        level, not a trend) still tells the stream's spread. Ignored while an alarm is
+        active (the reference is then frozen) and when not finite."""
+        if self._active is None and math.isfinite(mean):
+            self.n_periods += 1
+            self._append(float(mean))
+
     def _append(self, mean: float) -> None:
         if len(self._ref) >= self.window:
             del self._ref[0]

@@ -824,6 +824,9 @@ class WellSensorFaults:
         self.cand_days = [1] * n
         self.cand: list[tuple[float, float, int, float, int] | None] = [None] * n
         self.offset_level: list[tuple[float, float] | None] = [None] * n
+        #: per input, the day-to-day changes (per square-root day, with their ns) of an
+        #: open step candidate's days, held from the drift CUSUM until it is decided
+        self.drift_wait: list[list[tuple[float, int]]] = [[] for _ in SENSORS]
         # raw daily means (the co-movement check of the step test)
         self.raw_day, self.raw_n, self.raw_sum = 0, 0, [0.0] * n
         self.raw_choke = self.prev_raw_choke = False
@@ -1810,11 +1813,30 @@ class WellSensorFaults:
         )
         moved, choke = self.day_moved
         alone = not choke and (not moved or (len(moved) == 1 and i in moved))  # none but i
-        if self.cand[i] is not None and self._confirm_step(i, name, mean, t, open_kind, out):
-            open_kind = "offset"
+        set_aside = False
+        if self.cand[i] is not None:
+            aside = sum(self.set_points.values())
+            if self._confirm_step(i, name, mean, t, open_kind, out):
+                open_kind = "offset"
+            set_aside = sum(self.set_points.values()) > aside
         self._step_test(i, today, prev, diff, alone, open_kind)
-        # a drift: a CUSUM on the day-to-day changes (a ramp shifts their mean)
-        if open_kind != "offset":
+        # a drift: a CUSUM on the day-to-day changes (a ramp shifts their mean). The
+        # changes of a step candidate's days wait for the step test's verdict: a step
+        # (raised, or set aside as a set point) is no trend, and its one or two days of
+        # change would otherwise raise a drift after a little wander (each counts up to the
+        # CUSUM's clip): they join only its reference (the spread, as before); a
+        # candidate whose level did not hold feeds them late
+        wait = self.drift_wait[i]
+        if open_kind == "offset" or set_aside:
+            for late, _ in wait:
+                cus.add_reference(late)
+            wait.clear()
+        if self.cand[i] is not None:
+            wait.append((diff, t))
+        elif open_kind != "offset":
+            for late, t_late in wait:
+                cus.update(late, t_late)
+            wait.clear()
             cus.update(diff, t)
         if open_kind is None and not was and not cus.alarm:  # the usual day: nothing happens
             if cus.statistic == 0.0:
@@ -1908,6 +1930,7 @@ class WellSensorFaults:
             "cand_days": list(self.cand_days),
             "cand": [None if c is None else list(c) for c in self.cand],
             "offset_level": [None if c is None else list(c) for c in self.offset_level],
+            "drift_wait": [[list(p) for p in w] for w in self.drift_wait],
             "raw": [
                 self.raw_day,
                 self.raw_n,
@@ -1983,6 +2006,9 @@ class WellSensorFaults:
         ]
         self.offset_level = [
             None if c is None else (float(c[0]), float(c[1])) for c in data["offset_level"]
+        ]
+        self.drift_wait = [  # (absent in a state saved before it: nothing waits)
+            [(float(d), int(t)) for d, t in w] for w in data.get("drift_wait") or [[]] * n
         ]
         self.events.extend(SensorFault.from_state(e) for e in data["events"])
         by_key = {(e.sensor, e.kind): e for e in self.events if e.end_ns is None}
