@@ -41,7 +41,11 @@ def test_the_page_says_the_meter_moved(tmp_path: Path) -> None:
         text = line.inner_text()
         since = view["residual_alarm"]["since"][:10]
         by = f"(a shift of {100 * view['residual_alarm']['shift']:+.1f} %)"  # its size
-        line_text = f"residual alarm: MPFM above the model {by} since {since}; {moved['text']}"
+        onset = view["residual_alarm"]["onset"][:10]  # the change began before the raise
+        began = f" (the change began about {onset})" if onset < since else ""
+        line_text = (
+            f"residual alarm: MPFM above the model {by} since {since}{began}; {moved['text']}"
+        )
         assert line_text in text
         page.screenshot(path=str(SHOTS / "which-moved.png"))
         assert not errors, errors

@@ -71,6 +71,9 @@ def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> No
     # from the few readings between the alarm's start and its raise (3 % noise each)
     assert abs(np.log1p(alarm["shift"]) - np.log1p(0.12)) < 3 * alarm["shift_se"]
     assert 0.01 < alarm["shift_se"] < 0.04
+    # the change's onset (the CUSUM's change-point estimate) lies near the step of day 70
+    # (2021-07-10), before the alarm was raised
+    assert "2021-07-08" <= alarm["onset"][:10] <= "2021-07-11" and alarm["onset"] <= alarm["since"]
     # the latest well test (day 87) against the ten before the alarm (not the two after it)
     assert check["well_test_time"].startswith("2021-07-27")
     assert abs(check["usual_difference"]) < 0.03 and 0.01 <= check["usual_spread"] < 0.04

@@ -228,6 +228,7 @@ class WellResidualAlarm:
                 "period_s": det.period_s,
                 "shift": (self._open.get(source) or {}).get("shift") if det.alarm else None,
                 "shift_se": (self._open.get(source) or {}).get("shift_se") if det.alarm else None,
+                "onset": (self._open.get(source) or {}).get("onset") if det.alarm else None,
             }
             rank = (stat / det.threshold if det.threshold > 0 else 0.0) + (2.0 if det.alarm else 0)
             if lead is None or rank > lead[0]:
@@ -244,6 +245,7 @@ class WellResidualAlarm:
             "direction": first["direction"] if first else None,
             "shift": first["shift"] if first else None,
             "shift_se": first["shift_se"] if first else None,
+            "onset": first["onset"] if first else None,
             "source": (lead[1] if lead is not None and active else None),
             "arl0": s.arl0,
             "k": s.k,

@@ -379,7 +379,9 @@ class WellOut(WellSummary):
         "null; and while it is null for such an alarm, awaiting_well_test: what will tell "
         "(last_well_test, typical_gap_days, due, pairs: well tests compared before the "
         "alarm, overdue: the well's data is past due, text); shift: the active alarm's "
-        "relative size (measured against the model, at its raise; null when unknown)",
+        "relative size (measured against the model, at its raise; null when unknown), "
+        "shift_se its standard error (log), onset: when the change began (the CUSUM's "
+        "estimate; since is when the alarm was raised)",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,

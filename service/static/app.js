@@ -61,7 +61,11 @@ function alarmsOf(v) {
     const meter = ra.source === "well_test" ? "well tests" : (ra.source || "measurements").toUpperCase();
     // its size at the raise, where known (vfm_core.residual_alarm.AlarmSize)
     const by = shiftText(ra.shift);
-    out.push(`residual alarm: ${meter} ${side} the model${by} since ${(ra.since || "").slice(0, 10)}`);
+    const since = (ra.since || "").slice(0, 10);
+    // the CUSUM's change-point estimate, where it lies days before the alarm was raised
+    const onset = (ra.onset || "").slice(0, 10);
+    const began = onset && onset < since ? ` (the change began about ${onset})` : "";
+    out.push(`residual alarm: ${meter} ${side} the model${by} since ${since}${began}`);
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
