@@ -81,6 +81,7 @@ from __future__ import annotations
 import functools
 import math
 from array import array
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -677,8 +678,8 @@ class AlarmSize:
 
     def __init__(self, keep: int = 200) -> None:
         self.keep = int(keep)
-        self._t: list[int] = []
-        self._r: list[float] = []
+        self._t: deque[int] = deque(maxlen=self.keep)
+        self._r: deque[float] = deque(maxlen=self.keep)
 
     def add(self, time_ns: int, measured: float, predicted: float | None) -> None:
         """One reading (Sm3/h) and the prediction made at its sample (Sm3/h)."""
@@ -689,9 +690,6 @@ class AlarmSize:
             return
         self._t.append(int(time_ns))
         self._r.append(r)
-        if len(self._t) > self.keep:
-            del self._t[: len(self._t) - self.keep]
-            del self._r[: len(self._r) - self.keep]
 
     def at_raise(self, onset_ns: int, raised_ns: int) -> dict[str, Any] | None:
         """``{"shift", "se", "readings", "reference"}`` of an alarm that began at
@@ -726,18 +724,14 @@ class AlarmSize:
             "reference": len(before),
         }
 
-    def clear(self) -> None:
-        self._t.clear()
-        self._r.clear()
-
     def state(self) -> dict[str, Any]:
         return {"t": list(self._t), "r": list(self._r)}
 
     def restore(self, data: dict[str, Any]) -> None:
         t, r = list(data.get("t") or []), list(data.get("r") or [])
         if len(t) == len(r):
-            self._t = [int(v) for v in t][-self.keep :]
-            self._r = [float(v) for v in r][-self.keep :]
+            self._t = deque((int(v) for v in t), maxlen=self.keep)
+            self._r = deque((float(v) for v in r), maxlen=self.keep)
 
 
 def _feed_sized(

@@ -216,6 +216,7 @@ class WellResidualAlarm:
         lead: tuple[float, str] | None = None
         for source, det in sorted(self.detectors.items()):
             stat = float(det.statistic)
+            event = self._open.get(source, {}) if det.alarm else {}
             streams[source] = {
                 "active": det.alarm,
                 "statistic": stat,
@@ -226,9 +227,9 @@ class WellResidualAlarm:
                 "readings": det.n_readings,
                 "periods": det.n_periods,
                 "period_s": det.period_s,
-                "shift": (self._open.get(source) or {}).get("shift") if det.alarm else None,
-                "shift_se": (self._open.get(source) or {}).get("shift_se") if det.alarm else None,
-                "onset": (self._open.get(source) or {}).get("onset") if det.alarm else None,
+                "shift": event.get("shift"),
+                "shift_se": event.get("shift_se"),
+                "onset": event.get("onset"),
             }
             rank = (stat / det.threshold if det.threshold > 0 else 0.0) + (2.0 if det.alarm else 0)
             if lead is None or rank > lead[0]:

@@ -341,14 +341,13 @@ class WellLearner:
         ``q_total``, ``q_gas``, ``q_oil``, ``q_water`` as an array [N] (Sm3/h), and with a
         method that gives intervals also ``q_total_std``, ``q_total_p05``, ``q_total_p95``.
         """
-        last = int(np.asarray(times_ns, dtype=np.int64).reshape(-1)[-1]) if len(times_ns) else None
-        if not model_fixed_when_predicting(self, last) or not self.ready:
+        t = np.asarray(times_ns, dtype=np.int64).reshape(-1)
+        if not model_fixed_when_predicting(self, int(t[-1]) if len(t) else None) or not self.ready:
             raise ValueError(
                 f"predict_block needs a ready model that predicting cannot change; {self.well} "
                 f"({self.name}) is {'not ready' if not self.ready else 'retrained on a schedule'}."
             )
         x = np.asarray(inputs, dtype=float).reshape(-1, 6)
-        t = np.asarray(times_ns, dtype=np.int64).reshape(-1)
         n = len(t)
         if len(x) != n:
             raise ValueError(f"predict_block needs one time per input row; got {len(x)} and {n}.")
