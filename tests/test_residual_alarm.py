@@ -312,6 +312,11 @@ def test_an_alarms_size_is_the_step_against_the_readings_before_it() -> None:
     found = size.at_raise(40 * DAY_NS, 45 * DAY_NS)
     assert found is not None and found["readings"] == 6 and found["reference"] == 30
     assert found["shift"] == pytest.approx(0.07, abs=0.003)
+    assert found["onset_ns"] == 40 * DAY_NS
+    # a CUSUM onset some days early: the scan finds the step's day, the size is the same
+    early = size.at_raise(36 * DAY_NS, 45 * DAY_NS)
+    assert early is not None and early["onset_ns"] == 40 * DAY_NS and early["readings"] == 6
+    assert early["shift"] == pytest.approx(0.07, abs=0.003)
     assert size.at_raise(15 * DAY_NS, 20 * DAY_NS) is None  # 5 kept before day 15 (keep 50)
     again = AlarmSize(keep=50)
     again.restore(size.state())

@@ -692,16 +692,18 @@ class AlarmSize:
         self._r.append(r)
 
     def at_raise(self, onset_ns: int, raised_ns: int) -> dict[str, Any] | None:
-        """``{"shift", "se", "readings", "reference"}`` of an alarm that began at
+        """``{"shift", "se", "readings", "reference", "onset_ns"}`` of an alarm that began at
         ``onset_ns`` (:attr:`AlarmEvent.onset_ns`) and was raised at ``raised_ns`` (epoch
         ns; the event's ``start_ns``): the relative shift, its
         standard error in log terms, the readings in the alarm it rests on and the readings
-        before it; None without enough of either. A fast alarm rests on few readings: at
+        before it, and the change's time that the shift rests on (the first of those readings,
+        epoch ns: the onset narrowed by the scan below); None without enough of either. A fast alarm rests on few readings: at
         3 % meter noise and three readings the se is about 2 %."""
         t = np.asarray(self._t, dtype=np.int64)
         r = np.asarray(self._r, dtype=float)
         before = r[t < onset_ns][-self.REFERENCE :]
-        inside = r[(t >= onset_ns) & (t <= raised_ns)]
+        within = (t >= onset_ns) & (t <= raised_ns)
+        inside, times = r[within], t[within]
         if len(before) < self.MIN_REFERENCE or len(inside) == 0:
             return None
         centre = float(np.median(before))
@@ -711,7 +713,8 @@ class AlarmSize:
         # scan statistic of a step, sum / sqrt(n))
         excess = (inside - centre)[::-1].cumsum()[::-1]
         scan = np.abs(excess) / np.sqrt(np.arange(len(inside), 0, -1))
-        inside = inside[int(np.argmax(scan)) :]
+        change = int(np.argmax(scan))
+        inside = inside[change:]
         shift = float(np.median(inside)) - centre
         # the two medians' standard error: the readings' robust sd (the reference's MAD),
         # times sqrt(pi / 2) for a median's efficiency, over both counts
@@ -722,6 +725,7 @@ class AlarmSize:
             "se": se,
             "readings": len(inside),
             "reference": len(before),
+            "onset_ns": int(times[change]),
         }
 
     def state(self) -> dict[str, Any]:

@@ -149,7 +149,9 @@ class WellResidualAlarm:
             }
             onset = new.start_ns if new.onset_ns is None else new.onset_ns
             sized = size.at_raise(onset, new.start_ns)
-            event["onset"] = iso(onset)
+            # the change's time: the scan's, where the size is known (the CUSUM's onset is
+            # often days early: its statistic may leave zero by chance before the change)
+            event["onset"] = iso(onset if sized is None else sized["onset_ns"])
             event["shift"] = None if sized is None else sized["shift"]
             event["shift_se"] = None if sized is None else sized["se"]
             self.events.append(event)

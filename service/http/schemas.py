@@ -380,8 +380,8 @@ class WellOut(WellSummary):
         "(last_well_test, typical_gap_days, due, pairs: well tests compared before the "
         "alarm, overdue: the well's data is past due, text); shift: the active alarm's "
         "relative size (measured against the model, at its raise; null when unknown), "
-        "shift_se its standard error (log), onset: when the change began (the CUSUM's "
-        "estimate; since is when the alarm was raised)",
+        "shift_se its standard error (log), onset: when the change began (the reading "
+        "the shift is measured from; since is when the alarm was raised)",
     )
     held_for_review: list[HeldForReview] = Field(
         default_factory=list,
