@@ -54,9 +54,11 @@ def expected_text(event: dict[str, Any], accept_periods: int) -> str:
     }[event["closed"]]
     shift = event.get("shift")  # its size at the raise (s51), where known
     by = "" if shift is None else f" (a shift of {100 * shift:+.1f} %)"
+    onset = (event.get("onset") or "")[:10]  # the change's onset, where days before the raise
+    began = f" (the change began about {onset})" if onset and onset < event["start"][:10] else ""
     return (
         f"{event['source'].upper()} {side} the model{by} "
-        f"{minute(event['start'])} to {minute(event['end'])} UTC: {how}"
+        f"{minute(event['start'])} to {minute(event['end'])} UTC{began}: {how}"
     )
 
 
@@ -89,6 +91,11 @@ def test_residual_alarms_listed_and_named_on_the_page(tmp_path: Path) -> None:
         start, end = pd.Timestamp(step["start"]), pd.Timestamp(step["end"])
         assert stepped <= start <= stepped + pd.Timedelta(days=4), step
         assert end - start == pd.Timedelta(days=accept), step
+        # the change's onset (the CUSUM's change point): at the step, at or before the raise
+        onset = pd.Timestamp(step["onset"])
+        assert stepped - pd.Timedelta(days=1) <= onset <= start, step
+        # here it lies days before the raise, so the step's line names it (expected_text)
+        assert onset.date() < start.date(), step
         # the bump's: above the model; cleared or (on some noise draws) accepted
         assert events[0]["direction"] == "high" and events[0]["closed"] in ("cleared", "accepted")
         assert all(e["end"] is not None for e in events), events

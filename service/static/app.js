@@ -269,16 +269,19 @@ function alarmText(e, acceptPeriods) {
   const side = e.direction === "high" ? "above" : e.direction === "low" ? "below" : "off";
   const n = acceptPeriods ?? (state.view && state.view.residual_alarm && state.view.residual_alarm.accept_periods);
   const by = shiftText(e.shift);
+  // the change's onset (the CUSUM's change point), where it lies days before the raise
+  const onset = (e.onset || "").slice(0, 10);
+  const began = onset && onset < (e.start || "").slice(0, 10) ? ` (the change began about ${onset})` : "";
   const what = `${meter} ${side} the model${by}`;
   if (e.end == null) {
     const accept = n > 0 ? `; accepted as the new level if it lasts ${n} periods` : "";
-    return `${what} since ${minute(e.start)} UTC (active${accept})`;
+    return `${what} since ${minute(e.start)} UTC${began} (active${accept})`;
   }
-  if (alarmReset(e)) return `${what} from ${minute(e.start)} UTC: ended by a model change`;
+  if (alarmReset(e)) return `${what} from ${minute(e.start)} UTC${began}: ended by a model change`;
   const how = e.closed === "cleared" ? "cleared: the residuals came back"
     : e.closed === "accepted" ? `accepted as the new level after ${n ?? "accept_periods"} periods: the alarm restarts from it`
     : "ended";
-  return `${what} ${minute(e.start)} to ${minute(e.end)} UTC: ${how}`;
+  return `${what} ${minute(e.start)} to ${minute(e.end)} UTC${began}: ${how}`;
 }
 
 /* The instrument faults of the well on view as spans {t0, t1, sensor, kind, evidence}, t1 null
