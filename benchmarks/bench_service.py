@@ -76,11 +76,15 @@ from vfm_core.simulate import simulate_field
 
 
 def make_history(
-    folder: Path, wells: int, rows_per_well: int
+    folder: Path, wells: int, rows_per_well: int, source: str = "mpfm"
 ) -> tuple[Path, dict[str, np.ndarray]]:
-    """A history of ``wells`` wells (copies of ten simulated ones) and each well's input rows."""
+    """A history of ``wells`` wells (copies of ten simulated ones) and each well's input rows;
+    with ``source`` ``well_test`` every measured row of the history is booked as a well
+    test (wells without a meter of their own: the paper's case 2)."""
     base = validate_frame(simulate_field(wells=10, years=1, seed=1).observations).frame
     base = base[target_mask(base, "all")]
+    if source != "mpfm":
+        base = base.assign(source=source)
     names = [f"B{j:04d}" for j in range(wells)]
     parts, inputs = [], {}
     for j, name in enumerate(names):
@@ -143,10 +147,12 @@ def block_messages(
     measure_every_s: float,
     phase: np.ndarray | None = None,
     prefix: str = "vfm",
+    source: str = "mpfm",
 ) -> list[tuple[str, bytes]]:
     """(key, payload) of every well's samples at 1 s steps from ``t0``, ``block`` samples a
-    message (1: one sample a message), each block followed by the MPFM readings of its
-    samples (one every ``measure_every_s`` per well)."""
+    message (1: one sample a message), each block followed by the measurements of its
+    samples (one every ``measure_every_s`` per well; MPFM readings, or well tests with
+    ``source`` ``well_test``)."""
     messages: list[tuple[str, bytes]] = []
     for first in range(0, per_well, block):
         steps = range(first, min(first + block, per_well))
@@ -165,7 +171,7 @@ def block_messages(
                 messages.append((key, samples[0].model_dump_json().encode()))
             else:  # one sensor block, then the measurements of its samples
                 messages.append((key, sensor_block(samples)))
-            messages += [(f"{prefix}/{name}/measurements/mpfm", m) for m in measured]
+            messages += [(f"{prefix}/{name}/measurements/{source}", m) for m in measured]
     return messages
 
 
@@ -495,8 +501,16 @@ def run_engine(
     queues: str,
     block: int = 1,
     synchronous: str = "normal",
+    model: str = "mm",
+    method: str = "ol",
+    source: str = "mpfm",
 ) -> dict[str, Any]:
-    """The engine in this process with the in-memory transport (see the module docstring)."""
+    """The engine in this process with the in-memory transport (see the module docstring).
+    ``model`` and ``method`` are the service's; ``source`` the meter of the history and of
+    the burst's measurements (``well_test``: wells learned from well tests only). Before the
+    clock starts, one sample per well an hour before the burst is answered (a warm-up: a
+    retrain due at the first live sample, as ``refresh=auto``'s for such wells after the
+    history, runs there, not in the burst)."""
     import cProfile
     import io
     import pstats
@@ -514,10 +528,10 @@ def run_engine(
         raise SystemExit(f"--queues is not TOML: {exc}") from None
     with tempfile.TemporaryDirectory(prefix="vfm-bench-engine-") as tmp:
         folder = Path(tmp)
-        history, inputs = make_history(folder, wells, history_rows)
+        history, inputs = make_history(folder, wells, history_rows, source)
         settings = loopback_settings(
             folder,
-            model={"name": "mm", "method": "ol", "history": str(history)},
+            model={"name": model, "method": method, "history": str(history)},
             queues=extra_queues,
             store={"path": str(folder / "store.sqlite"), "synchronous": synchronous},
         )
@@ -559,9 +573,28 @@ def run_engine(
                 t0_wall = datetime.now(UTC).replace(microsecond=0) - timedelta(
                     seconds=per_well + 3600
                 )
+                warm = block_messages(
+                    names, inputs, t0_wall - timedelta(hours=1), 1, 1, 1e9, None, settings.prefix
+                )
+                total[0] = sum(key.endswith("/sensors") for key, _ in warm)
+                for key, payload in warm:
+                    bus.put(key, payload)
+                if not done.wait(900.0):
+                    raise RuntimeError(f"The warm-up got {got[0]} of {total[0]} predictions.")
+                with lock:
+                    got[0] = 0
+                    done.clear()
                 total[0] = per_well * len(names)
                 messages = block_messages(
-                    names, inputs, t0_wall, per_well, block, measure_every_s, None, settings.prefix
+                    names,
+                    inputs,
+                    t0_wall,
+                    per_well,
+                    block,
+                    measure_every_s,
+                    None,
+                    settings.prefix,
+                    source,
                 )
                 t1 = time.perf_counter()
                 cpu1 = time.process_time()
@@ -844,6 +877,15 @@ def main() -> None:
         "comma-separated sizes run side by side (1: one sample a message; more: sensor blocks; "
         "default 1, with --markdown 1,40,200)",
     )
+    parser.add_argument("--model", default="mm", help="engine: the service's model (mm)")
+    parser.add_argument("--method", default="ol", help="engine: the service's method (ol)")
+    parser.add_argument(
+        "--measure-source",
+        default="mpfm",
+        choices=["mpfm", "well_test"],
+        help="engine: the meter of the history and of the burst's measurements (mpfm; "
+        "well_test: wells learned from well tests only, the paper's case 2)",
+    )
     parser.add_argument("--flood-kind", default="samples", choices=["samples", "names", "blocks"])
     parser.add_argument(
         "--flood-block", type=int, default=500, help="rows per block with --flood-kind blocks"
@@ -886,7 +928,8 @@ def main() -> None:
         return
     if args.scenario == "engine":
         print(
-            "vfm engine in this process (in-memory transport, no Zenoh): mm + ol, "
+            f"vfm engine in this process (in-memory transport, no Zenoh): {args.model} + "
+            f"{args.method}, measurements from {args.measure_source}, "
             f"store synchronous={args.synchronous or 'normal'}, {args.burst:,} samples put as fast as the "
             "receive queue takes them."
         )
@@ -901,6 +944,9 @@ def main() -> None:
                     args.queues,
                     block,
                     args.synchronous or "normal",
+                    args.model,
+                    args.method,
+                    args.measure_source,
                 )
                 how = "one sample a message" if block == 1 else f"sensor blocks of {block} samples"
                 print(

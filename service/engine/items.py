@@ -118,6 +118,7 @@ class Batch:
         "answers",
         "samples",
         "sample_wells",
+        "sample_due",
         "sample_last",
         "learns",
         "learn_wells",
@@ -132,6 +133,10 @@ class Batch:
         self.samples: list[tuple[Any, SensorItem, int, tuple[float, ...]]] = []
         #: the wells among them -> whether another sample of the well may join the call
         self.sample_wells: dict[str, bool] = {}
+        #: those of them whose model may change only by a scheduled retrain (``pbl``, or
+        #: ``bayes``'s refresh of a hybrid learning from well tests): another sample joins
+        #: the call when it comes before the retrain is due
+        self.sample_due: set[str] = set()
         #: each of those wells' latest admitted sample: (time ns, inputs), for the order check
         self.sample_last: dict[str, tuple[int, tuple[float, ...]]] = {}
         #: paired measurements waiting for the batch's one learning call, in pairing order

@@ -262,6 +262,9 @@ class Workers:
     def _handle(self, item: Item, b: Batch) -> None:
         if isinstance(item, SensorItem):
             first = item.well in b.sample_wells and not b.sample_wells[item.well]
+            if first and item.well in b.sample_due:
+                # a scheduled retrain only: this sample joins when it comes before it is due
+                first = not model_fixed_when_predicting(self.wells[item.well].learner, item.time_ns)
             # a separator's reading waits for this well: its later samples come after it;
             # or a partner's learning step at its sample may move this well (cross)
             first |= self.separators is not None and (
@@ -447,9 +450,12 @@ class Workers:
         # a scheduled retrain (pbl), or a measurement this sample settles and learns; nor
         # after a sample with a stand-in: its fallback is asked of the model after the call,
         # which must leave the model's features and clock at this sample
-        b.sample_wells[item.well] = (
-            not st.pending and not item.stand_ins and model_fixed_when_predicting(st.learner)
-        )
+        settled = not st.pending and not item.stand_ins
+        b.sample_wells[item.well] = settled and model_fixed_when_predicting(st.learner)
+        if settled and not b.sample_wells[item.well] and model_fixed_when_predicting(st.learner, t):
+            b.sample_due.add(item.well)  # its model changes only at a retrain due after t
+        else:
+            b.sample_due.discard(item.well)
         b.sample_last[item.well] = (t, inputs)
 
     def _on_block(self, st: WellState, item: SensorBlockItem, b: Batch) -> None:
@@ -602,14 +608,16 @@ class Workers:
     def _predict_samples(self, b: Batch) -> None:
         """Second pass: predict every admitted sample of the batch in one call, then store
         and publish each in order. A well may have several (its model cannot change while
-        predicting, ``ol`` or ``bayes``); with scheduled retrains (``pbl``) a well's next
-        sample waits for this call."""
+        predicting, ``ol`` or ``bayes``); with scheduled retrains (``pbl``, ``bayes``'s
+        refresh) a well's next sample joins it when it comes before the retrain is due, and
+        otherwise waits for this call."""
         if not b.samples:
             return
         if b.learn_wells and any(st.well in b.learn_wells for st, _, _, _ in b.samples):
             self.learning.run_deferred(b)  # a sample is predicted after what was learned before it
         taken = b.samples
         b.samples, b.sample_wells, b.sample_last = [], {}, {}
+        b.sample_due = set()
         try:
             answers = self.learning.predict_many(
                 [st for st, _, _, _ in taken],
