@@ -377,6 +377,7 @@ def main(argv: list[str] | None = None) -> int:
             det = WellSensorFaults()
             events, dt = run_well(g, det)
             set_points.update(getattr(det, "set_points", {}))
+            set_points["drift"] += getattr(det, "drifts_set_aside", 0)
             rows += len(g)
             spent += dt
             false.update(e.kind for e in events)
@@ -448,7 +449,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`p_down` steps not raised as offsets: {set_points['critical']} in critical flow "
         f"(the rate does not depend on `p_down`), {set_points['followed']} that the "
-        "measured rate followed (a real change of the back pressure).",
+        "measured rate followed (a real change of the back pressure); `p_down` drift "
+        f"alarms not raised: {set_points['drift']} in critical flow.",
         "",
         "| injected fault (kind:sensor:size) | wells | found 7d | right kind 7d | "
         "median delay d | other sensors | reading unchanged | rate depends on it: wells, "

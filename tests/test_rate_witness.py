@@ -381,3 +381,39 @@ def test_the_service_shows_a_choke_offset_its_mpfm_reveals(tmp_path):
             )
     finally:
         service.stop()
+
+
+def _sand_then_closed_in(seed: int, *, choke_moves: bool):
+    """300 days of :func:`_well`, then the choke still for 20 days, a step of the rate by
+    +10 % with the choke still (a sand event that raised C_D), and two days later the
+    operator's corrective move that closes the choke by the elasticity's share of it (the
+    rate back at its old level). ``choke_moves`` False: only the reading moves (a real
+    offset after the same step; the rate stays up)."""
+    times, readings, rates = _well(300, seed)
+    rng = np.random.default_rng(seed + 1000)
+    u0 = readings[-1]
+    u1 = u0 * 1.1 ** (-1.0 / ELASTICITY)
+    for k in range(80):  # 40 more days, twice a day
+        stepped, moved = k >= 40, k >= 44
+        u = u1 if (moved and choke_moves) else u0
+        times.append(times[-1] + HALF_DAY)
+        readings.append(u1 if moved else u0)
+        rates.append(100.0 * u**ELASTICITY * (1.1 if stepped else 1.0)
+                     * (1 + 0.02 * rng.standard_normal()))  # fmt: skip
+    return times, readings, rates, times[600 + 44]
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_a_rate_step_before_the_operators_corrective_move_is_no_choke_offset(seed):
+    """Strong erosion: C_D steps up with the choke still, the operator closes in two days
+    later and the rate comes back to its old level. Over the whole week before the move the
+    rate's mean lies between its two levels, so the move's response looked short (an
+    offset raised on the lead's code); taken from the rate's latest level it is what the
+    elasticity says. The same step followed by a move of the reading alone is still one."""
+    times, readings, rates, move = _sand_then_closed_in(seed, choke_moves=True)
+    _, found = _run(times, readings, rates)
+    assert [f for f in found if f.start_ns == move] == []
+    times, readings, rates, move = _sand_then_closed_in(seed, choke_moves=False)
+    _, found = _run(times, readings, rates)
+    raised = [f for f in found if f.action == "raise" and f.start_ns == move]
+    assert len(raised) == 1 and "the rate's level since" in raised[0].evidence

@@ -584,6 +584,29 @@ def test_a_set_point_step_after_some_wander_raises_no_drift(seed: int) -> None:
     assert [(e.sensor, e.kind) for e in found] == [] and det.set_points == {"critical": 1}
 
 
+@pytest.mark.parametrize("seed", [3962, 3963])
+def test_a_p_down_drift_in_critical_flow_is_set_aside_and_in_subcritical_raised(
+    seed: int,
+) -> None:
+    """p_down rises 0.3 bar a day for ten days (3 bar, about 1.5 % of its level a day at 20
+    bar). At p_down / p_up 0.2-0.23, below every choke law's critical ratio, the rate does
+    not depend on p_down: the drift alarm is counted, not raised, as a step there is (the
+    lead's code raised a p_down drift on both seeds). The same ramp at 0.7-0.73, where the
+    rate depends on p_down, is still raised (a drift or, cut into a step, an offset)."""
+    for level, raised in ((20.0, False), (70.0, True)):
+        det = WellSensorFaults()
+        found = []
+        for t, x, q in p_down_step_well(seed, level, 0.0, 0.0, ramp=0.3):
+            found += det.update(t, x) + det.measure(t, q, x)
+        kinds = {(e.sensor, e.kind) for e in found}
+        if raised:
+            assert kinds & {("p_down", "drift"), ("p_down", "offset")}, kinds
+            assert det.drifts_set_aside == 0
+        else:
+            assert kinds == set() and det.drifts_set_aside == 1, (kinds, det.drifts_set_aside)
+    assert det.state()["drifts_set_aside"] == det.drifts_set_aside
+
+
 @pytest.mark.parametrize("seed", [3951, 3952])
 def test_a_p_down_step_in_critical_flow_is_no_offset_of_consequence(seed: int) -> None:
     """p_down / p_up at 0.2 -> 0.23, below every choke law's critical ratio: the rate does

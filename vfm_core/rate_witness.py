@@ -16,7 +16,11 @@ plans it once for every model, as the input tests):
   ``d = mean(log q after) - mean(log q before)``: the rate readings of the new level in the
   ``window_days`` after it against those of the old level in the ``window_days`` before it
   (each at least :data:`MIN_READINGS`). A reading at a choke of zero (shut in) starts
-  afresh.
+  afresh. The window before is taken from the rate's latest level: a step of the rate
+  in it against the move's response (an operator who closes in after a sand event raised
+  C_D) is found by :func:`_latest_level`, and only the readings after it count; before a
+  raise the window after is scanned the same way, and a step there leaves the move
+  undecided.
 * **The well's elasticity** ``beta``: the median of ``d / dlog u`` over its last
   :data:`MOVES_KEPT` complete moves of at least 1 % (a median, since a move now and then
   meets another change of the well). A linear valve in critical flow gives about 1.
@@ -95,6 +99,7 @@ _GAP_NS = 2 * _NS_PER_DAY  # samples further apart: a break (a shut-in, an outag
 _Z_NONE = NormalDist().inv_cdf(0.995)  # |d| within it: no response (two-sided 99 %)
 _BISECTIONS = 24  # of omega in [0, 1]: to 1e-7 (log rate)
 _HUBER_STEPS = 20  # reweightings of the elasticity's Huber fit at most
+_LEVEL_ALPHA = 0.01  # a step of the rate before a move: one-sided, over all its splits
 
 
 @dataclass
@@ -127,6 +132,9 @@ class _Move:
     #: the rate's response so far is nearer none than the expected one, by a move the
     #: readings can tell (:meth:`ChokeRateWitness.doubted`): not yet decided
     doubt: bool = False
+    #: where the rate's latest level before the move began (ns; 0: the whole window),
+    #: when the rate stepped against the move's response before it (:func:`_latest_level`)
+    level_ns: int = 0
     #: the window before it, once made: (elasticity, adjusted log rates, largest
     #: adjustment, mean log p_up and log(p_up - p_down), mean adjusted log rate (NaN when
     #: empty))
@@ -248,6 +256,27 @@ def _omega_kappa(e: np.ndarray, base: np.ndarray) -> tuple[float, float]:
             lo, hi = (mid, hi) if spread(mid) > 1.0 else (lo, mid)
         omega, kappa = hi, max(1.0, spread(hi))
     return omega, kappa
+
+
+def _latest_level(values: np.ndarray, s: float, sign: float) -> int:
+    """Where the rate's latest level in a move's window before it begins (an index into
+    ``values``, the window's adjusted log rates in time order; 0: one level). The rate
+    stepped (a sand event that raised C_D, a change of the reservoir) when the mean of the
+    readings from some index on differs from the mean of those before it, in the direction
+    ``sign`` (against the move's expected response: the step an operator's corrective move
+    answers, which otherwise shrinks the response measured over the whole window), by more
+    than the one-sided 99 % Gaussian quantile, Bonferroni over the splits, of the means'
+    noise (``s``: one reading's sd of the log rate)."""
+    n = len(values)
+    if n < 2 or not (math.isfinite(s) and s > 0):
+        return 0
+    k = np.arange(1, n, dtype=float)
+    cs = np.cumsum(values)
+    early = cs[:-1] / k
+    late = (cs[-1] - cs[:-1]) / (n - k)
+    z = sign * (late - early) / (s * np.sqrt(1.0 / k + 1.0 / (n - k)))
+    best = int(np.argmax(z))
+    return best + 1 if z[best] > _quantile(1.0 - _LEVEL_ALPHA / (n - 1)) else 0
 
 
 def _num(v: Any) -> float:
@@ -450,6 +479,11 @@ class ChokeRateWitness:
             arr = self.readings.since(m.time_ns - self.window_ns)
             arr = arr[(arr[:, 2] >= self.closed_segment) & (arr[:, 0] < m.time_ns)]
             values, worst, b_p = self._side(arr, math.log(m.u_before), beta)
+            fit = self._fit
+            cut = _latest_level(values, fit[1] if fit else math.nan, -math.copysign(1.0, m.dlu))
+            m.level_ns = int(arr[cut, 0]) if cut else 0
+            if cut:  # the rate stepped before the move: its response is from the new level
+                values, worst, b_p = self._side(arr[cut:], math.log(m.u_before), beta)
             mean = float(values.mean()) if len(values) else math.nan
             m.before = (beta, values, worst, b_p, mean)
         _, b_values, b_worst, b_p, b_mean = m.before
@@ -619,12 +653,16 @@ class ChokeRateWitness:
         # did what it does when nothing moved (a rate that fell for another reason is not it)
         if not (z > z_lim and abs(d) <= _Z_NONE * kappa * math.sqrt(noise)):
             return None
+        if self._stepped_after(m, t, beta, s):
+            return None  # the rate stepped after the move: its response is not measurable
         m.decided = True
         text = (
             f"the choke's reading moved {m.u_before:.4g} -> {m.u_after:.4g} "
             f"({100 * (math.exp(dlu) - 1):+.1f} %) at {iso(m.time_ns)}, but the measured rate "
             f"did not follow: {100 * (math.exp(d) - 1):+.1f} % over {n_a} meter readings "
-            f"after it against {n_b} before, where the well's last {len(self.moves)} "
+            f"after it against {n_b} before"
+            + (f" (the rate's level since {iso(m.level_ns)})" if m.level_ns else "")
+            + f", where the well's last {len(self.moves)} "
             f"choke moves (elasticity {beta:.2f}) say {100 * (math.exp(expected) - 1):+.1f} % "
             f"(short by {z:.1f} sd, threshold {z_lim:.1f})."
         )
@@ -660,6 +698,17 @@ class ChokeRateWitness:
             shift=m.u_after - where,
             shift_sd=where * kappa * math.sqrt(noise) / beta,
         )
+
+    def _stepped_after(self, m: _Move, until: int, beta: float, s: float) -> bool:
+        """Did the rate step against the move's expected response within its window after
+        it (up to ``until``, ns), with the choke reading still (a sand event that raised
+        C_D a day after the operator closed in)? Then the window mixes two levels and the
+        response looks short though the choke moved (:func:`_latest_level`). Asked only
+        before a raise."""
+        arr = self.readings.since(m.time_ns)
+        arr = arr[(arr[:, 0] <= until) & (arr[:, 2] == m.segment)]
+        values = self._side(arr, math.log(m.u_after), beta)[0]
+        return _latest_level(values, s, -math.copysign(1.0, m.dlu)) > 0
 
     def doubted(self, time_ns: int) -> _Move | None:
         """The latest undecided move at or before ``time_ns`` (epoch ns) whose rate has so

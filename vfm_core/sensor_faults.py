@@ -76,7 +76,11 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   robust centre and scale of the last year, Bartlett long-run factor over ``lags`` days,
   ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
   ``365.25 / share`` days: a ramp shifts their mean. Centring on the recent median means
-  a well's own slow trend (depletion) is not news; a change of trend is.
+  a well's own slow trend (depletion) is not news; a change of trend is. A ``p_down``
+  drift in critical flow (``p_down / p_up`` below :func:`critical_floor` on every day
+  since the CUSUM last stood at zero) is counted in ``drifts_set_aside``, not raised: as
+  for a step, the rate does not depend on ``p_down`` there
+  (:meth:`WellSensorFaults._critical_drift`).
 * Drift and offset are not tested on the choke's own readings (its steps are the
   operator's). A choke ``offset`` is found by its witness, the measured rate
   (:mod:`vfm_core.rate_witness`, fed by :meth:`WellSensorFaults.measure`): a move of the
@@ -854,6 +858,8 @@ class WellSensorFaults:
         #: (the rate does not depend on p_down on either level), "followed" (the measured
         #: rate answered the step as a real change of the back pressure does)
         self.set_points: dict[str, int] = {}
+        #: p_down drift alarms not raised: in critical flow (:meth:`_critical_drift`)
+        self.drifts_set_aside = 0
 
     def _new_cusum(self) -> ResidualCusum:
         # each day's change is its own period (period_s 0): the daily means are made here
@@ -1844,6 +1850,23 @@ class WellSensorFaults:
             return
         self._drift_and_ends(i, name, t, (mean, start), was, open_kind, out)
 
+    def _critical_drift(self, i: int, mean: float) -> bool:
+        """Whether a drift alarm of input ``i`` (today's daily mean ``mean``) is a ``p_down``
+        drift in critical flow: ``p_down / p_up`` below the lowest critical ratio of the
+        models' choke laws (:func:`critical_floor`) on every day since the CUSUM last stood
+        at zero and today. The rate does not depend on ``p_down`` there: a drifting
+        transmitter changes no predicted rate, and a set point's wander is the same to one
+        well's inputs; the rule of the ``p_down`` steps (:meth:`_set_point`)."""
+        lv = self.levels
+        if i != _P_DOWN or not (lv[1] and lv[3] and lv[4] and lv[5]) or not lv[1][-1][1] > 0:
+            return False
+        p_up = lv[1][-1][1]
+        floor = critical_floor(p_up, lv[3][-1][1], lv[4][-1][1], lv[5][-1][1])
+        zero = self.cusum_zero_ns[i]
+        since = -1 if zero is None else zero // _NS_PER_DAY
+        highest = max([mean] + [m for d, m in lv[i] if d >= since])
+        return highest / p_up < floor
+
     def _drift_and_ends(
         self,
         i: int,
@@ -1860,7 +1883,11 @@ class WellSensorFaults:
         held ``accept_days``."""
         mean, start = today
         cus = self.cusums[i]
-        if cus.alarm and not was and open_kind is None:
+        if cus.alarm and not was and open_kind is None and self._critical_drift(i, mean):
+            # of no consequence (the rate does not depend on p_down): counted, not raised;
+            # the CUSUM keeps its alarm, so the same drift is not asked again
+            self.drifts_set_aside += 1
+        elif cus.alarm and not was and open_kind is None:
             self._raise(
                 SensorFault(
                     name,
@@ -1954,6 +1981,7 @@ class WellSensorFaults:
             "tracks": {k: list(v) for k, v in self.tracks.items()},
             "wanders": {k: v if math.isfinite(v) else None for k, v in self.wanders.items()},
             "set_points": dict(self.set_points),
+            "drifts_set_aside": self.drifts_set_aside,
         }
 
     def restore(self, data: Mapping[str, Any]) -> bool:
@@ -2017,6 +2045,7 @@ class WellSensorFaults:
                 self.open[(s, k)] = by_key[(s, k)]
         self.raised = {str(k): int(v) for k, v in data["raised"].items()}
         self.set_points = {str(k): int(v) for k, v in (data.get("set_points") or {}).items()}
+        self.drifts_set_aside = int(data.get("drifts_set_aside", 0))  # absent: older state
         raw_day, raw_n, raw_sum, self.raw_choke, self.prev_raw_choke = data["raw"]
         self.raw_day, self.raw_n = int(raw_day), int(raw_n)
         self.raw_sum = [float(v) for v in raw_sum]
