@@ -725,3 +725,35 @@ def test_a_noise_verdicts_correction_says_why_it_is_not_named() -> None:
     )
     large = {**small, "change": -dv.MIN_CHANGE - 0.05}
     assert dv._correction_how(large).endswith("yet is not offered")
+
+
+def _with_values(effect: str, per_well: dict[str, float], sds: dict[str, float]) -> Any:
+    """A candidate fitted once on the core: one parameter's per-well values and sds."""
+    pname = {"erosion": "rate", "slip": "exponent"}.get(effect, "weight")
+    params = {f"{effect}.{pname}": {"value": 0.0, "per_well": per_well, "per_well_sd": sds}}
+    return dg.CandidateResult(effect, 3.0, -1.0, 0.0, -50.0, 4, params, "", True)
+
+
+def test_a_hybrid_replays_an_effect_through_a_network_input_as_identified_on_the_core() -> None:
+    from vfm_core.effects import effect_spec, resolve_effect
+
+    # three informed wells near 1, one at its prior (sd 0.5): the precision-weighted mean
+    per_well = {"W01": 0.99, "W02": 0.0, "W03": 0.98, "W04": 1.02}
+    sds = {"W01": 0.008, "W02": 0.5, "W03": 0.006, "W04": 0.005}
+    c = _with_values("valve_equal_percentage", per_well, sds)
+    cls = resolve_effect("valve_equal_percentage")
+    for model in ("ham", "hem"):
+        core = dg.core_form(cls, c, model)
+        assert effect_spec(core).startswith("valve_equal_percentage:weight=")
+        assert core.parameters["weight"].std < 1e-6  # pinned: nothing learned
+        assert core.fixed_values["weight"] == pytest.approx(1.0, abs=0.03)  # type: ignore[attr-defined]
+    assert dg.core_form(cls, c, "mm") is cls  # the mechanistic model learns it as it is
+    # wear acts through the throughput, which no network sees: learned with the hybrid
+    wear = _with_values("erosion", {"W01": 0.05}, {"W01": 0.01})
+    assert dg.core_form(resolve_effect("erosion"), wear, "ham") is resolve_effect("erosion")
+    # without the core's per-well values there is nothing to fix
+    bare = dg.CandidateResult("slip", 3.0, -1.0, 0.0, -50.0, 4, {}, "", True)
+    assert dg.core_form(resolve_effect("slip"), bare, "ham") is resolve_effect("slip")
+    # a value beyond the parameter's bounds is held at the bound
+    far = _with_values("valve_equal_percentage", {"W01": 2.0}, {"W01": 0.01})
+    assert dg.core_form(cls, far, "ham").fixed_values["weight"] == 1.5  # type: ignore[attr-defined]

@@ -434,9 +434,40 @@ def test_effect_settings_are_read_and_checked() -> None:
     for bad, message in (
         ("erosion:step_at=", "is not a date"),
         ("erosion:step_at=soon", "is not a date"),
-        ("erosion:rate=0.1", "has no setting rate; its settings: step_at"),
-        ("real_gas:strength=2", "has no setting strength; its settings: none"),
+        ("erosion:size=0.1", "has no setting size; its settings: step_at"),
+        ("real_gas:z=2", "has no setting z; its settings: none .or a parameter to fix: strength"),
+        ("real_gas:strength=5", r"strength='5' must be a number in \[-1, 3\]"),
+        ("valve_equal_percentage:weight=much", "must be a number"),
         ("a:b:c", "Cannot read the effect"),
     ):
         with pytest.raises(ConfigError, match=message):
             resolve_effect(bad)
+
+
+def test_a_parameter_fixed_in_the_spec_is_shared_and_not_learned(small: pd.DataFrame) -> None:
+    from vfm_core.effects import effect_spec, fixed_effect
+
+    cls = resolve_effect("valve_equal_percentage:weight=0.8")
+    assert effect_spec(cls) == "valve_equal_percentage:weight=0.8"
+    assert cls.parameters["weight"].mean == 0.8 and cls.parameters["weight"].std < 1e-6
+    assert cls().compiled_factor() is not None  # pinned, not removed: the kernels apply
+    assert effect_spec(resolve_effect(effect_spec(cls))) == effect_spec(cls)
+    assert effect_spec(fixed_effect(cls, {})) == effect_spec(cls)  # fixing again keeps it
+    step = resolve_effect("erosion:step_at=2019-06-01:rate=0.1")
+    assert effect_spec(step) == "erosion:step_at=2019-06-01T00:00:rate=0.1"
+    assert step.parameters["step"].std == 0.1  # the step is still learned
+    wells = sorted(small["well"].unique())
+    learned = make_model("mm", wells, effects=["valve_equal_percentage"])
+    fixed = make_model("mm", wells, effects=[cls])
+    batch = _batch(small, learned)
+    learned.setup(batch)  # type: ignore[arg-type]
+    fixed.setup(batch)  # type: ignore[arg-type]
+    with torch.no_grad():  # the learned one at 0.8 in every well (theta = mu + sigma z)
+        learned.effect_block("valve_equal_percentage").z.fill_(0.8 / 0.5)
+        learned.a_max.copy_(fixed.a_max)
+    q_learned = learned.predict_batch(batch)  # type: ignore[arg-type]
+    q_fixed = fixed.predict_batch(batch)  # type: ignore[arg-type]
+    assert torch.allclose(q_learned, q_fixed, rtol=1e-10)
+    plain = make_model("mm", wells)
+    plain.setup(batch)  # type: ignore[arg-type]
+    assert not torch.allclose(plain.predict_batch(batch), q_fixed, rtol=1e-3)  # type: ignore[arg-type]

@@ -44,7 +44,7 @@ import importlib
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import numpy as np
@@ -59,6 +59,7 @@ from vfm_core.timeutil import utc_timestamp
 from vfm_core.units import bar_to_pa, degc_to_k
 
 __all__ = [
+    "fixed_effect",
     "Prior",
     "Effect",
     "EffectInputs",
@@ -213,13 +214,20 @@ class Effect:
         """A subclass with the given settings (text values from ``name:key=value``).
 
         By default each setting becomes a class attribute of that name holding the text;
-        override to parse values (see :class:`Erosion`).
+        override to parse values (see :class:`Erosion`). A key that names one of the
+        effect's parameters (and no setting) fixes it, shared by every well
+        (:func:`fixed_effect`: ``valve_equal_percentage:weight=0.99``).
         """
+        fixed = {k: v for k, v in values.items() if k in cls.parameters and k not in cls.settings}
+        if fixed:  # name:parameter=value fixes a parameter (shared by every well)
+            rest = {k: v for k, v in values.items() if k not in fixed}
+            return fixed_effect(cls.configure(**rest) if rest else cls, _numbers(cls, fixed))
         unknown = sorted(set(values) - set(cls.settings))
         if unknown:
             known = ", ".join(f"{k} ({v})" for k, v in cls.settings.items()) or "none"
             raise ConfigError(
-                f"Effect '{cls.name}' has no setting {', '.join(unknown)}; its settings: {known}."
+                f"Effect '{cls.name}' has no setting {', '.join(unknown)}; its settings: {known} "
+                f"(or a parameter to fix: {', '.join(cls.parameters) or 'none'})."
             )
         if not values:
             return cls
@@ -272,6 +280,63 @@ class Effect:
             if k in self.parameters
         ]
         return f"{self.name}: " + "; ".join(parts) + "."
+
+
+def _numbers(cls: type[Effect], values: Mapping[str, str]) -> dict[str, float]:
+    """The fixed parameter values of ``name:parameter=value`` (text), checked: finite and
+    within the parameter's bounds (SI units, as the parameter's prior)."""
+    out: dict[str, float] = {}
+    for key, text in values.items():
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        prior = cls.parameters[key]
+        if not (math.isfinite(value) and prior.low <= value <= prior.high):
+            raise ConfigError(
+                f"Effect '{cls.name}': {key}='{text}' must be a number in "
+                f"[{prior.low:g}, {prior.high:g}] {prior.unit}".rstrip()
+                + "."
+            )
+        out[key] = value
+    return out
+
+
+#: The prior standard deviation of a fixed parameter (SI units): the parameter stays in the
+#: model (so the compiled forms apply and the spec rebuilds it) but cannot move.
+FIXED_STD = 1e-9
+
+
+def fixed_effect(cls: type[Effect], values: Mapping[str, float]) -> type[Effect]:
+    """``cls`` with the parameters in ``values`` fixed (SI units, one value shared by every
+    well): each is pinned by a prior of mean the value and sd :data:`FIXED_STD`, so
+    nothing is learned for it (theta = mu + sigma z moves by 1e-9 z at most) while the
+    model computes as with ``cls`` (its compiled forms too). Its spec
+    ``name:parameter=value`` rebuilds it (``valve_equal_percentage:weight=0.99``).
+
+    What ``vfm diagnose`` replays on a hybrid (``ham``, ``hem``) for an effect acting
+    through an input its network sees: the effect as identified on the mechanistic core,
+    the network learning what is left (:func:`vfm_core.jobs.diagnose.core_form`)."""
+    unknown = sorted(set(values) - set(cls.parameters))
+    if unknown:
+        raise ConfigError(f"Effect '{cls.name}' has no parameter {', '.join(unknown)}.")
+    fixed = {**getattr(cls, "fixed_values", {}), **{k: float(v) for k, v in values.items()}}
+    text = "".join(f":{k}={v:.6g}" for k, v in fixed.items())
+    base = getattr(cls, "unfixed_spec", "") or effect_spec(cls)
+    return type(
+        f"{cls.__name__}Fixed",
+        (cls,),
+        {
+            "parameters": {
+                k: replace(p, mean=fixed[k], std=FIXED_STD) if k in fixed else p
+                for k, p in cls.parameters.items()
+            },
+            "fixed_values": fixed,
+            "unfixed_spec": base,
+            "spec": f"{base}{text}",
+            "__module__": cls.__module__,
+        },
+    )
 
 
 # --- the library ------------------------------------------------------------------------------

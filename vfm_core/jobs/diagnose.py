@@ -42,7 +42,9 @@ when neither error rises and a test finds a lower one beyond chance
 narrows to those running the same model and method): the field's evidence and the well's,
 side by side (``well_verdicts`` holds each well's). Hybrids (:data:`HYBRIDS`) are
 identified on their mechanistic core (``mm`` with the same effects) and replayed as they
-are. The fit-once protocol below is kept as **evidence**: it names and ranks the
+are; a candidate acting through an input their network sees (a valve family through the
+choke opening) is replayed as identified on the core, its parameters fixed (:func:`core_form`:
+learned with the network it would be confounded with it). The fit-once protocol below is kept as **evidence**: it names and ranks the
 candidates, finds the drivers and fits the correction; ``fit_once.verdict`` in the JSON is
 the verdict it alone would give (format 2's rule); ``replay_top=0`` gives only that.
 
@@ -144,6 +146,7 @@ from vfm_core.effects import (
     ValveFamily,
     add_features,
     effect_spec,
+    fixed_effect,
     resolve_effect,
     resolve_effects,
 )
@@ -188,6 +191,8 @@ __all__ = [
     "REPLAY_TOP",
     "OUTAGE",
     "HYBRIDS",
+    "NETWORK_INPUTS",
+    "core_form",
     "VARIANTS",
     "PHYSICS_ALPHA",
     "acts_through",
@@ -220,6 +225,11 @@ OUTAGE = "30d"
 #: are identified on the mechanistic core (mm with the same effects), fit once, and replayed
 #: on the hybrid itself (what adding the effect does to the model the well runs).
 HYBRIDS = ("ham", "hem")
+#: The variables a hybrid's network sees: its six inputs and what is computed from them alone.
+#: A candidate acting through one of them (:func:`acts_through`: a valve family through the
+#: choke opening, slip through the gas fraction, ...) is replayed on a hybrid as identified
+#: on the core (:func:`core_form`).
+NETWORK_INPUTS = ("choke", "p_up", "p_down", "t_up", "eta_gas", "eta_oil", "p_ratio", "water_cut")
 #: fewest scored well tests for the BIC to be taken on them (else: on every measurement)
 MIN_WELL_TESTS = 20
 #: Library variants tried after a material candidate: other forms of the same physics.
@@ -1290,6 +1300,11 @@ class _DiagnosisRun:
     def replay(self, c: CandidateResult, classes: list[type[Effect]]) -> None:
         """Replay the model with ``classes`` under the well's method, live and with outages."""
         s, label = self.s, c.effect
+        core = [core_form(k, c, s.model) for k in classes]
+        if core != classes:  # a hybrid: the effect as identified on its core
+            classes = core
+            c.spec = "+".join(effect_spec(k) for k in core)
+            c.core_fixed = True
         c.live_run = self.run(
             f"{label} with {s.method}", classes, s.method, s.train, s.model, at=self.split_ts
         )
@@ -1664,6 +1679,41 @@ class _DiagnosisRun:
             self.screen,
             self.detail,
         )
+
+
+def core_form(cls: type[Effect], c: CandidateResult, model: str) -> type[Effect]:
+    """The form of candidate ``c`` (class ``cls``) replayed on ``model``: on a hybrid
+    (:data:`HYBRIDS`), an effect acting through a variable its network sees
+    (:data:`NETWORK_INPUTS`) is fixed at its values identified on the mechanistic core (each
+    parameter's precision-weighted mean over the wells, shared by every well:
+    :func:`vfm_core.effects.fixed_effect`), the network learning what is left; otherwise, or
+    without per-well values, ``cls`` itself (learned with the model).
+
+    Why: learned together with the network, such an effect is confounded with it (the
+    network is a function of the same variable), so its replay measures what the network
+    already carries, not what the physics adds; the generic correction it is weighed
+    against is replayed with its coefficient fixed the same way (:func:`_fit_shared`).
+    Replaying both as identified on the core compares like with like (a valve field,
+    Sachdeva seed 66, ``ham`` + ``ol``: the equal-percentage valve learned with the network
+    -0.02 points live, fixed at the core's weight -0.34; the choke correction learned per
+    well -0.02, fixed -0.32)."""
+    if model not in HYBRIDS or acts_through(cls.name) not in NETWORK_INPUTS or not cls.parameters:
+        return cls
+    values: dict[str, float] = {}
+    for pname, prior in cls.parameters.items():
+        entry = c.parameters.get(f"{cls.name}.{pname}") or {}
+        per_well = entry.get("per_well")
+        if not per_well:
+            return cls
+        wells = sorted(per_well)
+        sds = entry.get("per_well_sd") or {}
+        v = np.array([per_well[w] for w in wells], dtype=float)
+        sd = np.array([sds.get(w, np.nan) for w in wells], dtype=float)
+        mean = _shared_value(v, np.where(np.isfinite(sd), sd, np.nan))[0]
+        if not math.isfinite(mean):
+            return cls
+        values[pname] = float(np.clip(mean, prior.low, prior.high))
+    return fixed_effect(cls, values)
 
 
 def _derived(frame: pd.DataFrame) -> pd.DataFrame:

@@ -148,6 +148,10 @@ class CandidateResult:
     #: not (:func:`vfm_core.jobs.diagnose_verdicts.physics_behind_driver`): {"driver",
     #: "correction", "test", "rule"}; None otherwise
     via_driver: dict[str, Any] | None = None
+    #: replayed on a hybrid as identified on its mechanistic core: its parameters fixed at
+    #: the core's values, shared by the wells (``spec`` then names them;
+    #: :func:`vfm_core.jobs.diagnose.core_form`)
+    core_fixed: bool = False
     #: the candidate of other physics that explains this one: fitted together, this one
     #: adds nothing beyond it (:mod:`vfm_core.jobs.diagnose_rivals`); None otherwise
     explained_by: str | None = None
@@ -217,6 +221,7 @@ class CandidateResult:
             "variant_of": self.variant_of,
             "share_above_floor": self.share_above_floor,
             "via_driver": self.via_driver,
+            "core_fixed": self.core_fixed,
             "explained_by": self.explained_by,
             "rivals": self.rivals,
             "shape": self.shape,

@@ -753,6 +753,13 @@ def _as_named(kind: str, c: CandidateResult, text: str, num: dict[str, Any]) -> 
     v = c.via_driver
     if v is not None and not c.material:
         text += " " + _via_driver_text(c)
+    if c.core_fixed:
+        text += (
+            f" Replayed as identified on the mechanistic core ({c.spec}: its parameters fixed "
+            "at the core's values, shared by the wells, the network learning what is left); "
+            "learned together with the network, which sees the same variable, it would be "
+            "confounded with it."
+        )
     rival_text = rivals.rivals_text(c)
     if rival_text:
         text += " " + rival_text
