@@ -447,7 +447,8 @@ class Workers:
             item.stand_ins = st.watch_sample(t, inputs)
         b.samples.append((st, item, t, inputs))
         # another sample of the well may join the call unless its model can change first:
-        # a scheduled retrain (pbl), or a measurement this sample settles and learns; nor
+        # a scheduled retrain due by that sample (pbl, bayes's refresh: sample_due keeps
+        # the wells whose model changes only so), or a measurement this sample settles and learns; nor
         # after a sample with a stand-in: its fallback is asked of the model after the call,
         # which must leave the model's features and clock at this sample
         settled = not st.pending and not item.stand_ins
