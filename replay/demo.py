@@ -243,9 +243,12 @@ def _print_files(
     if report is not None:
         print(f"  report     {report.resolve()}  (open in a browser)")
     else:
+        # the models and methods the study of step 4 runs, each once (`--model mm`)
+        models = ",".join(dict.fromkeys(["last", "mm", args.model]))
+        methods = ",".join(dict.fromkeys([args.method, "pbl:182d"]))
         print(
-            f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models last,mm,{args.model} "
-            f"--methods {args.method},pbl:182d --split {split}"
+            f"  report     .venv/bin/vfm evaluate {data} --out {out / 'study'} --models {models} "
+            f"--methods {methods} --split {split}"
             + (f" --effects {','.join(effects)}" if effects else "")
         )
 

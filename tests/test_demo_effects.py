@@ -81,3 +81,27 @@ def test_demo_refuses_bad_effects_before_it_starts(
     assert done.returncode == 2
     assert sentence in done.stderr
     assert not out.exists()  # nothing simulated, no service started
+
+
+@pytest.mark.parametrize(
+    ("model", "method", "models", "methods"),
+    [("mm", "pbl:182d", "last,mm", "pbl:182d"), ("ham", "bayes", "last,mm,ham", "bayes,pbl:182d")],
+)
+def test_demo_without_report_names_each_model_and_method_once(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    model: str,
+    method: str,
+    models: str,
+    methods: str,
+) -> None:
+    """With ``--no-report`` the demo prints the command that writes the report: the study
+    of step 4, each model and method once (``--model mm`` listed ``last,mm,mm`` before)."""
+    import argparse
+
+    from replay.demo import _print_files
+
+    args = argparse.Namespace(model=model, method=method)
+    _print_files(args, tmp_path, tmp_path / "service.toml", None, "2017-01-01", [])
+    line = next(x for x in capsys.readouterr().out.splitlines() if "vfm evaluate" in x)
+    assert f" --models {models} " in line and f" --methods {methods} " in line

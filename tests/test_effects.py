@@ -436,7 +436,8 @@ def test_effect_settings_are_read_and_checked() -> None:
         ("erosion:step_at=soon", "is not a date"),
         ("erosion:size=0.1", "has no setting size; its settings: step_at"),
         ("real_gas:z=2", "has no setting z; its settings: none .or a parameter to fix: strength"),
-        ("real_gas:strength=5", r"strength='5' must be a number in \[-1, 3\]"),
+        ("real_gas:strength=5", r"strength='5' must be a number in \[-1, 3\]\.$"),
+        ("erosion:rate=2", r"rate='2' must be a number in \[0, 1\] 1/yr-eq\.$"),
         ("valve_equal_percentage:weight=much", "must be a number"),
         ("a:b:c", "Cannot read the effect"),
     ):

@@ -70,11 +70,22 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
             assert "MPFM none near" in text
             alarms = page.locator("#well-alarms").inner_text()
             assert "1 well test(s) held for review" in alarms
-            # held is stored, not refused: counted apart from the refused inputs
+            # held is stored, not refused: counted apart from the refused inputs, as a note
+            # (a count since the start, in grey), not as an alarm
+            notes = page.locator("#well-notes").inner_text()
             assert "held since the service started (stored, not learned): held for review 1" in (
-                alarms
+                notes
             )
-            assert "refused" not in alarms, alarms
+            assert "held since" not in alarms and "refused" not in alarms + notes, alarms
+            # the field view: the count in grey under the well's alarms, not among them
+            page.goto(svc.http_url + "/")
+            note = page.locator('#field-table tr[data-well="W01"] .note')
+            note.wait_for()
+            assert "held for review 1" in note.inner_text()
+            cell = note.locator("xpath=..").inner_text()
+            assert cell.index("1 well test(s) held for review") < cell.index("held since"), cell
+            page.goto(svc.http_url + "/#well=W01")
+            item.wait_for()
             # nor the page's banner of refused inputs (the service refused nothing here)
             assert page.locator("#banner").is_hidden()
             page.screenshot(path=str(SHOTS / "well-test-review.png"), full_page=True)

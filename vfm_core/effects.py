@@ -293,10 +293,10 @@ def _numbers(cls: type[Effect], values: Mapping[str, str]) -> dict[str, float]:
             value = math.nan
         prior = cls.parameters[key]
         if not (math.isfinite(value) and prior.low <= value <= prior.high):
+            unit = "" if prior.unit in ("", "-") else f" {prior.unit}"  # "-": dimensionless
             raise ConfigError(
                 f"Effect '{cls.name}': {key}='{text}' must be a number in "
-                f"[{prior.low:g}, {prior.high:g}] {prior.unit}".rstrip()
-                + "."
+                f"[{prior.low:g}, {prior.high:g}]{unit}."
             )
         out[key] = value
     return out

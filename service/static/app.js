@@ -90,6 +90,15 @@ function alarmsOf(v) {
     : "; the predicted rate does not move across the stand-in's span here (nothing to widen)";
   for (const f of v.fallback || [])
     out.push(`rate predicted with a stand-in for ${f.sensor}: ${num(f.value)} instead of the reading ${num(f.measured)}${widened}`);
+  return out;
+}
+
+/* Counts since the service started, not conditions of now: a note beside the alarms, in
+   grey, never an alarm of its own (two measurements held at a transmitter's fault months
+   ago would otherwise keep the well red for good). */
+function notesOf(v) {
+  const out = [];
+  if (!v) return out;
   // a measurement held (for review, or at an instrument fault) is stored, not refused;
   // these are the well's own counts (GET /wells/{well} rejected), the banner's all wells'
   const counts = Object.entries(v.rejected || {});
@@ -137,7 +146,7 @@ function fieldRow(well) {
   return {
     well, model: v.model, method: v.method, version: v.version, last_update: v.last_update || "",
     mape: v.rolling_mape ? v.rolling_mape.value : null, mape_n: v.rolling_mape ? v.rolling_mape.n : 0,
-    width: widthOf(well), drift, alarms: alarmsOf(v),
+    width: widthOf(well), drift, alarms: alarmsOf(v), notes: notesOf(v),
     faults: activeFaults(v).map((f) => `${f.sensor} ${f.kind}: ${f.evidence}`),
   };
 }
@@ -157,7 +166,7 @@ function renderField() {
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
     <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
-    <td class="${r.alarms.length ? "alarm" : "ok"}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}</td></tr>`).join("");
+    <td class="${r.alarms.length ? "alarm" : "ok"}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
     th.classList.toggle("asc", th.dataset.key === key && dir > 0);
@@ -609,6 +618,9 @@ function renderWellHeader() {
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
   $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
+  const notes = notesOf(v);  // counts since the service started: a note, not an alarm
+  $("#well-notes").hidden = !notes.length;
+  $("#well-notes").textContent = notes.join("; ");
   renderTrial(v); renderVersions(v); renderFaults(v); renderAlarms(v); renderReview(v);
 }
 

@@ -298,10 +298,10 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     if lt is None or lt.get("change") is None:
         return False, "no replayed measurement"
     if lt["change"] > 0:
-        return False, "raises the live error"
+        return False, _raises("live", lt)
     of = c.test("outage")
     if of is not None and of.get("change") is not None and of["change"] > 0:
-        return False, "raises the outage error"
+        return False, _raises("outage", of)
     if _gain(c.test("live"), lt if well is not None else None):
         return True, "live"
     if _gain(c.test("outage"), ot if well is not None else None):
@@ -310,6 +310,18 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     if _gain(*tests, least=0.0):
         return False, f"lowers the error beyond chance, but by less than {MIN_CHANGE:g} points"
     return False, "within noise"
+
+
+def _raises(what: str, t: dict[str, Any]) -> str:
+    """Why a candidate whose replay raised an error is not offered, with the rise (MAPE
+    points) and whether it is beyond chance: a rise of a few thousandths of a point inside
+    its 95 % interval is no harm, only no gain, and the words should not read as one."""
+    change = float(t["change"])
+    size = f"{change:+.3f}" if abs(change) < 0.01 else f"{change:+.2f}"
+    low = t.get("low")
+    if low is not None and low > 0:
+        return f"raises the {what} error ({size} points, beyond chance)"
+    return f"raises the {what} error ({size} points, within noise: no gain)"
 
 
 @dataclass
