@@ -448,7 +448,10 @@ def main(argv: list[str] | None = None) -> int:
     lines += [
         "",
         f"`p_down` steps not raised as offsets: {set_points['critical']} in critical flow "
-        f"(the rate does not depend on `p_down`), {set_points['followed']} that the "
+        f"(the rate does not depend on `p_down`), {set_points['slight']} near it (no "
+        "choke law above the floor lets the step move the rate beyond the noise of the "
+        "meter's means), "
+        f"{set_points['followed']} that the "
         "measured rate followed (a real change of the back pressure); `p_down` drift "
         f"alarms not raised: {set_points['drift']} in critical flow.",
         "",

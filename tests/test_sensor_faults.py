@@ -29,6 +29,7 @@ from vfm_core.sensor_faults import (
     SensorFault,
     WellSensorFaults,
     faults_of_frame,
+    p_down_consequence,
     raises_alarm,
     write_sensor_faults,
 )
@@ -633,3 +634,89 @@ def test_a_p_down_offset_in_subcritical_flow_is_raised_and_a_real_change_is_not(
     assert found == [] and set_points == {"followed": 1}, (found, set_points)
     found, set_points = p_down_offsets(seed, 70.0, 3.0, -0.08, mpfm=False)
     assert len(found) == 1 and "no meter reading" in found[0].evidence
+
+
+@pytest.mark.parametrize("seed", [3951, 3952])
+def test_a_p_down_step_just_above_the_critical_floor_is_of_no_consequence(seed: int) -> None:
+    """p_down / p_up at 0.45 -> 0.46, just above the lowest critical ratio of the choke
+    laws (0.45 for this fluid): under any law whose critical ratio is at or above it the
+    1-bar step (about 10 sd of its daily changes) moves the rate by at most 0.9 % (the
+    liquid law's ``0.5 ln(0.55 / 0.54)``), within the noise of the two means the rate test
+    compares (3 % a reading, about 14 readings before and 6 after: 1.4 %). Such a step is
+    set aside as "slight", not raised. The same step at 0.70 -> 0.71 (at most 1.7-1.9 %) and
+    the 3-bar one there (the test above) are raised."""
+    assert p_down_consequence(0.45, 0.46, 0.45) == pytest.approx(0.5 * math.log(0.55 / 0.54))
+    found, set_points = p_down_offsets(seed, 45.0, 1.0, 0.0)
+    assert found == [] and set_points == {"slight": 1}, (found, set_points)
+    found, set_points = p_down_offsets(seed, 70.0, 1.0, 0.0)
+    assert len(found) == 1 and set_points == {}, (found, set_points)
+    assert "may depend on p_down (by at most 1." in found[0].evidence
+
+
+def test_the_consequence_bound_holds_for_sachdeva_laws() -> None:
+    """The liquid law clamped at the floor bounds the change of Sachdeva's log flux over a
+    step above its own critical ratio (the argument of :func:`p_down_consequence`), for a
+    gassy and a nearly liquid fluid, on steps across and above the critical ratio."""
+    from vfm_core import physics
+
+    for eta_gas in (0.005, 0.3):
+        rho_g1 = physics.gas_density(80e5, 340.0, 0.02)
+        v_liq = physics.liquid_specific_volume(eta_gas, 0.4, 820.0, 1020.0)
+        y_c = float(physics.sachdeva_critical_ratio(eta_gas, rho_g1, v_liq, 1.3, iterations=40))
+
+        def log_flux(y: float, eta_gas: float = eta_gas, y_c: float = y_c) -> float:
+            g = physics.choke_mass_flux(
+                80e5, y * 80e5, 340.0, eta_gas, 0.4, rho_oil=820.0, rho_wat=1020.0,
+                kappa=1.3, m_gas=0.02, p_cr=y_c,
+            )  # fmt: skip
+            return math.log(float(g))
+
+        for y1, y2 in ((y_c - 0.05, y_c + 0.05), (y_c + 0.02, y_c + 0.1), (0.8, 0.9)):
+            change = abs(log_flux(y2) - log_flux(y1))
+            assert change <= p_down_consequence(y1, y2, y_c) + 1e-9, (eta_gas, y1, y2)
+
+
+def _thermal_transient_well(logged: bool, real_spike: bool) -> list[SensorFault]:
+    """A well sampled at 00:00 and 12:00 (noise 0.2 degC on t_up): on day 300 the operator
+    closes the choke from 0.5 to 0.35 from 08:00 to 11:00, the wellhead cools by 4 degC
+    and warms back with a thermal time constant of 2 hours, so the 12:00 sample reads
+    2.4 degC low with the choke back at 0.5. ``logged``: the historian also has a row at
+    each end of the move (the choke's new reading, when it happened). ``real_spike``: the
+    transmitter spikes by +6 degC (10 %) at 00:00 of day 350, nothing else moving.
+    The spike faults raised."""
+    rng = np.random.default_rng(3977)
+    origin = 1_500_000_000 * 10**9
+    hour = 3_600 * 10**9
+    move = (origin + 300 * DAY_NS + 8 * hour, origin + 300 * DAY_NS + 11 * hour)
+    times = [origin + d * DAY_NS + h * hour for d in range(400) for h in (0, 12)]
+    if logged:
+        times = sorted(times + list(move))
+    det = WellSensorFaults()
+    found = []
+    for t in times:
+        inside = move[0] <= t < move[1]
+        dt_h = (t - move[1]) / hour
+        cool = -4.0 if inside else (-4.0 * math.exp(-dt_h / 2.0) if dt_h >= 0 else 0.0)
+        t_up = 60.0 + cool + rng.normal(0.0, 0.2)
+        if real_spike and t == origin + 350 * DAY_NS:
+            t_up += 6.0
+        x = [0.35 if inside else 0.5, 100.0 + rng.normal(0.0, 0.2), 30.0 + rng.normal(0.0, 0.1)]
+        x += [t_up, 0.1 + rng.normal(0.0, 1e-4), 0.6 + rng.normal(0.0, 1e-4)]
+        found += det.update(t, x)
+    return [e for e in found if e.kind == "spike"]
+
+
+def test_a_thermal_transient_at_a_choke_move_the_readings_show_is_no_spike() -> None:
+    """A choke move's thermal transient of t_up is the process: where the readings show
+    the move (the historian logged it), the spike test stands aside; a real 10 % spike
+    without a move is found at its sample. Where the move lies wholly between two samples
+    nothing in the readings shows it, and the transient is taken for a spike (the limit
+    the guide describes: the simulator records the choke only at its meter rows)."""
+    origin = 1_500_000_000 * 10**9
+    assert _thermal_transient_well(logged=True, real_spike=False) == []
+    found = _thermal_transient_well(logged=True, real_spike=True)
+    assert [(e.sensor, e.start_ns) for e in found] == [("t_up", origin + 350 * DAY_NS)]
+    unseen = _thermal_transient_well(logged=False, real_spike=False)
+    assert [(e.sensor, e.start_ns) for e in unseen] == [
+        ("t_up", origin + 300 * DAY_NS + 12 * 3_600 * 10**9)
+    ]

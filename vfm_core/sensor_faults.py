@@ -69,9 +69,12 @@ minute or every half day). A test on daily means gets ``share / 365.25`` per day
   transmitter (:meth:`WellSensorFaults._set_point`): not where ``p_down / p_up`` stays
   below the lowest critical ratio of the models' choke laws on both levels
   (:func:`critical_floor`; the rate does not depend on ``p_down`` there, an offset changes
-  no predicted rate and nothing tells it from the set point), nor where the MPFM's rate
-  moved against the step beyond its noise (a real change of the back pressure in
-  subcritical flow). Such steps are counted in ``set_points``, not raised.
+  no predicted rate and nothing tells it from the set point), nor where no choke law with a
+  critical ratio at or above that floor lets the step move the rate beyond the noise of
+  the meter's means (:func:`p_down_consequence`: just above a critical ratio the rate is
+  flat in ``p_down``), nor where the MPFM's rate moved against the step beyond its noise
+  (a real change of the back pressure in subcritical flow). Such steps are counted in
+  ``set_points``, not raised.
 * ``drift``: a self-starting two-sided CUSUM (:class:`vfm_core.residual_alarm.ResidualCusum`:
   robust centre and scale of the last year, Bartlett long-run factor over ``lags`` days,
   ``k = 0.5``) on the same scaled day-to-day changes, with an in-control run length of
@@ -202,6 +205,7 @@ __all__ = [
     "mpfm_rates",
     "write_sensor_faults",
     "critical_floor",
+    "p_down_consequence",
 ]
 
 #: the sensors watched, in the order of :data:`vfm_core.schema.INPUT_COLUMNS`
@@ -691,6 +695,33 @@ def critical_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> 
     return min(_P_CR_LOW, y_c)
 
 
+def p_down_consequence(ratio_before: float, ratio_after: float, floor: float) -> float:
+    """The largest change of the log rate (-) that a step of ``p_down / p_up`` from
+    ``ratio_before`` to ``ratio_after`` can make under a choke law whose critical ratio is
+    at or above ``floor`` (:func:`critical_floor`).
+
+    An incompressible liquid's rate goes as ``sqrt(p_up - p_down)``: its log rate changes
+    by ``0.5 ln((1 - y2) / (1 - y1))``, with the ratios clamped at the critical ratio
+    (below it the flow is critical, the rate flat in ``p_down``). A compressible phase
+    makes the subcritical curve flatter, down to a slope of zero at its own critical ratio
+    (the flux is largest there): Sachdeva's law's log slope in ``y`` is at most the
+    liquid's at every ratio above its critical one (checked on a grid of gas fractions
+    0.001-0.8, heat-capacity ratios 1.2-1.35, oil densities 700-850 kg/m3, gas molar masses
+    16-25 g/mol: at most 0.9998 of it), and so is the constant law's (Sachdeva's flux
+    clamped at its ``p_cr``, 0.45 or more: at most 0.983 of it for gas fractions 0.05-0.9,
+    also where that ``p_cr`` lies below the fluid's own critical ratio). A higher critical
+    ratio clamps more of the step. So the liquid law clamped at the floor bounds them all.
+
+    >>> round(p_down_consequence(0.43, 0.47, 0.45), 4)  # mostly below the floor
+    0.0185
+    >>> p_down_consequence(0.30, 0.40, 0.45)  # critical on both levels
+    0.0
+    """
+    y1 = min(max(ratio_before, floor), 0.999)
+    y2 = min(max(ratio_after, floor), 0.999)
+    return 0.5 * abs(math.log((1.0 - y2) / (1.0 - y1)))
+
+
 @lru_cache(maxsize=4096)
 def _rounded_floor(p_up: float, t_up: float, eta_gas: float, eta_oil: float) -> float:
     """:func:`critical_floor` of inputs rounded by the caller (0.1 bar, 0.5 K, 0.001 of a
@@ -855,7 +886,9 @@ class WellSensorFaults:
         #: before it (variance per day, :meth:`_wander`), fixed when it is raised
         self.wanders: dict[str, float] = {}
         #: p_down steps not raised as offsets, per reason (:meth:`_set_point`): "critical"
-        #: (the rate does not depend on p_down on either level), "followed" (the measured
+        #: (the rate does not depend on p_down on either level), "slight" (no choke law
+        #: above the floor lets the step move the rate beyond the noise of the meter's
+        #: means), "followed" (the measured
         #: rate answered the step as a real change of the back pressure does)
         self.set_points: dict[str, int] = {}
         #: p_down drift alarms not raised: in critical flow (:meth:`_critical_drift`)
@@ -1680,13 +1713,26 @@ class WellSensorFaults:
     ) -> tuple[str, str]:
         """Whether a confirmed step of ``p_down`` (daily means ``level_before`` ->
         ``level``, bar a, from ``start_ns``) is a set-point change rather than an offset of
-        consequence: ``(reason, "")`` with reason ``"critical"`` or ``"followed"`` when it
+        consequence: ``(reason, "")`` with reason ``"critical"``, ``"slight"`` or
+        ``"followed"`` when it
         is not raised, else ``("", sentence)`` for the offset's evidence.
 
         - ``critical``: ``p_down / p_up`` stays below the lowest critical ratio of the
           models' choke laws (:func:`critical_floor`) on both levels. The rate does not
           depend on ``p_down`` there: a transmitter offset changes no predicted rate, and
           nothing the well measures tells it from the separator's set point moving.
+        - ``slight``: the flow may be subcritical, but under no choke law whose critical
+          ratio is at or above that floor can the step move the mean log rate by more
+          than the noise ``se`` of the change of the two means the ``followed`` test
+          compares (:func:`p_down_consequence`: at most the liquid law's
+          ``0.5 |ln((1 - y2) / (1 - y1))|``, the ratios clamped at the floor; ``se =
+          s sqrt(1/n_before + 1/n_after)``, ``s`` the pooled sd below; 1 % when there are
+          too few readings or none). Just above the critical ratio the rate is flat in
+          ``p_down`` (its derivative is zero there). With the largest possible answer
+          within one ``se``, that test has no power to tell a set point from a
+          transmitter (a real answer would pass its 1 % limit in under 1 case of 10),
+          and an offset of that size moves a week's predicted mean rate by less than
+          the meter's noise of that mean.
         - ``followed``: the flow may be subcritical, and the MPFM's rate moved against
           the step (a higher back pressure, a lower rate) beyond its noise: the mean log
           rate of the readings since the step's day against those of the ``_FOLLOW_DAYS``
@@ -1705,20 +1751,29 @@ class WellSensorFaults:
             f" p_down / p_up reached {ratio:.2f}, at or above the lowest critical ratio "
             f"{floor:.2f}: the rate may depend on p_down"
         )
+        most = p_down_consequence(level_before / p_up, level / p_up, floor)
         rows = self.witness.readings.since(start_ns - _FOLLOW_DAYS * _NS_PER_DAY)
         after = rows[rows[:, 0] >= start_ns]
         if not len(after):
+            if most < _WITNESS_MIN_LOG_SD:
+                return "slight", ""
             return "", why + "; no meter reading since the step."
         before = rows[(rows[:, 0] < start_ns) & (rows[:, 2] == after[0, 2])]
         after = after[after[:, 2] == after[0, 2]]
         n_b, n_a = len(before), len(after)
         if n_b < MIN_READINGS or n_a < MIN_READINGS:
+            if most < _WITNESS_MIN_LOG_SD:
+                return "slight", ""
             return "", why + f"; too few meter readings at the step's choke ({n_b}, {n_a})."
-        from scipy.stats import t as student  # (rare: a confirmed p_down step)
-
         d = float(after[:, 1].mean() - before[:, 1].mean())
         dev = np.concatenate([before[:, 1] - before[:, 1].mean(), after[:, 1] - after[:, 1].mean()])
         sd = max(math.sqrt(float(dev @ dev) / (n_b + n_a - 2)), _WITNESS_MIN_LOG_SD)
+        se = sd * math.sqrt(1.0 / n_b + 1.0 / n_a)  # the noise of the two means' change
+        if most < se:
+            return "slight", ""
+        why += f" (by at most {100 * most:.1f} % of the rate; noise of the meter's means {100 * se:.1f} %)"
+        from scipy.stats import t as student  # (rare: a confirmed p_down step)
+
         z = -math.copysign(1.0, step) * d / (sd * math.sqrt(1.0 / n_b + 1.0 / n_a))
         limit = float(student.ppf(1.0 - _FOLLOW_P, n_b + n_a - 2))
         if z > limit:
