@@ -73,7 +73,7 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
             # held is stored, not refused: counted apart from the refused inputs, as a note
             # (a count since the start, in grey), not as an alarm
             notes = page.locator("#well-notes").inner_text()
-            assert "held since the service started (stored, not learned): held for review 1" in (
+            assert "held since the service started (stored, not learned): held for review (1)" in (
                 notes
             )
             assert "held since" not in alarms and "refused" not in alarms + notes, alarms
@@ -81,7 +81,7 @@ def test_a_held_well_test_is_listed_and_accepted_on_the_page(tmp_path: Path) -> 
             page.goto(svc.http_url + "/")
             note = page.locator('#field-table tr[data-well="W01"] .note')
             note.wait_for()
-            assert "held for review 1" in note.inner_text()
+            assert "held for review (1)" in note.inner_text()
             cell = note.locator("xpath=..").inner_text()
             assert cell.index("1 well test(s) held for review") < cell.index("held since"), cell
             page.goto(svc.http_url + "/#well=W01")

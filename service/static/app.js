@@ -102,7 +102,7 @@ function notesOf(v) {
   // a measurement held (for review, or at an instrument fault) is stored, not refused;
   // these are the well's own counts (GET /wells/{well} rejected), the banner's all wells'
   const counts = Object.entries(v.rejected || {});
-  const listed = (rows) => rows.map(([r, k]) => r + " " + k).join(", ");
+  const listed = (rows) => rows.map(([r, k]) => `${r} (${k})`).join(", ");  // as the banner
   const total = (rows) => rows.reduce((a, [, k]) => a + k, 0);
   const heldRows = counts.filter(([r]) => HELD_REASONS.includes(r));
   const bad = counts.filter(([r]) => !HELD_REASONS.includes(r));
@@ -187,7 +187,7 @@ async function refreshField() {
     const counted = Object.entries(health.rejected || {}).filter(([, n]) => n > 0);
     const rej = counted.filter(([k]) => !HELD_REASONS.includes(k));
     const held = counted.filter(([k]) => HELD_REASONS.includes(k));
-    const heldText = held.length ? ` Held (stored, not learned), all wells: ${held.map(([k, n]) => k + " " + n).join(", ")}.` : "";
+    const heldText = held.length ? ` Held (stored, not learned), all wells: ${held.map(([k, n]) => `${k} (${n})`).join(", ")}.` : "";
     $("#inputs-summary").textContent = `Inputs accepted: ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}. ` +
       `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.` + heldText;
     const banner = $("#banner");
