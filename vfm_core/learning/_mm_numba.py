@@ -1619,10 +1619,11 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
     yv: np.ndarray,
     hv: np.ndarray,
     val_out: np.ndarray,
+    prec: np.ndarray,
 ) -> None:
-    """:func:`fit_steps` for ``lr``: q = y_scale (w . x_norm + b), the prior w ~ N(0, 1),
-    b ~ N(1, 1); ``params`` (w [W, 6], b [W]), ``moments`` ((m, v) of each), ``counts``
-    [2, W]; ``xn`` (and ``xv``) normalised."""
+    """:func:`fit_steps` for ``lr``: q = y_scale (w . x_norm + b), the prior w ~ N(0, 1 /
+    prec) (``prec`` [W, 6], the model's ``w_prec``), b ~ N(1, 1); ``params`` (w [W, 6], b
+    [W]), ``moments`` ((m, v) of each), ``counts`` [2, W]; ``xn`` (and ``xv``) normalised."""
     wt, bt = params
     mw, vw, mb, vb = moments
     n_wells, n_in = wt.shape
@@ -1638,11 +1639,11 @@ def lr_fit_steps(  # noqa: PLR0913, PLR0915 - the arrays of a training chunk
             if n > 0:
                 penalty = (bt[w] - 1.0) ** 2
                 for i in range(n_in):
-                    penalty += wt[w, i] * wt[w, i]
+                    penalty += prec[w, i] * wt[w, i] * wt[w, i]
                 losses[w] += sse / max(float(n_data), 1.0) + penalty * weight
             sq = 0.0
             for i in range(n_in):
-                g[i] += 2.0 * weight * wt[w, i]
+                g[i] += 2.0 * weight * prec[w, i] * wt[w, i]
                 sq += g[i] * g[i]
             gb += 2.0 * weight * (bt[w] - 1.0)
             sq += gb * gb
@@ -2935,6 +2936,7 @@ def warm_lr_fit_steps() -> None:
         lin, tuple(np.zeros_like(a) for a in lin for _ in range(2)), np.zeros((2, 1)),
         np.ones(1, dtype=np.int64), x, ones, yes, 1, False, np.ones(1), np.ones(1), 0.05, 1e-3,
         0.9, 0.999, 1e-8, 1.0, True, np.zeros(1), True, x, ones, yes, np.zeros((1, 1)),
+        np.ones((1, 6)),
     )  # fmt: skip
 
 

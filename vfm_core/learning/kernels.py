@@ -432,6 +432,7 @@ def sgd_online_steps(
             int(mask.shape[1]), True, n, y_scale, 0.0, float(lr), 0.9, 0.999, 1e-8,
             float(max_norm), False, np.zeros(len(n)), False, np.zeros((1, 0, 6)),
             np.zeros((1, 0)), np.zeros((1, 0), dtype=bool), np.zeros((1, 1)),
+            *(buffer_views(model, ("w_prec",)) if len(params) == 2 else ()),
         )  # fmt: skip
         _written_back(params, values)
 
@@ -674,7 +675,10 @@ class FitSteps:
         if self.network or self.linear:
             (y_scale,) = buffer_views(model, ("y_scale",))
             step = _lazy("nn_fit_steps" if self.network else "lr_fit_steps")
-            step(tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps)
+            prior = () if self.network else buffer_views(model, ("w_prec",))  # lr's slopes
+            step(
+                tuple(self.values), self.moments, self.counts, todo, *data, y_scale, *steps, *prior
+            )
             return
         a_max, y_scale, x_mean, x_std = buffer_views(model, _SCALES)
         pos, mu, sigma = physics_layout(model)
