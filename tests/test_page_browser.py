@@ -201,6 +201,13 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     assert "error" not in (page.locator("#diag-status").get_attribute("class") or ""), status
     verdict = page.locator("#diag-verdict").inner_text()
     assert page.locator("#diag-candidates-table button.apply").count() == 1, verdict
+    # the verdict in one line above its sentence: its kind and what it names
+    headline = page.locator("#diag-headline").inner_text()
+    said = page.evaluate("window.vfm.diagnosed.verdict")
+    words = {"effect": f"add {said['effect']}", "carried": "carried", "driver": "depends on"}
+    assert headline.startswith("Verdict: ") and words[said["kind"]] in headline, (headline, said)
+    if said["kind"] == "effect":
+        assert f"{said['live']['change']:+.2f} points" in headline, headline
     # the candidate's trial forecast (its backtest against the shadow) has a column of its
     # own, this well's figure with its interval, as the diagnosis gives it
     forecast = page.evaluate(

@@ -791,7 +791,7 @@ async function loadWell(well) {
   $("#field-view").hidden = true; $("#well-view").hidden = false;
   $("#csv-link").href = `/wells/${encodeURIComponent(well)}/history.csv`;
   $("#csv-link").setAttribute("download", `${well}-history.csv`);
-  $("#diag-verdict").textContent = ""; $("#diag-status").textContent = "";
+  $("#diag-verdict").textContent = ""; $("#diag-headline").textContent = ""; $("#diag-status").textContent = "";
   $("#diag-candidates-table").hidden = true; $("#change-result").textContent = ""; $("#wt-result").textContent = "";
   makeCharts();
   try {
@@ -904,7 +904,7 @@ async function runDiagnosis(e) {
   const cands = $("#diag-candidates").value.split(",").map((s) => s.trim()).filter(Boolean);
   const body = { model: $("#diag-model").value, suggest: $("#diag-suggest").checked };
   if (cands.length) body.candidates = cands;
-  $("#diag-run").disabled = true; $("#diag-verdict").textContent = ""; $("#diag-candidates-table").hidden = true;
+  $("#diag-run").disabled = true; $("#diag-verdict").textContent = ""; $("#diag-headline").textContent = ""; $("#diag-candidates-table").hidden = true;
   $("#change-result").textContent = ""; $("#change-result").className = "result";
   try {
     const job = await api("POST", `/wells/${encodeURIComponent(state.well)}/diagnosis`, body);
@@ -927,9 +927,26 @@ async function followDiagnosis(id) {
   }
 }
 
+/* The verdict in one line above its sentence (diagnosis.json's verdict: kind, effect,
+   driver, live change in MAPE points, instrument): what it is and what the operator can do. */
+function verdictHeadline(v) {
+  if (!v) return "";
+  const live = v.live && v.live.change != null ? ` (live MAPE ${v.live.change >= 0 ? "+" : ""}${fmt(v.live.change, 2)} points)` : "";
+  const ins = v.instrument || {};
+  switch (v.kind) {
+    case "effect": return `Verdict: add ${v.effect}${live}.`;
+    case "carried": return `Verdict: ${v.effect}, carried: the learner already follows it${live}; nothing offered.`;
+    case "driver": return `Verdict: the residual depends on ${v.driver}, which no library effect explains; a correction is offered${live}.`;
+    case "noise": return "Verdict: noise. Nothing the data support would lower the error.";
+    case "instrument": return `Verdict: an instrument, not physics: ${ins.sensor || "an input"} ${ins.kind || "fault"}${ins.start ? " since " + day(ins.start) : ""}.`;
+    default: return `Verdict: ${v.kind}.`;
+  }
+}
+
 function showDiagnosis(j) {
   const d = j.diagnosis;
   state.diagnosed = d;
+  $("#diag-headline").textContent = verdictHeadline(d.verdict);
   $("#diag-verdict").textContent = d.verdict.text;
   const diagnosed = [d.model, ...(d.base_effects || [])].join("+");
   // one error, the one the operator sees: the well's own method replayed (live), the outage
