@@ -27,6 +27,7 @@ from vfm_core.models.base import (
 )
 from vfm_core.models.linalg import matmul
 from vfm_core.schema import INPUT_COLUMNS
+from vfm_core.units import KELVIN_OFFSET
 
 __all__ = ["LastValue", "LinearRegression", "NeuralNet", "MultiTask"]
 
@@ -61,7 +62,7 @@ class LastValue(ChokeModel):
 #: each input's offset from its file unit to an absolute scale, in INPUT_COLUMNS order:
 #: t_up degC -> K; the choke and the mass fractions (0..1) and the pressures (bar
 #: absolute) are absolute already
-_ABSOLUTE_OFFSET = (0.0, 0.0, 0.0, 273.15, 0.0, 0.0)
+_ABSOLUTE_OFFSET = tuple(KELVIN_OFFSET if c == "t_up" else 0.0 for c in INPUT_COLUMNS)
 #: what ``lr``'s slope prior is stated in (:class:`LinearRegression`'s ``slopes``)
 SLOPE_PRIORS: tuple[str, ...] = ("elasticity", "spread")
 
