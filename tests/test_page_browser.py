@@ -267,6 +267,16 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     page.wait_for_timeout(1200)  # one redraw
     page.screenshot(path=str(SHOTS / "change.png"), full_page=True)
     assert errors == [], errors
+    # a change that predates the chart's window gets no marker (one at the window's left
+    # edge would date it wrongly); a window that holds it marks it again
+    page.select_option("#span", "7")
+    page.wait_for_function(f"window.vfm.preds.length > 0 && window.vfm.preds[0].t > {marker}")
+    assert page.evaluate("window.vfm.markers.filter(m => m.kind === 'model').length") == 0
+    page.select_option("#span", "180")
+    page.wait_for_function(
+        f"window.vfm.preds.length > 0 && window.vfm.preds[0].t < {marker}"
+        " && window.vfm.markers.some(m => m.kind === 'model')"
+    )
 
     # "apply" of a change its held-out check calls worse asks first. Which candidate the
     # diagnosis offers, and how its check comes out, is not fixed; so the page is handed the

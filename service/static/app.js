@@ -769,9 +769,13 @@ function markersFromView(v) {
   const out = [];
   // operating-point notices (the T^2 input test): drawn as ticks without a label
   for (const d of (v.drift && v.drift.events) || []) out.push({ t: secs(d.time), kind: "drift", label: "operating point" });
+  const versioned = state.preds.filter((p) => p.version != null);
   for (const c of v.model_changes || []) {
-    // the change's own time is the wall clock; place it at the first prediction of its version
-    const first = state.preds.find((p) => p.version != null && p.version >= c.version_after);
+    // the change's own time is the wall clock; place it at the first prediction of its version.
+    // When every prediction in the window is of that version or later, the change predates the
+    // window: no marker (one at the window's left edge would date it wrongly)
+    const first = versioned.find((p) => p.version >= c.version_after);
+    if (first && first === versioned[0]) continue;
     const t = first ? first.t : secs(v.last_sample_time);
     if (t) out.push({ t, kind: "model", label: "\u2192 " + c.model_after, version: c.version_after });
   }
