@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import shlex
 import sys
 import time
@@ -161,9 +162,14 @@ def which_moved(
     ``which_moved`` reads it (:func:`vfm_core.meter_check.which_moved`, with the alarm's
     size at its raise): ``meter``, ``unclear`` or ``well``, counted; beside it in brackets
     the z alone (the rule before s51: ``meter`` |z| > 3, ``well`` |z| < 1). A meter event
-    should say ``meter``, a well that changed ``well``."""
+    should say ``meter``, a well that changed ``well``. Then the same with every well test
+    compared from the alarm's start to 180 days after the event read together (``which_moved``
+    with ``pairs``, s54: the service's reading at the last of them), each set against the
+    pairs from before the alarm."""
     said = {"meter": 0, "unclear": 0, "well": 0}
     alone = dict(said)
+    pooled = dict(said)
+    n_pooled: list[int] = []
     for well, info in truth["wells"].items():
         if key not in info:
             continue
@@ -189,8 +195,25 @@ def which_moved(
             said[meter_check.which_moved(alarm, check)["moved"]] += 1
             z = abs(float(row["z"]))
             alone["meter" if z > SHIFT_Z else "well" if z < SAME_Z else "unclear"] += 1
+            # all of them, each against the first one's usual (the pairs before the alarm)
+            pairs = [
+                (t.value, float(r))
+                for t, r in zip(c["time"], c["relative_difference"], strict=True)
+            ]
+            latest = {**check, "well_test_time": c["time"].iloc[-1].isoformat()}
+            latest["relative_difference"] = pairs[-1][1]
+            latest["z"] = (
+                math.log1p(pairs[-1][1]) - math.log1p(float(row["usual_difference"]))
+            ) / float(row["usual_spread"])
+            together = meter_check.which_moved(alarm, latest, pairs)
+            pooled[together["moved"]] += 1
+            n_pooled.append(together["n_well_tests"])
     counts = ", ".join(f"{k} {v} ({alone[k]})" for k, v in said.items())
-    return "first well test after the MPFM alarm (z alone): " + counts
+    out = "first well test after the MPFM alarm (z alone): " + counts
+    if n_pooled:
+        out += f"; all within 180 d read together ({min(n_pooled)}-{max(n_pooled)} well tests): "
+        out += ", ".join(f"{k} {v}" for k, v in pooled.items())
+    return out
 
 
 def band_alarms(frame: pd.DataFrame) -> list[dict]:

@@ -128,6 +128,42 @@ def test_which_moved_sets_the_pair_against_the_alarms_size() -> None:
     assert which_moved({**alarm, "shift": None}, {**check, "z": 0.2})["meter_z"] is None
 
 
+def test_which_moved_reads_the_well_tests_since_the_alarm_together() -> None:
+    """A 6 % shift against pairs that spread 3 %: one well test cannot tell the meter
+    from the well (2 spreads apart), three can (their mean's spread is 3 % / sqrt 3).
+    Pairs from before the alarm, or after the check's well test, are not read."""
+    alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00", "shift": 0.06}
+    usual, spread = 0.008, 0.03
+    times = [pd.Timestamp(d, tz="UTC") for d in ("2020-05-10", "2020-06-20", "2020-08-01")]
+    before = (pd.Timestamp("2020-04-01", tz="UTC").value, 0.5)  # before the alarm: not read
+    later = (pd.Timestamp("2020-09-01", tz="UTC").value, -0.5)  # after the check: not read
+
+    def check(rel: float) -> dict:
+        z = (math.log1p(rel) - math.log1p(usual)) / spread
+        return {
+            "well_test_time": times[-1].isoformat(),
+            "relative_difference": rel,
+            "usual_difference": usual,
+            "usual_spread": spread,
+            "z": z,
+        }
+
+    moved = math.expm1(math.log1p(usual) + math.log1p(0.06))  # the meter moved by 6 %
+    for rel, alone, together in ((moved, "unclear", "meter"), (usual, "unclear", "well")):
+        pairs = [before, *[(t.value, rel) for t in times], later]
+        one = which_moved(alarm, check(rel))
+        three = which_moved(alarm, check(rel), pairs)
+        assert one["moved"] == alone and one["n_well_tests"] == 1, one
+        assert three["moved"] == together and three["n_well_tests"] == 3, three
+        assert three["z"] == pytest.approx(one["z"] * math.sqrt(3))
+        assert three["z_latest"] == pytest.approx(one["z"])
+        assert "on average against the 3 well tests since the alarm began" in three["text"]
+        assert "(the latest of 2020-08-01)" in three["text"]
+    # the check's own pair missing from ``pairs``: the check alone, as before
+    alone = which_moved(alarm, check(moved), [(times[0].value, moved)])
+    assert alone["n_well_tests"] == 1 and alone["moved"] == "unclear"
+
+
 def test_awaiting_the_well_test_that_says_which_moved() -> None:
     alarm = {"active": True, "source": "mpfm", "since": "2020-05-01T00:00:00+00:00"}
     day = 86_400 * 10**9

@@ -14,6 +14,7 @@ from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from alarm_support import INPUTS, T0, fixed_model_service
 from test_service_alarm import http_get
@@ -89,6 +90,12 @@ def test_the_well_tests_say_which_moved(tmp_path: Path, meter_moved: bool) -> No
         assert moved["moved"] == "well" and "the well changed" in moved["text"]
         assert moved["meter_z"] < -2  # far below where a meter move would put the pair
     assert moved["alarm_shift"] == alarm["shift"]
+    # every well test since the alarm began is read, together (s54): days 73, 80 and 87
+    since = pd.Timestamp(alarm["since"])
+    tested = [d for d in range(3, DAYS, 7) if T0 + timedelta(days=d, hours=9) >= since]
+    assert len(tested) >= 2 and moved["n_well_tests"] == len(tested), (tested, moved)
+    assert moved["z_latest"] == pytest.approx(check["z"], rel=1e-12)
+    assert f"against the {len(tested)} well tests since the alarm began" in moved["text"]
     # a restart sets the latest well test against the same earlier ones (from the store)
     with fixed_model_service(tmp_path) as (service, _):
         again = http_get(service, "/wells/W01").json()

@@ -111,16 +111,29 @@ def against_usual(earlier: Sequence[float], difference: float) -> dict[str, Any]
     }
 
 
-def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str, Any] | None:
+def which_moved(
+    alarm: dict[str, Any],
+    check: dict[str, Any] | None,
+    pairs: Sequence[tuple[int, float]] = (),
+) -> dict[str, Any] | None:
     """Beside an active residual alarm on the MPFM's stream (``alarm``: the residual
     alarm's view, ``source`` ``mpfm``, ``since`` ISO, and ``shift``, the alarm's relative
     size when known, with ``shift_se``, its standard error in log terms,
-    :class:`vfm_core.residual_alarm.AlarmSize`), what the latest well test
-    compared since the alarm began says (``check``: the well's MPFM check, with
-    :func:`against_usual`'s fields): ``{"well_test_time", "z", "moved", "text",
-    "alarm_shift", "meter_z"}`` with ``moved`` ``meter``, ``well`` or ``unclear``. None
-    when the alarm is on another stream, or no such well test has been set against its
-    usual difference yet.
+    :class:`vfm_core.residual_alarm.AlarmSize`), what the well tests compared since the
+    alarm began say (``check``: the well's latest MPFM check, with :func:`against_usual`'s
+    fields, set against the pairs from before the alarm; ``pairs``: the well's compared
+    well tests as (epoch ns, relative difference), those from the alarm's start to the
+    check's well test read together with it): ``{"well_test_time", "z", "moved", "text",
+    "alarm_shift", "meter_z", "n_well_tests", "z_latest"}`` with ``moved`` ``meter``,
+    ``well`` or ``unclear``. None when the alarm is on another stream, or no such well
+    test has been set against its usual difference yet.
+
+    Several well tests since the alarm read together (s54): their pairs' mean move from
+    the usual difference, whose spread is the pairs' over the square root of their number
+    (``z`` is that mean's; ``z_latest`` the latest pair's alone, as before). A shift that
+    one well test cannot tell from the pairs' spread is told by two or three: a well test
+    comes every 3 to 8 weeks, and an alarm on a meter or a well that moved stays active.
+    With one well test (or no ``pairs``) this is the latest pair's reading, as before.
 
     Two readings of the pair's move ``d`` (its z times the pairs' spread): if the meter
     moved, ``d`` is the alarm's shift (the well tests stayed); if the well moved, ``d`` is
@@ -150,25 +163,23 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
         return None
     if pd.Timestamp(when) < pd.Timestamp(alarm["since"]):
         return None
+    z_latest = float(z)
     day = str(when)[:10]
     now, usual = 100 * check["relative_difference"], 100 * check["usual_difference"]
-    reads = f"the MPFM reads {now:+.1f} % against the well test of {day}, usually {usual:+.1f} %"
-    shift = _number(alarm.get("shift"))
-    s, wide = _shift_and_spread(alarm, check.get("usual_spread"))
-    known = math.isfinite(wide)
     spread = _number(check.get("usual_spread"))
-    meter_z = (z * spread - s) / wide if known else None
-    apart = SHIFT_Z - SAME_Z
-    if abs(z) > SHIFT_Z and (not known or z * s > 0):
-        moved, text = "meter", f"{reads} (z {z:+.1f}): the meter moved, not the well"
-    elif abs(z) < SAME_Z and (meter_z is None or abs(meter_z) >= apart):
-        moved, text = "well", f"{reads} (z {z:+.1f}): the well test moved with it: the well changed"
-    elif known and abs(s) < apart * wide:
-        size = f"the alarm's shift ({100 * shift:+.1f} %) is within {apart:.0f} of the pairs' "
-        size += f"spreads ({100 * wide:.1f} %)"
-        moved, text = "unclear", f"{reads} (z {z:+.1f}); {size}: no one well test can tell"
+    moves = _moves_since(alarm, check, pairs) if spread > 0 else []
+    n = len(moves) if moves else 1
+    if n > 1:  # the pairs since the alarm together: their mean move, in its own spreads
+        z, reads = _together(moves, check["usual_difference"], spread, day)
     else:
-        moved, text = "unclear", f"{reads} (z {z:+.1f}): this well test cannot tell meter from well"
+        reads = (
+            f"the MPFM reads {now:+.1f} % against the well test of {day}, usually {usual:+.1f} %"
+        )
+    shift = _number(alarm.get("shift"))
+    s, wide = _shift_and_spread(alarm, spread / math.sqrt(n))
+    known = math.isfinite(wide)
+    meter_z = (z * spread / math.sqrt(n) - s) / wide if known else None
+    moved, text = _decide(z, s, wide, meter_z, n, reads, shift)
     return {
         "well_test_time": when,
         "z": z,
@@ -176,7 +187,60 @@ def which_moved(alarm: dict[str, Any], check: dict[str, Any] | None) -> dict[str
         "text": text,
         "alarm_shift": shift if known else None,
         "meter_z": meter_z,
+        "n_well_tests": n,
+        "z_latest": z_latest,
     }
+
+
+def _decide(
+    z: float, s: float, wide: float, meter_z: float | None, n: int, reads: str, shift: float
+) -> tuple[str, str]:
+    """:func:`which_moved`'s rule on a move of ``z`` spreads (``s``: the alarm's shift in
+    log terms, ``wide``: the spread about it, NaN when not known; ``n`` well tests read):
+    ``(moved, text)``."""
+    known = math.isfinite(wide)
+    apart = SHIFT_Z - SAME_Z
+    if abs(z) > SHIFT_Z and (not known or z * s > 0):
+        moved, text = "meter", f"{reads} (z {z:+.1f}): the meter moved, not the well"
+    elif abs(z) < SAME_Z and (meter_z is None or abs(meter_z) >= apart):
+        moved, text = "well", f"{reads} (z {z:+.1f}): the well test moved with it: the well changed"
+    elif known and abs(s) < apart * wide:
+        whose = "the pairs'" if n == 1 else "their mean's"
+        size = f"the alarm's shift ({100 * shift:+.1f} %) is within {apart:.0f} of {whose} "
+        size += f"spreads ({100 * wide:.1f} %)"
+        cannot = "no one well test can tell" if n == 1 else f"{n} well tests cannot tell yet"
+        moved, text = "unclear", f"{reads} (z {z:+.1f}); {size}: {cannot}"
+    else:
+        these = "this well test" if n == 1 else f"these {n} well tests"
+        moved, text = "unclear", f"{reads} (z {z:+.1f}): {these} cannot tell meter from well"
+    return moved, text
+
+
+def _together(moves: Sequence[float], usual: float, spread: float, day: str) -> tuple[float, str]:
+    """The z of the mean of ``moves`` (log moves from the ``usual`` relative difference,
+    pairs of robust sd ``spread``) and the sentence that reads them (``day``: the latest's)."""
+    mean, n = statistics.fmean(moves), len(moves)
+    now = 100 * math.expm1(math.log1p(usual) + mean)
+    reads = (
+        f"the MPFM reads {now:+.1f} % on average against the {n} well tests since the "
+        f"alarm began (the latest of {day}), usually {100 * usual:+.1f} %"
+    )
+    return mean / (spread / math.sqrt(n)), reads
+
+
+def _moves_since(
+    alarm: dict[str, Any], check: dict[str, Any], pairs: Sequence[tuple[int, float]]
+) -> list[float]:
+    """The log moves from the usual difference (``check``'s, from before the alarm) of the
+    pairs compared from the alarm's start to ``check``'s well test, that one included (an
+    empty list when ``pairs`` does not hold it: then the check is read alone)."""
+    since = pd.Timestamp(alarm["since"]).value
+    until = pd.Timestamp(check["well_test_time"]).value
+    centre = math.log1p(check["usual_difference"])
+    chosen = [(t, r) for t, r in pairs if since <= t <= until and r > -1.0]
+    if not chosen or max(t for t, _ in chosen) != until:
+        return []
+    return [math.log1p(r) - centre for _, r in chosen]
 
 
 def _shift_and_spread(alarm: dict[str, Any], spread: Any) -> tuple[float, float]:

@@ -262,7 +262,7 @@ class WellState:
             return disabled_view()
         view = alarm.view()
         if view["active"]:
-            view["which_moved"] = which_moved(view, self.mpfm_check)
+            view["which_moved"] = which_moved(view, self.mpfm_check, self.mpfm_pairs)
             tests = [t for t, _ in self.mpfm_pairs]
             view["awaiting_well_test"] = awaiting_well_test(
                 view, self.mpfm_check, tests, self.last_time_ns
