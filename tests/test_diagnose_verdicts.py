@@ -609,6 +609,11 @@ def test_a_noise_verdict_names_what_it_did_not_test() -> None:
     text = dv.untested_text([{"effect": "valve", "reason": why}])
     assert text == f" Not tested: valve ({why})."
     assert dv.untested_text([]) == ""
+    # a reason written as a sentence (an effect already in the model) ends inside no full stop
+    inside = {"effect": "erosion", "reason": "erosion is already in the model (ham+erosion)."}
+    assert dv.untested_text([inside]) == (
+        " Not tested: erosion (erosion is already in the model (ham+erosion))."
+    )
 
 
 def test_a_noise_verdict_names_candidates_beyond_chance_but_below_the_minimum() -> None:

@@ -26,6 +26,9 @@ window.vfm = state;     // for the browser tests and for curious users
 const $ = (sel) => document.querySelector(sel);
 const fmt = (v, d = 1) => (v === null || v === undefined || !isFinite(v) ? "\u2013" : Number(v).toFixed(d));
 const secs = (iso) => (iso ? Date.parse(iso) / 1000 : null);
+const utc = (iso) => (iso || "").replace("+00:00", "Z");
+/* A p-value as read: three decimals down to 0.001, two significant digits below (1.5e-07). */
+const pText = (p) => (p == null || !isFinite(p) ? "\u2013" : p >= 0.001 ? Number(p).toFixed(3) : Number(p).toExponential(1).replace(/e-(\d)$/, "e-0$1"));
 const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
 
 async function api(method, path, body) {
@@ -714,16 +717,32 @@ function renderTrial(v) {
   el.hidden = !t;
   if (!t) { el.textContent = ""; return; }
   const what = { running: "running", kept: "kept", rolled_back: "rolled back", superseded: "superseded", interrupted: "interrupted" }[t.outcome] || t.outcome;
-  const test = t.p_value == null ? "" : ` (one-sided p ${fmt(t.p_value, 3)} that the shadow is better)`;
+  // a p-value is not the chance that the shadow is better: name the test, and print a small
+  // p as it is (1.5e-07), not as a bare 0.000
+  const test = t.p_value == null ? "" : ` (one-sided test of "the shadow is better": p ${pText(t.p_value)})`;
   el.className = "trial " + t.outcome;
   el.dataset.outcome = t.outcome;
   // a change of the learning method alone keeps the model's name: name the methods then
   const named = t.method && t.shadow_method && t.method !== t.shadow_method;
   const label = (m, k) => named ? `${m} (${k})` : m;
-  el.textContent = `Trial of ${label(t.model, t.method)} against its shadow ${label(t.shadow_model, t.shadow_method)} since ${(t.since || "").replace("+00:00", "Z")}: ` +
+  // an ended trial says when it ended: its errors are of its own days, not of the rolling
+  // window in the line above
+  const span = t.outcome !== "running" && t.ended ? `from ${utc(t.since)} to ${utc(t.ended)}` : `since ${utc(t.since)}`;
+  el.textContent = `Trial of ${label(t.model, t.method)} against its shadow ${label(t.shadow_model, t.shadow_method)} ${span}: ` +
     `MAPE ${fmt(t.mape, 2)} % against the shadow's ${fmt(t.shadow_mape, 2)} % over ${t.n} paired measurement(s)${test}. ` +
-    `Outcome: ${what}` + (t.outcome === "running" ? ` until ${(t.until || "").replace("+00:00", "Z")} of data (at least ${t.min_pairs ?? ""} pairs).` : ".") +
-    (t.why ? " " + t.why : "") + (t.rule ? ` Rule: ${t.rule}` : "");
+    `Outcome: ${what}` + (t.outcome === "running" ? ` until ${utc(t.until)} of data (at least ${t.min_pairs ?? ""} pairs).` : ".") +
+    (t.why ? " " + t.why : "") + (t.rule ? ` Rule: ${t.rule}` : "") + replacedSince(v, t);
+}
+
+/* A kept trial whose model a later change or rollback replaced: the line above it names the
+   model that runs now, so say that the trial's model no longer does. */
+function replacedSince(v, t) {
+  if (t.outcome !== "kept" || t.version == null) return "";
+  const later = (v.model_changes || []).filter((c) => c.version_after > t.version);
+  if (!later.length) return "";
+  const c = later[later.length - 1];
+  return ` Since then ${c.kind === "rollback" ? "rolled back" : "changed"} to ${c.model_after}` +
+    `${c.method ? " (" + c.method + ")" : ""}, version ${c.version_after}: ${t.model} no longer runs.`;
 }
 
 function renderVersions(v) {
@@ -769,24 +788,58 @@ function markersFromView(v) {
   const out = [];
   // operating-point notices (the T^2 input test): drawn as ticks without a label
   for (const d of (v.drift && v.drift.events) || []) out.push({ t: secs(d.time), kind: "drift", label: "operating point" });
-  const versioned = state.preds.filter((p) => p.version != null);
-  for (const c of v.model_changes || []) {
-    // the change's own time is the wall clock; place it at the first prediction of its version.
-    // When every prediction in the window is of that version or later, the change predates the
-    // window: no marker (one at the window's left edge would date it wrongly)
-    const first = versioned.find((p) => p.version >= c.version_after);
-    if (first && first === versioned[0]) continue;
-    const t = first ? first.t : secs(v.last_sample_time);
-    if (t) out.push({ t, kind: "model", label: "\u2192 " + c.model_after, version: c.version_after });
+  const changes = v.model_changes || [];
+  for (const c of changes) {
+    const t = changeTime(v, c);
+    // a change of the method alone keeps the model's name: the label names the method then
+    const label = "\u2192 " + c.model_after + (c.model_before === c.model_after && c.method ? ` (${c.method})` : "");
+    if (t) out.push({ t, kind: "model", label, version: c.version_after });
   }
+  // a pbl method's retrains raise the version; so does every step of an online method (ol,
+  // bayes) and a model change: only the rises since the well has run the pbl method it runs
+  // now are retrains, not the steps of the method it ran before a change
   if ((v.method || "").startsWith("pbl")) {
+    const since = pblSince(v);
     let prev = null;
     for (const p of state.preds) {
-      if (prev !== null && p.version != null && p.version > prev) out.push({ t: p.t, kind: "retrain", label: "retrain" });
+      if (prev !== null && prev >= since && p.version != null && p.version > prev) out.push({ t: p.t, kind: "retrain", label: "retrain" });
       if (p.version != null) prev = p.version;
     }
   }
   return out;
+}
+
+/* Where a model change stands on the charts (data time, s): the well's latest sample when it
+   was swapped in, as the replaced version records it (`versions[].replaced`); for a version
+   no longer kept, the first prediction of the new version, when the window also holds one of
+   an older version; the latest sample for a change with no prediction yet. A change before
+   the window's first prediction has no marker (it stood at the window's left edge, dated
+   wrongly). */
+function changeTime(v, c) {
+  const kept = (v.versions || []).find((x) => x.version === c.version_before && x.replaced);
+  if (kept) {
+    const t = secs(kept.replaced);
+    return state.preds.length && t < state.preds[0].t ? null : t;
+  }
+  const i = state.preds.findIndex((p) => p.version != null && p.version >= c.version_after);
+  if (i > 0) return state.preds[i].t;
+  return i < 0 ? secs(v.last_sample_time) : null;
+}
+
+/* The first version under the pbl method the well runs now: the version after the latest
+   change that brought it, walking back over earlier changes while the version each replaced
+   ran a pbl method too (`versions[].method`); 0 (from the start) when no change brought it. */
+function pblSince(v) {
+  const changes = v.model_changes || [];
+  let since = 0;
+  for (let i = changes.length - 1; i >= 0; i--) {
+    const c = changes[i];
+    since = c.version_after;
+    const before = (v.versions || []).find((x) => x.version === c.version_before);
+    if (!before || !(before.method || "").startsWith("pbl")) break;
+    if (i === 0) since = 0;
+  }
+  return since;
 }
 
 async function loadWell(well) {
@@ -933,13 +986,14 @@ async function followDiagnosis(id) {
 
 /* The verdict in one line above its sentence (diagnosis.json's verdict: kind, effect,
    driver, live change in MAPE points, instrument): what it is and what the operator can do. */
-function verdictHeadline(v) {
+function verdictHeadline(v, anyway = false) {
   if (!v) return "";
   const live = v.live && v.live.change != null ? ` (live MAPE ${v.live.change >= 0 ? "+" : ""}${fmt(v.live.change, 2)} points)` : "";
   const ins = v.instrument || {};
   switch (v.kind) {
     case "effect": return `Verdict: add ${v.effect}${live}.`;
-    case "carried": return `Verdict: ${v.effect}, carried: the learner already follows it${live}; nothing offered.`;
+    case "carried": return `Verdict: ${v.effect}, carried: the learner already follows it${live}; ` +
+      (anyway ? `not offered for accuracy ("add anyway" below adds it as a parameter to read).` : "nothing offered.");
     case "driver": return `Verdict: the residual depends on ${v.driver}, which no library effect explains; a correction is offered${live}.`;
     case "noise": return "Verdict: noise. Nothing the data support would lower the error.";
     case "instrument": return `Verdict: an instrument, not physics: ${ins.sensor || "an input"} ${ins.kind || "fault"}${ins.start ? " since " + day(ins.start) : ""}.`;
@@ -981,12 +1035,17 @@ function showDiagnosis(j) {
   };
   // a "carried" verdict names the physics, but the learner already follows it: adding it
   // is the operator's choice (a parameter to read, outages), offered as such when it raises
-  // neither error; its trial against the shadow then shows what it does
+  // neither error (the field's, and this well's own where its whole 95 % interval lies above
+  // zero: the verdict's sentence reports that rise, and a button beside it must not say the
+  // effect "may help when the meter fails"); its trial against the shadow then shows what it does
+  const risesHere = (c) => ["live", "outage"].find((p) => ((mineTest(c, p) || {}).low ?? -1) > 0);
   const carried = (c) => !c.offer && d.verdict && d.verdict.kind === "carried" &&
     d.verdict.effect === c.effect && c.replayed && !c.raises_error &&
-    !(((c.tests || {}).outage || {}).change > 0);
+    !(((c.tests || {}).outage || {}).change > 0) && !risesHere(c);
   const action = (c, spec) => c.offer
     ? `<button class="apply" data-spec="${esc(spec)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(spec)}]">apply</button>`
+    : d.verdict && d.verdict.kind === "carried" && d.verdict.effect === c.effect && risesHere(c)
+    ? `<span class="hint">raises this well's ${risesHere(c)} error (${change(mineTest(c, risesHere(c)))} points, beyond chance)</span>`
     : carried(c)
     ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter to read and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
@@ -997,7 +1056,7 @@ function showDiagnosis(j) {
     <td class="num">${c.replayed ? fmt((mineTest(c, "live") || {}).mape, 2) : "\u2013"}</td>
     <td class="num">${change(mineTest(c, "live"))}</td><td class="num">${change((c.tests || {}).outage)}</td>
     <td class="num trial">${change(mineTest(c, "trial"))}</td>
-    <td>${esc(c.meaning)} <span class="hint">(${esc(evidence(c))}; fit-once ${fmt(c.delta_mape, 2)})</span>${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.join("; ")) + "</span>" : ""}</td>
+    <td>${esc(c.meaning)} <span class="hint">(${esc(evidence(c))}; fit-once ${fmt(c.delta_mape, 2)})</span>${(c.warnings || []).length ? ' <span class="warn">' + esc(c.warnings.map((w) => w.replace(/\.$/, "")).join("; ") + ".") + "</span>" : ""}</td>
     <td>${action(c, c.spec || c.effect)}</td></tr>`);
   if (d.suggestion) {
     const s = d.suggestion;
@@ -1009,6 +1068,11 @@ function showDiagnosis(j) {
   }
   $("#diag-candidates-table tbody").innerHTML = rows.join("") || `<tr><td colspan="7" class="hint">No candidate could be tried.</td></tr>`;
   $("#diag-candidates-table").hidden = false;
+  if (d.verdict && d.verdict.kind === "carried") {
+    // "nothing offered" beside an "add anyway" button reads as a contradiction: say which
+    const anyway = (d.candidates || []).some(carried);
+    $("#diag-headline").textContent = verdictHeadline(d.verdict, anyway);
+  }
   const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)
     .map((x) => `${x.name} (score ${fmt(x.score, 3)}` + (x.p_value == null ? ")" : `, p ${fmt(x.p_value, 2)})`));
   const real = (d.drivers || []).filter((x) => x.role === "driver" && x.score > 0 && x.p_value != null && x.p_value < 0.05);
@@ -1016,8 +1080,42 @@ function showDiagnosis(j) {
     ? "Inputs the residual depends on beyond chance: " + real.map((x) => `${x.name} (p ${fmt(x.p_value, 3)})`).join(", ") + "."
     : "No input explains the residual beyond chance (p < 0.05); the strongest: " + drivers.join(", ") + ".") +
     (d.fdr && d.fdr.procedure ? ` False discoveries: ${d.fdr.procedure}; ${d.fdr.rejected} of ${d.fdr.tests} tests rejected` +
-      (d.fdr.family != null && d.fdr.family < d.fdr.tests ? ` (${d.fdr.family} could reach significance).` : ".") : "");
+      (d.fdr.family != null && d.fdr.family < d.fdr.tests ? ` (${d.fdr.family} could reach significance)` : "") +
+      (rejectedTests(d).length ? ": " + rejectedTests(d).join(", ") : "") + "." : "");
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
+}
+
+/* Beside a held-out check that calls a change worse, what the diagnosis that offered it
+   expected (its live replay, this well's figure): two numbers that disagree, each named, and
+   which one decides. Empty when the change is not one of the diagnosis's candidates. */
+function diagnosisBeside(d, spec) {
+  const c = [...(d.candidates || []), ...(d.suggestion ? [d.suggestion] : [])]
+    .find((x) => (x.spec || x.effect || x.effects) === spec || x.effect === spec);
+  const all = c && (c.tests || {}).live, focus = d.pool && d.pool.focus;
+  const t = all && focus && all.per_well && all.per_well[focus] ? all.per_well[focus] : all;
+  if (!t || t.base_mape == null || t.mape == null) return "";
+  return `\n\nThe diagnosis replayed it learning with ${d.method || "the well's method"}, as the service runs: ` +
+    `live MAPE ${fmt(t.base_mape, 2)} % -> ${fmt(t.mape, 2)} %. The held-out check fits both models once on the ` +
+    `older four fifths and never updates them; the two can disagree, and the trial against the shadow decides.`;
+}
+
+/* Which tests the false-discovery procedure rejected, by candidate and protocol, as
+   "erosion (fit-once: field)" or "slip (fit-once: field, W01, W03; live: W01)": a count alone
+   beside a "noise" verdict reads as a contradiction; named, the reader sees which they are
+   (fit-once tests name an effect, they do not by themselves give a verdict). */
+function rejectedTests(d) {
+  const out = [];
+  for (const c of [...(d.candidates || []), ...(d.suggestion ? [d.suggestion] : [])]) {
+    const parts = [];
+    for (const [protocol, t] of Object.entries(c.tests || {})) {
+      if (!t || typeof t !== "object") continue;
+      const where = [...(t.rejected ? ["field"] : []),
+        ...Object.entries(t.per_well || {}).filter(([, w]) => w && w.rejected).map(([well]) => well)];
+      if (where.length) parts.push(`${protocol.replace("_", "-")}: ${where.join(", ")}`);
+    }
+    if (parts.length) out.push(`${c.effect || "the suggested correction"} (${parts.join("; ")})`);
+  }
+  return out;
 }
 
 async function applyEffect(button) {
@@ -1041,7 +1139,8 @@ async function applyEffect(button) {
     } catch (err) {
       // 409 with both held-out MAPEs: the change's own check says worse; ask before forcing it
       if (err.status !== 409 || !/confirm_worse/.test(err.message)) throw err;
-      if (!window.confirm(err.message.replace(/ ?Nothing was changed;.*$/, "") + "\n\nApply it anyway? Its trial then compares it with the current model.")) {
+      if (!window.confirm(err.message.replace(/ ?Nothing was changed;.*$/, "") + diagnosisBeside(d, spec) +
+          "\n\nApply it anyway? Its trial then compares it with the current model.")) {
         out.className = "result"; out.textContent = "Not applied: " + err.message; return;
       }
       out.textContent = `fitting ${[model, ...effects].join("+")} again, confirmed...`;

@@ -306,9 +306,22 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
         return True, "live"
     if _gain(c.test("outage"), ot if well is not None else None):
         return True, "outage"
-    tests = (c.test("live"), lt, c.test("outage"), ot)
-    if _gain(*tests, least=0.0):
-        return False, f"lowers the error beyond chance, but by less than {MIN_CHANGE:g} points"
+    # which test it is, with its change: the note stands beside this well's own figures, and
+    # "by less than 0.1 points" beside a well's -0.15 reads as a contradiction when the test
+    # that was beyond chance is the field's -0.07
+    here = "the field's" if well is None else "this well's"
+    named = (
+        ("the field's live", c.test("live")),
+        (f"{here} live", lt),
+        ("the field's outage", c.test("outage")),
+        (f"{here} outage", ot),
+    )
+    for who, t in named:
+        if t is not None and _gain(t, least=0.0):
+            return False, (
+                f"lowers {who} error beyond chance, but by less than {MIN_CHANGE:g} points "
+                f"({float(t['change']):+.2f})"
+            )
     return False, "within noise"
 
 
@@ -517,10 +530,12 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
 def untested_text(skipped: Sequence[dict[str, str]]) -> str:
     """A sentence for a ``noise`` verdict naming the candidates the diagnosis did not test,
     with their reasons (``skipped``: ``{"effect", "reason"}`` each): "none lowers the error"
-    is then not a verdict on them. Empty when none was skipped."""
+    is then not a verdict on them. Empty when none was skipped. A reason that is a sentence
+    of its own loses its full stop inside the brackets ("(... (ham+erosion).)." read as a typo)."""
     if not skipped:
         return ""
-    return " Not tested: " + "; ".join(f"{x['effect']} ({x['reason']})" for x in skipped) + "."
+    reasons = (f"{x['effect']} ({x['reason'].rstrip().rstrip('.')})" for x in skipped)
+    return " Not tested: " + "; ".join(reasons) + "."
 
 
 def _fit_once_tests(c: CandidateResult, well: str | None) -> list[dict[str, Any]]:
