@@ -1230,15 +1230,27 @@ class Store:
         more = len(rows) > limit
         return rows[:limit][::-1], more
 
-    def mpfm_near(self, well: str, time_ns: int, window_ns: int) -> list[float]:
-        """The q_total (Sm3/h) of the well's MPFM readings within ``window_ns`` of ``time_ns``."""
+    def mpfm_near(self, well: str, time_ns: int, window_ns: int) -> list[tuple[int, float]]:
+        """The well's MPFM readings within ``window_ns`` of ``time_ns``: (epoch ns, q_total
+        in Sm3/h) each."""
         with self.reader() as con:
             rows = con.execute(
-                "SELECT q_total FROM measurements WHERE well = ? AND source = 'mpfm'"
+                "SELECT time_ns, q_total FROM measurements WHERE well = ? AND source = 'mpfm'"
                 " AND time_ns >= ? AND time_ns <= ?",
                 (well, time_ns - window_ns, time_ns + window_ns),
             ).fetchall()
-        return [float(r[0]) for r in rows]
+        return [(int(r[0]), float(r[1])) for r in rows]
+
+    def chokes_near(self, well: str, time_ns: int, window_ns: int) -> list[tuple[int, float]]:
+        """The well's samples within ``window_ns`` of ``time_ns``, oldest first: (epoch ns,
+        choke reading as a fraction open) each (one indexed range query)."""
+        with self.reader() as con:
+            rows = con.execute(
+                "SELECT time_ns, choke FROM samples WHERE well = ? AND time_ns >= ? AND time_ns <= ?"
+                " ORDER BY time_ns",
+                (well, time_ns - window_ns, time_ns + window_ns),
+            ).fetchall()
+        return [(int(r[0]), float(r[1])) for r in rows]
 
     def reviews(
         self, well: str, source: str | None = None, time_ns: int | None = None, limit: int = 100

@@ -205,3 +205,20 @@ def test_awaiting_the_well_test_that_says_which_moved() -> None:
     }
     assert awaiting_well_test(alarm, check, tests) is None
     assert awaiting_well_test({**alarm, "source": "well_test"}, None, tests) is None
+
+
+def test_only_readings_at_the_well_tests_choke_are_compared() -> None:
+    """A choke move 2 h before the well test: the readings before it (at another rate)
+    are left out, offline as in the service; readings with no sample's choke known are
+    compared as before."""
+    rows = []
+    for h in range(-20, 24, 2):
+        choke, q = (0.4, 1000.0) if h < -1 else (0.25, 600.0)
+        rows.append({**_row("W01", "mpfm", T0 + h * H, q), "choke": choke})
+    rows.append({**_row("W01", "well_test", T0, 610.0), "choke": 0.25})
+    checks = mpfm_checks(pd.DataFrame(rows)).set_index("well")
+    assert checks.loc["W01", "agrees"] and checks.loc["W01", "mpfm_readings"] == 12
+    assert checks.loc["W01", "mpfm_median"] == 600.0
+    # no choke column (rates only): every reading within 24 h, the median of 22
+    bare = pd.DataFrame([{k: v for k, v in r.items() if k != "choke"} for r in rows])
+    assert mpfm_checks(bare).set_index("well").loc["W01", "mpfm_readings"] == 22

@@ -147,3 +147,37 @@ def wait_learned_all(service: Service, count: int) -> None:
         return len(rows) == count and all(m.status != "pending" for m in rows)
 
     wait_until(stored, 60, "every measurement to be stored and decided")
+
+
+def test_a_choke_move_before_a_well_test_is_no_meter_disagreement(tmp_path: Path) -> None:
+    """The choke closes from 0.4 to 0.25 an hour and a half before a well test, and the
+    rate falls with it (to 60 %): both meters read the rate right. The MPFM readings of the
+    day before the move (every 2 h; every 6 h after it) would put the median of the 24 h
+    either side 1.6 times above the well test; only those at the well test's choke are
+    compared (vfm_core.meter_check.steady_span), and they agree."""
+    rng = np.random.default_rng(7)
+    move = T0 + timedelta(days=3, hours=1)
+    with fixed_model_service(tmp_path) as (service, client):
+        n = 0
+        for hour in range(0, 5 * 24, 2):  # a sample and an MPFM reading every 2 h, 5 days
+            t = T0 + timedelta(hours=hour)
+            level = 1.0 if t < move else 0.6
+            inputs = (0.4 if t < move else 0.25, *INPUTS[1:])
+            client.send_sample("W01", sample_of(t, inputs))
+            q = 1000.0 * level * float(np.exp(0.02 * rng.standard_normal()))
+            if t < move or hour % 6 == 0:  # after the move, a reading every 6 h
+                client.send_measurement("W01", "mpfm", Measurement(time=t, q_total=q))
+                n += 1
+            if t == move + timedelta(hours=1):  # the well test, between two samples
+                test = t + timedelta(minutes=30)
+                client.send_measurement("W01", "well_test", Measurement(time=test, q_total=600.0))
+                n += 1
+        wait_learned_all(service, n)
+        check = http_get(service, "/wells/W01").json()["mpfm_check"]
+    assert check["well_test_time"].startswith((T0 + timedelta(days=3)).date().isoformat())
+    assert check["agrees"] and check["alarm"] is None, check
+    assert abs(check["relative_difference"]) < 0.05, check
+    # compared again once its window passed: the readings after the move within 24 h of
+    # the well test only, 06:00 of day 3 to 00:00 of day 4 (4; 12 before the move were in
+    # the window)
+    assert check["mpfm_readings"] == 4, check

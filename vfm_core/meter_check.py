@@ -3,7 +3,8 @@
 A well test is the reference a multiphase meter is checked against. The rule (the
 service's :class:`service.engine.alarms.MpfmCheck` applies it live, :func:`mpfm_checks`
 over a whole observation frame): the median of the well's MPFM readings within
-``window_s`` (24 h) either side of the well test is compared with the well test; when
+``window_s`` (24 h) either side of the well test, and at its choke (no choke move between
+them, :func:`steady_span`, s54), is compared with the well test; when
 they differ by more than ``rel`` (10 %) of the well test, the meter disagrees with it
 (:func:`compare`). A well test with no MPFM reading in its window is not compared.
 
@@ -42,6 +43,7 @@ import pandas as pd
 from vfm_core import schema
 
 __all__ = [
+    "CHOKE_MOVE",
     "MIN_PAIRS",
     "SAME_Z",
     "SHIFT_Z",
@@ -50,6 +52,7 @@ __all__ = [
     "compare",
     "awaiting_well_test",
     "mpfm_checks",
+    "steady_span",
     "which_moved",
 ]
 
@@ -61,6 +64,10 @@ SHIFT_Z = 3.0
 #: the |z| within which a well test says the MPFM reads as it usually does against it
 SAME_Z = 1.0
 MIN_SPREAD = 0.01
+#: a relative change of the choke's reading between two samples above which the choke moved
+#: (its position is a set point: it stays put between moves; a 1 % move changes the rate by
+#: about 1 % or more, a move smaller than that is lost in the pair's spread of 2.5-5 %)
+CHOKE_MOVE = 0.01
 
 
 def compare(readings: Sequence[float], q_total: float, rel: float) -> dict[str, Any] | None:
@@ -83,6 +90,52 @@ def compare(readings: Sequence[float], q_total: float, rel: float) -> dict[str, 
         "relative_difference": difference,
         "agrees": abs(difference) <= rel,
     }
+
+
+def steady_span(
+    times: Sequence[int], chokes: Sequence[float], time_ns: int
+) -> tuple[int, int] | None:
+    """The span (epoch ns, both ends in) around ``time_ns`` in which the choke did not move,
+    from samples (``times`` ascending, with the choke's reading, fraction open): from the
+    first to the last sample whose reading is within :data:`CHOKE_MOVE` (relative) of the
+    reading of the sample nearest ``time_ns``, with no move between. On a side with no
+    sample that moved, the span is open (a reading after the last sample, or before the
+    first, is at the same choke as far as anything shows). A well test is compared only
+    with the MPFM readings in that span: across a choke move the rate itself changes (a
+    choke closed from 0.38 to 0.25 two hours before a well test put the median of the day's
+    readings 48 % above it, with both meters right). A reading between the last sample
+    before a move and the first after it is left out (the move fell somewhere between).
+    None without samples.
+
+    >>> h = 3600 * 10**9
+    >>> steady_span([0, h, 2 * h, 3 * h, 4 * h], [0.5, 0.5, 0.3, 0.3, 0.3], 3 * h + 10)[0] // h
+    2
+    >>> steady_span([0, h, 2 * h], [0.5, 0.5, 0.3], 10)[1] // h
+    1
+    """
+    if not len(times):
+        return None
+    k = int(np.searchsorted(times, time_ns))
+    if k == len(times) or (k > 0 and time_ns - times[k - 1] <= times[k] - time_ns):
+        k -= 1
+
+    def same(i: int, j: int) -> bool:
+        a, b = chokes[i], chokes[j]
+        return bool(abs(a - b) <= CHOKE_MOVE * max(abs(a), abs(b), 1e-9))
+
+    a = k
+    while a > 0 and same(a - 1, a):
+        a -= 1
+    b = k
+    while b + 1 < len(times) and same(b + 1, b):
+        b += 1
+    lo = int(times[a]) if a > 0 else -_OPEN
+    hi = int(times[b]) if b + 1 < len(times) else _OPEN
+    return lo, hi
+
+
+#: an open end of :func:`steady_span` (epoch ns far beyond any data)
+_OPEN = 2**62
 
 
 def against_usual(earlier: Sequence[float], difference: float) -> dict[str, Any] | None:
@@ -344,10 +397,17 @@ def mpfm_checks(frame: pd.DataFrame, rel: float = 0.10, window_s: float = 86_400
         times = mpfm["_ns"].to_numpy()
         rates = mpfm[schema.TARGET].to_numpy(dtype=float)
         tests = g[g[schema.SOURCE] == schema.WELL_TEST]
+        choke = g["choke"] if "choke" in g else pd.Series(np.nan, index=g.index)
+        known = choke.notna().to_numpy()
+        sample_ns, chokes = g["_ns"].to_numpy()[known], choke.to_numpy(dtype=float)[known]
         earlier: list[float] = []
         for t, q in zip(tests["_ns"], tests[schema.TARGET].to_numpy(dtype=float), strict=True):
-            lo = np.searchsorted(times, t - window, "left")
-            hi = np.searchsorted(times, t + window, "right")
+            lo_ns, hi_ns = t - window, t + window
+            steady = steady_span(sample_ns, chokes, t)
+            if steady is not None:  # only the readings at the well test's choke
+                lo_ns, hi_ns = max(lo_ns, steady[0]), min(hi_ns, steady[1])
+            lo = np.searchsorted(times, lo_ns, "left")
+            hi = np.searchsorted(times, hi_ns, "right")
             found = compare([float(r) for r in rates[lo:hi] if math.isfinite(r)], q, rel)
             if found is None:
                 continue

@@ -38,8 +38,8 @@ from scipy import stats
 
 from service.config import Settings
 from service.engine.state import WellState
-from service.store import InsertMeasurement, Op, ReviewRow, SampleRow, Store
-from vfm_core.meter_check import USUAL_PAIRS, against_usual, compare
+from service.store import InsertMeasurement, InsertSample, Op, ReviewRow, SampleRow, Store
+from vfm_core.meter_check import USUAL_PAIRS, against_usual, compare, steady_span
 from vfm_core.timeutil import iso
 
 __all__ = ["MpfmCheck", "WellTestReview"]
@@ -81,19 +81,27 @@ class MpfmCheck:
         self._compare(st, due[0], due[1], uncommitted)
 
     def near(self, st: WellState, time_ns: int, uncommitted: Sequence[Op] = ()) -> list[float]:
-        """The q_total (Sm3/h) of the well's MPFM readings within the window of ``time_ns``:
-        stored, and of this batch (``uncommitted``, not in the store yet)."""
+        """The q_total (Sm3/h) of the well's MPFM readings within the window of ``time_ns``
+        and at the choke of the sample nearest it (no choke move between them:
+        :func:`vfm_core.meter_check.steady_span`; all of the window's when no sample lies in
+        it): stored, and of this batch (``uncommitted``, not in the store yet)."""
         lo, hi = time_ns - self.window_ns, time_ns + self.window_ns
         readings = self.store.mpfm_near(st.well, time_ns, self.window_ns)
-        readings += [
-            op.q_total
-            for op in uncommitted
-            if isinstance(op, InsertMeasurement)
-            and op.well == st.well
-            and op.source == "mpfm"
-            and lo <= op.time_ns <= hi
-        ]
-        return readings
+        samples = dict(self.store.chokes_near(st.well, time_ns, self.window_ns))
+        for op in uncommitted:
+            if not isinstance(op, InsertMeasurement | InsertSample) or op.well != st.well:
+                continue
+            if not lo <= op.time_ns <= hi:
+                continue
+            if isinstance(op, InsertSample):
+                samples[op.time_ns] = op.inputs[0]  # INPUT_FIELDS: the choke first
+            elif op.source == "mpfm":
+                readings.append((op.time_ns, op.q_total))
+        times = sorted(samples)
+        span = steady_span(times, [samples[t] for t in times], time_ns)
+        if span is None:
+            return [q for _, q in readings]
+        return [q for t, q in readings if span[0] <= t <= span[1]]
 
     def _compare(
         self, st: WellState, time_ns: int, q_total: float, uncommitted: Sequence[Op]
@@ -257,7 +265,7 @@ class WellTestReview:
                 what += (
                     f", and {abs(rel) * 100:.0f} % {'above' if rel > 0 else 'below'} the "
                     f"median of the {len(readings)} MPFM reading(s) within "
-                    f"{self.mpfm.window_s / 3600:g} h ({median:.6g} Sm3/h)"
+                    f"{self.mpfm.window_s / 3600:g} h at its choke ({median:.6g} Sm3/h)"
                 )
         if median is None:
             what += f"; no MPFM reading within {self.mpfm.window_s / 3600:g} h confirms it"
