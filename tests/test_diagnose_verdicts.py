@@ -762,3 +762,18 @@ def test_a_hybrid_replays_an_effect_through_a_network_input_as_identified_on_the
     # a value beyond the parameter's bounds is held at the bound
     far = _with_values("valve_equal_percentage", {"W01": 2.0}, {"W01": 0.01})
     assert dg.core_form(cls, far, "ham").fixed_values["weight"] == 1.5  # type: ignore[attr-defined]
+
+
+def test_what_adding_a_carried_effect_gives_depends_on_the_model() -> None:
+    """A parameter to read on a mechanistic model; on a hybrid its network takes up the
+    same misfit, so the added parameter need not read the effect (a walk: erosion on ham
+    read 0.001 against a true 0.04)."""
+    ctx = _context()
+    assert "a physical parameter to read" in dv._what_adding_gives(ctx)
+    for label in ("ham", "hem+erosion"):
+        hybrid = dv.VerdictContext(
+            label, *[getattr(ctx, f) for f in ("method", "live", "outage", "floor", "n_wells")]
+        )
+        said = dv._what_adding_gives(hybrid)
+        assert "on a hybrid the network takes up the same misfit" in said
+        assert "to read" not in said

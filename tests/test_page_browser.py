@@ -32,6 +32,7 @@ from browser_support import SHOTS, Page, browser_marks, open_page
 
 from replay.replayer import ReplayResult, replay_frame
 from service.testing import ServeProcess
+from vfm_core.meter_check import steady_span
 from vfm_core.observations import validate_frame
 from vfm_core.simulate import simulate_field
 
@@ -347,9 +348,15 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     page.screenshot(path=str(SHOTS / "rollback.png"), full_page=True)
 
     # a well test far below the MPFM readings near it, posted from the page: an alarm
-    mpfm = served.frame[(served.frame["well"] == "W01") & (served.frame["source"] == "mpfm")]
+    w01 = served.frame[served.frame["well"] == "W01"]
+    mpfm = w01[w01["source"] == "mpfm"]
     last = mpfm["time"].iloc[-1]
-    near = mpfm[(mpfm["time"] - last).abs() <= pd.Timedelta("24h")]["q_total"].median()
+    # the readings the service compares: within 24 h and at the well test's choke
+    ns = w01["time"].astype("int64").to_numpy()
+    lo, hi = steady_span(ns, w01["choke"].to_numpy(dtype=float), last.value)
+    at = (mpfm["time"] - last).abs() <= pd.Timedelta("24h")
+    at &= mpfm["time"].astype("int64").between(lo, hi)
+    near = mpfm[at]["q_total"].median()
     page.fill("#wt-time", last.strftime("%Y-%m-%dT%H:%M:%SZ"))
     page.fill("#wt-rate", f"{0.7 * near:.1f}")
     page.click("#well-test-form button")
@@ -558,6 +565,17 @@ def test_markers_trial_line_and_candidates_read_as_they_should(
     headline, buttons, row, _ = shown(level)
     assert buttons == 1 and "add anyway" in row, row
     assert "nothing offered" not in headline and "not offered for accuracy" in headline, headline
+    # a parameter to read on a mechanistic model; on a hybrid the network takes up what
+    # the parameter would read, and the page says so
+    for model, says, title_says in (
+        ("mm", "adds it as a parameter to read", "a physical parameter to read"),
+        ("ham", "may leave near its prior", "on a hybrid the network takes up the same misfit"),
+    ):
+        headline, buttons, row, _ = shown(
+            {**level, "diagnosis": {**level["diagnosis"], "model": model}}
+        )
+        title = page.locator("#diag-candidates-table button.apply").first.get_attribute("title")
+        assert buttons == 1 and says in headline and title_says in title, (headline, title)
     # the table stays inside its panel on a 1280 px window (it ran 120 px past it); the
     # page is opened at that width (charts drawn at 1400 px keep their width on a resize)
     page.set_viewport_size({"width": 1280, "height": 1000})

@@ -984,6 +984,10 @@ async function followDiagnosis(id) {
   }
 }
 
+/* A hybrid (ham, hem: vfm_core.jobs.diagnose_results.HYBRIDS), whose network takes up what
+   an added effect's parameter would read. */
+const isHybrid = (model) => ["ham", "hem"].includes(String(model || "").split("+")[0]);
+
 /* The verdict in one line above its sentence (diagnosis.json's verdict: kind, effect,
    driver, live change in MAPE points, instrument): what it is and what the operator can do. */
 function verdictHeadline(v, anyway = false) {
@@ -993,7 +997,8 @@ function verdictHeadline(v, anyway = false) {
   switch (v.kind) {
     case "effect": return `Verdict: add ${v.effect}${live}.`;
     case "carried": return `Verdict: ${v.effect}, carried: the learner already follows it${live}; ` +
-      (anyway ? `not offered for accuracy ("add anyway" below adds it as a parameter to read).` : "nothing offered.");
+      (anyway === "hybrid" ? `not offered for accuracy ("add anyway" below adds its parameter, which the hybrid's network may leave near its prior).`
+        : anyway ? `not offered for accuracy ("add anyway" below adds it as a parameter to read).` : "nothing offered.");
     case "driver": return `Verdict: the residual depends on ${v.driver}, which no library effect explains; a correction is offered${live}.`;
     case "noise": return "Verdict: noise. Nothing the data support would lower the error.";
     case "instrument": return `Verdict: an instrument, not physics: ${ins.sensor || "an input"} ${ins.kind || "fault"}${ins.start ? " since " + day(ins.start) : ""}.`;
@@ -1047,7 +1052,7 @@ function showDiagnosis(j) {
     : d.verdict && d.verdict.kind === "carried" && d.verdict.effect === c.effect && risesHere(c)
     ? `<span class="hint">raises this well's ${risesHere(c)} error (${change(mineTest(c, risesHere(c)))} points, beyond chance)</span>`
     : carried(c)
-    ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter to read and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
+    ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter${isHybrid(d.model) ? " (on a hybrid the network takes up the same misfit: the parameter need not read the effect)" : " to read"} and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
     <th class="num">&Delta; live [95 %]</th><th class="num" title="the outage change pooled over the wells diagnosed together: one well has too few outage windows to sign its own (the verdict text gives this well's)">&Delta; outage, all wells [95 %]</th>
@@ -1070,7 +1075,7 @@ function showDiagnosis(j) {
   $("#diag-candidates-table").hidden = false;
   if (d.verdict && d.verdict.kind === "carried") {
     // "nothing offered" beside an "add anyway" button reads as a contradiction: say which
-    const anyway = (d.candidates || []).some(carried);
+    const anyway = (d.candidates || []).some(carried) && (isHybrid(d.model) ? "hybrid" : true);
     $("#diag-headline").textContent = verdictHeadline(d.verdict, anyway);
   }
   const drivers = (d.drivers || []).filter((x) => x.role === "driver").sort((a, b) => b.score - a.score).slice(0, 4)

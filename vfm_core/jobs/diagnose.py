@@ -158,6 +158,7 @@ from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs import diagnose_verdicts as verdicts
 from vfm_core.jobs.diagnose_output import format_summary, json_safe, write_diagnosis
 from vfm_core.jobs.diagnose_results import (
+    HYBRIDS,
     MATERIAL_BIC,
     MATERIAL_MAPE_ABS,
     MATERIAL_MAPE_REL,
@@ -221,10 +222,6 @@ __all__ = [
 CANDIDATE_METHOD = "pbl:36500d"
 #: The outage protocol's window: a month without a measurement (a failed MPFM's repair).
 OUTAGE = "30d"
-#: Hybrid models whose network absorbs what a missing effect would explain: their candidates
-#: are identified on the mechanistic core (mm with the same effects), fit once, and replayed
-#: on the hybrid itself (what adding the effect does to the model the well runs).
-HYBRIDS = ("ham", "hem")
 #: The variables a hybrid's network sees: its six inputs and what is computed from them alone.
 #: A candidate acting through one of them (:func:`acts_through`: a valve family through the
 #: choke opening, slip through the gas fraction, ...) is replayed on a hybrid as identified

@@ -53,6 +53,12 @@ MATERIAL_SHARE = 1.0 / 3.0
 MATERIAL_MAPE_NEAR_FLOOR = 0.1
 
 
+#: Hybrid models whose network absorbs what a missing effect would explain: their candidates
+#: are identified on the mechanistic core (mm with the same effects), fit once, and replayed
+#: on the hybrid itself (what adding the effect does to the model the well runs).
+HYBRIDS = ("ham", "hem")
+
+
 def is_material(
     delta_mape: float, base_mape: float, delta_bic: float, delta_all: float, share: float
 ) -> bool:

@@ -31,6 +31,7 @@ from vfm_core.jobs import diagnose_live as live
 from vfm_core.jobs import diagnose_rivals as rivals
 from vfm_core.jobs import diagnose_stats as stats
 from vfm_core.jobs.diagnose_results import (
+    HYBRIDS,
     MATERIAL_BIC,
     MATERIAL_MAPE_NEAR_FLOOR,
     CandidateResult,
@@ -517,7 +518,7 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 f"neither error falls both beyond chance and by {MIN_CHANGE:g} points or more "
                 "(chance judged over all the diagnosis's tests at once, Benjamini-Hochberg, "
                 "not by each interval alone); adding "
-                "it would add a physical parameter to read (interpretability), not accuracy."
+                + _what_adding_gives(ctx)
                 + few_blocks_text(lt, well)
             )
         )
@@ -525,6 +526,21 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
         tail = "it was not replayed under the live protocol."
     text = f"The fit-once evidence names {c.effect} ({_fit_once_text(c, well)}), but " + tail
     return _as_named("carried", c, text, num)
+
+
+def _what_adding_gives(ctx: VerdictContext) -> str:
+    """What adding a carried effect gives, in words: a physical parameter to read, on a
+    mechanistic model; on a hybrid (:data:`HYBRIDS`) not even that reliably, since its
+    network takes up the same misfit while the parameter is learned beside it (a user's
+    walk: erosion added to ``ham`` on an eroding well read a wear rate of 0.001 +- 0.005
+    against a true 0.04)."""
+    if ctx.label.split("+")[0] in HYBRIDS:
+        return (
+            "it would add a physical parameter, but on a hybrid the network takes up the same "
+            "misfit, so that parameter need not read the effect (it may stay near its prior); "
+            "not accuracy either."
+        )
+    return "it would add a physical parameter to read (interpretability), not accuracy."
 
 
 def untested_text(skipped: Sequence[dict[str, str]]) -> str:
