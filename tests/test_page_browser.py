@@ -340,11 +340,21 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
     versions = httpx.get(served.proc.http_url + "/wells/W01", timeout=10).json()["versions"]
     first = versions[-1]
     assert first["model"] == "mm", versions
-    page.locator(f'#versions-table button.rollback[data-version="{first["version"]}"]').click()
+    rollback = page.locator(f'#versions-table button.rollback[data-version="{first["version"]}"]')
+    answer["accept"] = False  # cancelled: nothing is sent, the model stays
+    rollback.click()
+    page.wait_for_function(
+        "document.querySelector('#rollback-result').textContent === 'Not rolled back.'"
+    )
+    assert page.locator("#well-model").get_attribute("data-model") != "mm"
+    answer["accept"] = True
+    rollback.click()
     page.wait_for_function(
         "document.querySelector('#well-model').dataset.model === 'mm'", timeout=120_000
     )
     assert "Rolled back" in page.locator("#rollback-result").inner_text()
+    # asked first: a rollback replaces the live model at once
+    assert dialogs[-1].startswith(f"Roll W01 back to version {first['version']} (mm)?"), dialogs
     page.screenshot(path=str(SHOTS / "rollback.png"), full_page=True)
 
     # a well test far below the MPFM readings near it, posted from the page: an alarm

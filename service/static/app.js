@@ -761,6 +761,12 @@ async function rollbackTo(button) {
   const out = $("#rollback-result");
   if (needToken(out)) return;
   const version = Number(button.dataset.version);
+  // a rollback swaps the live model at once (recorded, undone only by another change): ask
+  const row = ((state.view && state.view.versions) || []).find((r) => Number(r.version) === version) || {};
+  if (!window.confirm(`Roll ${state.well} back to version ${version}${row.model ? " (" + row.model + ")" : ""}? ` +
+      `It replaces the model that runs now at once, after re-learning what came since it was replaced; no trial runs.`)) {
+    out.className = "result"; out.textContent = "Not rolled back."; return;
+  }
   out.className = "result"; out.textContent = `rolling back to version ${version} (re-learning what came since)...`;
   document.querySelectorAll("button.rollback").forEach((b) => { b.disabled = true; });
   try {
