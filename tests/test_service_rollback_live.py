@@ -122,6 +122,12 @@ def _check_rolled_back(before: dict[str, Any], back: dict[str, Any], wrong_versi
     last = back["model_changes"][-1]
     assert last["kind"] == "trial rollback" and last["method"] == "ol"
     assert last["trial"]["outcome"] == "rolled_back"
+    # the versions' notes read once: the trial's reason, not "...; rolled back." twice
+    assert last["note"].startswith("rolled back by its trial: The shadow was better"), last
+    assert "; rolled back" not in last["note"] and last["note"].endswith("blocks)."), last
+    # a change of the method alone is named by its method
+    change = back["model_changes"][-2]
+    assert change["note"] == "replaced by mm (pbl:182d) over HTTP", change
     assert back["versions"][0]["method"] == "pbl:182d"  # the wrong one kept as a version
     # it learned the wear as the shadow (ol on plain mm raises C_D with the worn choke), and
     # since the rollback it serves the well better than the wrong model did in its trial

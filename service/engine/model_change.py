@@ -271,7 +271,9 @@ class ModelChanges:
         assert new is not None
         scores = dict(item.scores)
         kind = str(scores.pop("_kind", "change"))
-        note = str(scores.pop("_note", "") or f"replaced by {new.name} over HTTP")
+        # the method named when it changed: a change of the method alone keeps the name
+        how = f" ({new.method.text})" if new.method.text != old.method.text else ""
+        note = str(scores.pop("_note", "") or f"replaced by {new.name}{how} over HTTP")
         extra = scores.pop("_extra", None)
         caught_up = self._catch_up(st, new)
         # commit what the batch holds so far, then the new model's checkpoint on its own:

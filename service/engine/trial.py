@@ -323,7 +323,7 @@ class Trial:
             ops,
             when_ns,
             kind="trial rollback",
-            note=f"rolled back by its trial: {self.why}",
+            note=f"rolled back by its trial: {self.why.rstrip('.').removesuffix('; rolled back')}.",
             keep_versions=learning.settings.trial.keep_versions,
             extra={"trial": self.summary()},
             learn_seq=st.learn_seq + 1,  # the measurement being learned is recorded next
