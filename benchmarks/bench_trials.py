@@ -17,8 +17,9 @@ alpha, 5 %, per trial at most).
 With ``--wrong <method>`` (e.g. ``pbl:182d``), a second kind of field: two wells on ``mm``
 with ``ol``, and at ``MID`` two changes at once over HTTP: W01 gets ``erosion`` (the right
 change on an eroding field) and W02 is switched to ``<method>`` (a method that re-learns too
-seldom for a wearing choke: the deliberately wrong change; its held-out check cannot tell,
-since it fits the same model once for both), 45 days replayed, both trials read. Eroding
+seldom for a wearing choke: the deliberately wrong change; since s54 its held-out check,
+each method learning over the latest fifth, asks first and the change is confirmed), 45
+days replayed, both trials read. Eroding
 fields: ``--wrong-seeds``; clean ones, where the method change is harmless or nearly so:
 ``--wrong-clean``.
 

@@ -9,8 +9,8 @@ on the history before ``SPLIT`` and replayed to ``MID``. Then, as an operator wo
 2. W02 is switched from ``ol`` to ``pbl:182d`` (a batch refit twice a year, e.g. to save CPU):
    a deliberately wrong change on a wearing choke, since between two refits nothing
    re-learns while the choke keeps wearing, and the refit itself fits one C_D to the whole
-   worn history. The held-out check cannot see it (it fits both models once, and the model
-   is the same), so it is applied without a warning: only the trial can catch it;
+   worn history. The held-out check sees it (each method learning over the latest fifth
+   of the stored history, s54) and asks; confirmed, it is applied and its trial catches it;
 3. the replay goes on past the trials (30 days of data and 30 paired measurements).
 
 The trial keeps W01's change (the new model beats its shadow beyond noise) and rolls W02's
@@ -83,15 +83,20 @@ def _apply_the_diagnosis(http: httpx.Client, well: str) -> None:
 
 
 def _apply_the_wrong_change(http: httpx.Client, well: str) -> int:
-    """The wrong change (token needed); the held-out check has nothing to say about a
-    method (the same model fitted once, twice), so it asks for no confirmation. Returns
-    the wrong model's version."""
+    """The wrong change (token needed). The held-out check replays each method over the
+    latest stored measurements (s54), so it sees the wrong method and asks first (409,
+    both MAPEs and both methods named); confirmed, it is applied and its trial judges it.
+    Returns the wrong model's version."""
     assert http.put(f"/wells/{well}/model", json=WRONG).status_code == 401
-    wrong = http.put(f"/wells/{well}/model", json=WRONG, headers=AUTH)
+    asked = http.put(f"/wells/{well}/model", json=WRONG, headers=AUTH)
+    assert asked.status_code == 409, asked.text
+    assert "mm (pbl:182d) is worse than mm (ol)" in asked.text, asked.text
+    wrong = http.put(f"/wells/{well}/model", json={**WRONG, "confirm_worse": True}, headers=AUTH)
     assert wrong.status_code == 200, wrong.text
     change = wrong.json()
     assert change["method"] == "pbl:182d" and change["holdout"]["holdout_rows"] > 20
-    assert change["holdout"]["after"] == pytest.approx(change["holdout"]["before"])
+    assert change["holdout"]["after"] > change["holdout"]["before"]
+    assert change["holdout"]["protocol"] == "replayed" and change["holdout"]["confirmed_worse"]
     assert change["trial"]["shadow_model"] == "mm" and change["trial"]["outcome"] == "running"
     return int(change["version_after"])
 

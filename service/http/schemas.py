@@ -307,10 +307,19 @@ class HoldoutOut(BaseModel):
     holdout_rows: int = Field(description="latest stored measurements held out to compare")
     holdout_from: str | None = None
     before: float | None = Field(
-        default=None, description="MAPE (%) of the current model, fitted on the older rows"
+        default=None,
+        description="MAPE (%) of the current model, fitted on the older rows, then learning "
+        "with its method over the held-out ones (predict, then learn each)",
     )
     after: float | None = Field(
-        default=None, description="MAPE (%) of the new model, fitted on the same rows"
+        default=None,
+        description="MAPE (%) of the new model, fitted on the same rows, then learning with "
+        "its method over the held-out ones",
+    )
+    protocol: str | None = Field(
+        default=None,
+        description="replayed: each model learns with its method over the held-out rows, as "
+        "the service runs it (s54; before, both were fitted once and never updated)",
     )
     unit: str = "%"
     fit_s: float | None = Field(default=None, description="time the fits took, s")

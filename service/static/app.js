@@ -1106,8 +1106,9 @@ function diagnosisBeside(d, spec) {
   const t = all && focus && all.per_well && all.per_well[focus] ? all.per_well[focus] : all;
   if (!t || t.base_mape == null || t.mape == null) return "";
   return `\n\nThe diagnosis replayed it learning with ${d.method || "the well's method"}, as the service runs: ` +
-    `live MAPE ${fmt(t.base_mape, 2)} % -> ${fmt(t.mape, 2)} %. The held-out check fits both models once on the ` +
-    `older four fifths and never updates them; the two can disagree, and the trial against the shadow decides.`;
+    `live MAPE ${fmt(t.base_mape, 2)} % -> ${fmt(t.mape, 2)} %. The held-out check fits both models on the ` +
+    `older four fifths of the stored history and lets each learn with its method over the latest fifth; over ` +
+    `different spans the two can disagree, and the trial against the shadow decides.`;
 }
 
 /* Which tests the false-discovery procedure rejected, by candidate and protocol, as

@@ -503,8 +503,11 @@ class WellLearner:
 
         Before the final fit on all of it, both the current specification and the new one
         are fitted on the oldest ``1 - holdout`` of the history (by time) and scored on the
-        rest (MAPE, %), so the caller can see whether the change helps. The new learner
-        carries the feature state on, and its version is this one's plus one.
+        rest (MAPE, %), each learning with its own method over the rest as the service
+        runs it (:meth:`_replay`): the check scores what the trial will (fitted once, a
+        model whose misfit the learner absorbs looked worse than it runs, and a change of
+        the method alone was not judged). The new learner carries the feature state on,
+        and its version is this one's plus one.
 
         ``mm`` (with or without effects) is fitted to convergence here: its priors are its
         regulariser, and early stopping on the latest fifth of a drifting history stops
@@ -551,6 +554,7 @@ class WellLearner:
         if len(test) >= 5:
             t0 = pd.Timestamp(int(t_all[test].min()), tz="UTC")
             scores["holdout_from"] = t0.isoformat()
+            scores["protocol"] = "replayed"
             for key, spec_model, spec_effects, like in (
                 ("before", self.model_name, self.effects, self),
                 ("after", model, effects, new),
@@ -577,12 +581,13 @@ class WellLearner:
         train: TrainSettings,
     ) -> float:
         """MAPE (%) on the ``test`` rows of this learner's memory of ``model`` with
-        ``effects`` fitted on the ``cut`` rows (with ``like``'s settings; ``mm`` to
-        convergence, as :meth:`refit_as` fits it)."""
+        ``effects`` and ``like``'s method, fitted on the ``cut`` rows (with ``like``'s
+        settings; ``mm`` to convergence, as :meth:`refit_as` fits it), then replayed over
+        the ``test`` rows in time order (:meth:`_replay`)."""
         trial = WellLearner(
             self.well,
             model,
-            "ol",
+            like.method.text,
             train=train,
             online=like.online,
             model_kwargs=like.model_kwargs,
@@ -592,10 +597,31 @@ class WellLearner:
         trial._fit_rows(self, cut, converge=model == "mm")
         held = WellMemory(self.well, FeatureTracker.names, trial.model.extra_columns)
         held.copy_from(self.memory, test)
-        q = trial.model.predict_batch(held.rows())[0]
+        q = trial._replay(held)
         y = held.y
         ok = torch.abs(y) > 1e-9  # a zero rate has no relative error
         return float((torch.abs(q - y)[ok] / torch.abs(y[ok])).mean() * 100.0)
+
+    def _replay(self, held: WellMemory) -> torch.Tensor:
+        """Predict each of ``held``'s rows (time order) before learning it, as the service
+        runs the method: the retrains due by the row's time first, then the prediction, then
+        the row joins the memory and the method learns from it. The predicted rates (Sm3/h)."""
+        x, y, t, w, e = held.x, held.y, held.t, held.well_test, held.features
+        n = int(y.shape[0])
+        out = torch.empty(n, dtype=DTYPE)
+        if n == 0:
+            return out
+        if len(self.memory):
+            self.method.start(int(self.memory.t.max()))
+        scheduled = type(self.method).retrain_due is not LearningMethod.retrain_due
+        for i in range(n):
+            if scheduled:
+                self._retrains_due(int(t[i]))
+            one = held.rows(torch.tensor([i]))
+            out[i] = self.method.predict(one).mean[0, 0]
+            self.memory.append(x[i : i + 1], y[i : i + 1], t[i : i + 1], w[i : i + 1], e[i : i + 1])
+            self.method.on_measurement(one, self.memory)
+        return out
 
     def _fit_rows(self, source: WellLearner, rows: torch.Tensor, converge: bool = False) -> None:
         """Fit this (fresh) learner on rows of another learner's memory and remember them
