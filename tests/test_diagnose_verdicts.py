@@ -12,6 +12,7 @@ correction that is not material) nothing is named.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -523,6 +524,152 @@ def test_a_gain_in_every_block_of_a_short_replay_is_found_beside_a_young_well() 
     assert (w01["kind"], w01["effect"]) == ("effect", "erosion"), w01["text"]
     assert not any(c.test("live", "W02")["rejected"] for c in results)  # type: ignore[index]
     assert all(not dv.offer(c, None)[0] for c in nothing)
+
+
+def _hand_test(
+    change: float, rejected: bool, per_well: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """A live test with its figures given (MAPE points), for the offer rule alone."""
+    t: dict[str, Any] = {
+        "change": change,
+        "low": change - 0.1,
+        "high": min(change + 0.1, -0.01) if rejected else change + 0.1,
+        "p_value": 0.008 if rejected else 0.2,
+        "q_value": 0.04 if rejected else 0.3,
+        "rejected": rejected,
+        "n": 500,
+        "n_blocks": 24,
+        "block_days": 30.0,
+        "base_mape": 3.25,
+        "mape": 3.25 + change,
+        "replayed": True,
+    }
+    return {**t, "per_well": per_well or {}}
+
+
+def _form(
+    name: str,
+    field_change: tuple[float, bool],
+    w01: tuple[float, bool],
+    at_bound: Sequence[str] = (),
+    run: RunResult | None = None,
+) -> dg.CandidateResult:
+    """A replayed, material candidate with its live tests given: the field's and W01's (the
+    other wells' nil), its parameter at a bound in the wells ``at_bound``."""
+    c = dg.CandidateResult(
+        effect=name,
+        mape=0.0,
+        delta_mape=-1.0,
+        bic=0.0,
+        delta_bic=-50.0,
+        n_parameters=4,
+        parameters={},
+        meaning=f"{name} fitted.",
+        material=True,
+        delta_bic_all=-50.0,
+        spec=name,
+    )
+    c.replayed, c.live_run = True, run
+    wells = {w: _hand_test(-0.02, False) for w in WELLS} | {"W01": _hand_test(*w01)}
+    c.tests["live"] = _hand_test(*field_change, wells)
+    c.tests["fit_once"] = _hand_test(-1.0, True, {w: _hand_test(-1.0, True) for w in WELLS})
+    if at_bound:
+        c.at_bound = [
+            {
+                "parameter": f"{name}.weight",
+                "side": "lower",
+                "bound": -0.5,
+                "unit": "",
+                "wells": list(at_bound),
+            }
+        ]
+    return c
+
+
+def test_a_form_at_a_bound_gives_way_to_a_form_of_the_same_physics_within_its_bounds() -> None:
+    """A page walk's field (second physics, a sigmoid valve, seed 5402, ``ham`` + ``bayes``):
+    W01's verdict was "add valve_quick_opening" (its own live -0.12 points, beyond chance),
+    whose weight sat at its lower bound in that well and three others, while the field
+    named valve_sigmoid (within its bounds; on W01 -0.15, not beyond chance alone). A
+    parameter at its bound is not an estimate: the form is not offered where a form of the
+    same physics fits within its bounds; W01's verdict names the field's form. For the
+    field, a form at a bound in most wells gives way too; one at a bound in one well of
+    four does not; nor does a form when every other of its physics is at a bound too, or
+    when the only rival within bounds is of another physics."""
+    sigmoid = _form("valve_sigmoid", (-0.07, True), (-0.15, False), at_bound=["W02"])
+    quick = _form("valve_quick_opening", (-0.05, False), (-0.12, True), ["W01", "W02", "W03"])
+    results = [sigmoid, quick]
+    field_v = dv.live_verdict(results, None, None, _context(), {})
+    assert (field_v["kind"], field_v["effect"]) == ("carried", "valve_sigmoid")
+    assert dv.offer(quick, "W01") == (True, "live")  # before the forms are weighed
+    dv.weigh_forms(results, WELLS, "W01", "valve_sigmoid")
+    ok, why = dv.offer(quick, "W01")
+    assert not ok and "valve_quick_opening.weight sits at a physical bound on W01" in why
+    assert "valve_sigmoid" in why and quick.gives_way["W01"]["rule"] == "at_bound"
+    w01 = dv.live_verdict(results, None, "W01", _context(), {}, "valve_sigmoid")
+    assert (w01["kind"], w01["effect"]) == ("carried", "valve_sigmoid"), w01["text"]
+    assert w01["gave_way"] == [
+        {"effect": "valve_quick_opening", "to": "valve_sigmoid", "rule": "at_bound"}
+    ]
+    assert "valve_quick_opening is not offered in its place: " in w01["text"]
+    dv.set_offers(results, "W01", None)
+    assert not quick.offer and "physical bound" in (quick.offer_note or "")
+    assert "gives_way" in quick.to_json() and "at_bound" in quick.to_json()
+    # the field: at a bound in 3 of 4 wells gives way; the rival's one well of 4 does not
+    quick.tests["live"] = _hand_test(-0.15, True, quick.tests["live"]["per_well"])
+    dv.weigh_forms(results, WELLS, None)
+    assert (
+        not dv.offer(quick, None)[0] and "in 3 of the field's 4 wells" in dv.offer(quick, None)[1]
+    )
+    assert dv.live_verdict(results, None, None, _context(), {})["effect"] == "valve_sigmoid"
+    sigmoid.tests["live"] = _hand_test(-0.15, True, sigmoid.tests["live"]["per_well"])
+    dv.weigh_forms(results, WELLS, None)
+    assert dv.offer(sigmoid, None) == (True, "live")
+    # every form of the physics at a bound: none gives way
+    sigmoid.at_bound[0]["wells"] = ["W01", "W02", "W04"]
+    dv.weigh_forms(results, WELLS, None)
+    dv.weigh_forms(results, WELLS, "W01", "valve_sigmoid")
+    assert dv.offer(quick, None) == (True, "live") and dv.offer(quick, "W01") == (True, "live")
+    # a rival of another physics is no form of this one
+    slip = _form("slip", (-0.07, True), (-0.15, False))
+    dv.weigh_forms([slip, quick], WELLS, "W01", "slip")
+    assert dv.offer(quick, "W01") == (True, "live")
+
+
+def test_a_wells_own_form_of_the_fields_physics_must_beat_the_fields_form_beyond_chance(
+    field: dict[str, object],
+) -> None:
+    """The field names valve_sigmoid; on W01 valve_convex lowers the error beyond chance,
+    the sigmoid not quite (its own test alone). Where the convex form does no better than
+    the sigmoid on W01's rows (a paired test of the two), it gives way and W01's verdict
+    names the field's form; where it is better beyond chance, it stays W01's verdict. A
+    candidate of other physics is not weighed against the field's form."""
+    base = field["base"]
+    assert isinstance(base, RunResult)
+    p = base.predictions
+    rng = np.random.default_rng(54)
+    rel = (p["predicted"] / p["measured"] - 1.0).to_numpy()
+    on_w01 = (p["well"] == "W01").to_numpy()
+    fields_form = _run(p, 0.9 * rel)
+    close = _run(p, 0.9 * rel + 0.002 * rng.normal(size=len(p)))
+    better = _run(p, np.where(on_w01, 0.3 * rel, 0.9 * rel))
+    sigmoid = _form("valve_sigmoid", (-0.07, True), (-0.15, False), run=fields_form)
+    convex = _form("valve_convex", (-0.05, False), (-0.16, True), run=close)
+    results = [sigmoid, convex]
+    dv.weigh_forms(results, WELLS, "W01", "valve_sigmoid")
+    ok, why = dv.offer(convex, "W01")
+    assert not ok and why.startswith("the field's verdict names valve_sigmoid"), why
+    assert convex.gives_way["W01"]["versus"]["p_value"] >= dv.PHYSICS_ALPHA
+    w01 = dv.live_verdict(results, None, "W01", _context(), {}, "valve_sigmoid")
+    assert (w01["kind"], w01["effect"]) == ("carried", "valve_sigmoid"), w01["text"]
+    convex.live_run = better
+    dv.weigh_forms(results, WELLS, "W01", "valve_sigmoid")
+    assert dv.offer(convex, "W01") == (True, "live") and "W01" not in convex.gives_way
+    w01 = dv.live_verdict(results, None, "W01", _context(), {}, "valve_sigmoid")
+    assert (w01["kind"], w01["effect"]) == ("effect", "valve_convex"), w01["text"]
+    slip = _form("slip", (-0.05, False), (-0.16, True), run=close)
+    dv.weigh_forms([sigmoid, slip], WELLS, "W01", "valve_sigmoid")
+    assert dv.offer(slip, "W01") == (True, "live")
 
 
 def _fit_once(name: str, base: float, mape: float, delta_bic: float) -> dg.CandidateResult:

@@ -484,12 +484,17 @@ def _laplace_sd(model: ChokeModel, batch: Batch) -> dict[str, np.ndarray]:
     return {key: (block.sigma[i] * sd_z[:, j]).numpy() for j, (key, block, i) in enumerate(cols)}
 
 
-def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
-    """Parameters that sit at a physical bound (other than their 'no effect' prior mean)."""
+def _bounds_hit(model: ChokeModel, ready: np.ndarray) -> list[dict[str, Any]]:
+    """Parameters that sit at a physical bound (other than their 'no effect' prior mean):
+    ``[{"parameter", "side", "bound", "unit", "wells"}]``, one entry a parameter and side,
+    with the (ready) wells where it sits there. Such a value is not an estimate: the data
+    push it past what physics allows (:func:`_bound_text` says so in words; the verdict
+    prefers a form of the same physics that fits within its bounds,
+    :func:`vfm_core.jobs.diagnose_verdicts.weigh_forms`)."""
     priors_of = getattr(model, "physical_priors", None)  # a physics model's own
     priors = priors_of() if priors_of is not None else {}
     params = model.physical_parameters()
-    out = []
+    out: list[dict[str, Any]] = []
     for key, prior in priors.items():
         if key not in params:
             continue
@@ -500,22 +505,41 @@ def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
                 continue  # the bound is "no effect" (a wear rate of 0): a legitimate answer
             hit = ready & (np.abs(values - bound) <= 1e-3 * span)
             if hit.any():
-                wells = [w for w, h in zip(model.wells, hit, strict=True) if h]
-                shown = ", ".join(wells[:5]) + (
-                    f" and {len(wells) - 5} more" if len(wells) > 5 else ""
-                )
                 out.append(
-                    f"{key} sits at its {side} bound {bound:g} {prior.unit} in {shown}: the data push "
-                    "it past what physics allows; read it as a sign of another effect or of bad data, "
-                    "not as a value."
+                    {
+                        "parameter": key,
+                        "side": side,
+                        "bound": float(bound),
+                        "unit": prior.unit,
+                        "wells": [w for w, h in zip(model.wells, hit, strict=True) if h],
+                    }
                 )
     return out
+
+
+def _bound_text(hits: Sequence[dict[str, Any]]) -> list[str]:
+    """:func:`_bounds_hit`'s entries in words, one warning each."""
+    out = []
+    for h in hits:
+        wells = h["wells"]
+        shown = ", ".join(wells[:5]) + (f" and {len(wells) - 5} more" if len(wells) > 5 else "")
+        out.append(
+            f"{h['parameter']} sits at its {h['side']} bound {h['bound']:g} {h['unit']} in "
+            f"{shown}: the data push it past what physics allows; read it as a sign of another "
+            "effect or of bad data, not as a value."
+        )
+    return out
+
+
+def _bound_warnings(model: ChokeModel, ready: np.ndarray) -> list[str]:
+    """Parameters that sit at a physical bound, in words (:func:`_bounds_hit`)."""
+    return _bound_text(_bounds_hit(model, ready))
 
 
 # --- candidates -----------------------------------------------------------------------------
 def _parameter_summary(
     run: RunResult, effects: Sequence[type[Effect]], train_batch: Batch | None
-) -> tuple[dict[str, Any], str, int, list[str]]:
+) -> tuple[dict[str, Any], str, int, list[dict[str, Any]]]:
     model = run.final_model
     assert model is not None
     params = model.physical_parameters()
@@ -549,7 +573,7 @@ def _parameter_summary(
             }
             k += int(ready.sum())
     meaning = " ".join(cls().describe(medians.get(cls.name, {})) for cls in effects)
-    return out, meaning, k, _bound_warnings(model, ready)
+    return out, meaning, k, _bounds_hit(model, ready)
 
 
 def _score(
@@ -564,7 +588,7 @@ def _score(
 ) -> CandidateResult:
     p = run.predictions
     r = ((p["measured"] - p["predicted"]) / p["measured"]).to_numpy(dtype=float)
-    params, meaning, k, warnings = _parameter_summary(run, effects, train_batch)
+    params, meaning, k, hits = _parameter_summary(run, effects, train_batch)
     if k_override is not None:
         k = k_override
     m = mape(p["predicted"], p["measured"])
@@ -589,9 +613,10 @@ def _score(
         material,
         run,
         delta_all,
-        warnings,
+        _bound_text(hits),
         spec="+".join(effect_spec(c) for c in effects),
         driver=driver,
+        at_bound=hits,
     )
 
 
@@ -1547,13 +1572,11 @@ class _DiagnosisRun:
         )
         by_well = self.well_verdicts
         for w in [None, *pool] if len(pool) > 1 else [None]:
+            prefer = None if w is None else by_well["field"]["effect"]
+            # which form of a physics is offered: one within its bounds, the field's
+            verdicts.weigh_forms(self.results, pool, w, prefer, seed=s.seed)
             by_well["field" if w is None else w] = verdicts.live_verdict(
-                self.results,
-                self.suggestion,
-                w,
-                ctx,
-                self.fit_once,
-                None if w is None else by_well["field"]["effect"],
+                self.results, self.suggestion, w, ctx, self.fit_once, prefer
             )
         for key, v in by_well.items():  # "none lowers the error" is no verdict on the untested
             if v["kind"] == "noise":
@@ -1579,7 +1602,7 @@ class _DiagnosisRun:
                 self.notes,
             )
         for v in by_well.values():  # present on every verdict, empty when nothing is related
-            for key in (*RIVAL_KEYS, "below_minimum", "suggestive"):
+            for key in (*RIVAL_KEYS, "below_minimum", "suggestive", "gave_way"):
                 v.setdefault(key, [])
 
     def live_verdicts(self) -> None:

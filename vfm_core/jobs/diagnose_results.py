@@ -174,6 +174,13 @@ class CandidateResult:
     #: fitted values agree (:func:`vfm_core.jobs.diagnose_rivals.consistency`): q, df,
     #: p_value, consistent; None for an effect of one well's hardware or meter, or untested
     consistency: dict[str, Any] | None = None
+    #: parameters at a physical bound (``warnings`` says them in words): ``[{"parameter",
+    #: "side", "bound", "unit", "wells"}]``, the wells where each sits there
+    at_bound: list[dict[str, Any]] = field(default_factory=list)
+    #: where this form of a physics gives way to another form of it (the valve families:
+    #: :func:`vfm_core.jobs.diagnose_verdicts.weigh_forms`), and is not offered there:
+    #: ``{"field" or a well: {"to", "rule", "text", ...}}``
+    gives_way: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     #: the variables the residual is examined against, in report order
     driver_variables: ClassVar[tuple[str, ...]] = DRIVER_VARIABLES
@@ -232,6 +239,8 @@ class CandidateResult:
             "rivals": self.rivals,
             "shape": self.shape,
             "consistency": self.consistency,
+            "at_bound": self.at_bound,
+            "gives_way": self.gives_way,
         }
 
 

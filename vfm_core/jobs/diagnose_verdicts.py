@@ -59,6 +59,9 @@ __all__ = [
     "driver_found",
     "physics_behind_driver",
     "set_offers",
+    "bound_wells",
+    "at_bound",
+    "weigh_forms",
     "baseline_info",
     "outage_info",
     "service_error",
@@ -282,7 +285,10 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
     evidence found (``via_driver``, :func:`physics_behind_driver`): a flexible candidate can lower a learner's error
     a little by absorbing misfit that is not its physics (on clean fields a tenth of a
     point, significant with years of data); the replay says what adding it does, the
-    fit-once evidence what it is."""
+    fit-once evidence what it is. Nor a form of a physics that gives way to another form of
+    it (``gives_way``, :func:`weigh_forms`: its parameter sits at a physical bound where the
+    other's does not, or the field names the other and this well's evidence does not beat
+    it beyond chance)."""
     if not c.replayed:
         return False, "not replayed"
     if c.explained_by is not None:
@@ -295,6 +301,9 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
         )
     if not c.named:
         return False, "not material by the fit-once evidence"
+    gives = c.gives_way.get("field" if well is None else well)
+    if gives is not None:  # another form of its physics is offered in its place (weigh_forms)
+        return False, str(gives["text"])
     lt, ot = c.test("live", well), c.test("outage", well)
     if lt is None or lt.get("change") is None:
         return False, "no replayed measurement"
@@ -429,7 +438,31 @@ def live_verdict(
     ``effect`` (an offered candidate: ``prefer``, the field's, when offered for the well, else
     the first in BIC order, which names the form; the replay confirms it helps), ``driver``
     (an offered correction), ``carried`` (the fit-once evidence names an effect or a driver,
-    but adding it lowers neither error beyond chance, or raises one), or ``noise``."""
+    but adding it lowers neither error beyond chance, or raises one), or ``noise``. A form
+    of a physics that gives way to another form of it here (:func:`weigh_forms`) is not
+    offered; the verdict says which and why (``gave_way``)."""
+    v = _live_verdict(results, suggestion, well, ctx, fit_once, prefer)
+    key = "field" if well is None else well
+    gave = [c for c in results if key in c.gives_way]
+    v["gave_way"] = [
+        {"effect": c.effect, "to": c.gives_way[key]["to"], "rule": c.gives_way[key]["rule"]}
+        for c in gave
+    ]
+    if gave:
+        v["text"] += " " + " ".join(
+            f"{c.effect} is not offered in its place: {c.gives_way[key]['text']}." for c in gave
+        )
+    return v
+
+
+def _live_verdict(
+    results: Sequence[CandidateResult],
+    suggestion: Suggestion | None,
+    well: str | None,
+    ctx: VerdictContext,
+    fit_once: dict[str, Any],
+    prefer: str | None,
+) -> dict[str, Any]:
     offered = [c for c in results if offer(c, well)[0]]
     if offered:
         best = next((c for c in offered if c.effect == prefer), offered[0])
@@ -986,6 +1019,149 @@ def physics_behind_driver(
             continue
         out.append(c)
     return out
+
+
+def bound_wells(c: CandidateResult) -> set[str]:
+    """The wells where a fitted parameter of ``c`` sits at a physical bound (``c.at_bound``,
+    the same entries its warnings put in words)."""
+    return {str(w) for h in c.at_bound for w in h.get("wells", [])}
+
+
+def at_bound(c: CandidateResult, wells: Sequence[str]) -> bool:
+    """``c``'s fitted form is not an estimate for ``wells`` (one well, or the field's): a
+    parameter sits at a physical bound in more than half of them. For one well: at a bound
+    in it. For the field: in most of its wells; a bound in one well of several is that
+    well's own misfit, and the form still describes the others."""
+    hit = bound_wells(c)
+    return bool(wells) and 2 * sum(w in hit for w in wells) > len(wells)
+
+
+def _versus_form(
+    chosen: CandidateResult, c: CandidateResult, well: str, protocol: str, seed: int
+) -> dict[str, Any] | None:
+    """The paired block test of form ``c`` against form ``chosen`` of the same physics on
+    ``well``'s rows under ``protocol`` (``live`` or ``outage``): ``change`` is ``c``'s MAPE
+    less ``chosen``'s (points; below 0: ``c`` is better) and ``p_value`` the one-sided
+    p-value of "``c`` is better". None when either was not replayed under it."""
+    outage = protocol == "outage"
+    a = chosen.outage_run if outage else chosen.live_run
+    b = c.outage_run if outage else c.live_run
+    if a is None or b is None or len(a.predictions) != len(b.predictions):
+        return None
+    pa, pb = a.predictions, b.predictions
+    if outage:
+        keep = pa["in_outage"].to_numpy(dtype=bool)
+        pa, pb = pa[keep], pb[keep]
+    pairs = live.paired_differences(pa, pb)
+    pairs = pairs[pairs["well"] == well]
+    own = c.test(protocol, well) or {}
+    t = live.paired_test(pairs, own.get("block_days"), seed=seed)
+    return None if t.get("change") is None else t
+
+
+def weigh_forms(
+    results: Sequence[CandidateResult],
+    wells: Sequence[str],
+    well: str | None,
+    field_effect: str | None = None,
+    seed: int = 0,
+) -> None:
+    """Which forms of one physics (the valve families; wear with time or throughput:
+    :func:`vfm_core.jobs.diagnose_rivals.family`) give way to another form of it, for
+    ``well`` (None: the field, ``wells`` its wells): sets ``gives_way["field" or well]`` on
+    each candidate that would otherwise be offered there (:func:`offer`), which then is
+    not, and says why. Two rules, in this order:
+
+    * **At a bound.** A form whose fitted parameter sits at a physical bound for the wells
+      concerned (:func:`at_bound`) gives way to another form of the same physics that the
+      evidence names (material, standing alone), that was replayed, and whose parameters
+      do not. A parameter at its bound is not an estimate: the data push it past what the
+      form allows, so the form does not describe the data; what it lowers of the error it
+      takes up as a flexible term would (on a sigmoid valve, the quick-opening curve with
+      its weight at -0.5 in four of five wells lowered one well's live error beyond chance,
+      and applied, stayed frozen at the bound, a standing alarm). A form that fits within
+      its bounds is the physics' description, offered or not on its own evidence.
+    * **The field's form.** For one well, when the field's verdict names a form of the
+      same physics (``field_effect``) and that form is not at a bound in this well, another
+      form is offered in its place only if this well's own replay finds it better than the
+      field's form beyond chance (a one-sided paired block test of the two on the well's
+      rows under the protocol that offers it, at :data:`PHYSICS_ALPHA`, not adjusted:
+      adjusting would make the well's own evidence harder to count). One physics at work
+      in a field is one form of it unless a well shows otherwise; a well's months are weak
+      evidence alone, and which of two forms' gains on it passes the false-discovery bar
+      is otherwise decided by the replay's noise.
+
+    Nothing here is tuned to a field: the bound is the prior's own, the level the one the
+    verdict uses for a library effect against a correction (:func:`physics_behind_driver`)."""
+    key = "field" if well is None else well
+    unit = list(wells) if well is None else [well]
+    for c in results:
+        c.gives_way.pop(key, None)
+    named = [
+        c
+        for c in results
+        if c.named and rivals.stands_alone(c) and c.replayed and not at_bound(c, unit)
+    ]
+    for c in results:
+        if not at_bound(c, unit) or not offer(c, well)[0]:
+            continue
+        other = next(
+            (r for r in named if r is not c and rivals.family(r.effect) == rivals.family(c.effect)),
+            None,
+        )
+        if other is None:
+            continue
+        params = sorted({h["parameter"] for h in c.at_bound if set(h["wells"]) & set(unit)})
+        where = (
+            f"on {well}"
+            if well is not None
+            else (f"in {len(bound_wells(c) & set(unit))} of the field's {len(unit)} wells")
+        )
+        c.gives_way[key] = {
+            "to": other.effect,
+            "rule": "at_bound",
+            "text": (
+                f"{' and '.join(params)} sit{'s' if len(params) == 1 else ''} at a physical "
+                f"bound {where}: not an estimate (this form does not describe the data), while "
+                f"{other.effect}, a form of the same physics the evidence names, fits within "
+                "its bounds"
+            ),
+        }
+    if well is not None and field_effect is not None:
+        _field_form(results, well, field_effect, seed)
+
+
+def _field_form(
+    results: Sequence[CandidateResult], well: str, field_effect: str, seed: int
+) -> None:
+    """:func:`weigh_forms`'s second rule on ``well``: a form other than the field's
+    (``field_effect``) gives way to it unless this well's replay finds it better beyond
+    chance."""
+    key = well
+    chosen = next((c for c in results if c.effect == field_effect), None)
+    if chosen is None or not chosen.replayed or at_bound(chosen, [well]):
+        return
+    for c in results:
+        if c is chosen or key in c.gives_way:
+            continue
+        if rivals.family(c.effect) != rivals.family(chosen.effect):
+            continue
+        ok, protocol = offer(c, well)
+        if not ok:
+            continue
+        t = _versus_form(chosen, c, well, protocol, seed)
+        if t is None or (t["change"] < 0 and t["p_value"] < PHYSICS_ALPHA):
+            continue
+        c.gives_way[key] = {
+            "to": chosen.effect,
+            "rule": "field_form",
+            "versus": brief(t),
+            "text": (
+                f"the field's verdict names {chosen.effect}, a form of the same physics, and "
+                f"on {well} this form does not beat it beyond chance ({protocol} MAPE "
+                f"{t['change']:+.2f} points against it, one-sided p = {t['p_value']:.2g})"
+            ),
+        }
 
 
 def set_offers(
