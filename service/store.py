@@ -1233,23 +1233,30 @@ class Store:
     def mpfm_near(self, well: str, time_ns: int, window_ns: int) -> list[tuple[int, float]]:
         """The well's MPFM readings within ``window_ns`` of ``time_ns``: (epoch ns, q_total
         in Sm3/h) each."""
-        with self.reader() as con:
-            rows = con.execute(
-                "SELECT time_ns, q_total FROM measurements WHERE well = ? AND source = 'mpfm'"
-                " AND time_ns >= ? AND time_ns <= ?",
-                (well, time_ns - window_ns, time_ns + window_ns),
-            ).fetchall()
-        return [(int(r[0]), float(r[1])) for r in rows]
+        return self._near(
+            "SELECT time_ns, q_total FROM measurements WHERE well = ? AND source = 'mpfm'"
+            " AND time_ns >= ? AND time_ns <= ?",
+            well,
+            time_ns,
+            window_ns,
+        )
 
     def chokes_near(self, well: str, time_ns: int, window_ns: int) -> list[tuple[int, float]]:
         """The well's samples within ``window_ns`` of ``time_ns``, oldest first: (epoch ns,
         choke reading as a fraction open) each (one indexed range query)."""
+        return self._near(
+            "SELECT time_ns, choke FROM samples WHERE well = ? AND time_ns >= ? AND time_ns <= ?"
+            " ORDER BY time_ns",
+            well,
+            time_ns,
+            window_ns,
+        )
+
+    def _near(self, sql: str, well: str, time_ns: int, window_ns: int) -> list[tuple[int, float]]:
+        """(epoch ns, value) rows of ``sql`` (constant, with the well and the window's two
+        ends as its parameters) within ``window_ns`` of ``time_ns``."""
         with self.reader() as con:
-            rows = con.execute(
-                "SELECT time_ns, choke FROM samples WHERE well = ? AND time_ns >= ? AND time_ns <= ?"
-                " ORDER BY time_ns",
-                (well, time_ns - window_ns, time_ns + window_ns),
-            ).fetchall()
+            rows = con.execute(sql, (well, time_ns - window_ns, time_ns + window_ns)).fetchall()
         return [(int(r[0]), float(r[1])) for r in rows]
 
     def reviews(
