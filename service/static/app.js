@@ -53,6 +53,22 @@ function needToken(out) {
 }
 
 /* ---------------------------------------------------------------- field view */
+/* A residual alarm whose size at its raise (|shift|) is under the well's rolling MAPE, the
+   error the operator already reads beside every prediction: the CUSUM found a real move, but
+   no single reading shows it. It is listed, prefixed "small", in the warning colour, not the
+   red of an alarm that changes what a reading means. Unknown size or error: not small. */
+const SMALL_ALARM = "small ";
+function smallShift(v) {
+  const ra = v && v.residual_alarm, m = v && v.rolling_mape && v.rolling_mape.value;
+  return !!(ra && ra.active && typeof ra.shift === "number" && typeof m === "number" && m > 0 &&
+    100 * Math.abs(ra.shift) < m);
+}
+const isSmallAlarm = (text) => text.startsWith(SMALL_ALARM + "residual alarm");
+/* "alarm" (red) when any alarm is not a small one, "warn" when all are, "ok" with none. */
+function alarmClass(alarms) {
+  return !alarms.length ? "ok" : alarms.every(isSmallAlarm) ? "warn" : "alarm";
+}
+
 function alarmsOf(v) {
   const out = [];
   if (!v) return out;
@@ -68,7 +84,9 @@ function alarmsOf(v) {
     // the CUSUM's change-point estimate, where it lies days before the alarm was raised
     const onset = (ra.onset || "").slice(0, 10);
     const began = onset && onset < since ? ` (the change began about ${onset})` : "";
-    out.push(`residual alarm: ${meter} ${side} the model${by} since ${since}${began}`);
+    const small = smallShift(v);
+    out.push((small ? SMALL_ALARM : "") + `residual alarm: ${meter} ${side} the model${by} since ${since}${began}` +
+      (small ? ` (under the model's typical error of ${fmt(v.rolling_mape.value, 1)} %)` : ""));
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
@@ -169,7 +187,7 @@ function renderField() {
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
     <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
-    <td class="${r.alarms.length ? "alarm" : "ok"}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
+    <td class="${alarmClass(r.alarms)}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
     th.classList.toggle("asc", th.dataset.key === key && dir > 0);
@@ -620,7 +638,9 @@ function renderWellHeader() {
   $("#well-model").dataset.model = v.model || "";
   const alarms = alarmsOf(v);
   $("#well-alarms").hidden = !alarms.length;
-  $("#well-alarms").textContent = alarms.length ? "Alarms: " + alarms.join("; ") : "";
+  $("#well-alarms").className = alarmClass(alarms);
+  $("#well-alarms").innerHTML = alarms.length ? "Alarms: " + alarms.map((a) => isSmallAlarm(a)
+    ? `<span class="small-shift">${esc(a)}</span>` : esc(a)).join("; ") : "";
   const notes = notesOf(v);  // counts since the service started: a note, not an alarm
   $("#well-notes").hidden = !notes.length;
   $("#well-notes").textContent = notes.join("; ");
@@ -854,7 +874,7 @@ async function loadWell(well) {
   $("#field-view").hidden = true; $("#well-view").hidden = false;
   $("#csv-link").href = `/wells/${encodeURIComponent(well)}/history.csv`;
   $("#csv-link").setAttribute("download", `${well}-history.csv`);
-  $("#diag-verdict").textContent = ""; $("#diag-headline").textContent = ""; $("#diag-status").textContent = "";
+  renderVerdictText(""); $("#diag-headline").textContent = ""; $("#diag-status").textContent = "";
   $("#diag-candidates-table").hidden = true; $("#change-result").textContent = ""; $("#wt-result").textContent = "";
   makeCharts();
   try {
@@ -967,7 +987,7 @@ async function runDiagnosis(e) {
   const cands = $("#diag-candidates").value.split(",").map((s) => s.trim()).filter(Boolean);
   const body = { model: $("#diag-model").value, suggest: $("#diag-suggest").checked };
   if (cands.length) body.candidates = cands;
-  $("#diag-run").disabled = true; $("#diag-verdict").textContent = ""; $("#diag-headline").textContent = ""; $("#diag-candidates-table").hidden = true;
+  $("#diag-run").disabled = true; renderVerdictText(""); $("#diag-headline").textContent = ""; $("#diag-candidates-table").hidden = true;
   $("#change-result").textContent = ""; $("#change-result").className = "result";
   try {
     const job = await api("POST", `/wells/${encodeURIComponent(state.well)}/diagnosis`, body);
@@ -1016,7 +1036,7 @@ function showDiagnosis(j) {
   const d = j.diagnosis;
   state.diagnosed = d;
   $("#diag-headline").textContent = verdictHeadline(d.verdict);
-  $("#diag-verdict").textContent = d.verdict.text;
+  renderVerdictText(d.verdict.text);
   const diagnosed = [d.model, ...(d.base_effects || [])].join("+");
   // one error, the one the operator sees: the well's own method replayed (live), the outage
   // error beside it; the fit-once figure only as evidence
@@ -1096,6 +1116,24 @@ function showDiagnosis(j) {
   document.querySelectorAll("#diag-candidates-table button.apply").forEach((b) => b.addEventListener("click", () => applyEffect(b)));
 }
 
+/* The verdict's text, folded: its first sentence (what was found, and what it does to the
+   live error) stands in #diag-verdict; the sentences after it (evidence, rivals, what was not
+   tested) go under a "the evidence" fold, each a paragraph, unless the whole is short. The
+   full text ran to 2,600 characters of bold. Sentences end at ". " before a capital, so
+   decimals ("3.55 %") and parameters ("exponent=1.04") stay whole. */
+const VERDICT_FOLD = 320;  // characters: about three lines of the verdict's column
+function renderVerdictText(text) {
+  const all = (text || "").trim();
+  const sentences = all.split(/(?<=[.!?])\s+(?=[A-Z])/);
+  const more = $("#diag-verdict-more");
+  const fold = all.length > VERDICT_FOLD && sentences.length > 1;
+  $("#diag-verdict").textContent = fold ? sentences[0] : all;
+  more.hidden = !fold;
+  more.open = false;
+  more.innerHTML = !fold ? "" : `<summary>the evidence (${sentences.length - 1} more sentence${sentences.length > 2 ? "s" : ""})</summary>` +
+    sentences.slice(1).map((x) => `<p>${esc(x)}</p>`).join("");
+}
+
 /* Beside a held-out check that calls a change worse, what the diagnosis that offered it
    expected (its live replay, this well's figure): two numbers that disagree, each named, and
    which one decides. Empty when the change is not one of the diagnosis's candidates. */
@@ -1130,6 +1168,20 @@ function rejectedTests(d) {
   return out;
 }
 
+/* What PUT /wells/{well}/model answered, in a line: the change, its held-out check (named as
+   the service ran it: "replayed", each model learning with its own method over the latest
+   fifth, as the trial scores it; or fitted once), the trial it starts. */
+function changedLine(c) {
+  const h = c.holdout || {};
+  const how = h.protocol === "replayed" ? ", each model learning with its own method over it as the trial will score it"
+    : h.protocol ? ` (${h.protocol})` : "";
+  return `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
+    `Held-out MAPE on the latest fifth of the history${how}: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after` +
+    (h.confirmed_worse ? " (worse: applied as confirmed)" : "") + ". " +
+    (c.trial ? `On trial against ${c.trial.shadow_model} as a shadow until ${(c.trial.until || "").replace("+00:00", "Z")} of data. ` : "") +
+    `Watch the error-over-time chart right of the red marker.`;
+}
+
 async function applyEffect(button) {
   const out = $("#change-result");
   if (needToken(out)) return;
@@ -1158,12 +1210,7 @@ async function applyEffect(button) {
       out.textContent = `fitting ${[model, ...effects].join("+")} again, confirmed...`;
       c = await api("PUT", path, { ...body, confirm_worse: true });
     }
-    const h = c.holdout || {};
-    out.textContent = `Model changed: ${c.model_before} \u2192 ${c.model_after} (version ${c.version_before} \u2192 ${c.version_after}). ` +
-      `Held-out MAPE on the latest fifth of the history: ${fmt(h.before, 2)} % before, ${fmt(h.after, 2)} % after` +
-      (h.confirmed_worse ? " (worse: applied as confirmed)" : "") + ". " +
-      (c.trial ? `On trial against ${c.trial.shadow_model} as a shadow until ${(c.trial.until || "").replace("+00:00", "Z")} of data. ` : "") +
-      `Watch the error-over-time chart right of the red marker.`;
+    out.textContent = changedLine(c);
     const v = await api("GET", "/wells/" + encodeURIComponent(state.well));
     state.view = v; state.wells[state.well] = v; renderWellHeader(); renderParams(); syncDiagModel(v);
     loadParams(state.well, false);
