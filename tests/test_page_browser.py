@@ -647,33 +647,35 @@ def test_verdict_folds_small_alarms_and_charts_follow_the_window(
     assert page.locator("#diag-verdict").inner_text() == "Noise: nothing is missing."
     assert not more.is_visible()
 
-    def header(shift: float, mape: float | None) -> tuple[str, str, int]:
+    def header(shift: float, small: bool | None) -> tuple[str, str, int]:
         return tuple(  # type: ignore[return-value]
             page.evaluate(
-                """([shift, mape]) => {
+                """([shift, small]) => {
                   const saved = state.view;
-                  // the residual alarm alone (this well's other alarms set aside)
+                  // the residual alarm alone (this well's other alarms set aside), sized by
+                  // the service (residual_alarm.small, typical_error_percent)
                   state.view = { ...saved, parameters: {}, mpfm_check: null, pending_measurements: 0,
-                    ready: true, rolling_mape: { value: mape, n: 40 },
+                    ready: true, rolling_mape: { value: 2.2, n: 40 },
                     residual_alarm: { active: true, shift, direction: "high", source: "mpfm",
-                                      since: "2018-03-01T00:00:00+00:00", events: [] } };
+                                      since: "2018-03-01T00:00:00+00:00", events: [],
+                                      small, typical_error_percent: 2.2 } };
                   renderWellHeader();
                   const el = document.querySelector("#well-alarms");
                   const out = [el.className, el.innerText, el.querySelectorAll(".small-shift").length];
                   state.view = saved; renderWellHeader();
                   return out;
                 }""",
-                [shift, mape],
+                [shift, small],
             )
         )
 
-    cls, text, spans = header(0.005, 2.2)
+    cls, text, spans = header(0.005, True)
     assert cls == "warn" and spans == 1, (cls, text)
     assert "small residual alarm: MPFM above the model (a shift of +0.5 %)" in text, text
-    assert "under the model's typical error of 2.2 %" in text, text
-    for shift, mape in ((0.06, 2.2), (0.005, None)):
-        cls, text, spans = header(shift, mape)
-        assert cls == "alarm" and spans == 0 and "small" not in text, (shift, mape, text)
+    assert "under the model's usual error of 2.2 % before it" in text, text
+    for shift, small in ((0.06, False), (0.005, None)):
+        cls, text, spans = header(shift, small)
+        assert cls == "alarm" and spans == 0 and "small" not in text, (shift, small, text)
     line = page.evaluate(
         """() => changedLine({ model_before: "mm", model_after: "mm+erosion", version_before: 3,
             version_after: 4, holdout: { before: 3.09, after: 2.57, protocol: "replayed" } })"""

@@ -12,6 +12,7 @@ from vfm_core.errors import ConfigError
 from vfm_core.residual_alarm import (
     AlarmSize,
     ResidualCusum,
+    alarm_size,
     alarms_from_predictions,
     cusum_arl0,
     cusum_threshold,
@@ -313,6 +314,8 @@ def test_an_alarms_size_is_the_step_against_the_readings_before_it() -> None:
     assert found is not None and found["readings"] == 6 and found["reference"] == 30
     assert found["shift"] == pytest.approx(0.07, abs=0.003)
     assert found["onset_ns"] == 40 * DAY_NS
+    # the usual error before the change: +-0.1 % about the model, by hand
+    assert found["typical"] == pytest.approx(0.001, rel=0.01)
     # a CUSUM onset some days early: the scan finds the step's day, the size is the same
     early = size.at_raise(36 * DAY_NS, 45 * DAY_NS)
     assert early is not None and early["onset_ns"] == 40 * DAY_NS and early["readings"] == 6
@@ -322,3 +325,35 @@ def test_an_alarms_size_is_the_step_against_the_readings_before_it() -> None:
     again.restore(size.state())
     assert again.at_raise(40 * DAY_NS, 45 * DAY_NS) == found
     assert len(size.state()["t"]) == 50
+
+
+def test_an_alarm_is_small_when_its_shift_is_under_the_meters_usual_error() -> None:
+    """The rule by hand (:func:`alarm_size`), then end to end: readings twice a day at 3 %
+    noise about a fixed model, a +12 % step on day 60 gives a full alarm and a +2 % step a
+    small one (its size at the raise under the readings' usual error before it, about
+    2.4 %: the mean of |N(0, 3 %)| is 3 % x sqrt(2 / pi)); the fields come with every alarm."""
+    assert alarm_size(0.012, 0.024) == {"small": True, "typical_error_percent": 2.4}
+    assert alarm_size(-0.03, 0.024)["small"] is False
+    assert alarm_size(0.012, None) == {"small": None, "typical_error_percent": None}
+    assert alarm_size(math.nan, 0.024)["small"] is None
+    n = 2 * 200
+    time = pd.date_range("2020-01-01", periods=n, freq="12h", tz="UTC")
+    noise = np.exp(np.random.default_rng(1).normal(0.0, 0.03, n))
+    found = {}
+    for step in (1.12, 1.02):
+        measured = 1000.0 * np.where(np.arange(n) / 2 >= 60, step, 1.0) * noise
+        frame = pd.DataFrame(
+            {
+                "time": time,
+                "well": "W01",
+                "source": "mpfm",
+                "predicted": 1000.0,
+                "measured": measured,
+            }
+        )
+        (first, *_) = alarms_from_predictions(frame, flush=False)
+        assert first["start"] >= pd.Timestamp("2020-03-01", tz="UTC"), first
+        assert 1.5 < first["typical_error_percent"] < 3.3, first
+        found[step] = first
+    assert found[1.12]["small"] is False and found[1.12]["shift"] > 0.08
+    assert found[1.02]["small"] is True and 0.0 < found[1.02]["shift"] < 0.024

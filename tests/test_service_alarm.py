@@ -74,12 +74,18 @@ def test_a_step_raises_the_residual_alarm_everywhere_it_is_shown(
         assert event["start"] == alarm["since"] and event["end"] is None
         assert event["statistic"] > event["threshold"]
         assert alarm["streams"]["mpfm"]["ready"] and alarm["streams"]["mpfm"]["periods"] >= 80
+        # a 12 % step at 3 % meter noise is no small alarm: its size against the meter's
+        # usual error before it (the mean of |N(0, 3 %)|, about 2.4 %)
+        assert alarm["small"] is False and alarm["shift"] > 0.06, alarm
+        assert 1.5 < alarm["typical_error_percent"] < 3.5, alarm
+        assert alarm["streams"]["mpfm"]["small"] is False
         # the T^2 input test stays, under its old field and keys (inputs never moved here)
         assert {"enabled", "detected", "active", "events"} <= set(view["drift"])
         # /metrics: the gauge and the counter
         text = http_get(service, "/metrics").text
         assert 'vfm_well_residual_alarm_active{well="W01"} 1.0' in text
         assert 'vfm_well_residual_alarms_total{well="W01"} 1.0' in text
+        assert 'vfm_well_residual_alarm_small{well="W01"} 0.0' in text
         # the store row, the live event, the log line
         with store.reader() as con:
             rows = con.execute(

@@ -649,6 +649,31 @@ class ResidualCusum:
             self._post.extend(float(v) for v in state.get("post", []))
 
 
+def alarm_size(shift: float | None, typical: float | None) -> dict[str, Any]:
+    """How large an alarm is beside the error the operator already reads: ``small`` is True
+    when its size at the raise, ``|shift|`` (a relative change: 0.005 = 0.5 %), is under
+    ``typical``, the meter's usual relative error before the change (the reference
+    readings' MAPE as a ratio, :meth:`AlarmSize.at_raise`). The detector found a real move
+    (its false-alarm rate is set by ``arl0``), but no single reading shows it: the page
+    lists it as "small" in the warning colour, ``/metrics`` as
+    ``vfm_well_residual_alarm_small`` (alert ``VfmResidualAlarmSmall``, severity info). The
+    usual error is read before the change, not from the rolling MAPE, which the shift's own
+    errors raise while the model has not followed it. ``small`` is None when either figure
+    is unknown (the alarm counts as a full one then). ``typical_error_percent`` is
+    ``typical`` in %.
+
+    >>> alarm_size(0.005, 0.022)
+    {'small': True, 'typical_error_percent': 2.2}
+    >>> alarm_size(-0.063, 0.022)["small"], alarm_size(None, 0.022)["small"]
+    (False, None)
+    """
+    small: bool | None = None
+    pct = None if typical is None or not math.isfinite(typical) else round(100.0 * typical, 6)
+    if shift is not None and math.isfinite(shift) and pct is not None and pct > 0:
+        small = 100.0 * abs(shift) < pct
+    return {"small": small, "typical_error_percent": pct}
+
+
 class AlarmSize:
     """The size of an alarm in the measurement's own terms: how far the measured rate moved
     from the model's prediction when the alarm was raised, as a relative change (0.05: the
@@ -692,7 +717,7 @@ class AlarmSize:
         self._r.append(r)
 
     def at_raise(self, onset_ns: int, raised_ns: int) -> dict[str, Any] | None:
-        """``{"shift", "se", "readings", "reference", "onset_ns"}`` of an alarm that began at
+        """``{"shift", "se", "readings", "reference", "onset_ns", "typical"}`` of an alarm that began at
         ``onset_ns`` (:attr:`AlarmEvent.onset_ns`) and was raised at ``raised_ns`` (epoch
         ns; the event's ``start_ns``): the relative shift, its
         standard error in log terms, the readings in the alarm it rests on and the readings
@@ -726,6 +751,10 @@ class AlarmSize:
             "readings": len(inside),
             "reference": len(before),
             "onset_ns": int(times[change]),
+            # the meter's usual error before the change: the mean absolute relative error
+            # |predicted - measured| / measured of the reference readings (a MAPE, as a
+            # ratio), which the alarm's size is read against (:func:`alarm_size`)
+            "typical": float(np.mean(np.abs(np.expm1(-before)))),
         }
 
     def state(self) -> dict[str, Any]:
@@ -819,6 +848,10 @@ def alarms_from_predictions(
                 {
                     "shift": None if found is None else found["shift"],
                     "shift_se": None if found is None else found["se"],
+                    **alarm_size(
+                        None if found is None else found["shift"],
+                        None if found is None else found["typical"],
+                    ),
                     "well": str(well),
                     "source": str(source),
                     "start": pd.Timestamp(e.start_ns, tz="UTC"),

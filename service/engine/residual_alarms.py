@@ -24,6 +24,7 @@ from service.store import InsertResidualAlarm
 from vfm_core.residual_alarm import (
     AlarmSize,
     ResidualCusum,
+    alarm_size,
     cusum_threshold,
     standardised_residual,
 )
@@ -154,6 +155,7 @@ class WellResidualAlarm:
             event["onset"] = iso(onset if sized is None else sized["onset_ns"])
             event["shift"] = None if sized is None else sized["shift"]
             event["shift_se"] = None if sized is None else sized["se"]
+            event["typical_error"] = None if sized is None else sized["typical"]
             self.events.append(event)
             self._open[source] = event
             out.append(("start", source, event))
@@ -232,6 +234,7 @@ class WellResidualAlarm:
                 "shift": event.get("shift"),
                 "shift_se": event.get("shift_se"),
                 "onset": event.get("onset"),
+                **alarm_size(event.get("shift"), event.get("typical_error")),
             }
             rank = (stat / det.threshold if det.threshold > 0 else 0.0) + (2.0 if det.alarm else 0)
             if lead is None or rank > lead[0]:
@@ -249,6 +252,8 @@ class WellResidualAlarm:
             "shift": first["shift"] if first else None,
             "shift_se": first["shift_se"] if first else None,
             "onset": first["onset"] if first else None,
+            "small": first["small"] if first else None,
+            "typical_error_percent": first["typical_error_percent"] if first else None,
             "source": (lead[1] if lead is not None and active else None),
             "arl0": s.arl0,
             "k": s.k,

@@ -256,7 +256,8 @@ class WellState:
         """The residual alarm for the API (GET /wells/{well} ``residual_alarm``), with
         ``which_moved`` (:func:`vfm_core.meter_check.which_moved`) and
         ``awaiting_well_test`` (:func:`vfm_core.meter_check.awaiting_well_test`) while an
-        alarm is active."""
+        alarm is active (its size against the meter's usual error, ``small`` and
+        ``typical_error_percent``, comes with the alarm: :func:`vfm_core.residual_alarm.alarm_size`)."""
         alarm = self.residual_alarm
         if alarm is None:
             return disabled_view()

@@ -15,6 +15,8 @@ the service at scrape time, so the numbers are always those of ``GET /health`` a
                                              since the service started
 ``vfm_well_residual_alarm_active{well}``     1 while the well's residual alarm is active
 ``vfm_well_residual_alarms_total{well}``     residual alarms raised since the start
+``vfm_well_residual_alarm_small{well}``      1 while the active alarm's size is under the
+                                           meter's usual error before it, else 0
 ``vfm_well_sensor_fault_active{well,sensor,kind}``  1 while the well has that instrument
                                              fault (``vfm_core.sensor_faults``)
 ``vfm_sensor_faults_total{sensor,kind}``     instrument faults raised, all wells (kept
@@ -167,6 +169,12 @@ def _well_metrics(wells: dict[str, Any], obs: Any) -> Iterator[Metric]:
         "1 while the well's residual alarm is active (any meter), else 0.",
         labels=["well"],
     )
+    alarm_small = GaugeMetricFamily(
+        "vfm_well_residual_alarm_small",
+        "1 while the well's active residual alarm is smaller (its shift at the raise) than "
+        "the meter's usual error before it: a real move that no single reading shows; else 0.",
+        labels=["well"],
+    )
     alarms = CounterMetricFamily(
         "vfm_well_residual_alarms",
         "Residual alarms raised since the start.",
@@ -195,6 +203,8 @@ def _well_metrics(wells: dict[str, Any], obs: Any) -> Iterator[Metric]:
         drifts.add_metric([well], obs.drift_events.get(well, 0))
         if st.residual_alarm is not None:
             alarm_active.add_metric([well], 1.0 if st.residual_alarm.active else 0.0)
+            small = st.residual_alarm.active and st.residual_alarm.view()["small"] is True
+            alarm_small.add_metric([well], 1.0 if small else 0.0)
             alarms.add_metric([well], obs.residual_alarms.get(well, 0))
         changes.add_metric([well], obs.model_changes.get(well, 0))
         samples.add_metric([well], st.samples)
@@ -203,7 +213,8 @@ def _well_metrics(wells: dict[str, Any], obs: Any) -> Iterator[Metric]:
         if check is not None:
             mpfm_alarm.add_metric([well], 0.0 if check["agrees"] else 1.0)
             mpfm_diff.add_metric([well], check["relative_difference"])
-    yield from (mape, cover, version, drifts, alarm_active, alarms, changes, samples)
+    yield from (mape, cover, version, drifts, alarm_active, alarm_small, alarms, changes)
+    yield samples
     yield from (predictions, mpfm_alarm, mpfm_diff)
 
 

@@ -53,15 +53,16 @@ function needToken(out) {
 }
 
 /* ---------------------------------------------------------------- field view */
-/* A residual alarm whose size at its raise (|shift|) is under the well's rolling MAPE, the
-   error the operator already reads beside every prediction: the CUSUM found a real move, but
-   no single reading shows it. It is listed, prefixed "small", in the warning colour, not the
-   red of an alarm that changes what a reading means. Unknown size or error: not small. */
+/* A residual alarm the service calls small (GET /wells/{well} residual_alarm.small,
+   vfm_core.residual_alarm.alarm_size: its size at the raise, |shift|, under the meter's mean
+   absolute error over the readings before the change, the error the operator read then): the CUSUM
+   found a real move, but no single reading shows it. It is listed, prefixed "small", in the
+   warning colour, not the red of an alarm that changes what a reading means; /metrics and the
+   alert VfmResidualAlarmSmall (severity info) say the same. */
 const SMALL_ALARM = "small ";
 function smallShift(v) {
-  const ra = v && v.residual_alarm, m = v && v.rolling_mape && v.rolling_mape.value;
-  return !!(ra && ra.active && typeof ra.shift === "number" && typeof m === "number" && m > 0 &&
-    100 * Math.abs(ra.shift) < m);
+  const ra = v && v.residual_alarm;
+  return !!(ra && ra.active && ra.small === true);
 }
 const isSmallAlarm = (text) => text.startsWith(SMALL_ALARM + "residual alarm");
 /* "alarm" (red) when any alarm is not a small one, "warn" when all are, "ok" with none. */
@@ -86,7 +87,7 @@ function alarmsOf(v) {
     const began = onset && onset < since ? ` (the change began about ${onset})` : "";
     const small = smallShift(v);
     out.push((small ? SMALL_ALARM : "") + `residual alarm: ${meter} ${side} the model${by} since ${since}${began}` +
-      (small ? ` (under the model's typical error of ${fmt(v.rolling_mape.value, 1)} %)` : ""));
+      (small ? ` (under the model's usual error of ${fmt(ra.typical_error_percent, 1)} % before it)` : ""));
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
     if (ra.which_moved) out.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
