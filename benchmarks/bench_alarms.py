@@ -267,7 +267,12 @@ def describe(
     for a in alarms:
         key = f"{a['source']}:{a['direction']}"
         streams[key] = streams.get(key, 0) + 1
-    return note, ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
+    # how many of them are small: their shift at the raise under the meter's usual error
+    # before it (vfm_core.residual_alarm.alarm_size; shown in the warning colour, alerted
+    # at severity info)
+    small = sum(a.get("small") is True for a in alarms)
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(streams.items()))
+    return note, kinds + (f"; small {small}" if alarms else "")
 
 
 def _accept(spec: str) -> tuple[int, bool]:
