@@ -172,4 +172,14 @@ def test_residual_alarms_listed_and_named_on_the_page(tmp_path: Path) -> None:
         assert sized.startswith(
             "MPFM below the model (a shift of -6.3 %) since 2021-06-01 03:00 UTC"
         )
+        # a small one (the service's event.small: under the meter's usual error before it)
+        small = page.evaluate(
+            "alarmText({source: 'mpfm', direction: 'high', start: '2021-06-01T03:00:00+00:00',"
+            " end: '2021-06-09T03:00:00+00:00', closed: 'cleared', shift: 0.009,"
+            " typical_error: 0.024, small: true}, 30)"
+        )
+        assert small.startswith(
+            "MPFM above the model (a small shift of +0.9 %, under the usual error of 2.4 % "
+            "before it) 2021-06-01 03:00 to 2021-06-09 03:00 UTC"
+        ), small
         assert errors == [], errors

@@ -72,6 +72,7 @@ def test_a_step_raises_the_residual_alarm_everywhere_it_is_shown(
         assert step <= since <= step + pd.Timedelta(days=4), since
         (event,) = alarm["events"]
         assert event["start"] == alarm["since"] and event["end"] is None
+        assert event["small"] is False and event["typical_error"] > 0.01, event
         assert event["statistic"] > event["threshold"]
         assert alarm["streams"]["mpfm"]["ready"] and alarm["streams"]["mpfm"]["periods"] >= 80
         # a 12 % step at 3 % meter noise is no small alarm: its size against the meter's

@@ -156,6 +156,7 @@ class WellResidualAlarm:
             event["shift"] = None if sized is None else sized["shift"]
             event["shift_se"] = None if sized is None else sized["se"]
             event["typical_error"] = None if sized is None else sized["typical"]
+            event["small"] = alarm_size(event["shift"], event["typical_error"])["small"]
             self.events.append(event)
             self._open[source] = event
             out.append(("start", source, event))

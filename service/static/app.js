@@ -299,7 +299,11 @@ function alarmText(e, acceptPeriods) {
   const meter = e.source === "well_test" ? "well tests" : (e.source || "measurements").toUpperCase();
   const side = e.direction === "high" ? "above" : e.direction === "low" ? "below" : "off";
   const n = acceptPeriods ?? (state.view && state.view.residual_alarm && state.view.residual_alarm.accept_periods);
-  const by = shiftText(e.shift);
+  // a small one says so (the service's event.small, its size under the meter's usual error
+  // before it, event.typical_error as a ratio)
+  const by = e.small === true && typeof e.shift === "number" && typeof e.typical_error === "number"
+    ? ` (a small shift of ${e.shift >= 0 ? "+" : "-"}${Math.abs(100 * e.shift).toFixed(1)} %, under the usual error of ${(100 * e.typical_error).toFixed(1)} % before it)`
+    : shiftText(e.shift);
   // the change's onset (the CUSUM's change point), where it lies days before the raise
   const onset = (e.onset || "").slice(0, 10);
   const began = onset && onset < (e.start || "").slice(0, 10) ? ` (the change began about ${onset})` : "";
