@@ -835,6 +835,7 @@ def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_in
             "p_value": 0.016,
             "q_value": 0.21,
             "variants": [],
+            "alternatives": [],
         }
     ]
     text = dv.suggestive_text(found)
@@ -860,6 +861,48 @@ def test_a_noise_verdict_lists_suggestive_candidates_and_says_whose_chance_an_in
         == ": its interval and p = 0.041 are for this test alone; over all the diagnosis's tests q = 0.21"
     )
     assert dv._alone_text(None) == "" and dv._alone_text({"change": -0.1}) == ""
+
+
+def test_a_suggestive_candidate_lists_the_rivals_the_data_cannot_tell_from_it() -> None:
+    """A user's walk on an eroding field (seed 5421, ``ham`` + ``bayes``, the split 2016-09-01):
+    the fit-once evidence lowered the error by 0.31 points with slip (p = 0.0035), 0.29 with
+    erosion (p = 0.0033) and 0.28 with a meter bias, none rejected over the diagnosis's 66
+    tests, and the rivals test found erosion and the meter bias indistinguishable from slip
+    (ranked first). The ``noise`` verdict's sentence named slip alone, the one physics the
+    truth does not have. It now lists the indistinguishable rivals beside it; a rival that
+    another candidate explains, or one not material, is not listed."""
+    rng = np.random.default_rng(7)
+    frame = _frame(rng)
+    r = 0.02 + 0.02 * rng.normal(size=len(frame))
+    base = _run(frame, r)
+
+    def weak(name: str, material: bool = True, **rival: dict[str, Any]) -> dg.CandidateResult:
+        c = _candidate(name, base, _run(frame, r), material=material)
+        c.tests["fit_once"] = {"change": -0.31, "p_value": 0.0035, "q_value": 0.076}
+        c.tests["fit_once"]["rejected"] = False
+        c.rivals = dict(rival)
+        return c
+
+    same = {"relation": "indistinguishable", "ranked_first": False, "stale": False}
+    slip = weak("slip", erosion={**same, "ranked_first": True})
+    slip.spec = "slip:exponent=1.04"
+    erosion = weak("erosion", slip=same)
+    bias = weak("mpfm_bias", slip=same)
+    explained = weak("critical_ratio", slip=same)
+    explained.explained_by = "real_gas"
+    small = weak("real_gas", material=False, slip=same)
+    found = dv.suggestive([slip, erosion, bias, explained, small], None)
+    assert [(x["effect"], x["alternatives"]) for x in found] == [
+        ("slip:exponent=1.04", ["erosion", "mpfm_bias"])
+    ]
+    assert (
+        "slip:exponent=1.04 (-0.31 points, p = 0.0035, q = 0.076; or erosion, mpfm_bias, "
+        "which the data cannot tell from it)" in dv.suggestive_text(found)
+    )
+    # without rivals nothing is added to the sentence
+    alone = dv.suggestive([weak("slip")], None)
+    assert alone[0]["alternatives"] == []
+    assert "slip (-0.31 points, p = 0.0035, q = 0.076)" in dv.suggestive_text(alone)
 
 
 def test_a_noise_verdicts_correction_says_why_it_is_not_named() -> None:

@@ -604,6 +604,11 @@ def _each(found: Sequence[dict[str, Any]]) -> str:
             if x.get(key) is not None
         )
         + (f"; also {', '.join(x['variants'])}" if x.get("variants") else "")
+        + (
+            f"; or {', '.join(x['alternatives'])}, which the data cannot tell from it"
+            if x.get("alternatives")
+            else ""
+        )
         + ")"
         for x in found
     )
@@ -663,9 +668,15 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
     diagnosis's tests does not reject it. Nothing is named for them: a ``noise`` verdict
     lists them so that a short span's weak evidence is not read as none (a valve on four
     wells, a year after the split: p = 0.016 alone over 14 blocks, q = 0.13).
-    ``[{"effect", "change", "p_value", "q_value", "variants"}]``, largest fall first (MAPE
-    points); one entry a physics (:func:`vfm_core.jobs.diagnose_rivals.family`: the valve
-    families are one), its best variant, the others that qualified in ``variants``."""
+    ``[{"effect", "change", "p_value", "q_value", "variants", "alternatives"}]``, largest
+    fall first (MAPE points); one entry a physics (:func:`vfm_core.jobs.diagnose_rivals.family`:
+    the valve families are one), its best variant, the others that qualified in
+    ``variants``. ``alternatives``: the material candidates of other physics that the data
+    cannot tell from it (:func:`vfm_core.jobs.diagnose_rivals.second_to`), which are not
+    listed on their own; without them the sentence would name one of two equal explanations
+    by a few hundredths of a point (a user's walk, an eroding field with ``ham`` + ``bayes``
+    8 months after the split: slip -0.31 points, p = 0.0035, listed alone; erosion -0.29,
+    p = 0.0033, and a meter bias -0.28 beside it, "indistinguishable")."""
     out: list[dict[str, Any]] = []
     for c in results:
         if not c.material or not rivals.stands_alone(c):
@@ -687,6 +698,13 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
                     "p_value": t["p_value"],
                     "q_value": t.get("q_value"),
                     "variants": [],
+                    "alternatives": [
+                        o.spec or o.effect
+                        for o in results
+                        if o.material
+                        and o.explained_by is None
+                        and rivals.second_to(o) in (c.effect, c.spec)
+                    ],
                 }
             )
     best: dict[str, dict[str, Any]] = {}
@@ -700,8 +718,8 @@ def suggestive(results: Sequence[CandidateResult], well: str | None) -> list[dic
 
 
 def suggestive_text(found: Sequence[dict[str, Any]]) -> str:
-    """A sentence for a ``noise`` verdict naming :func:`suggestive`'s candidates. Empty when
-    there are none."""
+    """A sentence for a ``noise`` verdict naming :func:`suggestive`'s candidates, each with
+    the alternatives the data cannot tell from it. Empty when there are none."""
     if not found:
         return ""
     return (
