@@ -25,7 +25,10 @@ applies it, backtested over the last 30 days of data). Prints one line per diagn
 
     python benchmarks/bench_verdicts.py [--cases none,erosion,valve,real_gas,tempcd]
         [--combos mm:ol,mm:bayes,ham:ol] [--seeds 61,62] [--physics sachdeva]
-        [--wells 4] [--years 3] [--split 2017-07-01] [--markdown PATH]
+        [--wells 4] [--years 3] [--split 2017-07-01] [--until DATE] [--markdown PATH]
+
+``--until`` diagnoses the data before that date only: what a live service's store holds
+when an operator diagnoses a well months into the replay.
 """
 
 from __future__ import annotations
@@ -132,6 +135,12 @@ def main() -> None:
     parser.add_argument("--wells", type=int, default=4)
     parser.add_argument("--years", type=float, default=3.0)
     parser.add_argument("--split", default="2017-07-01")
+    parser.add_argument(
+        "--until",
+        default=None,
+        help="diagnose the data before this date only (UTC): what a live store holds when "
+        "an operator diagnoses a well months into the replay",
+    )
     parser.add_argument("--markdown", default=None, help="write the table here (Markdown)")
     args = parser.parse_args()
     rows: list[dict[str, Any]] = []
@@ -151,6 +160,8 @@ def main() -> None:
             for seed in [int(s) for s in args.seeds.split(",")]:
                 try:
                     obs = _field(case, physics, seed, args.wells, args.years)
+                    if args.until:
+                        obs = obs[obs["time"] < pd.Timestamp(args.until, tz="UTC")]
                 except ConfigError as exc:
                     print(f"{physics:<9} {case:<9} {seed:>4} skipped: {exc}")
                     planned -= len(args.combos.split(","))
@@ -243,7 +254,8 @@ def _write_markdown(
         "Written by `python benchmarks/bench_verdicts.py "
         f"--cases {args.cases} --combos {args.combos} --seeds {args.seeds} "
         f"--physics {args.physics} --wells {args.wells} --years {args.years} "
-        f"--split {args.split} --markdown ...` (seeds no test uses). Right: "
+        f"--split {args.split}{f' --until {args.until}' if args.until else ''} --markdown ...` "
+        "(seeds no test uses). Right: "
         + "; ".join(
             f"{physics}: "
             + ", ".join(f"{k} -> {expected(k, physics)}" for k in args.cases.split(","))
