@@ -658,7 +658,8 @@ def test_verdict_folds_small_alarms_and_charts_follow_the_window(
                     ready: true, rolling_mape: { value: 2.2, n: 40 },
                     residual_alarm: { active: true, shift, direction: "high", source: "mpfm",
                                       since: "2018-03-01T00:00:00+00:00", events: [],
-                                      small, typical_error_percent: 2.2 } };
+                                      small, typical_error_percent: 2.2,
+                                      awaiting_well_test: { text: "no well test since the alarm" } } };
                   renderWellHeader();
                   const el = document.querySelector("#well-alarms");
                   const out = [el.className, el.innerText, el.querySelectorAll(".small-shift").length];
@@ -673,6 +674,16 @@ def test_verdict_folds_small_alarms_and_charts_follow_the_window(
     assert cls == "warn" and spans == 1, (cls, text)
     assert "small residual alarm: MPFM above the model (a shift of +0.5 %)" in text, text
     assert "under the model's usual error of 2.2 % before it" in text, text
+    # its follow-up (no well test yet) is part of it, in the same colour (a walk showed it
+    # in red beside the amber alarm), and its band on the charts is amber too
+    assert "before it); no well test since the alarm" in text, text
+    assert page.evaluate(
+        "[alarmFill({ small: true }), alarmFill({ small: false }), alarmFill({})]"
+    ) == [
+        "rgba(178,106,0,0.75)",
+        "rgba(179,38,30,0.75)",
+        "rgba(179,38,30,0.75)",
+    ]
     for shift, small in ((0.06, False), (0.005, None)):
         cls, text, spans = header(shift, small)
         assert cls == "alarm" and spans == 0 and "small" not in text, (shift, small, text)

@@ -86,12 +86,14 @@ function alarmsOf(v) {
     const onset = (ra.onset || "").slice(0, 10);
     const began = onset && onset < since ? ` (the change began about ${onset})` : "";
     const small = smallShift(v);
-    out.push((small ? SMALL_ALARM : "") + `residual alarm: ${meter} ${side} the model${by} since ${since}${began}` +
-      (small ? ` (under the model's usual error of ${fmt(ra.typical_error_percent, 1)} % before it)` : ""));
+    const lines = [(small ? SMALL_ALARM : "") + `residual alarm: ${meter} ${side} the model${by} since ${since}${began}` +
+      (small ? ` (under the model's usual error of ${fmt(ra.typical_error_percent, 1)} % before it)` : "")];
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
-    if (ra.which_moved) out.push(ra.which_moved.text);
+    if (ra.which_moved) lines.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
-    else if (ra.awaiting_well_test) out.push(ra.awaiting_well_test.text);
+    else if (ra.awaiting_well_test) lines.push(ra.awaiting_well_test.text);
+    // a small alarm's follow-up belongs to it (the same colour), a full one's stands apart
+    if (small) out.push(lines.join("; ")); else out.push(...lines);
   }
   for (const [name, p] of Object.entries(v.parameters || {})) if (p.at_bound) out.push(name + " at bound");
   if (v.pending_measurements > 0) out.push(v.pending_measurements + " waiting for a sample");
@@ -259,7 +261,10 @@ function wheelZoomPlugin() {
 }
 
 const MARK_COLORS = { model: "#c62828", drift: "#ef8f00", retrain: "#7a7a7a", alarm: "rgba(179,38,30,0.75)",
-  fault: "rgba(106,27,154,0.8)" };
+  smallAlarm: "rgba(178,106,0,0.75)", fault: "rgba(106,27,154,0.8)" };
+/* A residual alarm's band: red, or the warning colour for a small one (the event's "small":
+   its size under the meter's usual error before it), as the lists say. */
+const alarmFill = (b) => (b.small === true ? MARK_COLORS.smallAlarm : MARK_COLORS.alarm);
 const BAND_PX = 5;  // height of the alarm band and of the fault band under it (CSS px)
 
 /* A residual alarm's event (GET /wells/{well} residual_alarm.events) whose detector started
@@ -344,15 +349,16 @@ function markersPlugin(source = () => state.markers, bands = alarmBands, faults 
   const spans = (u, list, y, color) => {
     const ctx = u.ctx; const { left, width } = u.bbox; const dpr = devicePixelRatio;
     const xmin = u.scales.x.min, xmax = u.scales.x.max, out = [];
-    ctx.fillStyle = color;
     for (const b of list) {
       const t1 = b.t1 == null ? xmax : b.t1;
       if (b.t0 == null || t1 < xmin || b.t0 > xmax) continue;
       const x0 = Math.max(left, u.valToPos(b.t0, "x", true));
       const x1 = Math.min(left + width, u.valToPos(t1, "x", true));
       const w = Math.max(2 * dpr, x1 - x0);
+      const fill = typeof color === "function" ? color(b) : color;
+      ctx.fillStyle = fill;
       ctx.fillRect(x0, y, w, BAND_PX * dpr);
-      out.push({ ...b, x0, x1: x0 + w, y0: y, y1: y + BAND_PX * dpr });
+      out.push({ ...b, fill, x0, x1: x0 + w, y0: y, y1: y + BAND_PX * dpr });
     }
     return out;
   };
@@ -363,7 +369,7 @@ function markersPlugin(source = () => state.markers, bands = alarmBands, faults 
         const dpr = devicePixelRatio;
         const xmin = u.scales.x.min, xmax = u.scales.x.max;
         ctx.save();
-        u.alarmSpans = spans(u, bands(), top, MARK_COLORS.alarm);
+        u.alarmSpans = spans(u, bands(), top, alarmFill);
         u.faultSpans = spans(u, faults(), top + (BAND_PX + 1) * dpr, MARK_COLORS.fault);
         ctx.restore();
         for (const m of source()) {
