@@ -17,6 +17,7 @@ import torch
 
 from vfm_core.data import make_batch, target_mask
 from vfm_core.errors import ConfigError
+from vfm_core.jobs import study
 from vfm_core.jobs.study import run_prequential
 from vfm_core.learning import DEFAULT_ONLINE, DEFAULT_TRAIN, _pool_kernels, bayes
 from vfm_core.learning.bayes import BayesianFilter, CalibrationPool
@@ -370,3 +371,31 @@ def test_a_pooled_study_uses_no_later_measurement_of_another_well() -> None:
     np.testing.assert_allclose(after["predicted"][own], before["predicted"][own], rtol=1e-12)
     moved = np.abs(np.log(after["predicted_p95"][own] / before["predicted_p95"][own]))
     assert float(moved.max()) > 1e-3
+
+
+@pytest.mark.parametrize("model", ["mm", "ham"])
+def test_a_pooled_study_in_rounds_around_the_well_tests_forecasts_as_in_time_order(
+    model: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only the well tests' errors enter the other wells' priors, so the study replays a
+    pooled filter in time order around them (each well test's time a round of its own,
+    each well's k-th sample between two of them one round): the forecasts and intervals of
+    one round per distinct time, to the digit, in case 1 (MPFM readings twice a day), in a
+    half the rounds or fewer (three wells); compiled (``mm``) and in torch (``ham``)."""
+    frame = validate_frame(simulate_field(wells=3, years=1.5, seed=11).observations).frame
+    split = pd.Timestamp("2016-03-01", tz="UTC")
+    wells = study.wells_of(frame)
+    is_target = target_mask(frame, "all") & (frame["time"] >= split).to_numpy()
+    test = make_batch(frame, wells, np.flatnonzero(is_target))
+    around = study._coupled_rounds(test, test.well_test & test.mask)
+    by_time = study._day_rounds(test, 1)
+    assert int(test.well_test.sum()) >= 10 and 2 * len(around) < len(by_time)
+    runs = []
+    for replay in ("around the well tests", "one round per time"):
+        if replay == "one round per time":
+            monkeypatch.setattr(BayesianFilter, "coupling_samples", lambda self, batch: None)
+        pr = run_prequential(frame, model, "bayes:cal_pool=on", targets="all", split=split)
+        runs.append(pr.predictions.sort_values(["time", "well", "source"]).reset_index(drop=True))
+    assert len(runs[0]) == int(test.mask.sum())
+    for column in ("predicted", "predicted_p05", "predicted_p95"):
+        np.testing.assert_allclose(runs[0][column], runs[1][column], rtol=1e-12)

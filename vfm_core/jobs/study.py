@@ -363,42 +363,76 @@ def _day_rounds(test: Batch, span_ns: int = 86_400 * 10**9) -> list[Batch]:
     ranges (each well's samples are in time order, so a day is a contiguous run), so the
     cost grows with the samples and not with days x samples. ``span_ns`` = 1: one batch
     per distinct time instead."""
-    day = torch.div(test.time_ns, span_ns, rounding_mode="floor")
-    day = torch.where(test.mask, day, torch.full_like(day, NEVER))
-    days = torch.unique(day[test.mask])
-    if len(days) == 0:
+    key = torch.div(test.time_ns, span_ns, rounding_mode="floor")
+    return [batch for _, batch in _keyed_rounds(test, key)]
+
+
+def _coupled_rounds(test: Batch, events: torch.Tensor) -> list[Batch]:
+    """The rounds of a method that couples the wells only through the samples ``events``
+    [W, N] (``bayes:cal_pool=on``: the well tests, whose errors set the other wells'
+    interval factors; :meth:`~vfm_core.learning.method.LearningMethod.coupling_samples`):
+    the forecasts of one round per distinct time (:func:`_day_rounds` with ``span_ns`` 1)
+    in far fewer rounds. Each distinct time of an event is a round of its own (every
+    well's samples at that time); between two of them, where nothing couples the wells,
+    each well's k-th sample of the span is one round, as for a method that does not."""
+    times = torch.unique(test.time_ns[events & test.mask])  # sorted
+    if len(times) == 0:
+        return [test.column(k) for k in range(test.x.shape[1])]
+    t = test.time_ns.contiguous()
+    before = torch.searchsorted(times, t)  # the events strictly earlier than each sample
+    at = times[before.clamp(max=len(times) - 1)]
+    is_event = (before < len(times)) & (at == t)
+    # the span before event j -> key 2 j, the event j itself -> 2 j + 1
+    rounds: list[Batch] = []
+    for key, batch in _keyed_rounds(test, 2 * before + is_event.to(before.dtype)):
+        if key % 2:
+            rounds.append(batch)
+        else:
+            rounds += [batch.column(k) for k in range(batch.x.shape[1])]
+    return rounds
+
+
+def _keyed_rounds(test: Batch, key: torch.Tensor) -> list[tuple[int, Batch]]:
+    """``test`` grouped by ``key`` [W, N] (int64, non-decreasing along each well's
+    samples, as time is): each group's key and batch (every well's samples of the group,
+    in time order), in key order. Cut by index ranges (a group is a contiguous run of each
+    well's samples), so the cost grows with the samples, not groups x samples."""
+    key = torch.where(test.mask, key, torch.full_like(key, NEVER))
+    keys = torch.unique(key[test.mask])
+    if len(keys) == 0:
         return []
-    wide = days.unsqueeze(0).expand(test.n_wells, -1).contiguous()
-    lo = torch.searchsorted(day, wide)
-    counts = torch.searchsorted(day, wide, right=True) - lo
+    wide = keys.unsqueeze(0).expand(test.n_wells, -1).contiguous()
+    lo = torch.searchsorted(key, wide)
+    counts = torch.searchsorted(key, wide, right=True) - lo
     n_max = test.x.shape[1]
-    assert test.well_test is not None and test.extra is not None
     rounds = []
     for k, n in enumerate(counts.max(dim=0).values.tolist()):
         steps = torch.arange(n)
         keep = steps < counts[:, k : k + 1]
         idx = (lo[:, k : k + 1] + steps).clamp(max=n_max - 1)
-        keep &= torch.gather(test.mask, 1, idx)
-        x = torch.gather(test.x, 1, idx.unsqueeze(-1).expand(-1, -1, test.x.shape[-1]))
-        ex = torch.gather(test.extra, 1, idx.unsqueeze(-1).expand(-1, -1, test.extra.shape[-1]))
-        t = torch.gather(test.time_ns, 1, idx)
-        r = torch.gather(test.row, 1, idx)
-        rounds.append(
-            Batch(
-                test.wells,
-                torch.where(keep.unsqueeze(-1), x, test.x[:, :1].expand_as(x)),
-                torch.where(
-                    keep, torch.gather(test.y, 1, idx), torch.zeros(idx.shape, dtype=test.y.dtype)
-                ),
-                keep,
-                torch.where(keep, t, torch.full_like(t, NEVER)),
-                torch.where(keep, r, torch.full_like(r, -1)),
-                torch.gather(test.well_test, 1, idx) & keep,
-                torch.where(keep.unsqueeze(-1), ex, test.extra[:, :1].expand_as(ex)),
-                test.extra_names,
-            )
-        )
+        rounds.append((int(keys[k]), _gathered(test, idx, keep & torch.gather(test.mask, 1, idx))))
     return rounds
+
+
+def _gathered(test: Batch, idx: torch.Tensor, keep: torch.Tensor) -> Batch:
+    """The samples ``idx`` [W, n] of ``test`` where ``keep`` [W, n], as a batch (the
+    others masked, with the well's first sample's inputs as filler)."""
+    assert test.well_test is not None and test.extra is not None
+    x = torch.gather(test.x, 1, idx.unsqueeze(-1).expand(-1, -1, test.x.shape[-1]))
+    ex = torch.gather(test.extra, 1, idx.unsqueeze(-1).expand(-1, -1, test.extra.shape[-1]))
+    t = torch.gather(test.time_ns, 1, idx)
+    r = torch.gather(test.row, 1, idx)
+    return Batch(
+        test.wells,
+        torch.where(keep.unsqueeze(-1), x, test.x[:, :1].expand_as(x)),
+        torch.where(keep, torch.gather(test.y, 1, idx), torch.zeros(idx.shape, dtype=test.y.dtype)),
+        keep,
+        torch.where(keep, t, torch.full_like(t, NEVER)),
+        torch.where(keep, r, torch.full_like(r, -1)),
+        torch.gather(test.well_test, 1, idx) & keep,
+        torch.where(keep.unsqueeze(-1), ex, test.extra[:, :1].expand_as(ex)),
+        test.extra_names,
+    )
 
 
 def _param_rows(
@@ -655,11 +689,12 @@ def _replay_in_rounds(run: _Replay) -> None:
         # holding every well's measurements of that day.
         rounds = _day_rounds(test)
     elif run.meth.couples_wells:
-        # A method's statistics shared by the wells: one round per distinct time (rounds
-        # of each well's k-th sample would let a well's forecast use another well's later
-        # measurements; a day's round would predict a well's second sample of the day
-        # before learning its first).
-        rounds = _day_rounds(test, 1)
+        # A method's statistics shared by the wells: in time order around the samples that
+        # couple them (rounds of each well's k-th sample would let a well's forecast use
+        # another well's later measurements; a day's round would predict a well's second
+        # sample of the day before learning its first).
+        events = run.meth.coupling_samples(test)
+        rounds = _day_rounds(test, 1) if events is None else _coupled_rounds(test, events)
     else:
         rounds = [test.column(k) for k in range(test.x.shape[1])]
     for rb in rounds:

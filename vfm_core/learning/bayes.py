@@ -1889,6 +1889,13 @@ class BayesianFilter(LearningMethod):
         wells' forecast errors (:func:`_pooled_prior`)."""
         return bool(self.cal_pool)
 
+    def coupling_samples(self, batch: Batch) -> torch.Tensor | None:
+        """The well tests: only their forecast errors enter the other wells' priors (an
+        MPFM reading's interval carries no variance factor), so the wells' forecasts
+        depend on each other's well tests alone."""
+        assert batch.well_test is not None
+        return batch.well_test & batch.mask
+
     def well_test_factor(self) -> torch.Tensor:
         """Each well's learned well-test variance factor c^2 [W]: the scale
         (k c0sq + sum z^2) / (k + n) of its InvGamma posterior (see

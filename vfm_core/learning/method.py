@@ -186,6 +186,12 @@ class LearningMethod(ABC):
         service sees it. False by default."""
         return False
 
+    def coupling_samples(self, batch: Batch) -> torch.Tensor | None:
+        """For a method that :attr:`couples_wells`: the samples of ``batch`` [W, N] whose
+        learning changes what the other wells' forecasts read (a study replays in time
+        order around them only); None: every sample."""
+        return None
+
     # -- binding ---------------------------------------------------------------------------
     @property
     def model(self) -> ChokeModel:
