@@ -279,3 +279,28 @@ def test_an_added_effect_keeps_its_strength_through_the_service(
     print("rolling MAPE through the service:", err)
     assert err["with"] < err["plain"], err
     sys.modules.pop("my_effects", None)
+
+
+@pytest.mark.parametrize("base", ["mm", "ham"])
+def test_a_parameter_the_specification_sets_is_fixed_with_no_sd(base: str) -> None:
+    """An effect's parameter the model's specification sets (``name:parameter=value``, as
+    the diagnosis identifies it on a hybrid's core and "apply" adds it) is pinned by a
+    prior of sd 1e-9: the well's parameters say ``fixed`` with no sd (a walk's page showed
+    "± 0.0000", as if learned to certainty), and it stays at its value while the learned
+    parameters keep theirs."""
+    learner = WellLearner("W1", base, "bayes", effects=["valve_equal_percentage:weight=0.9"])
+    x = torch.tensor([SAMPLE] * 40, dtype=torch.float64)
+    x[:, 0] += torch.linspace(-0.1, 0.1, 40, dtype=torch.float64)
+    y = 1000.0 * x[:, 0] / 0.5  # Sm3/h
+    t = T0 + torch.arange(40, dtype=torch.int64) * HOUR
+    learner.fit_history(x, y, t)
+    for k in range(5):
+        when = pd.Timestamp(int(T0 + (41 + k) * HOUR), tz="UTC")
+        learner.learn(SAMPLE, 1.1 * 1000.0, when, "well_test")
+    params = learner.physical_parameters()
+    weight = params["valve_equal_percentage.weight"]
+    assert weight["fixed"] is True and weight["std"] is None
+    assert weight["value"] == pytest.approx(0.9, abs=1e-6)
+    learned = params["rho_oil"]
+    assert learned["fixed"] is False and learned["std"] is not None and learned["std"] > 1e-3
+    assert all(p["fixed"] is False for n, p in params.items() if "." not in n)

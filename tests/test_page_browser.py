@@ -517,6 +517,19 @@ def test_markers_trial_line_and_candidates_read_as_they_should(
     )
     assert marks[0] == [["model", 45, "\u2192 mm (pbl:182d)"], ["retrain", 70, "retrain"]], marks
     assert marks[1] == marks[2] == [["retrain", 120, "retrain"]], marks
+    # a parameter the specification sets reads "fixed", not "± 0.0000" (walk56: an applied
+    # verdict's valve weight on ham showed a learned-looking sd of 1e-10)
+    sds = page.evaluate(
+        """() => { const saved = window.vfm.view;
+          window.vfm.view = { parameters: {
+            rho_oil: { value: 840.1, unit: "kg/m3", std: 10.6, low: 650, high: 1000, fixed: false },
+            "valve_equal_percentage.weight": { value: 1.006, unit: "-", std: null, low: -0.5,
+                                               high: 1.5, fixed: true } } };
+          renderParams();
+          const cells = [...document.querySelectorAll("#params tbody tr")].map((r) => r.cells[2].textContent);
+          window.vfm.view = saved; renderParams(); return cells; }"""
+    )
+    assert sds == ["10.6000", "fixed"], sds
     line = page.evaluate(
         """() => { renderTrial({ trial: { model: "mm", shadow_model: "mm", method: "pbl:182d",
             shadow_method: "bayes", since: "2018-01-01T00:00:00+00:00", ended: "2018-02-01T00:00:00+00:00",

@@ -122,6 +122,11 @@ class Parameter(BaseModel):
     at_bound: bool | None = Field(
         default=None, description="True when the value sits at a bound (the data push past it)"
     )
+    fixed: bool | None = Field(
+        default=None,
+        description="True when the model's specification sets the value (an effect's "
+        "name:parameter=value, as the diagnosis identifies it on a hybrid's core): not learned",
+    )
 
 
 class RollingMape(BaseModel):

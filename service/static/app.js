@@ -815,7 +815,7 @@ async function rollbackTo(button) {
 function renderParams() {
   const params = (state.view && state.view.parameters) || {};
   $("#params tbody").innerHTML = Object.entries(params).map(([name, p]) => `<tr><td>${esc(name)}</td>
-    <td class="num">${fmt(p.value, 4)}</td><td class="num">${p.std == null ? "\u2013" : fmt(p.std, 4)}</td><td>${esc(p.unit)}</td>
+    <td class="num">${fmt(p.value, 4)}</td><td class="num">${p.fixed ? `<span class="hint" title="set by the model's specification (the diagnosis identified it); nothing learns it">fixed</span>` : p.std == null ? "\u2013" : fmt(p.std, 4)}</td><td>${esc(p.unit)}</td>
     <td>${p.low == null ? "" : fmt(p.low, 3) + " .. " + fmt(p.high, 3)}</td>
     <td class="${p.at_bound ? "alarm" : ""}">${p.at_bound ? "at bound" : ""}</td></tr>`).join("") ||
     `<tr><td colspan="6" class="hint">No physical parameters (the model is not physical, or not ready).</td></tr>`;

@@ -462,16 +462,22 @@ class WellLearner:
         keeps no uncertainty), the bounds ``low`` and ``high`` learning may not cross (None
         for a set quantity such as ``a_max``), and ``at_bound``: True when the value sits
         within a thousandth of the range of a bound that is not also the prior's mean (the
-        data push it beyond what physics allows: often a sign of a missing effect)."""
+        data push it beyond what physics allows: often a sign of a missing effect), and
+        ``fixed``: True for an effect's parameter the model's specification sets
+        (``valve_equal_percentage:weight=1.006``, as the diagnosis identifies it on a hybrid's
+        core; :func:`vfm_core.effects.fixed_effect`): nothing learns it, so its ``std`` is
+        None, not the pinning prior's 1e-9."""
         priors = dict(ph.PRIORS)
+        fixed: set[str] = set()
         for e in getattr(self.model, "effects", []):
             priors.update({f"{e.name}.{k}": pr for k, pr in e.parameters.items()})
+            fixed.update(f"{e.name}.{k}" for k in getattr(e, "fixed_values", {}))
         sd = self.method.parameter_sd()
         out: dict[str, dict[str, Any]] = {}
         for name, v in self.model.physical_parameters().items():
             value = float(v[0])
             prior = priors.get(name)
-            std = sd.get(name)
+            std = None if name in fixed else sd.get(name)
             entry: dict[str, Any] = {
                 "value": value,
                 "unit": prior.unit if prior is not None else PARAMETER_UNITS.get(name, ""),
@@ -479,6 +485,7 @@ class WellLearner:
                 "low": prior.low if prior is not None else None,
                 "high": prior.high if prior is not None else None,
                 "at_bound": False,
+                "fixed": name in fixed,
             }
             if prior is not None:
                 # a bound that is also the prior's mean is the effect switched off, not a warning
