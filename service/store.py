@@ -1135,6 +1135,17 @@ class Store:
             rows = [_sample_row(r) for r in _named(cursor)]
         return rows[::-1]
 
+    def latest_prediction(self, well: str) -> tuple[int, float, float | None, float | None] | None:
+        """The well's latest stored prediction: time (ns), q_total and its 90 % interval's
+        p05, p95 (Sm3/h; None for a method without one); None before any."""
+        with self.reader() as con:
+            row = con.execute(
+                "SELECT time_ns, q_total, q_total_p05, q_total_p95 FROM samples"
+                " WHERE well = ? AND q_total IS NOT NULL ORDER BY time_ns DESC LIMIT 1",
+                (well,),
+            ).fetchone()
+        return None if row is None else (int(row[0]), float(row[1]), row[2], row[3])
+
     def nearest_sample(self, well: str, time_ns: int, tolerance_ns: int) -> SampleRow | None:
         """The stored sample nearest to ``time_ns`` within the tolerance, or None."""
         with self.reader() as con:

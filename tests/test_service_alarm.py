@@ -140,15 +140,21 @@ def test_settings_are_checked_with_a_sentence() -> None:
 def test_a_restart_resumes_the_residual_alarm(tmp_path: Path) -> None:
     """The detectors go into the well's checkpoint: after a clean stop and a start, the alarm
     is still active with its start, and the stream tests at once (no new self-starting
-    period of ``min_periods``)."""
+    period of ``min_periods``); the well's latest prediction is the one before the stop."""
     with fixed_model_service(tmp_path) as (service, client):
         times = send_field(client, seed=2)
         wait_learned(service, len(times))
-        before = http_get(service, "/wells/W01").json()["residual_alarm"]
+        view = http_get(service, "/wells/W01").json()
+    before = view["residual_alarm"]
     assert before["active"]
     with fixed_model_service(tmp_path) as (service, _):
-        after = http_get(service, "/wells/W01").json()["residual_alarm"]
+        again = http_get(service, "/wells/W01").json()
+    after = again["residual_alarm"]
     assert after["active"] and after["since"] == before["since"]
+    # the latest prediction (the field view's interval width) is read back from the store,
+    # not "-" until the next sample (walk56)
+    assert view["latest_prediction"] is not None
+    assert again["latest_prediction"] == view["latest_prediction"]
     assert after["direction"] == before["direction"]
     assert after["events"] == before["events"]
     mpfm = after["streams"]["mpfm"]

@@ -152,6 +152,8 @@ class Engine:
         """Restore every known well from the store, or fit it on the history; re-learn the rest."""
         self._registry.retired.update(self.store.retired_wells())
         self._wells.update(self._recovery.load(set(self._registry.retired)))
+        for well in self._wells:  # the field view's interval width survives a restart
+            self.observer.seed_latest(well, self.store.latest_prediction(well))
         for st in self._wells.values():
             self.mpfm_check.load(st)
             for row in self.store.reviews(st.well):  # the reviews still open

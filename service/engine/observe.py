@@ -358,11 +358,24 @@ class Observer:
                 }
             )
 
+    def seed_latest(
+        self, well: str, latest: tuple[int, float, float | None, float | None] | None
+    ) -> None:
+        """At start-up: the well's latest prediction read back from the store (time ns,
+        q_total, p05, p95; Sm3/h), unless a newer one was stored since."""
+        if latest is None:
+            return
+        with self._lock:
+            held = self._latest.get(well)
+            if held is None or latest[0] > held[0]:
+                self._latest[well] = latest
+
     def latest_prediction(self, well: str) -> dict[str, Any] | None:
-        """The well's latest prediction stored since the service started: ``time`` (ISO
-        8601 UTC), ``q_total`` and its 90 % interval ``q_total_p05``, ``q_total_p95``
-        (Sm3/h; null for a method without one); None before any. The page reads its
-        interval width from it when no live prediction has reached it yet."""
+        """The well's latest stored prediction (after a restart, the store's until a new
+        one comes): ``time`` (ISO 8601 UTC), ``q_total`` and its 90 % interval
+        ``q_total_p05``, ``q_total_p95`` (Sm3/h; null for a method without one); None
+        before any. The page reads its interval width from it when no live prediction has
+        reached it yet."""
         with self._lock:
             v = self._latest.get(well)
         if v is None:

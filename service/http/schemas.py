@@ -406,7 +406,8 @@ class WellOut(WellSummary):
     )
     latest_prediction: dict[str, Any] | None = Field(
         default=None,
-        description="the latest prediction stored since the service started: time, q_total "
+        description="the latest stored prediction (after a restart, read back from the "
+        "store until a new one comes): time, q_total "
         "and its 90 % interval q_total_p05, q_total_p95 (Sm3/h; null for a method without "
         "one); null before any",
     )
