@@ -530,6 +530,24 @@ def test_markers_trial_line_and_candidates_read_as_they_should(
           window.vfm.view = saved; renderParams(); return cells; }"""
     )
     assert sds == ["10.6000", "fixed"], sds
+    # the field table gives an alarm's follow-up in a few words (walk56: a 300-character
+    # sentence filled the cell); the well's page keeps the sentence
+    texts = page.evaluate(
+        """() => { const alarm = { active: true, direction: "low", source: "mpfm", shift: -0.028,
+            since: "2018-11-09T00:00:00+00:00", onset: "2018-10-18T00:00:00+00:00",
+            which_moved: { moved: "unclear", text: "the MPFM reads -0.6 % on average against the 2 well tests since the alarm began" } };
+          const wait = { ...alarm, which_moved: null, awaiting_well_test: { due: "2018-04-20T00:00:00+00:00",
+            overdue: true, text: "no well test since the alarm (last 2018-03-25, overdue since 2018-04-20, usually 26 days)" } };
+          const v = (ra) => ({ well: "W9", ready: true, residual_alarm: ra });
+          return [alarmsOf(v(alarm), true), alarmsOf(v(alarm)), alarmsOf(v(wait), true)]; }"""
+    )
+    brief, full, waiting = texts
+    assert brief[1] == "the well tests cannot tell yet which moved", brief
+    assert full[1].startswith("the MPFM reads -0.6 %"), full
+    assert waiting[1] == "next well test overdue since 2018-04-20", waiting
+    assert brief[0] == full[0] and brief[0].startswith("residual alarm: MPFM below the model"), (
+        brief
+    )
     line = page.evaluate(
         """() => { renderTrial({ trial: { model: "mm", shadow_model: "mm", method: "pbl:182d",
             shadow_method: "bayes", since: "2018-01-01T00:00:00+00:00", ended: "2018-02-01T00:00:00+00:00",

@@ -70,7 +70,22 @@ function alarmClass(alarms) {
   return !alarms.length ? "ok" : alarms.every(isSmallAlarm) ? "warn" : "alarm";
 }
 
-function alarmsOf(v) {
+/* The follow-up of an MPFM residual alarm in a few words, for the field table (the well's
+   own page and the cell's tooltip keep the whole sentence): what the well tests since the
+   alarm say (GET /wells/{well} residual_alarm.which_moved.moved), or when the next is due. */
+function followUpBrief(ra) {
+  const moved = ra.which_moved && ra.which_moved.moved;
+  if (moved) return moved === "meter" ? "the well tests say the MPFM moved"
+    : moved === "well" ? "the well tests say the well moved" : "the well tests cannot tell yet which moved";
+  const wait = ra.awaiting_well_test;
+  if (!wait) return "";
+  if (wait.text.startsWith("which moved")) return "too few well tests before it to tell which moved";
+  const due = (wait.due || "").slice(0, 10);
+  return !due ? "no well test since" : wait.overdue ? `next well test overdue since ${due}` : `next well test due about ${due}`;
+}
+
+/* The well's alarms as sentences; ``brief``: the field table's (a follow-up in a few words). */
+function alarmsOf(v, brief = false) {
   const out = [];
   if (!v) return out;
   // the residual alarm is the alarm; the T^2 input test (v.drift) is only a notice that the
@@ -89,7 +104,8 @@ function alarmsOf(v) {
     const lines = [(small ? SMALL_ALARM : "") + `residual alarm: ${meter} ${side} the model${by} since ${since}${began}` +
       (small ? ` (under the model's usual error of ${fmt(ra.typical_error_percent, 1)} % before it)` : "")];
     // a well test since the alarm began: did the meter or the well move? (vfm_core.meter_check)
-    if (ra.which_moved) lines.push(ra.which_moved.text);
+    if (brief) { const b = followUpBrief(ra); if (b) lines.push(b); }
+    else if (ra.which_moved) lines.push(ra.which_moved.text);
     // none yet: when the next well test is due, or why it cannot tell
     else if (ra.awaiting_well_test) lines.push(ra.awaiting_well_test.text);
     // a small alarm's follow-up belongs to it (the same colour), a full one's stands apart
@@ -170,8 +186,10 @@ function fieldRow(well) {
   return {
     well, model: v.model, method: v.method, version: v.version, last_update: v.last_update || "",
     mape: v.rolling_mape ? v.rolling_mape.value : null, mape_n: v.rolling_mape ? v.rolling_mape.n : 0,
-    width: widthOf(well), drift, alarms: alarmsOf(v), notes: notesOf(v),
+    width: widthOf(well), drift, alarms: alarmsOf(v, true), notes: notesOf(v),
+    // the cell's tooltip: the instrument faults' evidence and the alarms in whole sentences
     faults: activeFaults(v).map((f) => `${f.sensor} ${f.kind}: ${f.evidence}`),
+    full: alarmsOf(v),
   };
 }
 
@@ -190,7 +208,7 @@ function renderField() {
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
     <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
-    <td class="${alarmClass(r.alarms)}"${r.faults.length ? ` title="${esc(r.faults.join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
+    <td class="${alarmClass(r.alarms)}"${r.faults.length || r.full.join() !== r.alarms.join() ? ` title="${esc([...r.full, ...r.faults].join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
     th.classList.toggle("asc", th.dataset.key === key && dir > 0);
