@@ -139,6 +139,11 @@ def test_the_workbench_in_a_browser(served: Served, browser_page: tuple[Page, li
         page.wait_for_selector(f'#field-table tr[data-well="{well}"]')
     assert page.locator("#field-table tbody tr").count() == len(wells)
     assert "mm" in page.locator('#field-table tr[data-well="W01"]').inner_text()
+    # the input counts say they run since the service started (a restart begins them anew)
+    summary = page.locator("#inputs-summary").inner_text()
+    assert (
+        summary.startswith("Inputs since the service started at ") and " UTC: accepted " in summary
+    )
     page.wait_for_function("document.querySelector('#live').classList.contains('on')")
     page.screenshot(path=str(SHOTS / "field.png"), full_page=True)
 

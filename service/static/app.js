@@ -230,8 +230,10 @@ async function refreshField() {
     const rej = counted.filter(([k]) => !HELD_REASONS.includes(k));
     const held = counted.filter(([k]) => HELD_REASONS.includes(k));
     const heldText = held.length ? ` Held (stored, not learned), all wells: ${held.map(([k, n]) => `${k} (${n})`).join(", ")}.` : "";
-    $("#inputs-summary").textContent = `Inputs accepted: ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}. ` +
-      `Refused: ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.` + heldText;
+    // counts since the service started (a restart begins them anew): say so, and since when
+    const up = health.uptime_s == null ? "" : ` at ${new Date(Date.now() - 1000 * health.uptime_s).toISOString().slice(0, 16).replace("T", " ")} UTC`;
+    $("#inputs-summary").textContent = `Inputs since the service started${up}: accepted ${Object.entries(health.accepted || {}).map(([k, n]) => k + " " + n).join(", ") || "none"}; ` +
+      `refused ${rej.length ? rej.map(([k, n]) => k + " " + n).join(", ") : "none"}.` + heldText;
     const banner = $("#banner");
     if (rej.length) {
       banner.hidden = false;
