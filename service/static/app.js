@@ -81,7 +81,7 @@ function followUpBrief(ra) {
   if (!wait) return "";
   if (wait.text.startsWith("which moved")) return "too few well tests before it to tell which moved";
   const due = (wait.due || "").slice(0, 10);
-  return !due ? "no well test since" : wait.overdue ? `next well test overdue since ${due}` : `next well test due about ${due}`;
+  return !due ? "no well test since the alarm" : wait.overdue ? `next well test overdue since ${due}` : `next well test due about ${due}`;
 }
 
 /* The well's alarms as sentences; ``brief``: the field table's (a follow-up in a few words). */
