@@ -553,6 +553,29 @@ def test_markers_trial_line_and_candidates_read_as_they_should(
     assert brief[0] == full[0] and brief[0].startswith("residual alarm: MPFM below the model"), (
         brief
     )
+    # ... and in plain text beside the red alarm (walk56: "cannot tell yet" read as urgent,
+    # when it means "wait for the next well test"); an overdue well test in the warning colour
+    colours = page.evaluate(
+        """() => { const saved = state.wells;
+          const ra = { active: true, direction: "low", source: "mpfm", shift: -0.028,
+            since: "2018-11-09T00:00:00+00:00", which_moved: { moved: "unclear", text: "..." } };
+          const late = { ...ra, which_moved: null, awaiting_well_test: { due: "2018-04-20T00:00:00+00:00",
+            overdue: true, text: "no well test since the alarm" } };
+          state.wells = { W8: { well: "W8", ready: true, residual_alarm: ra },
+                          W9: { well: "W9", ready: true, residual_alarm: late } };
+          renderField();
+          const cell = (w) => document.querySelector(`#field-table tr[data-well="${w}"]`).cells[8];
+          const colour = (el) => getComputedStyle(el).color;
+          const out = ["W8", "W9"].map((w) => { const c = cell(w), f = c.querySelector(".follow-up");
+            return [colour(c), f ? colour(f) : null, f ? f.textContent : null]; });
+          state.wells = saved; renderField(); return out; }"""
+    )
+    red = colours[0][0]
+    assert colours[1][0] == red, colours  # the alarm itself stays red
+    assert colours[0][1] not in (None, red), colours
+    assert colours[0][2] == "the well tests cannot tell yet which moved", colours
+    assert colours[1][1] not in (None, red, colours[0][1]), colours
+    assert colours[1][2] == "next well test overdue since 2018-04-20", colours
     line = page.evaluate(
         """() => { renderTrial({ trial: { model: "mm", shadow_model: "mm", method: "pbl:182d",
             shadow_method: "bayes", since: "2018-01-01T00:00:00+00:00", ended: "2018-02-01T00:00:00+00:00",

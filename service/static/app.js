@@ -190,7 +190,18 @@ function fieldRow(well) {
     // the cell's tooltip: the instrument faults' evidence and the alarms in whole sentences
     faults: activeFaults(v).map((f) => `${f.sensor} ${f.kind}: ${f.evidence}`),
     full: alarmsOf(v),
+    // a full alarm's follow-up stands in the list apart from it: shown in plain text, not in
+    // the alarm's red (walk56: "the well tests cannot tell yet which moved" read as urgent,
+    // when it means "wait for the next well test"); an overdue well test in the warning colour
+    follow: v.residual_alarm && v.residual_alarm.active && !smallShift(v) ? followUpBrief(v.residual_alarm) : "",
   };
+}
+
+/* The alarm cell's items: the follow-up of a full alarm (fieldRow's ``follow``) in its own span. */
+function alarmItems(r) {
+  if (!r.alarms.length) return "none";
+  const cls = (a) => (a.includes("overdue") ? "follow-up warn" : "follow-up");
+  return r.alarms.map((a) => (r.follow && a === r.follow ? `<span class="${cls(a)}">${esc(a)}</span>` : esc(a))).join("; ");
 }
 
 function renderField() {
@@ -208,7 +219,7 @@ function renderField() {
     <td>${esc(r.method)}</td><td class="num">${esc(r.version)}</td><td>${esc(r.last_update.replace("+00:00", "Z"))}</td>
     <td class="num" title="over ${r.mape_n} measurement(s)">${fmt(r.mape, 2)}</td><td class="num">${fmt(r.width, 1)}</td>
     <td class="${r.drift === "outside" ? "warn" : ""}">${esc(r.drift)}</td>
-    <td class="${alarmClass(r.alarms)}"${r.faults.length || r.full.join() !== r.alarms.join() ? ` title="${esc([...r.full, ...r.faults].join("\n"))}"` : ""}>${r.alarms.length ? esc(r.alarms.join("; ")) : "none"}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
+    <td class="${alarmClass(r.alarms)}"${r.faults.length || r.full.join() !== r.alarms.join() ? ` title="${esc([...r.full, ...r.faults].join("\n"))}"` : ""}>${alarmItems(r)}${r.notes.length ? `<div class="hint note">${esc(r.notes.join("; "))}</div>` : ""}</td></tr>`).join("");
   document.querySelectorAll("#field-table th").forEach((th) => {
     th.classList.toggle("sorted", th.dataset.key === key);
     th.classList.toggle("asc", th.dataset.key === key && dir > 0);
