@@ -321,3 +321,56 @@ def test_without_learning_the_run_is_the_plain_case_2_filter(field, runs):
     both = base.predictions.merge(plain, on=["time", "well"])
     assert len(both) == len(plain) == len(base.predictions) > 10
     np.testing.assert_allclose(both["predicted_x"], both["predicted_y"], rtol=1e-12)
+
+
+# --- vfm evaluate on a separator field ----------------------------------------------------------
+
+
+def test_vfm_evaluate_writes_the_allocation_and_the_readings_gain(field, runs, tmp_path, capsys):
+    """The user's path: ``vfm evaluate`` on a file with separator readings writes
+    allocation.parquet (each reading's wells' rates summing to its total), gives each run's
+    well-test MAPE with and without the readings in metrics.json (``separators``), the
+    console and the report, and the "without" figure is the study's own bayes run of case 2
+    on the same well tests (another code path: run_prequential)."""
+    import json
+
+    from vfm_core.cli import main
+
+    data = save_observations(field.observations, tmp_path / "sep.parquet")
+    out = tmp_path / "study"
+    args = ["evaluate", str(data), "--out", str(out), "--models", "mm", "--methods", "bayes"]
+    assert main([*args, "--targets", "well_test", "--quiet", "--jobs", "1"]) == 0
+    printed = capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    (sep,) = metrics["separators"]
+    assert (sep["model"], sep["method"]) == ("mm", "bayes")
+    (study,) = [r for r in metrics["summary"] if r["method"] == "bayes" and "target" not in r]
+    assert sep["well_test_mape_without_percent"] == pytest.approx(study["mean_mape"], rel=1e-9)
+    # the same run as the module's own (the readings learned from): the same figures
+    run, _ = runs[True]
+    assert sep["readings_learned"] == run.counts["taken"] > 100
+    assert sep["well_test_mape_percent"] == pytest.approx(run.well_mape().mean(), rel=1e-9)
+    assert sep["well_test_mape_percent"] < sep["well_test_mape_without_percent"]
+    assert sep["lower_percent"] == pytest.approx(
+        100 * (1 - sep["well_test_mape_percent"] / sep["well_test_mape_without_percent"])
+    )
+    tests = (field.observations["source"] == "well_test") & (
+        field.observations["time"] >= pd.Timestamp(metrics["split"])
+    )
+    assert sum(w["n"] for w in sep["wells"].values()) == int(tests.sum())
+    assert f"well tests {sep['well_test_mape_percent']:.2f} % MAPE" in printed
+    assert f"({sep['well_test_mape_without_percent']:.2f} % without the readings" in printed
+    # the allocation: every reading after the split, its wells' rates summing to its total
+    alloc = pd.read_parquet(out / "allocation.parquet")
+    readings = field.observations[field.observations["source"] == "separator"]
+    readings = readings[readings["time"] >= pd.Timestamp(metrics["split"])]
+    per = alloc.groupby("time")["q_alloc"].sum()
+    assert len(per) == len(readings) == sep["readings_learned"]
+    np.testing.assert_allclose(
+        per.to_numpy(), readings.set_index("time").loc[per.index, "q_total"].to_numpy(), rtol=1e-9
+    )
+    html = (out / "report.html").read_text()
+    assert "<h2>Separator totals</h2>" in html
+    assert "separator total against the sum of the wells&#39; predictions" in html or (
+        "separator total against the sum of the wells' predictions" in html
+    )

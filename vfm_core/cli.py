@@ -158,6 +158,24 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
         params = load_params(args.params)
     if jobs > 1:
         print(f"Running models in {jobs} processes (--jobs 1: all in this one).")
+    studies: list[Any] = []
+    if loaded.separators:  # the separators' totals: learned from and allocated (case 2)
+        from vfm_core.jobs.evaluate import run_separator_study
+
+        # the allocation takes every input as read: without the rows kept out of span
+        frame = loaded.frame
+        if loaded.kept:
+            frame = frame[~outside_span(frame).any(axis=1)].reset_index(drop=True)
+        studies, lines = run_separator_study(
+            frame,
+            loaded.separators,
+            models=models,
+            methods=methods,
+            split=args.split,
+            seed=args.seed,
+            progress=not args.quiet,
+        )
+        print("\n".join(lines))
     for case in targets:
         result = run_study(
             loaded.frame,
@@ -177,26 +195,8 @@ def _evaluate_with(args: argparse.Namespace, workers: Any, jobs: int) -> int:
             sensor_faults=not args.no_sensor_faults,
         )
         out = Path(args.out) if len(targets) == 1 else Path(args.out) / case
-        written = write_study(result, out, report=not args.no_report)
+        written = write_study(result, out, report=not args.no_report, separators=studies)
         written.append(write_sensor_faults(loaded.frame, out))  # vfm_core.sensor_faults
-        if loaded.separators:  # the separators' totals: learned from and allocated
-            from vfm_core.jobs.evaluate import write_allocation
-
-            # the allocation takes every input as read: without the rows kept out of span
-            frame = loaded.frame
-            if loaded.kept:
-                frame = frame[~outside_span(frame).any(axis=1)].reset_index(drop=True)
-            path, lines = write_allocation(
-                frame,
-                loaded.separators,
-                out,
-                models=models,
-                methods=methods,
-                split=args.split,
-                seed=args.seed,
-            )
-            written.append(path)
-            print("\n".join(lines))
         print(format_summary(result))
         for sentence in slow_runs(result.runs):
             print(f"Slow run: {sentence}")

@@ -14,9 +14,13 @@ nothing half-written):
   inside the outage windows, plus ``outage`` (the length, e.g. ``30d``) and ``days_since``
   (days since the well's last measurement learned from).
 - ``DIR/report.html``: one self-contained page with the paper's tables and figures.
-- ``DIR/allocation.parquet`` (with separator readings in the data; :func:`write_allocation`):
-  each reading split to its wells (time, separator, well, q_alloc, lo90, hi90, q_pred,
-  residual, model, method; Sm3/h).
+- ``DIR/allocation.parquet`` (with separator readings in the data; :func:`run_separator_study`
+  and ``write_study(separators=...)``): each reading split to its wells (time, separator,
+  well, q_alloc, lo90, hi90, q_pred, residual, model, method; Sm3/h). ``metrics.json`` then
+  has ``"separators"``: per run (model, bayes method) the readings learned from, refused and
+  unusable, the sum's mean error (%) with and without learning from the readings, and the
+  well tests' MAPE (%) with and without them (the second is the study's own case 2 run),
+  overall and per well; the report a section with a figure.
 
 Records of ``metrics.json`` beyond ``{model, method, well, mape, n}`` (extensions, never
 renames): ``"target": "q_oil"`` (etc.) for a phase's score (absent for the total, which
@@ -60,7 +64,6 @@ from tqdm import tqdm
 
 from vfm_core.data import target_mask
 from vfm_core.errors import ConfigError
-from vfm_core.fileio import write_with
 from vfm_core.jobs.results import StudyResult
 from vfm_core.jobs.study import (
     OUTAGE_FRACTIONS,
@@ -87,7 +90,8 @@ __all__ = [
     "summarise",
     "slow_runs",
     "DEFAULT_METHODS",
-    "write_allocation",
+    "run_separator_study",
+    "SeparatorStudy",
 ]
 
 DEFAULT_METHODS: tuple[str, ...] = ("ol", "pbl:14d", "pbl:182d")
@@ -562,9 +566,15 @@ def _clean(obj: Any) -> Any:
 
 
 def write_study(
-    result: StudyResult, out_dir: str | os.PathLike[str], *, report: bool = True
+    result: StudyResult,
+    out_dir: str | os.PathLike[str],
+    *,
+    report: bool = True,
+    separators: Sequence[SeparatorStudy] = (),
 ) -> list[Path]:
-    """Write metrics.json, predictions.parquet and report.html into ``out_dir``.
+    """Write metrics.json, predictions.parquet and report.html into ``out_dir``; with
+    ``separators`` (:func:`run_separator_study`) also allocation.parquet, their runs in
+    metrics.json's ``separators`` and a section of the report.
 
     Files are first written into a staging folder beside ``out_dir`` and moved in at the
     end, so an interrupted run leaves no half-written output.
@@ -575,6 +585,9 @@ def write_study(
     try:
         metrics = _clean(result.metrics())
         metrics.update(fault_counts(result.predictions))  # held_at_fault, fallback_at_fault
+        if separators:
+            metrics["separators"] = _clean([sep.metrics() for sep in separators])
+            _write_separators(separators, staging)
         (staging / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
         result.predictions.to_parquet(staging / "predictions.parquet", index=False)
         if not result.outage_predictions.empty:
@@ -586,7 +599,7 @@ def write_study(
         if report:
             from vfm_core.reporting.study import build_report
 
-            build_report(result, staging / "report.html")
+            build_report(result, staging / "report.html", separators=separators)
         written = []
         for f in sorted(staging.iterdir()):
             os.replace(f, out / f.name)
@@ -649,42 +662,124 @@ def _format_default(result: StudyResult, df: pd.DataFrame) -> str:
 SEPARATOR_MODELS: tuple[str, ...] = ("mm", "hem", "ham")
 
 
-def write_allocation(
+@dataclass
+class SeparatorStudy:
+    """One separator run of ``vfm evaluate``: ``model`` with the ``bayes`` method ``method``
+    on the case 2 protocol, learning from the separators' readings (``run``) and the same run
+    without learning from them (``without``: the well tests alone; the readings allocated
+    all the same), so that what the totals gave is read on the same well tests."""
+
+    model: str
+    method: str
+    run: Any  # vfm_core.separator.SeparatorRun
+    without: Any
+
+    def well_tests(self) -> pd.DataFrame:
+        """MAPE (%) on each well's well tests after the split: ``with`` and ``without`` the
+        readings learned from, and the number of well tests ``n``, one row per well."""
+        n = self.run.predictions.groupby("well").size()
+        table = pd.DataFrame(
+            {"with": self.run.well_mape(), "without": self.without.well_mape(), "n": n}
+        )
+        return table.rename_axis("well")
+
+    def lower_percent(self) -> float:
+        """How much lower the mean well-test MAPE is with the readings (%, of without)."""
+        with_, without = self.run.well_mape().mean(), self.without.well_mape().mean()
+        return float((1.0 - with_ / without) * 100.0) if without > 0 else float("nan")
+
+    def sentence(self) -> str:
+        """One line for the console."""
+        c = self.run.counts
+        with_, without = self.run.well_mape().mean(), self.without.well_mape().mean()
+        lower = self.lower_percent()
+        change = f"{lower:.0f} % lower" if lower >= 0 else f"{-lower:.0f} % higher"
+        return (
+            f"Separator ({self.model} {self.method}): {c.get('taken', 0)} readings learned from "
+            f"({c.get('refused', 0)} refused, {c.get('incomplete', 0)} unusable); the wells' "
+            f"predictions summed to within {self.run.sum_error():.2f} % of the totals on "
+            f"average; well tests {with_:.2f} % MAPE ({without:.2f} % without the readings: "
+            f"{change})."
+        )
+
+    def metrics(self) -> dict[str, Any]:
+        """The run in ``metrics.json``'s ``separators`` list (MAPE and errors in %)."""
+        c = self.run.counts
+        wells = self.well_tests()
+        return {
+            "model": self.model,
+            "method": self.method,
+            "readings_learned": int(c.get("taken", 0)),
+            "readings_downweighted": int(c.get("downweighted", 0)),
+            "readings_refused": int(c.get("refused", 0)),
+            "readings_unusable": int(c.get("incomplete", 0)),
+            "sum_error_percent": self.run.sum_error(),
+            "sum_error_without_percent": self.without.sum_error(),
+            "well_test_mape_percent": float(wells["with"].mean()),
+            "well_test_mape_without_percent": float(wells["without"].mean()),
+            "lower_percent": self.lower_percent(),
+            "wells": {
+                str(w): {
+                    "mape_percent": float(r["with"]),
+                    "mape_without_percent": float(r["without"]),
+                    "n": int(r["n"]),
+                }
+                for w, r in wells.iterrows()
+            },
+            "runtime_s": float(self.run.runtime_s + self.without.runtime_s),
+        }
+
+
+def run_separator_study(
     frame: pd.DataFrame,
     separators: Any,
-    out_dir: str | os.PathLike[str],
     *,
     models: Sequence[str],
     methods: Sequence[str],
     split: str | None = None,
     seed: int = 0,
-) -> tuple[Path, list[str]]:
+    progress: bool = False,
+) -> tuple[list[SeparatorStudy], list[str]]:
     """With separator readings (``separators``: :class:`vfm_core.separator_format.SeparatorData`),
     run :func:`vfm_core.separator.run_separator` for each of ``models`` among
     :data:`SEPARATOR_MODELS` (``mm`` if none) with each ``bayes`` method of ``methods``
-    (``bayes`` if none), write ``DIR/allocation.parquet`` (:data:`~vfm_core.separator.
-    ALLOCATION_COLUMNS` plus ``model`` and ``method``; Sm3/h) and return its path and one
-    sentence per run."""
+    (``bayes`` if none), with and without learning from the readings; the runs and the
+    sentences to print (one per run, and why other methods were left out)."""
     from vfm_core.separator import check_method, run_separator
 
     chosen = [m for m in models if m in SEPARATOR_MODELS] or ["mm"]
     bayes = [m for m in methods if check_method(m) is None] or ["bayes"]
-    frames, lines = [], []
-    for model in chosen:
-        for meth in bayes:
-            run = run_separator(frame, separators, model, meth, split=split, seed=seed)
-            frames.append(run.allocation.assign(model=model, method=meth))
-            lines.append(
-                f"Separator ({model} {meth}): {run.counts['taken']} readings learned from "
-                f"({run.counts['refused']} refused, {run.counts['incomplete']} unusable); the "
-                f"wells' predictions summed to within {run.sum_error():.2f} % of the totals "
-                f"on average; well tests {run.well_mape().mean():.2f} % MAPE."
-            )
+    pairs = [(model, meth) for model in chosen for meth in bayes]
+    bar = tqdm(
+        total=2 * len(pairs), desc="separator runs", unit="run", disable=not progress, leave=False
+    )
+    studies, lines = [], []
+    try:
+        for model, meth in pairs:
+            runs = []
+            for learn in (True, False):
+                bar.set_postfix_str(f"{model} {meth}" + ("" if learn else ", without readings"))
+                runs.append(
+                    run_separator(
+                        frame, separators, model, meth, split=split, seed=seed, learn=learn
+                    )
+                )
+                bar.update()
+            studies.append(SeparatorStudy(model, meth, runs[0], runs[1]))
+            lines.append(studies[-1].sentence())
+    finally:
+        bar.close()
     ignored = [m for m in methods if check_method(m) is not None]
     if ignored:
         lines.append(check_method(ignored[0]) or "")
-    path = Path(out_dir) / "allocation.parquet"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    table = pd.concat(frames, ignore_index=True)
-    write_with(path, lambda temp: table.to_parquet(temp, index=False))  # atomically
-    return path, lines
+    return studies, lines
+
+
+def _write_separators(studies: Sequence[SeparatorStudy], staging: Path) -> None:
+    """``allocation.parquet`` (:data:`~vfm_core.separator.ALLOCATION_COLUMNS` plus ``model``
+    and ``method``; Sm3/h) of the runs that learned from the readings."""
+    table = pd.concat(
+        [s.run.allocation.assign(model=s.model, method=s.method) for s in studies],
+        ignore_index=True,
+    )
+    table.to_parquet(staging / "allocation.parquet", index=False)

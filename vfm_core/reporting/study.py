@@ -1396,10 +1396,87 @@ def _calibration_section(study: _Study) -> dict[str, Any] | None:
     return {"png": page.png(fig), "rows": rows}
 
 
+def _reading_residuals(allocation: pd.DataFrame) -> pd.DataFrame:
+    """Per separator reading: time, separator and the reconciliation residual in % of the
+    measured total (measured - sum of the wells' predictions before the reading)."""
+    per = allocation.groupby(["separator", "time"], sort=True).agg(
+        residual=("residual", "first"), predicted=("q_pred", "sum")
+    )
+    measured = per["residual"] + per["predicted"]
+    out = (per["residual"] / measured.where(measured > 0) * 100.0).rename("percent")
+    return out.reset_index()
+
+
+def _separator_section(separators: Sequence[Any]) -> dict[str, Any] | None:
+    """The separators' totals (``vfm evaluate`` on data with separator readings): each run's
+    well-test MAPE with and without learning from the readings, per well, and a figure of
+    the reconciliation residual over time (the total minus the sum of the wells'
+    predictions, %, a rolling mean over 15 readings), learned from (solid) and not (dashed)."""
+    if not separators:
+        return None
+    runs, wells = [], []
+    for sep in separators:
+        m = sep.metrics()
+        runs.append(m)
+        for well, r in m["wells"].items():
+            wells.append(
+                (
+                    m["model"],
+                    m["method"],
+                    well,
+                    r["n"],
+                    r["mape_without_percent"],
+                    r["mape_percent"],
+                )
+            )
+    names = sorted({str(n) for sep in separators for n in sep.run.allocation.get("separator", [])})
+    png = None
+    if names:
+        fig = Figure(figsize=(8.0, 2.4 + 1.6 * len(names)))
+        axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
+        colours = matplotlib.colormaps["tab10"]
+        for k, sep in enumerate(separators):
+            for run, style, what in (
+                (sep.run, "-", "learned from"),
+                (sep.without, "--", "not learned from"),
+            ):
+                if run.allocation.empty:
+                    continue
+                res = _reading_residuals(run.allocation)
+                for ax, name in zip(axes, names, strict=True):
+                    g = res[res["separator"] == name]
+                    if g.empty:
+                        continue
+                    smooth = g["percent"].rolling(15, min_periods=1).mean().to_numpy()
+                    stamps = pd.DatetimeIndex(pd.to_datetime(g["time"], utc=True))
+                    times = stamps.tz_convert(None).to_numpy()  # UTC, as datetime64
+                    # no line across a week without readings (a shut-in, a historian gap)
+                    gap = np.flatnonzero(np.diff(times) > np.timedelta64(7, "D")) + 1
+                    smooth = np.insert(smooth, gap, np.nan)
+                    times = np.insert(times, gap, times[gap - 1] + np.timedelta64(1, "D"))
+                    ax.plot(
+                        times,
+                        smooth,
+                        linestyle=style,
+                        color=colours(k % 10),
+                        linewidth=1.2,
+                        label=f"{sep.model}, {sep.method}: readings {what}",
+                    )
+        for ax, name in zip(axes, names, strict=True):
+            ax.axhline(0.0, color="#888", linewidth=0.8)
+            ax.set_ylabel(f"{name}: total - sum (%)")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=8, loc="best")
+        axes[0].set_title("Separator totals against the sum of the wells' predictions")
+        fig.tight_layout()
+        png = page.png(fig)
+    return {"png": png, "runs": runs, "wells": wells}
+
+
 # --------------------------------------------------------------------------- entry point
 
 
-def build_report(result: StudyResult, path: Path) -> Path:
+def build_report(result: StudyResult, path: Path, *, separators: Sequence[Any] = ()) -> Path:
     """Write the study as one self-contained HTML file at ``path`` and return the path.
 
     Figures are PNG embedded as base64; nothing is loaded from outside the file. Text taken
@@ -1426,5 +1503,6 @@ def build_report(result: StudyResult, path: Path) -> Path:
             "outages": _outage_section(study),
             "phases": _phase_grid(study),
             "calibration": _calibration_section(study),
+            "separators": _separator_section(separators),
         }
     return page.write_page(path, page.render("study.html.j2", **context))
