@@ -26,6 +26,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         match_timeout=args.match_timeout,
         idle_timeout=args.idle_timeout,
         progress=not args.quiet,
+        readings=loaded.separators.readings if loaded.separators else None,
     )
     print(result.summary())
     if args.out:
@@ -47,7 +48,8 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "replay",
         help="stream an observation file over Zenoh through a running service, then score its predictions",
-        description="Publish each row in time order (sensor sample, then its measurement) with BLOCK "
+        description="Publish each row in time order (sensor sample, then its measurement; a "
+        "separator's total on <prefix>/<separator>/measurements/separator) with BLOCK "
         "congestion control once the service's subscriber matched; collect the predictions and print "
         "their MAPE against the file's measurements per well and overall. A row with an input outside "
         "its physical span is sent with its raw values (an out_of_range fault in the service); a row "

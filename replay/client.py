@@ -260,6 +260,8 @@ class Streamed:
     #: samples sent with an input outside its physical span (raw values: out_of_range faults)
     out_of_span: int = 0
     started: float = 0.0  # time.monotonic() when sending began
+    #: separator readings sent, (separator, time ns) each
+    readings: list[tuple[str, int]] = field(default_factory=list)
 
 
 class FieldClient:
@@ -303,6 +305,30 @@ class FieldClient:
         self._unsubscribe: Callable[[], None] | None = bus.subscribe(
             f"{prefix}/{wells}/prediction", self._on_prediction
         )
+        #: the separators' allocations received (``collect_allocations``): (separator, time
+        #: ns) -> the message (``q_total``, ``predicted``, ``residual``, ``status``, ...)
+        self.allocations: dict[tuple[str, int], dict[str, object]] = {}
+        self._unsubscribe_allocations: Callable[[], None] | None = None
+
+    def collect_allocations(self) -> None:
+        """Also collect the separators' allocations (``<prefix>/*/allocation``), which the
+        service publishes once it has settled each separator reading."""
+        if self._unsubscribe_allocations is None:
+            self._unsubscribe_allocations = self.bus.subscribe(
+                f"{self.prefix}/*/allocation", self._on_allocation
+            )
+
+    def _on_allocation(self, key: str, payload: bytes) -> None:
+        try:
+            data = json.loads(payload)
+            sep = str(data["separator"])
+            when = to_ns(datetime.fromisoformat(str(data["time"]).replace("Z", "+00:00")))
+        except (ValueError, KeyError, TypeError):
+            with self._lock:
+                self.bad += 1
+            return
+        with self._lock:
+            self.allocations[(sep, when)] = data
 
     # -- receiving --------------------------------------------------------------------------
     def _on_prediction(self, key: str, payload: bytes) -> None:
@@ -418,6 +444,13 @@ class FieldClient:
         """Any payload on any key (for tests of what the service refuses)."""
         self.bus.put(key, payload)
 
+    def send_reading(self, separator: str, when: datetime, q_total: float) -> None:
+        """A separator's total (Sm3/h) at ``when``, on ``<prefix>/<separator>/measurements/separator``."""
+        measurement = Measurement(time=when, q_total=q_total)
+        self.bus.put(
+            measurement_key(self.prefix, separator, "separator"), measurement.model_dump_json()
+        )
+
     def stream(
         self,
         rows: pd.DataFrame,
@@ -425,6 +458,7 @@ class FieldClient:
         speed: float | None = None,
         stop: threading.Event | None = None,
         progress: bool = False,
+        readings: pd.DataFrame | None = None,
     ) -> Streamed:
         """Send observation rows (time-sorted) as they would arrive live: per row the sensor
         sample, then its measurement if it has one. ``speed``: N times real time (None: as
@@ -433,12 +467,45 @@ class FieldClient:
         schema are skipped and counted. A row whose only problem is an input outside its
         physical span is sent with its raw values (``sample_of(..., out_of_span=True)``) and
         counted in ``out_of_span``: the service decides (an ``out_of_range`` fault while it
-        watches instrument faults, else refused with its reason)."""
+        watches instrument faults, else refused with its reason).
+
+        ``readings``: separator readings (``time``, ``separator``, ``q_total`` in Sm3/h, as
+        :class:`vfm_core.separator_format.SeparatorData` holds them), each sent in time
+        order after the wells' rows at or before its time (the service counts a well's
+        sample at the reading's time in it, see docs/guide/separator.md)."""
         out = Streamed(started=time.monotonic())
         if rows.empty:
             return out
         times = pd.DatetimeIndex(rows[TIME])
         t0_data = times[0]
+        # each reading goes out just before the first row after its time (or at the end)
+        if readings is None:
+            readings = pd.DataFrame({TIME: times[:0], "separator": [], TARGET: []})
+        r_times = pd.DatetimeIndex(readings[TIME])
+        before_row = np.searchsorted(
+            times.as_unit("ns").asi8, r_times.as_unit("ns").asi8, side="right"
+        )
+        r_names = readings["separator"].astype(str).to_numpy()
+        r_totals = readings[TARGET].to_numpy(dtype=float)
+        r_py = [t.to_pydatetime() for t in r_times]
+        next_reading = 0
+
+        def send_readings_before(i: int) -> None:
+            nonlocal next_reading
+            while next_reading < len(before_row) and before_row[next_reading] <= i:
+                k = next_reading
+                next_reading += 1
+                if speed is not None:
+                    due = out.started + (r_times[k] - t0_data).total_seconds() / speed
+                    if (wait := due - time.monotonic()) > 0:
+                        time.sleep(wait)
+                try:
+                    self.send_reading(r_names[k], r_py[k], float(r_totals[k]))
+                except ValidationError:
+                    out.skipped += 1
+                    continue
+                out.readings.append((str(r_names[k]), to_ns(r_py[k])))
+
         wells = rows[WELL].astype(str).to_numpy()
         x = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
         outside = np.asarray(observations.outside_span(rows).any(axis=1))  # sent raw, counted
@@ -456,6 +523,7 @@ class FieldClient:
         ):
             if stop is not None and stop.is_set():
                 break
+            send_readings_before(i)
             well, when = wells[i], py_times[i]
             if speed is not None:
                 due = out.started + (times[i] - t0_data).total_seconds() / speed
@@ -476,12 +544,17 @@ class FieldClient:
             if src[i] in SOURCES and np.isfinite(q[i]):
                 self.send_measurement(well, src[i], Measurement(time=when, q_total=float(q[i])))
                 out.measurements += 1
+        if stop is None or not stop.is_set():
+            send_readings_before(len(rows))
         return out
 
     def close(self) -> None:
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
+        if self._unsubscribe_allocations is not None:
+            self._unsubscribe_allocations()
+            self._unsubscribe_allocations = None
 
     def __enter__(self) -> FieldClient:
         return self

@@ -58,13 +58,56 @@ class ReplayResult:
     missing_samples: list[tuple[str, int]] = field(default_factory=list)
     #: samples sent with an input outside its physical span, raw (out_of_range faults)
     out_of_span: int = 0
+    #: separator readings sent
+    readings_sent: int = 0
+    #: one row per separator reading sent: separator, time, q_total (Sm3/h, as sent), and
+    #: from the service's allocation, where it came: predicted (the sum of the wells'
+    #: predictions), residual (Sm3/h), status ("learned", "allocated", "unused"; "" for none)
+    readings: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+    def reading_lines(self) -> list[str]:
+        """The separator readings in a sentence per separator: how many the service settled
+        (allocated), how, and how close the sum of the wells' predictions came."""
+        if not self.readings_sent:
+            return []
+        lines = []
+        for sep, g in self.readings.groupby("separator", sort=True):
+            settled = g[g["status"] != ""]
+            if settled.empty:
+                lines.append(
+                    f"Separator {sep}: {len(g):,} reading(s) sent, none allocated: is '{sep}' in "
+                    "the service's separators.members? (a reading of an unknown separator is "
+                    "refused, its reason counted in /metrics)"
+                )
+                continue
+            counts = settled["status"].value_counts()
+            how = ", ".join(f"{k} {int(v):,}" for k, v in counts.items())
+            used = settled[settled["status"] != "unused"]
+            close = ""
+            if len(used):
+                rel = float((used["residual"].abs() / used["q_total"]).mean() * 100.0)
+                close = f"; the wells' predictions summed to within {rel:.2f} % of the totals on average"
+            waiting = len(g) - len(settled)
+            lines.append(
+                f"Separator {sep}: {len(g):,} reading(s) sent, {len(settled):,} allocated ({how})"
+                + (
+                    f", {waiting:,} not settled yet (waiting for their wells' samples)"
+                    if waiting
+                    else ""
+                )
+                + close
+                + "."
+            )
+        return lines
 
     def summary(self) -> str:
         rate = self.rows / self.elapsed_s if self.elapsed_s > 0 else float("nan")
         since = f" from {self.start.isoformat()}" if self.start is not None else ""
         lines = [
             f"Replayed {self.rows:,} rows{since} ({self.samples_sent:,} sensor samples, "
-            f"{self.measurements_sent:,} measurements) in {self.elapsed_s:.1f} s ({rate:,.0f} rows/s).",
+            f"{self.measurements_sent:,} measurements"
+            + (f", {self.readings_sent:,} separator readings" if self.readings_sent else "")
+            + f") in {self.elapsed_s:.1f} s ({rate:,.0f} rows/s).",
             f"Predictions: {self.predictions_received:,} received; {self.missing:,} sample(s) got none "
             "(a well without a model yet gets none until its first measurement, a sample the service "
             "rejects gets none, its reason counted in /metrics; any other was lost).",
@@ -98,6 +141,7 @@ class ReplayResult:
             )
         else:
             lines.append("No measurement after the start could be scored.")
+        lines += self.reading_lines()
         return "\n".join(lines)
 
 
@@ -115,6 +159,7 @@ def replay_frame(
     progress: bool = True,
     block_wait_before_close_ms: int = 600_000,
     bus: FieldBus | None = None,
+    readings: pd.DataFrame | None = None,
 ) -> ReplayResult:
     """Replay a loaded observation frame (time-sorted, see ``load_observations``) through a service.
 
@@ -124,11 +169,17 @@ def replay_frame(
     30 s: a service busy with its first samples answers late), at most ``final_timeout``.
     ``bus``: send over this bus (e.g. a service's in-memory transport) instead of opening
     a Zenoh session to ``connect`` (which is then not used); the caller keeps it open.
+    ``readings``: separator readings (``LoadResult.separators.readings``), sent in time
+    order among the rows (from ``start`` on); their allocations are collected and the
+    sums' agreement with the totals reported.
     """
     validate_prefix(prefix)
     if speed is not None and not (math.isfinite(speed) and speed > 0):
         raise ConfigError(f"--speed must be a positive number, not {speed}.")
     rows, start_ts = _rows_from(frame, start)
+    chosen = readings if readings is not None else pd.DataFrame(columns=[TIME, "separator", TARGET])
+    if start_ts is not None and len(chosen):
+        chosen = chosen[chosen[TIME] >= start_ts]
     opened: ZenohBus | None = None
     if bus is None:
         bus = opened = ZenohBus.connect(
@@ -141,7 +192,9 @@ def replay_frame(
         with FieldClient(bus, prefix, match_timeout=match_timeout) as client:
             # match once before the clock starts, and let the service see our subscriber
             client.wait_for_service(str(rows[WELL].iloc[0]))
-            sent = client.stream(rows, speed=speed, progress=progress)
+            if len(chosen):
+                client.collect_allocations()
+            sent = client.stream(rows, speed=speed, progress=progress, readings=chosen)
             # wait for the answers: all of them, or until they stop coming
             client.wait_for_answers(
                 sent.samples,
@@ -149,6 +202,7 @@ def replay_frame(
                 final_timeout=final_timeout,
                 since=sent.started,
             )
+            _wait_for_allocations(client, sent.readings, idle_timeout, final_timeout)
             elapsed = time.monotonic() - sent.started
     finally:
         if opened is not None:
@@ -169,7 +223,69 @@ def replay_frame(
     )
     result.missing_samples = lacking[:MISSING_SHOWN]
     result.out_of_span = sent.out_of_span
+    result.readings_sent = len(sent.readings)
+    result.readings = _settled(chosen, sent.readings, dict(client.allocations))
     return result
+
+
+def _wait_for_allocations(
+    client: FieldClient, sent: list[tuple[str, int]], idle_timeout: float, final_timeout: float
+) -> None:
+    """Wait until every reading sent is allocated, or none came for ``idle_timeout`` s (the
+    last reading waits for its wells' next samples, which may never come), at most
+    ``final_timeout`` s."""
+    if not sent:
+        return
+    wanted = set(sent)
+    began = time.monotonic()
+    seen, last = -1, began
+    while time.monotonic() - began < final_timeout:
+        got = sum(1 for k in wanted if k in client.allocations)
+        if got == len(wanted):
+            return
+        if got != seen:
+            seen, last = got, time.monotonic()
+        elif time.monotonic() - last > idle_timeout:
+            return
+        time.sleep(0.05)
+
+
+def _settled(
+    readings: pd.DataFrame,
+    sent: list[tuple[str, int]],
+    allocations: dict[tuple[str, int], dict[str, object]],
+) -> pd.DataFrame:
+    """One row per reading sent (see :attr:`ReplayResult.readings`)."""
+    columns = ["separator", "time", "q_total", "predicted", "residual", "status"]
+    if not sent:
+        return pd.DataFrame(columns=columns)
+    stamps = pd.DatetimeIndex(readings[TIME]).as_unit("ns").asi8
+    total = {
+        (str(sep), int(t)): float(q)
+        for sep, t, q in zip(readings["separator"], stamps, readings[TARGET], strict=True)
+    }
+    rows = []
+    for sep, t in sent:
+        a = allocations.get((sep, t), {})
+        rows.append(
+            {
+                "separator": sep,
+                "time": pd.Timestamp(t, tz="UTC"),
+                "q_total": total.get((sep, t), float("nan")),
+                "predicted": _number(a.get("predicted")),
+                "residual": _number(a.get("residual")),
+                "status": str(a.get("status", "")),
+            }
+        )
+    return pd.DataFrame(rows, columns=columns)
+
+
+def _number(value: object) -> float:
+    """A number from a message field (NaN for none)."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def _rows_from(

@@ -172,6 +172,27 @@ def test_fair_queue_serves_wells_in_turn_and_keeps_each_wells_order() -> None:
     assert rest == [("flood", i) for i in range(3, 20)]
 
 
+def test_a_separators_wells_share_one_fifo_in_arrival_order() -> None:
+    """The wells of a separator (and its readings) are taken in the order they arrived, not
+    in turn, so that a reading at t finds each partner's sample at t (walk57); a FIFO holds
+    ``well_capacity`` per member; other wells keep their turns."""
+    members = {"A": "SEP", "B": "SEP", "SEP": "SEP"}
+    q = FairQueue(
+        capacity=100,
+        well_capacity=2,
+        fifo_of=lambda well: members.get(well, well),
+        fifo_capacity=lambda fifo: 2 * 2 if fifo == "SEP" else 2,
+    )
+    for item in [("A", 1), ("A", 2), ("B", 1), ("SEP", 1)]:
+        assert q.put(item[0], item) == "ok"
+    assert q.put("X", ("X", 1)) == "ok"
+    assert q.put("B", ("B", 2), timeout=0.0) == "well"  # 2 members x 2 = 4 items held
+    assert q.depth("A") == q.depth("B") == q.depth("SEP") == 4
+    got = [q.get_nowait() for _ in range(5)]
+    # SEP's FIFO in arrival order, X in its turn between (round robin over FIFOs)
+    assert got == [("A", 1), ("X", 1), ("A", 2), ("B", 1), ("SEP", 1)]
+
+
 def test_fair_queue_get_many_takes_what_get_nowait_would() -> None:
     """A worker takes items a few at a time: the same items in the same order, the room
     they free counted (a block by its weight), a waiting sender woken, CLOSED at the end."""

@@ -62,4 +62,15 @@ def test_the_page_shows_each_separators_total_against_its_wells(tmp_path: Path) 
             page.locator("#separator-charts canvas").first.wait_for()
             assert page.locator("#separator-charts .u-title").first.inner_text() == "SEP"
             page.locator("#separators").screenshot(path=str(SHOTS / "separators.png"))
+            # no line across a stretch without readings (walk57: a two-month gap drawn
+            # straight): a point of nulls where the spacing exceeds 3 times the median's
+            broken = page.evaluate(
+                "() => breakGaps([[0, 86400, 172800, 259200, 5443200, 5529600],"
+                " [1, 2, 3, 4, 5, 6], [1, 2, 3, null, 5, 6]])"
+            )
+            assert broken == [
+                [0, 86400, 172800, 259200, 2851200, 5443200, 5529600],
+                [1, 2, 3, 4, None, 5, 6],
+                [1, 2, 3, None, None, 5, 6],
+            ], broken
             assert errors == []

@@ -80,8 +80,17 @@ class Engine:
         self.counters = counters
         self._wells: dict[str, WellState] = {}
         q = settings.queues
+        seps = settings.separators
+        sizes = {sep: len(wells) for sep, wells in seps.members.items()}
+        # a separator's wells and readings in one FIFO, in arrival order (fairqueue.py)
         self._queues: list[FairQueue] = [
-            FairQueue(q.worker_capacity, q.well_capacity) for _ in range(q.workers)
+            FairQueue(
+                q.worker_capacity,
+                q.well_capacity,
+                fifo_of=seps.route,
+                fifo_capacity=lambda fifo: q.well_capacity * sizes.get(fifo, 1),
+            )
+            for _ in range(q.workers)
         ]
         self._stopping = threading.Event()
         self._forget = forget

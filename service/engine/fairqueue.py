@@ -1,5 +1,12 @@
 """A worker's queue: one FIFO per well, served round robin, each bounded.
 
+The wells of one separator share one FIFO (``fifo_of``: the separator's name, which its
+readings are queued under too): a reading of their total at t counts each well's sample
+at t, so the worker must take them in the order they arrived, a sample of one well's next
+day never before a partner's sample at the reading (with the wells in turn it did: walk57,
+where a replay at full speed settled most readings with the partners not yet at t, "shut
+in"). Such a FIFO holds ``well_capacity`` messages per member well (``fifo_capacity``).
+
 Why not one FIFO per worker: a well that floods would put thousands of messages in front
 of every other well's next sample (measured before this queue: 8 s of delay for a well
 sending once a second while another sent 5,000 samples a second). Here each well has its
@@ -35,9 +42,20 @@ CLOSED = object()
 class FairQueue:
     """Per-well FIFOs served round robin; see the module docstring. Thread-safe."""
 
-    def __init__(self, capacity: int, well_capacity: int) -> None:
+    def __init__(
+        self,
+        capacity: int,
+        well_capacity: int,
+        *,
+        fifo_of: Callable[[str], str] | None = None,
+        fifo_capacity: Callable[[str], int] | None = None,
+    ) -> None:
         self.capacity = capacity
         self.well_capacity = well_capacity
+        #: the FIFO a well's items go to (its separator's, else its own)
+        self._fifo_of = fifo_of or (lambda well: well)
+        #: how many items a FIFO holds (default ``well_capacity``)
+        self._fifo_capacity = fifo_capacity or (lambda fifo: well_capacity)
         self._lock = threading.Lock()
         self._has_items = threading.Condition(self._lock)
         self._has_room = threading.Condition(self._lock)
@@ -61,8 +79,8 @@ class FairQueue:
         return self._size
 
     def depth(self, well: str) -> int:
-        """Items queued for ``well``."""
-        q = self._queues.get(well)
+        """Items queued in ``well``'s FIFO (its separator's, shared with its partners)."""
+        q = self._queues.get(self._fifo_of(well))
         return 0 if q is None else len(q)
 
     def busy_wells(self) -> int:
@@ -86,10 +104,12 @@ class FairQueue:
         an item heavier than the whole capacity waits for an empty queue."""
         weight = max(1, min(weight, self.capacity))
         deadline = None if timeout is None else time.monotonic() + timeout
+        fifo = self._fifo_of(well)
+        room = self._fifo_capacity(fifo)
         with self._lock:
             while not force:
-                q = self._queues.get(well)
-                if q is not None and len(q) >= self.well_capacity:
+                q = self._queues.get(fifo)
+                if q is not None and len(q) >= room:
                     full: Literal["well", "total"] = "well"
                 elif self._size + weight > self.capacity:
                     full = "total"
@@ -103,10 +123,10 @@ class FairQueue:
                     self._has_room.wait(remaining)
                 finally:
                     self._waiting -= 1
-            q = self._queues.get(well)
+            q = self._queues.get(fifo)
             if q is None:
-                q = self._queues[well] = deque()
-                self._ring.append(well)
+                q = self._queues[fifo] = deque()
+                self._ring.append(fifo)
             q.append((item, weight))
             self._size += weight
             if self._getting:  # a worker waits in get (not when it takes messages itself)

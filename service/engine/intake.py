@@ -350,10 +350,17 @@ class Intake:
         block = self.settings.queues.block_s
         if full == "well":
             self.counters.event("well flooding")
+            cap = self.settings.queues.well_capacity
+            sep = self.settings.separators.separator_of(item.well)
+            queue = (
+                f"The queue of {item.well} stayed full ({cap} messages, queues.well_capacity)"
+                if sep is None
+                else f"The queue of {item.well}'s separator {sep}, which its wells share, stayed "
+                f"full ({cap} messages per well, queues.well_capacity)"
+            )
             self.counters.reject(
                 "well flooding",
-                f"The queue of {item.well} stayed full ({self.settings.queues.well_capacity} "
-                f"messages, queues.well_capacity) for {block:g} s; the message was dropped. The "
+                f"{queue} for {block:g} s; the message was dropped. The "
                 "well sends faster than the service learns from it: slow the sender down.",
                 where=where,
             )
