@@ -89,6 +89,7 @@ from vfm_core.data import DTYPE, Batch, make_batch, target_mask
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.learning import DEFAULT_TRAIN, TrainSettings, parse_method
 from vfm_core.learning.bayes import NOISE_DEFAULTS, Z90, BayesianFilter, pooled_factor
+from vfm_core.learning.memory import FrameMemory
 from vfm_core.learning.method import NEVER
 from vfm_core.models import make_model
 from vfm_core.schema import INPUT_COLUMNS, TARGET, TIME, WELL, WELL_TEST
@@ -514,6 +515,12 @@ class SeparatorLearner:
         self.filt.set_filter_state(theta, P, last, mask)
         return True
 
+    def forget(self, sep: str | None, well: int) -> None:
+        """Drop well ``well``'s cross-covariances on its separator ``sep`` (a refit started
+        its filter again: what it shared with its partners is gone); None: on no separator."""
+        if sep is not None and sep in self.index:
+            self._forget(sep, well)
+
     def _forget(self, sep: str, well: int) -> None:
         """Drop well ``well``'s cross-covariances (after the filter reset it: it changed)."""
         ix, d = self.index[sep], self._d
@@ -765,9 +772,21 @@ def run_separator(
     by_reading = {k: g for k, g in samples.groupby("reading")}
     predicted, p05, p95 = (np.full(len(frame), np.nan) for _ in range(3))
     allocations: list[dict[str, Any]] = []
-    for _, kind, index in events:
-        if kind == 0:  # a well test: predicted, then learned from
+    # the refits of a method that refits on schedule (``bayes`` with ``refresh``: a hybrid
+    # that learns from well tests only), as the study runs them: the due ones before the
+    # well's next well test, on the well tests learned so far. A well that learns from the
+    # readings is not refitted (they end its refits, as an MPFM's readings do:
+    # BayesianFilter.set_filter_state), so with ``learn`` they run only where no reading was
+    # learned for 30 days; a refitted well shares nothing with its partners any more
+    memory = FrameMemory(frame, is_test, list(meth.model.wells), meth.model.extra_columns)
+    separator_of = {w: sep for sep, ws in separators.members.items() for w in ws}
+    for t_event, kind, index in events:
+        if kind == 0:  # a well test: its refits due, then predicted, then learned from
             w = code[str(frame[WELL].iat[index])]
+            now = torch.full((len(code),), NEVER, dtype=torch.int64)
+            now[w] = t_event
+            for i in torch.nonzero(meth.retrain_due(memory, now)).flatten().tolist():
+                learner.forget(separator_of.get(meth.model.wells[i]), i)
             batch = one_batch({w: index}, True)
             forecast = meth.predict(batch)
             for out, values in (
