@@ -304,3 +304,33 @@ def test_a_parameter_the_specification_sets_is_fixed_with_no_sd(base: str) -> No
     learned = params["rho_oil"]
     assert learned["fixed"] is False and learned["std"] is not None and learned["std"] > 1e-3
     assert all(p["fixed"] is False for n, p in params.items() if "." not in n)
+
+
+@pytest.mark.parametrize("kernels", ["1", "0"])
+@pytest.mark.parametrize(("model_name", "hybrid"), [("ham", True), ("hem", True), ("nn", False)])
+def test_a_well_without_a_fit_starts_a_hybrids_output_weights_at_their_prior_mean(
+    model_name: str, hybrid: bool, kernels: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A well with no history starts its filter at its first measurement. A hybrid's output
+    weights start at their prior mean with no variance (its network's lower layers are
+    unfitted draws on inputs not standardised: WellMLP.head_blocks), so a measurement moves
+    its level and physics only; a network that is the whole model (``nn``) keeps the He
+    prior. The compiled step starts it as the torch one does."""
+    monkeypatch.setenv("VFM_KERNELS", kernels)
+    learner = WellLearner("W1", model_name, "bayes")
+    later = [SAMPLE[0] + 0.1, SAMPLE[1] + 5.0, *SAMPLE[2:]]  # inputs moved: features not 0
+    for k, (x, y) in enumerate(((SAMPLE, 1000.0), (later, 1300.0))):
+        assert learner.learn(x, y, pd.Timestamp(T0 + k * HOUR, tz="UTC"), "well_test")
+    method: Any = learner.method
+    heads = torch.tensor([label.startswith("head.w") for label in method._labels])
+    fan_in = int(heads.sum())
+    P = method.state_dict()["P"][0]
+    weights = P[heads][:, heads]
+    level = P[~heads][:, ~heads]
+    assert float(torch.diagonal(level).min()) > 0  # the level and physics learn
+    if hybrid:  # no variance but an hour's drift; the weights still at their prior mean
+        assert float(weights.abs().max()) < 1e-9
+        head = learner.model.net.weights[-1].detach()  # type: ignore[union-attr]
+        assert float(head.abs().max()) < 1e-6
+    else:  # the He prior (and an hour's drift) where the second test's features are 0
+        assert float(torch.diagonal(weights).max()) == pytest.approx(2.0 / fan_in, rel=1e-6)

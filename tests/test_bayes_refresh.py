@@ -163,9 +163,11 @@ def test_auto_refits_a_hybrid_well_that_learns_from_well_tests_only() -> None:
 def test_an_mpfm_well_under_auto_is_the_filter_without_refits() -> None:
     """A hybrid well that has an MPFM: ``auto``'s study is plain ``bayes`` (refresh=off),
     the predictions the same to the bit; a well beside it without one (well tests only,
-    its chokes wearing) is refitted, its lower layers moved, and it learned the wear: a
-    smaller error than the filter alone (5.9 -> 1.8 % here; on seeds 12 to 15 of the same
-    field 1.7 -> 0.7, 1.07 -> 1.11, 1.9 -> 1.1, 1.24 -> 1.24; see docs/guide/bayes.md, session 51)."""
+    its chokes wearing) is refitted, its lower layers moved, and it learned the wear as
+    well as the filter alone (1.15 and 1.13 % here). This well starts after the split:
+    before session 57 its filter started its network's output weights at the He prior on
+    unfitted features (see :meth:`vfm_core.models.base.WellMLP.head_blocks`), and the
+    filter alone wandered (5.9 %, the refit 1.8 %; docs/guide/bayes.md, session 51)."""
     obs = simulate_field(
         wells=2, years=2.0, seed=11, hidden=["erosion:rate=0.08"], start="2016-01-01"
     ).observations
@@ -190,7 +192,7 @@ def test_an_mpfm_well_under_auto_is_the_filter_without_refits() -> None:
     assert len(b_on) >= 5
     score_on = mape(b_on["predicted"], b_on["measured"])
     score_off = mape(b_off["predicted"], b_off["measured"])
-    assert score_on < 0.5 * score_off, (score_on, score_off)
+    assert score_on < 1.5 and score_off < 1.5, (score_on, score_off)
 
 
 def test_a_wearing_field_is_followed_better_with_the_refit() -> None:

@@ -510,7 +510,7 @@ class SeparatorLearner:
             P[w] = P[w] - shrink[j * d : (j + 1) * d, j * d : (j + 1) * d]
         mask = torch.zeros(len(self.filt.model.wells), dtype=torch.bool)
         # a partner without a model yet is left unstarted (it shares nothing yet): its
-        # first measurement starts it at the prior, as in a joint update
+        # first measurement starts it (at its start variance), as in a joint update
         mask[partners] = self.filt.model.ready[partners]
         self.filt.set_filter_state(theta, P, last, mask)
         return True
@@ -639,7 +639,7 @@ class SeparatorLearner:
         P[ix] = p_new
         wells = torch.zeros(n, dtype=torch.bool)
         # a member without a model yet has no filter state: left unstarted, so that its
-        # first measurement starts it at the prior (as without separator readings)
+        # first measurement starts it at its start variance (as without separator readings)
         wells[ix] = self.filt.model.ready[ix]
         self.filt.set_filter_state(theta, P, now, wells)
         self.counts["taken"] += 1

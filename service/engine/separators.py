@@ -36,7 +36,7 @@ Such a member's step is therefore never deferred to the end of the worker batch,
 samples taken before it are predicted first. A member whose model was replaced, retired,
 reset by its filter or moved otherwise (a retrain on a drift: its version is not the one
 last seen here) shares nothing any more: its rows start at zero. A member without a model
-yet is not touched by a carry (its first measurement starts it at the prior).
+yet is not touched by a carry (its first measurement starts it at its start variance).
 ``cross = false`` keeps none (block-diagonal: each member's own filter state holds all
 there is).
 

@@ -2418,7 +2418,7 @@ def bayes(  # noqa: PLR0913, PLR0912, PLR0915 - one Kalman step, as BayesianFilt
 ) -> bool:
     """One step of ``BayesianFilter._update`` over every well's measurements, in place;
     True when the filter took one. ``rules``: the filter's constants (low, high,
-    prior_var, q, keep, fixed, huber, gate, adapt, calibrate, never, reset_after,
+    start_var, q, keep, fixed, huber, gate, adapt, calibrate, never, reset_after,
     noise_floor, z90, ns_per_year). ``errors`` (cal [W, 2, 3], counted [1], cap,
     discount): where cap > 0, each started well's well tests' squared standardised
     forecast errors (from its state before the batch) are learned into ``cal`` and
@@ -2509,18 +2509,18 @@ def _bayes_arrival_(
     s: int,
     t: int,
 ) -> float:
-    """A measurement of well w from meter s arrives at ``t``: the prior if the well has no
-    filter state yet, the spread the filter gave it before it arrived (``_spread`` with
+    """A measurement of well w from meter s arrives at ``t``: the start variance
+    (``BayesianFilter._start_var``) if the well has no filter state yet, the spread the filter gave it before it arrived (``_spread`` with
     h = ``H``, the sensitivity at this sample; the return value), then P after the drift since the last update (``_grow``, kept in
     ``Pg`` too, in case the measurement is refused)."""
     _, P, last, noise, _, scale, started = filt
-    prior_var, q, never, ns_per_year = rules[2], rules[3], rules[10], rules[14]
+    start_var, q, never, ns_per_year = rules[2], rules[3], rules[10], rules[14]
     d = Pg.shape[0]
-    if not started[w]:  # a model but no filter state yet: the prior
+    if not started[w]:  # a model but no filter state yet: its start variance
         for a in range(d):
             for b in range(d):
                 P[w, a, b] = 0.0
-            P[w, a, a] = prior_var[a]
+            P[w, a, a] = start_var[a]
         last[w] = t
         started[w] = True
     hph, hqh = _forecast_terms(H, P, q, w)

@@ -9,7 +9,11 @@ is the model's parameters, the covariance P is kept here.
   (linearised at the fit, J the sensitivity of the log rate to the parameters by central
   differences), so that a well that drifted starts where it ended, not at its history's
   average (see :meth:`BayesianFilter._fitted`). :func:`laplace_sd` gives the plain Laplace
-  covariance of a fit (the Gauss-Newton Hessian of the MAP objective) for a diagnosis.
+  covariance of a fit (the Gauss-Newton Hessian of the MAP objective) for a diagnosis. A
+  well without a fit (none before the filter's start) starts at its first measurement with
+  each parameter's ``FilterBlock.start_var``: the prior, but a hybrid's output weights at
+  their prior mean with no variance (its network's lower layers are unfitted draws: see
+  :meth:`vfm_core.models.base.WellMLP.head_blocks`).
 - **Drift.** Between measurements the parameters wander as a random walk: P grows by
   Q dt, dt in years, Q = diag(drift^2). Each parameter's drift is a property of the
   parameter (``Prior.drift`` for physical ones, see :class:`vfm_core.physics.Prior`; a
@@ -984,6 +988,10 @@ class BayesianFilter(LearningMethod):
                 drift[i] = self.drifts[label]
         # a parameter left out of the filter keeps its fitted value: no uncertainty, no drift
         self._prior_var = torch.where(keep, prior_var, torch.full_like(prior_var, 1e-30))
+        # ... and a well's filter without a fit starts at (the blocks' start_var: the prior,
+        # but none for a hybrid's output weights, see WellMLP.head_blocks)
+        start_var = torch.cat([b.start_var for b in blocks]) if blocks else torch.zeros(0)
+        self._start_var = torch.where(keep, start_var, self._prior_var)
         self._q = torch.where(keep, drift**2, torch.zeros_like(drift))
         self._dim = len(labels)
         self._layout = self._compiled_layout(model, blocks)
@@ -1033,7 +1041,7 @@ class BayesianFilter(LearningMethod):
             "rules": (
                 low,
                 high,
-                self._prior_var.numpy(),
+                self._start_var.numpy(),
                 self._q.numpy(),
                 self._keep.to(torch.float64).numpy(),
                 np.array([self.noise[0] is not None, self.noise[1] is not None]),
@@ -1478,10 +1486,12 @@ class BayesianFilter(LearningMethod):
 
     def _start_filters(self, one: Batch, live: torch.Tensor) -> None:
         """Start the filter of each ``live`` well that has a model but no filter state yet
-        (e.g. fitted on its first measurement): its prior covariance, its clock at ``one``."""
+        (no fit: set up on its first measurement): its start variance (the prior, but none
+        for a hybrid's output weights: :meth:`~vfm_core.models.base.WellMLP.head_blocks`),
+        its clock at ``one``."""
         fresh = live & ~self._started
         if bool(fresh.any()):
-            self._P[fresh] = torch.diag_embed(self._prior_var).expand(int(fresh.sum()), -1, -1)
+            self._P[fresh] = torch.diag_embed(self._start_var).expand(int(fresh.sum()), -1, -1)
             self._last[fresh] = one.time_ns[fresh, 0]
             self._started |= fresh
 

@@ -80,7 +80,9 @@ class FilterBlock:
     ``prior_var``: each element's prior variance (its own units); ``drift``: its random-walk
     standard deviation per square root of a year (own units); ``scale``: SI units per unit
     of the element (a standardised physical parameter: its prior sd), or 0 where the
-    element has no physical meaning (network weights).
+    element has no physical meaning (network weights); ``start_var``: its variance when a
+    filter starts a well that has no fit (its first measurement): the prior variance, but 0
+    for the output weights of a hybrid's network (see :meth:`WellMLP.head_blocks`).
     """
 
     param: nn.Parameter
@@ -88,6 +90,7 @@ class FilterBlock:
     prior_var: torch.Tensor
     drift: torch.Tensor
     scale: torch.Tensor
+    start_var: torch.Tensor
 
     @property
     def size(self) -> int:
@@ -95,15 +98,22 @@ class FilterBlock:
 
 
 def make_block(
-    param: nn.Parameter, labels: Sequence[str], prior_var: Any, drift: Any, scale: Any = 0.0
+    param: nn.Parameter,
+    labels: Sequence[str],
+    prior_var: Any,
+    drift: Any,
+    scale: Any = 0.0,
+    start_var: Any = None,
 ) -> FilterBlock:
+    """A :class:`FilterBlock`; ``start_var`` None: the prior variance."""
     k = len(labels)
 
     def vec(v: Any) -> torch.Tensor:
         t = torch.as_tensor(v, dtype=DTYPE)
         return t.expand(k).clone() if t.dim() == 0 else t.reshape(k).clone()
 
-    return FilterBlock(param, tuple(labels), vec(prior_var), vec(drift), vec(scale))
+    start = prior_var if start_var is None else start_var
+    return FilterBlock(param, tuple(labels), vec(prior_var), vec(drift), vec(scale), vec(start))
 
 
 class ChokeModel(nn.Module):
@@ -332,14 +342,32 @@ class WellMLP(nn.Module):
             out[id(b)] = 2.0 * weight.unsqueeze(1) * b.detach()
         return out
 
-    def head_blocks(self, prefix: str = "head") -> list[FilterBlock]:
+    def head_blocks(self, prefix: str = "head", correction: bool = False) -> list[FilterBlock]:
         """The output layer as filter blocks: its weights (prior variance 2/fan_in, He) and
-        its bias (prior variance 1); the layers below stay as fitted."""
+        its bias (prior variance 1); the layers below stay as fitted.
+
+        ``correction``: the network corrects a mechanistic model that stands without it (the
+        hybrids). A filter then starts a well that has no fit with the output weights at
+        their prior mean (0) and no variance, the bias at its prior (``start_var``). Why:
+        such a well's lower layers are their random initial draws, on inputs standardised
+        by its one sample (no spread: unit scale in file units), so the He prior on the
+        output weights, a prior over area functions only for standardised inputs and
+        fitted features, spans nothing physical: measured on a simulated well, a log-rate
+        standard deviation of 5 (median over its samples) after its first well test, which
+        let every later measurement, a separator's total above all, move the weights along
+        features that mean nothing. The well is the mechanistic model with a learned level
+        until a fit gives the features a meaning (``bayes``'s refit, ``refresh``, starts
+        the filter again from the fit). A network that is the whole model (``nn``) keeps
+        the prior: it has nothing else to learn with."""
         w, b = self.weights[-1], self.biases[-1]
         fan_in = int(w.shape[1])
         return [
             make_block(
-                w, [f"{prefix}.w{i}" for i in range(fan_in)], 2.0 / fan_in, HEAD_DRIFT_WEIGHT
+                w,
+                [f"{prefix}.w{i}" for i in range(fan_in)],
+                2.0 / fan_in,
+                HEAD_DRIFT_WEIGHT,
+                start_var=0.0 if correction else None,
             ),
             make_block(b, [f"{prefix}.bias"], 1.0, HEAD_DRIFT_BIAS),
         ]

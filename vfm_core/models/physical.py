@@ -408,7 +408,7 @@ class Mechanistic(ChokeModel):
         blocks = [self.phys.filter_block()]
         blocks += [self.effect_block(e.name).filter_block(f"{e.name}.") for e in self.effects]
         if self.net is not None:
-            blocks += self.net.head_blocks("head")
+            blocks += self.net.head_blocks("head", correction=True)
         return blocks
 
     # -- closed-form gradients (no effects) ---------------------------------------------
