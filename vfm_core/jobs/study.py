@@ -674,7 +674,11 @@ def _initial_fit(
     else:
         meth.fit(initial)
         if initial_fits is not None:
-            initial_fits[cache_key] = (copy.deepcopy(model.state_dict()), meth.iterations.clone())
+            # the MAP fit, before the method's own start moved it (a filter's Kalman pass
+            # over the history): the methods that adopt it start where this one did
+            fitted = getattr(meth, "fit_state", None) or copy.deepcopy(model.state_dict())
+            initial_fits[cache_key] = (fitted, meth.iterations.clone())
+        meth.fit_state = None  # held for this only
 
 
 def _replay_in_rounds(run: _Replay) -> None:

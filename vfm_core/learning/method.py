@@ -160,6 +160,9 @@ class LearningMethod(ABC):
         #: per well, how many measurements that count was chosen on (0: none, the default);
         #: a retrain chooses it again once the well holds RECHOOSE_GROWTH times as many
         self.chosen_on = torch.zeros(0, dtype=torch.int64)
+        #: the model's state right after the initial MAP fit (set by :meth:`fit`, before
+        #: :meth:`_fitted`), for a study to share with the other methods; None otherwise
+        self.fit_state: dict[str, torch.Tensor] | None = None
         #: times (epoch ns) of the retrains so far in the order they ran (a checkpoint keeps
         #: the last 100), and their count
         self.retrains: list[int] = []
@@ -232,6 +235,9 @@ class LearningMethod(ABC):
         summary = fit_batch(self.model, batch, settings)
         self.iterations = summary["iterations"].clone()
         self.chosen_on = batch.count().clone()
+        # the MAP fit itself, before :meth:`_fitted` (a filter's Kalman pass moves the
+        # parameters): what another method of a study adopts (vfm_core.jobs.study._initial_fit)
+        self.fit_state = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
         self._fitted(batch, torch.ones(batch.n_wells, dtype=torch.bool))
 
     def adopt(self, batch: Batch, iterations: torch.Tensor) -> None:
