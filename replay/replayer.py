@@ -58,6 +58,8 @@ class ReplayResult:
     missing_samples: list[tuple[str, int]] = field(default_factory=list)
     #: samples sent with an input outside its physical span, raw (out_of_range faults)
     out_of_span: int = 0
+    #: how long the replay waited at the end for the next answer (s)
+    idle_timeout_s: float = 3.0
     #: separator readings sent
     readings_sent: int = 0
     #: one row per separator reading sent: separator, time, q_total (Sm3/h, as sent), and
@@ -110,8 +112,19 @@ class ReplayResult:
             + f") in {self.elapsed_s:.1f} s ({rate:,.0f} rows/s).",
             f"Predictions: {self.predictions_received:,} received; {self.missing:,} sample(s) got none "
             "(a well without a model yet gets none until its first measurement, a sample the service "
-            "rejects gets none, its reason counted in /metrics; any other was lost).",
+            "rejects gets none, its reason counted in /metrics; any other was not answered within "
+            f"--idle-timeout ({self.idle_timeout_s:g} s) of the answer before, when the replay "
+            "stopped waiting: a busy service (a retrain, a loaded machine) answers later, into its "
+            "store (vfm export), and a longer --idle-timeout waits for it).",
         ]
+        if self.missing > 0:
+            sent = self.samples_sent + self.measurements_sent + self.readings_sent
+            lines.append(
+                f"The service's GET /health 'received' should reach the {sent:,} messages sent "
+                "(plus any other senders'); if it stays below, messages were lost on the way "
+                "(seen once on a machine loaded for minutes, a service busy for seconds at a "
+                "time: docs/guide/export-replay.md)."
+            )
         if self.missing_samples:
             shown = ", ".join(f"{w} at {iso(t)}" for w, t in self.missing_samples)
             more = self.missing - len(self.missing_samples)
@@ -223,6 +236,7 @@ def replay_frame(
     )
     result.missing_samples = lacking[:MISSING_SHOWN]
     result.out_of_span = sent.out_of_span
+    result.idle_timeout_s = idle_timeout
     result.readings_sent = len(sent.readings)
     result.readings = _settled(chosen, sent.readings, dict(client.allocations))
     return result
