@@ -264,6 +264,49 @@ class Streamed:
     readings: list[tuple[str, int]] = field(default_factory=list)
 
 
+class _ReadingQueue:
+    """The separator readings of :meth:`FieldClient.stream`, each sent just before the first
+    row after its time (``times``: the rows'), paced as the rows with ``speed``."""
+
+    def __init__(
+        self,
+        client: FieldClient,
+        readings: pd.DataFrame | None,
+        times: pd.DatetimeIndex,
+        out: Streamed,
+        speed: float | None,
+    ) -> None:
+        if readings is None:
+            readings = pd.DataFrame({TIME: times[:0], "separator": [], TARGET: []})
+        self.client, self.out, self.speed, self.t0 = client, out, speed, times[0]
+        self.times = pd.DatetimeIndex(readings[TIME])
+        self.before_row = np.searchsorted(
+            times.as_unit("ns").asi8, self.times.as_unit("ns").asi8, side="right"
+        )
+        self.names = readings["separator"].astype(str).to_numpy()
+        self.totals = readings[TARGET].to_numpy(dtype=float)
+        self.py = [t.to_pydatetime() for t in self.times]
+        self.next = 0
+
+    def send_before(self, row: int) -> None:
+        """Send the readings due before row ``row`` (a reading whose values fail the message
+        schema is skipped and counted)."""
+        out = self.out
+        while self.next < len(self.before_row) and self.before_row[self.next] <= row:
+            k = self.next
+            self.next += 1
+            if self.speed is not None:
+                due = out.started + (self.times[k] - self.t0).total_seconds() / self.speed
+                if (wait := due - time.monotonic()) > 0:
+                    time.sleep(wait)
+            try:
+                self.client.send_reading(self.names[k], self.py[k], float(self.totals[k]))
+            except ValidationError:
+                out.skipped += 1
+                continue
+            out.readings.append((str(self.names[k]), to_ns(self.py[k])))
+
+
 class FieldClient:
     """Publishes a field's sensor samples and measurements; collects the predictions.
 
@@ -479,33 +522,7 @@ class FieldClient:
         times = pd.DatetimeIndex(rows[TIME])
         t0_data = times[0]
         # each reading goes out just before the first row after its time (or at the end)
-        if readings is None:
-            readings = pd.DataFrame({TIME: times[:0], "separator": [], TARGET: []})
-        r_times = pd.DatetimeIndex(readings[TIME])
-        before_row = np.searchsorted(
-            times.as_unit("ns").asi8, r_times.as_unit("ns").asi8, side="right"
-        )
-        r_names = readings["separator"].astype(str).to_numpy()
-        r_totals = readings[TARGET].to_numpy(dtype=float)
-        r_py = [t.to_pydatetime() for t in r_times]
-        next_reading = 0
-
-        def send_readings_before(i: int) -> None:
-            nonlocal next_reading
-            while next_reading < len(before_row) and before_row[next_reading] <= i:
-                k = next_reading
-                next_reading += 1
-                if speed is not None:
-                    due = out.started + (r_times[k] - t0_data).total_seconds() / speed
-                    if (wait := due - time.monotonic()) > 0:
-                        time.sleep(wait)
-                try:
-                    self.send_reading(r_names[k], r_py[k], float(r_totals[k]))
-                except ValidationError:
-                    out.skipped += 1
-                    continue
-                out.readings.append((str(r_names[k]), to_ns(r_py[k])))
-
+        pending = _ReadingQueue(self, readings, times, out, speed)
         wells = rows[WELL].astype(str).to_numpy()
         x = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
         outside = np.asarray(observations.outside_span(rows).any(axis=1))  # sent raw, counted
@@ -523,7 +540,7 @@ class FieldClient:
         ):
             if stop is not None and stop.is_set():
                 break
-            send_readings_before(i)
+            pending.send_before(i)
             well, when = wells[i], py_times[i]
             if speed is not None:
                 due = out.started + (times[i] - t0_data).total_seconds() / speed
@@ -545,7 +562,7 @@ class FieldClient:
                 self.send_measurement(well, src[i], Measurement(time=when, q_total=float(q[i])))
                 out.measurements += 1
         if stop is None or not stop.is_set():
-            send_readings_before(len(rows))
+            pending.send_before(len(rows))
         return out
 
     def close(self) -> None:

@@ -190,9 +190,7 @@ def replay_frame(
     if speed is not None and not (math.isfinite(speed) and speed > 0):
         raise ConfigError(f"--speed must be a positive number, not {speed}.")
     rows, start_ts = _rows_from(frame, start)
-    chosen = readings if readings is not None else pd.DataFrame(columns=[TIME, "separator", TARGET])
-    if start_ts is not None and len(chosen):
-        chosen = chosen[chosen[TIME] >= start_ts]
+    chosen = _readings_from(readings, start_ts)
     opened: ZenohBus | None = None
     if bus is None:
         bus = opened = ZenohBus.connect(
@@ -240,6 +238,13 @@ def replay_frame(
     result.readings_sent = len(sent.readings)
     result.readings = _settled(chosen, sent.readings, dict(client.allocations))
     return result
+
+
+def _readings_from(readings: pd.DataFrame | None, start: pd.Timestamp | None) -> pd.DataFrame:
+    """The separator readings to send: those from ``start`` on (all without it)."""
+    if readings is None:
+        return pd.DataFrame(columns=[TIME, "separator", TARGET])
+    return readings[readings[TIME] >= start] if start is not None else readings
 
 
 def _wait_for_allocations(

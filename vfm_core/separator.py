@@ -515,6 +515,10 @@ class SeparatorLearner:
         self.filt.set_filter_state(theta, P, last, mask)
         return True
 
+    def separator_of(self, well: int) -> str | None:
+        """The separator well ``well`` (its index in the model) flows into (None: none)."""
+        return self._separator_of.get(well)
+
     def forget(self, sep: str | None, well: int) -> None:
         """Drop well ``well``'s cross-covariances on its separator ``sep`` (a refit started
         its filter again: what it shared with its partners is gone); None: on no separator."""
@@ -772,21 +776,12 @@ def run_separator(
     by_reading = {k: g for k, g in samples.groupby("reading")}
     predicted, p05, p95 = (np.full(len(frame), np.nan) for _ in range(3))
     allocations: list[dict[str, Any]] = []
-    # the refits of a method that refits on schedule (``bayes`` with ``refresh``: a hybrid
-    # that learns from well tests only), as the study runs them: the due ones before the
-    # well's next well test, on the well tests learned so far. A well that learns from the
-    # readings is not refitted (they end its refits, as an MPFM's readings do:
-    # BayesianFilter.set_filter_state), so with ``learn`` they run only where no reading was
-    # learned for 30 days; a refitted well shares nothing with its partners any more
+    # the refits on schedule read the well tests learned so far (see _refits_due)
     memory = FrameMemory(frame, is_test, list(meth.model.wells), meth.model.extra_columns)
-    separator_of = {w: sep for sep, ws in separators.members.items() for w in ws}
     for t_event, kind, index in events:
         if kind == 0:  # a well test: its refits due, then predicted, then learned from
             w = code[str(frame[WELL].iat[index])]
-            now = torch.full((len(code),), NEVER, dtype=torch.int64)
-            now[w] = t_event
-            for i in torch.nonzero(meth.retrain_due(memory, now)).flatten().tolist():
-                learner.forget(separator_of.get(meth.model.wells[i]), i)
+            _refits_due(learner, memory, w, t_event)
             batch = one_batch({w: index}, True)
             forecast = meth.predict(batch)
             for out, values in (
@@ -810,6 +805,22 @@ def run_separator(
         counts=dict(learner.counts),
         runtime_s=time.perf_counter() - started,
     )
+
+
+def _refits_due(learner: SeparatorLearner, memory: FrameMemory, well: int, t_ns: int) -> None:
+    """Run the refits of well ``well`` due by ``t_ns`` (its next well test), on the well
+    tests in ``memory`` (see :meth:`BayesianFilter.retrain_due`): a method that refits on
+    schedule (``bayes`` with ``refresh``: a hybrid that learns from well tests only), as the
+    study runs it. A well that learns from the readings is not refitted (they end its
+    refits, as an MPFM's readings do: :meth:`BayesianFilter.set_filter_state`), so with
+    ``learn`` they run only where no reading was learned for 30 days. A refitted well
+    forgets its cross-covariances (its filter started again)."""
+    meth = learner.filt
+    assert isinstance(meth, BayesianFilter)
+    now = torch.full((len(meth.model.wells),), NEVER, dtype=torch.int64)
+    now[well] = t_ns
+    for i in torch.nonzero(meth.retrain_due(memory, now)).flatten().tolist():
+        learner.forget(learner.separator_of(i), i)
 
 
 def _scored(

@@ -79,19 +79,7 @@ class Engine:
         self.store = store
         self.counters = counters
         self._wells: dict[str, WellState] = {}
-        q = settings.queues
-        seps = settings.separators
-        sizes = {sep: len(wells) for sep, wells in seps.members.items()}
-        # a separator's wells and readings in one FIFO, in arrival order (fairqueue.py)
-        self._queues: list[FairQueue] = [
-            FairQueue(
-                q.worker_capacity,
-                q.well_capacity,
-                fifo_of=seps.route,
-                fifo_capacity=lambda fifo: q.well_capacity * sizes.get(fifo, 1),
-            )
-            for _ in range(q.workers)
-        ]
+        self._queues: list[FairQueue] = _worker_queues(settings)
         self._stopping = threading.Event()
         self._forget = forget
         #: live events and monitoring numbers from every commit (``GET /events``, ``/metrics``)
@@ -374,3 +362,19 @@ def unknown_separator(name: str) -> UnknownWell:
         f"The separator '{name}' is not known to this service; GET /separators lists them "
         "(separators.members in the configuration)."
     )
+
+
+def _worker_queues(settings: Settings) -> list[FairQueue]:
+    """One :class:`FairQueue` per worker; a separator's wells and readings share one FIFO,
+    in arrival order, holding ``queues.well_capacity`` per member (fairqueue.py)."""
+    q, seps = settings.queues, settings.separators
+    sizes = {sep: len(wells) for sep, wells in seps.members.items()}
+    return [
+        FairQueue(
+            q.worker_capacity,
+            q.well_capacity,
+            fifo_of=seps.route,
+            fifo_capacity=lambda fifo: q.well_capacity * sizes.get(fifo, 1),
+        )
+        for _ in range(q.workers)
+    ]
