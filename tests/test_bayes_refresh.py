@@ -131,8 +131,13 @@ def test_auto_refits_a_hybrid_well_that_learns_from_well_tests_only() -> None:
     assert method._refresh_at.tolist() == [never, t_split + 14 * DAY]
     assert method.next_due() == t_split + 14 * DAY
     lower = model.net.weights[0].detach().clone()
+    a_meters = method._meter_t[0].copy()
     changed = method.retrain_due(memory, torch.full((2,), t_split + 100 * DAY))
     assert changed.tolist() == [False, True] and method.n_retrains == 7
+    # B's refits read A's measurements up to their due time; A, not refitted, has not
+    # learned them: its meters stay as they were (else, learning them later, it skipped
+    # them, and a young well's refits never started: helper refresh57)
+    assert np.array_equal(method._meter_t[0], a_meters), (method._meter_t[0], a_meters)
     moved = (model.net.weights[0].detach() - lower).abs().amax(dim=(1, 2))
     assert moved[0] == 0.0 and moved[1] > 1e-3, moved
     assert method.next_due() == t_split + 112 * DAY

@@ -870,12 +870,13 @@ class BayesianFilter(LearningMethod):
         lapsed = torch.where(mpfm == NEVER, torch.ones_like(seen), t - mpfm > _MPFM_LAPSE.value)
         return seen & lapsed
 
-    def _note_meters(self, batch: Batch, calendar: bool) -> None:
+    def _note_meters(self, batch: Batch, calendar: bool, wells: torch.Tensor | None = None) -> None:
         """With :attr:`_by_meter`: keep each well's latest measurement per meter from
-        ``batch`` (its masked rows), and with ``calendar`` (a batch learned from): an MPFM
-        reading ends a well's refits; a well test of a well without refits starts them, one
-        period on, when the well learns from well tests only (:meth:`_tests_only`: none
-        before, or a meter failed for :data:`_MPFM_LAPSE`)."""
+        ``batch`` (its masked rows; ``wells`` [W]: of these wells only), and with
+        ``calendar`` (a batch learned from): an MPFM reading ends a well's refits; a well
+        test of a well without refits starts them, one period on, when the well learns from
+        well tests only (:meth:`_tests_only`: none before, or a meter failed for
+        :data:`_MPFM_LAPSE`)."""
         if not self._by_meter or batch.well_test is None:
             return
         # (plain Python over the rows: an update has one a well, where a torch or numpy
@@ -884,7 +885,10 @@ class BayesianFilter(LearningMethod):
         rows = zip(
             batch.mask.tolist(), batch.well_test.tolist(), batch.time_ns.tolist(), strict=True
         )
+        only = None if wells is None else wells.tolist()
         for i, (mask, tests, times) in enumerate(rows):
+            if only is not None and not only[i]:
+                continue
             for ok, test, t in zip(mask, tests, times, strict=True):
                 s = 1 if test else 0
                 if not ok or (held[i, s] != NEVER and t <= held[i, s]):
@@ -1070,7 +1074,11 @@ class BayesianFilter(LearningMethod):
         where the well is now. The noise of each meter comes from the fit's residuals,
         corrected for the parameters it took and shrunk towards the defaults when a meter
         has few rows."""
-        self._note_meters(batch, calendar=False)
+        # the fitted wells' meters only: a refit of some wells reads the memory up to its
+        # due time, which may hold another well's measurements that well has not learned
+        # yet (the study's rounds let wells run ahead); noted here, they were skipped when
+        # it learned them, and a young well's refits never started (helper refresh57)
+        self._note_meters(batch, calendar=False, wells=wells)
         if self._dim == 0 or self.model.gradient_free:
             return
         if bool(self._starts_later.any()):  # a refit with another one due before the filter
