@@ -715,16 +715,23 @@ class SeparatorRun:
         err = (p["predicted"] - p["measured"]).abs() / p["measured"] * 100.0
         return err.groupby(p["well"]).mean()
 
+    def reading_residuals(self) -> pd.DataFrame:
+        """One row per reading: separator, time and ``percent``, the reconciliation residual
+        (the total minus the sum of the wells' predictions before the reading) in % of the
+        measured total (NaN for a total of 0)."""
+        per = self.allocation.groupby(["separator", "time"], sort=True).agg(
+            residual=("residual", "first"), predicted=("q_pred", "sum")
+        )
+        measured = per["residual"] + per["predicted"]
+        out = (per["residual"] / measured.where(measured > 0) * 100.0).rename("percent")
+        return out.reset_index()
+
     def sum_error(self) -> float:
         """Mean |sum of the wells' predictions - separator total| / total, %, over the
         readings (predictions before each reading is learned from)."""
         if self.allocation.empty:
             return float("nan")
-        per = self.allocation.groupby(["time", "separator"]).agg(
-            residual=("residual", "first"), predicted=("q_pred", "sum")
-        )
-        measured = per["residual"] + per["predicted"]
-        return float((per["residual"].abs() / measured).mean() * 100.0)
+        return float(self.reading_residuals()["percent"].abs().mean())
 
 
 def run_separator(

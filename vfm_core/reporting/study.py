@@ -1396,17 +1396,6 @@ def _calibration_section(study: _Study) -> dict[str, Any] | None:
     return {"png": page.png(fig), "rows": rows}
 
 
-def _reading_residuals(allocation: pd.DataFrame) -> pd.DataFrame:
-    """Per separator reading: time, separator and the reconciliation residual in % of the
-    measured total (measured - sum of the wells' predictions before the reading)."""
-    per = allocation.groupby(["separator", "time"], sort=True).agg(
-        residual=("residual", "first"), predicted=("q_pred", "sum")
-    )
-    measured = per["residual"] + per["predicted"]
-    out = (per["residual"] / measured.where(measured > 0) * 100.0).rename("percent")
-    return out.reset_index()
-
-
 def _separator_section(separators: Sequence[Any]) -> dict[str, Any] | None:
     """The separators' totals (``vfm evaluate`` on data with separator readings): each run's
     well-test MAPE with and without learning from the readings, per well, and a figure of
@@ -1442,7 +1431,7 @@ def _separator_section(separators: Sequence[Any]) -> dict[str, Any] | None:
             ):
                 if run.allocation.empty:
                     continue
-                res = _reading_residuals(run.allocation)
+                res = run.reading_residuals()
                 for ax, name in zip(axes, names, strict=True):
                     g = res[res["separator"] == name]
                     if g.empty:
