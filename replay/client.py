@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import secrets
 import threading
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
@@ -42,6 +43,8 @@ from tqdm import tqdm
 from vfm_core import observations
 from vfm_core.errors import ConfigError, VFMError
 from vfm_core.messages import (
+    FLUSH_KEY,
+    FLUSHED_KEY,
     Measurement,
     SensorSample,
     measurement_key,
@@ -56,6 +59,7 @@ from vfm_core.timeutil import to_ns
 __all__ = [
     "FieldBus",
     "FieldClient",
+    "FlushAnswer",
     "ZenohBus",
     "Streamed",
     "ReplayError",
@@ -250,6 +254,18 @@ def sample_of(
         return kept
 
 
+@dataclass(frozen=True)
+class FlushAnswer:
+    """The service's answer to a flush (see :meth:`FieldClient.flush`)."""
+
+    #: its count of messages taken in (``GET /health`` ``received``)
+    received: int
+    #: everything taken in before the flush is handled and answered
+    done: bool
+    #: a second answer with ``done`` will come (one worker takes the messages itself)
+    reports_done: bool
+
+
 @dataclass
 class Streamed:
     """What :meth:`FieldClient.stream` sent."""
@@ -352,6 +368,48 @@ class FieldClient:
         #: ns) -> the message (``q_total``, ``predicted``, ``residual``, ``status``, ...)
         self.allocations: dict[tuple[str, int], dict[str, object]] = {}
         self._unsubscribe_allocations: Callable[[], None] | None = None
+        #: the service's answers to this client's flushes, by flush id (in arrival order)
+        self.flush_answers: dict[str, list[FlushAnswer]] = {}
+        self._unsubscribe_flushed: Callable[[], None] | None = None
+
+    def flush(self, timeout: float) -> str | None:
+        """Put a flush after everything sent so far: the service answers it once it has taken
+        in every message this client sent before (``done`` false, its ``received`` count),
+        and, where it says so (``reports_done``), again once it has handled them all and
+        published their answers (``done`` true); see :class:`service.transport.Flushes`.
+        Returns the flush's id (its answers gather in :attr:`flush_answers`), or None when
+        no service subscribes to the flush key within ``timeout`` s (one that answers no
+        flushes: an instance that owns some wells only, ``zenoh.wells``)."""
+        key = f"{self.prefix}/{FLUSH_KEY}"
+        if self._unsubscribe_flushed is None:
+            self._unsubscribe_flushed = self.bus.subscribe(
+                f"{self.prefix}/{FLUSHED_KEY}/*", self._on_flushed
+            )
+        if not self.bus.matching(key, timeout):
+            return None
+        flush_id = secrets.token_hex(8)
+        with self._lock:
+            self.flush_answers[flush_id] = []
+        self.bus.put(key, flush_id)
+        return flush_id
+
+    def _on_flushed(self, key: str, payload: bytes) -> None:
+        try:
+            data = json.loads(payload)
+            flush_id = str(data["id"])
+            answer = FlushAnswer(
+                received=int(data["received"]),
+                done=bool(data["done"]),
+                reports_done=bool(data.get("reports_done", False)),
+            )
+        except (ValueError, KeyError, TypeError):
+            with self._lock:
+                self.bad += 1
+            return
+        with self._lock:
+            answers = self.flush_answers.get(flush_id)
+            if answers is not None:  # another client's flush: not ours
+                answers.append(answer)
 
     def collect_allocations(self) -> None:
         """Also collect the separators' allocations (``<prefix>/*/allocation``), which the
@@ -403,6 +461,11 @@ class FieldClient:
                     if sent is not None:
                         self.latency_s.append(now - sent)
             self.last_at = time.monotonic()
+
+    def answered(self, expected: Collection[tuple[str, int]]) -> int:
+        """How many of the (well, time ns) samples ``expected`` have a prediction."""
+        with self._lock:
+            return sum(1 for k in expected if k in self.predictions)
 
     def prediction(self, well: str, when: datetime) -> float | None:
         """The q_total predicted for the well's sample at ``when`` (None: not received)."""
@@ -572,6 +635,9 @@ class FieldClient:
         if self._unsubscribe_allocations is not None:
             self._unsubscribe_allocations()
             self._unsubscribe_allocations = None
+        if self._unsubscribe_flushed is not None:
+            self._unsubscribe_flushed()
+            self._unsubscribe_flushed = None
 
     def __enter__(self) -> FieldClient:
         return self

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from replay.client import FieldBus, FieldClient, ReplayError, ZenohBus
+from replay.client import FieldBus, FieldClient, ReplayError, Streamed, ZenohBus
+from replay.delivery import DRAIN_S, Delivery, await_delivery, start_count
 from vfm_core.errors import ConfigError, DataError
 from vfm_core.jobs.study import mape
 from vfm_core.messages import validate_prefix
@@ -66,6 +67,8 @@ class ReplayResult:
     #: from the service's allocation, where it came: predicted (the sum of the wells'
     #: predictions), residual (Sm3/h), status ("learned", "allocated", "unused"; "" for none)
     readings: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: what the service confirmed of the messages sent (None: it answers no flushes)
+    delivery: Delivery | None = None
 
     def reading_lines(self) -> list[str]:
         """The separator readings in a sentence per separator: how many the service settled
@@ -102,6 +105,21 @@ class ReplayResult:
             )
         return lines
 
+    def _why_none(self) -> str:
+        """Why samples get no prediction, as far as this replay can tell."""
+        rules = (
+            "a well without a model yet gets none until its first measurement, a sample the "
+            "service rejects gets none, its reason counted in /metrics"
+        )
+        if self.delivery is not None and self.delivery.done:
+            return f"(the service had handled every message: {rules})."
+        return (
+            f"({rules}; any other was not answered within --idle-timeout "
+            f"({self.idle_timeout_s:g} s) of the answer before, when the replay stopped "
+            "waiting: a busy service (a retrain, a loaded machine) answers later, into its "
+            "store (vfm export), and a longer --idle-timeout waits for it)."
+        )
+
     def summary(self) -> str:
         rate = self.rows / self.elapsed_s if self.elapsed_s > 0 else float("nan")
         since = f" from {self.start.isoformat()}" if self.start is not None else ""
@@ -111,19 +129,16 @@ class ReplayResult:
             + (f", {self.readings_sent:,} separator readings" if self.readings_sent else "")
             + f") in {self.elapsed_s:.1f} s ({rate:,.0f} rows/s).",
             f"Predictions: {self.predictions_received:,} received; {self.missing:,} sample(s) got none "
-            "(a well without a model yet gets none until its first measurement, a sample the service "
-            "rejects gets none, its reason counted in /metrics; any other was not answered within "
-            f"--idle-timeout ({self.idle_timeout_s:g} s) of the answer before, when the replay "
-            "stopped waiting: a busy service (a retrain, a loaded machine) answers later, into its "
-            "store (vfm export), and a longer --idle-timeout waits for it).",
+            + self._why_none(),
         ]
-        if self.missing > 0:
+        if self.delivery is not None:
+            lines.append(self.delivery.line())
+        elif self.missing > 0:
             sent = self.samples_sent + self.measurements_sent + self.readings_sent
             lines.append(
                 f"The service's GET /health 'received' should reach the {sent:,} messages sent "
                 "(plus any other senders'); if it stays below, messages were lost on the way "
-                "(seen once on a machine loaded for minutes, a service busy for seconds at a "
-                "time: docs/guide/export-replay.md)."
+                "(this service does not confirm what it took in: docs/guide/export-replay.md)."
             )
         if self.missing_samples:
             shown = ", ".join(f"{w} at {iso(t)}" for w, t in self.missing_samples)
@@ -203,17 +218,14 @@ def replay_frame(
         with FieldClient(bus, prefix, match_timeout=match_timeout) as client:
             # match once before the clock starts, and let the service see our subscriber
             client.wait_for_service(str(rows[WELL].iloc[0]))
+            # the service's count of messages taken in, to compare with what is sent
+            start_at = start_count(client, match_timeout)
             if len(chosen):
                 client.collect_allocations()
             sent = client.stream(rows, speed=speed, progress=progress, readings=chosen)
-            # wait for the answers: all of them, or until they stop coming
-            client.wait_for_answers(
-                sent.samples,
-                idle_timeout=idle_timeout,
-                final_timeout=final_timeout,
-                since=sent.started,
+            delivery = _await_answers(
+                client, sent, start_at, idle_timeout=idle_timeout, final_timeout=final_timeout
             )
-            _wait_for_allocations(client, sent.readings, idle_timeout, final_timeout)
             elapsed = time.monotonic() - sent.started
     finally:
         if opened is not None:
@@ -237,7 +249,42 @@ def replay_frame(
     result.idle_timeout_s = idle_timeout
     result.readings_sent = len(sent.readings)
     result.readings = _settled(chosen, sent.readings, dict(client.allocations))
+    result.delivery = delivery
     return result
+
+
+def _await_answers(
+    client: FieldClient,
+    sent: Streamed,
+    start_at: int | None,
+    *,
+    idle_timeout: float,
+    final_timeout: float,
+) -> Delivery | None:
+    """After the last message: the service's word that it took in (and handled) them all
+    (:mod:`replay.delivery`), or, from a service that answers no flushes (``start_at``
+    None), the answers until they stop coming; then the separators' allocations."""
+    if start_at is None:
+        client.wait_for_answers(
+            sent.samples,
+            idle_timeout=idle_timeout,
+            final_timeout=final_timeout,
+            since=sent.started,
+        )
+        _wait_for_allocations(client, sent.readings, idle_timeout, final_timeout)
+        return None
+    delivery = await_delivery(
+        client,
+        set(sent.samples),
+        sent=len(sent.samples) + sent.measurements + len(sent.readings),
+        start=start_at,
+        idle_timeout=idle_timeout,
+        final_timeout=final_timeout,
+    )
+    # allocations published before the service's last word: only the replay's reader to wait for
+    settle = DRAIN_S if delivery.done else idle_timeout
+    _wait_for_allocations(client, sent.readings, settle, final_timeout)
+    return delivery
 
 
 def _readings_from(readings: pd.DataFrame | None, start: pd.Timestamp | None) -> pd.DataFrame:

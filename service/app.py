@@ -85,6 +85,9 @@ class Service:
                         self._transport.session, s.prefix, s.zenoh.wells, s.zenoh.instance_check_s
                     )
             self.transport = self._transport
+            flushes = getattr(self.transport, "flushes", None)
+            if flushes is not None:  # a bad flush is counted as any refused input is
+                flushes.on_refused = self.counters.reject
             self.engine = Engine(
                 s,
                 self.store,

@@ -44,6 +44,7 @@ import functools
 import json
 import logging
 import queue
+import re
 import secrets
 import threading
 import time
@@ -56,7 +57,7 @@ import zenoh
 from service.config import ZenohSettings
 from service.scaleout import WellSet
 from vfm_core.errors import ConfigError
-from vfm_core.messages import prediction_key
+from vfm_core.messages import FLUSH_KEY, FLUSHED_KEY, prediction_key
 
 __all__ = [
     "Transport",
@@ -180,6 +181,7 @@ class ZenohTransport:
         self._pattern_threads: list[threading.Thread] = []
         self._count_lock = threading.Lock()
         self._source: _ZenohSource | None = None
+        self.flushes = Flushes(prefix, self.publish_key, lambda: self.received)
 
     def open(self) -> None:
         try:
@@ -251,6 +253,9 @@ class ZenohTransport:
                     att = sample.attachment
                     if att is not None and secrets.compare_digest(att.to_bytes(), token):
                         return
+                    continue
+                if key == self.flushes.key:
+                    self.flushes.take(sample.payload.to_bytes(), reports_done=False)
                     continue
                 self.received += 1
                 try:
@@ -340,6 +345,88 @@ class ZenohTransport:
                 self._session = None
 
 
+_FLUSH_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+class Flushes:
+    """A field client's flush: "have you taken in everything I sent before this?"
+
+    The client puts its id (1-64 characters ``A-Za-z0-9_-``) on ``<prefix>/_vfm-control/flush``
+    after its messages. Zenoh delivers one session's messages in order, so when the
+    service takes the flush in, it has taken in every message that session sent before it.
+    It answers on ``<prefix>/_vfm-control/flushed/<id>`` with ``{"id", "received", "done",
+    "reports_done"}``: ``received`` its count of messages taken in (``GET /health``
+    ``received``; the client compares its growth with what it sent), ``done`` false. A
+    service whose one worker takes the messages itself (the default) answers again, with
+    ``done`` true, once it has nothing left to do (every message taken in before the flush
+    handled, stored and its answers published, so a client has them before that answer);
+    ``reports_done`` says whether that second answer will come. A flush that names no valid
+    id is refused with a counted reason; at most :attr:`MAX_WAITING` wait for the second
+    answer (a flood of flushes gets the first only).
+    """
+
+    MAX_WAITING = 64
+
+    def __init__(
+        self, prefix: str, publish_key: Callable[[str, bytes], None], received: Callable[[], int]
+    ) -> None:
+        self.key = f"{prefix}/{FLUSH_KEY}"
+        self._answer_prefix = f"{prefix}/{FLUSHED_KEY}/"
+        self._publish = publish_key
+        self._received = received
+        #: flushes answered once, waiting for the worker to have nothing left to do
+        self.waiting: list[str] = []
+        #: ``Counters.reject(reason, sentence, where=key)`` for a flush refused (set by the app)
+        self.on_refused: Callable[..., None] | None = None
+
+    def take(self, payload: bytes, reports_done: bool) -> None:
+        """A flush taken in (from the thread that takes the messages)."""
+        flush_id = payload.decode("ascii", "replace") if len(payload) <= 64 else ""
+        if not _FLUSH_ID.fullmatch(flush_id):
+            self._refuse(
+                "bad flush",
+                "A flush carries the id its answer goes to: 1-64 characters, letters, digits, "
+                "'_' or '-'; it was not answered.",
+            )
+            return
+        if reports_done and len(self.waiting) >= self.MAX_WAITING:
+            self._refuse(
+                "flush flood",
+                f"More than {self.MAX_WAITING} flushes wait for the service to have nothing "
+                "left to do; this one is answered once (taken in), not when done.",
+            )
+            reports_done = False
+        self._answer(flush_id, done=False, reports_done=reports_done)
+        if reports_done and flush_id not in self.waiting:
+            self.waiting.append(flush_id)
+
+    def idle(self) -> None:
+        """The worker has nothing left to do: answer the flushes waiting for it."""
+        if not self.waiting:
+            return
+        waiting, self.waiting = self.waiting, []
+        for flush_id in waiting:
+            self._answer(flush_id, done=True, reports_done=True)
+
+    def _answer(self, flush_id: str, done: bool, reports_done: bool) -> None:
+        body = {
+            "id": flush_id,
+            "received": int(self._received()),
+            "done": done,
+            "reports_done": reports_done,
+        }
+        try:
+            self._publish(self._answer_prefix + flush_id, json.dumps(body).encode())
+        except Exception as exc:  # the client went away: nothing to answer
+            logger.debug("Answering flush %s failed: %s", flush_id, exc)
+
+    def _refuse(self, reason: str, sentence: str) -> None:
+        if self.on_refused is not None:
+            self.on_refused(reason, sentence, where=self.key)
+        else:
+            logger.warning("%s", sentence)
+
+
 class _PolledSource(abc.ABC):
     """What a :class:`Source` does whatever the bus: take messages while there are any
     (:meth:`poll`), or wait for the next (:meth:`wait`); a subclass says how to take one
@@ -347,11 +434,12 @@ class _PolledSource(abc.ABC):
     what one is (:meth:`_take`). A bus that is gone (:class:`_Gone`) stops receiving, never
     the worker: it then only works its queue."""
 
-    def __init__(self) -> None:
+    def __init__(self, flushes: Flushes) -> None:
         self.stopped = False
         self.stopped_event = threading.Event()
         #: true while the worker is in (or about to enter) a wait
         self.waiting = False
+        self.flushes = flushes
 
     @abc.abstractmethod
     def _try(self) -> Any:
@@ -386,6 +474,7 @@ class _PolledSource(abc.ABC):
         try:
             if ready():
                 return
+            self.flushes.idle()  # everything taken in before is handled and answered
             message = self._block()
         except _Gone as exc:
             self._gone(exc)
@@ -418,7 +507,7 @@ class _ZenohSource(_PolledSource):
     tick_s = 0.5
 
     def __init__(self, transport: ZenohTransport, sub: zenoh.Subscriber, deliver: Deliver) -> None:
-        super().__init__()
+        super().__init__(transport.flushes)
         self.transport = transport
         self._sub = sub
         self._deliver = deliver
@@ -445,6 +534,9 @@ class _ZenohSource(_PolledSource):
     def _take(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         if key.startswith(self._control):
+            if key == self.flushes.key:
+                self.flushes.take(sample.payload.to_bytes(), reports_done=True)
+                return
             att = sample.attachment
             if att is not None and secrets.compare_digest(att.to_bytes(), self._token):
                 if key == self._stop_key:
@@ -520,6 +612,7 @@ class MemoryTransport:
         self._subscribers: dict[int, tuple[str, Callable[[str, bytes], None]]] = {}
         self._sub_lock = threading.Lock()
         self._next_id = 0
+        self.flushes = Flushes(prefix, self.publish_key, lambda: self.received)
 
     # -- the service's side (Transport) ---------------------------------------------------
     def start_polled(self, deliver: Deliver) -> Source | None:
@@ -536,6 +629,9 @@ class MemoryTransport:
                 if message is _WAKE:
                     continue
                 key, payload = message
+                if key == self.flushes.key:
+                    self.flushes.take(payload, reports_done=False)
+                    continue
                 self.received += 1
                 try:
                     deliver(key, payload, time.time_ns())
@@ -628,7 +724,7 @@ class _MemorySource(_PolledSource):
     the worker's thread (a ``None`` in it: stop; :data:`_WAKE`: end a wait)."""
 
     def __init__(self, transport: MemoryTransport, deliver: Deliver) -> None:
-        super().__init__()
+        super().__init__(transport.flushes)
         self.transport = transport
         self._deliver = deliver
         self._inbox = transport._inbox
@@ -654,6 +750,9 @@ class _MemorySource(_PolledSource):
         if message is _WAKE:
             return
         key, payload = message
+        if key == self.flushes.key:
+            self.flushes.take(payload, reports_done=True)
+            return
         self.transport.received += 1
         try:
             self._deliver(key, payload, time.time_ns())

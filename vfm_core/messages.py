@@ -42,6 +42,8 @@ from vfm_core.schema import INPUT_COLUMNS
 from vfm_core.timeutil import iso, time_problem
 
 __all__ = [
+    "FLUSH_KEY",
+    "FLUSHED_KEY",
     "SensorSample",
     "sample_outside_span",
     "Measurement",
@@ -387,6 +389,12 @@ def measurement_key(prefix: str, well: str, source: str) -> str:
 
 def prediction_key(prefix: str, well: str) -> str:
     return f"{prefix}/{_well_chunk(well)}/prediction"
+
+
+#: a field client's flush (its id as the payload) and the service's answers to it
+#: (``<prefix>/<FLUSHED_KEY>/<id>``): see :class:`service.transport.Flushes`
+FLUSH_KEY = "_vfm-control/flush"
+FLUSHED_KEY = "_vfm-control/flushed"
 
 
 def parse_key(prefix: str, key: str) -> tuple[str, str, str | None] | None:

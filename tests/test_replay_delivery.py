@@ -1,0 +1,163 @@
+"""A replay knows whether the service took in everything it sent, and when it has all been
+answered: the flush (``<prefix>/_vfm-control/flush``, :class:`service.transport.Flushes`),
+over Zenoh and in memory, with a busy service, a lossy link and a receiver thread."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pytest
+
+from replay.replayer import replay_frame
+from service.app import running
+from service.engine import worker as worker_module
+from service.engine.items import MeasurementItem
+from service.testing import loopback_settings
+from service.transport import MemoryTransport
+from vfm_core.messages import FLUSH_KEY
+from vfm_core.observations import validate_frame
+from vfm_core.simulate import simulate_field
+
+pytestmark = pytest.mark.timeout(240)
+
+SPLIT = "2016-10-01"
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, pd.DataFrame]:
+    folder = tmp_path_factory.mktemp("delivery")
+    frame = validate_frame(simulate_field(wells=2, years=1, seed=4).observations).frame
+    data = folder / "field.csv"
+    frame.to_csv(data, index=False)
+    return data, frame
+
+
+def _settings(folder: Path, data: Path, **queues: Any) -> Any:
+    model = {"name": "mm", "method": "ol", "history": str(data), "history_until": SPLIT}
+    return loopback_settings(folder, model=model, queues=queues or {})
+
+
+def _after_split(frame: pd.DataFrame) -> pd.DataFrame:
+    return frame[frame["time"] >= pd.Timestamp(SPLIT, tz="UTC")]
+
+
+@pytest.fixture
+def slow_measurements(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Every measurement takes the worker 0.15 s more (a retrain, a loaded machine)."""
+    handle = worker_module.Workers._handle
+
+    def slow(self: Any, item: Any, b: Any) -> None:
+        if isinstance(item, MeasurementItem):
+            time.sleep(0.15)
+        handle(self, item, b)
+
+    monkeypatch.setattr(worker_module.Workers, "_handle", slow)
+    yield
+
+
+def test_over_zenoh_the_service_confirms_every_message(
+    field: tuple[Path, pd.DataFrame], tmp_path: Path
+) -> None:
+    data, frame = field
+    with running(_settings(tmp_path, data)) as svc:
+        result = replay_frame(
+            frame, connect=svc.locators, start=SPLIT, progress=False, idle_timeout=5.0
+        )
+    rows = _after_split(frame)
+    sent = result.samples_sent + result.measurements_sent
+    assert result.delivery is not None
+    assert result.delivery.sent == sent == len(rows) + int((rows["source"] != "").sum())
+    assert result.delivery.taken_in == sent and result.delivery.lost == 0
+    assert result.delivery.done and result.missing == 0
+    assert f"The service confirmed taking in all {sent:,} messages sent" in result.summary()
+    assert "had handled every message" in result.summary()
+
+
+def test_a_busy_service_is_waited_for_to_the_end_not_for_the_idle_timeout(
+    field: tuple[Path, pd.DataFrame], tmp_path: Path, slow_measurements: None
+) -> None:
+    """Each measurement holds the worker longer than the idle timeout; before the flush the
+    replay stopped at the first such pause and counted the rest as unanswered."""
+    data, frame = field
+    bus = MemoryTransport()
+    with running(_settings(tmp_path, data), bus):
+        result = replay_frame(
+            frame, bus=bus, start=SPLIT, progress=False, idle_timeout=0.05, final_timeout=120
+        )
+    assert result.measurements_sent > 5  # pauses enough to have stopped the old wait
+    assert result.delivery is not None and result.delivery.done
+    assert result.missing == 0 and result.predictions_received == result.samples_sent
+
+
+class _Lossy:
+    """A bus that drops every ``every``-th sensor sample on the way (a link that loses)."""
+
+    def __init__(self, bus: MemoryTransport, every: int) -> None:
+        self.bus, self.every, self.n, self.dropped = bus, every, 0, 0
+
+    def put(self, key: str, payload: bytes | str) -> None:
+        if key.endswith("/sensors"):
+            self.n += 1
+            if self.n % self.every == 0:
+                self.dropped += 1
+                return
+        self.bus.put(key, payload)
+
+    def matching(self, key: str, timeout: float) -> bool:
+        return self.bus.matching(key, timeout)
+
+    def subscribe(self, key_expr: str, callback: Any) -> Any:
+        return self.bus.subscribe(key_expr, callback)
+
+
+def test_messages_lost_on_the_way_are_counted_and_said(
+    field: tuple[Path, pd.DataFrame], tmp_path: Path
+) -> None:
+    data, frame = field
+    bus = MemoryTransport()
+    lossy = _Lossy(bus, every=10)
+    with running(_settings(tmp_path, data), bus):
+        result = replay_frame(frame, bus=lossy, start=SPLIT, progress=False, idle_timeout=1.0)
+    assert lossy.dropped > 0
+    assert result.delivery is not None and result.delivery.lost == lossy.dropped
+    assert result.missing == lossy.dropped  # the dropped samples, none other
+    assert f"at least {lossy.dropped:,} were lost between the two sessions" in result.summary()
+
+
+def test_a_receiver_thread_confirms_what_it_took_in_but_not_when_done(
+    field: tuple[Path, pd.DataFrame], tmp_path: Path
+) -> None:
+    """With a receiver thread (more workers) the service answers a flush once taken in;
+    the replay then waits for the answers as before."""
+    data, frame = field
+    bus = MemoryTransport()
+    with running(_settings(tmp_path, data, workers=2, receiver="thread"), bus):
+        result = replay_frame(frame, bus=bus, start=SPLIT, progress=False, idle_timeout=2.0)
+    assert result.delivery is not None
+    assert result.delivery.taken_in == result.delivery.sent and not result.delivery.done
+    assert result.missing == 0
+    assert "does not say when it has handled them" in result.summary()
+
+
+def test_a_bad_flush_is_refused_with_a_counted_reason(
+    field: tuple[Path, pd.DataFrame], tmp_path: Path
+) -> None:
+    data, _ = field
+    bus = MemoryTransport()
+    answers: list[tuple[str, bytes]] = []
+    with running(_settings(tmp_path, data), bus) as svc:
+        bus.subscribe("vfm/_vfm-control/flushed/*", lambda k, p: answers.append((k, p)))
+        bus.put(f"vfm/{FLUSH_KEY}", b"not an id!")
+        bus.put(f"vfm/{FLUSH_KEY}", b"x" * 65)
+        bus.put(f"vfm/{FLUSH_KEY}", b"good_id-1")
+        deadline = time.monotonic() + 20
+        while len(answers) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        rejected = svc.service.counters.snapshot()["rejected"]
+    assert rejected.get("bad flush") == 2
+    assert [k for k, _ in answers] == ["vfm/_vfm-control/flushed/good_id-1"] * 2
+    assert b'"done": false' in answers[0][1] and b'"done": true' in answers[1][1]
