@@ -20,7 +20,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from replay.client import FieldClient
+from tqdm import tqdm
+
+from replay.client import FieldClient, FlushAnswer
 
 __all__ = ["Delivery", "await_delivery", "start_count"]
 
@@ -98,23 +100,47 @@ def await_delivery(
     idle_timeout: float,
     final_timeout: float,
     stall_s: float = STALL_S,
+    progress: bool = False,
 ) -> Delivery:
     """After the last message: flush, and wait for the service's word that it has taken in
     (and, where it says so, handled) everything, or until every ``expected`` sample is
     answered and the service has taken everything in; at most ``final_timeout`` s, and no
     longer than ``stall_s`` s without a sign of life from it. ``start``: its count of
-    messages taken in before the replay (:func:`start_count`)."""
+    messages taken in before the replay (:func:`start_count`). ``progress``: a bar of the
+    samples answered (the sending ends long before the answers on a busy service)."""
     began = time.monotonic()
     out = Delivery(sent=sent)
     flush_id = client.flush(stall_s)
     if flush_id is None:
         return out
     answers = client.flush_answers[flush_id]
+    bar = tqdm(
+        total=len(expected), unit="answer", desc="answers", disable=not progress, mininterval=0.5
+    )
+    with bar:
+        _wait(client, expected, answers, out, bar, start, idle_timeout, final_timeout, stall_s)
+    out.waited_s = time.monotonic() - began
+    return out
+
+
+def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
+    client: FieldClient,
+    expected: set[tuple[str, int]],
+    answers: list[FlushAnswer],
+    out: Delivery,
+    bar: tqdm,  # type: ignore[type-arg]
+    start: int,
+    idle_timeout: float,
+    final_timeout: float,
+    stall_s: float,
+) -> None:
+    began = time.monotonic()
     seen, sign = -1, began  # expected samples answered; when the service last showed life
     receipt_at: float | None = None
     while (now := time.monotonic()) - began < final_timeout:
         answered = client.answered(expected)
         if answered != seen:
+            bar.update(answered - max(seen, 0))
             seen, sign = answered, now
         if answers and receipt_at is None:
             receipt_at = sign = now
@@ -131,8 +157,7 @@ def await_delivery(
         elif now - sign > stall_s:
             break
         time.sleep(0.02)
-    out.waited_s = time.monotonic() - began
-    return out
+    bar.update(client.answered(expected) - max(seen, 0))
 
 
 def _drain(client: FieldClient, expected: set[tuple[str, int]]) -> None:

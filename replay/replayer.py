@@ -224,13 +224,33 @@ def replay_frame(
                 client.collect_allocations()
             sent = client.stream(rows, speed=speed, progress=progress, readings=chosen)
             delivery = _await_answers(
-                client, sent, start_at, idle_timeout=idle_timeout, final_timeout=final_timeout
+                client,
+                sent,
+                start_at,
+                idle_timeout=idle_timeout,
+                final_timeout=final_timeout,
+                progress=progress,
             )
             elapsed = time.monotonic() - sent.started
     finally:
         if opened is not None:
             opened.close()
 
+    result = _result(client, rows, start_ts, sent, elapsed, chosen)
+    result.idle_timeout_s = idle_timeout
+    result.delivery = delivery
+    return result
+
+
+def _result(
+    client: FieldClient,
+    rows: pd.DataFrame,
+    start_ts: pd.Timestamp | None,
+    sent: Streamed,
+    elapsed: float,
+    chosen: pd.DataFrame,
+) -> ReplayResult:
+    """The replay scored: what was sent against what came back."""
     predictions = dict(client.predictions)
     lacking = [k for k in sent.samples if k not in predictions]
     result = _score(
@@ -246,10 +266,8 @@ def replay_frame(
     )
     result.missing_samples = lacking[:MISSING_SHOWN]
     result.out_of_span = sent.out_of_span
-    result.idle_timeout_s = idle_timeout
     result.readings_sent = len(sent.readings)
     result.readings = _settled(chosen, sent.readings, dict(client.allocations))
-    result.delivery = delivery
     return result
 
 
@@ -260,6 +278,7 @@ def _await_answers(
     *,
     idle_timeout: float,
     final_timeout: float,
+    progress: bool = False,
 ) -> Delivery | None:
     """After the last message: the service's word that it took in (and handled) them all
     (:mod:`replay.delivery`), or, from a service that answers no flushes (``start_at``
@@ -280,6 +299,7 @@ def _await_answers(
         start=start_at,
         idle_timeout=idle_timeout,
         final_timeout=final_timeout,
+        progress=progress,
     )
     # allocations published before the service's last word: only the replay's reader to wait for
     settle = DRAIN_S if delivery.done else idle_timeout

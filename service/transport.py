@@ -361,11 +361,14 @@ class Flushes:
     ``done`` true, once it has nothing left to do (every message taken in before the flush
     handled, stored and its answers published, so a client has them before that answer);
     ``reports_done`` says whether that second answer will come. A flush that names no valid
-    id is refused with a counted reason; at most :attr:`MAX_WAITING` wait for the second
-    answer (a flood of flushes gets the first only).
+    id is refused with a counted reason (``bad flush``), and so are flushes beyond
+    :attr:`MAX_RATE` a second (``flush rate``); at most :attr:`MAX_WAITING` wait for the
+    second answer (more get the first only: ``flush flood``).
     """
 
     MAX_WAITING = 64
+    #: flushes answered per second at most (a burst of as many): more are refused, counted
+    MAX_RATE = 20.0
 
     def __init__(
         self, prefix: str, publish_key: Callable[[str, bytes], None], received: Callable[[], int]
@@ -378,6 +381,7 @@ class Flushes:
         self.waiting: list[str] = []
         #: ``Counters.reject(reason, sentence, where=key)`` for a flush refused (set by the app)
         self.on_refused: Callable[..., None] | None = None
+        self._tokens, self._at = self.MAX_RATE, time.monotonic()
 
     def take(self, payload: bytes, reports_done: bool) -> None:
         """A flush taken in (from the thread that takes the messages)."""
@@ -389,6 +393,17 @@ class Flushes:
                 "'_' or '-'; it was not answered.",
             )
             return
+        now = time.monotonic()
+        self._tokens = min(self.MAX_RATE, self._tokens + (now - self._at) * self.MAX_RATE)
+        self._at = now
+        if self._tokens < 1.0:
+            self._refuse(
+                "flush rate",
+                f"More than {self.MAX_RATE:g} flushes a second: this one was not answered "
+                "(a replay sends two).",
+            )
+            return
+        self._tokens -= 1.0
         if reports_done and len(self.waiting) >= self.MAX_WAITING:
             self._refuse(
                 "flush flood",

@@ -161,3 +161,25 @@ def test_a_bad_flush_is_refused_with_a_counted_reason(
     assert rejected.get("bad flush") == 2
     assert [k for k, _ in answers] == ["vfm/_vfm-control/flushed/good_id-1"] * 2
     assert b'"done": false' in answers[0][1] and b'"done": true' in answers[1][1]
+
+
+def test_flushes_are_bounded_in_rate_and_in_how_many_wait() -> None:
+    """A flood of flushes costs the service little: beyond MAX_RATE a second they are
+    refused (counted), and at most MAX_WAITING wait for the 'done' answer."""
+    from service.transport import Flushes
+
+    published: list[str] = []
+    refused: list[str] = []
+    flushes = Flushes("vfm", lambda key, body: published.append(key), lambda: 7)
+    flushes.on_refused = lambda reason, sentence, where: refused.append(reason)
+    for k in range(int(Flushes.MAX_RATE) + 5):  # at once: the burst, then refused
+        flushes.take(f"id{k}".encode(), reports_done=True)
+    assert len(published) == int(Flushes.MAX_RATE)
+    assert refused == ["flush rate"] * 5
+    flushes.idle()
+    assert len(published) == 2 * int(Flushes.MAX_RATE)  # each answered again, done
+    time.sleep(1.0)  # the bucket fills again at MAX_RATE a second
+    flushes.waiting = [f"w{k}" for k in range(Flushes.MAX_WAITING)]
+    flushes.take(b"late", reports_done=True)
+    assert refused[-1] == "flush flood" and "late" not in flushes.waiting
+    assert published[-1] == "vfm/_vfm-control/flushed/late"
