@@ -324,3 +324,26 @@ def test_a_methods_results_do_not_depend_on_the_methods_listed_before_it() -> No
     assert mean["bayes"] == pytest.approx(mean["bayes:refresh=off"], rel=1e-12)
     (ol_alone,) = [r["mean_mape"] for r in summarise(alone.records) if "target" not in r]
     assert mean["ol"] == pytest.approx(ol_alone, rel=1e-12)
+
+
+def test_a_young_wells_first_well_test_is_forecast_before_it_is_known() -> None:
+    """A well that starts after the split has no model at its first well test: no forecast.
+    The study replays a per-well model in rounds of each well's k-th measurement, so a well
+    with fewer measurements a day runs ahead in time, and its refit (``bayes`` on a hybrid
+    learning from well tests) read the memory up to a time a young well had not reached:
+    that refit set the young well up on its own later well tests, and its first
+    'forecast' was its measurement to 1e-14 (helper refresh57, on this field: W01 and W04
+    start after the split)."""
+    from vfm_core.observations import validate_frame
+
+    field = simulate_field(wells=6, years=3, seed=5713, physics="bernoulli", hidden=["valve"])
+    frame = validate_frame(field.observations).frame
+    result = run_prequential(frame, "ham", "bayes", targets="well_test", split="2017-04-01")
+    p = result.predictions
+    for well in ("W01", "W04"):
+        tests = p[(p["well"] == well) & (p["source"] == "well_test")].sort_values("time")
+        assert len(tests) >= 5
+        assert np.isnan(tests["predicted"].iloc[0]), well  # before it, the well had nothing
+        later = tests.iloc[1:]
+        rel = ((later["predicted"] - later["measured"]).abs() / later["measured"]).to_numpy()
+        assert np.isfinite(rel).all() and (rel > 1e-9).all(), well

@@ -821,6 +821,12 @@ def fit_batch(
     run), and ``searched``, the wells it ran for [W] (bool), for later retrains.
     """
     deadline = time.monotonic() + settings.time_budget_s if settings.time_budget_s > 0 else None
+    if wells is not None and not model.shared:
+        # the other wells are not this fit's to touch, their set-up included: in the study a
+        # refit reads the memory up to its own time, which for a well that runs behind in its
+        # rounds holds measurements it has not reached (a young well was set up on its own
+        # later well tests, and its first forecast was its measurement)
+        batch = batch.select(batch.mask & wells.unsqueeze(1))
     model.setup(batch)
     if model.gradient_free:
         model.observe(batch)
@@ -830,8 +836,6 @@ def fit_batch(
     params = [p for p in model.parameters() if p.requires_grad]
     groups = split_parameters(model)
     gens = well_generators(batch.wells, settings.seed)
-    if wells is not None and not model.shared:
-        batch = batch.select(batch.mask & wells.unsqueeze(1))
     train, val, has_val = _split_latest(batch, settings.val_fraction)
     retrain = iterations is not None
     settings, iterations, best_iter, has_val = _iteration_plan(
