@@ -512,3 +512,25 @@ def test_parse_hidden_errors_name_the_valid_choices() -> None:
         parse_hidden(["erosion:rate"])
     with pytest.raises(ConfigError, match="Unknown hidden effect"):
         simulate_field(wells=1, years=0.5, hidden={"sand": {}})
+
+
+def test_sample_every_puts_every_wells_samples_on_a_grid(tmp_path, capsys) -> None:
+    """``vfm simulate --sample-every 7``: every well's sensor rows (the well tests keep their
+    own times) a whole number of weeks apart (a field that logs weekly), the same frame as ``simulate_field(sample_every_days=7)``;
+    a bad value and the separator (daily by definition) are refused with a sentence."""
+    from vfm_core.cli import main
+
+    out = tmp_path / "weekly.parquet"
+    args = ["simulate", "--out", str(out), "--wells", "2", "--years", "1", "--seed", "5"]
+    assert main([*args, "--sample-every", "7", "--quiet"]) == 0
+    frame = pd.read_parquet(out)
+    expected = simulate_field(wells=2, years=1, seed=5, sample_every_days=7).observations
+    pd.testing.assert_frame_equal(frame.reset_index(drop=True), expected.reset_index(drop=True))
+    for _, g in frame[frame["source"] != "well_test"].groupby("well"):
+        gaps = g["time"].drop_duplicates().diff().dropna() / pd.Timedelta(days=7)
+        assert len(gaps) > 20 and np.allclose(gaps, gaps.round()), gaps.describe()
+    capsys.readouterr()
+    assert main([*args, "--sample-every", "0"]) == 2
+    assert "0.01 to 365" in capsys.readouterr().err
+    assert main([*args, "--sample-every", "7", "--separator"]) == 2
+    assert "does not go with --separator" in capsys.readouterr().err

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import sys
 import time
@@ -58,6 +59,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             name=args.separator or "SEP",
             noise=args.separator_noise,
         )
+    sampling = _sampling(args.sample_every, separator=simulate is not simulate_field)
     field = simulate(
         wells=args.wells,
         years=args.years,
@@ -68,6 +70,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         physics=args.physics,
         valves=_split_list(args.valves),
         gas_lift=args.gas_lift,
+        **sampling,
     )
     field = _with_faults(field, args.fault or [])
     paths = write_field(field, args.out)
@@ -75,6 +78,23 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     print(field.summary())
     print(f"Wrote {', '.join(str(p) for p in paths)} in {elapsed:.1f} s.")
     return 0
+
+
+def _sampling(every: float | None, separator: bool) -> dict[str, Any]:
+    """``--sample-every DAYS`` as ``simulate_field``'s keyword (none without it)."""
+    if every is None:
+        return {}
+    if not (math.isfinite(every) and 0.01 <= every <= 365):
+        raise ConfigError(
+            f"--sample-every {every:g}: give the days between a well's samples, 0.01 to 365 "
+            "(e.g. 7 for weekly)."
+        )
+    if separator:
+        raise ConfigError(
+            "--sample-every does not go with --separator: a separator field samples every "
+            "well daily at the same instant (its reading is the sum at that instant)."
+        )
+    return {"sample_every_days": every}
 
 
 def _with_faults(field: Any, specs: Sequence[str]) -> Any:
@@ -244,6 +264,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+    _add_simulate(sub)
+
+    _add_import_volve(sub)
+    _add_evaluate(sub)
+
+    for module in _INTERNAL_COMMANDS:
+        import importlib
+
+        importlib.import_module(module).register(sub)
+    _register_plugins(sub)
+    return parser
+
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("simulate", help="simulate a well field with a known truth")
     p.add_argument("--out", required=True, help="output observation file (.parquet or .csv)")
     p.add_argument("--wells", type=int, default=10, help="number of wells (default 10)")
@@ -285,6 +319,14 @@ def build_parser() -> argparse.ArgumentParser:
         "choke; default 0)",
     )
     p.add_argument(
+        "--sample-every",
+        type=float,
+        default=None,
+        metavar="DAYS",
+        help="sample every well's sensors every DAYS days (e.g. 7: weekly, as some fields "
+        "log); default the simulator's irregular few-hours-to-a-day sampling",
+    )
+    p.add_argument(
         "--fault",
         action="append",
         metavar="WELL,SENSOR,KIND,START[,SIZE[,DAYS]]",
@@ -295,16 +337,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_separator_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_simulate)
-
-    _add_import_volve(sub)
-    _add_evaluate(sub)
-
-    for module in _INTERNAL_COMMANDS:
-        import importlib
-
-        importlib.import_module(module).register(sub)
-    _register_plugins(sub)
-    return parser
 
 
 def _add_import_volve(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
