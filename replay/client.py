@@ -393,6 +393,10 @@ class FieldClient:
         self.bus.put(key, flush_id)
         return flush_id
 
+    def service_present(self, timeout: float) -> bool:
+        """Whether a service still subscribes to the flush key (False: it stopped)."""
+        return self.bus.matching(f"{self.prefix}/{FLUSH_KEY}", timeout)
+
     def _on_flushed(self, key: str, payload: bytes) -> None:
         try:
             data = json.loads(payload)

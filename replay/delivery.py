@@ -32,6 +32,9 @@ STALL_S = 120.0
 #: after the service said it is done: how long the replay's own reader may take to hand on
 #: the answers that arrived before that word, s
 DRAIN_S = 0.5
+#: without a sign of life for this long, the replay asks Zenoh whether the service still
+#: subscribes to its keys (a service that stopped is told apart from a busy one), s
+GONE_CHECK_S = 3.0
 
 
 @dataclass
@@ -47,6 +50,8 @@ class Delivery:
     done: bool = False
     #: seconds waited for its answer after the last message
     waited_s: float = 0.0
+    #: no service subscribed to the replay's keys any more while it waited (it stopped)
+    gone: bool = False
 
     @property
     def lost(self) -> int:
@@ -54,6 +59,16 @@ class Delivery:
         return 0 if self.taken_in is None else max(0, self.sent - self.taken_in)
 
     def line(self, stall_s: float = STALL_S) -> str:
+        if self.gone:
+            return (
+                "The service went away while the replay waited for it (no subscriber to the "
+                "replay's keys any more)"
+                + (
+                    f", after confirming {self.taken_in:,} of the {self.sent:,} messages sent."
+                    if self.taken_in is not None
+                    else f", before confirming the last of the {self.sent:,} messages sent."
+                )
+            )
         if self.taken_in is None:
             return (
                 f"The service did not confirm taking in the last of the {self.sent:,} messages "
@@ -137,6 +152,7 @@ def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
     began = time.monotonic()
     seen, sign = -1, began  # expected samples answered; when the service last showed life
     receipt_at: float | None = None
+    checked = began  # when the replay last asked whether a service still subscribes
     while (now := time.monotonic()) - began < final_timeout:
         answered = client.answered(expected)
         if answered != seen:
@@ -156,6 +172,11 @@ def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
                 break
         elif now - sign > stall_s:
             break
+        if now - max(sign, checked) > GONE_CHECK_S:
+            checked = time.monotonic()
+            if not client.service_present(timeout=1.0):
+                out.gone = True
+                break
         time.sleep(0.02)
     bar.update(client.answered(expected) - max(seen, 0))
 

@@ -113,6 +113,8 @@ class ReplayResult:
         )
         if self.delivery is not None and self.delivery.done:
             return f"(the service had handled every message: {rules})."
+        if self.delivery is not None and self.delivery.gone:
+            return f"({rules}; any other was not answered before the service went away)."
         return (
             f"({rules}; any other was not answered within --idle-timeout "
             f"({self.idle_timeout_s:g} s) of the answer before, when the replay stopped "

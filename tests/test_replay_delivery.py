@@ -183,3 +183,38 @@ def test_flushes_are_bounded_in_rate_and_in_how_many_wait() -> None:
     flushes.take(b"late", reports_done=True)
     assert refused[-1] == "flush flood" and "late" not in flushes.waiting
     assert published[-1] == "vfm/_vfm-control/flushed/late"
+
+
+class _Stopping:
+    """A bus whose service stops after the replay's last message: nothing answers, and no
+    subscriber matches the replay's keys any more."""
+
+    def __init__(self) -> None:
+        self.alive = True
+
+    def put(self, key: str, payload: bytes | str) -> None:
+        if key.endswith(FLUSH_KEY):
+            self.alive = False  # the service stops before it takes the flush in
+
+    def matching(self, key: str, timeout: float) -> bool:
+        return self.alive
+
+    def subscribe(self, key_expr: str, callback: Any) -> Any:
+        return lambda: None
+
+
+def test_a_service_that_stops_is_told_apart_from_a_busy_one() -> None:
+    """Without a sign of life the replay asks whether the service still subscribes; one
+    that stopped ends the wait in seconds, not after the 120 s a busy service is given."""
+    from replay.client import FieldClient
+    from replay.delivery import GONE_CHECK_S, await_delivery
+
+    with FieldClient(_Stopping(), "vfm") as client:
+        began = time.monotonic()
+        out = await_delivery(
+            client, {("W01", 0)}, sent=10, start=0, idle_timeout=1.0, final_timeout=60.0
+        )
+        waited = time.monotonic() - began
+    assert out.gone and out.taken_in is None and not out.done
+    assert GONE_CHECK_S <= waited < GONE_CHECK_S + 5.0, waited
+    assert "went away" in out.line()
