@@ -153,8 +153,11 @@ def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
     seen, sign = -1, began  # expected samples answered; when the service last showed life
     receipt_at: float | None = None
     checked = began  # when the replay last asked whether a service still subscribes
+    counted, answered = -1, 0  # the client's count of answers when last looked through
     while (now := time.monotonic()) - began < final_timeout:
-        answered = client.answered(expected)
+        if client.count != counted:  # (looking through every expected sample costs)
+            counted = client.count
+            answered = client.answered(expected)
         if answered != seen:
             bar.update(answered - max(seen, 0))
             seen, sign = answered, now
@@ -184,8 +187,8 @@ def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
 def _drain(client: FieldClient, expected: set[tuple[str, int]]) -> None:
     """The answers published before the service's last word are on their way through the
     replay's own reader: wait until all expected are in or none came for :data:`DRAIN_S`."""
-    seen, last = client.answered(expected), time.monotonic()
-    while seen < len(expected) and time.monotonic() - last < DRAIN_S:
+    seen, last = client.count, time.monotonic()
+    while client.answered(expected) < len(expected) and time.monotonic() - last < DRAIN_S:
         time.sleep(0.01)
-        if (now := client.answered(expected)) != seen:
-            seen, last = now, time.monotonic()
+        if client.count != seen:
+            seen, last = client.count, time.monotonic()

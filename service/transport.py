@@ -55,6 +55,7 @@ from typing import Any, Protocol
 import zenoh
 
 from service.config import ZenohSettings
+from service.engine.registry import TokenBucket
 from service.scaleout import WellSet
 from vfm_core.errors import ConfigError
 from vfm_core.messages import FLUSH_KEY, FLUSHED_KEY, prediction_key
@@ -368,7 +369,7 @@ class Flushes:
 
     MAX_WAITING = 64
     #: flushes answered per second at most (a burst of as many): more are refused, counted
-    MAX_RATE = 20.0
+    MAX_RATE = 20
 
     def __init__(
         self, prefix: str, publish_key: Callable[[str, bytes], None], received: Callable[[], int]
@@ -381,7 +382,7 @@ class Flushes:
         self.waiting: list[str] = []
         #: ``Counters.reject(reason, sentence, where=key)`` for a flush refused (set by the app)
         self.on_refused: Callable[..., None] | None = None
-        self._tokens, self._at = self.MAX_RATE, time.monotonic()
+        self._bucket = TokenBucket(self.MAX_RATE, int(self.MAX_RATE))
 
     def take(self, payload: bytes, reports_done: bool) -> None:
         """A flush taken in (from the thread that takes the messages)."""
@@ -393,17 +394,13 @@ class Flushes:
                 "'_' or '-'; it was not answered.",
             )
             return
-        now = time.monotonic()
-        self._tokens = min(self.MAX_RATE, self._tokens + (now - self._at) * self.MAX_RATE)
-        self._at = now
-        if self._tokens < 1.0:
+        if not self._bucket.take():
             self._refuse(
                 "flush rate",
                 f"More than {self.MAX_RATE:g} flushes a second: this one was not answered "
                 "(a replay sends two).",
             )
             return
-        self._tokens -= 1.0
         if reports_done and len(self.waiting) >= self.MAX_WAITING:
             self._refuse(
                 "flush flood",
