@@ -169,7 +169,10 @@ def _wait(  # noqa: PLR0913 - the loop of await_delivery, its state handed in
             _drain(client, expected)
             break
         if receipt_at is not None and answered == len(expected):
-            break
+            # every sample answered; a service that will say when it is done may still be
+            # handling the measurements: its word is waited for, --idle-timeout at most
+            if not answers[0].reports_done or now - sign > idle_timeout:
+                break
         if receipt_at is not None and not answers[0].reports_done:
             if now - sign > idle_timeout:  # no word will come: wait as before
                 break

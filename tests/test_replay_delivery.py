@@ -4,6 +4,8 @@ over Zenoh and in memory, with a busy service, a lossy link and a receiver threa
 
 from __future__ import annotations
 
+import json
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -218,3 +220,52 @@ def test_a_service_that_stops_is_told_apart_from_a_busy_one() -> None:
     assert out.gone and out.taken_in is None and not out.done
     assert GONE_CHECK_S <= waited < GONE_CHECK_S + 5.0, waited
     assert "went away" in out.line()
+
+
+class _LateWord:
+    """A bus whose service has answered every sample when it takes the last flush in, and
+    says it is done ``late`` s after (a last measurement still being handled)."""
+
+    def __init__(self, late: float) -> None:
+        self.late, self.callback, self.timers = late, None, []
+
+    def put(self, key: str, payload: bytes | str) -> None:
+        if not key.endswith(FLUSH_KEY) or self.callback is None:
+            return
+        flush_id = payload.decode() if isinstance(payload, bytes) else payload
+        key_out = f"vfm/_vfm-control/flushed/{flush_id}"
+
+        def answer(done: bool) -> None:
+            body = {"id": flush_id, "received": 3, "done": done, "reports_done": True}
+            self.callback(key_out, json.dumps(body).encode())
+
+        answer(False)
+        timer = threading.Timer(self.late, answer, args=(True,))
+        self.timers.append(timer)
+        timer.start()
+
+    def matching(self, key: str, timeout: float) -> bool:
+        return True
+
+    def subscribe(self, key_expr: str, callback: Any) -> Any:
+        self.callback = callback
+        return lambda: None
+
+
+def test_the_services_word_is_waited_for_when_every_sample_is_already_answered() -> None:
+    """CI at 2013bee: every sample was answered before the service's 'done' came, and the
+    replay stopped at once and said the service does not tell when it is done."""
+    from replay.client import FieldClient
+    from replay.delivery import await_delivery
+
+    bus = _LateWord(late=0.3)
+    with FieldClient(bus, "vfm") as client:
+        out = await_delivery(client, set(), sent=3, start=0, idle_timeout=10.0, final_timeout=60.0)
+    assert out.done and out.taken_in == 3 and 0.3 <= out.waited_s < 5.0, out
+    assert "had handled them all" in out.line()
+    bus = _LateWord(late=30.0)  # a word that does not come: --idle-timeout bounds the wait
+    with FieldClient(bus, "vfm") as client:
+        out = await_delivery(client, set(), sent=3, start=0, idle_timeout=0.5, final_timeout=60.0)
+    for timer in bus.timers:
+        timer.cancel()
+    assert not out.done and out.taken_in == 3 and out.waited_s < 5.0, out
