@@ -197,6 +197,7 @@ def main() -> None:
                         "trial": np.nan if trial_change is None else float(trial_change),
                         "time_s": elapsed,
                         "well_verdicts": {w: _label(v) for w, v in wells.items()},
+                        "proxies": ", ".join(field_v.get("trend_proxies") or []),
                     }
                     rows.append(row)
                     if args.markdown:
@@ -205,7 +206,12 @@ def main() -> None:
                         f"{physics:<9} {case:<9} {seed:>4} {model:<5} {method:<6} "
                         f"{row['verdict']:<26} {'yes' if row['right'] else 'NO':>5} "
                         f"{n_right:>5}/{len(wells):<5} {row['live']:>7.2f} "
-                        f"{row['change']:>+7.2f} {row['trial']:>+7.2f} {elapsed:>6.0f}",
+                        f"{row['change']:>+7.2f} {row['trial']:>+7.2f} {elapsed:>6.0f}"
+                        + (
+                            f"  (set aside as trend proxies: {row['proxies']})"
+                            if row["proxies"]
+                            else ""
+                        ),
                         flush=True,
                     )
     if rows:
@@ -265,8 +271,8 @@ def _write_markdown(
         "",
         "| physics | case | seed | model | method | field verdict | right | among the named "
         "| wells right | live MAPE % | change of live MAPE (points) "
-        "| trial forecast (points) | time s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| trial forecast (points) | set aside as trend proxies | time s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         change = "" if not np.isfinite(r["change"]) else f"{r['change']:+.2f}"
@@ -276,7 +282,7 @@ def _write_markdown(
             f"| {r['verdict']} | {'yes' if r['right'] else 'no'} "
             f"| {'yes' if r.get('right_among', r['right']) else 'no'} "
             f"| {r['wells_right']}/{r['wells']} | {r['live']:.2f} | {change} | {trial} "
-            f"| {r['time_s']:.0f} |"
+            f"| {r.get('proxies', '')} | {r['time_s']:.0f} |"
         )
     lines.append("")
     if rows:

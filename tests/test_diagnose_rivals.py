@@ -325,6 +325,33 @@ def test_a_named_candidate_whose_shape_cannot_decide_says_its_evidence_is_a_tren
     assert rv.trend_text(valve) == ""
 
 
+def test_a_lead_whose_own_shape_is_rejected_is_a_trend_proxy_neither_named_nor_offered() -> None:
+    """Clean Bernoulli seed 5502 with ``mm``: a valve curve lowered the fit-once error by
+    0.44 points, with no material rival of other physics to weigh it against, and was named
+    (``carried``), though beyond the trend its slope was 0.06 +/- 0.16: the choke opened as
+    the field depleted, and the curve stood in for the trend. Here: the misfit is a trend
+    and a wiggle in one variable; the valve removes the trend and follows another variable;
+    wear removes the trend only (its own test cannot decide: it stays the lead)."""
+    trend, wiggle, other, noise = _misfit(13, 0.025, 0.003)
+    base = _log_run(-(trend + wiggle) + noise)
+    valve = _run_cand("valve_quick_opening", _log_run(-wiggle + noise + other), -300.0)
+    wear = _run_cand("erosion", _log_run(-wiggle + noise + 0.0004 * trend**2), -250.0)
+    valve.replayed = wear.replayed = True
+    rv.own_shapes([valve, wear], base)
+    assert valve.shape is not None and valve.shape["decisive"] and valve.shape["rejected"]
+    assert valve.trend_proxy and not valve.named and not rv.stands_alone(valve)
+    assert wear.shape is not None and not wear.trend_proxy and wear.named
+    lead, others = rv.rivals([valve, wear])
+    assert lead is wear and others == []
+    ok, reason = dv.offer(valve, None)
+    assert not ok and "a trend it stands in for, not its physics" in reason
+    assert valve.to_json()["trend_proxy"] is True
+    # a shape that holds is no proxy: the physics' own correction (trend and wiggle)
+    physics = _run_cand("valve_quick_opening", _log_run(noise), -300.0)
+    rv.own_shapes([physics], base)
+    assert physics.shape is not None and physics.shape["confirmed"] and not physics.trend_proxy
+
+
 def _with_wells(c: dg.CandidateResult, key: str, values: list[float], sds: list[float]) -> None:
     """Give ``c`` one parameter with these per-well values and Laplace sds."""
     c.parameters = {

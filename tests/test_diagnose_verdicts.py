@@ -749,6 +749,25 @@ def test_a_carried_verdict_at_its_blocks_smallest_p_says_the_span_limits_it() ->
     assert dv.few_blocks_text(walk, None).startswith(" The live error fell")
 
 
+def test_a_carried_verdict_whose_replay_shows_a_gain_does_not_say_the_learner_carries_it() -> None:
+    """A Sachdeva valve field (seed 5905, ``mm`` + ``bayes``): the replay lowered the live
+    MAPE by 0.99 points (-1.72 to -0.46) and the outage one by 1.17 (-2.59 to -0.21), q 0.08
+    and 0.16 over the diagnosis's tests, and the ``carried`` verdict said ``bayes`` already
+    carried the valve and adding it would give "not accuracy". It now says what the replay
+    shows and why it is not offered; a change under 0.1 points, or whose interval holds
+    zero, keeps the old sentence."""
+    live_t = {"change": -0.99, "low": -1.72, "high": -0.46, "p_value": 0.025, "q_value": 0.081}
+    outage_t = {"change": -1.17, "low": -2.59, "high": -0.21, "p_value": 0.053, "q_value": 0.16}
+    ctx = dv.VerdictContext("mm", "bayes", {"mape": 4.01}, {}, None, 4)
+    text = dv._unproven_text(ctx, live_t, outage_t)
+    assert "lowers the live error by 0.99 points (p = 0.025 for this test alone, q = 0.081" in text
+    assert "and the outage error by 1.17 points" in text
+    assert "a gain bayes does not carry" in text and "not offered on this evidence" in text
+    assert dv._unproven_text(ctx, {**live_t, "change": -0.05, "high": -0.01}, None) == ""
+    assert dv._unproven_text(ctx, {**live_t, "high": 0.02}, None) == ""
+    assert dv._unproven_text(ctx, None, None) == ""
+
+
 def test_a_noise_verdict_names_what_it_did_not_test() -> None:
     """A valve skipped because the choke hardly moves (a walk on Bernoulli, seed 6767, said
     only "no candidate explains the residual"): the noise verdict's text names it and why."""

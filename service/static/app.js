@@ -1115,12 +1115,19 @@ function showDiagnosis(j) {
   const carried = (c) => !c.offer && d.verdict && d.verdict.kind === "carried" &&
     d.verdict.effect === c.effect && c.replayed && !c.raises_error &&
     !(((c.tests || {}).outage || {}).change > 0) && !risesHere(c);
+  // a gain the replay shows (95 % interval below zero, 0.1 points or more) that the
+  // diagnosis's whole family of tests does not confirm: the learner does not carry it
+  const unproven = (c) => [mineTest(c, "live"), (c.tests || {}).outage].some((t) =>
+    t && t.change != null && t.change <= -0.1 && t.high != null && t.high < 0);
+  const addTitle = (c) => unproven(c)
+    ? `The replay lowers the error with ${esc(c.effect)}, but not beyond chance once every test of the diagnosis is counted: adding it is your call; its trial against the shadow will show`
+    : `The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter${isHybrid(d.model) ? " (on a hybrid the network takes up the same misfit: the parameter need not read the effect)" : " to read"} and may help when the meter fails, not live accuracy; its trial against the shadow will show`;
   const action = (c, spec) => c.offer
     ? `<button class="apply" data-spec="${esc(spec)}" title="PUT /wells/${esc(state.well)}/model with effects=[${esc(spec)}]">apply</button>`
     : d.verdict && d.verdict.kind === "carried" && d.verdict.effect === c.effect && risesHere(c)
     ? `<span class="hint">raises this well's ${risesHere(c)} error (${change(mineTest(c, risesHere(c)))} points, beyond chance)</span>`
     : carried(c)
-    ? `<button class="apply optional" data-spec="${esc(spec)}" title="The learner already carries what ${esc(c.effect)} explains: adding it gives a physical parameter${isHybrid(d.model) ? " (on a hybrid the network takes up the same misfit: the parameter need not read the effect)" : " to read"} and may help when the meter fails, not live accuracy; its trial against the shadow will show">add anyway</button>`
+    ? `<button class="apply optional" data-spec="${esc(spec)}" title="${addTitle(c)}">add anyway</button>`
     : `<span class="hint">${esc(c.offer_note || (c.raises_error ? "raises the error" : c.replayed ? "no gain beyond noise" : "not replayed"))}</span>`;
   $("#diag-candidates-table thead").innerHTML = `<tr><th>candidate</th><th class="num">live MAPE %</th>
     <th class="num">&Delta; live [95 %]</th><th class="num" title="the outage change pooled over the wells diagnosed together: one well has too few outage windows to sign its own (the verdict text gives this well's)">&Delta; outage, all wells [95 %]</th>

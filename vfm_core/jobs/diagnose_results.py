@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import pandas as pd
 
-from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES
+from vfm_core.jobs.diagnose_stats import DRIVER_VARIABLES, acts_through
 
 if TYPE_CHECKING:
     from vfm_core.jobs.study import RunResult
@@ -189,8 +189,32 @@ class CandidateResult:
     def named(self) -> bool:
         """The evidence names this candidate: material by the fit-once evidence, or the
         physics behind a driver the correction was fitted in (``via_driver``), and no rival
-        of other physics explains it (``explained_by``)."""
-        return (self.material or self.via_driver is not None) and self.explained_by is None
+        of other physics explains it (``explained_by``), and its shape beyond the trend is
+        not rejected (``trend_proxy``)."""
+        return (
+            (self.material or self.via_driver is not None)
+            and self.explained_by is None
+            and not self.trend_proxy
+        )
+
+    @property
+    def trend_proxy(self) -> bool:
+        """Its own shape beyond the trend was tested decisively and rejected
+        (:func:`vfm_core.jobs.diagnose_rivals.shape_beyond_trend` alone: slope below 0.5
+        beyond chance, 1 if it were the physics): the residual does not follow what this
+        candidate predicts beyond a straight line in time, so what it lowers is a trend it
+        stands in for, and it is neither named nor offered (a valve curve on a clean field
+        whose flow law the model lacks: the choke opens as the field depletes). Only for a
+        library effect that acts through the operating point (the choke, the pressures, the
+        gas fraction): wear's physics is a trend in time or throughput, and a meter's drift
+        one in time (their correction beyond a straight line is a bend that strong wear's
+        residual need not follow: seed 41, wear 30 %/yr, slope 0.02 +/- 0.26); an effect
+        of the user's says nothing of what it acts through."""
+        s = self.shape
+        through = acts_through(self.effect)
+        if through is None or through in ("time", "throughput_years"):
+            return False
+        return bool(s and s.get("decisive") and s.get("rejected"))
 
     @property
     def material_rule(self) -> dict[str, float]:
@@ -238,6 +262,7 @@ class CandidateResult:
             "explained_by": self.explained_by,
             "rivals": self.rivals,
             "shape": self.shape,
+            "trend_proxy": self.trend_proxy,
             "consistency": self.consistency,
             "at_bound": self.at_bound,
             "gives_way": self.gives_way,

@@ -94,6 +94,7 @@ __all__ = [
     "rivals_text",
     "own_shapes",
     "trend_text",
+    "trend_proxy_text",
     "field_wide",
     "consistency",
     "own_consistency",
@@ -121,7 +122,7 @@ def rivals(
     the best material candidate of each other physics, at most :data:`RIVALS`, and for a
     lead whose evidence is mostly a trend its operating-point rival
     (:func:`operating_point_rival`) when no field-wide rival is among them."""
-    named = [c for c in results if c.material and c.run is not None]
+    named = [c for c in results if c.material and c.run is not None and not c.trend_proxy]
     if not named:
         return None, []
     lead, seen, out = named[0], {family(named[0].effect)}, []
@@ -543,7 +544,7 @@ def second_to(c: CandidateResult) -> str | None:
 def stands_alone(c: CandidateResult) -> bool:
     """``c`` may be named or offered on its own: no rival explains it, and it is not an
     alternative to a better-ranked one (:func:`second_to`)."""
-    return c.explained_by is None and second_to(c) is None
+    return c.explained_by is None and second_to(c) is None and not c.trend_proxy
 
 
 def why_explained(c: CandidateResult) -> str:
@@ -646,6 +647,16 @@ def own_shapes(results: Sequence[CandidateResult], comparison: pd.DataFrame) -> 
     for c in results:
         if c.material and c.run is not None:
             c.shape = shape_beyond_trend(comparison, c.run.predictions)[0]
+
+
+def trend_proxy_text(c: CandidateResult) -> str:
+    """Why a trend proxy (:attr:`CandidateResult.trend_proxy`) is neither named nor offered,
+    in one clause."""
+    return (
+        f"the residual does not follow its correction beyond a straight line in time per well "
+        f"({_shape_text(c.shape)}, below 0.5 beyond chance): what it lowers "
+        f"({c.delta_mape:+.2f} points fit once) is a trend it stands in for, not its physics"
+    )
 
 
 def trend_text(c: CandidateResult) -> str:

@@ -293,6 +293,8 @@ def offer(c: CandidateResult, well: str | None) -> tuple[bool, str]:
         return False, "not replayed"
     if c.explained_by is not None:
         return False, rivals.why_explained(c)
+    if c.trend_proxy:
+        return False, rivals.trend_proxy_text(c)
     first = rivals.second_to(c)
     if first is not None:
         return False, (
@@ -452,7 +454,34 @@ def live_verdict(
         v["text"] += " " + " ".join(
             f"{c.effect} is not offered in its place: {c.gives_way[key]['text']}." for c in gave
         )
+    proxies = _trend_proxies(results)
+    v["trend_proxies"] = [c.spec or c.effect for c in proxies]
+    if proxies and v["kind"] in ("noise", "driver"):
+        v["text"] += (
+            f" {proxies[0].spec or proxies[0].effect} is not named: "
+            f"{rivals.trend_proxy_text(proxies[0])}"
+            + (
+                f"; nor are {', '.join(c.spec or c.effect for c in proxies[1:])}, for the "
+                "same reason"
+                if proxies[1:]
+                else ""
+            )
+            + "."
+        )
     return v
+
+
+def _trend_proxies(results: Sequence[CandidateResult]) -> list[CandidateResult]:
+    """The material candidates set aside as trend proxies, one per physics (its best form),
+    best first."""
+    seen: set[str] = set()
+    out = []
+    for c in results:
+        if c.material and c.trend_proxy and c.explained_by is None:
+            if rivals.family(c.effect) not in seen:
+                seen.add(rivals.family(c.effect))
+                out.append(c)
+    return out
 
 
 def _live_verdict(
@@ -547,7 +576,8 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
                 "Its live change is above zero (it does not lower the error the operator "
                 "sees): not offered."
                 if worse
-                else f"{ctx.method} (and any network) already carries what it explains: "
+                else _unproven_text(ctx, lt, num["outage"])
+                or f"{ctx.method} (and any network) already carries what it explains: "
                 f"neither error falls both beyond chance and by {MIN_CHANGE:g} points or more "
                 "(chance judged over all the diagnosis's tests at once, Benjamini-Hochberg, "
                 "not by each interval alone); adding "
@@ -559,6 +589,45 @@ def _carried_verdict(c: CandidateResult, well: str | None, ctx: VerdictContext) 
         tail = "it was not replayed under the live protocol."
     text = f"The fit-once evidence names {c.effect} ({_fit_once_text(c, well)}), but " + tail
     return _as_named("carried", c, text, num)
+
+
+def _unproven_text(
+    ctx: VerdictContext,
+    live_t: dict[str, Any] | None,
+    outage_t: dict[str, Any] | None,
+) -> str:
+    """For a ``carried`` verdict whose replay lowers an error by :data:`MIN_CHANGE` points
+    or more with a 95 % interval below zero (the test alone), though not beyond chance over
+    the diagnosis's family: the learner does *not* carry it, the evidence is short of
+    proving the gain. Empty otherwise (the learner's change is small, or its interval holds
+    zero: "carried" stands). Seen on a Sachdeva valve field (seed 5905, ``mm`` + ``bayes``):
+    live -0.99 points (-1.72 to -0.46), outage -1.17, q = 0.08 and 0.16, and the verdict said
+    ``bayes`` already carried the valve and adding it would give "not accuracy"."""
+    shown = [
+        (name, t)
+        for name, t in (("live", live_t), ("outage", outage_t))
+        if t is not None
+        and t.get("change") is not None
+        and t["change"] <= -MIN_CHANGE
+        and t.get("high") is not None
+        and t["high"] < 0
+    ]
+    if not shown:
+        return ""
+    parts = [
+        f"the {name} error by {-t['change']:.2f} points (p = {t['p_value']:.2g} for this test "
+        f"alone, q = {t['q_value']:.2g} over the diagnosis's tests)"
+        for name, t in shown
+        if t.get("p_value") is not None and t.get("q_value") is not None
+    ]
+    if not parts:
+        return ""
+    return (
+        f"The replay with {ctx.method} lowers {' and '.join(parts)}: a gain {ctx.method} does "
+        "not carry, but not beyond chance once every test of the diagnosis is counted "
+        "(Benjamini-Hochberg): not offered on this evidence; a diagnosis over more months "
+        "after the split may decide."
+    )
 
 
 def _what_adding_gives(ctx: VerdictContext) -> str:

@@ -24,7 +24,7 @@ import pandas as pd
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from vfm_core.jobs.diagnose_rivals import why_explained
+from vfm_core.jobs.diagnose_rivals import trend_proxy_text, why_explained
 from vfm_core.jobs.diagnose_stats import CLIP, UNITS, detrend, driver_values
 from vfm_core.jobs.study import mape
 from vfm_core.reporting import page
@@ -405,6 +405,7 @@ def build_report(diag: Diagnosis, path: Path) -> Path:
             },
             "candidates": diag.candidates,
             "why_explained": why_explained,
+            "trend_proxy_text": trend_proxy_text,
             "parameters": _parameter_rows(diag),
             "drivers": diag.drivers,
             "top_drivers": top_drivers,
